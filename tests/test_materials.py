@@ -1,0 +1,284 @@
+"""Material library: derivatives, eigensystems, reference values (docs/shared reference sec. 2, 4)."""
+
+import numpy as np
+import pytest
+
+from warpfem.materials import (
+    COROTATED,
+    LINEAR,
+    MATERIALS,
+    STABLE_NEO_HOOKEAN,
+    STVK,
+    Corotated,
+    LinearElastic,
+    StableNeoHookean,
+    StVenantKirchhoff,
+    evaluate,
+    make_material,
+)
+
+# mu_L = 1, lambda_L = 10  <=>  nu = lambda/(2(lambda+mu)) = 5/11, E = mu(3 lambda + 2 mu)/(lambda + mu) = 32/11
+E_REF, NU_REF = 32.0 / 11.0, 5.0 / 11.0
+NAMES = list(MATERIALS)
+
+
+def mat(name, E=E_REF, nu=NU_REF):
+    return make_material(name, youngs_modulus=E, poisson_ratio=nu, density=1000.0)
+
+
+def sample_F():
+    """Seeded well-conditioned F (det > 0) plus inverted ones (det < 0)."""
+    rng = np.random.default_rng(12345)
+    Fs = []
+    while len(Fs) < 12:
+        F = np.eye(3) + 0.35 * rng.normal(size=(3, 3))
+        if len(Fs) >= 6:
+            F = F @ np.diag([1.0, 1.0, -1.0])  # reflect: det < 0
+        s = np.linalg.svd(F, compute_uv=False)
+        if s.min() > 0.3 and np.min(np.diff(s[::-1])) > 0.05:
+            Fs.append(F)
+    F = np.array(Fs)
+    assert np.sum(np.linalg.det(F) < 0) == 6
+    return F
+
+
+def rotation(axis, angle):
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
+def rel_err(a, b):
+    return np.max(np.abs(a - b)) / np.max(np.abs(b))
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_pk1_matches_fd_of_psi(name):
+    m = mat(name)
+    F = sample_F()
+    h = 1e-6
+    E9 = np.eye(9).reshape(9, 3, 3)
+    Fp = (F[:, None] + h * E9[None]).reshape(-1, 3, 3)
+    Fm = (F[:, None] - h * E9[None]).reshape(-1, 3, 3)
+    fd = ((m.psi(Fp) - m.psi(Fm)) / (2 * h)).reshape(-1, 3, 3)
+    P = m.pk1(F)
+    for n in range(len(F)):
+        assert rel_err(fd[n], P[n]) < 1e-6, (name, n)
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_hessian_matches_fd_of_pk1(name):
+    m = mat(name)
+    F = sample_F()
+    h = 1e-6
+    E9 = np.eye(9).reshape(9, 3, 3)
+    Fp = (F[:, None] + h * E9[None]).reshape(-1, 3, 3)
+    Fm = (F[:, None] - h * E9[None]).reshape(-1, 3, 3)
+    # column c of H = d vec(P) / d vec(F)_c
+    fd = ((m.pk1(Fp) - m.pk1(Fm)) / (2 * h)).reshape(len(F), 9, 9).transpose(0, 2, 1)
+    H = m.hessian(F)
+    for n in range(len(F)):
+        assert rel_err(fd[n], H[n]) < 1e-6, (name, n)
+        assert np.allclose(H[n], H[n].T, rtol=0, atol=1e-12 * np.abs(H[n]).max())
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_projection_is_numerical_eigen_clamp(name):
+    m = mat(name)
+    F = np.concatenate([sample_F(), 0.4 * sample_F()[:3]])  # compressed ones have negative modes
+    r = evaluate(m.kind, F, m.mu, m.lam, outputs=("hessian", "hessian_projected"))
+    H, Hp = r["hessian"], r["hessian_projected"]
+    clamped = 0
+    for n in range(len(F)):
+        w, Q = np.linalg.eigh(H[n])
+        clamped += np.sum(w < 0)
+        ref = (Q * np.maximum(w, 0.0)) @ Q.T
+        scale = np.abs(H[n]).max()
+        assert np.max(np.abs(Hp[n] - ref)) < 1e-10 * scale, (name, n)
+        assert np.linalg.eigvalsh(Hp[n]).min() > -1e-10 * scale
+    if name != "linear":
+        assert clamped > 0  # the test actually exercised the clamp
+
+
+def test_stable_neo_hookean_hessian_at_identity():
+    m = mat("stable_neo_hookean")
+    mu_L, lam_L = 1.0, 10.0
+    assert np.isclose(m.mu_lame, mu_L) and np.isclose(m.lam_lame, lam_L)
+    assert np.isclose(m.mu, mu_L) and np.isclose(m.lam, lam_L + mu_L)
+    w = np.sort(np.linalg.eigvalsh(m.hessian(np.eye(3))))
+    expected = np.sort([0.0] * 3 + [2 * m.mu] * 5 + [3 * m.lam - m.mu])
+    assert np.allclose(w, expected, rtol=0, atol=1e-12)
+    assert np.isclose(3 * m.lam - m.mu, 3 * lam_L + 2 * mu_L)
+    assert np.allclose(m.pk1(np.eye(3)), 0.0, atol=1e-14)
+
+
+@pytest.mark.parametrize("nu", [0.0, 0.3, 0.49, -0.5])
+def test_all_materials_agree_with_linear_at_identity(nu):
+    E = 7.0
+    H_lin = mat("linear", E, nu).hessian(np.eye(3))
+    mu = E / (2 * (1 + nu))
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu))
+    # closed form: dP_ij/dF_kl = mu (d_ik d_jl + d_il d_jk) + lam d_ij d_kl
+    d = np.eye(3)
+    ref = (mu * (np.einsum("ik,jl->ijkl", d, d) + np.einsum("il,jk->ijkl", d, d)) + lam * np.einsum("ij,kl->ijkl", d, d)).reshape(9, 9)
+    assert np.allclose(H_lin, ref, rtol=0, atol=1e-12 * E)
+    for name in NAMES:
+        m = mat(name, E, nu)
+        assert np.allclose(m.hessian(np.eye(3)), ref, rtol=0, atol=1e-12 * ref.max()), name
+        assert np.allclose(m.pk1(np.eye(3)), 0.0, atol=1e-14), name
+
+
+def test_rigid_rotation():
+    R = rotation([1, 1, 1], np.pi / 2)
+    assert np.isclose(np.linalg.det(R), 1.0)
+    for name in ("stvk", "corotated", "stable_neo_hookean"):
+        m = mat(name)
+        assert np.max(np.abs(m.pk1(R))) < 1e-13, name
+        # zero energy at rest and under any rotation (SNH's constant is shifted so psi(I) = 0)
+        assert abs(m.psi(np.eye(3))) < 1e-13 and abs(m.psi(R)) < 1e-13, name
+    assert np.max(np.abs(mat("linear").pk1(R))) > 0.1
+
+
+@pytest.mark.parametrize(
+    "a,b_tab,P11_tab",
+    [
+        (0.5, 1.348400, -3.136364),
+        (0.8, 1.105256, -0.726989),
+        (1.2, 0.919761, 0.495034),
+        (1.5, 0.828775, 1.042088),
+        (2.0, 0.722999, 1.738636),
+    ],
+)
+def test_stable_neo_hookean_uniaxial_reference(a, b_tab, P11_tab):
+    m = mat("stable_neo_hookean")
+    mu, lam = m.mu, m.lam
+    alpha = 1 + mu / lam
+    b = np.sqrt((alpha * lam * a - mu) / (lam * a * a))
+    assert abs(b - b_tab) < 6e-7
+    P = m.pk1(np.diag([a, b, b]))
+    assert abs(P[0, 0] - P11_tab) < 1e-5
+    assert abs(P[1, 1]) < 1e-12 and abs(P[2, 2]) < 1e-12
+    assert np.allclose(P - np.diag(np.diag(P)), 0.0, atol=1e-14)
+    # with the tabulated (rounded) b, the lateral stress is ~ dP22/db * 5e-7
+    Pt = m.pk1(np.diag([a, b_tab, b_tab]))
+    assert abs(Pt[0, 0] - P11_tab) < 3e-5 and abs(Pt[1, 1]) < 3e-5
+
+
+@pytest.mark.parametrize("a,P11_tab", [(0.5, -0.545455), (1.2, 0.768), (1.5, 2.727273)])
+def test_stvk_uniaxial_reference(a, P11_tab):
+    m = mat("stvk")
+    E, nu = m.youngs_modulus, m.poisson_ratio
+    # S22 = 0  =>  E22 = -nu E11  =>  b^2 = 1 - nu (a^2 - 1); then P11 = a S11 = E a (a^2 - 1)/2
+    b = np.sqrt(1 - nu * (a * a - 1))
+    P = m.pk1(np.diag([a, b, b]))
+    assert np.isclose(P[0, 0], E * a * (a * a - 1) / 2, rtol=1e-12)
+    assert abs(P[0, 0] - P11_tab) < 1e-6
+    assert abs(P[1, 1]) < 1e-12 and abs(P[2, 2]) < 1e-12
+
+
+def test_closed_forms_numpy():
+    F = sample_F()
+    mu, lam = 1.0, 10.0
+    I = np.eye(3)
+    lin, stvk, cor, snh = mat("linear"), mat("stvk"), mat("corotated"), mat("stable_neo_hookean")
+    for Fn, P_lin, P_stvk, psi_cor, P_snh in zip(F, lin.pk1(F), stvk.pk1(F), cor.psi(F), snh.pk1(F)):
+        eps = 0.5 * (Fn + Fn.T) - I
+        assert np.allclose(P_lin, 2 * mu * eps + lam * np.trace(eps) * I, atol=1e-12)
+        Eg = 0.5 * (Fn.T @ Fn - I)
+        assert np.allclose(P_stvk, Fn @ (2 * mu * Eg + lam * np.trace(Eg) * I), atol=1e-12)
+        J = np.linalg.det(Fn)
+        # closest rotation (det +1) via numpy SVD with reflection handled
+        U, s, Vt = np.linalg.svd(Fn)
+        D = np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))])
+        R = U @ D @ Vt
+        assert np.isclose(psi_cor, mu * np.sum((Fn - R) ** 2) + lam / 2 * (J - 1) ** 2, rtol=1e-12)
+        mu_s, lam_s = 1.0, 11.0
+        alpha = 1 + mu_s / lam_s
+        assert np.allclose(P_snh, mu_s * Fn + lam_s * (J - alpha) * J * np.linalg.inv(Fn).T, atol=1e-12)
+
+
+def test_float32_agrees_with_float64():
+    F = sample_F()
+    for name in NAMES:
+        m = mat(name)
+        r64 = evaluate(m.kind, F, m.mu, m.lam, dtype=np.float64)
+        r32 = evaluate(m.kind, F, m.mu, m.lam, dtype=np.float32)
+        for key in ("psi", "pk1", "hessian", "hessian_projected"):
+            assert r32[key].dtype == np.float32 and r64[key].dtype == np.float64
+            for n in range(len(F)):
+                assert rel_err(r32[key][n].astype(np.float64), r64[key][n]) < 1e-4, (name, key, n)
+
+
+def test_kinds_and_classes():
+    assert (LINEAR, STVK, COROTATED, STABLE_NEO_HOOKEAN) == (0, 1, 2, 3)
+    for name, cls, kind in [
+        ("linear", LinearElastic, LINEAR),
+        ("stvk", StVenantKirchhoff, STVK),
+        ("corotated", Corotated, COROTATED),
+        ("stable_neo_hookean", StableNeoHookean, STABLE_NEO_HOOKEAN),
+    ]:
+        m = make_material(name, youngs_modulus=1e5, poisson_ratio=0.3, density=1100.0)
+        assert type(m) is cls and m.kind == kind and m.name == name
+        assert m.density == 1100.0 and m.youngs_modulus == 1e5 and m.poisson_ratio == 0.3
+        assert np.isclose(m.mu_lame, 1e5 / 2.6) and np.isclose(m.lam_lame, 1e5 * 0.3 / (1.3 * 0.4))
+    with pytest.raises(ValueError, match="unknown material"):
+        make_material("rubber", youngs_modulus=1.0, poisson_ratio=0.3, density=1.0)
+    with pytest.raises(TypeError):
+        StableNeoHookean(1.0, 0.3, 1.0)  # keyword-only
+
+
+@pytest.mark.parametrize(
+    "kw,param",
+    [
+        (dict(youngs_modulus=0.0), "youngs_modulus"),
+        (dict(youngs_modulus=-3.0), "youngs_modulus"),
+        (dict(youngs_modulus=float("nan")), "youngs_modulus"),
+        (dict(poisson_ratio=0.5), "poisson_ratio"),
+        (dict(poisson_ratio=-1.0), "poisson_ratio"),
+        (dict(poisson_ratio=0.7), "poisson_ratio"),
+        (dict(density=0.0), "density"),
+        (dict(density=-1.0), "density"),
+        (dict(density="heavy"), "density"),
+    ],
+)
+def test_invalid_parameters(kw, param):
+    args = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    args.update(kw)
+    for cls in (LinearElastic, StVenantKirchhoff, Corotated, StableNeoHookean):
+        with pytest.raises(ValueError, match=param) as exc:
+            cls(**args)
+        assert repr(args[param])[:4] in str(exc.value)
+
+
+def test_evaluate_rejects_bad_input():
+    m = mat("stvk")
+    with pytest.raises(ValueError, match="shape"):
+        m.pk1(np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="non-finite"):
+        m.psi(np.full((1, 3, 3), np.nan))
+
+
+def test_degenerate_F_stays_finite():
+    # F = 0, flattened, and s1 + s2 = 0 (corotated twist denominator guard), repeated singular values
+    F = np.array([np.zeros((3, 3)), np.diag([1.0, 1.0, 0.0]), np.diag([1.0, 1.0, -1.0]), 2.0 * np.eye(3), -np.eye(3)])
+    for name in NAMES:
+        m = mat(name)
+        r = evaluate(m.kind, F, m.mu, m.lam)
+        for key, v in r.items():
+            assert np.all(np.isfinite(v)), (name, key)
+        for n in range(len(F)):
+            assert np.linalg.eigvalsh(r["hessian_projected"][n]).min() > -1e-9 * np.abs(r["hessian"][n]).max()
+    # repeated singular values: Hessian still matches FD (closed forms have no 1/(s_i - s_j))
+    h = 1e-6
+    E9 = np.eye(9).reshape(9, 3, 3)
+    F0 = rotation([1, 2, 3], 0.7) @ np.diag([1.3, 1.3, 0.8])
+    for name in NAMES:
+        m = mat(name)
+        fd = np.array([(m.pk1(F0 + h * E9[c]) - m.pk1(F0 - h * E9[c])).ravel() / (2 * h) for c in range(9)]).T
+        assert rel_err(fd, m.hessian(F0)) < 1e-6, name
+
+
+def test_unknown_kind_gives_zero():
+    r = evaluate(7, np.eye(3) * 1.1, 1.0, 1.0)
+    for v in r.values():
+        assert np.all(v == 0.0)

@@ -1,0 +1,46 @@
+"""warpfem: deformable-body finite elements with NVIDIA Warp kernels (CPU and CUDA).
+
+Public API (one import path per symbol)::
+
+    import warpfem as wf
+    mesh = wf.box_tet_mesh(size=(10, 1, 1), cells=(20, 2, 2))
+    material = wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    model = wf.Model(mesh, material, gravity=(0.0, 0.0, -9.81))
+    model.fix(wf.select_vertices_in_box(mesh, (-1, -1, -1), (1e-6, 2, 2)))
+    sim = wf.Simulator(model, device="cpu", precision="float64", dt=1 / 60)
+    stats = sim.step()
+"""
+
+from warpfem.materials import (
+    Corotated,
+    LinearElastic,
+    StableNeoHookean,
+    StVenantKirchhoff,
+    make_material,
+)
+from warpfem.mesh import MeshError, TetMesh, box_tet_mesh, load_mesh, save_mesh, select_vertices_in_box
+from warpfem.model import Model
+from warpfem.simulator import Simulator
+from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Corotated",
+    "LinearElastic",
+    "MeshError",
+    "Model",
+    "NewtonOptions",
+    "Simulator",
+    "SolveFailed",
+    "SolveStats",
+    "StVenantKirchhoff",
+    "StableNeoHookean",
+    "TetMesh",
+    "box_tet_mesh",
+    "load_mesh",
+    "make_material",
+    "save_mesh",
+    "select_vertices_in_box",
+    "__version__",
+]

@@ -1,0 +1,165 @@
+"""Vector and block-sparse kernels for the solvers, generic over float32/float64.
+
+Fixed degrees of freedom are a per-vertex mask (vec3, 1 = free, 0 = fixed). Matrices are assembled
+as if nothing were fixed; the masked product skips fixed rows and columns and acts as the identity
+on fixed components (OpenTissue's "skip the fixed columns", seed 001), so vertices can be fixed and
+released between solves without touching the sparsity pattern.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from warpfem.kernels.generic import both_precisions
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def cw_mul(a: Any, b: Any):
+    return wp.cw_mul(a, b)
+
+
+@both_precisions(values="m[]", mask="v[]", x="v[]", y="v[]")
+@wp.kernel
+def bsr_masked_mv_kernel(
+    offsets: wp.array(dtype=wp.int32),
+    columns: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=Any),
+    mask: wp.array(dtype=Any),
+    x: wp.array(dtype=Any),
+    y: wp.array(dtype=Any),
+    identity_on_fixed: int,
+):
+    """y = P A P x (+ (I - P) x when identity_on_fixed), P = diag(mask)."""
+    i = wp.tid()
+    acc = x[i] - x[i]
+    for p in range(offsets[i], offsets[i + 1]):
+        j = columns[p]
+        acc += values[p] * cw_mul(mask[j], x[j])
+    r = cw_mul(mask[i], acc)
+    if identity_on_fixed != 0:
+        r += x[i] - cw_mul(mask[i], x[i])
+    y[i] = r
+
+
+@both_precisions(values="m[]", x="v[]", alpha="s", y="v[]")
+@wp.kernel
+def bsr_mv_kernel(
+    offsets: wp.array(dtype=wp.int32),
+    columns: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=Any),
+    x: wp.array(dtype=Any),
+    alpha: Any,
+    y: wp.array(dtype=Any),
+):
+    """y += alpha A x (no mask)."""
+    i = wp.tid()
+    acc = x[i] - x[i]
+    for p in range(offsets[i], offsets[i + 1]):
+        acc += values[p] * x[columns[p]]
+    y[i] = y[i] + alpha * acc
+
+
+@both_precisions(values="m[]", mask="v[]", inv_diag="m[]")
+@wp.kernel
+def block_jacobi_setup_kernel(
+    offsets: wp.array(dtype=wp.int32),
+    columns: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=Any),
+    mask: wp.array(dtype=Any),
+    inv_diag: wp.array(dtype=Any),
+):
+    """inv_diag[i] = (P_i A_ii P_i + I - P_i)^-1, the block-Jacobi preconditioner of the masked system."""
+    i = wp.tid()
+    D = values[offsets[i]] - values[offsets[i]]
+    for p in range(offsets[i], offsets[i + 1]):
+        if columns[p] == i:
+            D = values[p]
+    m = mask[i]
+    S = wp.diag(m) * D * wp.diag(m)
+    one = type(m[0])(1.0)
+    S += wp.diag(type(m)(one, one, one) - m)
+    if wp.abs(wp.determinant(S)) > type(m[0])(0.0):
+        inv_diag[i] = wp.inverse(S)
+    else:
+        inv_diag[i] = wp.diag(type(m)(one, one, one))
+
+
+@both_precisions(M="m[]", x="v[]", y="v[]")
+@wp.kernel
+def block_apply_kernel(M: wp.array(dtype=Any), x: wp.array(dtype=Any), y: wp.array(dtype=Any)):
+    i = wp.tid()
+    y[i] = M[i] * x[i]
+
+
+@both_precisions(a="v[]", b="v[]")
+@wp.kernel
+def dot_kernel(a: wp.array(dtype=Any), b: wp.array(dtype=Any), out: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(out, 0, wp.float64(wp.dot(a[i], b[i])))
+
+
+@both_precisions(alpha="s", x="v[]", y="v[]")
+@wp.kernel
+def axpy_kernel(alpha: Any, x: wp.array(dtype=Any), y: wp.array(dtype=Any)):
+    """y += alpha x."""
+    i = wp.tid()
+    y[i] = y[i] + alpha * x[i]
+
+
+@both_precisions(x="v[]", beta="s", y="v[]")
+@wp.kernel
+def xpby_kernel(x: wp.array(dtype=Any), beta: Any, y: wp.array(dtype=Any)):
+    """y = x + beta y."""
+    i = wp.tid()
+    y[i] = x[i] + beta * y[i]
+
+
+@both_precisions(a="s", x="v[]", b="s", y="v[]", out="v[]")
+@wp.kernel
+def lincomb_kernel(a: Any, x: wp.array(dtype=Any), b: Any, y: wp.array(dtype=Any), out: wp.array(dtype=Any)):
+    """out = a x + b y."""
+    i = wp.tid()
+    out[i] = a * x[i] + b * y[i]
+
+
+@both_precisions(mask="v[]", x="v[]")
+@wp.kernel
+def mask_kernel(mask: wp.array(dtype=Any), x: wp.array(dtype=Any)):
+    """x = P x."""
+    i = wp.tid()
+    x[i] = cw_mul(mask[i], x[i])
+
+
+@both_precisions(mask="v[]", free="v[]", fixed="v[]", out="v[]")
+@wp.kernel
+def select_kernel(mask: wp.array(dtype=Any), free: wp.array(dtype=Any), fixed: wp.array(dtype=Any), out: wp.array(dtype=Any)):
+    """out = P free + (I - P) fixed."""
+    i = wp.tid()
+    m = mask[i]
+    out[i] = cw_mul(m, free[i]) + fixed[i] - cw_mul(m, fixed[i])
+
+
+@wp.kernel
+def scale_copy_kernel(src: wp.array(dtype=Any), a: Any, dst: wp.array(dtype=Any)):
+    """dst = a src (vec3 or mat33 arrays)."""
+    i = wp.tid()
+    dst[i] = a * src[i]
+
+
+both_precisions(src="v[]", a="s", dst="v[]")(scale_copy_kernel)
+both_precisions(src="m[]", a="s", dst="m[]")(scale_copy_kernel)
+
+
+@wp.kernel
+def add_scaled_kernel(src: wp.array(dtype=Any), a: Any, dst: wp.array(dtype=Any)):
+    """dst += a src (vec3 or mat33 arrays)."""
+    i = wp.tid()
+    dst[i] = dst[i] + a * src[i]
+
+
+both_precisions(src="v[]", a="s", dst="v[]")(add_scaled_kernel)
+both_precisions(src="m[]", a="s", dst="m[]")(add_scaled_kernel)

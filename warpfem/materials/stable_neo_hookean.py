@@ -1,0 +1,86 @@
+"""Stable neo-Hookean material without the log term (Smith, de Goes, Kim 2018, "Stable
+Neo-Hookean flesh simulation", ACM TOG 37(2), sec. 3.4, eq. 14-16).
+
+    psi   = mu/2 (I_C - 3) + lambda/2 (J - alpha)^2,   I_C = tr(F^T F), J = det F
+    alpha = 1 + mu/lambda
+    P     = mu F + lambda (J - alpha) cof(F),           cof(F) = dJ/dF
+
+Reparametrisation (sec. 3.4) so that the small-strain moduli are those of E, nu: with the Lame
+values mu_L = E/(2(1+nu)), lambda_L = E nu/((1+nu)(1-2nu)) the kernel parameters are
+
+    mu = mu_L,   lambda = lambda_L + mu_L = E/(2(1+nu)(1-2nu))  (> 0 for -1 < nu < 0.5)
+
+(the class attributes ``mu`` and ``lam`` hold these). Then P(I) = 0, the Hessian at F = I equals
+the linear-elastic one, and psi(I) = mu^2/(2 lambda) (a constant offset). The energy is smooth
+through inversion (det F < 0) and rotation invariant.
+
+In the signed singular values (Smith, de Goes, Kim 2019, sec. 7.4):
+
+    Psi_ii  = mu + lambda (J/s_i)^2 = mu + lambda (s_j s_k)^2             (scaling block A)
+    Psi_ij  = lambda (J/s_i)(J/s_j) + lambda (J - alpha) s_k               (i != j)
+    flip_k  = mu - lambda (J - alpha) s_k
+    twist_k = mu + lambda (J - alpha) s_k
+
+At F = I: twist = 0 (x3), flip = 2 mu (x3), scaling 2 mu (x2) and 3 lambda - mu = 3 lambda_L + 2 mu_L.
+"""
+
+from typing import Any
+
+import warp as wp
+
+from .base import STABLE_NEO_HOOKEAN, Material
+from .eigensystem import cofactor, pair_axes
+
+__all__ = ["StableNeoHookean", "snh_psi", "snh_pk1", "snh_eigen"]
+
+
+@wp.func
+def snh_psi(F: Any, mu: Any, lam: Any):
+    """psi = mu/2 (tr(F^T F) - 3) + lambda/2 (J - alpha)^2 - mu^2 / (2 lambda), alpha = 1 + mu/lambda.
+
+    The constant -mu^2/(2 lambda) = -lambda/2 (1 - alpha)^2 makes psi(I) = 0 (rest energy zero,
+    so reported elastic energies are meaningful); it changes neither P nor the Hessian.
+    """
+    alpha = F.dtype(1.0) + mu / lam
+    r = wp.determinant(F) - alpha
+    half = F.dtype(0.5)
+    return half * mu * (wp.ddot(F, F) - F.dtype(3.0)) + half * lam * r * r - half * mu * mu / lam
+
+
+@wp.func
+def snh_pk1(F: Any, mu: Any, lam: Any):
+    """P = mu F + lambda (J - alpha) cof(F)."""
+    alpha = F.dtype(1.0) + mu / lam
+    return mu * F + lam * (wp.determinant(F) - alpha) * cofactor(F)
+
+
+@wp.func
+def snh_eigen(s: Any, mu: Any, lam: Any):
+    """(A, twist, flip) of the stable neo-Hookean Hessian at signed singular values s."""
+    alpha = type(mu)(1.0) + mu / lam
+    J = s[0] * s[1] * s[2]
+    r = lam * (J - alpha)
+    A = type(wp.outer(s, s))()
+    twist = wp.vector(length=3, dtype=type(mu))
+    flip = wp.vector(length=3, dtype=type(mu))
+    for k in range(3):
+        i, j = pair_axes(k)
+        A[k, k] = mu + lam * (s[i] * s[j]) * (s[i] * s[j])
+        off = lam * s[i] * s[j] * s[k] * s[k] + r * s[k]
+        A[i, j] = off
+        A[j, i] = off
+        flip[k] = mu - r * s[k]
+        twist[k] = mu + r * s[k]
+    return A, twist, flip
+
+
+class StableNeoHookean(Material):
+    """Stable neo-Hookean without log term (Smith et al. 2018, sec. 3.4), reparametrised:
+    ``mu = mu_L``, ``lam = lambda_L + mu_L``."""
+
+    kind = STABLE_NEO_HOOKEAN
+    name = "stable_neo_hookean"
+
+    @staticmethod
+    def kernel_parameters(mu_lame: float, lam_lame: float) -> tuple[float, float]:
+        return mu_lame, lam_lame + mu_lame

@@ -1,0 +1,101 @@
+"""The physical model: a mesh, a material, boundary conditions and loads (device independent)."""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+
+from warpfem.elements import precompute_quadrature
+
+_COMPONENTS = {"x": 0, "y": 1, "z": 2}
+
+
+def parse_components(components: str) -> list[int]:
+    """'xyz', 'z', 'xz', ... -> axis indices; raises ValueError for anything else."""
+    if not isinstance(components, str) or not components or any(c not in _COMPONENTS for c in components) \
+            or len(set(components)) != len(components):
+        raise ValueError(f"components must be a non-empty subset of 'xyz' without repeats, got {components!r}")
+    return sorted(_COMPONENTS[c] for c in components)
+
+
+class Model:
+    """A deformable body ready to simulate: mesh + material + fixed DOFs + loads.
+
+    Args:
+        mesh: a volume mesh (``TetMesh`` or any mesh with ``vertices``, ``elements`` and
+            ``element_type``), positions in m.
+        material: a material from ``warpfem.materials`` (carries the density, kg/m^3).
+        gravity: acceleration (m/s^2), applied as lumped-mass body force (the total equals
+            rho g V exactly for either mass matrix).
+        mass_matrix: "lumped" (diagonal, row sums) or "consistent" (seed 004,
+            rho V / 20 (1 + delta_ij) per tet).
+    """
+
+    def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped"):
+        if mass_matrix not in ("lumped", "consistent"):
+            raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
+        for attr in ("kind", "mu", "lam", "density"):
+            if not hasattr(material, attr):
+                raise TypeError(f"material must be a warpfem material (missing {attr!r}), got {type(material).__name__}")
+        g = np.asarray(gravity, dtype=np.float64)
+        if g.shape != (3,) or not np.all(np.isfinite(g)):
+            raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
+        self.mesh = mesh
+        self.material = material
+        self.gravity = g
+        self.mass_matrix_kind = mass_matrix
+        self.rest_positions = np.asarray(mesh.vertices, dtype=np.float64)
+        self.num_vertices = len(self.rest_positions)
+        self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, getattr(mesh, "element_type", "tet4"))
+        self.lumped_mass, self.mass = self._mass_matrices()
+        self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
+        self.forces = np.zeros((self.num_vertices, 3))
+
+    # -- rest state -----------------------------------------------------------------------------
+    def _mass_matrices(self):
+        qd = self.quadrature
+        rho = self.material.density
+        if qd.element_type == "tet4":
+            from warpfem.mesh import consistent_mass, lumped_mass
+
+            lumped = lumped_mass(self.mesh, rho)
+            M = consistent_mass(self.mesh, rho) if self.mass_matrix_kind == "consistent" else scipy.sparse.diags(lumped)
+            return lumped, scipy.sparse.csr_matrix(M)
+        from warpfem.elements import mass_matrices  # higher-order elements
+
+        return mass_matrices(self, rho)
+
+    @property
+    def total_mass(self) -> float:
+        """kg."""
+        return float(self.lumped_mass.sum())
+
+    def external_forces(self) -> np.ndarray:
+        """Constant external force per vertex (N): gravity on the lumped mass plus applied forces."""
+        return self.lumped_mass[:, None] * self.gravity[None, :] + self.forces
+
+    # -- boundary conditions and loads -----------------------------------------------------------
+    def _indices(self, indices) -> np.ndarray:
+        idx = np.atleast_1d(np.asarray(indices))
+        if idx.size and (idx.dtype.kind not in "iu"):
+            raise TypeError(f"vertex indices must be integers, got dtype {idx.dtype}")
+        idx = idx.astype(np.int64).ravel()
+        bad = idx[(idx < 0) | (idx >= self.num_vertices)]
+        if bad.size:
+            raise IndexError(f"vertex index {int(bad[0])} out of range [0, {self.num_vertices}) ({bad.size} bad)")
+        return idx
+
+    def fix(self, indices, components: str = "xyz") -> None:
+        """Fix the given displacement components of vertices (Dirichlet)."""
+        self.fixed[np.ix_(self._indices(indices), parse_components(components))] = True
+
+    def release(self, indices, components: str = "xyz") -> None:
+        """Free previously fixed components."""
+        self.fixed[np.ix_(self._indices(indices), parse_components(components))] = False
+
+    def add_force(self, indices, force) -> None:
+        """Add a constant force (N) to each given vertex."""
+        f = np.asarray(force, dtype=np.float64)
+        if f.shape != (3,) or not np.all(np.isfinite(f)):
+            raise ValueError(f"force must be 3 finite numbers, got {force!r}")
+        np.add.at(self.forces, self._indices(indices), f)
