@@ -79,12 +79,28 @@ class _Potential:
         return E, abs(quad) + Vmag + abs(work)
 
     def gradient(self, y, g):
+        """g = P grad E(y); returns the sum of the norms of its terms (the scale of its round-off)."""
         sim = self.sim
         self._quadratic(y, g)
         x = self._x_of(y)
-        wp.launch(FK.qp_force_kernel, dim=sim._qp_count, inputs=[x, *sim._qp_args, sim._s(-self.s), g], device=sim.device)
+        f = sim._tmp3
+        f.zero_()
+        wp.launch(FK.qp_force_kernel, dim=sim._qp_count, inputs=[x, *sim._qp_args, sim._s(-self.s), f], device=sim.device)
+        dot = sim._pcg.dot
+        fa = sim._tmp2
+        fa.zero_()
+        wp.launch(FK.qp_force_abs_kernel, dim=sim._qp_count, inputs=[x, *sim._qp_args, sim._s(self.s), fa], device=sim.device)
+        magnitude = np.sqrt(dot(g, g)) + np.sqrt(dot(fa, fa)) + abs(self.s * self.fext_scale) * sim._fext_norm
+        wp.launch(LK.add_scaled_kernel, dim=self.n, inputs=[f, sim._s(1.0), g], device=sim.device)
         wp.launch(LK.add_scaled_kernel, dim=self.n, inputs=[sim._fext, sim._s(-self.s * self.fext_scale), g], device=sim.device)
         wp.launch(LK.mask_kernel, dim=self.n, inputs=[self.mask, g], device=sim.device)
+        return magnitude
+
+    def resolution_scale(self, y):
+        ymax = float(np.abs(y.numpy()).max())
+        if self.s == 0.0:
+            return ymax
+        return ymax + float(np.abs(self._x_of(y).numpy()).max()) / abs(self.s)
 
     def assemble_hessian(self, y):
         sim = self.sim
@@ -170,7 +186,9 @@ class Simulator:
     def sync_model(self):
         """Upload the model's fixed mask and external forces (call after changing them)."""
         self._mask = self._vec_array((~self.model.fixed).astype(np.float64))
-        self._fext = self._vec_array(self.model.external_forces())
+        fext = self.model.external_forces()
+        self._fext = self._vec_array(fext)
+        self._fext_norm = float(np.linalg.norm(fext))
 
     def fix(self, indices, components="xyz"):
         """Fix vertices at their current positions from the next step on (no re-assembly)."""

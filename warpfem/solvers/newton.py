@@ -96,7 +96,8 @@ class SolveFailed(RuntimeError):
 def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
     """Minimise ``problem``'s potential over ``y`` (device array, updated in place).
 
-    ``problem`` provides ``energy(y) -> (E, magnitude)``, ``gradient(y, g)`` (g masked),
+    ``problem`` provides ``energy(y) -> (E, magnitude)``, ``gradient(y, g) -> magnitude`` (g masked),
+    ``resolution_scale(y)`` (max |y| + max |x| / s, the scale of y's round-off),
     ``assemble_hessian(y) -> values``, ``mask`` and ``n``; ``pcg`` a ``BlockJacobiPCG``.
     """
     st = SolveStats()
@@ -109,13 +110,15 @@ def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
     eps_mach = float(np.finfo(np.float32 if s == wp.float32 else np.float64).eps)
 
     E, mag = problem.energy(y)
-    problem.gradient(y, g)
+    gmag = problem.gradient(y, g)
     gnorm0 = np.sqrt(pcg.dot(g, g))
+    # Below this the gradient is round-off of its own terms: no precision can reduce it further.
+    floor_factor = 64.0 * eps_mach
     st.energy, st.gradient_norm = E, gnorm0
     if not (np.isfinite(E) and np.isfinite(gnorm0)):
         st.reason = "non-finite energy or gradient at the start"
         return st
-    if gnorm0 <= opts.atol or gnorm0 == 0.0:
+    if gnorm0 <= opts.atol or gnorm0 <= floor_factor * gmag:
         st.converged, st.reason = True, "already at equilibrium"
         return st
     gnorm = gnorm0
@@ -131,6 +134,12 @@ def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
             if not (gd < 0.0):
                 st.reason = "no descent direction"
                 break
+        # A Newton step below the resolution of the unknowns (and of x = xb + s y) in this precision
+        # cannot be taken: the state is as converged as the precision allows.
+        if np.abs(d.numpy()).max() <= 8.0 * eps_mach * problem.resolution_scale(y):
+            st.converged = True
+            st.reason = "at the precision limit (Newton step below the resolution of the positions)"
+            break
         alpha, accepted = 1.0, False
         noise = 16.0 * eps_mach * mag
         for _ls in range(opts.max_line_search):
@@ -142,11 +151,14 @@ def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
             alpha *= 0.5
             st.line_search_steps += 1
         if not accepted:
-            st.reason = "line search could not decrease the energy"
+            if gnorm <= 1e3 * floor_factor * gmag:
+                st.converged, st.reason = True, "at the precision limit (energy differences below round-off)"
+            else:
+                st.reason = "line search could not decrease the energy"
             break
         wp.copy(y, y_try)
         E, mag = E_try, mag_try
-        problem.gradient(y, g)
+        gmag = problem.gradient(y, g)
         gnorm = np.sqrt(pcg.dot(g, g))
         st.newton_iterations += 1
         st.history.append((E, gnorm, alpha, res.iterations))
@@ -155,6 +167,9 @@ def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
             break
         if gnorm <= opts.tol * gnorm0 or gnorm <= opts.atol:
             st.converged, st.reason = True, "gradient below tolerance"
+            break
+        if gnorm <= floor_factor * gmag:
+            st.converged, st.reason = True, "gradient at the round-off floor of its terms"
             break
     else:
         st.reason = f"reached max_iters={opts.max_iters}"

@@ -1,0 +1,154 @@
+"""Reduced-space (subspace) kernels: cubature force/stiffness and reconstruction (seed 000, Cubica).
+
+The basis U (3n x r) is stored as a 2-d array of vec3, ``U[v, j]`` = the displacement of vertex v
+in column j, so x = X + U q is ``x[v] = X[v] + sum_j U[v, j] q[j]``.
+
+Per cubature element c (element e, weight w_c; ``cub_weight[c] = w_c * vol_e``):
+
+    u_a = sum_j U[n_a, j] q_j                          (gather, O(4 r))
+    F   = I + sum_a u_a (dN_a/dX)^T,   P = P(F)
+    f_a = -cub_weight P dN_a/dX                         (element node forces, N)
+    H_ab = cub_weight * C[dN_a/dX, dN_b/dX]            (element stiffness blocks, N/m)
+    f_r[j]    += sum_a U[n_a, j] . f_a                  (r-vector, atomics)
+    K_r[j, l] += sum_ab U[n_a, j]^T H_ab U[n_b, l]      (r x r, atomics)
+
+Only cubature elements are touched. Two launches: one per element (material evaluation, dim =
+number of cubature points), one per (element, column) pair for the projections (dim = (c, r)), so
+the GPU sees c * r threads.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from warpfem.kernels.generic import PRECISION_TYPES
+from warpfem.materials.dispatch import material_eigensystem, material_pk1, material_psi
+from warpfem.materials.eigensystem import hessian_block
+
+wp.set_module_options({"enable_backward": False})
+
+
+def _both(**roles):
+    """Like ``generic.both_precisions`` with the extra role "v[,]" (2-d array of vec3)."""
+
+    def decorate(kernel):
+        for types in PRECISION_TYPES:
+            arg_types = {}
+            for arg in kernel.adj.args:
+                role = roles.get(arg.label)
+                if role is None:
+                    arg_types[arg.label] = arg.type
+                elif role == "s":
+                    arg_types[arg.label] = types["s"]
+                elif role == "s[,]":
+                    arg_types[arg.label] = wp.array2d(dtype=types["s"])
+                elif role == "v[,]":
+                    arg_types[arg.label] = wp.array2d(dtype=types["v"])
+                else:
+                    arg_types[arg.label] = wp.array(dtype=types[role[0]])
+            wp.overload(kernel, arg_types)
+        return kernel
+
+    return decorate
+
+
+@wp.func
+def _gather(U: wp.array2d(dtype=Any), q: wp.array(dtype=Any), node: int):
+    u = U[node, 0] * q[0]
+    for j in range(1, U.shape[1]):
+        u += U[node, j] * q[j]
+    return u
+
+
+@_both(U="v[,]", q="s[]", cub_weight="s[]", dNdX="v[]", mu="s", lam="s", energy_out="s[]", f_out="v[]", H_out="m[]")
+@wp.kernel
+def cubature_element_kernel(
+    U: wp.array2d(dtype=Any),
+    q: wp.array(dtype=Any),
+    elements: wp.array(dtype=wp.int32),
+    cub_element: wp.array(dtype=wp.int32),
+    cub_weight: wp.array(dtype=Any),
+    dNdX: wp.array(dtype=Any),
+    kind: int,
+    mu: Any,
+    lam: Any,
+    want_hessian: int,
+    project: int,
+    energy_out: wp.array(dtype=Any),
+    f_out: wp.array(dtype=Any),
+    H_out: wp.array(dtype=Any),
+):
+    """Per cubature point: energy w psi (J), node forces f_a (N), stiffness blocks H_ab (N/m).
+
+    Tet4 only (4 nodes, one point per element, so the point index is the element index).
+    """
+    c = wp.tid()
+    e = cub_element[c]
+    g0 = dNdX[e * 4]
+    F = wp.outer(_gather(U, q, elements[e * 4]), g0)
+    for a in range(1, 4):
+        F += wp.outer(_gather(U, q, elements[e * 4 + a]), dNdX[e * 4 + a])
+    one = type(g0[0])(1.0)
+    F = F + wp.diag(type(g0)(one, one, one))
+    w = cub_weight[c]
+    energy_out[c] = w * material_psi(kind, F, mu, lam)
+    P = material_pk1(kind, F, mu, lam)
+    for a in range(4):
+        f_out[c * 4 + a] = -w * (P * dNdX[e * 4 + a])
+    if want_hessian != 0:
+        Us, Vs, Qs, ds, tw, fl = material_eigensystem(kind, F, mu, lam)
+        for a in range(4):
+            ga = dNdX[e * 4 + a]
+            for b in range(4):
+                H_out[c * 16 + a * 4 + b] = w * hessian_block(Us, Vs, Qs, ds, tw, fl, ga, dNdX[e * 4 + b], project)
+
+
+@_both(U="v[,]", f_in="v[]", H_in="m[]", force="s[]", K="s[,]")
+@wp.kernel
+def cubature_project_kernel(
+    U: wp.array2d(dtype=Any),
+    elements: wp.array(dtype=wp.int32),
+    cub_element: wp.array(dtype=wp.int32),
+    f_in: wp.array(dtype=Any),
+    H_in: wp.array(dtype=Any),
+    want_hessian: int,
+    force: wp.array(dtype=Any),
+    K: wp.array2d(dtype=Any),
+):
+    """force[j] += sum_a U[n_a, j] . f_a ;  K[j, l] += sum_b y_b . U[n_b, l], y_b = sum_a H_ab^T U[n_a, j]."""
+    c, j = wp.tid()
+    e = cub_element[c]
+    n0 = elements[e * 4]
+    n1 = elements[e * 4 + 1]
+    n2 = elements[e * 4 + 2]
+    n3 = elements[e * 4 + 3]
+    u0 = U[n0, j]
+    u1 = U[n1, j]
+    u2 = U[n2, j]
+    u3 = U[n3, j]
+    b = c * 4
+    wp.atomic_add(force, j, wp.dot(u0, f_in[b]) + wp.dot(u1, f_in[b + 1]) + wp.dot(u2, f_in[b + 2]) + wp.dot(u3, f_in[b + 3]))
+    if want_hessian != 0:
+        h = c * 16
+        y0 = wp.transpose(H_in[h + 0]) * u0 + wp.transpose(H_in[h + 4]) * u1 + wp.transpose(H_in[h + 8]) * u2 + wp.transpose(H_in[h + 12]) * u3
+        y1 = wp.transpose(H_in[h + 1]) * u0 + wp.transpose(H_in[h + 5]) * u1 + wp.transpose(H_in[h + 9]) * u2 + wp.transpose(H_in[h + 13]) * u3
+        y2 = wp.transpose(H_in[h + 2]) * u0 + wp.transpose(H_in[h + 6]) * u1 + wp.transpose(H_in[h + 10]) * u2 + wp.transpose(H_in[h + 14]) * u3
+        y3 = wp.transpose(H_in[h + 3]) * u0 + wp.transpose(H_in[h + 7]) * u1 + wp.transpose(H_in[h + 11]) * u2 + wp.transpose(H_in[h + 15]) * u3
+        for l in range(U.shape[1]):
+            val = wp.dot(y0, U[n0, l]) + wp.dot(y1, U[n1, l]) + wp.dot(y2, U[n2, l]) + wp.dot(y3, U[n3, l])
+            wp.atomic_add(K, j, l, val)
+
+
+@_both(X="v[]", U="v[,]", q="s[]", x_out="v[]")
+@wp.kernel
+def reconstruct_kernel(
+    X: wp.array(dtype=Any),
+    U: wp.array2d(dtype=Any),
+    q: wp.array(dtype=Any),
+    x_out: wp.array(dtype=Any),
+):
+    """x_out[v] = X[v] + sum_j U[v, j] q[j]: full mesh (U) or render surface (W U, W X), O(r) per point."""
+    v = wp.tid()
+    x_out[v] = X[v] + _gather(U, q, v)

@@ -1,0 +1,345 @@
+"""Stiffness warping: corotational linear FEM with linearly implicit backward Euler (seed 001).
+
+The fast, robust integrator of game and surgical-simulation engines (OpenTissue; Mueller, Dorsey,
+McMillan, Jagnow, Cutler 2002, "Stable real-time deformations"). Each tet keeps its rest linear
+stiffness K_e (from the material's Lame mu_lame, lam_lame); every step the element rotation R_e
+is estimated and the stiffness is "warped" into the current frame:
+
+    f_e(x) = -R_e K_e (R_e^T x - X)  =>  f = -(K' x + f0'),
+    K' = sum_e R_e K_e R_e^T,   f0' = -sum_e R_e K_e X.
+
+Derivation of the step (Rayleigh damping C = alpha M + beta K'). Backward Euler,
+
+    M (v+ - v) = h (f_ext - K' x+ - f0' - C v+),   x+ = x + h v+,
+
+with K', f0', C frozen at the start of the step (the linearly implicit part: R_e is not
+differentiated). Substituting x+ = x + h v+ and v+ = v + dv:
+
+    M dv = h (f_ext - K' x - f0' - h K' (v + dv) - C (v + dv))
+    (M + h C + h^2 K') dv = h (f_ext - K' x - f0' - C v - h K' v),
+    v+ = v + dv,   x+ = x + h v+.
+
+One PCG solve per step (no Newton loop, no line search). Fixed components are prescribed: dv is
+set there so that v+ equals the prescribed velocity (0, or (target - x)/h for ``set_targets``),
+the known columns are moved to the right-hand side and the masked product skips fixed rows and
+columns (OpenTissue's "skip the fixed columns"), so fixing and releasing vertices between steps
+costs nothing and never touches the sparsity pattern.
+
+With every R_e = I (``rotation="identity"``) this is exactly linear elasticity integrated by
+backward Euler (the linear system is the one Newton solves in one iteration). With R_e from the
+polar decomposition it approximates the corotated material: same small-strain response, exactly
+rotation invariant, but the missing dR/dx terms make it a different (non-conservative) model at
+large strain.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+import warp as wp
+
+from warpfem.kernels import linalg as LK
+from warpfem.kernels import warping as WK
+from warpfem.solvers.newton import SolveFailed, SolveStats
+from warpfem.solvers.pcg import BlockJacobiPCG
+from warpfem.solvers.sparse import BlockPattern
+
+__all__ = ["StiffnessWarpingSimulator", "ROTATIONS", "tet_linear_stiffness_blocks"]
+
+_PRECISIONS = {
+    "float32": (wp.float32, wp.vec3, wp.mat33, np.float32),
+    "float64": (wp.float64, wp.vec3d, wp.mat33d, np.float64),
+}
+
+#: rotation estimators: name -> kernel int
+ROTATIONS = {"identity": WK.ROTATION_IDENTITY, "polar": WK.ROTATION_POLAR, "qr": WK.ROTATION_QR}
+
+
+def tet_linear_stiffness_blocks(dNdX: np.ndarray, volumes: np.ndarray, mu: float, lam: float) -> np.ndarray:
+    """Rest linear stiffness of each tet as 3x3 blocks, (m, 4, 4, 3, 3), N/m (float64).
+
+    For psi = mu eps:eps + lam/2 tr(eps)^2 and shape gradients g_a (1/m):
+    K_ab = V (mu (g_a . g_b) I + mu g_b g_a^T + lam g_a g_b^T), so K_ba = K_ab^T.
+    """
+    g = np.asarray(dNdX, dtype=np.float64).reshape(-1, 4, 3)
+    V = np.asarray(volumes, dtype=np.float64)
+    gg = np.einsum("eai,ebi->eab", g, g)
+    K = mu * gg[..., None, None] * np.eye(3)[None, None, None]
+    K += mu * np.einsum("ebi,eaj->eabij", g, g)
+    K += lam * np.einsum("eai,ebj->eabij", g, g)
+    return K * V[:, None, None, None, None]
+
+
+class StiffnessWarpingSimulator:
+    """Corotational linear FEM (stiffness warping) with linearly implicit backward Euler.
+
+    Same state API as :class:`warpfem.Simulator` (``step``, ``positions``, ``velocities``,
+    ``set_positions``, ``set_velocities``, ``fix``, ``release``, ``set_targets``, energies).
+    Tet4 meshes only.
+
+    Args:
+        model: the :class:`~warpfem.model.Model` (its material's Young's modulus and Poisson ratio
+            give the linear stiffness, via ``mu_lame``/``lam_lame``; density, gravity, applied
+            forces, fixed components and mass matrix are used as in the Newton simulator).
+        device: Warp device ("cpu", "cuda:0", ...).
+        precision: "float32" or "float64".
+        dt: time step h (s).
+        rotation: "polar" (R = U V^T of the signed SVD of F; exact rotation invariance, inverted
+            elements get a proper rotation), "qr" (Gram-Schmidt on the columns of F, OpenTissue's
+            choice: cheaper, depends on the local vertex order) or "identity" (R = I: plain linear
+            FEM, for tests and comparisons).
+        cg_tol: relative residual of the one PCG solve per step.
+        max_cg_iters: cap on PCG iterations per step.
+        damping_mass, damping_stiffness: Rayleigh alpha (1/s) and beta (s); C = alpha M + beta K'.
+        require_convergence: raise :class:`SolveFailed` (state untouched) when PCG does not reach
+            ``cg_tol``; otherwise a warning. NaN/inf always raises and leaves the state untouched.
+    """
+
+    def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, rotation="polar", cg_tol=1e-6,
+                 max_cg_iters=2000, damping_mass=0.0, damping_stiffness=0.0, require_convergence=False):
+        if precision not in _PRECISIONS:
+            raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
+        if not (isinstance(dt, (int, float, np.floating)) and np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+        if rotation not in ROTATIONS:
+            raise ValueError(f"rotation must be one of {sorted(ROTATIONS)}, got {rotation!r}")
+        if not (np.isfinite(cg_tol) and 0.0 < cg_tol < 1.0):
+            raise ValueError(f"cg_tol must be in (0, 1), got {cg_tol!r}")
+        if int(max_cg_iters) != max_cg_iters or max_cg_iters < 1:
+            raise ValueError(f"max_cg_iters must be a positive integer, got {max_cg_iters!r}")
+        if not (damping_mass >= 0 and damping_stiffness >= 0):
+            raise ValueError(f"Rayleigh damping coefficients must be >= 0, got damping_mass={damping_mass!r}, "
+                             f"damping_stiffness={damping_stiffness!r}")
+        qd = model.quadrature
+        if qd.element_type != "tet4":
+            raise ValueError(f"StiffnessWarpingSimulator supports tet4 meshes only; the model's mesh has "
+                             f"element_type {qd.element_type!r} (use warpfem.Simulator for other elements)")
+        mat = model.material
+        for attr in ("mu_lame", "lam_lame"):
+            if not hasattr(mat, attr):
+                raise TypeError(f"model.material must be a warpfem material with {attr!r}, got {type(mat).__name__}")
+
+        self.model = model
+        self.device = wp.get_device(device)
+        self.precision = precision
+        self._s, self._vec, self._mat, self._np = _PRECISIONS[precision]
+        self.dt = float(dt)
+        self.rotation = rotation
+        self.cg_tol = float(cg_tol)
+        self.max_cg_iters = int(max_cg_iters)
+        self.damping_mass = float(damping_mass)
+        self.damping_stiffness = float(damping_stiffness)
+        self.require_convergence = bool(require_convergence)
+        self.num_vertices = n = model.num_vertices
+        self.num_elements = m = qd.num_elements
+        self.time = 0.0
+        self.step_count = 0
+
+        dev = self.device
+        Ke = tet_linear_stiffness_blocks(qd.qp_dNdX, qd.qp_weight, mat.mu_lame, mat.lam_lame)
+        self._Ke = wp.array(Ke.reshape(-1, 3, 3).astype(self._np), dtype=self._mat, device=dev)
+        self._elements = wp.array(qd.elements, dtype=wp.int32, device=dev)
+        self._dNdX = wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev)
+        self._x_rest = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev)
+        self._R = wp.zeros(m, dtype=self._mat, device=dev)
+        self._energy_e = wp.zeros(m, dtype=self._s, device=dev)
+
+        self._pattern = BlockPattern(qd.elements, 4, n, device=dev, block_type=self._mat)
+        self._mass_values = self._pattern.values_from_scalar_matrix(model.mass)
+        self._k_values = self._pattern.new_values()  # K'
+        self._a_values = self._pattern.new_values()  # M + h C + h^2 K'
+        self._pcg = BlockJacobiPCG(self._pattern, vec_type=self._vec, scalar=self._s)
+
+        def vec_array(a=None):
+            if a is None:
+                return wp.zeros(n, dtype=self._vec, device=dev)
+            return wp.array(np.asarray(a, dtype=self._np), dtype=self._vec, device=dev)
+
+        self._vec_array = vec_array
+        self.x = vec_array(model.rest_positions)
+        self.v = vec_array()
+        self._zero = vec_array()
+        self._f0, self._fel, self._rhs, self._w, self._dv, self._tmp = (vec_array() for _ in range(6))
+        self._x_next, self._v_next = vec_array(), vec_array()
+        self._targets = {}
+        self.sync_model()
+
+    # -- model changes (no pattern rebuild) -----------------------------------------------------------
+    def sync_model(self):
+        """Upload the model's fixed mask and external forces (call after changing them on the model)."""
+        self._mask = self._vec_array((~self.model.fixed).astype(np.float64))
+        self._fext = self._vec_array(self.model.external_forces())
+
+    def fix(self, indices, components="xyz"):
+        """Fix vertex components at their current positions from the next step on (no re-assembly)."""
+        self.model.fix(indices, components)
+        self.sync_model()
+
+    def release(self, indices, components="xyz"):
+        """Release fixed components (no re-assembly)."""
+        self.model.release(indices, components)
+        self.sync_model()
+
+    def set_targets(self, indices, positions):
+        """Prescribe end-of-step positions (m) of fixed vertices for the next step (kinematic handles)."""
+        idx = self.model._indices(indices)
+        pos = np.asarray(positions, dtype=np.float64).reshape(len(idx), 3)
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("target positions must be finite")
+        for i, p in zip(idx.tolist(), pos):
+            self._targets[i] = p
+
+    # -- state access --------------------------------------------------------------------------
+    def positions(self) -> np.ndarray:
+        """Current positions (n, 3), m, float64 copy."""
+        return self.x.numpy().astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        """Current velocities (n, 3), m/s, float64 copy."""
+        return self.v.numpy().astype(np.float64)
+
+    def set_positions(self, x):
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (self.num_vertices, 3) or not np.all(np.isfinite(x)):
+            raise ValueError(f"positions must be finite with shape ({self.num_vertices}, 3), got {x.shape}")
+        self.x = self._vec_array(x)
+
+    def set_velocities(self, v):
+        v = np.asarray(v, dtype=np.float64)
+        if v.shape != (self.num_vertices, 3) or not np.all(np.isfinite(v)):
+            raise ValueError(f"velocities must be finite with shape ({self.num_vertices}, 3), got {v.shape}")
+        self.v = self._vec_array(v)
+
+    # -- stages ------------------------------------------------------------------------------------
+    def _launch(self, kernel, dim, inputs):
+        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+
+    def _rotations(self, x):
+        self._launch(WK.element_rotation_kernel, self.num_elements,
+                     [x, self._x_rest, self._elements, self._dNdX, ROTATIONS[self.rotation], self._R])
+
+    def _assemble(self, x, *, matrix: bool, force_scale: float = 1.0):
+        """R_e at x, then K' (if ``matrix``), f0' and the elastic force force_scale * f_el."""
+        self._rotations(x)
+        if matrix:
+            self._k_values.zero_()
+        self._f0.zero_()
+        self._fel.zero_()
+        self._launch(WK.warped_assembly_kernel, self.num_elements,
+                     [x, self._x_rest, self._elements, self._R, self._Ke, self._s(force_scale), int(matrix),
+                      self._pattern.block_index, self._k_values, self._f0, self._fel])
+
+    def _bsr_mv(self, values, x, alpha, y):
+        pt = self._pattern
+        self._launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, x, self._s(alpha), y])
+
+    # -- helpers (analysis, tests) -----------------------------------------------------------------
+    def rotations(self, x=None) -> np.ndarray:
+        """Element rotations R_e (m, 3, 3) estimated at x (default: current positions)."""
+        self._rotations(self.x if x is None else self._vec_array(x))
+        return self._R.numpy().astype(np.float64)
+
+    def elastic_forces(self, x=None) -> np.ndarray:
+        """Warped elastic force -(K' x + f0') (N) at x (default: current positions), (n, 3)."""
+        self._assemble(self.x if x is None else self._vec_array(x), matrix=False)
+        return self._fel.numpy().astype(np.float64)
+
+    def force_offset(self, x=None) -> np.ndarray:
+        """f0' = -sum_e R_e K_e X (N) with the rotations at x, (n, 3) (seed 001's force offset)."""
+        self._assemble(self.x if x is None else self._vec_array(x), matrix=False)
+        return self._f0.numpy().astype(np.float64)
+
+    def stiffness_matrix(self, x=None):
+        """Warped stiffness K' = sum_e R_e K_e R_e^T (N/m) with the rotations at x, scipy CSR (3n x 3n)."""
+        self._assemble(self.x if x is None else self._vec_array(x), matrix=True)
+        return self._pattern.to_scipy(self._k_values)
+
+    def mass_matrix(self):
+        """The (3n x 3n) mass matrix as scipy CSR."""
+        return self._pattern.to_scipy(self._mass_values)
+
+    def elastic_energy(self, x=None) -> float:
+        """Corotational energy sum_e 1/2 u_e^T K_e u_e, u_e = R_e^T x - X (J), rotations taken at x.
+
+        Zero for any rigid motion; the warped force is not exactly its gradient (dR/dx is ignored)."""
+        xa = self.x if x is None else self._vec_array(x)
+        self._rotations(xa)
+        self._launch(WK.warped_energy_kernel, self.num_elements, [xa, self._x_rest, self._elements, self._R, self._Ke, self._energy_e])
+        return float(self._energy_e.numpy().astype(np.float64).sum())
+
+    def kinetic_energy(self) -> float:
+        """1/2 v^T M v (J)."""
+        self._tmp.zero_()
+        self._bsr_mv(self._mass_values, self.v, 1.0, self._tmp)
+        return 0.5 * self._pcg.dot(self.v, self._tmp)
+
+    def total_energy(self) -> float:
+        """Kinetic + corotational elastic - x^T f_ext (J)."""
+        return self.kinetic_energy() + self.elastic_energy() - self._pcg.dot(self.x, self._fext)
+
+    # -- time stepping ------------------------------------------------------------------------------
+    def _prescribed_velocity(self):
+        """Device array with the prescribed end-of-step velocity on fixed components (0 unless targets)."""
+        if not self._targets:
+            return self._zero
+        x0 = self.positions()
+        val = np.zeros_like(x0)
+        for i, p in self._targets.items():
+            val[i] = (p - x0[i]) / self.dt
+        return self._vec_array(val)
+
+    def step(self) -> SolveStats:
+        """Advance one linearly implicit backward Euler step of ``dt`` (one PCG solve).
+
+        Returns :class:`~warpfem.SolveStats` (``newton_iterations`` = 1, ``cg_iterations``,
+        ``residual`` = the PCG relative residual). On NaN/inf (or PCG non-convergence with
+        ``require_convergence``) raises :class:`SolveFailed` and leaves the state as it was.
+        """
+        t0 = time.perf_counter()
+        h, a, b = self.dt, self.damping_mass, self.damping_stiffness
+        n, nnz = self.num_vertices, self._pattern.nnz
+        s = self._s
+        x, v = self.x, self.v
+        # K', f0' and h * f_el = -h (K' x + f0') at the start of the step
+        self._assemble(x, matrix=True, force_scale=h)
+        # A = (1 + h alpha) M + h (beta + h) K'
+        self._launch(LK.scale_copy_kernel, nnz, [self._mass_values, s(1.0 + h * a), self._a_values])
+        self._launch(LK.add_scaled_kernel, nnz, [self._k_values, s(h * (b + h)), self._a_values])
+        # rhs = h f_ext + h f_el - h alpha M v - h (beta + h) K' v
+        rhs = self._rhs
+        self._launch(LK.lincomb_kernel, n, [s(h), self._fext, s(1.0), self._fel, rhs])
+        if a != 0.0:
+            self._bsr_mv(self._mass_values, v, -h * a, rhs)
+        self._bsr_mv(self._k_values, v, -h * (b + h), rhs)
+        # prescribed components: w = (I - P)(v_prescribed - v), moved to the right-hand side
+        self._launch(LK.lincomb_kernel, n, [s(1.0), self._prescribed_velocity(), s(-1.0), v, self._tmp])
+        self._launch(LK.select_kernel, n, [self._mask, self._zero, self._tmp, self._w])
+        self._bsr_mv(self._a_values, self._w, -1.0, rhs)
+        self._launch(LK.mask_kernel, n, [self._mask, rhs])
+        res = self._pcg.solve(self._a_values, self._mask, rhs, self._dv, tol=self.cg_tol, maxiter=self.max_cg_iters)
+        # dv = free solution + prescribed part; v+ = v + dv; x+ = x + h v+
+        self._launch(LK.axpy_kernel, n, [s(1.0), self._w, self._dv])
+        self._launch(LK.lincomb_kernel, n, [s(1.0), v, s(1.0), self._dv, self._v_next])
+        self._launch(LK.lincomb_kernel, n, [s(1.0), x, s(h), self._v_next, self._x_next])
+        vv = self._pcg.dot(self._v_next, self._v_next)
+        stats = SolveStats(converged=bool(res.converged), newton_iterations=1, cg_iterations=res.iterations,
+                           residual=res.residual)
+        stats.reason = "linear solve converged" if res.converged else f"PCG stopped at relative residual {res.residual:.2e}"
+        stats.seconds = time.perf_counter() - t0
+        what = f"step {self.step_count}"
+        if not np.isfinite(vv) or not np.isfinite(res.residual):
+            stats.converged, stats.reason = False, "non-finite velocity"
+            raise SolveFailed(f"{what} diverged (non-finite velocity); state left unchanged", stats)
+        if not res.converged:
+            if self.require_convergence:
+                raise SolveFailed(f"{what} did not converge ({stats.reason}); state left unchanged", stats)
+            warnings.warn(f"{what}: {stats.reason} (cg_tol {self.cg_tol:g})", RuntimeWarning, stacklevel=2)
+        # swap buffers (positions()/velocities() return copies, so no caller holds these)
+        self.x, self._x_next = self._x_next, x
+        self.v, self._v_next = self._v_next, v
+        self._targets.clear()
+        self.time += h
+        self.step_count += 1
+        return stats
