@@ -185,6 +185,8 @@ def qp_hessian_kernel(
     c = scale * qp_weight[q]
     for a in range(k):
         ga = qp_dNdX[q * k + a]
-        for b in range(k):
-            blk = hessian_block(U, V, Qs, ds, tw, fl, ga, qp_dNdX[q * k + b], project)
-            wp.atomic_add(values, block_index[(e * k + a) * k + b], c * blk)
+        for b in range(a, k):  # symmetric: compute a <= b, add the transpose (seed 001)
+            blk = c * hessian_block(U, V, Qs, ds, tw, fl, ga, qp_dNdX[q * k + b], project)
+            wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)
+            if b != a:
+                wp.atomic_add(values, block_index[(e * k + b) * k + a], wp.transpose(blk))
