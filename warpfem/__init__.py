@@ -19,13 +19,22 @@ from warpfem.materials import (
     make_material,
 )
 from warpfem.mesh import MeshError, TetMesh, box_tet_mesh, load_mesh, save_mesh, select_vertices_in_box
+from warpfem.elements import (ElementMesh, box_hex_mesh, embed_points_in_elements, load_element_mesh,
+                              save_element_mesh, tet10_from_tet4)
 from warpfem.model import Model
 from warpfem.simulator import Simulator
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats
+from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "ElementMesh",
+    "box_hex_mesh",
+    "embed_points_in_elements",
+    "load_element_mesh",
+    "save_element_mesh",
+    "tet10_from_tet4",
     "Corotated",
     "LinearElastic",
     "MeshError",
@@ -36,6 +45,7 @@ __all__ = [
     "SolveStats",
     "StVenantKirchhoff",
     "StableNeoHookean",
+    "StiffnessWarpingSimulator",
     "TetMesh",
     "box_tet_mesh",
     "load_mesh",

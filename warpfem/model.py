@@ -29,9 +29,13 @@ class Model:
             rho g V exactly for either mass matrix).
         mass_matrix: "lumped" (diagonal, row sums) or "consistent" (seed 004,
             rho V / 20 (1 + delta_ij) per tet).
+        volumetric_integration: "full" or "reduced" (Hex8 meshes with ``LinearElastic`` only):
+            selective reduced integration, the volumetric energy lam/2 tr(eps)^2 on 1 point per
+            element and mu eps:eps on 2x2x2, so nearly incompressible Hex8 does not lock.
     """
 
-    def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped"):
+    def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped",
+                 volumetric_integration: str = "full"):
         if mass_matrix not in ("lumped", "consistent"):
             raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
         for attr in ("kind", "mu", "lam", "density"):
@@ -46,8 +50,16 @@ class Model:
         self.mass_matrix_kind = mass_matrix
         self.rest_positions = np.asarray(mesh.vertices, dtype=np.float64)
         self.num_vertices = len(self.rest_positions)
-        self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, getattr(mesh, "element_type", "tet4"))
+        if volumetric_integration == "reduced" and getattr(material, "kind", None) != 0:
+            raise ValueError("volumetric_integration='reduced' needs the LinearElastic material (its energy splits "
+                             f"into mu and lambda parts); got {type(material).__name__}")
+        self.volumetric_integration = volumetric_integration
+        self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, getattr(mesh, "element_type", "tet4"),
+                                                volumetric_integration=volumetric_integration)
         self.lumped_mass, self.mass = self._mass_matrices()
+        # gravity is M (1 x g) with the chosen mass matrix, so free fall is exact with either; this is
+        # lumped_mass except for Tet10/Hex27 with the consistent mass (rho g int N_a dV there).
+        self.gravity_mass = np.asarray(self.mass.sum(axis=1), dtype=np.float64).ravel()
         self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
         self.forces = np.zeros((self.num_vertices, 3))
 
@@ -71,8 +83,9 @@ class Model:
         return float(self.lumped_mass.sum())
 
     def external_forces(self) -> np.ndarray:
-        """Constant external force per vertex (N): gravity on the lumped mass plus applied forces."""
-        return self.lumped_mass[:, None] * self.gravity[None, :] + self.forces
+        """Constant external force per vertex (N): gravity M (1 x g) on the model's mass matrix (the
+        lumped mass, or rho int N_a dV with the consistent one) plus applied forces."""
+        return self.gravity_mass[:, None] * self.gravity[None, :] + self.forces
 
     # -- boundary conditions and loads -----------------------------------------------------------
     def _indices(self, indices) -> np.ndarray:

@@ -85,11 +85,13 @@ class _Potential:
         x = self._x_of(y)
         f = sim._tmp3
         f.zero_()
-        wp.launch(FK.qp_force_kernel, dim=sim._qp_count, inputs=[x, *sim._qp_args, sim._s(-self.s), f], device=sim.device)
+        for count, args, _ in sim._qp_sets:
+            wp.launch(FK.qp_force_kernel, dim=count, inputs=[x, *args, sim._s(-self.s), f], device=sim.device)
         dot = sim._pcg.dot
         fa = sim._tmp2
         fa.zero_()
-        wp.launch(FK.qp_force_abs_kernel, dim=sim._qp_count, inputs=[x, *sim._qp_args, sim._s(self.s), fa], device=sim.device)
+        for count, args, _ in sim._qp_sets:
+            wp.launch(FK.qp_force_abs_kernel, dim=count, inputs=[x, *args, sim._s(self.s), fa], device=sim.device)
         magnitude = np.sqrt(dot(g, g)) + np.sqrt(dot(fa, fa)) + abs(self.s * self.fext_scale) * sim._fext_norm
         wp.launch(LK.add_scaled_kernel, dim=self.n, inputs=[f, sim._s(1.0), g], device=sim.device)
         wp.launch(LK.add_scaled_kernel, dim=self.n, inputs=[sim._fext, sim._s(-self.s * self.fext_scale), g], device=sim.device)
@@ -170,6 +172,19 @@ class Simulator:
         self._kn_values = self._pattern.new_values() if damping_stiffness > 0 else None
         self._pcg = BlockJacobiPCG(self._pattern, vec_type=self._vec, scalar=self._s)
         self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
+        # quadrature-point sets the kernels run over: (count, args, energy buffer). Selective reduced
+        # integration (qd.volumetric) splits linear elasticity into (mu, 0) on the full rule and
+        # (0, lam) on the 1-point rule; stresses() still evaluates the full material on the main set.
+        self._qp_sets = [(self._qp_count, self._qp_args, self._energy_q)]
+        if getattr(qd, "volumetric", None) is not None:
+            vq = qd.volumetric
+            vargs = [self._x_rest, self._elements, self._k, wp.array(vq.qp_element, dtype=wp.int32, device=dev),
+                     wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),
+                     wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev),
+                     int(mat.kind), self._s(0.0), self._s(mat.lam)]
+            main = self._qp_args[:7] + [self._s(mat.mu), self._s(0.0)]
+            self._qp_sets = [(self._qp_count, main, self._energy_q),
+                             (vq.num_points, vargs, wp.zeros(vq.num_points, dtype=self._s, device=dev))]
 
         def vec_array(a=None):
             return wp.zeros(n, dtype=self._vec, device=dev) if a is None else wp.array(np.asarray(a, dtype=self._np), dtype=self._vec, device=dev)
@@ -236,20 +251,25 @@ class Simulator:
         wp.launch(LK.bsr_mv_kernel, dim=pt.num_rows, inputs=[pt.offsets, pt.columns, values, x, self._s(alpha), y], device=self.device)
 
     def _elastic_energy(self, x):
-        wp.launch(FK.qp_energy_kernel, dim=self._qp_count, inputs=[x, *self._qp_args, self._energy_q], device=self.device)
-        e = self._energy_q.numpy().astype(np.float64)
+        parts = []
+        for count, args, buf in self._qp_sets:
+            wp.launch(FK.qp_energy_kernel, dim=count, inputs=[x, *args, buf], device=self.device)
+            parts.append(buf.numpy().astype(np.float64))
+        e = np.concatenate(parts)
         return float(e.sum()), float(np.abs(e).sum())
 
     def _assemble_stiffness(self, x, scale, values):
-        wp.launch(FK.qp_hessian_kernel, dim=self._qp_count,
-                  inputs=[x, *self._qp_args, self._s(scale), int(self.options.project_hessian),
-                          self._pattern.block_index, values], device=self.device)
+        for count, args, _ in self._qp_sets:
+            wp.launch(FK.qp_hessian_kernel, dim=count,
+                      inputs=[x, *args, self._s(scale), int(self.options.project_hessian),
+                              self._pattern.block_index, values], device=self.device)
 
     def elastic_forces(self, x=None) -> np.ndarray:
         """Internal elastic forces -dV/dx (N) at x (default: current positions), (n, 3)."""
         xa = self.x if x is None else self._vec_array(x)
         f = self._vec_array()
-        wp.launch(FK.qp_force_kernel, dim=self._qp_count, inputs=[xa, *self._qp_args, self._s(1.0), f], device=self.device)
+        for count, args, _ in self._qp_sets:
+            wp.launch(FK.qp_force_kernel, dim=count, inputs=[xa, *args, self._s(1.0), f], device=self.device)
         return f.numpy().astype(np.float64)
 
     def stresses(self, x=None) -> np.ndarray:

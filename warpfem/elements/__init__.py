@@ -4,10 +4,21 @@ Every element type is precomputed, once, into the arrays the kernels consume (se
 ``docs/design.md``): the flat connectivity with its stride ``nodes_per_element`` and, per
 quadrature point, the element it belongs to, its weight (Gauss weight x det J, i.e. the volume it
 represents, m^3) and the material gradients dN_a/dX of the element's shape functions (1/m).
+
+Element types "tet4", "tet10", "hex8", "hex27" (node order = meshio / VTK, see ``library``).
 """
 
 from __future__ import annotations
 
-from .quadrature import QuadratureData, precompute_quadrature, SUPPORTED_ELEMENTS
+from .library import ELEMENT_TYPES, NODES_PER_ELEMENT, gauss_rule, shape_functions, shape_gradients
+from .mass import consistent_mass_matrix, element_mass_matrices, lumped_mass_vector, mass_matrices
+from .meshes import (ElementMesh, box_hex_mesh, embed_points_in_elements, load_element_mesh,
+                     save_element_mesh, tet10_from_tet4)
+from .quadrature import SUPPORTED_ELEMENTS, ElementError, QuadratureData, precompute_quadrature
 
-__all__ = ["QuadratureData", "precompute_quadrature", "SUPPORTED_ELEMENTS"]
+__all__ = [
+    "ELEMENT_TYPES", "NODES_PER_ELEMENT", "SUPPORTED_ELEMENTS", "ElementError", "ElementMesh", "QuadratureData",
+    "box_hex_mesh", "consistent_mass_matrix", "element_mass_matrices", "embed_points_in_elements", "gauss_rule",
+    "load_element_mesh", "lumped_mass_vector", "mass_matrices", "precompute_quadrature", "save_element_mesh",
+    "shape_functions", "shape_gradients", "tet10_from_tet4",
+]

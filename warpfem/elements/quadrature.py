@@ -6,7 +6,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-SUPPORTED_ELEMENTS = ("tet4",)
+from .library import ELEMENT_TYPES, gauss_rule, shape_gradients
+
+SUPPORTED_ELEMENTS = ELEMENT_TYPES
+VOLUMETRIC_INTEGRATION = ("full", "reduced")
 
 
 class ElementError(ValueError):
@@ -24,6 +27,9 @@ class QuadratureData:
         qp_element: (Q,) int32 element of each quadrature point.
         qp_weight: (Q,) float64 Gauss weight x det J (m^3).
         qp_dNdX: (Q * k, 3) float64 material shape-function gradients (1/m).
+        volumetric: optional second point set (selective reduced integration, hex8 + linear
+            elasticity): the kernels run over this set with material parameters (mu, lam) = (0, lam)
+            and over the main set with (mu, 0). None for ordinary (full) integration.
     """
 
     element_type: str
@@ -32,6 +38,7 @@ class QuadratureData:
     qp_element: np.ndarray
     qp_weight: np.ndarray
     qp_dNdX: np.ndarray
+    volumetric: "QuadratureData | None" = None
 
     @property
     def num_elements(self) -> int:
@@ -64,10 +71,69 @@ def tet4_shape_gradients(vertices: np.ndarray, tets: np.ndarray):
     return vol, g
 
 
-def precompute_quadrature(vertices: np.ndarray, elements: np.ndarray, element_type: str = "tet4") -> QuadratureData:
-    """Build :class:`QuadratureData` for a mesh of one element type."""
+def element_point_data(vertices: np.ndarray, elements: np.ndarray, element_type: str, points: np.ndarray):
+    """Isoparametric map at reference points for every element.
+
+    Returns det J (m, q) and material gradients dN/dX (m, q, k, 3), where J = dX/dxi =
+    sum_a X_a (dN_a/dxi)^T and dN/dX = J^-T dN/dxi. Raises :class:`ElementError` naming the
+    elements whose det J is not positive at some point.
+    """
+    dNdxi = shape_gradients(element_type, points)  # (q, k, 3)
+    X = vertices[elements]  # (m, k, 3)
+    J = np.einsum("mai,qaj->mqij", X, dNdxi)  # (m, q, 3, 3)
+    det = np.linalg.det(J)
+    bad = np.flatnonzero(~(det > 0.0).all(axis=1))
+    if bad.size:
+        raise ElementError(
+            f"{bad.size} {element_type} element(s) have det J <= 0 at a quadrature point (inverted or "
+            f"degenerate rest shape, or wrong node order); first: {bad[:10].tolist()}, "
+            f"min det J {float(det[bad[0]].min()):.3g} in element {int(bad[0])}")
+    Jinv = np.linalg.inv(J)
+    dNdX = np.einsum("qaj,mqji->mqai", dNdxi, Jinv)  # dN/dX_i = sum_j dN/dxi_j dxi_j/dX_i
+    return det, dNdX
+
+
+def _generic_quadrature(vertices, elements, element_type, purpose):
+    pts, w = gauss_rule(element_type, purpose)
+    det, dNdX = element_point_data(vertices, elements, element_type, pts)
+    m, q = det.shape
+    k = elements.shape[1]
+    return QuadratureData(
+        element_type=element_type,
+        nodes_per_element=k,
+        elements=np.ascontiguousarray(elements.reshape(-1), dtype=np.int32),
+        qp_element=np.repeat(np.arange(m, dtype=np.int32), q),
+        qp_weight=np.ascontiguousarray((det * w[None, :]).reshape(-1)),
+        qp_dNdX=np.ascontiguousarray(dNdX.reshape(-1, 3)),
+    )
+
+
+def precompute_quadrature(vertices: np.ndarray, elements: np.ndarray, element_type: str = "tet4", *,
+                          volumetric_integration: str = "full") -> QuadratureData:
+    """Build :class:`QuadratureData` for a mesh of one element type.
+
+    ``element_type``: "tet4" (1 point), "tet10" (4 points), "hex8" (2x2x2), "hex27" (3x3x3); node
+    order as in :mod:`warpfem.elements.library`. ``volumetric_integration="reduced"`` (hex8 only)
+    adds the 1-point volumetric set of selective reduced integration (see :class:`QuadratureData`).
+    """
     vertices = np.asarray(vertices, dtype=np.float64)
     elements = np.asarray(elements)
+    if volumetric_integration not in VOLUMETRIC_INTEGRATION:
+        raise ValueError(f"volumetric_integration must be 'full' or 'reduced', got {volumetric_integration!r}")
+    if volumetric_integration == "reduced" and element_type != "hex8":
+        raise ValueError(f"volumetric_integration='reduced' is only available for hex8 elements, not {element_type!r}")
+    if element_type in SUPPORTED_ELEMENTS and element_type != "tet4":
+        from .library import NODES_PER_ELEMENT
+
+        k = NODES_PER_ELEMENT[element_type]
+        if elements.ndim != 2 or elements.shape[1] != k:
+            raise ValueError(f"{element_type} elements must have shape (m, {k}), got {elements.shape}")
+        qd = _generic_quadrature(vertices, elements.astype(np.int64), element_type, "stiffness")
+        if volumetric_integration == "reduced":
+            vol = _generic_quadrature(vertices, elements.astype(np.int64), element_type, "volumetric")
+            qd = QuadratureData(qd.element_type, qd.nodes_per_element, qd.elements, qd.qp_element,
+                                qd.qp_weight, qd.qp_dNdX, volumetric=vol)
+        return qd
     if element_type == "tet4":
         vol, g = tet4_shape_gradients(vertices, elements)
         m = len(elements)

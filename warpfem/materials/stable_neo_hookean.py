@@ -40,11 +40,20 @@ def snh_psi(F: Any, mu: Any, lam: Any):
 
     The constant -mu^2/(2 lambda) = -lambda/2 (1 - alpha)^2 makes psi(I) = 0 (rest energy zero,
     so reported elastic energies are meaningful); it changes neither P nor the Hessian.
+
+    Evaluated without cancellation in the displacement gradient H = F - I (exact rewrite):
+    psi = mu/2 |H|^2 + lambda/2 j^2 - mu (i2 + det H),  j = J - 1 = tr H + i2 + det H,
+    i2 = ((tr H)^2 - tr(H H)) / 2. The textbook form subtracts O(mu) terms to get an O(mu |H|^2)
+    result, so in float32 its error (~3 eps mu per unit volume) swamped the energy of strains
+    below ~1e-3 and the Newton line search compared noise.
     """
-    alpha = F.dtype(1.0) + mu / lam
-    r = wp.determinant(F) - alpha
     half = F.dtype(0.5)
-    return half * mu * (wp.ddot(F, F) - F.dtype(3.0)) + half * lam * r * r - half * mu * mu / lam
+    H = F - wp.identity(n=3, dtype=F.dtype)
+    trH = wp.trace(H)
+    i2 = half * (trH * trH - wp.ddot(H, wp.transpose(H)))
+    dH = wp.determinant(H)
+    j = trH + i2 + dH
+    return half * mu * wp.ddot(H, H) + half * lam * j * j - mu * (i2 + dH)
 
 
 @wp.func

@@ -1,0 +1,145 @@
+"""The warpfem command line: run a tiny scene end to end, describe, version, failures."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from warpfem.cli import main
+from warpfem.io import read_usd_mesh_frames, usd_validation_errors
+
+SCENE = """
+gravity = [0.0, -9.81, 0.0]
+[mesh]
+generator = "box"
+size = [1.0, 0.2, 0.2]
+cells = [4, 1, 1]
+[material]
+model = "stable_neo_hookean"
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+[[fixed]]
+box_min = [-1.0, -1.0, -1.0]
+box_max = [0.0, 1.0, 1.0]
+[integrator]
+type = "backward_euler"
+dt = 0.025
+[output]
+fps = 20
+frames = 5
+states = "{states}"
+"""
+
+SURFACE_OBJ = "v 0.2 0.05 0.05\nv 0.9 0.05 0.05\nv 0.9 0.15 0.05\nv 0.5 0.1 0.15\nf 1 2 3\nf 1 2 4\nf 2 3 4\nf 3 1 4\n"
+
+
+def write_scene(tmp_path, text, name="tiny.toml"):
+    p = tmp_path / name
+    p.write_text(textwrap.dedent(text))
+    return str(p)
+
+
+def layer_info(path):
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(str(path))
+    layer.Reload()
+    return dict(layer.customLayerData)["warpfem"]
+
+
+def check_usd(path, name, num_points, num_frames):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    assert stage.GetStartTimeCode() == 0 and stage.GetEndTimeCode() == num_frames - 1
+    assert stage.GetTimeCodesPerSecond() == 20 and UsdGeom.GetStageUpAxis(stage) == "Y"
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/Root/{name}"))
+    times, frames = read_usd_mesh_frames(path, name)
+    assert times.tolist() == list(range(num_frames))
+    for t, p in zip(times, frames):
+        assert p.shape == (num_points, 3)
+        ext = np.array(mesh.GetExtentAttr().Get(t))
+        np.testing.assert_array_equal(ext, np.stack([p.min(axis=0), p.max(axis=0)]))
+    assert usd_validation_errors(stage) == []
+    return frames
+
+
+def test_run_end_to_end(tmp_path, capsys):
+    states = tmp_path / "states.npz"
+    scene = write_scene(tmp_path, SCENE.format(states=states))
+    out = tmp_path / "out" / "tiny.usda"
+    assert main(["run", scene, "--device", "cpu", "--precision", "float64", "--frames", "3", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "frame 3/3" in printed and "t = 0.1500 s" in printed and "newton" in printed
+    # boundary surface of the 4x1x1 box: all 20 vertices; frames 0 (rest) .. 3
+    frames = check_usd(out, "boundary", 20, 4)
+    assert layer_info(out)["complete"] is True
+    # it falls: the free end moves down, the clamp stays
+    assert frames[-1][:, 1].min() < -1e-3
+    log = [json.loads(line) for line in (tmp_path / "out" / "tiny.stats.jsonl").read_text().splitlines()]
+    assert [r["frame"] for r in log] == [1, 2, 3]
+    assert all(r["converged"] and r["steps"] == 2 and r["newton_iterations"] >= 1 and r["cg_iterations"] >= 1 for r in log)
+    assert {"step_seconds", "residual", "energy", "time"} <= set(log[0])
+    st = np.load(states)
+    assert st["positions"].shape == (4, 20, 3) and st["times"] == pytest.approx([0, 0.05, 0.1, 0.15])
+    np.testing.assert_array_equal(st["positions"][0], st["rest"])
+    # the USD holds the same boundary points (float32), in the same order as the boundary ids
+    from warpfem.skinning import mesh_boundary_surface
+
+    ids, _ = mesh_boundary_surface(st["rest"], np.asarray(__import__("warpfem").box_tet_mesh(size=(1, .2, .2), cells=(4, 1, 1)).tets))
+    np.testing.assert_allclose(frames[-1], st["positions"][-1][ids], atol=1e-6)
+
+
+def test_run_with_embedded_surface(tmp_path):
+    (tmp_path / "s.obj").write_text(SURFACE_OBJ)
+    scene = write_scene(tmp_path, SCENE.replace('states = "{states}"\n', "") + '[surface]\npath = "s.obj"\nname = "skin"\n')
+    out = tmp_path / "skin.usda"
+    assert main(["run", scene, "--frames", "2", "--out", str(out), "--quiet"]) == 0
+    frames = check_usd(out, "skin", 4, 3)
+    np.testing.assert_allclose(frames[0][0], [0.2, 0.05, 0.05], atol=1e-7)
+
+
+def test_describe_and_version(tmp_path, capsys):
+    scene = write_scene(tmp_path, SCENE.format(states="x.npz"))
+    assert main(["describe", scene]) == 0
+    text = capsys.readouterr().out
+    assert "24 elements, 20 vertices" in text and "estimated device memory" in text and "no embedding" in text
+    with pytest.raises(SystemExit) as e:
+        main(["--version"])
+    assert e.value.code == 0 and capsys.readouterr().out.strip() == "warpfem 0.1.0"
+
+
+def test_invalid_scene_exits_nonzero_in_process(tmp_path, capsys):
+    scene = write_scene(tmp_path, SCENE.format(states="x.npz").replace("poisson_ratio = 0.3", "poisson_ratio = 0.5"))
+    out = tmp_path / "bad.usda"
+    assert main(["run", scene, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "[material].poisson_ratio" in err and scene in err
+    assert not out.exists()
+
+
+def test_non_converged_step_exits_nonzero_and_marks_usd_incomplete(tmp_path, capsys):
+    text = SCENE.format(states="x.npz").replace("dt = 0.025", "dt = 0.025\nrequire_convergence = true\nmax_iters = 1\ntol = 1e-12")
+    out = tmp_path / "fail.usda"
+    assert main(["run", write_scene(tmp_path, text), "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "did not converge" in err and "frame 1" in err and err.count("\n") == 0
+    info = layer_info(out)
+    assert info["complete"] is False and info["framesWritten"] == 1 and "SolveFailed" in info["incompleteReason"]
+    assert usd_validation_errors(out) == []
+
+
+def test_invalid_scene_subprocess_exit_code(tmp_path):
+    scene = write_scene(tmp_path, SCENE.format(states="x.npz").replace("[material]", "[material]\nyoungs_modulos = 3.0"))
+    out = tmp_path / "never.usda"
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    r = subprocess.run([sys.executable, "-m", "warpfem.cli", "run", scene, "--out", str(out)], capture_output=True,
+                       text=True, cwd=root, timeout=120)
+    assert r.returncode == 2
+    assert r.stderr.strip().count("\n") == 0, r.stderr
+    assert "did you mean 'youngs_modulus'" in r.stderr and "[material].youngs_modulos" in r.stderr
+    assert not out.exists()

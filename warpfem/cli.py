@@ -1,0 +1,160 @@
+"""The ``warpfem`` command line: ``warpfem run SCENE``, ``warpfem describe SCENE``, ``--version``.
+
+Subcommands are added by functions in ``SUBCOMMANDS``: each is ``register(subparsers)`` and must
+``set_defaults(func=handler)`` on its parser, where ``handler(args) -> int`` returns the exit code.
+Other modules add theirs with :func:`add_subcommand`.
+
+Exit codes: 0 success, 1 a step diverged / failed to converge (with ``require_convergence``) or
+another runtime error, 2 invalid command line or scene, 130 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+__all__ = ["main", "build_parser", "add_subcommand", "SUBCOMMANDS"]
+
+EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+def _version():
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("warpfem")
+    except PackageNotFoundError:  # running from a source tree
+        return "0.1.0"
+
+
+def _err(msg):
+    print(f"warpfem: error: {msg}", file=sys.stderr)
+
+
+def _load(path):
+    from warpfem.scenes import load_scene
+
+    return load_scene(path)
+
+
+# ----------------------------------------------------------------------------- describe
+def _cmd_describe(args) -> int:
+    from warpfem.scenes import SceneError
+
+    try:
+        scene = _load(args.scene)
+        print(scene.describe(precision=args.precision))
+    except SceneError as e:
+        _err(str(e))
+        return EXIT_INVALID
+    return EXIT_OK
+
+
+def _register_describe(subparsers):
+    p = subparsers.add_parser("describe", help="print what a scene builds (counts, memory) without running it")
+    p.add_argument("scene", help="TOML scene file")
+    p.add_argument("--precision", choices=("float32", "float64"), default="float64")
+    p.set_defaults(func=_cmd_describe)
+
+
+# ----------------------------------------------------------------------------- run
+def _cmd_run(args) -> int:
+    from warpfem.scenes import SceneError
+
+    if args.frames is not None and args.frames < 1:
+        _err(f"--frames must be >= 1, got {args.frames}")
+        return EXIT_INVALID
+    if args.out is not None and not args.out.lower().endswith((".usda", ".usd", ".usdc")):
+        _err(f"--out must end in .usda, .usd or .usdc, got {args.out!r}")
+        return EXIT_INVALID
+    try:
+        scene = _load(args.scene)  # validation only: fails before anything is built or written
+    except SceneError as e:
+        _err(str(e))
+        return EXIT_INVALID
+
+    from warpfem.solvers.newton import SolveFailed
+
+    try:
+        run = scene.build(device=args.device, precision=args.precision)
+    except SceneError as e:
+        _err(str(e))
+        return EXIT_INVALID
+    except (ValueError, RuntimeError) as e:  # e.g. an unknown device
+        _err(f"{args.scene}: cannot build the scene: {e}")
+        return EXIT_FAILED
+    frames = args.frames if args.frames is not None else run.frames
+    usd = args.out if args.out is not None else scene.spec.output["usd"]
+    stats = scene.stats_path(usd, None if args.out is not None else scene.spec.output["stats"])
+    if not args.quiet:
+        print(f"{scene.name}: {scene.mesh().num_elements} elements, {scene.mesh().num_vertices} vertices, "
+              f"{frames} frames on {args.device} ({args.precision})", flush=True)
+
+    def progress(fs):
+        if args.quiet:
+            return
+        width = 24
+        done = int(width * fs.frame / frames)
+        flag = "" if fs.converged else "  NOT CONVERGED"
+        print(f"[{'#' * done}{'.' * (width - done)}] frame {fs.frame}/{frames}  t = {fs.time:.4f} s  "
+              f"newton {fs.newton_iterations}  cg {fs.cg_iterations}  {fs.step_seconds:.3f} s{flag}", flush=True)
+
+    try:
+        run.run(frames=frames, usd=usd, stats=stats, progress=progress)
+    except SolveFailed as e:
+        _err(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
+        return EXIT_FAILED
+    except KeyboardInterrupt:
+        _err(f"interrupted at frame {run.frame}" + (f"; {usd} holds the frames done (marked incomplete)" if usd else ""))
+        return EXIT_INTERRUPTED
+    if not args.quiet:
+        outs = [p for p in (usd, stats, scene.spec.output["states"]) if p]
+        print(f"done: {frames} frames" + (f"; wrote {', '.join(outs)}" if outs else ""), flush=True)
+    return EXIT_OK
+
+
+def _register_run(subparsers):
+    p = subparsers.add_parser("run", help="simulate a scene and write its outputs")
+    p.add_argument("scene", help="TOML scene file")
+    p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... (default cpu)")
+    p.add_argument("--precision", choices=("float32", "float64"), default="float64")
+    p.add_argument("--frames", type=int, default=None, help="number of frames (default: the scene's [output].frames)")
+    p.add_argument("--out", default=None, help="USD file (.usda/.usd/.usdc); default: the scene's [output].usd")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages")
+    p.set_defaults(func=_cmd_run)
+
+
+SUBCOMMANDS = [_register_run, _register_describe]
+
+
+def add_subcommand(register) -> None:
+    """Add ``register(subparsers)`` to the command line (call at import time of your module)."""
+    if register not in SUBCOMMANDS:
+        SUBCOMMANDS.append(register)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="warpfem", description="Deformable-body FEM with NVIDIA Warp (CPU and CUDA).")
+    parser.add_argument("--version", action="version", version=f"warpfem {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for register in SUBCOMMANDS:
+        register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        parser.print_help(sys.stderr)
+        return EXIT_INVALID
+    if not getattr(args, "verbose", False):
+        import warp as wp
+
+        wp.config.quiet = True  # before Warp initialises: no banner / module-load lines
+    return int(args.func(args))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

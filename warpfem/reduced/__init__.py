@@ -1,0 +1,41 @@
+"""Reduced (subspace) simulation with optimized cubature (seed 000, Cubica).
+
+    import warpfem as wf
+    from warpfem.reduced import train_subspace, ReducedSimulator
+    sub = train_subspace(model, modes=20, modal_derivatives=True, cubature_tolerance=0.05,
+                         max_cubature_points=200, seed=0, cache="beam.subspace.npz")
+    rsim = ReducedSimulator(model, sub, dt=1 / 60)
+    rsim.step(); x = rsim.positions()
+"""
+
+from warpfem.reduced.basis import Basis, build_basis, linear_modes, mass_pca, modal_derivatives
+from warpfem.reduced.cubature import Cubature, relative_force_error, train_cubature, training_poses
+from warpfem.reduced.simulator import CubatureForces, ReducedSimulator
+from warpfem.reduced.subspace import (
+    Subspace,
+    SubspaceMismatch,
+    format_report,
+    load_subspace,
+    mesh_hash,
+    train_subspace,
+)
+
+__all__ = [
+    "Basis",
+    "Cubature",
+    "CubatureForces",
+    "ReducedSimulator",
+    "Subspace",
+    "SubspaceMismatch",
+    "build_basis",
+    "format_report",
+    "linear_modes",
+    "load_subspace",
+    "mass_pca",
+    "mesh_hash",
+    "modal_derivatives",
+    "relative_force_error",
+    "train_cubature",
+    "train_subspace",
+    "training_poses",
+]

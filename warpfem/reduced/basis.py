@@ -1,0 +1,225 @@
+"""Subspace bases: linear vibration modes and modal derivatives (Barbic & James 2005).
+
+All bases are (3n x r) dense float64 with rows ordered vertex-major (row 3 v + k is component k
+of vertex v), zero rows at fixed components, and mass-orthonormal: U^T M U = I.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+import scipy.sparse.linalg
+
+
+@dataclass
+class Basis:
+    """A subspace basis and what it was built from.
+
+    Attributes:
+        U: (3n, r) float64, mass-orthonormal columns (U^T M U = I), zero at fixed components.
+        linear_frequencies: (m,) angular frequencies omega_i (rad/s) of the linear modes computed
+            (elastic modes only, ascending).
+        frequencies: (r,) angular frequencies (rad/s) of the basis itself: sqrt of the eigenvalues of
+            U^T K U (rest stiffness projected), ascending order of the columns is not implied.
+        num_rigid: number of rigid columns kept (3 translations for unconstrained objects, else 0).
+        modal_derivatives: whether modal derivatives were added before the mass-PCA.
+    """
+
+    U: np.ndarray
+    linear_frequencies: np.ndarray
+    frequencies: np.ndarray
+    num_rigid: int = 0
+    modal_derivatives: bool = False
+    info: dict = field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return int(self.U.shape[1])
+
+
+def _full_simulator(model):
+    from warpfem.simulator import Simulator
+
+    return Simulator(model, device="cpu", precision="float64")
+
+
+def _free_dofs(model) -> np.ndarray:
+    return np.flatnonzero(~np.asarray(model.fixed).reshape(-1))
+
+
+def _translation_columns(model, M) -> np.ndarray:
+    """Mass-orthonormal rigid translations (3n x 3)."""
+    n = model.num_vertices
+    T = np.zeros((3 * n, 3))
+    for k in range(3):
+        T[k::3, k] = 1.0
+    G = T.T @ (M @ T)
+    return T @ np.linalg.inv(np.linalg.cholesky(G)).T
+
+
+def linear_modes(model, num_modes: int, *, sim=None):
+    """Lowest ``num_modes`` elastic vibration modes of K u = lambda M u at rest.
+
+    Fixed components are removed (rows/columns dropped). Solved with ``scipy.sparse.linalg.eigsh``
+    in shift-invert mode. For an unconstrained object (no fixed component) the 6 rigid modes
+    (eigenvalue ~0) are computed too and dropped, so only elastic modes are returned.
+
+    Returns (Phi (3n, m) mass-orthonormal, omega (m,) rad/s ascending, rigid_dropped: int).
+    """
+    if int(num_modes) != num_modes or num_modes < 1:
+        raise ValueError(f"num_modes must be a positive integer, got {num_modes!r}")
+    num_modes = int(num_modes)
+    sim = sim or _full_simulator(model)
+    X = model.rest_positions
+    K = sim.stiffness_matrix(X, project=False).tocsc()
+    M = sim.mass_matrix().tocsc()
+    free = _free_dofs(model)
+    unconstrained = len(free) == K.shape[0]
+    rigid = 6 if unconstrained else 0
+    nf = len(free)
+    want = num_modes + rigid
+    if want >= nf - 1:
+        raise ValueError(f"asked for {num_modes} modes but the mesh has only {nf} free degrees of freedom")
+    Kf = K[free][:, free]
+    Mf = M[free][:, free]
+    # shift below zero so that K - sigma M is non-singular even with rigid modes
+    scale = float(Kf.diagonal().mean() / Mf.diagonal().mean())
+    sigma = -1e-6 * scale
+    vals, vecs = scipy.sparse.linalg.eigsh(Kf, k=want, M=Mf, sigma=sigma, which="LM",
+                                           v0=np.ones(nf) / np.sqrt(nf))
+    order = np.argsort(vals)
+    vals, vecs = vals[order], vecs[:, order]
+    vals, vecs = vals[rigid:], vecs[:, rigid:]
+    if np.any(vals <= 0):
+        raise ValueError(f"non-positive stiffness eigenvalue {vals.min():.3e}: the model is not "
+                         "constrained enough (or the material is unstable at rest)")
+    Phi = np.zeros((K.shape[0], num_modes))
+    Phi[free] = vecs
+    # re-normalise against the full M (eigsh already does, but be exact)
+    Phi /= np.sqrt(np.einsum("ij,ij->j", Phi, M @ Phi))
+    return Phi, np.sqrt(vals), rigid
+
+
+def modal_derivatives(model, Phi, *, sim=None, step: float | None = None) -> np.ndarray:
+    """Modal derivatives phi_ij (i <= j) solving K phi_ij = -(dK/dq_i) psi_j on the free DOFs.
+
+    The directional derivative dK/dq_i is a central finite difference of the assembled (unprojected)
+    stiffness along psi_i with step ``step`` (default: 1e-4 of the object size over max|psi_i|).
+    Requires fixed vertices (K must be invertible on the free DOFs). Returns (3n, m (m+1) / 2).
+    """
+    sim = sim or _full_simulator(model)
+    free = _free_dofs(model)
+    if len(free) == 3 * model.num_vertices:
+        raise ValueError("modal derivatives need a constrained object (fix some vertices); "
+                         "they are not defined for free-floating bodies here")
+    X = model.rest_positions
+    size = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    K0 = sim.stiffness_matrix(X, project=False).tocsc()
+    lu = scipy.sparse.linalg.splu(K0[free][:, free].tocsc())
+    m = Phi.shape[1]
+    out = []
+    for i in range(m):
+        psi = Phi[:, i]
+        h = step if step is not None else 1e-4 * size / np.abs(psi).max()
+        Kp = sim.stiffness_matrix(X + h * psi.reshape(-1, 3), project=False)
+        Km = sim.stiffness_matrix(X - h * psi.reshape(-1, 3), project=False)
+        dK = (Kp - Km) / (2.0 * h)
+        for j in range(i, m):
+            rhs = -(dK @ Phi[:, j])[free]
+            phi = np.zeros(3 * model.num_vertices)
+            phi[free] = lu.solve(rhs)
+            out.append(phi)
+    return np.array(out).T if out else np.zeros((3 * model.num_vertices, 0))
+
+
+def mass_pca(B: np.ndarray, M, r: int, *, rel_tol: float = 1e-10) -> np.ndarray:
+    """Best r-dimensional mass-orthonormal subspace of the columns of B (M-weighted PCA).
+
+    With G = B^T M B = V diag(s) V^T (descending), returns B V_r diag(s_r)^-1/2; columns whose
+    singular value is below rel_tol * s_max are discarded (so fewer than r may come back).
+    """
+    G = B.T @ (M @ B)
+    G = 0.5 * (G + G.T)
+    s, V = np.linalg.eigh(G)
+    order = np.argsort(s)[::-1]
+    s, V = s[order], V[:, order]
+    keep = s > rel_tol * s[0]
+    k = min(int(r), int(keep.sum()))
+    U = B @ (V[:, :k] / np.sqrt(s[:k]))
+    # one more M-orthonormalisation (Cholesky) removes the round-off of small singular values
+    G = U.T @ (M @ U)
+    return U @ np.linalg.inv(np.linalg.cholesky(0.5 * (G + G.T))).T
+
+
+def _modes_for_derivatives(r: int) -> int:
+    m = 1
+    while m + m * (m + 1) // 2 < r:
+        m += 1
+    return m
+
+
+def build_basis(model, *, modes: int, modal_derivatives_: bool = False, sim=None) -> Basis:
+    """The r = ``modes`` column basis used by the reduced simulator.
+
+    * without modal derivatives: the ``modes`` lowest linear modes;
+    * with: m linear modes (smallest m with m + m(m+1)/2 >= modes) and their m(m+1)/2 modal
+      derivatives, scaled by omega_1^2/omega_i^2 and omega_1^4/(omega_i^2 omega_j^2)
+      (Barbic & James 2005), then mass-PCA down to ``modes`` columns.
+    * Unconstrained objects: rigid modes are handled explicitly by keeping the 3 rigid
+      translations as exact columns (so the body can move and fall); infinitesimal rotations are
+      not kept (a linear subspace cannot rotate an object without shearing it), so
+      ``modes`` = 3 translations + (modes - 3) elastic modes. Modal derivatives need fixed vertices.
+    """
+    if int(modes) != modes or modes < 1:
+        raise ValueError(f"modes must be a positive integer, got {modes!r}")
+    modes = int(modes)
+    sim = sim or _full_simulator(model)
+    M = sim.mass_matrix()
+    K = sim.stiffness_matrix(model.rest_positions, project=False)
+    unconstrained = not np.asarray(model.fixed).any()
+    info = {}
+    if unconstrained:
+        if modal_derivatives_:
+            raise ValueError("modal_derivatives=True needs fixed vertices; this model has none")
+        if modes < 4:
+            raise ValueError("an unconstrained object needs modes >= 4 (3 rigid translations + elastic modes)")
+        Phi, omega, _ = linear_modes(model, modes - 3, sim=sim)
+        U = np.hstack([_translation_columns(model, M), Phi])
+        nrig = 3  # elastic modes are M-orthogonal to translations (eigenvectors of K u = l M u)
+    elif modal_derivatives_:
+        # symmetric cross-sections give linearly dependent derivatives: add linear modes until the
+        # mass-PCA has r independent directions
+        m = _modes_for_derivatives(modes)
+        while True:
+            Phi, omega, _ = linear_modes(model, m, sim=sim)
+            D = modal_derivatives(model, Phi, sim=sim)
+            w1 = omega[0] ** 2
+            scales = [w1 ** 2 / (omega[i] ** 2 * omega[j] ** 2) for i in range(m) for j in range(i, m)]
+            U = mass_pca(np.hstack([Phi * (w1 / omega ** 2), D * np.array(scales)]), M, modes)
+            if U.shape[1] >= modes or m >= modes:
+                break
+            m += 1
+        if U.shape[1] < modes:
+            raise ValueError(f"could only build {U.shape[1]} independent columns, asked for modes={modes}")
+        nrig = 0
+        info["linear_modes_used"] = m
+        info["modal_derivatives_computed"] = D.shape[1]
+    else:
+        Phi, omega, _ = linear_modes(model, modes, sim=sim)
+        U, nrig = Phi, 0
+    Kr = U.T @ (K @ U)
+    ev = np.linalg.eigvalsh(0.5 * (Kr + Kr.T))
+    freqs = np.sqrt(np.clip(ev, 0.0, None))
+    return Basis(U=np.ascontiguousarray(U), linear_frequencies=omega, frequencies=freqs, num_rigid=nrig,
+                 modal_derivatives=bool(modal_derivatives_), info=info)
+
+
+def basis_amplitudes(basis: Basis, model, K=None) -> np.ndarray:
+    """Per-column Rayleigh frequencies omega_j = sqrt(u_j^T K u_j) (rad/s; 0 for rigid columns)."""
+    if K is None:
+        K = _full_simulator(model).stiffness_matrix(model.rest_positions, project=False)
+    d = np.einsum("ij,ij->j", basis.U, K @ basis.U)
+    return np.sqrt(np.clip(d, 0.0, None))

@@ -1,0 +1,326 @@
+"""Reduced backward Euler on a subspace x = X + U q with cubature forces (seed 000).
+
+Incremental potential over the reduced velocity v (r-vector), h = dt:
+
+    E(v) = 1/2 (v - v_n)^T M_r (v - v_n) + h/2 v^T C_r v + V_c(q_n + h v) - h v^T U^T f_ext,
+
+M_r = U^T M U (= I for a mass-orthonormal basis), C_r = alpha M_r + beta K_r(q_n) (projected),
+V_c the cubature energy. Newton with an Armijo backtracking line search and a dense r x r solve
+(numpy); the reduced force and stiffness come from the Warp cubature kernels
+(``warpfem.kernels.reduced``), touching only cubature elements.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+import warp as wp
+
+from warpfem.kernels import reduced as RK
+from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats
+
+_PRECISIONS = {
+    "float32": (wp.float32, wp.vec3, wp.mat33, np.float32),
+    "float64": (wp.float64, wp.vec3d, wp.mat33d, np.float64),
+}
+
+
+def _basis_array(U, n, vec, npdt, device):
+    r = U.shape[1]
+    return wp.array(np.ascontiguousarray(U.reshape(n, 3, r).transpose(0, 2, 1)).astype(npdt), dtype=vec, device=device)
+
+
+class CubatureForces:
+    """Reduced energy (J), force U^T f (r,) and stiffness U^T K U (r, r) by cubature on a device.
+
+    Args:
+        model: the Model (tet4).
+        U: (3n, r) basis.
+        elements, weights: cubature elements and dimensionless weights (weight 1 for every element
+            gives the exact reduced quantities).
+    """
+
+    def __init__(self, model, U, elements, weights, *, device="cpu", precision="float64"):
+        qd = model.quadrature
+        if qd.element_type != "tet4":
+            raise ValueError(f"reduced simulation supports tet4 meshes only, got {qd.element_type!r}")
+        U = np.asarray(U, dtype=np.float64)
+        n = model.num_vertices
+        if U.ndim != 2 or U.shape[0] != 3 * n or U.shape[1] < 1:
+            raise ValueError(f"basis U must have shape (3n = {3 * n}, r >= 1), got {U.shape}")
+        elements = np.asarray(elements, dtype=np.int64)
+        weights = np.asarray(weights, dtype=np.float64)
+        m = qd.num_elements
+        if elements.shape != weights.shape or elements.ndim != 1 or elements.size == 0:
+            raise ValueError(f"cubature elements and weights must be equal-length 1-d arrays, got {elements.shape}, {weights.shape}")
+        if elements.min() < 0 or elements.max() >= m:
+            raise ValueError(f"cubature element index out of range [0, {m}): {elements[(elements < 0) | (elements >= m)][:5]}")
+        if np.any(weights < 0) or not np.all(np.isfinite(weights)):
+            raise ValueError("cubature weights must be finite and non-negative")
+        self.device = dev = wp.get_device(device)
+        self._s, vec, mat, npdt = _PRECISIONS[precision]
+        self.r = r = U.shape[1]
+        self.c = c = len(elements)
+        mat_ = model.material
+        self.kind, self.mu, self.lam = int(mat_.kind), self._s(mat_.mu), self._s(mat_.lam)
+        self.U = _basis_array(U, n, vec, npdt, dev)
+        tets = qd.elements.reshape(-1, 4)[elements]
+        self.elements = wp.array(tets.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev)
+        self.cub_element = wp.array(np.arange(c, dtype=np.int32), dtype=wp.int32, device=dev)
+        self.cub_weight = wp.array((weights * qd.qp_weight[elements]).astype(npdt), dtype=self._s, device=dev)
+        self.dNdX = wp.array(qd.qp_dNdX.reshape(-1, 4, 3)[elements].reshape(-1, 3).astype(npdt), dtype=vec, device=dev)
+        self._q = wp.zeros(r, dtype=self._s, device=dev)
+        self._energy = wp.zeros(c, dtype=self._s, device=dev)
+        self._f = wp.zeros(4 * c, dtype=vec, device=dev)
+        self._H = wp.zeros(16 * c, dtype=mat, device=dev)
+        self._force = wp.zeros(r, dtype=self._s, device=dev)
+        self._K = wp.zeros((r, r), dtype=self._s, device=dev)
+        self._npdt = npdt
+
+    def evaluate(self, q, *, hessian: bool = False, project: bool = True):
+        """(energy J, force (r,), stiffness (r, r) or None) at q, float64 numpy."""
+        self._q.assign(np.asarray(q, dtype=self._npdt))
+        wh = int(bool(hessian))
+        wp.launch(RK.cubature_element_kernel, dim=self.c,
+                  inputs=[self.U, self._q, self.elements, self.cub_element, self.cub_weight, self.dNdX, self.kind,
+                          self.mu, self.lam, wh, int(bool(project)), self._energy, self._f, self._H], device=self.device)
+        self._force.zero_()
+        if hessian:
+            self._K.zero_()
+        wp.launch(RK.cubature_project_kernel, dim=(self.c, self.r),
+                  inputs=[self.U, self.elements, self.cub_element, self._f, self._H, wh, self._force, self._K],
+                  device=self.device)
+        E = float(self._energy.numpy().astype(np.float64).sum())
+        f = self._force.numpy().astype(np.float64)
+        K = self._K.numpy().astype(np.float64) if hessian else None
+        return E, f, K
+
+
+class ReducedSimulator:
+    """Backward Euler in a subspace (see module docstring).
+
+    Args:
+        model: the Model the subspace was trained for.
+        subspace: a :class:`~warpfem.reduced.Subspace` (basis + cubature), e.g. from
+            :func:`~warpfem.reduced.train_subspace` or :func:`~warpfem.reduced.load_subspace`.
+        device, precision, dt (s), damping_mass alpha (1/s), damping_stiffness beta (s),
+        require_convergence: as for :class:`warpfem.Simulator`.
+        Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``max_line_search``, ``armijo``,
+            ``project_hessian`` (``cg_tol`` / ``max_cg_iters`` are accepted and unused: the r x r
+            system is solved directly).
+
+    Fixed vertices stay where the basis puts them (at rest: fixed rows of U are zero). State: the
+    reduced coordinates ``q`` and velocities ``qdot`` (numpy float64, r).
+    """
+
+    def __init__(self, model, subspace, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
+                 damping_stiffness=0.0, require_convergence=False, **newton_options):
+        if precision not in _PRECISIONS:
+            raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+        if damping_mass < 0 or damping_stiffness < 0:
+            raise ValueError("Rayleigh damping coefficients must be >= 0")
+        unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
+        if unknown:
+            raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
+        subspace.check(model)
+        self.options = NewtonOptions(**newton_options)
+        self.options.validate()
+        self.model, self.subspace = model, subspace
+        self.device = wp.get_device(device)
+        self.precision = precision
+        self._s, self._vec, _, self._np = _PRECISIONS[precision]
+        self.dt, self.damping_mass, self.damping_stiffness = float(dt), float(damping_mass), float(damping_stiffness)
+        self.require_convergence = require_convergence
+        U = subspace.U
+        self.r = U.shape[1]
+        self.num_vertices = n = model.num_vertices
+        cub = subspace.cubature
+        self.forces = CubatureForces(model, U, cub.elements, cub.weights, device=device, precision=precision)
+        self.mass_r = self._reduced_mass(U)
+        self._X = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=self.device)
+        self._x = wp.zeros(n, dtype=self._vec, device=self.device)
+        self._qdev = wp.zeros(self.r, dtype=self._s, device=self.device)
+        self._surface = None
+        self.q = np.zeros(self.r)
+        self.qdot = np.zeros(self.r)
+        self.time = 0.0
+        self.step_count = 0
+        self.sync_model()
+
+    def _mass3(self):
+        import scipy.sparse
+
+        M = self.model.mass
+        return M if M.shape[0] == 3 * self.num_vertices else scipy.sparse.kron(M, scipy.sparse.identity(3), format="csr")
+
+    def _reduced_mass(self, U):
+        Mr = U.T @ (self._mass3() @ U)
+        return 0.5 * (Mr + Mr.T)
+
+    def sync_model(self):
+        """Project the model's external forces (gravity + applied) onto the basis: U^T f_ext (call after changes)."""
+        self.fext_r = self.subspace.U.T @ self.model.external_forces().reshape(-1)
+
+    # -- state ------------------------------------------------------------------------------------
+    def _reconstruct(self, X, U, q, out):
+        self._qdev.assign(np.asarray(q, dtype=self._np))
+        wp.launch(RK.reconstruct_kernel, dim=len(X), inputs=[X, U, self._qdev, out], device=self.device)
+        return out
+
+    def positions_device(self):
+        """x = X + U q as a device array of vec3 (computed on the device only when asked)."""
+        return self._reconstruct(self._X, self.forces.U, self.q, self._x)
+
+    def positions(self) -> np.ndarray:
+        """Full-mesh positions (n, 3), m, float64."""
+        return self.positions_device().numpy().astype(np.float64)
+
+    def velocities(self) -> np.ndarray:
+        """Full-mesh velocities U qdot (n, 3), m/s."""
+        return (self.subspace.U @ self.qdot).reshape(-1, 3)
+
+    def set_render_surface(self, W):
+        """Precompute W U and W X for a render surface embedded with skinning matrix W (p x n,
+        scipy sparse or a ``warpfem.skinning.Embedding``), so :meth:`surface_positions` costs O(r)
+        per surface point and never builds the full mesh."""
+        if hasattr(W, "matrix"):
+            W = W.matrix()
+        n = self.num_vertices
+        if W.shape[1] != n:
+            raise ValueError(f"skinning matrix has {W.shape[1]} columns, the mesh has {n} vertices")
+        U = self.subspace.U
+        WU = np.asarray(W @ U.reshape(n, 3 * self.r)).reshape(-1, 3 * self.r)
+        WX = np.asarray(W @ self.model.rest_positions)
+        p = WX.shape[0]
+        self._surface = (wp.array(WX.astype(self._np), dtype=self._vec, device=self.device),
+                         _basis_array(WU.reshape(3 * p, self.r), p, self._vec, self._np, self.device),
+                         wp.zeros(p, dtype=self._vec, device=self.device))
+
+    def surface_positions(self) -> np.ndarray:
+        """Render-surface positions (p, 3) = W X + (W U) q (needs :meth:`set_render_surface`)."""
+        if self._surface is None:
+            raise RuntimeError("call set_render_surface(W) first")
+        WX, WU, out = self._surface
+        return self._reconstruct(WX, WU, self.q, out).numpy().astype(np.float64)
+
+    def set_state(self, q=None, qdot=None):
+        """Set reduced coordinates / velocities (r,)."""
+        for name, val in (("q", q), ("qdot", qdot)):
+            if val is not None:
+                a = np.asarray(val, dtype=np.float64)
+                if a.shape != (self.r,) or not np.all(np.isfinite(a)):
+                    raise ValueError(f"{name} must be {self.r} finite numbers, got shape {a.shape}")
+                setattr(self, name, a.copy())
+
+    def project(self, x) -> np.ndarray:
+        """q = U^T M (x - X) for full positions x (n, 3) (exact for x in the subspace)."""
+        M3 = self._mass3()
+        d = (np.asarray(x, dtype=np.float64) - self.model.rest_positions).reshape(-1)
+        return np.linalg.solve(self.mass_r, self.subspace.U.T @ (M3 @ d))
+
+    def elastic_energy(self) -> float:
+        return self.forces.evaluate(self.q)[0]
+
+    # -- step ---------------------------------------------------------------------------------------
+    def step(self) -> SolveStats:
+        """One reduced backward Euler step of ``dt``; raises SolveFailed on NaN (state untouched)."""
+        t0 = time.perf_counter()
+        h, opts = self.dt, self.options
+        Mr, fr_ext = self.mass_r, self.fext_r
+        qn, vn = self.q, self.qdot
+        C = self.damping_mass * Mr
+        if self.damping_stiffness > 0:
+            C = C + self.damping_stiffness * self.forces.evaluate(qn, hessian=True, project=True)[2]
+        A = Mr + h * C
+
+        def energy(v):
+            E, f, _ = self.forces.evaluate(qn + h * v)
+            dv = v - vn
+            quad = 0.5 * dv @ (Mr @ dv) + 0.5 * h * v @ (C @ v)
+            work = h * v @ fr_ext
+            return quad + E - work, abs(quad) + abs(E) + abs(work)
+
+        def gradient(v, hess=False):
+            E, f, K = self.forces.evaluate(qn + h * v, hessian=hess, project=opts.project_hessian)
+            terms = (Mr @ (v - vn), h * (C @ v), h * f, h * fr_ext)
+            g = terms[0] + terms[1] - terms[2] - terms[3]
+            return g, sum(np.linalg.norm(t) for t in terms), K
+
+        st = SolveStats()
+        eps = float(np.finfo(self._np).eps)
+        v = vn.copy()
+        E, mag = energy(v)
+        g, gmag, K = gradient(v, hess=True)
+        gnorm0 = gnorm = float(np.linalg.norm(g))
+        st.energy, st.gradient_norm = E, gnorm0
+        if not (np.isfinite(E) and np.isfinite(gnorm0)):
+            st.reason = "non-finite energy or gradient at the start"
+        elif gnorm0 <= opts.atol or gnorm0 <= 64 * eps * gmag:
+            st.converged, st.reason = True, "already at equilibrium"
+        else:
+            for _ in range(opts.max_iters):
+                H = A + h * h * K
+                try:
+                    d = np.linalg.solve(H, -g)
+                except np.linalg.LinAlgError:
+                    d = -g
+                gd = float(g @ d)
+                if not gd < 0.0:
+                    d, gd = -g, -float(g @ g)
+                alpha, accepted = 1.0, False
+                noise = 16.0 * eps * mag
+                for _ls in range(opts.max_line_search):
+                    E_try, mag_try = energy(v + alpha * d)
+                    if np.isfinite(E_try) and E_try <= E + opts.armijo * alpha * gd + noise:
+                        accepted = True
+                        break
+                    if _ls == 0 and np.isfinite(E_try) and abs(E_try - E) <= 1e-9 * mag:
+                        # energy change below what float64 sums resolve: accept the full Newton
+                        # step if it halves the gradient norm (it is then a contraction)
+                        g_try = gradient(v + d)[0]
+                        if np.linalg.norm(g_try) <= 0.5 * gnorm:
+                            accepted = True
+                            break
+                    alpha *= 0.5
+                    st.line_search_steps += 1
+                if not accepted:
+                    if gnorm <= 1e3 * 64 * eps * gmag:
+                        st.converged, st.reason = True, "at the precision limit (energy differences below round-off)"
+                    else:
+                        st.reason = "line search could not decrease the energy"
+                    break
+                v = v + alpha * d
+                E, mag = E_try, mag_try
+                g, gmag, K = gradient(v, hess=True)
+                gnorm = float(np.linalg.norm(g))
+                st.newton_iterations += 1
+                st.history.append((E, gnorm, alpha, 0))
+                if not np.isfinite(gnorm):
+                    st.reason = "non-finite gradient"
+                    break
+                if gnorm <= opts.tol * gnorm0 or gnorm <= opts.atol:
+                    st.converged, st.reason = True, "gradient below tolerance"
+                    break
+                if gnorm <= 64 * eps * gmag:
+                    st.converged, st.reason = True, "gradient at the round-off floor of its terms"
+                    break
+            else:
+                st.reason = f"reached max_iters={opts.max_iters}"
+            st.energy, st.gradient_norm, st.residual = E, gnorm, gnorm / gnorm0
+        st.seconds = time.perf_counter() - t0
+        what = f"reduced step {self.step_count}"
+        if not st.converged:
+            if "non-finite" in st.reason or not np.isfinite(st.energy) or not np.all(np.isfinite(v)):
+                raise SolveFailed(f"{what} diverged ({st.reason}); state left unchanged", st)
+            if self.require_convergence:
+                raise SolveFailed(f"{what} did not converge ({st.reason}); state left unchanged", st)
+            warnings.warn(f"{what} did not converge: {st.reason} (relative gradient {st.residual:.2e})", RuntimeWarning, stacklevel=2)
+        self.q = qn + h * v
+        self.qdot = v
+        self.time += h
+        self.step_count += 1
+        return st

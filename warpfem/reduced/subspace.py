@@ -1,0 +1,202 @@
+"""A trained subspace (basis + cubature), its npz cache, and ``train_subspace`` (the train entry)."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from warpfem.reduced.basis import Basis, build_basis
+from warpfem.reduced.cubature import Cubature, train_cubature
+
+FORMAT_VERSION = 1
+
+
+class SubspaceMismatch(ValueError):
+    """A saved subspace does not belong to the model (mesh, fixed vertices or material differ)."""
+
+
+def mesh_hash(model) -> str:
+    """sha256 of rest positions (float64), connectivity (int64) and the fixed mask: anything that
+    changes the basis changes the hash."""
+    h = hashlib.sha256()
+    h.update(np.ascontiguousarray(model.rest_positions, dtype=np.float64).tobytes())
+    h.update(np.ascontiguousarray(model.quadrature.elements, dtype=np.int64).tobytes())
+    h.update(np.ascontiguousarray(model.fixed, dtype=np.uint8).tobytes())
+    return h.hexdigest()
+
+
+def material_parameters(model) -> dict:
+    m = model.material
+    return {"name": str(getattr(m, "name", type(m).__name__)), "kind": int(m.kind),
+            "youngs_modulus": float(getattr(m, "youngs_modulus", float("nan"))),
+            "poisson_ratio": float(getattr(m, "poisson_ratio", float("nan"))),
+            "density": float(m.density), "mass_matrix": str(model.mass_matrix_kind)}
+
+
+@dataclass
+class Subspace:
+    """Basis + cubature + the model fingerprint they were trained for.
+
+    ``report`` holds the numbers a user wants to see: modes, modal frequencies (Hz), cubature
+    points, training / validation error, training times.
+    """
+
+    basis: Basis
+    cubature: Cubature
+    mesh_hash: str
+    material: dict
+    settings: dict = field(default_factory=dict)
+    report: dict = field(default_factory=dict)
+
+    @property
+    def U(self) -> np.ndarray:
+        return self.basis.U
+
+    def check(self, model, *, source: str = "subspace") -> None:
+        """Raise :class:`SubspaceMismatch` naming what differs when this subspace is not for ``model``."""
+        h = mesh_hash(model)
+        if h != self.mesh_hash:
+            raise SubspaceMismatch(f"{source} was trained for a different mesh or fixed vertices "
+                                   f"(hash {self.mesh_hash[:12]}..., this model {h[:12]}...); retrain it (warpfem train)")
+        mat = material_parameters(model)
+        diff = [k for k in mat if k in self.material and mat[k] != self.material[k]
+                and not (isinstance(mat[k], float) and np.isnan(mat[k]) and np.isnan(self.material[k]))]
+        if diff:
+            detail = ", ".join(f"{k}: saved {self.material[k]!r} vs model {mat[k]!r}" for k in diff)
+            raise SubspaceMismatch(f"{source} was trained for a different material ({detail}); retrain it (warpfem train)")
+        if self.U.shape[0] != 3 * model.num_vertices:
+            raise SubspaceMismatch(f"{source} basis has {self.U.shape[0]} rows, model needs {3 * model.num_vertices}")
+
+    def save(self, path) -> None:
+        """Write everything to one npz (``path``)."""
+        b, c = self.basis, self.cubature
+        meta = {"format": FORMAT_VERSION, "mesh_hash": self.mesh_hash, "material": self.material,
+                "settings": self.settings, "report": self.report, "num_rigid": b.num_rigid,
+                "modal_derivatives": b.modal_derivatives, "basis_info": b.info,
+                "cubature": {"training_error": c.training_error, "validation_error": c.validation_error,
+                             "training_seconds": c.training_seconds, "tolerance": c.tolerance,
+                             "max_points": c.max_points, "seed": c.seed, "reached_tolerance": c.reached_tolerance}}
+        path = os.fspath(path)
+        tmp = path + ".tmp.npz"
+        np.savez(tmp, U=b.U, linear_frequencies=b.linear_frequencies, frequencies=b.frequencies,
+                 cubature_elements=c.elements, cubature_weights=c.weights, training_poses=c.training_poses,
+                 meta=np.array(json.dumps(meta)))
+        os.replace(tmp, path)
+
+
+def load_subspace(path, model=None) -> Subspace:
+    """Read a subspace npz; with ``model`` given, raise :class:`SubspaceMismatch` if it does not match."""
+    path = os.fspath(path)
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"subspace cache {path!r} not found; create it with train_subspace / `warpfem train`")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: z[k] for k in z.files if k != "meta"}
+    except (OSError, ValueError, KeyError) as exc:
+        raise SubspaceMismatch(f"{path!r} is not a warpfem subspace file ({exc})") from exc
+    if meta.get("format") != FORMAT_VERSION:
+        raise SubspaceMismatch(f"{path!r} has format {meta.get('format')!r}, expected {FORMAT_VERSION}; retrain it")
+    cm = meta["cubature"]
+    basis = Basis(U=arrays["U"], linear_frequencies=arrays["linear_frequencies"], frequencies=arrays["frequencies"],
+                  num_rigid=int(meta["num_rigid"]), modal_derivatives=bool(meta["modal_derivatives"]),
+                  info=meta.get("basis_info", {}))
+    cub = Cubature(elements=arrays["cubature_elements"], weights=arrays["cubature_weights"],
+                   training_error=cm["training_error"], validation_error=cm["validation_error"],
+                   training_seconds=cm["training_seconds"], training_poses=arrays["training_poses"],
+                   tolerance=cm["tolerance"], max_points=cm["max_points"], seed=cm["seed"],
+                   reached_tolerance=cm["reached_tolerance"])
+    sub = Subspace(basis, cub, meta["mesh_hash"], meta["material"], meta.get("settings", {}), meta.get("report", {}))
+    if model is not None:
+        sub.check(model, source=f"subspace cache {path!r}")
+    return sub
+
+
+def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cubature_tolerance: float = 0.05,
+                   max_cubature_points: int = 200, seed: int = 0, cache=None, retrain: bool = False,
+                   num_training_poses: int = 100, num_validation_poses: int = 30, candidates: int = 256,
+                   pose_amplitude: float = 0.1, snapshots=None, verbose: bool = False) -> Subspace:
+    """Build the basis and train the cubature for ``model`` (the ``warpfem train`` entry point).
+
+    Args:
+        modes: r, the subspace dimension.
+        modal_derivatives: add Barbic-James modal derivatives (needs fixed vertices) before mass-PCA.
+        cubature_tolerance: target relative training force error (0..1).
+        max_cubature_points: cap on cubature points.
+        seed: seeds training poses and candidate sampling (deterministic).
+        cache: npz path. If it exists, matches the model and was trained with the same settings it
+            is loaded instead of retraining; otherwise (or with ``retrain=True``) training runs and
+            the file is (over)written. ``report["cache"]`` says which happened and why.
+        num_training_poses, num_validation_poses, candidates, pose_amplitude, snapshots: see
+            :func:`warpfem.reduced.cubature.train_cubature`.
+    """
+    settings = {"modes": int(modes), "modal_derivatives": bool(modal_derivatives),
+                "cubature_tolerance": float(cubature_tolerance), "max_cubature_points": int(max_cubature_points),
+                "seed": int(seed), "num_training_poses": int(num_training_poses),
+                "num_validation_poses": int(num_validation_poses), "candidates": int(candidates),
+                "pose_amplitude": float(pose_amplitude), "snapshots": 0 if snapshots is None else len(snapshots)}
+    why = "no cache given"
+    if cache is not None and not retrain:
+        if os.path.exists(cache):
+            try:
+                sub = load_subspace(cache, model)
+                if sub.settings == settings:
+                    sub.report["cache"] = f"loaded {os.fspath(cache)!r}"
+                    return sub
+                why = "settings changed"
+            except SubspaceMismatch as exc:
+                why = str(exc)
+        else:
+            why = "cache file did not exist"
+    elif retrain:
+        why = "retrain requested"
+    import time
+
+    from warpfem.reduced.basis import _full_simulator
+
+    sim = _full_simulator(model)
+    t0 = time.perf_counter()
+    basis = build_basis(model, modes=modes, modal_derivatives_=modal_derivatives, sim=sim)
+    t_basis = time.perf_counter() - t0
+    cub = train_cubature(model, basis.U, tolerance=cubature_tolerance, max_points=max_cubature_points, seed=seed,
+                         num_training_poses=num_training_poses, num_validation_poses=num_validation_poses,
+                         candidates=candidates, amplitude=pose_amplitude, snapshots=snapshots, sim=sim)
+    report = {
+        "modes": basis.size,
+        "num_rigid": basis.num_rigid,
+        "modal_derivatives": basis.modal_derivatives,
+        "linear_frequencies_hz": (basis.linear_frequencies / (2 * np.pi)).tolist(),
+        "basis_frequencies_hz": (basis.frequencies / (2 * np.pi)).tolist(),
+        "cubature_points": cub.num_points,
+        "num_elements": model.quadrature.num_elements,
+        "training_error": cub.training_error,
+        "validation_error": cub.validation_error,
+        "reached_tolerance": cub.reached_tolerance,
+        "basis_seconds": t_basis,
+        "cubature_seconds": cub.training_seconds,
+        "cache": f"trained ({why})",
+    }
+    sub = Subspace(basis, cub, mesh_hash(model), material_parameters(model), settings, report)
+    if cache is not None:
+        sub.save(cache)
+        report["cache"] += f", saved to {os.fspath(cache)!r}"
+    if verbose:
+        print(format_report(report))
+    return sub
+
+
+def format_report(report: dict) -> str:
+    """Human-readable training summary."""
+    f = report.get("linear_frequencies_hz", [])
+    lines = [f"subspace: r = {report.get('modes')} ({report.get('num_rigid', 0)} rigid), modal derivatives: {report.get('modal_derivatives')}",
+             "linear modal frequencies (Hz): " + ", ".join(f"{x:.4g}" for x in f[:10]) + (" ..." if len(f) > 10 else ""),
+             f"cubature: {report.get('cubature_points')} of {report.get('num_elements')} elements, training error "
+             f"{report.get('training_error', float('nan')):.3g}, validation error {report.get('validation_error', float('nan')):.3g}"
+             f"{'' if report.get('reached_tolerance', True) else ' (point cap reached before the tolerance)'}",
+             f"time: basis {report.get('basis_seconds', 0):.2f} s, cubature {report.get('cubature_seconds', 0):.2f} s",
+             f"cache: {report.get('cache')}"]
+    return "\n".join(lines)

@@ -1,0 +1,130 @@
+"""TOML scene files: schema and validation, building, running frames with USD / npz / stats output.
+
+    from warpfem.scenes import load_scene
+    scene = load_scene("examples/scenes/cantilever.toml")   # validated; nothing built yet
+    print(scene.describe())                                 # counts and memory, no kernels
+    run = scene.build(device="cpu", precision="float64")
+    run.run(usd="out/cantilever.usda")
+
+Integrator types live in the registry ``INTEGRATORS`` (name -> :class:`IntegratorType`); other
+modules add theirs with :func:`register_integrator` (their ``[integrator]`` keys are validated
+from the ``keys`` they declare). See docs/scenes.md for the file format.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+from .schema import ELEMENTS, INTEGRATOR_KEYS, SCHEMA, Key, SceneError, SceneSpec, parse_scene_dict, parse_scene_file
+
+__all__ = ["SceneError", "SceneSpec", "Key", "SCHEMA", "ELEMENTS", "INTEGRATOR_KEYS", "IntegratorType",
+           "INTEGRATORS", "register_integrator", "load_scene", "Scene", "SceneRun", "FrameStats",
+           "parse_scene_file", "parse_scene_dict", "traction_forces", "handle_targets", "estimate_device_memory"]
+
+
+@dataclass
+class IntegratorType:
+    """A scene integrator.
+
+    name: the ``[integrator].type`` value.
+    build: ``build(scene, model, *, device, precision) -> sim``; ``sim`` offers what
+        :class:`~warpfem.scenes.SceneRun` uses: ``x`` (device positions), ``positions()``,
+        ``set_targets(ids, positions)``, ``sync_model()``, and ``step()`` + ``dt`` + ``time``
+        (dynamic) or is driven by ``static_solve`` (quasi-static).
+    keys: the ``[integrator]`` keys it accepts besides ``type`` (name -> :class:`Key`).
+    dynamic: True for time stepping (dt, substeps per frame); False for quasi-static frames.
+    builds: short descriptions of what it allocates (shown by ``warpfem describe``).
+    static_solve: ``static_solve(sim, integrator_options) -> SolveStats`` (quasi-static types).
+    """
+
+    name: str
+    build: Callable
+    keys: dict = field(default_factory=dict)
+    dynamic: bool = True
+    builds: tuple = ()
+    static_solve: Callable | None = None
+
+
+INTEGRATORS: dict[str, IntegratorType] = {}
+
+
+def register_integrator(entry: IntegratorType, *, replace: bool = False) -> IntegratorType:
+    """Add an integrator type to the scene registry (``replace=True`` to override a name)."""
+    if not isinstance(entry, IntegratorType):
+        raise TypeError(f"expected an IntegratorType, got {type(entry).__name__}")
+    if entry.name in INTEGRATORS and not replace:
+        raise ValueError(f"integrator {entry.name!r} is already registered (pass replace=True)")
+    if "type" in entry.keys:
+        raise ValueError("integrator keys must not redefine 'type'")
+    if not entry.dynamic and entry.static_solve is None:
+        raise ValueError(f"quasi-static integrator {entry.name!r} needs a static_solve")
+    INTEGRATORS[entry.name] = entry
+    return entry
+
+
+_NEWTON = ("tol", "atol", "cg_tol", "max_iters", "max_cg_iters", "project_hessian")
+
+
+def _simulator(model, opts, *, device, precision, dt, dynamic):
+    from warpfem.simulator import Simulator
+
+    kw = {k: opts[k] for k in _NEWTON}
+    damping = {}
+    if dynamic:
+        damping = {"damping_mass": opts["damping_mass"], "damping_stiffness": opts["damping_stiffness"]}
+    return Simulator(model, device=device, precision=precision, dt=dt, require_convergence=opts["require_convergence"],
+                     **damping, **kw)
+
+
+def _build_backward_euler(scene, model, *, device, precision):
+    o = scene.spec.integrator
+    return _simulator(model, o, device=device, precision=precision, dt=o["dt"], dynamic=True)
+
+
+def _build_static(scene, model, *, device, precision):
+    fixed_any = model.fixed.any(axis=0)
+    if not fixed_any.all():
+        raise ValueError("a static solve needs [[fixed]] or [[handle]] components in x, y and z to remove rigid "
+                         f"motions; free axes: {[a for a, f in zip('xyz', fixed_any) if not f]}")
+    return _simulator(model, scene.spec.integrator, device=device, precision=precision, dt=1.0, dynamic=False)
+
+
+def _static_solve(sim, opts):
+    return sim.solve_static(load_steps=opts["load_steps"])
+
+
+_DYNAMIC_KEYS = {k: v for k, v in INTEGRATOR_KEYS.items() if k != "load_steps"}
+_STATIC_KEYS = {k: v for k, v in INTEGRATOR_KEYS.items() if k not in ("dt", "damping_mass", "damping_stiffness")}
+
+register_integrator(IntegratorType(
+    "backward_euler", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
+    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities")))
+register_integrator(IntegratorType(
+    "static", _build_static, keys=_STATIC_KEYS, dynamic=False, static_solve=_static_solve,
+    builds=("Hessian (Newton + block-Jacobi PCG)", "positions")))
+
+
+
+def _build_stiffness_warping(scene, model, *, device, precision):
+    from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
+
+    o = scene.spec.integrator
+    return StiffnessWarpingSimulator(model, device=device, precision=precision, dt=o["dt"], rotation=o["rotation"],
+                                     cg_tol=o["cg_tol"], max_cg_iters=o["max_cg_iters"], damping_mass=o["damping_mass"],
+                                     damping_stiffness=o["damping_stiffness"],
+                                     require_convergence=o["require_convergence"])
+
+
+_WARPING_KEYS = {k: INTEGRATOR_KEYS[k] for k in ("dt", "max_cg_iters", "damping_mass", "damping_stiffness",
+                                                 "require_convergence")}
+_WARPING_KEYS["cg_tol"] = Key("float", default=1e-6, check=INTEGRATOR_KEYS["cg_tol"].check,
+                              doc="relative PCG tolerance of the one linear solve per step")
+_WARPING_KEYS["rotation"] = Key("choice", default="polar", choices=("polar", "qr"),
+                                doc="element rotation: polar decomposition or Gram-Schmidt (OpenTissue)")
+register_integrator(IntegratorType(
+    "stiffness_warping", _build_stiffness_warping, keys=_WARPING_KEYS, dynamic=True,
+    builds=("mass matrix", "warped stiffness K' (one block-Jacobi PCG solve per step)", "per-tet 12x12 K_e",
+            "positions/velocities")))
+
+from .scene import FrameStats, Scene, SceneRun, estimate_device_memory, handle_targets, load_scene, traction_forces  # noqa: E402

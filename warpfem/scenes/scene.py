@@ -1,0 +1,473 @@
+"""Scenes: what a validated scene file builds, and running it frame by frame with output.
+
+``load_scene(path)`` validates the file (nothing loaded or allocated yet); ``Scene.describe()``
+loads the mesh (numpy only, no kernels) and reports what will be built; ``Scene.build()`` builds
+only what the scene names (no surface embedding without ``[surface]``, ...) and returns a
+:class:`SceneRun`, whose :meth:`SceneRun.run` writes the USD / npz / JSON-lines outputs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .schema import ELEMENTS, SceneError, SceneSpec, parse_scene_file
+
+__all__ = ["Scene", "SceneRun", "FrameStats", "load_scene", "traction_forces", "handle_targets",
+           "estimate_device_memory"]
+
+
+# ----------------------------------------------------------------------------- helpers (numpy)
+def _rotation(axis, angle_rad):
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle_rad) * K + (1 - math.cos(angle_rad)) * (K @ K)
+
+
+def handle_targets(rest, handle: dict, fraction: float, center=None) -> np.ndarray:
+    """Positions (m) of handle vertices (rest (h, 3)) at ramp ``fraction`` in [0, 1].
+
+    x = c + R(fraction * angle) (X - c) + fraction * translation, c the rotation centre
+    (``handle["rotation_center"]`` or the centroid of ``rest``).
+    """
+    rest = np.asarray(rest, dtype=np.float64)
+    s = float(min(max(fraction, 0.0), 1.0))
+    x = rest.copy()
+    if handle.get("rotation_axis") is not None and handle.get("rotation_angle", 0.0) != 0.0:
+        c = np.asarray(handle.get("rotation_center") if handle.get("rotation_center") is not None
+                       else (rest.mean(axis=0) if center is None else center), dtype=np.float64)
+        R = _rotation(handle["rotation_axis"], math.radians(handle["rotation_angle"]) * s)
+        x = c + (rest - c) @ R.T
+    return x + s * np.asarray(handle.get("translation", (0.0, 0.0, 0.0)), dtype=np.float64)
+
+
+def traction_forces(vertices, faces, box_min, box_max, force_per_area):
+    """Consistent nodal forces (N) of a uniform traction (Pa) on the faces inside a box.
+
+    A face is loaded when its three vertices lie in the box. For a linear triangle of reference
+    area A the consistent load of a uniform traction t is t A / 3 on each of its vertices.
+    Returns ``(forces (n, 3), loaded face indices, total loaded area (m^2))``.
+    """
+    from warpfem.mesh import select_vertices_in_box
+
+    X = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    inside = np.zeros(len(X), dtype=bool)
+    inside[select_vertices_in_box(X, box_min, box_max)] = True
+    sel = np.flatnonzero(inside[faces].all(axis=1))
+    f = faces[sel]
+    area = 0.5 * np.linalg.norm(np.cross(X[f[:, 1]] - X[f[:, 0]], X[f[:, 2]] - X[f[:, 0]]), axis=1)
+    t = np.asarray(force_per_area, dtype=np.float64)
+    forces = np.zeros_like(X)
+    per_vertex = (area / 3.0)[:, None] * t[None, :]
+    for a in range(3):
+        np.add.at(forces, f[:, a], per_vertex)
+    return forces, sel, float(area.sum())
+
+
+def _block_nnz(elements, k, n):
+    e = np.asarray(elements, dtype=np.int64).reshape(-1, k)
+    pairs = (e[:, :, None] * n + e[:, None, :]).ravel()
+    return int(np.unique(pairs).size)
+
+
+def estimate_device_memory(*, num_vertices, num_elements, nodes_per_element, num_points, block_nnz,
+                           precision="float64", surface_points=0, stiffness_damping=False) -> int:
+    """Estimated device bytes of a built scene (arrays the simulator and skinner allocate).
+
+    Counts: quadrature data, connectivity, ~16 vec3 work vectors (state, Newton, PCG), the mass and
+    Hessian block matrices (+1 for stiffness damping) with their index arrays, the block-Jacobi
+    inverse diagonal, and the skinning weights/ids/output. An estimate, not a measurement.
+    """
+    s = 4 if precision == "float32" else 8
+    n, m, k, q = num_vertices, num_elements, nodes_per_element, num_points
+    b = 0
+    b += m * k * 4 + q * (4 + s + k * 3 * s)           # connectivity, qp element/weight/dNdX
+    b += 16 * n * 3 * s                                # vectors
+    nmat = 3 if stiffness_damping else 2
+    b += nmat * block_nnz * 9 * s + block_nnz * 4 + (n + 1) * 4 + m * k * k * 4  # values, cols, offsets, block index
+    b += n * 9 * s + q * s                             # PCG diagonal, per-qp energy
+    b += surface_points * (4 * 4 + 4 * s + 3 * s)      # skinning
+    return int(b)
+
+
+def _fmt_bytes(b):
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if b < 1024 or unit == "GiB":
+            return f"{b:.1f} {unit}" if unit != "B" else f"{b} B"
+        b /= 1024.0
+
+
+@dataclass
+class FrameStats:
+    """Statistics of one output frame (sums over its steps)."""
+
+    frame: int
+    time: float
+    steps: int
+    step_seconds: float
+    newton_iterations: int
+    cg_iterations: int
+    residual: float
+    energy: float
+    converged: bool
+    reason: str = ""
+
+    def as_dict(self):
+        return dict(self.__dict__)
+
+
+# ----------------------------------------------------------------------------- Scene
+class Scene:
+    """A validated scene file. Nothing is loaded or allocated until :meth:`describe`/:meth:`build`."""
+
+    def __init__(self, spec: SceneSpec):
+        self.spec = spec
+        self.path = spec.path
+        self._mesh = None
+
+    @property
+    def name(self) -> str:
+        if self.spec.top.get("name"):
+            return self.spec.top["name"]
+        return os.path.splitext(os.path.basename(self.path))[0] if self.path else "scene"
+
+    @property
+    def integrator_type(self) -> str:
+        return self.spec.integrator["type"]
+
+    @property
+    def dynamic(self) -> bool:
+        from . import INTEGRATORS
+
+        return INTEGRATORS[self.integrator_type].dynamic
+
+    def _fail(self, where, msg):
+        raise SceneError(f"{self.path or '<scene>'}: {where}: {msg}")
+
+    # -- mesh and selections (numpy) --------------------------------------------------------------
+    def mesh(self):
+        """The simulation mesh (loaded / generated once)."""
+        if self._mesh is None:
+            import warnings
+
+            from warpfem.mesh import MeshError, box_tet_mesh, load_mesh
+
+            m = self.spec.mesh
+            try:
+                if m["generator"] == "box":
+                    mesh = box_tet_mesh(size=m["size"], cells=m["cells"], origin=m["origin"])
+                else:
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")  # reorientation / unreferenced notes
+                        mesh = load_mesh(m["path"], inside_surface=m["inside_surface"])
+            except (MeshError, ValueError) as e:
+                self._fail("[mesh]", str(e))
+            self._mesh = ELEMENTS[m["element"]](mesh)
+        return self._mesh
+
+    def _select(self, section, i, entry):
+        from warpfem.mesh import select_vertices_in_box
+
+        mesh = self.mesh()
+        if entry.get("indices") is not None:
+            ids = np.unique(np.asarray(entry["indices"], dtype=np.int64))
+            if ids.max() >= mesh.num_vertices:
+                self._fail(f"[[{section}]] #{i + 1}.indices", f"vertex index {int(ids.max())} out of range [0, {mesh.num_vertices})")
+        else:
+            ids = select_vertices_in_box(mesh.vertices, entry["box_min"], entry["box_max"])
+        if ids.size == 0:
+            lo, hi = mesh.bounds()
+            self._fail(f"[[{section}]] #{i + 1}", f"selects no vertices (mesh bounds {np.round(lo, 6).tolist()} .. {np.round(hi, 6).tolist()})")
+        return ids
+
+    def selections(self) -> dict:
+        """Vertex ids per ``[[fixed]]``, ``[[handle]]``, ``[[force]]`` entry: {section: [ids, ...]}."""
+        return {s: [self._select(s, i, e) for i, e in enumerate(getattr(self.spec, s))] for s in ("fixed", "handle", "force")}
+
+    def tractions(self):
+        """[(forces (n, 3), loaded faces, area)] per ``[[traction]]`` entry (consistent loads)."""
+        mesh = self.mesh()
+        faces = mesh.boundary_faces()
+        out = []
+        for i, t in enumerate(self.spec.traction):
+            f, sel, area = traction_forces(mesh.vertices, faces, t["box_min"], t["box_max"], t["force_per_area"])
+            if sel.size == 0:
+                self._fail(f"[[traction]] #{i + 1}", "no boundary face has all three vertices inside the box")
+            out.append((f, sel, area))
+        return out
+
+    # -- describe ---------------------------------------------------------------------------------
+    def describe(self, *, precision: str = "float64") -> str:
+        """What :meth:`build` will build: counts, selections, integrator, outputs and memory."""
+        from . import INTEGRATORS
+
+        sp = self.spec
+        mesh = self.mesh()
+        k = mesh.nodes_per_element
+        n, m = mesh.num_vertices, mesh.num_elements
+        entry = INTEGRATORS[self.integrator_type]
+        sel = self.selections()
+        lines = [f"scene {self.name!r} ({self.path})"]
+        src = (f"box generator size {list(sp.mesh['size'])} m, cells {list(sp.mesh['cells'])}" if sp.mesh["generator"]
+               else f"file {sp.mesh['path']}" + (" (tets inside its surface)" if sp.mesh["inside_surface"] else ""))
+        lines.append(f"mesh: {src}")
+        lines.append(f"  element {sp.mesh['element']}: {m} elements, {n} vertices, {3 * n} DOFs")
+        mat = sp.material
+        lines.append(f"material: {mat['model']} E = {mat['youngs_modulus']:g} Pa, nu = {mat['poisson_ratio']:g}, "
+                     f"density = {mat['density']:g} kg/m^3, {mat['mass_matrix']} mass")
+        lines.append(f"gravity: {list(sp.top['gravity'])} m/s^2")
+        for s in ("fixed", "handle", "force"):
+            for i, (e, ids) in enumerate(zip(getattr(sp, s), sel[s])):
+                extra = ""
+                if s in ("fixed", "handle"):
+                    extra = f", components {e['components']}"
+                if s == "handle":
+                    extra += f", translation {list(e['translation'])} m"
+                    if e["rotation_angle"]:
+                        extra += f", rotation {e['rotation_angle']:g} deg about {list(e['rotation_axis'])}"
+                if s == "force":
+                    extra = f", {list(e['force'])} N each"
+                lines.append(f"{s} #{i + 1}: {ids.size} vertices{extra}")
+        for i, (f, faces, area) in enumerate(self.tractions()):
+            lines.append(f"traction #{i + 1}: {faces.size} faces, area {area:.6g} m^2, total force {f.sum(axis=0).round(9).tolist()} N")
+        integ = sp.integrator
+        if entry.dynamic:
+            lines.append(f"integrator: {self.integrator_type}, dt = {integ['dt']:g} s, {integ['substeps']} step(s) per frame")
+        else:
+            lines.append(f"integrator: {self.integrator_type}, {integ.get('load_steps', 1)} load step(s) per frame")
+        lines.append(f"  builds: {', '.join(entry.builds)}")
+        out = sp.output
+        lines.append(f"frames: {out['frames']} at {out['fps']:g} fps ({out['frames'] / out['fps']:g} s)")
+        if sp.surface is not None:
+            from warpfem.skinning import load_surface
+
+            sv, st = load_surface(sp.surface["path"])
+            p = len(sv)
+            lines.append(f"render surface: {sp.surface['path']} ({p} vertices, {len(st)} triangles), embedded in the tets")
+        else:
+            from warpfem.skinning import mesh_boundary_surface
+
+            ids, tri = mesh_boundary_surface(mesh.vertices, mesh.tets)
+            p = 0
+            lines.append(f"render surface: tet boundary ({ids.size} vertices, {len(tri)} triangles); no embedding")
+        lines.append(f"outputs: usd {out['usd'] or '-'}, states {out['states'] or '-'}, stats {self.stats_path(out['usd'], out['stats']) or '-'}")
+        nnz = _block_nnz(mesh.elements, k, n)
+        for prec in ("float32", "float64"):
+            b = estimate_device_memory(num_vertices=n, num_elements=m, nodes_per_element=k, num_points=m * getattr(mesh, "points_per_element", 1),
+                                       block_nnz=nnz, precision=prec, surface_points=p,
+                                       stiffness_damping=sp.integrator.get("damping_stiffness", 0.0) > 0)
+            lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz} 3x3 matrix blocks)")
+        return "\n".join(lines)
+
+    @staticmethod
+    def stats_path(usd, stats):
+        if stats:
+            return stats
+        if usd:
+            return os.path.splitext(usd)[0] + ".stats.jsonl"
+        return None
+
+    # -- build ------------------------------------------------------------------------------------
+    def build(self, *, device="cpu", precision="float64") -> "SceneRun":
+        """Build the model, the integrator and (only with ``[surface]``) the surface embedding."""
+        from warpfem.materials import make_material
+        from warpfem.model import Model
+
+        from . import INTEGRATORS
+
+        if precision not in ("float32", "float64"):
+            raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
+        sp = self.spec
+        mesh = self.mesh()
+        sel = self.selections()
+        tractions = self.tractions()
+        mat = sp.material
+        material = make_material(mat["model"], youngs_modulus=mat["youngs_modulus"], poisson_ratio=mat["poisson_ratio"],
+                                 density=mat["density"])
+        model = Model(mesh, material, gravity=sp.top["gravity"], mass_matrix=mat["mass_matrix"])
+        for e, ids in zip(sp.fixed, sel["fixed"]):
+            model.fix(ids, e["components"])
+        for e, ids in zip(sp.force, sel["force"]):
+            model.add_force(ids, e["force"])
+        for f, _, _ in tractions:
+            model.forces += f
+        for e, ids in zip(sp.handle, sel["handle"]):
+            model.fix(ids, e["components"])
+        entry = INTEGRATORS[self.integrator_type]
+        try:
+            sim = entry.build(self, model, device=device, precision=precision)
+        except ValueError as e:
+            self._fail("[integrator]", str(e))
+        return SceneRun(self, model, sim, sel["handle"], device=device, precision=precision)
+
+
+def load_scene(path) -> Scene:
+    """Read and validate a TOML scene file; raises :class:`SceneError` before any work on failure."""
+    return Scene(parse_scene_file(path))
+
+
+# ----------------------------------------------------------------------------- running
+class SceneRun:
+    """A built scene: ``model``, ``sim`` (the integrator), ``skinner`` (None without [surface])."""
+
+    def __init__(self, scene: Scene, model, sim, handle_ids, *, device, precision):
+        self.scene, self.model, self.sim = scene, model, sim
+        self.device, self.precision = device, precision
+        sp = scene.spec
+        self.fps = float(sp.output["fps"])
+        self.frames = int(sp.output["frames"])
+        self.frame = 0
+        self._handles = [(h, ids, model.rest_positions[ids].copy()) for h, ids in zip(sp.handle, handle_ids)]
+        self._gravity = model.gravity.copy()
+        self._forces = model.forces.copy()
+        mesh = scene.mesh()
+        if sp.surface is not None:
+            from warpfem.skinning import SurfaceSkinner, embed_points, load_surface
+
+            pts, tris = load_surface(sp.surface["path"])
+            self.embedding = embed_points(pts, mesh.vertices, mesh.tets)
+            self.skinner = SurfaceSkinner(self.embedding, mesh.tets, device=device, precision=precision)
+            self.surface_faces = tris
+            self.surface_vertex_ids = None
+            self.surface_name = sp.surface["name"]
+        else:
+            from warpfem.skinning import mesh_boundary_surface
+
+            self.embedding = None
+            self.skinner = None
+            self.surface_vertex_ids, self.surface_faces = mesh_boundary_surface(mesh.vertices, mesh.tets)
+            self.surface_name = "boundary"
+
+    @property
+    def num_surface_points(self) -> int:
+        return self.skinner.num_points if self.skinner is not None else int(self.surface_vertex_ids.size)
+
+    def duration(self, frames=None) -> float:
+        """Length of the run (s) over which handles ramp by default."""
+        return (self.frames if frames is None else frames) / self.fps
+
+    def surface_points(self) -> np.ndarray:
+        """Current render-surface points (p, 3)."""
+        if self.skinner is not None:
+            return self.skinner.apply(self.sim.x).numpy().astype(np.float64)
+        return self.sim.positions()[self.surface_vertex_ids]
+
+    def _set_handles(self, fraction_of):
+        for h, ids, rest in self._handles:
+            self.sim.set_targets(ids, handle_targets(rest, h, fraction_of(h)))
+
+    def step_frame(self, *, total_frames=None) -> FrameStats:
+        """Advance one output frame (1/fps of simulated time, or one static load frame)."""
+        from . import INTEGRATORS
+
+        total = self.frames if total_frames is None else int(total_frames)
+        sim = self.sim
+        integ = self.scene.spec.integrator
+        entry = INTEGRATORS[self.scene.integrator_type]
+        t0 = time.perf_counter()
+        newton = cg = 0
+        residual = energy = 0.0
+        converged, reasons = True, []
+        self.frame += 1
+        if entry.dynamic:
+            steps = integ["substeps"]
+            T = self.duration(total)
+            for _ in range(steps):
+                t_next = sim.time + sim.dt
+                self._set_handles(lambda h: t_next / (h["ramp_time"] or T))
+                st = sim.step()
+                newton += st.newton_iterations
+                cg += st.cg_iterations
+                residual, energy = st.residual, st.energy
+                if not st.converged:
+                    converged = False
+                    reasons.append(st.reason)
+            t = sim.time
+        else:
+            steps = 1
+            frac = self.frame / total
+            self.model.gravity = self._gravity * frac
+            self.model.forces = self._forces * frac
+            sim.sync_model()
+            self._set_handles(lambda h: frac)
+            st = entry.static_solve(sim, integ)
+            newton, cg, residual, energy = st.newton_iterations, st.cg_iterations, st.residual, st.energy
+            converged = st.converged
+            reasons = [st.reason] if not st.converged else []
+            t = self.frame / self.fps
+        return FrameStats(frame=self.frame, time=t, steps=steps, step_seconds=time.perf_counter() - t0,
+                          newton_iterations=newton, cg_iterations=cg, residual=float(residual),
+                          energy=float(energy), converged=converged, reason="; ".join(reasons))
+
+    def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None):
+        """Run ``frames`` output frames (default: the scene's) writing the outputs.
+
+        Frame 0 is the rest state; frames 1..N follow every 1/fps s (static: load fraction k/N).
+        ``usd``/``states``/``stats`` default to the scene's [output] (paths relative to the
+        current directory). ``progress(FrameStats)`` is called after each frame. On
+        :class:`warpfem.SolveFailed` (or Ctrl-C) the USD is closed marked incomplete with the
+        frames done so far, the npz/stats hold them too, and the exception propagates.
+        Returns the list of :class:`FrameStats`.
+        """
+        from warpfem.io import UsdMeshWriter
+
+        out = self.scene.spec.output
+        total = self.frames if frames is None else int(frames)
+        if total < 1:
+            raise ValueError(f"frames must be >= 1, got {total}")
+        usd = out["usd"] if usd is None else usd
+        states = out["states"] if states is None else states
+        stats = Scene.stats_path(usd, out["stats"] if stats is None else stats)
+        writer = log = None
+        history = []
+        positions = [self.sim.positions()] if states else None
+        rest = self.model.rest_positions.copy()
+        try:
+            if usd:
+                writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"])
+                writer.add_mesh(self.surface_name, self.surface_faces, self.num_surface_points)
+                writer.write_frame(self.frame, {self.surface_name: self.surface_points()})
+            if stats:
+                os.makedirs(os.path.dirname(os.path.abspath(stats)), exist_ok=True)
+                log = open(stats, "w")
+            for _ in range(total):
+                try:
+                    fs = self.step_frame(total_frames=total)
+                except Exception as e:
+                    if log is not None:
+                        failed = getattr(e, "stats", None)
+                        log.write(json.dumps({"frame": self.frame, "converged": False, "error": str(e),
+                                              "newton_iterations": getattr(failed, "newton_iterations", None)}) + "\n")
+                    raise
+                history.append(fs)
+                if log is not None:
+                    log.write(json.dumps(fs.as_dict()) + "\n")
+                    log.flush()
+                if positions is not None:
+                    positions.append(self.sim.positions())
+                if writer is not None:
+                    writer.write_frame(self.frame, {self.surface_name: self.surface_points()})
+                if progress is not None:
+                    progress(fs)
+        except BaseException as e:
+            if writer is not None:
+                writer.close(complete=False, reason=f"{type(e).__name__}: {e}")
+            raise
+        else:
+            if writer is not None:
+                writer.close(complete=True)
+        finally:
+            if log is not None:
+                log.close()
+            if positions is not None:
+                os.makedirs(os.path.dirname(os.path.abspath(states)), exist_ok=True)
+                np.savez(states, rest=rest, positions=np.stack(positions),
+                         times=np.array([0.0] + [h.time for h in history]), fps=self.fps)
+        return history

@@ -1,0 +1,419 @@
+"""TOML scene schema and validation (pure Python: no Warp, no kernels, no mesh loading).
+
+A scene file is parsed into a plain, fully validated :class:`SceneSpec` (dicts of checked values
+with defaults filled in) before anything is built. Every problem raises :class:`SceneError`
+naming the file, the key (``[section].key`` or ``[[fixed]] #2.box_min``) and, for misspelt keys,
+the closest known key.
+
+The schema is data (``SCHEMA``) so that other modules can add keys; integrator types add their own
+``[integrator]`` keys through :func:`warpfem.scenes.register_integrator`.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import numbers
+import os
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+try:  # Python 3.11+
+    import tomllib
+except ModuleNotFoundError:  # pragma: no cover - Python 3.10
+    import tomli as tomllib
+
+__all__ = ["SceneError", "Key", "SCHEMA", "SceneSpec", "parse_scene_file", "parse_scene_dict",
+           "INTEGRATOR_KEYS", "ELEMENTS"]
+
+
+class SceneError(ValueError):
+    """An invalid scene: the message names the file, the key and what is wrong."""
+
+
+# ----------------------------------------------------------------------------- key specs
+@dataclass
+class Key:
+    """One allowed key: its kind, default and range check.
+
+    kind: "float", "int", "bool", "str", "vec3", "int3", "path", "choice".
+    check: optional ``f(value) -> str | None`` returning a problem description.
+    """
+
+    kind: str
+    default: Any = None
+    required: bool = False
+    choices: tuple = ()
+    check: Callable[[Any], str | None] | None = None
+    doc: str = ""
+
+
+def _positive(v):
+    return None if v > 0 else "must be > 0"
+
+
+def _non_negative(v):
+    return None if v >= 0 else "must be >= 0"
+
+
+def _unit_interval(v):
+    return None if 0 < v < 1 else "must be in (0, 1)"
+
+
+def _poisson(v):
+    return None if -1.0 < v < 0.5 else "must be in (-1, 0.5) (nu >= 0.5 is incompressible, not supported)"
+
+
+def _positive_int3(v):
+    return None if all(c >= 1 for c in v) else "must be 3 integers >= 1"
+
+
+def _positive_vec3(v):
+    return None if all(c > 0 for c in v) else "must be 3 numbers > 0"
+
+
+def _components(v):
+    ok = bool(v) and all(c in "xyz" for c in v) and len(set(v)) == len(v)
+    return None if ok else "must be a non-empty subset of 'xyz' without repeats, e.g. \"xyz\", \"z\", \"xz\""
+
+
+# Elements a scene may name; the value says what turns a TetMesh into that element's mesh
+# (None: known name, not available in this version). Other modules register converters here.
+ELEMENTS: dict[str, Callable | None] = {"tet4": (lambda mesh: mesh), "tet10": None, "hex8": None, "hex27": None}
+
+_SELECTION = {
+    "box_min": Key("vec3", doc="lower corner of the selection box (m)"),
+    "box_max": Key("vec3", doc="upper corner of the selection box (m)"),
+    "indices": Key("intlist", doc="explicit vertex indices"),
+    "indices_file": Key("path", doc="text file of vertex indices (whitespace separated)"),
+}
+
+SCHEMA: dict[str, dict[str, Key]] = {
+    "": {  # top level
+        "name": Key("str", default=None, doc="scene name (USD prim name of the surface)"),
+        "description": Key("str", default="", doc="free text"),
+        "gravity": Key("vec3", default=(0.0, 0.0, 0.0), doc="m/s^2"),
+    },
+    "mesh": {
+        "generator": Key("choice", choices=("box",), doc="procedural mesh"),
+        "size": Key("vec3", check=_positive_vec3, doc="box size (m)"),
+        "cells": Key("int3", check=_positive_int3, doc="box cells per axis (6 tets each)"),
+        "origin": Key("vec3", default=(0.0, 0.0, 0.0), doc="box min corner (m)"),
+        "path": Key("path", doc="volume mesh file (meshio: .mesh, .msh, .vtu, ...)"),
+        "inside_surface": Key("bool", default=False, doc="keep only tets inside the file's triangles"),
+        "element": Key("choice", default="tet4", choices=tuple(ELEMENTS), doc="element type"),
+    },
+    "material": {
+        "model": Key("choice", required=True, choices=("linear", "stvk", "corotated", "stable_neo_hookean")),
+        "youngs_modulus": Key("float", required=True, check=_positive, doc="E (Pa)"),
+        "poisson_ratio": Key("float", required=True, check=_poisson, doc="nu"),
+        "density": Key("float", default=1000.0, check=_positive, doc="kg/m^3"),
+        "mass_matrix": Key("choice", default="lumped", choices=("lumped", "consistent")),
+    },
+    "fixed": {**_SELECTION, "components": Key("str", default="xyz", check=_components)},
+    "handle": {
+        **_SELECTION,
+        "components": Key("str", default="xyz", check=_components),
+        "translation": Key("vec3", default=(0.0, 0.0, 0.0), doc="total displacement over the ramp (m)"),
+        "rotation_axis": Key("vec3", default=None, doc="rotation axis (any length > 0)"),
+        "rotation_angle": Key("float", default=0.0, doc="total rotation over the ramp (degrees)"),
+        "rotation_center": Key("vec3", default=None, doc="point on the axis (m); default: handle centroid"),
+        "ramp_time": Key("float", default=None, check=_positive, doc="s; default: the whole run"),
+    },
+    "force": {**_SELECTION, "force": Key("vec3", required=True, doc="N on each selected vertex")},
+    "traction": {
+        "box_min": Key("vec3", required=True),
+        "box_max": Key("vec3", required=True),
+        "force_per_area": Key("vec3", required=True, doc="Pa, on boundary faces inside the box"),
+    },
+    "integrator": {
+        "type": Key("str", default="backward_euler", doc="a registered integrator type"),
+    },
+    "output": {
+        "fps": Key("float", default=24.0, check=_positive, doc="frames per second"),
+        "frames": Key("int", default=24, check=lambda v: None if v >= 1 else "must be >= 1"),
+        "usd": Key("outpath", default=None, doc="animated USD (.usda/.usd/.usdc)"),
+        "states": Key("outpath", default=None, doc=".npz with rest and per-frame positions"),
+        "stats": Key("outpath", default=None, doc="JSON-lines per-frame statistics; default next to usd"),
+        "up_axis": Key("choice", default="Y", choices=("Y", "Z")),
+    },
+    "surface": {
+        "path": Key("path", required=True, doc="render surface (.obj/.off/.ply/.stl)"),
+        "name": Key("str", default="surface", doc="USD prim name"),
+    },
+}
+
+# the (repeated) [[array]] sections
+ARRAY_SECTIONS = ("fixed", "handle", "force", "traction")
+
+# Newton/time-stepping keys shared by the built-in integrators (integrators list which they accept).
+INTEGRATOR_KEYS: dict[str, Key] = {
+    "dt": Key("float", default=None, check=_positive, doc="time step (s); default 1/fps"),
+    "tol": Key("float", default=1e-6, check=_unit_interval, doc="relative Newton gradient tolerance"),
+    "atol": Key("float", default=0.0, check=_non_negative),
+    "cg_tol": Key("float", default=1e-4, check=_unit_interval, doc="relative PCG tolerance"),
+    "max_iters": Key("int", default=30, check=_positive, doc="Newton iterations per solve"),
+    "max_cg_iters": Key("int", default=2000, check=_positive, doc="PCG iterations per Newton iteration"),
+    "project_hessian": Key("bool", default=True),
+    "require_convergence": Key("bool", default=False, doc="fail the run on a non-converged step"),
+    "damping_mass": Key("float", default=0.0, check=_non_negative, doc="Rayleigh alpha (1/s)"),
+    "damping_stiffness": Key("float", default=0.0, check=_non_negative, doc="Rayleigh beta (s)"),
+    "load_steps": Key("int", default=1, check=_positive, doc="static: load ramp steps per frame"),
+}
+
+
+# ----------------------------------------------------------------------------- the result
+@dataclass
+class SceneSpec:
+    """A validated scene (plain data, paths absolute)."""
+
+    path: str | None
+    base_dir: str
+    top: dict
+    mesh: dict
+    material: dict
+    integrator: dict
+    output: dict
+    surface: dict | None
+    fixed: list = field(default_factory=list)
+    handle: list = field(default_factory=list)
+    force: list = field(default_factory=list)
+    traction: list = field(default_factory=list)
+    extra: dict = field(default_factory=dict)  # sections handled by registered extensions
+
+
+# ----------------------------------------------------------------------------- checking
+class _Ctx:
+    def __init__(self, path, base_dir):
+        self.path, self.base_dir = path, base_dir
+
+    def fail(self, where, msg):
+        src = self.path or "<scene>"
+        raise SceneError(f"{src}: {where}: {msg}" if where else f"{src}: {msg}")
+
+
+def _suggest(key, known):
+    close = difflib.get_close_matches(key, list(known), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
+def _typename(v):
+    return {bool: "boolean", int: "integer", float: "float", str: "string", list: "array", dict: "table"}.get(type(v), type(v).__name__)
+
+
+def _is_number(v):
+    return isinstance(v, numbers.Real) and not isinstance(v, bool)
+
+
+def _convert(ctx, where, key: Key, value):
+    kind = key.kind
+    if kind == "float":
+        if not _is_number(value):
+            ctx.fail(where, f"expected a number, got {_typename(value)} {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            ctx.fail(where, f"must be finite, got {value!r}")
+    elif kind == "int":
+        if isinstance(value, bool) or not isinstance(value, int):
+            ctx.fail(where, f"expected an integer, got {_typename(value)} {value!r}")
+    elif kind == "bool":
+        if not isinstance(value, bool):
+            ctx.fail(where, f"expected true or false, got {_typename(value)} {value!r}")
+    elif kind in ("str", "choice", "path", "outpath"):
+        if not isinstance(value, str):
+            ctx.fail(where, f"expected a string, got {_typename(value)} {value!r}")
+        if kind == "choice" and value not in key.choices:
+            ctx.fail(where, f"must be one of {', '.join(repr(c) for c in key.choices)}, got {value!r}"
+                     + _suggest(value, key.choices))
+        if kind == "path":
+            p = value if os.path.isabs(value) else os.path.join(ctx.base_dir, value)
+            p = os.path.normpath(p)
+            if not os.path.isfile(p):
+                ctx.fail(where, f"file not found: {value!r} (looked for {p})")
+            value = p
+        if kind == "outpath" and not value:
+            ctx.fail(where, "must be a non-empty file name")
+    elif kind in ("vec3", "int3"):
+        ok = isinstance(value, list) and len(value) == 3 and all(
+            (isinstance(c, int) and not isinstance(c, bool)) if kind == "int3" else _is_number(c) for c in value)
+        if not ok:
+            what = "3 integers" if kind == "int3" else "3 numbers"
+            ctx.fail(where, f"expected an array of {what}, got {value!r}")
+        value = tuple(int(c) for c in value) if kind == "int3" else tuple(float(c) for c in value)
+        if not all(math.isfinite(c) for c in value):
+            ctx.fail(where, f"must be finite, got {list(value)}")
+    elif kind == "intlist":
+        if not (isinstance(value, list) and value and all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in value)):
+            ctx.fail(where, f"expected a non-empty array of integers >= 0, got {value!r}")
+        value = list(value)
+    else:  # pragma: no cover - schema bug
+        raise AssertionError(f"unknown key kind {kind!r}")
+    if key.check is not None:
+        problem = key.check(value)
+        if problem:
+            shown = list(value) if isinstance(value, tuple) else value
+            ctx.fail(where, f"{problem}, got {shown!r}")
+    return value
+
+
+def _where_section(section, index=None):
+    if section == "":
+        return ""
+    return f"[[{section}]] #{index + 1}" if index is not None else f"[{section}]"
+
+
+def _check_table(ctx, section, table, schema, index=None):
+    """Validate one table against ``schema``; returns a dict with defaults filled in."""
+    label = _where_section(section, index)
+    if not isinstance(table, dict):
+        ctx.fail(label, f"expected a table, got {_typename(table)}")
+    out = {}
+    for k, v in table.items():
+        where = f"{label}.{k}" if label else k
+        if k not in schema:
+            hint = _suggest(k, schema)
+            if not hint:  # a key of another section?
+                homes = [s for s, keys in SCHEMA.items() if k in keys and s != section]
+                if homes:
+                    hint = f" (it belongs in [{homes[0]}])" if homes[0] else " (it belongs at the top level, before any [table])"
+            known = ", ".join(sorted(schema))
+            ctx.fail(where, f"unknown key{hint}; known keys here: {known}")
+        out[k] = _convert(ctx, where, schema[k], v)
+    for k, key in schema.items():
+        if k not in out:
+            if key.required:
+                ctx.fail(f"{label}.{k}" if label else k, "required key missing")
+            out[k] = key.default
+    return out
+
+
+def _check_selection(ctx, section, i, entry, *, require=True):
+    label = _where_section(section, i)
+    ways = []
+    if entry.get("box_min") is not None or entry.get("box_max") is not None:
+        ways.append("box")
+    ways += [w for w in ("indices", "indices_file") if entry.get(w) is not None]
+    if len(ways) == 0 and require:
+        ctx.fail(label, "select vertices with box_min and box_max, indices, or indices_file")
+    if len(ways) > 1:
+        ctx.fail(label, f"give exactly one vertex selection, got {' and '.join(ways)}")
+    if "box" in ways:
+        lo, hi = entry.get("box_min"), entry.get("box_max")
+        if lo is None or hi is None:
+            ctx.fail(f"{label}.{'box_min' if lo is None else 'box_max'}", "required with the other box corner")
+        bad = [a for a, l, h in zip("xyz", lo, hi) if l > h]
+        if bad:
+            ctx.fail(f"{label}.box_min", f"box_min exceeds box_max on axis {', '.join(bad)} ({list(lo)} > {list(hi)})")
+    if entry.get("indices_file") is not None:
+        import numpy as np
+
+        try:
+            ids = np.loadtxt(entry["indices_file"], dtype=np.float64, ndmin=1).ravel()
+        except ValueError as e:
+            ctx.fail(f"{label}.indices_file", f"{entry['indices_file']}: cannot read vertex indices: {e}")
+        if ids.size == 0 or np.any(ids != np.round(ids)) or np.any(ids < 0):
+            ctx.fail(f"{label}.indices_file", f"{entry['indices_file']}: expected non-negative integer vertex indices")
+        entry["indices"] = ids.astype(np.int64).tolist()
+
+
+def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | None = None,
+                     integrators: dict | None = None) -> SceneSpec:
+    """Validate a parsed TOML document; ``integrators`` maps type names to their registry entries."""
+    if integrators is None:
+        from . import INTEGRATORS as integrators
+    ctx = _Ctx(path, base_dir or (os.path.dirname(os.path.abspath(path)) if path else os.getcwd()))
+    sections = set(SCHEMA) - {""}
+    top_schema = dict(SCHEMA[""])
+    for s in sections:
+        top_schema[s] = Key("table")
+    # unknown top-level keys / sections first
+    for k, v in data.items():
+        if k not in top_schema:
+            hint = _suggest(k, top_schema)
+            if not hint:
+                homes = [s for s, keys in SCHEMA.items() if k in keys and s]
+                if homes:
+                    hint = f" (it belongs in [{homes[0]}])"
+            what = "section" if isinstance(v, (dict, list)) else "key"
+            ctx.fail(k, f"unknown {what}{hint}; known: {', '.join(sorted(top_schema))}")
+        if k in ARRAY_SECTIONS and not isinstance(v, list):
+            ctx.fail(k, f"write it as an array of tables [[{k}]] (got a single [{k}] table)")
+        if k in sections and k not in ARRAY_SECTIONS and not isinstance(v, dict):
+            ctx.fail(k, f"expected a [{k}] table, got {_typename(v)}")
+    top = _check_table(ctx, "", {k: v for k, v in data.items() if k in SCHEMA[""]}, SCHEMA[""])
+    if "mesh" not in data:
+        ctx.fail("[mesh]", "required section missing (generator = \"box\" with size and cells, or path = \"file.mesh\")")
+    if "material" not in data:
+        ctx.fail("[material]", "required section missing (model, youngs_modulus, poisson_ratio, density)")
+    mesh = _check_table(ctx, "mesh", data["mesh"], SCHEMA["mesh"])
+    if (mesh["generator"] is None) == (mesh["path"] is None):
+        ctx.fail("[mesh]", "give either generator = \"box\" (with size and cells) or path = \"file\", not "
+                 + ("both" if mesh["generator"] else "neither"))
+    if mesh["generator"] == "box":
+        for k in ("size", "cells"):
+            if mesh[k] is None:
+                ctx.fail(f"[mesh].{k}", "required with generator = \"box\"")
+    elif any(data["mesh"].get(k) is not None for k in ("size", "cells", "origin")):
+        ctx.fail("[mesh].path", "size/cells/origin only apply to generator = \"box\"")
+    if ELEMENTS.get(mesh["element"]) is None:
+        avail = [e for e, f in ELEMENTS.items() if f is not None]
+        ctx.fail("[mesh].element", f"element {mesh['element']!r} is not available in this version (available: {', '.join(avail)})")
+    material = _check_table(ctx, "material", data["material"], SCHEMA["material"])
+
+    # integrator: type first, then its own keys
+    raw_int = data.get("integrator", {})
+    if not isinstance(raw_int, dict):
+        ctx.fail("integrator", "expected an [integrator] table")
+    itype = raw_int.get("type", SCHEMA["integrator"]["type"].default)
+    if not isinstance(itype, str):
+        ctx.fail("[integrator].type", f"expected a string, got {_typename(itype)} {itype!r}")
+    if itype not in integrators:
+        ctx.fail("[integrator].type", f"unknown integrator {itype!r}{_suggest(itype, integrators)}; "
+                 f"available: {', '.join(sorted(integrators))}")
+    entry = integrators[itype]
+    int_schema = {"type": SCHEMA["integrator"]["type"], **entry.keys}
+    integrator = _check_table(ctx, "integrator", raw_int, int_schema)
+
+    output = _check_table(ctx, "output", data.get("output", {}), SCHEMA["output"])
+    surface = _check_table(ctx, "surface", data["surface"], SCHEMA["surface"]) if "surface" in data else None
+
+    arrays = {}
+    for s in ARRAY_SECTIONS:
+        entries = []
+        for i, e in enumerate(data.get(s, [])):
+            checked = _check_table(ctx, s, e, SCHEMA[s], index=i)
+            _check_selection(ctx, s, i, checked)
+            entries.append(checked)
+        arrays[s] = entries
+    for i, h in enumerate(arrays["handle"]):
+        label = _where_section("handle", i)
+        if h["rotation_angle"] != 0.0 and h["rotation_axis"] is None:
+            ctx.fail(f"{label}.rotation_axis", "required with rotation_angle")
+        if h["rotation_axis"] is not None and math.sqrt(sum(c * c for c in h["rotation_axis"])) == 0.0:
+            ctx.fail(f"{label}.rotation_axis", "must be a non-zero vector")
+
+    if entry.dynamic:
+        dt = integrator.get("dt")
+        frame_time = 1.0 / output["fps"]
+        if dt is None:
+            integrator["dt"] = dt = frame_time
+        sub = max(1, round(frame_time / dt))
+        if abs(sub * dt - frame_time) > 1e-6 * frame_time:
+            ctx.fail("[integrator].dt", f"dt = {dt!r} s must divide the frame time 1/fps = {frame_time!r} s "
+                     f"(e.g. dt = {frame_time / sub!r})")
+        integrator["substeps"] = int(sub)
+    return SceneSpec(path=path, base_dir=ctx.base_dir, top=top, mesh=mesh, material=material,
+                     integrator=integrator, output=output, surface=surface, **arrays)
+
+
+def parse_scene_file(path, *, integrators: dict | None = None) -> SceneSpec:
+    """Read and validate a TOML scene file (nothing is built)."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise SceneError(f"{path}: scene file not found")
+    try:
+        with open(path, "rb") as f:
+            data = tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(f"{path}: not valid TOML: {e}") from e
+    return parse_scene_dict(data, path=os.path.abspath(path), integrators=integrators)
