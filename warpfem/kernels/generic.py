@@ -17,7 +17,7 @@ PRECISION_TYPES = (
 
 def both_precisions(**roles):
     """Kernel decorator: ``roles`` maps each generic argument to "s" (scalar value), "s[]", "v[]",
-    "m[]" (1-d arrays of scalar, vec3, mat33) or "s[,]" (2-d scalar array)."""
+    "m[]" (1-d arrays of scalar, vec3, mat33), "s[,]" or "v[,]" (2-d scalar / vec3 arrays)."""
 
     def decorate(kernel):
         for types in PRECISION_TYPES:
@@ -28,8 +28,8 @@ def both_precisions(**roles):
                     arg_types[arg.label] = arg.type
                 elif role == "s":
                     arg_types[arg.label] = types["s"]
-                elif role == "s[,]":
-                    arg_types[arg.label] = wp.array2d(dtype=types["s"])
+                elif role in ("s[,]", "v[,]"):
+                    arg_types[arg.label] = wp.array2d(dtype=types[role[0]])
                 else:
                     arg_types[arg.label] = wp.array(dtype=types[role[0]])
             wp.overload(kernel, arg_types)

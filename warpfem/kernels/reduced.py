@@ -23,35 +23,14 @@ from typing import Any
 
 import warp as wp
 
-from warpfem.kernels.generic import PRECISION_TYPES
+from warpfem.kernels.generic import both_precisions
 from warpfem.materials.dispatch import material_eigensystem, material_pk1, material_psi
 from warpfem.materials.eigensystem import hessian_block
 
 wp.set_module_options({"enable_backward": False})
 
 
-def _both(**roles):
-    """Like ``generic.both_precisions`` with the extra role "v[,]" (2-d array of vec3)."""
-
-    def decorate(kernel):
-        for types in PRECISION_TYPES:
-            arg_types = {}
-            for arg in kernel.adj.args:
-                role = roles.get(arg.label)
-                if role is None:
-                    arg_types[arg.label] = arg.type
-                elif role == "s":
-                    arg_types[arg.label] = types["s"]
-                elif role == "s[,]":
-                    arg_types[arg.label] = wp.array2d(dtype=types["s"])
-                elif role == "v[,]":
-                    arg_types[arg.label] = wp.array2d(dtype=types["v"])
-                else:
-                    arg_types[arg.label] = wp.array(dtype=types[role[0]])
-            wp.overload(kernel, arg_types)
-        return kernel
-
-    return decorate
+_both = both_precisions  # roles include "v[,]" (2-d array of vec3)
 
 
 @wp.func
