@@ -331,6 +331,8 @@ def clamped_bar(mat_name, precision, mode, *, cells=(16, 2, 2), load_steps=None,
         ang = np.angle(np.sum((d1[:, 0] + 1j * d1[:, 1]) * np.conj(d0[:, 0] + 1j * d0[:, 1])))
         # 180 for a uniform twist; a coarse bar may shed a whole turn through a snap (then ~90)
         out["quarter_angle_deg"] = float(np.degrees(ang) % 360.0)
+        # untwisted inside (linear elasticity: two turns of the end are the identity) is a failure
+        ok = ok and 45.0 < out["quarter_angle_deg"] < 315.0
     out.update(seconds=time.perf_counter() - t0, verdict=_verdict(finite, run.not_converged + run.failed > 0, ok),
                **run.summary())
     return out

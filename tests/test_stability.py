@@ -6,7 +6,6 @@ documented failure of a method.
 """
 
 import sys
-import warnings
 from pathlib import Path
 
 import numpy as np
