@@ -134,7 +134,23 @@ def add_subcommand(register) -> None:
         SUBCOMMANDS.append(register)
 
 
+# Modules that add subcommands with add_subcommand() when imported (``warpfem train``, ``warpfem tradeoff``).
+PLUGINS = ("warpfem.reduced.cli", "warpfem.tradeoff.cli")
+
+
+def _load_plugins():
+    import importlib
+
+    for name in PLUGINS:
+        try:
+            importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if not (e.name and name.startswith(e.name)):  # a real missing dependency inside it: report
+                raise
+
+
 def build_parser() -> argparse.ArgumentParser:
+    _load_plugins()
     parser = argparse.ArgumentParser(prog="warpfem", description="Deformable-body FEM with NVIDIA Warp (CPU and CUDA).")
     parser.add_argument("--version", action="version", version=f"warpfem {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")

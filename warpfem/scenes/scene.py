@@ -302,7 +302,12 @@ class Scene:
             model.fix(ids, e["components"])
         entry = INTEGRATORS[self.integrator_type]
         try:
-            sim = entry.build(self, model, device=device, precision=precision)
+            if sp.subspace is not None:  # reduced run: x = X + U q (basis + cubature from the cache)
+                from warpfem.reduced.scene import build_reduced_simulator
+
+                sim = build_reduced_simulator(self, model, device=device, precision=precision)
+            else:
+                sim = entry.build(self, model, device=device, precision=precision)
         except ValueError as e:
             self._fail("[integrator]", str(e))
         return SceneRun(self, model, sim, sel["handle"], device=device, precision=precision)

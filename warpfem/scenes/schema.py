@@ -141,6 +141,18 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "path": Key("path", required=True, doc="render surface (.obj/.off/.ply/.stl)"),
         "name": Key("str", default="surface", doc="USD prim name"),
     },
+    # Reduced simulation (x = X + U q with trained cubature); present => the run is reduced.
+    # Owned by warpfem.reduced (warpfem/reduced/scene.py builds it; `warpfem train` fills the cache).
+    "subspace": {
+        "modes": Key("int", default=20, check=lambda v: None if v >= 1 else "must be >= 1",
+                     doc="subspace size r (columns of U)"),
+        "modal_derivatives": Key("bool", default=False, doc="add modal derivatives, mass-PCA down to r"),
+        "cubature_tolerance": Key("float", default=0.01, check=_unit_interval,
+                                  doc="relative training force error at which greedy cubature stops"),
+        "max_cubature_points": Key("int", default=200, check=_positive, doc="cap on cubature elements"),
+        "seed": Key("int", default=0, doc="seed of training poses and candidate sampling"),
+        "cache": Key("outpath", default=None, doc=".npz holding basis + cubature; default next to the scene"),
+    },
 }
 
 # the (repeated) [[array]] sections
@@ -175,6 +187,7 @@ class SceneSpec:
     integrator: dict
     output: dict
     surface: dict | None
+    subspace: dict | None = None
     fixed: list = field(default_factory=list)
     handle: list = field(default_factory=list)
     force: list = field(default_factory=list)
@@ -376,6 +389,7 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
 
     output = _check_table(ctx, "output", data.get("output", {}), SCHEMA["output"])
     surface = _check_table(ctx, "surface", data["surface"], SCHEMA["surface"]) if "surface" in data else None
+    subspace = _check_table(ctx, "subspace", data["subspace"], SCHEMA["subspace"]) if "subspace" in data else None
 
     arrays = {}
     for s in ARRAY_SECTIONS:
@@ -403,7 +417,7 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
                      f"(e.g. dt = {frame_time / sub!r})")
         integrator["substeps"] = int(sub)
     return SceneSpec(path=path, base_dir=ctx.base_dir, top=top, mesh=mesh, material=material,
-                     integrator=integrator, output=output, surface=surface, **arrays)
+                     integrator=integrator, output=output, surface=surface, subspace=subspace, **arrays)
 
 
 def parse_scene_file(path, *, integrators: dict | None = None) -> SceneSpec:
