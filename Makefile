@@ -18,8 +18,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q tests
 
+# Whole benchmark suite -> kernels_bench/results/summary.{json,md}. QUICK=1: small sizes; SKIP=stability
+# (comma-separated names) to leave benchmarks out; DEVICE=cuda:0. The newton peer comparison runs when
+# `pip install -e ".[peer]"` was done, and is skipped otherwise.
 bench: $(STAMP)
-	$(PY) kernels_bench/bench_forces.py --device cpu
+	$(PY) kernels_bench/run_all.py --device $(or $(DEVICE),cpu) $(if $(QUICK),--quick,) $(if $(SKIP),--skip $(SKIP),)
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

@@ -1,9 +1,12 @@
 """Cantilever beam sagging under gravity (the default scene), Warp-example style.
 
     python examples/cantilever.py --device cpu --num-frames 48 --stage-path out/cantilever.usda --headless
+    python examples/cantilever.py --scene examples/scenes/cantilever_hex8.toml --stage-path out/beam_hex8.usda
 
-Loads examples/scenes/cantilever.toml through ``warpfem.scenes``, steps it frame by frame and
-writes the beam's boundary surface to an animated USD (open it in usdview or Omniverse).
+Loads examples/scenes/cantilever.toml (Tet4; ``--scene`` picks another, e.g. the Hex8 beam)
+through ``warpfem.scenes``, steps it frame by frame and writes the beam's boundary surface to an
+animated USD (open it in usdview or Omniverse; the frames live in value clips next to it, in
+``<stage>.clips/``).
 """
 
 from __future__ import annotations
@@ -59,12 +62,13 @@ def main(argv=None):
                         help="Path to the output USD file (None: no output).")
     parser.add_argument("--num-frames", type=int, default=48, help="Total number of frames.")
     parser.add_argument("--precision", choices=("float32", "float64"), default="float64")
+    parser.add_argument("--scene", default=SCENE, help="Scene file (default: examples/scenes/cantilever.toml).")
     parser.add_argument("--headless", action="store_true", help="Run without an interactive viewer (USD output only).")
     args = parser.parse_known_args(argv)[0]
 
     with wp.ScopedDevice(args.device):
         example = Example(stage_path=args.stage_path, num_frames=args.num_frames, precision=args.precision,
-                          device=args.device)
+                          device=args.device, scene_path=args.scene)
         example.render()  # frame 0: rest state
         try:
             for _ in range(args.num_frames):

@@ -1,14 +1,35 @@
-"""Reduced (cubature) vs full backward Euler on the cantilever beam (seed 000, Cubica).
+"""Reduced (cubature) vs full backward Euler on the cantilever beam and the Stanford bunny (seed 000).
 
-For r in {10, 20, 40} and cubature tolerance in {0.1, 0.05, 0.01}: cubature points, training time
-(basis + cubature), time per reduced step, time per full step (baseline, same run), speed-up and
-the tip-trajectory error (max over the run of |tip_reduced - tip_full|, relative to the peak tip
-displacement of the full run). Prints a markdown table.
+For each object, r in {10, 20, 40} (modal derivatives on) and cubature tolerance in
+{0.1, 0.05, 0.01}, and two sources of cubature training poses:
 
-    .venv/bin/python kernels_bench/bench_reduced.py [--steps 30] [--device cpu]
+* ``random``: 100 random poses, per-column amplitude ~ 1/frequency (30 random validation poses);
+* ``snapshots``: the frames of a full run under a *different* load (gravity x 1.3, same steps),
+  projected onto the basis; every 4th frame held out for validation. The reduced run itself is
+  compared with the full run at the nominal gravity, so the test trajectory is not in the
+  training set.
+
+Reported per row: cubature points, training / validation force error, training time (basis +
+cubature; the snapshot run's time is printed once per object), time per reduced step, time per
+full step (the baseline, measured in the same process), speed-up, and two trajectory errors
+against the full run: ``tip err / peak`` = max over steps of |tip_reduced - tip_full| divided by the
+peak tip displacement of the full run (tip: mean of the beam's end face / the bunny's ears), and
+``RMS err / size`` = max over steps of the RMS vertex error divided by the bounding-box diagonal.
+
+    .venv/bin/python kernels_bench/bench_reduced.py [--objects beam,bunny] [--beam-steps 30]
+        [--bunny-steps 12] [--device cpu] [--poses random,snapshots,random+snapshots] [--load-response]
+        [--out kernels_bench/results/reduced]
+
+Writes ``<out>_<object>.json`` and ``.md`` (and prints the markdown). The device is named in the
+output; on the project's CI machine it is "cpu, 2 cores, shared/loaded machine".
 """
 
+from __future__ import annotations
+
 import argparse
+import json
+import os
+import platform
 import time
 import warnings
 
@@ -16,57 +37,155 @@ import numpy as np
 import warp as wp
 
 import warpfem as wf
-from warpfem.reduced import ReducedSimulator, train_subspace
+from warpfem.reduced import ReducedSimulator, Subspace, build_basis, train_cubature
+from warpfem.reduced.basis import _full_simulator
+from warpfem.reduced.subspace import material_parameters, mesh_hash
 
 wp.config.quiet = True
+HERE = os.path.dirname(os.path.abspath(__file__))
+BUNNY = os.path.join(HERE, "..", "..", "shared", "data", "meshes", "bunny.mesh")
 
 
-def beam():
+def beam(gravity_scale=1.0):
     mesh = wf.box_tet_mesh(size=(10.0, 1.0, 1.0), cells=(20, 2, 2))
-    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e7, poisson_ratio=0.3, density=100.0), gravity=(0, 0, -9.81))
+    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e7, poisson_ratio=0.3, density=100.0),
+                     gravity=(0, 0, -9.81 * gravity_scale))
     model.fix(wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1e-6, 2, 2)))
     tip = np.flatnonzero(mesh.vertices[:, 0] > 10 - 1e-6)
-    return "beam 20x2x2 (480 tets)", mesh, model, tip
+    return dict(name="beam 10 x 1 x 1 m, 20x2x2 cells (480 tets, 189 vertices), stable neo-Hookean E = 1e7 Pa, "
+                     "nu = 0.3, rho = 100, clamped at x = 0, gravity -z",
+                model=model, tip=tip, dt=1 / 30, sim_options={}, max_points=300)
+
+
+def bunny(gravity_scale=1.0):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mesh = wf.load_mesh(BUNNY, inside_surface=True)
+    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=5e4, poisson_ratio=0.4, density=1000.0),
+                     gravity=(0, -9.81 * gravity_scale, 0))
+    model.fix(wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1, 0.038, 1)))
+    tip = np.flatnonzero(mesh.vertices[:, 1] >= 0.17)
+    return dict(name=f"Stanford bunny ({mesh.num_tets} tets, {mesh.num_vertices} vertices, tets inside bunny.mesh's "
+                     "surface), stable neo-Hookean E = 5e4 Pa, nu = 0.4, rho = 1000, pinned at its base (y <= 0.038 m), "
+                     "gravity -y, mass damping 1/s",
+                model=model, tip=tip, dt=1 / 24, sim_options={"damping_mass": 1.0}, max_points=200)
+
+
+OBJECTS = {"beam": beam, "bunny": bunny}
+
+
+def full_run(obj, steps, device):
+    fs = wf.Simulator(obj["model"], dt=obj["dt"], device=device, **obj["sim_options"])
+    xs, t = [], 0.0
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        fs.step()
+        t += time.perf_counter() - t0
+        xs.append(fs.positions())
+    return np.array(xs), t / steps
+
+
+def run_object(key, args):
+    obj = OBJECTS[key]()
+    model, tip = obj["model"], obj["tip"]
+    steps = args.beam_steps if key == "beam" else args.bunny_steps
+    X = model.rest_positions
+    size = float(np.linalg.norm(X.max(0) - X.min(0)))
+    print(f"# {key}: full reference run ({steps} steps of {obj['dt']:.4g} s) ...", flush=True)
+    x_full, t_full = full_run(obj, steps, args.device)
+    tip_full = x_full[:, tip].mean(1)
+    peak = float(np.linalg.norm(tip_full - X[tip].mean(0), axis=1).max())
+    print(f"# {key}: full step {t_full:.3f} s; training snapshot run (gravity x 1.3) ...", flush=True)
+    t0 = time.perf_counter()
+    snaps, _ = full_run(OBJECTS[key](gravity_scale=1.3), steps, args.device)
+    t_snap = time.perf_counter() - t0
+    snapshots = [X] + list(snaps)
+    sim = _full_simulator(model)
+    rows = []
+
+    def write(rows, partial):
+        _report(key, obj, args, rows, steps=steps, peak=peak, size=size, t_full=t_full, t_snap=t_snap, partial=partial)
+
+    for r in [int(v) for v in args.modes.split(",")]:
+        t0 = time.perf_counter()
+        basis = build_basis(model, modes=r, modal_derivatives_=True, load_response=args.load_response, sim=sim)
+        t_basis = time.perf_counter() - t0
+        for tol in [float(v) for v in args.tols.split(",")]:
+            for source in args.poses.split(","):
+                kw = dict(snapshots=snapshots, pose_source=source) if "snapshots" in source else {}
+                cub = train_cubature(model, basis.U, tolerance=tol, max_points=obj["max_points"], seed=0, sim=sim, **kw)
+                sub = Subspace(basis, cub, mesh_hash(model), material_parameters(model))
+                rs = ReducedSimulator(model, sub, dt=obj["dt"], device=args.device, **obj["sim_options"])
+                t_red, err_tip, err_rms, failed = 0.0, 0.0, 0.0, ""
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)
+                    for k in range(steps):
+                        t1 = time.perf_counter()
+                        try:
+                            rs.step()
+                        except wf.SolveFailed as e:
+                            failed = str(e)
+                            break
+                        t_red += time.perf_counter() - t1
+                        x = rs.positions()
+                        err_tip = max(err_tip, float(np.linalg.norm(x[tip].mean(0) - tip_full[k])))
+                        err_rms = max(err_rms, float(np.sqrt(((x - x_full[k]) ** 2).sum(1).mean())))
+                t_red /= max(rs.step_count, 1)
+                row = dict(r=r, tol=tol, poses=source, points=cub.num_points, train_err=cub.training_error,
+                           valid_err=cub.validation_error, training_s=t_basis + cub.training_seconds,
+                           reduced_step_ms=1e3 * t_red, full_step_ms=1e3 * t_full, speedup=t_full / max(t_red, 1e-12),
+                           tip_err_rel_peak=err_tip / peak if not failed else float("nan"),
+                           rms_err_rel_size=err_rms / size if not failed else float("nan"), failed=failed)
+                rows.append(row)
+                write(rows, partial=True)
+                print(f"# {key} r={r} tol={tol} {source}: {cub.num_points} pts, tip err/peak {row['tip_err_rel_peak']:.3f}, "
+                      f"rms/size {row['rms_err_rel_size']:.4f}, reduced {row['reduced_step_ms']:.1f} ms", flush=True)
+    write(rows, partial=False)
+    return rows
+
+
+def _report(key, obj, args, rows, *, steps, peak, size, t_full, t_snap, partial):
+    device = f"{args.device} ({platform.processor() or platform.machine()}, {os.cpu_count()} logical cores visible), " \
+             f"{args.machine}"
+    head = (f"### {key}: {obj['name']}\n\n{steps} steps of dt = {obj['dt']:.4g} s; peak tip displacement of the full run "
+            f"{peak:.4g} m, object size (bbox diagonal) {size:.4g} m; device: {device}. Full step "
+            f"{1e3 * t_full:.0f} ms (Newton + block-Jacobi PCG, float64). Snapshot training run (gravity x 1.3, "
+            f"{steps} steps): {t_snap:.1f} s, not included in 'training s'.\n")
+    table = ["| r | tol | poses | cubature pts | train err | valid err | training s | reduced step ms | full step ms | "
+             "speed-up | tip err / peak | RMS err / size |", "|" + "---|" * 12]
+    for w in rows:
+        table.append(f"| {w['r']} | {w['tol']} | {w['poses']} | {w['points']} | {w['train_err']:.3f} | {w['valid_err']:.3f} | "
+                     f"{w['training_s']:.1f} | {w['reduced_step_ms']:.1f} | {w['full_step_ms']:.0f} | {w['speedup']:.0f}x | "
+                     f"{w['tip_err_rel_peak']:.3f} | {w['rms_err_rel_size']:.4f} |" + (" failed" if w["failed"] else ""))
+    md = head + "\n" + "\n".join(table) + "\n" + ("\n(partial: the run was still going)\n" if partial else "")
+    if not partial:
+        print(md, flush=True)
+    if args.out:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(f"{args.out}_{key}.json", "w") as f:
+            json.dump(dict(object=key, description=obj["name"], steps=steps, dt=obj["dt"], device=device, partial=partial,
+                           peak_tip_displacement=peak, size=size, full_step_ms=1e3 * t_full,
+                           snapshot_run_s=t_snap, rows=rows), f, indent=1)
+        with open(f"{args.out}_{key}.md", "w") as f:
+            f.write(md)
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--steps", type=int, default=30)
-    ap.add_argument("--dt", type=float, default=1 / 30)
+    ap.add_argument("--objects", default="beam,bunny")
+    ap.add_argument("--beam-steps", type=int, default=30)
+    ap.add_argument("--bunny-steps", type=int, default=12)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--modes", default="10,20,40")
     ap.add_argument("--tols", default="0.1,0.05,0.01")
+    ap.add_argument("--poses", default="random,snapshots", help="comma list of random, snapshots, random+snapshots")
+    ap.add_argument("--load-response", action="store_true", help="K^-1 f_ext as a basis column (scene default)")
+    ap.add_argument("--machine", default="2 cores shared with ~6 agents (loaded machine)")
+    ap.add_argument("--out", default=os.path.join(HERE, "results", "reduced"))
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
-    name, mesh, model, tip = beam()
-    fs = wf.Simulator(model, dt=args.dt, device=args.device)
-    full_tip, t_full = [], 0.0
-    for _ in range(args.steps):
-        t = time.perf_counter(); fs.step(); t_full += time.perf_counter() - t
-        full_tip.append(fs.positions()[tip].mean(0))
-    full_tip = np.array(full_tip)
-    amp = np.linalg.norm(full_tip - mesh.vertices[tip].mean(0), axis=1).max()
-    t_full /= args.steps
-    print(f"{name}, {args.steps} steps of dt={args.dt:.4g} s, peak tip displacement {amp:.3f} m, device {args.device}")
-    print("| r | tol | cubature pts | train err | valid err | training s | reduced step ms | full step ms | speed-up | tip err / peak |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
-    for r in [int(x) for x in args.modes.split(",")]:
-        for tol in [float(x) for x in args.tols.split(",")]:
-            t = time.perf_counter()
-            sub = train_subspace(model, modes=r, modal_derivatives=True, cubature_tolerance=tol,
-                                 max_cubature_points=300, seed=0)
-            t_train = time.perf_counter() - t
-            rs = ReducedSimulator(model, sub, dt=args.dt, device=args.device)
-            rs.step()  # warm (kernel load)
-            rs = ReducedSimulator(model, sub, dt=args.dt, device=args.device)
-            t_red, err = 0.0, 0.0
-            for k in range(args.steps):
-                t = time.perf_counter(); rs.step(); t_red += time.perf_counter() - t
-                err = max(err, np.linalg.norm(rs.positions()[tip].mean(0) - full_tip[k]))
-            t_red /= args.steps
-            rep = sub.report
-            print(f"| {r} | {tol} | {rep['cubature_points']} | {rep['training_error']:.3f} | {rep['validation_error']:.3f} | "
-                  f"{t_train:.1f} | {1e3 * t_red:.1f} | {1e3 * t_full:.0f} | {t_full / t_red:.0f}x | {err / amp:.3f} |", flush=True)
+    for key in args.objects.split(","):
+        run_object(key, args)
 
 
 if __name__ == "__main__":

@@ -143,3 +143,42 @@ def test_invalid_scene_subprocess_exit_code(tmp_path):
     assert r.stderr.strip().count("\n") == 0, r.stderr
     assert "did you mean 'youngs_modulus'" in r.stderr and "[material].youngs_modulos" in r.stderr
     assert not out.exists()
+
+
+def test_hex8_scene_end_to_end_writes_valid_clipped_usd(tmp_path):
+    """A tiny Hex8 scene with an embedded surface: USD in value clips of 2 frames, valid, and the
+    skinned surface equals W x of the simulated positions (8 shape functions per vertex)."""
+    (tmp_path / "s.obj").write_text(SURFACE_OBJ)
+    states = tmp_path / "h.npz"
+    text = (SCENE.format(states=states).replace("cells = [4, 1, 1]", 'cells = [4, 1, 1]\nelement = "hex8"')
+            .replace("frames = 5", "frames = 5\nclip_frames = 2") + '[surface]\npath = "s.obj"\nname = "skin"\n')
+    out = tmp_path / "hex.usda"
+    assert main(["run", write_scene(tmp_path, text), "--frames", "3", "--out", str(out), "--quiet"]) == 0
+    frames = check_usd(out, "skin", 4, 4)
+    assert layer_info(out)["complete"] is True and layer_info(out)["clips"] == 2
+    assert sorted(os.listdir(tmp_path / "hex.clips")) == ["clip_000000.usdc", "clip_000001.usdc", "manifest.usda"]
+    st = np.load(states)
+    assert st["positions"].shape == (4, 20, 3)  # 5 x 2 x 2 hex nodes
+    from warpfem.elements import box_hex_mesh
+    from warpfem.skinning import embed_points_in_mesh, load_surface
+
+    emb = embed_points_in_mesh(load_surface(tmp_path / "s.obj")[0], box_hex_mesh(size=(1, .2, .2), cells=(4, 1, 1)))
+    assert emb.weights.shape == (4, 8)
+    for f in range(4):
+        np.testing.assert_allclose(frames[f], emb.apply(st["positions"][f]), atol=2e-6)
+    assert frames[-1][1, 1] < 0.05 - 1e-4  # the free end (x = 0.9) sags
+
+
+def test_warp_banner_only_with_verbose(tmp_path):
+    """Warp's start-up banner and module-load lines appear with --verbose only (fresh processes)."""
+    scene = write_scene(tmp_path, SCENE.format(states=tmp_path / "v.npz"))
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    outputs = {}
+    for flag in ([], ["--verbose"]):
+        r = subprocess.run([sys.executable, "-m", "warpfem.cli", "run", scene, "--frames", "1", "--quiet",
+                            "--out", str(tmp_path / "v.usda"), *flag], capture_output=True, text=True, cwd=root, timeout=300)
+        assert r.returncode == 0, r.stderr
+        outputs[bool(flag)] = r.stdout + r.stderr
+    quiet, verbose = outputs[False], outputs[True]
+    assert "Warp " not in quiet and "Module " not in quiet, quiet
+    assert "initialized:" in verbose and "Module warpfem." in verbose and "load on device 'cpu'" in verbose, verbose

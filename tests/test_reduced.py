@@ -162,3 +162,22 @@ def test_reduced_beam_tip_trajectory_close_to_full():
             amp = max(amp, np.linalg.norm(b - mesh.vertices[tip].mean(0)))
     assert amp > 0.5  # the tip really moves (m)
     assert err <= 0.15 * amp  # stated: tip trajectory within 15 % of the peak tip displacement
+
+
+def test_load_response_column_spans_the_static_load_response():
+    # gravity along the beam axis (x) compresses it: the lowest (bending) modes do not span it
+    mesh, model = _beam(cells=(6, 1, 1), size=(6.0, 1.0, 1.0), material=wf.LinearElastic, gravity=(-9.81, 0, 0))
+    sim = wf.Simulator(model)
+    M = sim.mass_matrix()
+    u = wf.reduced.basis.static_load_response(model, sim=sim)
+    f = model.external_forces().reshape(-1)
+    free = ~model.fixed.reshape(-1)
+    K = sim.stiffness_matrix(model.rest_positions, project=False)
+    assert np.abs((K @ u - f)[free]).max() <= 1e-9 * np.abs(f).max()
+    plain = build_basis(model, modes=4, sim=sim).U
+    with_load = build_basis(model, modes=4, load_response=True, sim=sim).U
+    miss = lambda U: np.linalg.norm(u - U @ (U.T @ (M @ u))) / np.linalg.norm(u)  # noqa: E731
+    assert miss(plain) > 0.5  # bending modes miss axial compression
+    assert miss(with_load) <= 1e-10
+    assert np.allclose(with_load.T @ (M @ with_load), np.eye(4), atol=1e-10)
+    assert np.all(with_load[model.fixed.reshape(-1)] == 0.0)

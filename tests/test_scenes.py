@@ -1,6 +1,7 @@
 """Scene files: validation messages, what gets built, traction integration, handle motion."""
 
 import math
+import os
 import textwrap
 
 import numpy as np
@@ -233,3 +234,147 @@ def test_integrator_registry_is_extensible(tmp_path):
             register_integrator(entry)
     finally:
         INTEGRATORS.pop("my_test_integrator")
+
+
+# ----------------------------------------------------------------------------- element types
+@pytest.mark.parametrize("element,elements,vertices,k,q", [
+    ("tet4", 24, 20, 4, 1),
+    ("tet10", 24, 20 + 4 * 3 * 1 + 5 * 2 + 5 * 1 * 2 + 4 * 1 * 1 + 4 + 6 * 4 + 4, 10, 4),
+    ("hex8", 4, 20, 8, 8),
+    ("hex27", 4, 9 * 3 * 3, 27, 27),
+])
+def test_element_types_build_and_describe(tmp_path, element, elements, vertices, k, q):
+    from warpfem.elements import tet10_from_tet4
+    from warpfem.mesh import box_tet_mesh
+
+    if element == "tet10":  # vertices = corners + one mid-node per unique edge of the 24 tets
+        vertices = tet10_from_tet4(box_tet_mesh(size=(1, .2, .2), cells=(4, 1, 1))).num_vertices
+    scene = load_scene(write(tmp_path, BASE.replace('cells = [4, 1, 1]', f'cells = [4, 1, 1]\nelement = "{element}"')))
+    text = scene.describe()
+    assert f"element {element} (" in text and f"{elements} elements, {vertices} vertices, {3 * vertices} DOFs" in text
+    assert f"{k} nodes per element, {q} quadrature point(s) per element, {elements * q} quadrature points" in text
+    mesh = scene.mesh()
+    assert mesh.num_elements == elements and mesh.num_vertices == vertices
+    assert getattr(mesh, "element_type", "tet4") == element
+    run = scene.build(device="cpu")
+    assert run.model.quadrature.element_type == element and run.model.quadrature.num_points == elements * q
+    # boundary render surface through every boundary node; its triangles enclose the beam's volume
+    ids, tri = run.surface_vertex_ids, run.surface_faces
+    Y = run.model.rest_positions[ids][tri]
+    assert np.einsum("ij,ij->i", np.cross(Y[:, 1], Y[:, 2]), Y[:, 0]).sum() / 6.0 == pytest.approx(0.04, rel=1e-12)
+    fixed = scene.selections()["fixed"][0]
+    assert np.all(run.model.fixed[fixed]) and np.all(run.model.rest_positions[fixed, 0] == 0.0)
+
+
+def test_element_rejections(tmp_path):
+    hexed = BASE.replace('cells = [4, 1, 1]', 'cells = [4, 1, 1]\nelement = "hex8"')
+    rejects(tmp_path, BASE.replace('cells = [4, 1, 1]', 'cells = [4, 1, 1]\nelement = "hex9"'), "[mesh].element",
+            "must be one of", "did you mean 'hex8'")
+    rejects(tmp_path, BASE.replace("density = 1000.0", 'density = 1000.0\nvolumetric_integration = "reduced"'),
+            "[material].volumetric_integration", "only available for element = \"hex8\"", "'tet4'")
+    rejects(tmp_path, hexed.replace("density = 1000.0", 'density = 1000.0\nvolumetric_integration = "reduced"')
+            .replace("poisson_ratio = 0.3", "poisson_ratio = -0.2"),
+            "[material].volumetric_integration", "needs poisson_ratio >= 0", "-0.2")
+    rejects(tmp_path, hexed.replace('type = "backward_euler"', 'type = "stiffness_warping"'), "[integrator].type",
+            "'stiffness_warping' supports element 'tet4' only", "'hex8'", "backward_euler")
+    # a tet file cannot become a hex mesh: clear error at describe/build (the file is read then)
+    from warpfem.mesh import box_tet_mesh, save_mesh
+
+    save_mesh(box_tet_mesh(size=(1, .2, .2), cells=(2, 1, 1)), str(tmp_path / "beam.msh"))
+    from_file = BASE.replace('generator = "box"\nsize = [1.0, 0.2, 0.2]\ncells = [4, 1, 1]', 'path = "beam.msh"')
+    rejects(tmp_path, from_file.replace('path = "beam.msh"', 'path = "beam.msh"\nelement = "hex8"\ninside_surface = true'),
+            "[mesh].inside_surface", "only applies to tetra meshes")
+    scene = load_scene(write(tmp_path, from_file.replace('path = "beam.msh"', 'path = "beam.msh"\nelement = "hex8"')))
+    with pytest.raises(SceneError, match=r"\[mesh\]\.element: .*beam\.msh holds cells .*tetra \(12\).*a tet mesh cannot "
+                                         r"be turned into hex8 elements") as e:
+        scene.describe()
+    assert "\n" not in str(e.value)
+    # the same file as tet10: converted (one mid-node per edge)
+    scene = load_scene(write(tmp_path, from_file.replace('path = "beam.msh"', 'path = "beam.msh"\nelement = "tet10"')))
+    assert scene.mesh().element_type == "tet10" and scene.mesh().num_elements == 12
+
+
+def test_hex8_reduced_integration_from_scene(tmp_path):
+    """nu = 0.4999: the selectively integrated Hex8 beam (linear) sags far more than the locking
+    fully integrated one, and describe reports 8 + 1 points per element."""
+    text = BASE.replace('cells = [4, 1, 1]', 'cells = [8, 2, 2]\nelement = "hex8"').replace(
+        'model = "stable_neo_hookean"', 'model = "linear"').replace("poisson_ratio = 0.3", "poisson_ratio = 0.4999").replace(
+        'type = "backward_euler"\ndt = 0.05', 'type = "static"')
+    sag = {}
+    for vi in ("full", "reduced"):
+        scene = load_scene(write(tmp_path, text.replace("density = 1000.0", f'density = 1000.0\nvolumetric_integration = "{vi}"'),
+                                 name=f"{vi}.toml"))
+        if vi == "reduced":
+            assert "9 quadrature point(s) per element" in scene.describe()
+        run = scene.build(device="cpu", precision="float64")
+        run.run(frames=1)
+        sag[vi] = -(run.sim.positions() - run.model.rest_positions)[:, 1].min()
+    assert sag["reduced"] > 5.0 * sag["full"] > 0.0, sag
+
+
+@pytest.mark.parametrize("element", ["tet10", "hex8", "hex27"])
+def test_element_traction_is_consistent(tmp_path, element):
+    from warpfem.scenes.scene import element_traction_forces
+
+    t = np.array([10.0, -250.0, 3.0])
+    scene = load_scene(write(tmp_path, BASE.replace('cells = [4, 1, 1]', f'cells = [4, 1, 1]\nelement = "{element}"') + f"""
+[[traction]]
+box_min = [-1.0, 0.2, -1.0]
+box_max = [2.0, 1.0, 1.0]
+force_per_area = {t.tolist()}
+"""))
+    (f, faces, area), = scene.tractions()
+    assert area == pytest.approx(0.2, rel=1e-13) and len(faces) == (8 if element == "tet10" else 4)
+    np.testing.assert_allclose(f.sum(axis=0), t * 0.2, rtol=1e-13)
+    X = scene.mesh().vertices
+    top = np.flatnonzero(np.abs(X[:, 1] - 0.2) < 1e-12)
+    assert np.abs(f[np.setdiff1d(np.arange(len(X)), top)]).max() < 1e-14 * np.abs(t).max()
+    # nodal shares of the face integral int N_a dA (face area a = 0.25 x 0.2 per element face)
+    a = 0.05
+    if element == "hex8":  # bilinear: A/4 per corner, corners shared by up to 4 faces
+        shares = np.where((np.abs(X[top, 0]) < 1e-12) | (np.abs(X[top, 0] - 1.0) < 1e-12), 1, 2) * a / 4
+        np.testing.assert_allclose(f[top], shares[:, None] * t[None, :], rtol=1e-12)
+    elif element == "tet10":  # quadratic triangles: corners get 0, mid-edge nodes A/3 of each triangle
+        corner = top[top < 20]
+        assert np.abs(f[corner]).max() < 1e-12 * np.abs(t).max()
+    else:  # biquadratic 9-node face: corner A/36, edge A/9, centre 4A/9
+        centre = top[np.all(np.abs(X[top] - [0.125, 0.2, 0.1]) < 1e-12, axis=1)]
+        np.testing.assert_allclose(f[centre[0]], 4 * a / 9 * t, rtol=1e-12)
+        corner = top[np.all(np.abs(X[top] - [0.0, 0.2, 0.0]) < 1e-12, axis=1)]
+        np.testing.assert_allclose(f[corner[0]], a / 36 * t, rtol=1e-12)
+    # element_traction_forces agrees with the tet formula on a tet4 mesh
+    from warpfem.mesh import box_tet_mesh
+
+    m = box_tet_mesh(size=(1, .2, .2), cells=(4, 1, 1))
+    f4, _, area4 = element_traction_forces(m, (-1, 0.2, -1), (2, 1, 1), t)
+    f4_ref, _, _ = traction_forces(m.vertices, m.boundary_faces(), (-1, 0.2, -1), (2, 1, 1), t)
+    np.testing.assert_allclose(f4, f4_ref, atol=1e-14)
+    assert area4 == pytest.approx(0.2, rel=1e-13)
+
+
+@pytest.mark.parametrize("element", ["tet10", "hex8"])
+def test_surface_embeds_in_higher_order_elements(tmp_path, element):
+    (tmp_path / "s.obj").write_text(CUBE_OBJ)
+    text = BASE.replace('cells = [4, 1, 1]', f'cells = [4, 1, 1]\nelement = "{element}"') + '[surface]\npath = "s.obj"\n'
+    scene = load_scene(write(tmp_path, text))
+    k = {"tet10": 10, "hex8": 8}[element]
+    assert f"embedded in the {element} elements ({k} shape functions per vertex)" in scene.describe()
+    run = scene.build(device="cpu")
+    assert run.embedding.weights.shape == (5, k) and run.skinner.weights_per_point == k
+    A = np.array([[1.1, 0.2, 0.0], [0.0, 0.9, 0.1], [0.05, 0.0, 1.2]])
+    c = np.array([0.3, -0.2, 0.1])
+    run.sim.set_positions(run.model.rest_positions @ A.T + c)
+    pts = np.array([[float(v) for v in line.split()[1:]] for line in CUBE_OBJ.splitlines() if line.startswith("v ")])
+    np.testing.assert_allclose(run.surface_points(), pts @ A.T + c, atol=1e-12)
+
+
+def test_states_npz_streams_and_matches_run(tmp_path):
+    states = tmp_path / "o" / "s.npz"
+    text = BASE.replace("frames = 2", f'frames = 3\nstates = "{states}"\nclip_frames = 2\nusd = "{tmp_path / "o" / "s.usda"}"')
+    run = load_scene(write(tmp_path, text)).build(device="cpu")
+    run.run()
+    d = np.load(states)
+    assert d["positions"].shape == (4, 20, 3) and d["times"] == pytest.approx([0.0, 0.05, 0.1, 0.15])
+    np.testing.assert_array_equal(d["positions"][-1], run.sim.positions())
+    assert sorted(os.listdir(tmp_path / "o")) == ["s.clips", "s.npz", "s.stats.jsonl", "s.usda"]  # no temporaries left
+    assert sorted(os.listdir(tmp_path / "o" / "s.clips")) == ["clip_000000.usdc", "clip_000001.usdc", "manifest.usda"]

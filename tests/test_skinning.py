@@ -61,7 +61,7 @@ def bunny():
     return vertices, tets, surf_v, surf_t, emb, elapsed
 
 
-def test_bunny_embedding_inside_and_fast(bunny):
+def test_bunny_embedding_inside_within_reported_distance(bunny):
     vertices, tets, surf_v, surf_t, emb, elapsed = bunny
     assert surf_v.shape == (3485, 3) and surf_t.shape == (6966, 3)
     assert emb.num_points == 3485
@@ -70,7 +70,7 @@ def test_bunny_embedding_inside_and_fast(bunny):
     rel = emb.max_outside_distance / diag
     print(f"bunny embed: {elapsed:.3f} s, outside {emb.num_outside}, max dist {emb.max_outside_distance:.3e} "
           f"({rel:.2e} of bbox diagonal)")
-    assert elapsed < 5.0
+    # speed is measured in kernels_bench/, never asserted here (the time is printed for information)
     assert rel < 1e-6  # the surface vertices are (float32 copies of) tet mesh vertices
     # every point is inside its tet or within the reported distance
     assert np.all(emb.distances <= emb.max_outside_distance)
@@ -214,3 +214,78 @@ def test_skinner_rejects_wrong_input():
         embed_points(np.zeros((2, 2)), vertices, tets)
     with pytest.raises(ValueError, match="tet 0"):
         embed_points(np.zeros((1, 3)), vertices, tets + 100)
+
+
+# ----------------------------------------------------------------------------- every element type
+def _element_mesh(etype):
+    """A small mesh of each element type; hexes with a moved interior node (non-affine elements)."""
+    from warpfem.elements import ElementMesh, box_hex_mesh, tet10_from_tet4
+    from warpfem.mesh import box_tet_mesh
+
+    if etype in ("tet4", "tet10"):
+        m = box_tet_mesh(size=(2.0, 1.0, 1.0), cells=(2, 1, 1))
+        return m if etype == "tet4" else tet10_from_tet4(m)
+    m = box_hex_mesh(size=(2.0, 1.0, 1.0), cells=(2, 2, 2), order=1 if etype == "hex8" else 2)
+    X = m.vertices.copy()
+    centre = np.flatnonzero(np.all(np.abs(X - [1.0, 0.5, 0.5]) < 1e-12, axis=1))[0]
+    X[centre] += [0.08, -0.05, 0.03]  # the shared interior node: every element becomes non-affine
+    return ElementMesh(X, m.elements, etype)
+
+
+@pytest.mark.parametrize("etype,k", [("tet4", 4), ("tet10", 10), ("hex8", 8), ("hex27", 27)])
+def test_every_element_type_skins_affine_motion_exactly_on_device(etype, k):
+    from warpfem.skinning import embed_points_in_mesh
+
+    mesh = _element_mesh(etype)
+    rng = np.random.default_rng(7)
+    inside = rng.uniform([0.05, 0.05, 0.05], [1.95, 0.95, 0.95], (60, 3))
+    nodes = [0, mesh.num_vertices - 1, int(np.argmin(np.linalg.norm(mesh.vertices - [1.0, 0.5, 0.5], axis=1)))]
+    if etype in ("tet10", "hex27"):
+        nodes.append(mesh.num_vertices // 2)  # a mid-edge / mid-face node as well
+    outside = np.array([[2.2, 0.5, 0.5], [-0.1, 1.05, 0.4]])
+    pts = np.concatenate([inside, mesh.vertices[nodes], outside])
+    emb = embed_points_in_mesh(pts, mesh)
+    assert emb.vertex_ids.shape == (len(pts), k) and emb.weights.shape == (len(pts), k)
+    assert emb.weights_per_point == k and emb.element_type == etype
+    np.testing.assert_allclose(emb.weights.sum(axis=1), 1.0, atol=1e-12)
+    assert emb.outside.tolist() == [False] * (len(pts) - 2) + [True, True]
+    np.testing.assert_allclose(emb.distances[-2:], [0.2, np.sqrt(0.1 ** 2 + 0.05 ** 2)], atol=1e-12)
+    # a point at a node: weight 1 there, 0 elsewhere
+    for row, v in zip(range(60, 60 + len(nodes)), nodes):
+        j = np.flatnonzero(emb.vertex_ids[row] == v)
+        assert j.size == 1, (etype, v, emb.vertex_ids[row])
+        assert abs(emb.weights[row, j[0]] - 1.0) < 1e-10
+        assert np.abs(np.delete(emb.weights[row], j[0])).max() < 1e-10
+    W = emb.matrix()
+    assert W.shape == (len(pts), mesh.num_vertices) and np.all(np.diff(W.indptr) == k)
+    A, c = random_affine(rng)
+    x = mesh.vertices @ A.T + c
+    expected = pts @ A.T + c
+    np.testing.assert_allclose(W @ x, expected, atol=1e-10, rtol=0)
+    sk = SurfaceSkinner(emb, mesh, device="cpu", precision="float64")  # the Warp kernel, k weights a row
+    assert sk.weights_per_point == k
+    np.testing.assert_allclose(sk.apply_numpy(x), expected, atol=1e-10, rtol=0)
+    sk32 = SurfaceSkinner(emb, mesh.elements, device="cpu", precision="float32")
+    np.testing.assert_allclose(sk32.apply_numpy(x), expected, atol=2e-5, rtol=0)
+    if etype != "tet4":
+        with pytest.raises(ValueError, match=rf"\(m, {k}\)"):
+            SurfaceSkinner(emb, mesh.corner_tets(), device="cpu")
+
+
+def test_hex27_skinning_follows_quadratic_motion():
+    """Beyond affine: a Hex27 embedding reproduces a quadratic displacement field exactly."""
+    from warpfem.skinning import embed_points_in_mesh
+
+    from warpfem.elements import box_hex_mesh
+
+    # on an undistorted grid the map from reference coordinates is affine, so a field quadratic in X
+    # is quadratic in the reference coordinates: exactly representable by the 27 shape functions
+    grid = box_hex_mesh(size=(2.0, 1.0, 1.0), cells=(2, 2, 2), order=2)
+    pts = np.random.default_rng(3).uniform([0.05, 0.05, 0.05], [1.95, 0.95, 0.95], (40, 3))
+    emb = embed_points_in_mesh(pts, grid)
+
+    def bend(X):
+        return np.stack([X[:, 0], X[:, 1] + 0.1 * X[:, 0] ** 2, X[:, 2] - 0.2 * X[:, 1] * X[:, 0]], axis=1)
+
+    sk = SurfaceSkinner(emb, grid, device="cpu", precision="float64")
+    np.testing.assert_allclose(sk.apply_numpy(bend(grid.vertices)), bend(pts), atol=1e-12, rtol=0)

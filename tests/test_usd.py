@@ -206,3 +206,153 @@ def test_vertex_normals(tmp_path):
     assert mesh.GetNormalsInterpolation() == UsdGeom.Tokens.vertex
     assert mesh.GetNormalsAttr().GetTimeSamples() == [0.0, 1.0]
     np.testing.assert_array_equal(np.array(mesh.GetNormalsAttr().Get(1)), -n)
+
+
+# ----------------------------------------------------------------------------- value clips (bounded memory)
+def check_frames(stage, name, expected, times):
+    """Frame count, point count, points, extents = bounds of the points (and USD's own extent)."""
+    from pxr import UsdGeom
+
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(f"/Root/{name}"))
+    pts_attr, ext_attr = mesh.GetPointsAttr(), mesh.GetExtentAttr()
+    assert pts_attr.GetTimeSamples() == list(times) and ext_attr.GetTimeSamples() == list(times)
+    for t in times:
+        pts = np.array(pts_attr.Get(t), dtype=np.float64)
+        assert pts.shape == expected(t).shape
+        np.testing.assert_allclose(pts, expected(t), atol=1e-5)
+        ext = np.array(ext_attr.Get(t), dtype=np.float64)
+        np.testing.assert_array_equal(ext, np.stack([pts.min(0), pts.max(0)]))
+        np.testing.assert_array_equal(ext, np.array(UsdGeom.PointBased.ComputeExtent(pts_attr.Get(t))))
+
+
+def test_value_clips_bound_memory_and_compose(tmp_path):
+    from pxr import Sdf
+
+    path = tmp_path / "long.usda"
+    clip_dir = tmp_path / "long.clips"
+    n_frames, clip = 11, 4
+    with UsdMeshWriter(path, fps=FPS, clip_frames=clip, save_every=3) as w:
+        w.add_mesh("surface", FACES, len(REST))
+        for f in range(n_frames):
+            w.write_frame(f, {"surface": frame_points(f)})
+            # never more than one clip's frames in memory; full clips are saved and released
+            assert w.frames_in_memory() == (f % clip + 1) % clip  # 0 right after a clip is full
+            for done in range((f + 1) // clip):
+                assert Sdf.Layer.Find(str(clip_dir / f"clip_{done:06d}.usdc")) is None
+        assert w.peak_frames_in_memory == clip and w.num_clips == 3
+    assert sorted(os.listdir(clip_dir)) == ["clip_000000.usdc", "clip_000001.usdc", "clip_000002.usdc", "manifest.usda"]
+    # the main layer holds topology and clip metadata only, no time samples
+    main = Sdf.Layer.OpenAsAnonymous(str(path))
+    assert main.ListAllTimeSamples() == []
+    # each clip holds its frames only
+    for i, frames in enumerate([[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10]]):
+        layer = Sdf.Layer.OpenAsAnonymous(str(clip_dir / f"clip_{i:06d}.usdc"))
+        assert sorted(layer.ListAllTimeSamples()) == frames
+    stage = open_stage(path)
+    assert stage.GetStartTimeCode() == 0.0 and stage.GetEndTimeCode() == n_frames - 1
+    info = warpfem_info(stage)
+    assert info["complete"] is True and info["framesWritten"] == n_frames and info["clips"] == 3
+    check_frames(stage, "surface", frame_points, range(n_frames))
+    times, frames = read_usd_mesh_frames(path, "surface")
+    assert times.tolist() == list(range(n_frames)) and len(frames) == n_frames
+    assert usd_validation_errors(stage) == []
+
+
+def test_single_file_mode_and_stale_clips_removed(tmp_path):
+    from pxr import Sdf
+
+    path = tmp_path / "run.usdc"
+    with UsdMeshWriter(path, fps=FPS, clip_frames=2) as w:  # 5 clips
+        w.add_mesh("surface", FACES, len(REST))
+        for f in range(9):
+            w.write_frame(f, {"surface": frame_points(f)})
+    assert len(os.listdir(tmp_path / "run.clips")) == 6
+    with UsdMeshWriter(path, fps=FPS, clip_frames=2) as w:  # a shorter rerun: the old clips 2..4 go
+        w.add_mesh("surface", FACES, len(REST))
+        for f in range(3):
+            w.write_frame(f, {"surface": 2 * frame_points(f)})
+    assert sorted(os.listdir(tmp_path / "run.clips")) == ["clip_000000.usdc", "clip_000001.usdc", "manifest.usda"]
+    check_frames(open_stage(path), "surface", lambda t: 2 * frame_points(t), range(3))
+    with UsdMeshWriter(path, fps=FPS, clip_frames=None) as w:  # one self-contained file
+        w.add_mesh("surface", FACES, len(REST))
+        for f in range(3):
+            w.write_frame(f, {"surface": frame_points(f)})
+        assert w.frames_in_memory() == 3 and w.num_clips == 0
+    assert not (tmp_path / "run.clips").exists()
+    assert sorted(Sdf.Layer.OpenAsAnonymous(str(path)).ListAllTimeSamples()) == [0.0, 1.0, 2.0]
+    stage = open_stage(path)
+    check_frames(stage, "surface", frame_points, range(3))
+    assert usd_validation_errors(stage) == []
+    with pytest.raises(UsdWriterError, match="clip_frames"):
+        UsdMeshWriter(tmp_path / "x.usda", fps=FPS, clip_frames=0)
+
+
+def test_killed_process_mid_clip_keeps_saved_frames(tmp_path):
+    """Killed in its second clip: the stage holds the frames up to the last save (clip 1 and the
+    saved part of clip 2), end time code = last saved frame."""
+    path = tmp_path / "killed.usda"
+    script = textwrap.dedent(
+        f"""
+        import os, numpy as np
+        from warpfem.io import UsdMeshWriter
+        w = UsdMeshWriter({str(path)!r}, fps=24, save_every=2, clip_frames=4)
+        w.add_mesh("tri", np.array([[0, 1, 2]]), 3)
+        for f in range(7):
+            w.write_frame(f, {{"tri": np.eye(3) * (f + 1)}})
+        os._exit(3)  # frames 0-3: a full clip; 4, 5 saved (save_every = 2); 6 not saved
+        """
+    )
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                         env.get("PYTHONPATH", "")])
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 3, proc.stderr
+    stage = open_stage(path)
+    assert stage.GetEndTimeCode() == 5.0
+    info = warpfem_info(stage)
+    assert info["complete"] is False and info["framesWritten"] == 6 and info["clips"] == 2
+    check_frames(stage, "tri", lambda t: np.eye(3) * (t + 1), range(6))
+    assert usd_validation_errors(stage) == []
+
+
+# ----------------------------------------------------------------------------- npz states, streamed
+def test_states_writer_streams_frames_to_disk(tmp_path):
+    import tracemalloc
+
+    from warpfem.io import StatesWriter
+
+    rng = np.random.default_rng(0)
+    rest = rng.standard_normal((3000, 3))
+    frame_bytes = rest.nbytes  # 72 kB
+    path = tmp_path / "out" / "states.npz"
+    tracemalloc.start()
+    try:
+        w = StatesWriter(path, rest=rest, max_frames=200, fps=30.0, chunk_bytes=1 << 20)
+        tracemalloc.reset_peak()
+        for f in range(120):  # 8.6 MB of frames
+            w.write_frame(rest + 0.01 * f, f / 30.0)
+        peak_writing = tracemalloc.get_traced_memory()[1]
+        assert all(os.path.exists(p) for p in w.temporary_files)
+        tracemalloc.reset_peak()
+        w.close()
+        peak_closing = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    # Python memory: a few frames while writing, one 1 MiB chunk while assembling (not 120 frames)
+    assert peak_writing < 4 * frame_bytes, peak_writing
+    assert peak_closing < (1 << 20) + 4 * frame_bytes, peak_closing
+    assert not any(os.path.exists(p) for p in w.temporary_files)
+    d = np.load(path)
+    assert sorted(d.files) == ["fps", "positions", "rest", "times"]
+    assert d["positions"].shape == (120, 3000, 3) and d["fps"] == 30.0
+    np.testing.assert_array_equal(d["positions"][57], rest + 0.01 * 57)
+    np.testing.assert_array_equal(d["rest"], rest)
+    np.testing.assert_allclose(d["times"], np.arange(120) / 30.0)
+    # closed early (a failed run): the frames written, nothing more
+    with StatesWriter(tmp_path / "short.npz", rest=rest[:5], max_frames=10, fps=1.0) as w:
+        w.write_frame(rest[:5], 0.0)
+        w.write_frame(rest[:5] + 1, 1.0)
+    d = np.load(tmp_path / "short.npz")
+    assert d["positions"].shape == (2, 5, 3) and d["times"].tolist() == [0.0, 1.0]
+    with pytest.raises(ValueError, match="closed"):
+        w.write_frame(rest[:5], 2.0)

@@ -31,6 +31,53 @@ def _err(msg):
     print(f"warpfem: error: {msg}", file=sys.stderr)
 
 
+def _configure_warp(verbose: bool) -> None:
+    """Warp's start-up banner and module-load lines only with ``--verbose`` (warnings always).
+
+    Must run before Warp initialises (``wp.init()``, first array or launch); importing warpfem
+    does not initialise it. Warp 1.19 reads ``wp.config.log_level``; older versions ``quiet``."""
+    import warp as wp
+
+    wp.config.quiet = not verbose
+    if hasattr(wp, "LOG_INFO"):
+        wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
+
+
+_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+
+
+def _init_warp(device: str, verbose: bool) -> None:
+    """Initialise Warp now. Without ``--verbose`` on a CPU device, the native library's note that no
+    CUDA driver was found (printed by C code straight to file descriptor 2, not through Warp's log
+    level) is dropped; anything else it prints is passed on to stderr."""
+    import warp as wp
+
+    if verbose or not str(device).startswith("cpu"):
+        wp.init()
+        return
+    import os
+    import tempfile
+
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no usable fd 2: nothing to filter
+        wp.init()
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        text = tmp.read().decode("utf-8", errors="replace")
+    rest = [line for line in text.splitlines() if _NO_DRIVER not in line]
+    if rest:
+        print("\n".join(rest), file=sys.stderr)
+
+
 def _load(path):
     from warpfem.scenes import load_scene
 
@@ -76,6 +123,7 @@ def _cmd_run(args) -> int:
     from warpfem.solvers.newton import SolveFailed
 
     try:
+        _init_warp(args.device, getattr(args, "verbose", False))
         run = scene.build(device=args.device, precision=args.precision)
     except SceneError as e:
         _err(str(e))
@@ -160,17 +208,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # before anything (plugins included) can initialise Warp: banner / module-load lines only with --verbose
+    _configure_warp("--verbose" in argv)
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return EXIT_INVALID
-    if not getattr(args, "verbose", False):
-        import warp as wp
-
-        wp.config.quiet = True  # before Warp initialises: no banner / module-load lines
     return int(args.func(args))
 
 
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    # `python -m warpfem.cli`: run the imported module's main so plugins register on the same SUBCOMMANDS
+    from warpfem.cli import main as _main
+
+    sys.exit(_main())

@@ -29,9 +29,12 @@ class Model:
             rho g V exactly for either mass matrix).
         mass_matrix: "lumped" (diagonal, row sums) or "consistent" (seed 004,
             rho V / 20 (1 + delta_ij) per tet).
-        volumetric_integration: "full" or "reduced" (Hex8 meshes with ``LinearElastic`` only):
-            selective reduced integration, the volumetric energy lam/2 tr(eps)^2 on 1 point per
-            element and mu eps:eps on 2x2x2, so nearly incompressible Hex8 does not lock.
+        volumetric_integration: "full" or "reduced" (Hex8 meshes only, any material with
+            ``volumetric_split()``, 0 <= nu < 0.5): selective reduced integration, the energy split
+            exactly into a lambda-scaled volumetric part on 1 point per element and the rest on
+            2x2x2, so nearly incompressible Hex8 does not lock. Linear: lam/2 tr(eps)^2 | mu eps:eps;
+            StVK: lam/2 tr(E)^2 | mu E:E; corotated: lam/2 (J - 1)^2 | mu ||F - R||^2; stable
+            neo-Hookean: lambda_L/2 (J - 1)^2 | the rest (see ``Material.volumetric_split``).
     """
 
     def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped",
@@ -50,9 +53,19 @@ class Model:
         self.mass_matrix_kind = mass_matrix
         self.rest_positions = np.asarray(mesh.vertices, dtype=np.float64)
         self.num_vertices = len(self.rest_positions)
-        if volumetric_integration == "reduced" and getattr(material, "kind", None) != 0:
-            raise ValueError("volumetric_integration='reduced' needs the LinearElastic material (its energy splits "
-                             f"into mu and lambda parts); got {type(material).__name__}")
+        self.volumetric_parameters = None  # ((mu, lam) full-rule part, (mu, lam) 1-point part) with "reduced"
+        if volumetric_integration == "reduced":
+            split = getattr(material, "volumetric_split", None)
+            if split is None:
+                raise ValueError("volumetric_integration='reduced' needs a material whose energy splits into a "
+                                 f"volumetric and a remaining part (a volumetric_split() method); {type(material).__name__} "
+                                 "has none")
+            (mu_f, lam_f), (mu_v, lam_v) = split()
+            if lam_v < 0.0:
+                raise ValueError("volumetric_integration='reduced' is for nearly incompressible materials: it needs "
+                                 f"poisson_ratio >= 0 (a non-negative volumetric part), got poisson_ratio="
+                                 f"{getattr(material, 'poisson_ratio', '?')!r} for {type(material).__name__}")
+            self.volumetric_parameters = ((float(mu_f), float(lam_f)), (float(mu_v), float(lam_v)))
         self.volumetric_integration = volumetric_integration
         self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, getattr(mesh, "element_type", "tet4"),
                                                 volumetric_integration=volumetric_integration)

@@ -23,12 +23,8 @@ from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.pcg import BlockJacobiPCG
+from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
-
-_PRECISIONS = {
-    "float32": (wp.float32, wp.vec3, wp.mat33, np.float32),
-    "float64": (wp.float64, wp.vec3d, wp.mat33d, np.float64),
-}
 
 
 class _Potential:
@@ -114,7 +110,7 @@ class _Potential:
         return vals
 
 
-class Simulator:
+class Simulator(SimulatorState):
     """Time stepping and static solves of a model on a Warp device.
 
     Args:
@@ -133,12 +129,7 @@ class Simulator:
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
                  damping_stiffness=0.0, require_convergence=False, **newton_options):
-        if precision not in _PRECISIONS:
-            raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
-        if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
-        if damping_mass < 0 or damping_stiffness < 0:
-            raise ValueError("Rayleigh damping coefficients must be >= 0")
+        types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
         if unknown:
             raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
@@ -147,7 +138,7 @@ class Simulator:
         self.model = model
         self.device = wp.get_device(device)
         self.precision = precision
-        self._s, self._vec, self._mat, self._np = _PRECISIONS[precision]
+        self._s, self._vec, self._mat, self._np = types
         self.dt = float(dt)
         self.damping_mass = float(damping_mass)
         self.damping_stiffness = float(damping_stiffness)
@@ -173,16 +164,21 @@ class Simulator:
         self._pcg = BlockJacobiPCG(self._pattern, vec_type=self._vec, scalar=self._s)
         self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
         # quadrature-point sets the kernels run over: (count, args, energy buffer). Selective reduced
-        # integration (qd.volumetric) splits linear elasticity into (mu, 0) on the full rule and
-        # (0, lam) on the 1-point rule; stresses() still evaluates the full material on the main set.
+        # integration (qd.volumetric) runs the same material kernels with the split parameters of
+        # model.volumetric_parameters (Material.volumetric_split): the remaining part on the full
+        # rule, the volumetric part on the 1-point rule; energy, force and Hessian are sums over the
+        # sets (the Hessian of each part SPD-projected on its own). stresses() evaluates the full
+        # material at the main (full-rule) points.
         self._qp_sets = [(self._qp_count, self._qp_args, self._energy_q)]
         if getattr(qd, "volumetric", None) is not None:
             vq = qd.volumetric
+            split = getattr(model, "volumetric_parameters", None) or ((mat.mu, 0.0), (0.0, mat.lam))
+            (mu_f, lam_f), (mu_v, lam_v) = split
             vargs = [self._x_rest, self._elements, self._k, wp.array(vq.qp_element, dtype=wp.int32, device=dev),
                      wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),
                      wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev),
-                     int(mat.kind), self._s(0.0), self._s(mat.lam)]
-            main = self._qp_args[:7] + [self._s(mat.mu), self._s(0.0)]
+                     int(mat.kind), self._s(mu_v), self._s(lam_v)]
+            main = self._qp_args[:7] + [self._s(mu_f), self._s(lam_f)]
             self._qp_sets = [(self._qp_count, main, self._energy_q),
                              (vq.num_points, vargs, wp.zeros(vq.num_points, dtype=self._s, device=dev))]
 
@@ -204,46 +200,6 @@ class Simulator:
         fext = self.model.external_forces()
         self._fext = self._vec_array(fext)
         self._fext_norm = float(np.linalg.norm(fext))
-
-    def fix(self, indices, components="xyz"):
-        """Fix vertices at their current positions from the next step on (no re-assembly)."""
-        self.model.fix(indices, components)
-        self.sync_model()
-
-    def release(self, indices, components="xyz"):
-        """Release fixed components (no re-assembly)."""
-        self.model.release(indices, components)
-        self.sync_model()
-
-    def set_targets(self, indices, positions):
-        """Prescribe end-of-step positions (m) for fixed vertices (kinematic handles)."""
-        idx = self.model._indices(indices)
-        pos = np.asarray(positions, dtype=np.float64).reshape(len(idx), 3)
-        if not np.all(np.isfinite(pos)):
-            raise ValueError("target positions must be finite")
-        for i, p in zip(idx.tolist(), pos):
-            self._targets[i] = p
-
-    # -- state access --------------------------------------------------------------------------
-    def positions(self) -> np.ndarray:
-        """Current positions (n, 3), m, float64 copy."""
-        return self.x.numpy().astype(np.float64)
-
-    def velocities(self) -> np.ndarray:
-        """Current velocities (n, 3), m/s, float64 copy."""
-        return self.v.numpy().astype(np.float64)
-
-    def set_positions(self, x):
-        x = np.asarray(x, dtype=np.float64)
-        if x.shape != (self.num_vertices, 3) or not np.all(np.isfinite(x)):
-            raise ValueError(f"positions must be finite with shape ({self.num_vertices}, 3), got {x.shape}")
-        self.x = self._vec_array(x)
-
-    def set_velocities(self, v):
-        v = np.asarray(v, dtype=np.float64)
-        if v.shape != (self.num_vertices, 3) or not np.all(np.isfinite(v)):
-            raise ValueError(f"velocities must be finite with shape ({self.num_vertices}, 3), got {v.shape}")
-        self.v = self._vec_array(v)
 
     # -- stages (each a function that can be timed) ------------------------------------------------
     def _bsr_mv(self, values, x, alpha, y):

@@ -27,9 +27,12 @@ class QuadratureData:
         qp_element: (Q,) int32 element of each quadrature point.
         qp_weight: (Q,) float64 Gauss weight x det J (m^3).
         qp_dNdX: (Q * k, 3) float64 material shape-function gradients (1/m).
-        volumetric: optional second point set (selective reduced integration, hex8 + linear
-            elasticity): the kernels run over this set with material parameters (mu, lam) = (0, lam)
-            and over the main set with (mu, 0). None for ordinary (full) integration.
+        volumetric: optional second point set (selective reduced integration, hex8): one point per
+            element with weight V_e (the element volume) and the volume-averaged ("uniform",
+            Flanagan & Belytschko 1981) gradients (1/V_e) int_e dN_a/dX dV, integrated exactly by
+            the 2x2x2 rule; the kernels run the volumetric part of the material
+            (``Material.volumetric_split``) over this set and the rest over the main set.
+            None for ordinary (full) integration.
     """
 
     element_type: str
@@ -108,13 +111,38 @@ def _generic_quadrature(vertices, elements, element_type, purpose):
     )
 
 
+def mean_gradient_quadrature(qd: QuadratureData) -> QuadratureData:
+    """One point per element: weight V_e = sum_q w_q and gradient g_a = (1/V_e) sum_q w_q dN_a/dX(q).
+
+    F there is the element's volume-averaged deformation gradient, so the volumetric energy is
+    psi_vol(mean F) V_e: for linear elasticity the mean-dilatation / B-bar element (Nagtegaal,
+    Parks, Rice 1974; Hughes 1980). Unlike the centroid gradients, the nodal vectors w g_a equal
+    int_e dN_a/dX dV exactly, so on distorted (non-parallelepiped) hexes a homogeneous
+    deformation still leaves no force on interior nodes (patch test); on parallelepipeds the two
+    coincide (the centroid value of dN/dX is its mean there).
+    """
+    m, k = qd.num_elements, qd.nodes_per_element
+    w = qd.qp_weight.reshape(m, -1)
+    V = w.sum(axis=1)
+    g = np.einsum("mq,mqai->mai", w, qd.qp_dNdX.reshape(m, -1, k, 3)) / V[:, None, None]
+    return QuadratureData(
+        element_type=qd.element_type,
+        nodes_per_element=k,
+        elements=qd.elements,
+        qp_element=np.arange(m, dtype=np.int32),
+        qp_weight=np.ascontiguousarray(V),
+        qp_dNdX=np.ascontiguousarray(g.reshape(-1, 3)),
+    )
+
+
 def precompute_quadrature(vertices: np.ndarray, elements: np.ndarray, element_type: str = "tet4", *,
                           volumetric_integration: str = "full") -> QuadratureData:
     """Build :class:`QuadratureData` for a mesh of one element type.
 
     ``element_type``: "tet4" (1 point), "tet10" (4 points), "hex8" (2x2x2), "hex27" (3x3x3); node
     order as in :mod:`warpfem.elements.library`. ``volumetric_integration="reduced"`` (hex8 only)
-    adds the 1-point volumetric set of selective reduced integration (see :class:`QuadratureData`).
+    adds the 1-point volumetric set of selective reduced integration, with volume-averaged
+    gradients (see :func:`mean_gradient_quadrature`).
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     elements = np.asarray(elements)
@@ -130,7 +158,7 @@ def precompute_quadrature(vertices: np.ndarray, elements: np.ndarray, element_ty
             raise ValueError(f"{element_type} elements must have shape (m, {k}), got {elements.shape}")
         qd = _generic_quadrature(vertices, elements.astype(np.int64), element_type, "stiffness")
         if volumetric_integration == "reduced":
-            vol = _generic_quadrature(vertices, elements.astype(np.int64), element_type, "volumetric")
+            vol = mean_gradient_quadrature(qd)
             qd = QuadratureData(qd.element_type, qd.nodes_per_element, qd.elements, qd.qp_element,
                                 qd.qp_weight, qd.qp_dNdX, volumetric=vol)
         return qd

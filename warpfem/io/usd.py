@@ -2,7 +2,15 @@
 
 ``pxr`` is imported lazily inside functions so that importing warpfem does not need usd-core.
 
-File layout::
+Memory is bounded by splitting the animation into **value clips** (USD's mechanism for
+animation spread over several layers). For ``out/run.usda`` the writer produces::
+
+    out/run.usda                     the stage: metadata, topology, clip metadata (no samples)
+    out/run.clips/manifest.usda      which attributes the clips animate (points, extent, normals)
+    out/run.clips/clip_000000.usdc   frames [0, clip_frames)           time samples only
+    out/run.clips/clip_000001.usdc   frames [clip_frames, 2 clip_frames)  ...
+
+The main layer::
 
     #usda 1.0
     (
@@ -11,14 +19,18 @@ File layout::
         startTimeCode = first frame  endTimeCode = last written frame
         customLayerData = { dictionary warpfem = { bool complete, int framesWritten, ... } }
     )
-    def Xform "Root" { def Mesh "<name>" { faceVertexCounts, faceVertexIndices,
-                                            points.timeSamples, extent.timeSamples, ... } }
+    def Xform "Root" (clips = { dictionary default = { asset[] assetPaths, double2[] active,
+                                 string primPath = "/Root", asset manifestAssetPath } })
+    { def Mesh "<name>" { faceVertexCounts, faceVertexIndices, points, extent (declared) } }
 
-The layer is saved every ``save_every`` frames and on :meth:`UsdMeshWriter.close`, and the end
-time code always equals the last frame written, so a run killed part-way leaves a readable file
-with the frames up to the last save. Frames are written straight into the USD layer; nothing is
-kept in Python lists (the layer itself holds the samples in USD's own memory until the writer is
-closed).
+Clip time = stage time (no ``times`` mapping); clip k is active from its first frame on. The
+writer authors the layers with Sdf and keeps no ``Usd.Stage`` open (a stage would open every clip
+it composes). At most one clip layer is open at a time: it holds at most ``clip_frames`` frames, is saved every
+``save_every`` frames and released when full, so the writer's memory does not grow with the run.
+After each save the main layer lists the clips written so far and its end time code is the last
+frame written, so a run killed or failing part-way leaves a readable stage with the frames up to
+the last save. ``clip_frames=None`` writes every sample into the main layer instead (one
+self-contained file; the layer then keeps the whole animation in memory until closed).
 """
 
 from __future__ import annotations
@@ -26,13 +38,15 @@ from __future__ import annotations
 import math
 import numbers
 import os
+import re
 
 import numpy as np
 
-__all__ = ["UsdMeshWriter", "read_usd_mesh_frames", "usd_validation_errors", "UsdWriterError"]
+__all__ = ["UsdMeshWriter", "read_usd_mesh_frames", "usd_validation_errors", "UsdWriterError", "clip_directory"]
 
 _EXTENSIONS = (".usda", ".usd", ".usdc")
 META_KEY = "warpfem"
+_CLIP_RE = re.compile(r"^clip_\d{6}\.usdc$")
 
 
 class UsdWriterError(ValueError):
@@ -45,14 +59,29 @@ def _to_numpy(a):
     return np.asarray(a)
 
 
-def _open_new_stage(path):
-    from pxr import Sdf, Usd
+def clip_directory(path) -> str:
+    """The folder holding the value clips of USD file ``path`` (``out/run.usda`` -> ``out/run.clips``)."""
+    path = os.fspath(path)
+    return os.path.splitext(path)[0] + ".clips"
+
+
+def _new_layer(path):
+    """A new empty layer at ``path``; a layer of that name already open in this process (a previous
+    writer or a reader) is cleared and reused."""
+    from pxr import Sdf
 
     layer = Sdf.Layer.Find(path)
-    if layer is not None:  # the file is open in this process (e.g. a previous writer / reader)
+    if layer is not None:
         layer.Clear()
-        return Usd.Stage.Open(layer)
-    return Usd.Stage.CreateNew(path)
+    else:
+        layer = Sdf.Layer.CreateNew(path)
+        if layer is None:  # pragma: no cover - pxr raises on failure
+            raise UsdWriterError(f"{path}: cannot create USD layer")
+    return layer
+
+
+# (attribute name, Sdf value type name) of the animated attributes
+_ANIMATED = (("points", "Point3fArray"), ("extent", "Float3Array"), ("normals", "Normal3fArray"))
 
 
 class UsdMeshWriter:
@@ -67,17 +96,21 @@ class UsdMeshWriter:
 
     Parameters
     ----------
-    path : output file; parent directories are created; an existing file is replaced.
+    path : output file; parent directories are created; an existing file is replaced (and stale
+        clips of a previous run in its clip folder are removed).
     fps : frames per second (timeCodesPerSecond = framesPerSecond = fps; one time code per frame).
     up_axis : "Y" or "Z".
     meters_per_unit : stage linear unit in metres (1.0 = SI).
-    save_every : save the layer every this many written frames (and always on close).
+    save_every : save every this many written frames (and always on close and when a clip is full).
+    clip_frames : frames per value-clip layer (binary ``.usdc`` files in :func:`clip_directory`);
+        the writer never holds more than this many frames in memory. ``None``: no clips, every
+        sample in the main file (memory grows with the run).
     root_name : name of the root Xform (the stage's defaultPrim).
     """
 
     def __init__(self, path, *, fps: float, up_axis: str = "Y", meters_per_unit: float = 1.0,
-                 save_every: int = 10, root_name: str = "Root"):
-        from pxr import Sdf, UsdGeom
+                 save_every: int = 10, clip_frames: int | None = 100, root_name: str = "Root"):
+        from pxr import Sdf, Usd, UsdGeom
 
         path = os.fspath(path)
         ext = os.path.splitext(path)[1].lower()
@@ -90,19 +123,27 @@ class UsdMeshWriter:
             raise UsdWriterError(f"up_axis must be 'Y' or 'Z', got {up_axis!r}")
         if not (isinstance(meters_per_unit, numbers.Real) and math.isfinite(meters_per_unit) and meters_per_unit > 0):
             raise UsdWriterError(f"meters_per_unit must be a positive number, got {meters_per_unit!r}")
-        if not (isinstance(save_every, numbers.Integral) and save_every >= 1):
+        if isinstance(save_every, bool) or not (isinstance(save_every, numbers.Integral) and save_every >= 1):
             raise UsdWriterError(f"save_every must be an integer >= 1, got {save_every!r}")
+        if clip_frames is not None and (isinstance(clip_frames, bool) or not (
+                isinstance(clip_frames, numbers.Integral) and clip_frames >= 1)):
+            raise UsdWriterError(f"clip_frames must be an integer >= 1 or None, got {clip_frames!r}")
         if not Sdf.Path.IsValidIdentifier(root_name):
             raise UsdWriterError(f"root_name {root_name!r} is not a valid USD prim name")
 
         self.path = path
         self.fps = float(fps)
         self.save_every = int(save_every)
+        self.clip_frames = None if clip_frames is None else int(clip_frames)
         parent = os.path.dirname(os.path.abspath(path))
         os.makedirs(parent, exist_ok=True)
+        self.clip_dir = clip_directory(path) if self.clip_frames is not None else None
+        self._remove_stale_clips()
+        if self.clip_dir is not None:
+            os.makedirs(self.clip_dir, exist_ok=True)
 
-        self._stage = _open_new_stage(path)
-        stage = self._stage
+        self._layer = _new_layer(path)
+        stage = Usd.Stage.Open(self._layer)  # stage metadata through the Usd API, then released
         stage.SetTimeCodesPerSecond(self.fps)
         stage.SetFramesPerSecond(self.fps)
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up == "Y" else UsdGeom.Tokens.z)
@@ -110,14 +151,24 @@ class UsdMeshWriter:
         root = UsdGeom.Xform.Define(stage, Sdf.Path.absoluteRootPath.AppendChild(root_name))
         stage.SetDefaultPrim(root.GetPrim())
         self._root_path = root.GetPath()
-        stage.GetRootLayer().documentation = "Written by warpfem (UsdMeshWriter)"
+        self._layer.documentation = "Written by warpfem (UsdMeshWriter)"
+        del stage, root
 
-        self._meshes = {}  # name -> (UsdGeom.Mesh, num_points, has_normals)
+        self._meshes = {}  # name -> [UsdGeom.Mesh, num_points, has_normals]
+        self._last = {}  # name -> {attr: last value written} (re-written for meshes a frame omits)
         self._first_frame = None
         self._last_frame = None
         self._frames_written = 0
         self._unsaved = 0
         self._closed = False
+        # value clips: the open clip layer, its frame count, and the clips written so far
+        self._clip = None
+        self._clip_count = 0
+        self._clip_assets = []  # relative asset paths
+        self._clip_starts = []  # first frame of each clip
+        self._manifest_attrs = set()  # (mesh name, attr) declared in the manifest
+        self._manifest_written = set()
+        self._peak_frames_in_memory = 0
         self._set_status(complete=False)
         self.save()
 
@@ -136,30 +187,63 @@ class UsdMeshWriter:
         return self._closed
 
     @property
-    def stage(self):
-        """The open Usd.Stage (None after close)."""
-        return self._stage
+    def layer(self):
+        """The main Sdf.Layer (None after close)."""
+        return self._layer
+
+    @property
+    def num_clips(self) -> int:
+        """Value-clip layers written so far (0 with ``clip_frames=None``)."""
+        return len(self._clip_assets)
+
+    def frames_in_memory(self) -> int:
+        """Distinct time codes held by the layers this writer has open (main + current clip):
+        at most ``clip_frames`` with clips."""
+        if self._closed:
+            return 0
+        times = set(self._layer.ListAllTimeSamples())
+        if self._clip is not None:
+            times |= set(self._clip.ListAllTimeSamples())
+        return len(times)
+
+    @property
+    def peak_frames_in_memory(self) -> int:
+        """Largest :meth:`frames_in_memory` seen after any :meth:`write_frame`."""
+        return self._peak_frames_in_memory
 
     def _set_status(self, *, complete: bool, reason: str | None = None):
         info = {"complete": bool(complete), "framesWritten": int(self._frames_written)}
         if self._last_frame is not None:
             info["lastFrame"] = int(self._last_frame)
+        if self.clip_frames is not None:
+            info["clipFrames"] = int(self.clip_frames)
+            info["clips"] = len(self._clip_assets)
         if reason:
             info["incompleteReason"] = str(reason)
-        layer = self._stage.GetRootLayer()
-        data = dict(layer.customLayerData)
+        data = dict(self._layer.customLayerData)
         data[META_KEY] = info
-        layer.customLayerData = data
+        self._layer.customLayerData = data
 
     def _check_open(self):
         if self._closed:
             raise UsdWriterError(f"{self.path}: writer is closed")
 
+    def _remove_stale_clips(self):
+        """Delete clip files of an earlier run written to the same path (they would be unreferenced)."""
+        d = clip_directory(self.path)
+        if not os.path.isdir(d):
+            return
+        for f in os.listdir(d):
+            if _CLIP_RE.match(f) or f == "manifest.usda":
+                os.remove(os.path.join(d, f))
+        if self.clip_frames is None and not os.listdir(d):
+            os.rmdir(d)
+
     # ------------------------------------------------------------------ topology
     def add_mesh(self, name: str, faces, num_points: int):
         """Add a triangle mesh ``name`` (faces (f, 3) indices into its ``num_points`` points).
 
-        Topology is written once (not time-sampled). Returns the prim path as a string.
+        Topology is written once (not time-sampled) into the main layer. Returns the prim path.
         """
         from pxr import Sdf, UsdGeom, Vt
 
@@ -168,7 +252,7 @@ class UsdMeshWriter:
             raise UsdWriterError(f"mesh name {name!r} is not a valid USD prim name (letters, digits, _)")
         if name in self._meshes:
             raise UsdWriterError(f"mesh {name!r} already added")
-        if not (isinstance(num_points, numbers.Integral) and num_points > 0):
+        if isinstance(num_points, bool) or not (isinstance(num_points, numbers.Integral) and num_points > 0):
             raise UsdWriterError(f"mesh {name!r}: num_points must be a positive integer, got {num_points!r}")
         faces = _to_numpy(faces)
         if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
@@ -180,15 +264,24 @@ class UsdMeshWriter:
             raise UsdWriterError(
                 f"mesh {name!r}: face {bad[0]} {faces[bad[0]].tolist()} has an index outside [0, {num_points})"
             )
-        mesh = UsdGeom.Mesh.Define(self._stage, self._root_path.AppendChild(name))
-        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(faces.shape[0], 3, dtype=np.int32)))
-        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1), dtype=np.int32)))
-        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
-        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-        mesh.CreatePointsAttr()
-        mesh.CreateExtentAttr()
+        prim = Sdf.CreatePrimInLayer(self._layer, self._root_path.AppendChild(name))
+        prim.specifier = Sdf.SpecifierDef
+        prim.typeName = "Mesh"
+        tn = Sdf.ValueTypeNames
+        for attr, type_name, value, uniform in (
+                ("faceVertexCounts", tn.IntArray, Vt.IntArray.FromNumpy(np.full(faces.shape[0], 3, dtype=np.int32)), False),
+                ("faceVertexIndices", tn.IntArray, Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1), dtype=np.int32)), False),
+                ("subdivisionScheme", tn.Token, UsdGeom.Tokens.none, True),
+                ("orientation", tn.Token, UsdGeom.Tokens.rightHanded, True),
+                ("points", tn.Point3fArray, None, False),
+                ("extent", tn.Float3Array, None, False)):
+            spec = Sdf.AttributeSpec(prim, attr, type_name, Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying)
+            if value is not None:
+                spec.default = value
+        mesh = prim
         self._meshes[name] = [mesh, int(num_points), False]
-        return str(mesh.GetPath())
+        self._manifest_attrs |= {(name, "points"), (name, "extent")}
+        return str(prim.path)
 
     # ------------------------------------------------------------------ frames
     def write_frame(self, frame_index: int, points: dict, normals: dict | None = None):
@@ -196,9 +289,10 @@ class UsdMeshWriter:
 
         The time code is ``frame_index`` (frames must be written in increasing order). Extent is
         the bounding box of the points written (as float32). ``normals`` optionally maps names
-        to per-vertex normals (p, 3). Meshes not given keep their previous sample.
+        to per-vertex normals (p, 3). Meshes not given keep their previous values (re-written at
+        this time code, so every clip is self-contained).
         """
-        from pxr import UsdGeom, Vt
+        from pxr import Sdf, UsdGeom
 
         self._check_open()
         if isinstance(frame_index, bool) or not isinstance(frame_index, numbers.Integral):
@@ -212,7 +306,7 @@ class UsdMeshWriter:
             raise UsdWriterError("points must be a non-empty dict {mesh name: (p, 3) array}")
         normals = normals or {}
         # validate everything before writing anything, so a bad frame leaves no partial samples
-        prepared = []
+        prepared = {}
         for name, pts in points.items():
             if name not in self._meshes:
                 raise UsdWriterError(f"unknown mesh {name!r} (add it with add_mesh first; known: {sorted(self._meshes)})")
@@ -224,7 +318,7 @@ class UsdMeshWriter:
             if not np.all(np.isfinite(p)):
                 i = int(np.nonzero(~np.all(np.isfinite(p), axis=1))[0][0])
                 raise UsdWriterError(f"frame {frame_index}, mesh {name!r}: point {i} is not finite: {p[i].tolist()}")
-            nr = None
+            values = {"points": p, "extent": np.stack([p.min(axis=0), p.max(axis=0)])}
             if name in normals:
                 nr = _to_numpy(normals[name])
                 if nr.shape != (n, 3):
@@ -232,51 +326,110 @@ class UsdMeshWriter:
                 nr = np.ascontiguousarray(nr, dtype=np.float32)
                 if not np.all(np.isfinite(nr)):
                     raise UsdWriterError(f"frame {frame_index}, mesh {name!r}: non-finite normals")
-            prepared.append((name, p, nr))
+                values["normals"] = nr
+            prepared[name] = values
         for name in normals:
             if name not in points:
                 raise UsdWriterError(f"frame {frame_index}: normals given for {name!r} without its points")
 
-        t = float(frame_index)
-        for name, p, nr in prepared:
+        for name, values in prepared.items():
             entry = self._meshes[name]
-            mesh = entry[0]
-            mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(p), t)
-            extent = np.stack([p.min(axis=0), p.max(axis=0)])
-            mesh.GetExtentAttr().Set(Vt.Vec3fArray.FromNumpy(extent), t)
-            if nr is not None:
-                if not entry[2]:
-                    mesh.CreateNormalsAttr()
-                    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
-                    entry[2] = True
-                mesh.GetNormalsAttr().Set(Vt.Vec3fArray.FromNumpy(nr), t)
+            if "normals" in values and not entry[2]:
+                spec = Sdf.AttributeSpec(entry[0], "normals", Sdf.ValueTypeNames.Normal3fArray)
+                spec.SetInfo("interpolation", UsdGeom.Tokens.vertex)
+                entry[2] = True
+                self._manifest_attrs.add((name, "normals"))
+            self._last.setdefault(name, {}).update(values)
+        if self.clip_frames is not None and (self._clip is None or self._clip_count >= self.clip_frames):
+            self._start_clip(frame_index)
+        layer = self._clip if self._clip is not None else self._layer
+        t = float(frame_index)
+        for name, values in self._last.items():  # meshes omitted from this frame keep their last values
+            for attr, value in values.items():
+                self._set_sample(layer, name, attr, t, value)
 
         if self._first_frame is None:
             self._first_frame = frame_index
-            self._stage.SetStartTimeCode(t)
+            self._layer.startTimeCode = t
         self._last_frame = frame_index
-        self._stage.SetEndTimeCode(t)
         self._frames_written += 1
+        self._clip_count += 1
         self._unsaved += 1
-        if self._unsaved >= self.save_every:
-            self._set_status(complete=False)
+        self._peak_frames_in_memory = max(self._peak_frames_in_memory, self.frames_in_memory())
+        if self._unsaved >= self.save_every or (self.clip_frames is not None and self._clip_count >= self.clip_frames):
             self.save()
+            if self.clip_frames is not None and self._clip_count >= self.clip_frames:
+                self._clip = None  # full: saved and released (the next frame opens a new clip)
+
+    def _set_sample(self, layer, name, attr, t, value):
+        from pxr import Sdf, Vt
+
+        path = self._root_path.AppendChild(name).AppendProperty(attr)
+        if layer.GetAttributeAtPath(path) is None:
+            prim = Sdf.CreatePrimInLayer(layer, path.GetPrimPath())
+            Sdf.AttributeSpec(prim, attr, getattr(Sdf.ValueTypeNames, dict(_ANIMATED)[attr]))
+        layer.SetTimeSample(path, t, Vt.Vec3fArray.FromNumpy(value))
+
+    def _start_clip(self, frame_index):
+        index = len(self._clip_assets)
+        fname = f"clip_{index:06d}.usdc"
+        self._clip = _new_layer(os.path.join(self.clip_dir, fname))
+        self._clip_count = 0
+        self._clip_assets.append(f"./{os.path.basename(self.clip_dir)}/{fname}")
+        self._clip_starts.append(int(frame_index))
+
+    def _write_manifest(self):
+        """The clip manifest: every attribute the clips animate, declared without values."""
+        from pxr import Sdf
+
+        layer = _new_layer(os.path.join(self.clip_dir, "manifest.usda"))
+        for name, attr in sorted(self._manifest_attrs):
+            prim = Sdf.CreatePrimInLayer(layer, self._root_path.AppendChild(name))
+            Sdf.AttributeSpec(prim, attr, getattr(Sdf.ValueTypeNames, dict(_ANIMATED)[attr]))
+        layer.Save()
+        self._manifest_written = set(self._manifest_attrs)
+
+    def _update_clip_metadata(self):
+        """The ``clips`` metadata of the root prim (Sdf: no stage, so no clip is opened)."""
+        from pxr import Sdf, Vt
+
+        if self._manifest_attrs != self._manifest_written:
+            self._write_manifest()
+        clips = {"default": {
+            "assetPaths": Sdf.AssetPathArray([Sdf.AssetPath(a) for a in self._clip_assets]),
+            "primPath": str(self._root_path),
+            "active": Vt.Vec2dArray([(float(s), float(i)) for i, s in enumerate(self._clip_starts)]),
+            "manifestAssetPath": Sdf.AssetPath(f"./{os.path.basename(self.clip_dir)}/manifest.usda"),
+        }}
+        self._layer.GetPrimAtPath(self._root_path).SetInfo("clips", clips)
 
     def save(self):
-        """Save the layer now (the file then holds every frame written so far)."""
+        """Save now: the current clip, then the main layer (clip list, status, end time code), so
+        the file holds every frame written so far."""
         self._check_open()
-        self._stage.GetRootLayer().Save()
+        if self._clip is not None:
+            self._clip.Save()
+        if self.clip_frames is not None and self._clip_assets:
+            self._update_clip_metadata()
+        if self._last_frame is not None:
+            self._layer.endTimeCode = float(self._last_frame)
+        if not getattr(self, "_closing", False):
+            self._set_status(complete=False)
+        self._layer.Save()
         self._unsaved = 0
 
     def close(self, complete: bool = True, reason: str | None = None):
-        """Record whether the run completed, save, and release the stage. Idempotent."""
+        """Record whether the run completed, save, and release the layers. Idempotent."""
         if self._closed:
             return
         self._set_status(complete=complete, reason=None if complete else (reason or "closed before completion"))
+        self._closing = True
         self.save()
         self._closed = True
-        self._stage = None
+        self._layer = None
+        self._clip = None
         self._meshes = {}
+        self._last = {}
 
     def __enter__(self):
         return self

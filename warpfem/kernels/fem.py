@@ -6,7 +6,8 @@ int ``kind`` (see ``warpfem.materials``). Kernels are generic over float32/float
 
 F = I + sum_a (x_a - X_a) (dN_a/dX)^T         (for Tet4: F = Ds Dm^-1, seed 004)
 f_a -= w P(F) dN_a/dX                          (per-element force -vol P Dm^-T, scattered with atomics)
-K_ab += w sum_m lambda_m (Q_m dN_a/dX)(Q_m dN_b/dX)^T   (Hessian from the material eigen-system)
+K_ab += w sum_m lambda_m (Q_m dN_a/dX)(Q_m dN_b/dX)^T   (Hessian from the material eigen-system,
+                                                        per-point work hoisted out of the block loop)
 """
 
 from __future__ import annotations
@@ -15,33 +16,23 @@ from typing import Any
 
 import warp as wp
 
+from warpfem.kernels.common import qp_deformation_gradient
 from warpfem.kernels.generic import both_precisions
-from warpfem.materials.dispatch import material_eigensystem, material_pk1, material_psi
-from warpfem.materials.eigensystem import hessian_block
+from warpfem.materials.dispatch import material_hessian_parts, material_pk1, material_psi
+from warpfem.materials.eigensystem import (hessian_matrix_rows, hessian_point_block, hessian_point_matrix,
+                                           hessian_point_prepare)
+
+__all__ = [
+    "qp_deformation_gradient",
+    "qp_deformation_gradient_kernel",
+    "qp_energy_kernel",
+    "qp_force_kernel",
+    "qp_force_abs_kernel",
+    "qp_stress_kernel",
+    "qp_hessian_kernel",
+]
 
 wp.set_module_options({"enable_backward": False})
-
-
-@wp.func
-def qp_deformation_gradient(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    e: int,
-    q: int,
-    qp_dNdX: wp.array(dtype=Any),
-):
-    """F = I + sum_a (x_a - X_a) (dN_a/dX)^T: from displacements, so float32 keeps small strains
-    accurate wherever the body sits (sum_a X_a dN_a^T = I exactly for any complete element)."""
-    n0 = elements[e * k]
-    g0 = qp_dNdX[q * k]
-    F = wp.outer(x[n0] - X[n0], g0)
-    for a in range(1, k):
-        n = elements[e * k + a]
-        F += wp.outer(x[n] - X[n], qp_dNdX[q * k + a])
-    one = type(g0[0])(1.0)
-    return F + wp.diag(type(g0)(one, one, one))
 
 
 @both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", F_out="m[]")
@@ -177,16 +168,37 @@ def qp_hessian_kernel(
     ``block_index[(e * k + a) * k + b]`` is the position of block (node a, node b) of element e in
     the block-sparse matrix, built once per mesh. ``project != 0`` clamps negative eigenvalues of
     dP/dF (SPD projection) before assembly.
+
+    The per-point part of dP/dF (singular values, the scaling block A = d2Psi/ds2, the projection,
+    which needs an eigen-solve of A only where A is indefinite) is done once per point; per block
+    only the contraction with the two gradients remains. Two forms, chosen by k at run time
+    (measured on CPU, docs/elements.md): for k > 4 (Tet10, Hex8, Hex27) the explicit projected
+    9x9 dP/dF (``hessian_point_matrix``), contracted once per node a with dN_a/dX
+    (``hessian_matrix_rows``), leaving 27 multiply-adds per block; for Tet4 (10 blocks per
+    point, where building the 9x9 costs more than it saves) the compressed eigen form
+    (``hessian_point_prepare`` / ``hessian_point_block``, gradients rotated into the singular frame).
     """
     q = wp.tid()
     e = qp_element[q]
     F = qp_deformation_gradient(x, X, elements, k, e, q, qp_dNdX)
-    U, V, Qs, ds, tw, fl = material_eigensystem(kind, F, mu, lam)
+    U0, V0, A0, tw, fl = material_hessian_parts(kind, F, mu, lam)
     c = scale * qp_weight[q]
-    for a in range(k):
-        ga = qp_dNdX[q * k + a]
-        for b in range(a, k):  # symmetric: compute a <= b, add the transpose (seed 001)
-            blk = c * hessian_block(U, V, Qs, ds, tw, fl, ga, qp_dNdX[q * k + b], project)
-            wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)
-            if b != a:
-                wp.atomic_add(values, block_index[(e * k + b) * k + a], wp.transpose(blk))
+    if k > 4:
+        H = hessian_point_matrix(U0, V0, A0, tw, fl, project)
+        for a in range(k):
+            T0, T1, T2 = hessian_matrix_rows(H, qp_dNdX[q * k + a])
+            for b in range(a, k):  # symmetric: compute a <= b, add the transpose (seed 001)
+                gb = qp_dNdX[q * k + b]
+                blk = c * wp.matrix_from_rows(T0 * gb, T1 * gb, T2 * gb)
+                wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)
+                if b != a:
+                    wp.atomic_add(values, block_index[(e * k + b) * k + a], wp.transpose(blk))
+    else:
+        U, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
+        for a in range(k):
+            ra = Vt * qp_dNdX[q * k + a]
+            for b in range(a, k):
+                blk = c * hessian_point_block(U, A, cp, cm, ra, Vt * qp_dNdX[q * k + b])
+                wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)
+                if b != a:
+                    wp.atomic_add(values, block_index[(e * k + b) * k + a], wp.transpose(blk))

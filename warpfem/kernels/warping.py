@@ -20,6 +20,7 @@ from typing import Any
 
 import warp as wp
 
+from warpfem.kernels.common import qp_deformation_gradient
 from warpfem.kernels.generic import both_precisions
 from warpfem.materials.eigensystem import signed_svd
 
@@ -28,20 +29,6 @@ wp.set_module_options({"enable_backward": False})
 ROTATION_IDENTITY = 0
 ROTATION_POLAR = 1
 ROTATION_QR = 2
-
-
-@wp.func
-def tet_deformation_gradient(x: wp.array(dtype=Any), X: wp.array(dtype=Any), elements: wp.array(dtype=wp.int32),
-                             e: int, dNdX: wp.array(dtype=Any)):
-    """F = I + sum_a (x_a - X_a) g_a^T (displacement form: accurate in float32 far from the origin)."""
-    g0 = dNdX[e * 4]
-    n0 = elements[e * 4]
-    F = wp.outer(x[n0] - X[n0], g0)
-    for a in range(1, 4):
-        n = elements[e * 4 + a]
-        F += wp.outer(x[n] - X[n], dNdX[e * 4 + a])
-    one = type(g0[0])(1.0)
-    return F + wp.diag(type(g0)(one, one, one))
 
 
 @wp.func
@@ -80,7 +67,7 @@ def element_rotation_kernel(
 ):
     """R_out[e] = rotation of tet e (kind ``rotation``: 0 identity, 1 polar, 2 Gram-Schmidt)."""
     e = wp.tid()
-    F = tet_deformation_gradient(x, X, elements, e, dNdX)
+    F = qp_deformation_gradient(x, X, elements, 4, e, e, dNdX)  # Tet4: one point per element
     R = wp.identity(n=3, dtype=F.dtype)
     if rotation == 1:
         U, s, V = signed_svd(F)

@@ -8,7 +8,7 @@ Warp side: ``material_psi``, ``material_pk1``, ``material_eigensystem`` (dispatc
 
 from .base import COROTATED, LINEAR, STABLE_NEO_HOOKEAN, STVK, Material, lame_parameters, validate_parameters
 from .corotated import Corotated
-from .dispatch import material_eigensystem, material_pk1, material_psi
+from .dispatch import material_eigensystem, material_hessian_parts, material_pk1, material_psi
 from .eigensystem import cofactor, hessian_block, signed_svd
 from .evaluate import evaluate
 from .linear import LinearElastic
@@ -32,6 +32,7 @@ __all__ = [
     "material_psi",
     "material_pk1",
     "material_eigensystem",
+    "material_hessian_parts",
     "hessian_block",
     "signed_svd",
     "cofactor",

@@ -90,6 +90,20 @@ class Material:
         """Map the Lame values to the (mu, lam) the Warp functions take (identity by default)."""
         return mu_lame, lam_lame
 
+    def volumetric_split(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Kernel parameters ((mu, lam) of the full-rule part, (mu, lam) of the volumetric part) for
+        selective reduced integration (``Model(volumetric_integration="reduced")``).
+
+        The contract: psi(F; mu, lam) = psi(F; *full) + psi(F; *volumetric) for every F (the
+        energy splits exactly, so force and Hessian do too), the volumetric part carries every
+        lambda-scaled term (the one that locks as nu -> 1/2) and nothing else, and both parts
+        are stress-free and positive semi-definite at F = I (so the per-part SPD projection leaves
+        the small-strain stiffness exact). Default: ((mu, 0), (0, lam)), exact for materials whose
+        energy is mu psi_mu(F) + lam psi_lam(F): linear (lam/2 tr(eps)^2), StVK (lam/2 tr(E)^2),
+        corotated (lam/2 (J - 1)^2).
+        """
+        return (self.mu, 0.0), (0.0, self.lam)
+
     def __repr__(self) -> str:
         return (
             f"{type(self).__name__}(youngs_modulus={self.youngs_modulus!r}, "

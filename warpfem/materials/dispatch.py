@@ -3,6 +3,7 @@
     material_psi(kind, F, mu, lam)          -> energy density psi (J/m^3)
     material_pk1(kind, F, mu, lam)          -> first Piola-Kirchhoff stress P = dpsi/dF
     material_eigensystem(kind, F, mu, lam)  -> (U, V, Q, d, twist, flip)
+    material_hessian_parts(kind, F, mu, lam) -> (U, V, A, twist, flip)   (A = Q diag(d) Q^T, no eigen-solve)
 
 The eigensystem is that of Smith, de Goes, Kim 2019 (see ``eigensystem.py``): feed it to
 ``hessian_block(U, V, Q, d, twist, flip, ga, gb, project)``. For linear elasticity U = V = I.
@@ -21,7 +22,7 @@ from .linear import linear_eigen, linear_pk1, linear_psi
 from .stable_neo_hookean import snh_eigen, snh_pk1, snh_psi
 from .stvk import stvk_eigen, stvk_pk1, stvk_psi
 
-__all__ = ["material_psi", "material_pk1", "material_eigensystem", "hessian_block"]
+__all__ = ["material_psi", "material_pk1", "material_eigensystem", "material_hessian_parts", "hessian_block"]
 
 _LINEAR = wp.constant(0)
 _STVK = wp.constant(1)
@@ -58,18 +59,19 @@ def material_pk1(kind: int, F: Any, mu: Any, lam: Any):
 
 
 @wp.func
-def material_eigensystem(kind: int, F: Any, mu: Any, lam: Any):
-    """Analytic eigensystem of dP/dF: returns (U, V, Q, d, twist, flip).
+def material_hessian_parts(kind: int, F: Any, mu: Any, lam: Any):
+    """dP/dF in eigen form before the scaling block is diagonalised: returns (U, V, A, twist, flip).
 
-    F = U diag(s) V^T (signed SVD, det U = det V = +1); scaling modes U diag(Q[:, m]) V^T with
-    eigenvalues d[m]; twist / flip modes of pair k (k=0 -> (1,2), 1 -> (0,2), 2 -> (0,1)) with
-    eigenvalues twist[k] / flip[k].
+    F = U diag(s) V^T (signed SVD, det U = det V = +1; U = V = I for linear elasticity); A =
+    d2Psi/ds2 (symmetric 3x3, scaling modes U diag(q) V^T for its eigenvectors q); twist / flip
+    eigenvalues of pair k (k=0 -> (1,2), 1 -> (0,2), 2 -> (0,1)). Assembly uses this directly
+    (``hessian_point_prepare`` / ``hessian_point_matrix``): A needs an eigen-solve only to be
+    projected where it is indefinite.
     """
     if kind == _LINEAR:
         I = wp.identity(n=3, dtype=F.dtype)
         A0, tw0, fl0 = linear_eigen(F, mu, lam)
-        Q0, d0 = scaling_eigensystem(A0)
-        return I, I, Q0, d0, tw0, fl0
+        return I, I, A0, tw0, fl0
     U, s, V = signed_svd(F)
     A = type(F)()
     tw = wp.vector(length=3, dtype=F.dtype)
@@ -80,5 +82,17 @@ def material_eigensystem(kind: int, F: Any, mu: Any, lam: Any):
         A, tw, fl = corotated_eigen(s, mu, lam)
     elif kind == _STVK:
         A, tw, fl = stvk_eigen(s, mu, lam)
+    return U, V, A, tw, fl
+
+
+@wp.func
+def material_eigensystem(kind: int, F: Any, mu: Any, lam: Any):
+    """Analytic eigensystem of dP/dF: returns (U, V, Q, d, twist, flip).
+
+    F = U diag(s) V^T (signed SVD, det U = det V = +1); scaling modes U diag(Q[:, m]) V^T with
+    eigenvalues d[m]; twist / flip modes of pair k (k=0 -> (1,2), 1 -> (0,2), 2 -> (0,1)) with
+    eigenvalues twist[k] / flip[k]. (``material_hessian_parts`` plus ``scaling_eigensystem``.)
+    """
+    U, V, A, tw, fl = material_hessian_parts(kind, F, mu, lam)
     Q, d = scaling_eigensystem(A)
     return U, V, Q, d, tw, fl

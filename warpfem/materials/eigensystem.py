@@ -18,7 +18,18 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["signed_svd", "cofactor", "scaling_eigensystem", "pair_axes", "hessian_block"]
+__all__ = [
+    "signed_svd",
+    "cofactor",
+    "scaling_eigensystem",
+    "pair_axes",
+    "hessian_block",
+    "project_scaling_block",
+    "hessian_point_prepare",
+    "hessian_point_block",
+    "hessian_point_matrix",
+    "hessian_matrix_rows",
+]
 
 
 @wp.func
@@ -92,6 +103,125 @@ def pair_axes(k: int):
 
 
 @wp.func
+def project_scaling_block(A: Any, project: int):
+    """The scaling block for assembly: A itself when ``project == 0`` or when A is positive definite
+    (Sylvester: A00 > 0, A00 A11 - A01^2 > 0, det A > 0; then clamping changes nothing), otherwise
+    Q diag(max(d, 0)) Q^T from :func:`scaling_eigensystem`. The eigen-solve (two ``wp.eig3`` calls,
+    the most expensive step of a Hessian point: ~6.5 us of ~13 us on one CPU core, measured) is
+    only paid where A is indefinite."""
+    if project == 0:
+        return A
+    zero = A.dtype(0.0)
+    if A[0, 0] > zero:
+        if A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0] > zero:
+            if wp.determinant(A) > zero:
+                return A
+    Q, d = scaling_eigensystem(A)
+    return Q * wp.diag(wp.vector(wp.max(d[0], zero), wp.max(d[1], zero), wp.max(d[2], zero))) * wp.transpose(Q)
+
+
+@wp.func
+def _clamp_if(v: Any, project: int):
+    if project != 0:
+        zero = v[0] - v[0]
+        return type(v)(wp.max(v[0], zero), wp.max(v[1], zero), wp.max(v[2], zero))
+    return v
+
+
+@wp.func
+def hessian_point_prepare(U: Any, V: Any, A: Any, twist: Any, flip: Any, project: int):
+    """Per-quadrature-point half of the Hessian contraction: dP/dF (9x9) in compressed form.
+
+    Input: the eigen form of ``material_hessian_parts`` (F = U diag(s) V^T, scaling block
+    A = d2Psi/ds2, twist / flip eigenvalues). Returns (U, Vt, A', cp, cm): A' the scaling block
+    (SPD-projected with :func:`project_scaling_block` when ``project != 0``), cp[k] = (t'_k + f'_k)/2,
+    cm[k] = (f'_k - t'_k)/2 with t', f' clamped at 0 when projecting. This is everything of dP/dF
+    that does not depend on the shape-function gradients; do it once per point, then call
+    :func:`hessian_point_block` per node pair.
+    """
+    half = U.dtype(0.5)
+    tw = _clamp_if(twist, project)
+    fl = _clamp_if(flip, project)
+    return U, wp.transpose(V), project_scaling_block(A, project), half * (tw + fl), half * (fl - tw)
+
+
+@wp.func
+def hessian_point_block(U: Any, A: Any, cp: Any, cm: Any, a: Any, b: Any):
+    """Block sum_m lambda_m (Q_m ga)(Q_m gb)^T from :func:`hessian_point_prepare`'s output, with the
+    gradients already in the rotated frame: ``a = Vt ga``, ``b = Vt gb`` (so a caller rotates each
+    node's gradient once, not once per block). In the rotated frame
+    M_pq = a_p A_pq b_q, and for pair k = (i, j): M_ii += cp_k a_j b_j, M_jj += cp_k a_i b_i,
+    M_ij += cm_k a_j b_i, M_ji += cm_k a_i b_j; the block is U M U^T.
+    """
+    M = wp.diag(a) * A * wp.diag(b)
+    # pair 0 = (1, 2), pair 1 = (0, 2), pair 2 = (0, 1), unrolled
+    M[1, 1] = M[1, 1] + cp[0] * a[2] * b[2] + cp[2] * a[0] * b[0]
+    M[2, 2] = M[2, 2] + cp[0] * a[1] * b[1] + cp[1] * a[0] * b[0]
+    M[0, 0] = M[0, 0] + cp[1] * a[2] * b[2] + cp[2] * a[1] * b[1]
+    M[1, 2] = M[1, 2] + cm[0] * a[2] * b[1]
+    M[2, 1] = M[2, 1] + cm[0] * a[1] * b[2]
+    M[0, 2] = M[0, 2] + cm[1] * a[2] * b[0]
+    M[2, 0] = M[2, 0] + cm[1] * a[0] * b[2]
+    M[0, 1] = M[0, 1] + cm[2] * a[1] * b[0]
+    M[1, 0] = M[1, 0] + cm[2] * a[0] * b[1]
+    return U * M * wp.transpose(U)
+
+
+@wp.func
+def _vec9(M: Any):
+    """Row-major vec of a 3x3 matrix: index 3 i + j holds M[i, j]."""
+    return wp.vector(M[0, 0], M[0, 1], M[0, 2], M[1, 0], M[1, 1], M[1, 2], M[2, 0], M[2, 1], M[2, 2])
+
+
+@wp.func
+def hessian_point_matrix(U: Any, V: Any, A: Any, twist: Any, flip: Any, project: int):
+    """dP/dF as an explicit 9x9 matrix H[3i+j, 3k+l] = d2psi/dF_ij dF_kl (row-major F) from the
+    eigen form of ``material_hessian_parts``, SPD-projected when ``project != 0``:
+    H = sum_pq A'_pq w_p w_q^T + sum_k (t'_k t_k t_k^T + f'_k f_k f_k^T), w_p = vec(u_p v_p^T),
+    t_k / f_k = vec(U (e_i e_j^T -/+ e_j e_i^T) V^T) / sqrt2 (u_p, v_p columns of U, V; A' as in
+    :func:`hessian_point_prepare`). ~550 multiply-adds per point; pays off when an element has many
+    node pairs (see :func:`hessian_matrix_rows`).
+    """
+    r2 = wp.sqrt(U.dtype(0.5))
+    Ap = project_scaling_block(A, project)
+    tw = _clamp_if(twist, project)
+    fl = _clamp_if(flip, project)
+    w0 = _vec9(wp.outer(wp.vector(U[0, 0], U[1, 0], U[2, 0]), wp.vector(V[0, 0], V[1, 0], V[2, 0])))
+    w1 = _vec9(wp.outer(wp.vector(U[0, 1], U[1, 1], U[2, 1]), wp.vector(V[0, 1], V[1, 1], V[2, 1])))
+    w2 = _vec9(wp.outer(wp.vector(U[0, 2], U[1, 2], U[2, 2]), wp.vector(V[0, 2], V[1, 2], V[2, 2])))
+    z0 = Ap[0, 0] * w0 + Ap[1, 0] * w1 + Ap[2, 0] * w2
+    z1 = Ap[0, 1] * w0 + Ap[1, 1] * w1 + Ap[2, 1] * w2
+    z2 = Ap[0, 2] * w0 + Ap[1, 2] * w1 + Ap[2, 2] * w2
+    H = wp.outer(z0, w0) + wp.outer(z1, w1) + wp.outer(z2, w2)
+    for k in range(3):
+        i, j = pair_axes(k)
+        E1 = wp.outer(wp.vector(U[0, i], U[1, i], U[2, i]), wp.vector(V[0, j], V[1, j], V[2, j]))
+        E2 = wp.outer(wp.vector(U[0, j], U[1, j], U[2, j]), wp.vector(V[0, i], V[1, i], V[2, i]))
+        t = _vec9(r2 * (E1 - E2))
+        f = _vec9(r2 * (E1 + E2))
+        H += tw[k] * wp.outer(t, t) + fl[k] * wp.outer(f, f)
+    return H
+
+
+@wp.func
+def _matrix_row_contract(H: Any, i: int, g: Any):
+    T = wp.matrix(shape=(3, 3), dtype=g.dtype)
+    for k in range(3):
+        for l in range(3):
+            T[k, l] = H[3 * i, 3 * k + l] * g[0] + H[3 * i + 1, 3 * k + l] * g[1] + H[3 * i + 2, 3 * k + l] * g[2]
+    return T
+
+
+@wp.func
+def hessian_matrix_rows(H: Any, ga: Any):
+    """Contract the 9x9 ``H`` with one node's gradient: T_i[k, l] = sum_j H[3i+j, 3k+l] ga_j, i = 0..2.
+
+    Then block (a, b) of the element Hessian (before the weight) has rows T_i gb:
+    ``wp.matrix_from_rows(T0 * gb, T1 * gb, T2 * gb)`` (27 multiply-adds per block)."""
+    return _matrix_row_contract(H, 0, ga), _matrix_row_contract(H, 1, ga), _matrix_row_contract(H, 2, ga)
+
+
+@wp.func
 def hessian_block(U: Any, V: Any, Q: Any, d: Any, twist: Any, flip: Any, ga: Any, gb: Any, project: int):
     """3x3 block of the Hessian contracted with two vectors: sum_m lambda_m (Q_m ga)(Q_m gb)^T.
 
@@ -100,34 +230,20 @@ def hessian_block(U: Any, V: Any, Q: Any, d: Any, twist: Any, flip: Any, ga: Any
     H[3i+j, 3k+l] = hessian_block(e_j, e_l)[i, k]; for an element, block (a, b) of the
     stiffness is weight * hessian_block(..., dN_a/dX, dN_b/dX, project).
 
+    One-shot form from the full eigensystem (``material_eigensystem``). Element loops should hoist
+    the per-point work instead, as ``warpfem.kernels.fem.qp_hessian_kernel`` does
+    (``material_hessian_parts``, then :func:`hessian_point_prepare` + :func:`hessian_point_block`,
+    or :func:`hessian_point_matrix` + :func:`hessian_matrix_rows`): this function redoes
+    Q diag(d) Q^T and the clamps on every call.
+
     The contraction is done in the rotated frame a = V^T ga, b = V^T gb, then rotated back with U:
     scaling part  M_pq = (Q diag(d) Q^T)_pq a_p b_q,
     pair (i, j)   M_ii += (t+f)/2 a_j b_j, M_jj += (t+f)/2 a_i b_i,
                   M_ij += (f-t)/2 a_j b_i, M_ji += (f-t)/2 a_i b_j.
     """
-    zero = U.dtype(0.0)
     half = U.dtype(0.5)
+    A = Q * wp.diag(_clamp_if(d, project)) * wp.transpose(Q)
+    tw = _clamp_if(twist, project)
+    fl = _clamp_if(flip, project)
     Vt = wp.transpose(V)
-    a = Vt * ga
-    b = Vt * gb
-    dd = d
-    tw = twist
-    fl = flip
-    if project != 0:
-        dd = wp.vector(wp.max(d[0], zero), wp.max(d[1], zero), wp.max(d[2], zero))
-        tw = wp.vector(wp.max(twist[0], zero), wp.max(twist[1], zero), wp.max(twist[2], zero))
-        fl = wp.vector(wp.max(flip[0], zero), wp.max(flip[1], zero), wp.max(flip[2], zero))
-    A = Q * wp.diag(dd) * wp.transpose(Q)
-    M = wp.diag(a) * A * wp.diag(b)
-    I = wp.identity(n=3, dtype=U.dtype)
-    for k in range(3):
-        i, j = pair_axes(k)
-        ei = I[i]
-        ej = I[j]
-        # twist: T a = (a_j e_i - a_i e_j)/sqrt2 ; flip: Fl a = (a_j e_i + a_i e_j)/sqrt2
-        ta = a[j] * ei - a[i] * ej
-        tb = b[j] * ei - b[i] * ej
-        fa = a[j] * ei + a[i] * ej
-        fb = b[j] * ei + b[i] * ej
-        M = M + (half * tw[k]) * wp.outer(ta, tb) + (half * fl[k]) * wp.outer(fa, fb)
-    return U * M * wp.transpose(U)
+    return hessian_point_block(U, A, half * (tw + fl), half * (fl - tw), Vt * ga, Vt * gb)

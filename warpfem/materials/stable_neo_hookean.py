@@ -4,6 +4,7 @@ Neo-Hookean flesh simulation", ACM TOG 37(2), sec. 3.4, eq. 14-16).
     psi   = mu/2 (I_C - 3) + lambda/2 (J - alpha)^2,   I_C = tr(F^T F), J = det F
     alpha = 1 + mu/lambda
     P     = mu F + lambda (J - alpha) cof(F),           cof(F) = dJ/dF
+          = mu (F - cof F) + lambda (J - 1) cof(F)      (as evaluated: finite for lambda = 0)
 
 Reparametrisation (sec. 3.4) so that the small-strain moduli are those of E, nu: with the Lame
 values mu_L = E/(2(1+nu)), lambda_L = E nu/((1+nu)(1-2nu)) the kernel parameters are
@@ -58,17 +59,18 @@ def snh_psi(F: Any, mu: Any, lam: Any):
 
 @wp.func
 def snh_pk1(F: Any, mu: Any, lam: Any):
-    """P = mu F + lambda (J - alpha) cof(F)."""
-    alpha = F.dtype(1.0) + mu / lam
-    return mu * F + lam * (wp.determinant(F) - alpha) * cofactor(F)
+    """P = mu F + lambda (J - alpha) cof(F), written as mu (F - cof F) + lambda (J - 1) cof(F)
+    (lambda (J - alpha) = lambda (J - 1) - mu), so lambda = 0 or mu = 0 is allowed (the parts of
+    selective reduced integration, ``StableNeoHookean.volumetric_split``)."""
+    C = cofactor(F)
+    return mu * (F - C) + lam * (wp.determinant(F) - F.dtype(1.0)) * C
 
 
 @wp.func
 def snh_eigen(s: Any, mu: Any, lam: Any):
     """(A, twist, flip) of the stable neo-Hookean Hessian at signed singular values s."""
-    alpha = type(mu)(1.0) + mu / lam
     J = s[0] * s[1] * s[2]
-    r = lam * (J - alpha)
+    r = lam * (J - type(mu)(1.0)) - mu  # = lambda (J - alpha), finite for lambda = 0
     A = type(wp.outer(s, s))()
     twist = wp.vector(length=3, dtype=type(mu))
     flip = wp.vector(length=3, dtype=type(mu))
@@ -93,3 +95,16 @@ class StableNeoHookean(Material):
     @staticmethod
     def kernel_parameters(mu_lame: float, lam_lame: float) -> tuple[float, float]:
         return mu_lame, lam_lame + mu_lame
+
+    def volumetric_split(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """Selective reduced integration split: ((mu, mu), (0, lambda - mu)) = ((mu_L, mu_L), (0, lambda_L)).
+
+        psi(mu, lam) = mu/2 (I_C - 3) - mu (J - 1) + lam/2 (J - 1)^2 (rest offset removed), so
+        psi(F; mu, lam) = psi(F; mu, mu) + psi(F; 0, lam - mu) exactly. The 1-point part is
+        lambda_L/2 (J - 1)^2; the full-rule part is stable neo-Hookean with Lame (mu_L, 0). Splitting
+        at (mu, 0) + (0, lam) instead would also be exact but leave the full-rule part indefinite
+        at rest (eigenvalue -mu for dilation: mu/2 (I_C - 3) - mu (J - 1) ~ mu eps:eps - mu/2 tr(eps)^2),
+        so its SPD projection would change the small-strain stiffness; with this split both parts
+        are positive semi-definite at rest and their sum is the linear-elastic SRI split.
+        """
+        return (self.mu, self.mu), (0.0, self.lam - self.mu)

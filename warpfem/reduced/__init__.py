@@ -6,10 +6,15 @@
                          max_cubature_points=200, seed=0, cache="beam.subspace.npz")
     rsim = ReducedSimulator(model, sub, dt=1 / 60)
     rsim.step(); x = rsim.positions()
+
+Scenes: a ``[subspace]`` section makes ``warpfem run`` reduced (``warpfem.reduced.scene``);
+``warpfem train SCENE`` (``warpfem.reduced.cli``) fills the cache. Kinematic handles move through a
+prescribed displacement field (``warpfem.reduced.lifting``).
 """
 
 from warpfem.reduced.basis import Basis, build_basis, linear_modes, mass_pca, modal_derivatives
-from warpfem.reduced.cubature import Cubature, relative_force_error, train_cubature, training_poses
+from warpfem.reduced.cubature import Cubature, relative_force_error, snapshot_poses, train_cubature, training_poses
+from warpfem.reduced.lifting import Lifting, build_lifting
 from warpfem.reduced.simulator import CubatureForces, ReducedSimulator
 from warpfem.reduced.subspace import (
     Subspace,
@@ -23,11 +28,13 @@ from warpfem.reduced.subspace import (
 __all__ = [
     "Basis",
     "Cubature",
+    "Lifting",
     "CubatureForces",
     "ReducedSimulator",
     "Subspace",
     "SubspaceMismatch",
     "build_basis",
+    "build_lifting",
     "format_report",
     "linear_modes",
     "load_subspace",
@@ -35,6 +42,7 @@ __all__ = [
     "mesh_hash",
     "modal_derivatives",
     "relative_force_error",
+    "snapshot_poses",
     "train_cubature",
     "train_subspace",
     "training_poses",

@@ -88,7 +88,10 @@ def training_poses(U, model, num_poses: int, *, seed: int, amplitude: float = 0.
 class _ForceTable:
     """Per-element reduced forces g_e(q_t) for the training poses, evaluated on demand per column."""
 
-    def __init__(self, sim, model, U, poses):
+    def __init__(self, sim, model, U, poses, B=None):
+        """poses (T, r + p) are coordinates in the pose basis B = [U | L] (default U): positions
+        x = X + B z; the forces are projected on U only."""
+        B = U if B is None else B
         qd = model.quadrature
         n = model.num_vertices
         r = U.shape[1]
@@ -100,7 +103,7 @@ class _ForceTable:
         self.P = np.empty((len(poses), len(self.tets), 3, 3))
         b = np.empty((len(poses), r))
         for t, q in enumerate(poses):
-            x = X + (U @ q).reshape(n, 3)
+            x = X + (B @ q).reshape(n, 3)
             self.P[t] = sim.stresses(x)
             b[t] = U.T @ sim.elastic_forces(x).reshape(-1)
         self.bnorm = np.linalg.norm(b, axis=1)
@@ -121,9 +124,37 @@ class _ForceTable:
         return float(np.linalg.norm(self.columns(elems) @ w - self.b) / np.linalg.norm(self.b))
 
 
+def snapshot_poses(U, model, snapshots, *, lifting=None, sim=None) -> np.ndarray:
+    """Project full-mesh positions x (each (n, 3), m) onto the basis: rows z = [q; a] with
+    a fitted on the handles (``lifting``, see :mod:`warpfem.reduced.lifting`) and
+    q = M_r^-1 U^T M (x - X - L a) (the M-orthogonal projection; M_r = I for our bases)."""
+    from warpfem.reduced.basis import _full_simulator
+
+    sim = sim or _full_simulator(model)
+    M = sim.mass_matrix()
+    Mr = U.T @ (M @ U)
+    X = model.rest_positions.reshape(-1)
+    out = []
+    for x in snapshots:
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        if x.shape != model.rest_positions.shape or not np.all(np.isfinite(x)):
+            raise ValueError(f"snapshot positions must be finite with shape {model.rest_positions.shape}, got {x.shape}")
+        d = x.reshape(-1) - X
+        a = np.zeros(0)
+        if lifting is not None and lifting.size:
+            a = lifting.coords_from_positions(x)
+            d = d - lifting.L @ a
+        out.append(np.concatenate([np.linalg.solve(Mr, U.T @ (M @ d)), a]))
+    return np.array(out)
+
+
+POSE_SOURCES = ("random", "snapshots", "random+snapshots")
+
+
 def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, seed: int = 0,
                    num_training_poses: int = 100, num_validation_poses: int = 30, candidates: int = 256,
-                   amplitude: float = 0.1, snapshots=None, sim=None) -> Cubature:
+                   amplitude: float = 0.1, snapshots=None, pose_source: str | None = None, lifting=None,
+                   handle_coords=None, sim=None) -> Cubature:
     """Greedy NNLS cubature for the basis U (3n x r) of ``model`` (Tet4, one point per element).
 
     Args:
@@ -134,8 +165,15 @@ def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, 
             validation poses come from an independent stream of the same seed.
         candidates: elements sampled per greedy iteration.
         amplitude: pose size as a fraction of the object's bounding-box diagonal.
-        snapshots: optional list of full-mesh positions (n, 3) from a simulation; they are
-            projected onto the basis (q = U^T M (x - X)) and added to the training poses.
+        snapshots: optional list of full-mesh positions (n, 3) from a simulation, projected onto
+            the basis (:func:`snapshot_poses`).
+        pose_source: "random" (default without snapshots), "snapshots" (only the projected
+            snapshots: every 4th one is held out as the validation set, the rest train) or
+            "random+snapshots" (default with snapshots: both train, random poses validate).
+        lifting: a :class:`~warpfem.reduced.lifting.Lifting` (kinematic handles): poses are then
+            z = [q; a] in the basis [U | L] and the forces are projected on U.
+        handle_coords: (S, p) handle coordinates a that random poses draw from (e.g. the scene's
+            handle motion at random ramp fractions); default a = 0.
     """
     from warpfem.reduced.basis import _full_simulator
 
@@ -145,19 +183,40 @@ def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, 
         raise ValueError(f"max_cubature_points must be a positive integer, got {max_points!r}")
     if model.quadrature.element_type != "tet4":
         raise ValueError(f"cubature training supports tet4 meshes only, got {model.quadrature.element_type!r}")
+    if pose_source is None:
+        pose_source = "random" if snapshots is None else "random+snapshots"
+    if pose_source not in POSE_SOURCES:
+        raise ValueError(f"pose_source must be one of {POSE_SOURCES}, got {pose_source!r}")
+    if pose_source != "random" and (snapshots is None or len(snapshots) < (4 if pose_source == "snapshots" else 1)):
+        raise ValueError(f"pose_source={pose_source!r} needs snapshots (at least 4 for 'snapshots': every 4th validates)")
     t0 = time.perf_counter()
     sim = sim or _full_simulator(model)
     K = sim.stiffness_matrix(model.rest_positions, project=False)
     ss = np.random.SeedSequence(int(seed))
     s_train, s_val, s_pick = (int(c.generate_state(1)[0]) for c in ss.spawn(3))
-    poses = training_poses(U, model, num_training_poses, seed=s_train, amplitude=amplitude, K=K)
-    if snapshots is not None:
-        M = sim.mass_matrix()
-        X = model.rest_positions.reshape(-1)
-        extra = [U.T @ (M @ (np.asarray(x, dtype=np.float64).reshape(-1) - X)) for x in snapshots]
-        if extra:
-            poses = np.vstack([poses, np.array(extra)])
-    table = _ForceTable(sim, model, U, poses)
+    p = 0 if lifting is None else lifting.size
+    B = U if p == 0 else np.hstack([U, lifting.L])
+
+    def random_poses(count, s):
+        z = training_poses(U, model, count, seed=s, amplitude=amplitude, K=K)
+        if p:
+            a = np.zeros((count, p))
+            if handle_coords is not None and len(handle_coords):
+                hc = np.asarray(handle_coords, dtype=np.float64).reshape(-1, p)
+                a = hc[np.random.default_rng(s + 1).integers(len(hc), size=count)]
+            z = np.hstack([z, a])
+        return z
+
+    val_poses = None
+    if pose_source == "snapshots":
+        z = snapshot_poses(U, model, snapshots, lifting=lifting, sim=sim)
+        held = np.arange(len(z)) % 4 == 3
+        poses, val_poses = z[~held], z[held]
+    else:
+        poses = random_poses(num_training_poses, s_train)
+        if pose_source == "random+snapshots":
+            poses = np.vstack([poses, snapshot_poses(U, model, snapshots, lifting=lifting, sim=sim)])
+    table = _ForceTable(sim, model, U, poses, B)
     m = len(table.tets)
     rng = np.random.default_rng(s_pick)
     sel = np.zeros(0, dtype=np.int64)
@@ -187,8 +246,9 @@ def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, 
     sel, w = sel[order], w[order]
     train_err = table.error(sel, w)
     del table
-    val_poses = training_poses(U, model, num_validation_poses, seed=s_val, amplitude=amplitude, K=K)
-    val_err = _ForceTable(sim, model, U, val_poses).error(sel, w) if num_validation_poses > 0 else float("nan")
+    if val_poses is None:
+        val_poses = random_poses(num_validation_poses, s_val) if num_validation_poses > 0 else np.zeros((0, B.shape[1]))
+    val_err = _ForceTable(sim, model, U, val_poses, B).error(sel, w) if len(val_poses) else float("nan")
     return Cubature(elements=sel, weights=w, training_error=train_err, validation_error=val_err,
                     training_seconds=time.perf_counter() - t0, training_poses=poses, tolerance=float(tolerance),
                     max_points=int(max_points), seed=int(seed), reached_tolerance=bool(train_err <= tolerance))

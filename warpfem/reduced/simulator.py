@@ -127,6 +127,7 @@ class ReducedSimulator:
         if unknown:
             raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
         subspace.check(model)
+        lifting = subspace.lifting if subspace.lifting is not None and subspace.lifting.size else None
         self.options = NewtonOptions(**newton_options)
         self.options.validate()
         self.model, self.subspace = model, subspace
@@ -139,11 +140,21 @@ class ReducedSimulator:
         self.r = U.shape[1]
         self.num_vertices = n = model.num_vertices
         cub = subspace.cubature
-        self.forces = CubatureForces(model, U, cub.elements, cub.weights, device=device, precision=precision)
+        # kinematic handles: x = X + U q + L a (a prescribed); the kernels see the basis B = [U | L]
+        self.lifting = lifting
+        self.p = 0 if lifting is None else lifting.size
+        self._B = U if lifting is None else np.hstack([U, lifting.L])
+        if lifting is not None:
+            lifting.bind(model.rest_positions)
+        self.forces = CubatureForces(model, self._B, cub.elements, cub.weights, device=device, precision=precision)
         self.mass_r = self._reduced_mass(U)
+        self.mass_ul = U.T @ (self._mass3() @ lifting.L) if lifting is not None else np.zeros((self.r, 0))
+        self.a = np.zeros(self.p)      # handle coordinates (prescribed)
+        self.adot = np.zeros(self.p)
+        self._a_target = {}            # handle group -> coordinates for the end of the next step
         self._X = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=self.device)
         self._x = wp.zeros(n, dtype=self._vec, device=self.device)
-        self._qdev = wp.zeros(self.r, dtype=self._s, device=self.device)
+        self._qdev = wp.zeros(self.r + self.p, dtype=self._s, device=self.device)
         self._surface = None
         self.q = np.zeros(self.r)
         self.qdot = np.zeros(self.r)
@@ -171,17 +182,64 @@ class ReducedSimulator:
         wp.launch(RK.reconstruct_kernel, dim=len(X), inputs=[X, U, self._qdev, out], device=self.device)
         return out
 
+    @property
+    def z(self) -> np.ndarray:
+        """Coordinates in the kernel basis [U | L]: [q; a]."""
+        return np.concatenate([self.q, self.a])
+
     def positions_device(self):
-        """x = X + U q as a device array of vec3 (computed on the device only when asked)."""
-        return self._reconstruct(self._X, self.forces.U, self.q, self._x)
+        """x = X + U q (+ L a) as a device array of vec3 (computed on the device only when asked)."""
+        return self._reconstruct(self._X, self.forces.U, self.z, self._x)
+
+    @property
+    def x(self):
+        """Full-mesh positions on the device (a reconstruction; prefer :meth:`surface_positions`)."""
+        return self.positions_device()
 
     def positions(self) -> np.ndarray:
         """Full-mesh positions (n, 3), m, float64."""
         return self.positions_device().numpy().astype(np.float64)
 
     def velocities(self) -> np.ndarray:
-        """Full-mesh velocities U qdot (n, 3), m/s."""
-        return (self.subspace.U @ self.qdot).reshape(-1, 3)
+        """Full-mesh velocities U qdot (+ L adot) (n, 3), m/s."""
+        return (self._B @ np.concatenate([self.qdot, self.adot])).reshape(-1, 3)
+
+    # -- kinematic handles --------------------------------------------------------------------------
+    def set_targets(self, indices, positions):
+        """Prescribe end-of-step positions (m) of handle vertices, like :meth:`warpfem.Simulator.set_targets`.
+
+        The subspace must have been trained with these handles (``handles=`` of
+        :func:`~warpfem.reduced.train_subspace`), and ``indices`` must cover whole handles: a handle's
+        motion is fitted as an affine map of its rest positions (exact for translations and
+        rotations). Handles not targeted before a step stay where they are.
+        """
+        idx = np.asarray(indices, dtype=np.int64).reshape(-1)
+        pos = np.asarray(positions, dtype=np.float64).reshape(len(idx), 3)
+        if not np.all(np.isfinite(pos)):
+            raise ValueError("target positions must be finite")
+        if self.lifting is None:
+            raise ValueError("this subspace was trained without kinematic handles; retrain it with the handles "
+                             "(train_subspace(..., handles=[(ids, components)]) / `warpfem train` on a scene with [[handle]]s)")
+        lookup = dict(zip(idx.tolist(), range(len(idx))))
+        covered = set()
+        for g, (ids, comps, Q, first) in enumerate(self.lifting.groups):
+            hit = [i in lookup for i in ids.tolist()]
+            if not any(hit):
+                continue
+            if not all(hit):
+                raise ValueError(f"set_targets must cover whole handles: handle #{g + 1} has {len(ids)} vertices, "
+                                 f"{sum(hit)} were given")
+            self._a_target[g] = self.lifting.group_coords(g, pos[[lookup[i] for i in ids.tolist()]])
+            covered.update(ids.tolist())
+        stray = [i for i in lookup if i not in covered]
+        if stray:
+            raise ValueError(f"vertices {stray[:5]} are not handle vertices of this subspace")
+
+    def _next_handle_coords(self):
+        a = self.a.copy()
+        for g, val in self._a_target.items():
+            a[self.lifting.group_slice(g)] = val
+        return a
 
     def set_render_surface(self, W):
         """Precompute W U and W X for a render surface embedded with skinning matrix W (p x n,
@@ -192,12 +250,13 @@ class ReducedSimulator:
         n = self.num_vertices
         if W.shape[1] != n:
             raise ValueError(f"skinning matrix has {W.shape[1]} columns, the mesh has {n} vertices")
-        U = self.subspace.U
-        WU = np.asarray(W @ U.reshape(n, 3 * self.r)).reshape(-1, 3 * self.r)
+        B = self._B
+        k = B.shape[1]
+        WU = np.asarray(W @ B.reshape(n, 3 * k)).reshape(-1, 3 * k)
         WX = np.asarray(W @ self.model.rest_positions)
         p = WX.shape[0]
         self._surface = (wp.array(WX.astype(self._np), dtype=self._vec, device=self.device),
-                         _basis_array(WU.reshape(3 * p, self.r), p, self._vec, self._np, self.device),
+                         _basis_array(WU.reshape(3 * p, k), p, self._vec, self._np, self.device),
                          wp.zeros(p, dtype=self._vec, device=self.device))
 
     def surface_positions(self) -> np.ndarray:
@@ -205,7 +264,16 @@ class ReducedSimulator:
         if self._surface is None:
             raise RuntimeError("call set_render_surface(W) first")
         WX, WU, out = self._surface
-        return self._reconstruct(WX, WU, self.q, out).numpy().astype(np.float64)
+        return self._reconstruct(WX, WU, self.z, out).numpy().astype(np.float64)
+
+    def surface_points(self, embedding) -> np.ndarray:
+        """Render-surface points (p, 3) for an embedding (``warpfem.skinning.Embedding``), the hook
+        :class:`warpfem.scenes.SceneRun` uses: W B is precomputed on the first call for that
+        embedding (B = [U | L]), so no frame reconstructs the full mesh (O(r) per point)."""
+        if getattr(self, "_surface_embedding", None) is not embedding:
+            self.set_render_surface(embedding)
+            self._surface_embedding = embedding
+        return self.surface_positions()
 
     def set_state(self, q=None, qdot=None):
         """Set reduced coordinates / velocities (r,)."""
@@ -217,13 +285,16 @@ class ReducedSimulator:
                 setattr(self, name, a.copy())
 
     def project(self, x) -> np.ndarray:
-        """q = U^T M (x - X) for full positions x (n, 3) (exact for x in the subspace)."""
+        """q = M_r^-1 U^T M (x - X - L a(x)) for full positions x (n, 3) (exact for x in the subspace)."""
         M3 = self._mass3()
-        d = (np.asarray(x, dtype=np.float64) - self.model.rest_positions).reshape(-1)
+        x = np.asarray(x, dtype=np.float64)
+        d = (x - self.model.rest_positions).reshape(-1)
+        if self.lifting is not None:
+            d = d - self.lifting.L @ self.lifting.coords_from_positions(x)
         return np.linalg.solve(self.mass_r, self.subspace.U.T @ (M3 @ d))
 
     def elastic_energy(self) -> float:
-        return self.forces.evaluate(self.q)[0]
+        return self.forces.evaluate(self.z)[0]
 
     # -- step ---------------------------------------------------------------------------------------
     def step(self) -> SolveStats:
@@ -232,23 +303,35 @@ class ReducedSimulator:
         h, opts = self.dt, self.options
         Mr, fr_ext = self.mass_r, self.fext_r
         qn, vn = self.q, self.qdot
+        r = self.r
+        # handles: a_{n+1} prescribed, adot_{n+1} = (a_{n+1} - a_n) / h; the kinetic and damping
+        # energies of V = U v + L adot couple through M_ul = U^T M L (and beta K_ul)
+        a_next = self._next_handle_coords()
+        adot = (a_next - self.a) / h
         C = self.damping_mass * Mr
+        C_ul = self.damping_mass * self.mass_ul
         if self.damping_stiffness > 0:
-            C = C + self.damping_stiffness * self.forces.evaluate(qn, hessian=True, project=True)[2]
+            Kn = self.forces.evaluate(self.z, hessian=True, project=True)[2]
+            C = C + self.damping_stiffness * Kn[:r, :r]
+            C_ul = C_ul + self.damping_stiffness * Kn[:r, r:]
         A = Mr + h * C
+        lin = self.mass_ul @ (adot - self.adot) + h * (C_ul @ adot)  # constant part of the gradient
+
+        def coords(v):
+            return np.concatenate([qn + h * v, a_next])
 
         def energy(v):
-            E, f, _ = self.forces.evaluate(qn + h * v)
+            E, f, _ = self.forces.evaluate(coords(v))
             dv = v - vn
-            quad = 0.5 * dv @ (Mr @ dv) + 0.5 * h * v @ (C @ v)
+            quad = 0.5 * dv @ (Mr @ dv) + 0.5 * h * v @ (C @ v) + v @ lin
             work = h * v @ fr_ext
             return quad + E - work, abs(quad) + abs(E) + abs(work)
 
         def gradient(v, hess=False):
-            E, f, K = self.forces.evaluate(qn + h * v, hessian=hess, project=opts.project_hessian)
-            terms = (Mr @ (v - vn), h * (C @ v), h * f, h * fr_ext)
+            E, f, K = self.forces.evaluate(coords(v), hessian=hess, project=opts.project_hessian)
+            terms = (Mr @ (v - vn) + lin, h * (C @ v), h * f[:r], h * fr_ext)
             g = terms[0] + terms[1] - terms[2] - terms[3]
-            return g, sum(np.linalg.norm(t) for t in terms), K
+            return g, sum(np.linalg.norm(t) for t in terms), (K[:r, :r] if K is not None else None)
 
         st = SolveStats()
         eps = float(np.finfo(self._np).eps)
@@ -321,6 +404,8 @@ class ReducedSimulator:
             warnings.warn(f"{what} did not converge: {st.reason} (relative gradient {st.residual:.2e})", RuntimeWarning, stacklevel=2)
         self.q = qn + h * v
         self.qdot = v
+        self.a, self.adot = a_next, adot
+        self._a_target = {}
         self.time += h
         self.step_count += 1
         return st

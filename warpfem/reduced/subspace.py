@@ -11,8 +11,9 @@ import numpy as np
 
 from warpfem.reduced.basis import Basis, build_basis
 from warpfem.reduced.cubature import Cubature, train_cubature
+from warpfem.reduced.lifting import Lifting, build_lifting, handle_signature
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 class SubspaceMismatch(ValueError):
@@ -51,13 +52,27 @@ class Subspace:
     material: dict
     settings: dict = field(default_factory=dict)
     report: dict = field(default_factory=dict)
+    lifting: Lifting | None = None
 
     @property
     def U(self) -> np.ndarray:
         return self.basis.U
 
-    def check(self, model, *, source: str = "subspace") -> None:
-        """Raise :class:`SubspaceMismatch` naming what differs when this subspace is not for ``model``."""
+    @property
+    def num_handle_coords(self) -> int:
+        return 0 if self.lifting is None else self.lifting.size
+
+    def check(self, model, *, source: str = "subspace", handles=None) -> None:
+        """Raise :class:`SubspaceMismatch` naming what differs when this subspace is not for ``model``
+        (and, with ``handles`` = [(ids, components)], for those kinematic handles)."""
+        if handles is not None:
+            want = handle_signature(handles) if handles else None
+            have = self.lifting.signature if self.lifting is not None and self.lifting.size else None
+            if want != have:
+                what = (f"{len(self.lifting.groups)} handle(s)" if have else "no handles")
+                raise SubspaceMismatch(f"{source} was trained for {what} but the scene has "
+                                       f"{len(handles) if handles else 'no'} handle(s) with other vertices or "
+                                       "components; retrain it (warpfem train)")
         h = mesh_hash(model)
         if h != self.mesh_hash:
             raise SubspaceMismatch(f"{source} was trained for a different mesh or fixed vertices "
@@ -76,6 +91,9 @@ class Subspace:
         b, c = self.basis, self.cubature
         meta = {"format": FORMAT_VERSION, "mesh_hash": self.mesh_hash, "material": self.material,
                 "settings": self.settings, "report": self.report, "num_rigid": b.num_rigid,
+                "handles": [] if self.lifting is None else
+                [{"ids": g[0].tolist(), "components": g[1], "first": int(g[3]), "num_functions": int(g[2].shape[1])}
+                 for g in self.lifting.groups],
                 "modal_derivatives": b.modal_derivatives, "basis_info": b.info,
                 "cubature": {"training_error": c.training_error, "validation_error": c.validation_error,
                              "training_seconds": c.training_seconds, "tolerance": c.tolerance,
@@ -84,12 +102,16 @@ class Subspace:
         tmp = path + ".tmp.npz"
         np.savez(tmp, U=b.U, linear_frequencies=b.linear_frequencies, frequencies=b.frequencies,
                  cubature_elements=c.elements, cubature_weights=c.weights, training_poses=c.training_poses,
+                 lifting=np.zeros((b.U.shape[0], 0)) if self.lifting is None else self.lifting.L,
+                 lifting_functions=np.zeros((0, 0)) if self.lifting is None or not self.lifting.groups
+                 else np.vstack([np.pad(g[2], ((0, 0), (0, 4 - g[2].shape[1]))) for g in self.lifting.groups]),
                  meta=np.array(json.dumps(meta)))
         os.replace(tmp, path)
 
 
-def load_subspace(path, model=None) -> Subspace:
-    """Read a subspace npz; with ``model`` given, raise :class:`SubspaceMismatch` if it does not match."""
+def load_subspace(path, model=None, *, handles=None) -> Subspace:
+    """Read a subspace npz; with ``model`` given, raise :class:`SubspaceMismatch` if it does not match
+    (with ``handles`` = [(ids, components), ...] also when it was trained for other handles)."""
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"subspace cache {path!r} not found; create it with train_subspace / `warpfem train`")
@@ -110,16 +132,29 @@ def load_subspace(path, model=None) -> Subspace:
                    training_seconds=cm["training_seconds"], training_poses=arrays["training_poses"],
                    tolerance=cm["tolerance"], max_points=cm["max_points"], seed=cm["seed"],
                    reached_tolerance=cm["reached_tolerance"])
-    sub = Subspace(basis, cub, meta["mesh_hash"], meta["material"], meta.get("settings", {}), meta.get("report", {}))
+    lifting = None
+    if meta.get("handles"):
+        groups, row = [], 0
+        Qs = arrays["lifting_functions"]
+        for h in meta["handles"]:
+            ids = np.asarray(h["ids"], dtype=np.int64)
+            groups.append((ids, h["components"], Qs[row:row + len(ids), :int(h["num_functions"])], int(h["first"])))
+            row += len(ids)
+        lifting = Lifting(arrays["lifting"], groups)
+    sub = Subspace(basis, cub, meta["mesh_hash"], meta["material"], meta.get("settings", {}), meta.get("report", {}),
+                   lifting)
     if model is not None:
-        sub.check(model, source=f"subspace cache {path!r}")
+        sub.check(model, source=f"subspace cache {path!r}", handles=handles)
+        if lifting is not None:
+            lifting.bind(model.rest_positions)
     return sub
 
 
 def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cubature_tolerance: float = 0.05,
                    max_cubature_points: int = 200, seed: int = 0, cache=None, retrain: bool = False,
                    num_training_poses: int = 100, num_validation_poses: int = 30, candidates: int = 256,
-                   pose_amplitude: float = 0.1, snapshots=None, verbose: bool = False) -> Subspace:
+                   pose_amplitude: float = 0.1, snapshots=None, pose_source: str | None = None, handles=None,
+                   handle_targets_at=None, load_response: bool = False, verbose: bool = False) -> Subspace:
     """Build the basis and train the cubature for ``model`` (the ``warpfem train`` entry point).
 
     Args:
@@ -131,19 +166,30 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
         cache: npz path. If it exists, matches the model and was trained with the same settings it
             is loaded instead of retraining; otherwise (or with ``retrain=True``) training runs and
             the file is (over)written. ``report["cache"]`` says which happened and why.
-        num_training_poses, num_validation_poses, candidates, pose_amplitude, snapshots: see
-            :func:`warpfem.reduced.cubature.train_cubature`.
+        num_training_poses, num_validation_poses, candidates, pose_amplitude, snapshots, pose_source:
+            see :func:`warpfem.reduced.cubature.train_cubature`.
+        load_response: make the linear static response to the loads, K^-1 f_ext, a basis column
+            (see :func:`warpfem.reduced.basis.build_basis`).
+        handles: kinematic handles [(vertex ids, components), ...], fixed in ``model``: a lifting
+            field (:mod:`warpfem.reduced.lifting`) is built so the reduced simulator can move them.
+        handle_targets_at: ``f(fraction in [0, 1]) -> [targets (h_g, 3) per handle]``, the handle
+            motion random training poses sample (64 fractions); default: handles at rest.
     """
+    handles = [(np.unique(np.asarray(ids, dtype=np.int64)), str(c)) for ids, c in (handles or [])]
     settings = {"modes": int(modes), "modal_derivatives": bool(modal_derivatives),
                 "cubature_tolerance": float(cubature_tolerance), "max_cubature_points": int(max_cubature_points),
                 "seed": int(seed), "num_training_poses": int(num_training_poses),
                 "num_validation_poses": int(num_validation_poses), "candidates": int(candidates),
-                "pose_amplitude": float(pose_amplitude), "snapshots": 0 if snapshots is None else len(snapshots)}
+                "pose_amplitude": float(pose_amplitude), "snapshots": 0 if snapshots is None else len(snapshots),
+                "pose_source": pose_source or ("random" if snapshots is None else "random+snapshots"),
+                "handles": handle_signature(handles) if handles else None}
+    if load_response:
+        settings["load_response"] = True
     why = "no cache given"
     if cache is not None and not retrain:
         if os.path.exists(cache):
             try:
-                sub = load_subspace(cache, model)
+                sub = load_subspace(cache, model, handles=handles)
                 if sub.settings == settings:
                     sub.report["cache"] = f"loaded {os.fspath(cache)!r}"
                     return sub
@@ -160,17 +206,27 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
 
     sim = _full_simulator(model)
     t0 = time.perf_counter()
-    basis = build_basis(model, modes=modes, modal_derivatives_=modal_derivatives, sim=sim)
+    basis = build_basis(model, modes=modes, modal_derivatives_=modal_derivatives, load_response=load_response, sim=sim)
+    lifting, handle_coords = None, None
+    if handles:
+        lifting = build_lifting(model, handles, sim=sim)
+        if handle_targets_at is not None:
+            handle_coords = np.array([lifting.coords_from_targets(handle_targets_at(f)) for f in np.linspace(0, 1, 64)])
     t_basis = time.perf_counter() - t0
     cub = train_cubature(model, basis.U, tolerance=cubature_tolerance, max_points=max_cubature_points, seed=seed,
                          num_training_poses=num_training_poses, num_validation_poses=num_validation_poses,
-                         candidates=candidates, amplitude=pose_amplitude, snapshots=snapshots, sim=sim)
+                         candidates=candidates, amplitude=pose_amplitude, snapshots=snapshots,
+                         pose_source=pose_source, lifting=lifting, handle_coords=handle_coords, sim=sim)
     report = {
         "modes": basis.size,
         "num_rigid": basis.num_rigid,
         "modal_derivatives": basis.modal_derivatives,
         "linear_frequencies_hz": (basis.linear_frequencies / (2 * np.pi)).tolist(),
         "basis_frequencies_hz": (basis.frequencies / (2 * np.pi)).tolist(),
+        "handles": 0 if lifting is None else len(lifting.groups),
+        "handle_coords": 0 if lifting is None else lifting.size,
+        "pose_source": settings["pose_source"],
+        "training_poses": int(len(cub.training_poses)),
         "cubature_points": cub.num_points,
         "num_elements": model.quadrature.num_elements,
         "training_error": cub.training_error,
@@ -180,7 +236,7 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
         "cubature_seconds": cub.training_seconds,
         "cache": f"trained ({why})",
     }
-    sub = Subspace(basis, cub, mesh_hash(model), material_parameters(model), settings, report)
+    sub = Subspace(basis, cub, mesh_hash(model), material_parameters(model), settings, report, lifting)
     if cache is not None:
         sub.save(cache)
         report["cache"] += f", saved to {os.fspath(cache)!r}"
@@ -194,9 +250,13 @@ def format_report(report: dict) -> str:
     f = report.get("linear_frequencies_hz", [])
     lines = [f"subspace: r = {report.get('modes')} ({report.get('num_rigid', 0)} rigid), modal derivatives: {report.get('modal_derivatives')}",
              "linear modal frequencies (Hz): " + ", ".join(f"{x:.4g}" for x in f[:10]) + (" ..." if len(f) > 10 else ""),
+             *([f"handles: {report['handles']} (lifting field, {report.get('handle_coords')} handle coordinates)"]
+               if report.get("handles") else []),
+             f"training poses: {report.get('training_poses', '?')} ({report.get('pose_source', 'random')})",
              f"cubature: {report.get('cubature_points')} of {report.get('num_elements')} elements, training error "
              f"{report.get('training_error', float('nan')):.3g}, validation error {report.get('validation_error', float('nan')):.3g}"
              f"{'' if report.get('reached_tolerance', True) else ' (point cap reached before the tolerance)'}",
-             f"time: basis {report.get('basis_seconds', 0):.2f} s, cubature {report.get('cubature_seconds', 0):.2f} s",
+             f"time: basis {report.get('basis_seconds', 0):.2f} s, cubature {report.get('cubature_seconds', 0):.2f} s"
+             + (f", full-simulation snapshots {report['snapshot_seconds']:.2f} s" if "snapshot_seconds" in report else ""),
              f"cache: {report.get('cache')}"]
     return "\n".join(lines)

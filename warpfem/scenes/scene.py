@@ -18,8 +18,8 @@ import numpy as np
 
 from .schema import ELEMENTS, SceneError, SceneSpec, parse_scene_file
 
-__all__ = ["Scene", "SceneRun", "FrameStats", "load_scene", "traction_forces", "handle_targets",
-           "estimate_device_memory"]
+__all__ = ["Scene", "SceneRun", "FrameStats", "load_scene", "traction_forces", "element_traction_forces",
+           "handle_targets", "estimate_device_memory", "boundary_surface", "quadrature_points_per_element"]
 
 
 # ----------------------------------------------------------------------------- helpers (numpy)
@@ -71,6 +71,126 @@ def traction_forces(vertices, faces, box_min, box_max, force_per_area):
     return forces, sel, float(area.sum())
 
 
+# Strang & Fix 6-point rule on the reference triangle (s, t >= 0, s + t <= 1), degree 4; weights sum to 1/2.
+_TRI_A, _TRI_B = 0.445948490915965, 0.091576213509771
+_TRI_RULE = (np.array([[_TRI_A, _TRI_A], [1 - 2 * _TRI_A, _TRI_A], [_TRI_A, 1 - 2 * _TRI_A],
+                       [_TRI_B, _TRI_B], [1 - 2 * _TRI_B, _TRI_B], [_TRI_B, 1 - 2 * _TRI_B]]),
+             0.5 * np.array([0.223381589678011] * 3 + [0.109951743655322] * 3))
+
+
+def _element_faces(element_type):
+    """Per local face of an element: (face node ids, corner ids, reference origin (3,), tangents
+    (2, 3), rule points (g, 2), rule weights (g,)), with xi(s, t) = origin + s T0 + t T1 and
+    T0 x T1 pointing out of the element."""
+    from warpfem.elements.library import REFERENCE_NODES
+    from warpfem.elements.meshes import _HEX_FACES, _TET_FACES
+
+    nodes = REFERENCE_NODES[element_type]
+    out = []
+    if element_type in ("tet4", "tet10"):
+        P = REFERENCE_NODES["tet4"]
+        lam = np.concatenate([1.0 - nodes.sum(axis=1, keepdims=True), nodes], axis=1)  # barycentric of each node
+        for a, b, c in _TET_FACES:
+            d = ({0, 1, 2, 3} - {int(a), int(b), int(c)}).pop()
+            on = np.flatnonzero(np.abs(lam[:, d]) < 1e-12)
+            out.append((on, np.array([a, b, c]), P[a], np.stack([P[b] - P[a], P[c] - P[a]]), *_TRI_RULE))
+    else:
+        g = np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
+        w = np.array([5.0, 8.0, 5.0]) / 9.0
+        pts = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+        wts = np.outer(w, w).ravel()
+        for axis, sign, u, v in _HEX_FACES:
+            on = np.flatnonzero(np.abs(nodes[:, axis] - sign) < 1e-12)
+            corners = on[np.all(np.abs(np.abs(nodes[on]) - 1.0) < 1e-12, axis=1)]
+            origin = np.zeros(3)
+            origin[axis] = sign
+            T = np.zeros((2, 3))
+            T[0, u] = T[1, v] = 1.0
+            out.append((on, corners, origin, T, pts, wts))
+    return out
+
+
+def element_traction_forces(mesh, box_min, box_max, force_per_area):
+    """Consistent nodal forces (N) of a uniform traction t (Pa) on the boundary faces of an element
+    mesh (any element type) whose nodes all lie in the box: f_a = t int_face N_a dA, by Gauss
+    quadrature on each face (3x3 points on hex faces, 6 points on tet faces), dA from the
+    isoparametric map (exact on flat faces). For Tet10 faces the corner nodes get 0 and the
+    mid-edge nodes A/3 each; for flat Hex8 faces every corner gets A/4.
+    Returns ``(forces (n, 3), loaded boundary faces (element * faces_per_element + local face), area (m^2))``.
+    """
+    from warpfem.elements.library import shape_functions, shape_gradients
+    from warpfem.mesh import select_vertices_in_box
+
+    etype = getattr(mesh, "element_type", "tet4")
+    X = np.asarray(mesh.vertices, dtype=np.float64)
+    E = np.asarray(mesh.elements, dtype=np.int64)
+    faces = _element_faces(etype)
+    nf = len(faces)
+    keys = np.stack([np.sort(E[:, c], axis=1) for _, c, *_ in faces], axis=1)  # (m, nf, corners)
+    keys = keys.reshape(len(E) * nf, -1)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    boundary = counts[inv.ravel()] == 1
+    inside = np.zeros(len(X), dtype=bool)
+    inside[select_vertices_in_box(X, box_min, box_max)] = True
+    t = np.asarray(force_per_area, dtype=np.float64)
+    forces = np.zeros_like(X)
+    loaded, area = [], 0.0
+    for f, (on, _, origin, T, pts, wts) in enumerate(faces):
+        el = np.flatnonzero(boundary.reshape(len(E), nf)[:, f])
+        el = el[inside[E[el][:, on]].all(axis=1)]
+        if el.size == 0:
+            continue
+        xi = origin[None, :] + pts @ T  # (g, 3)
+        N = shape_functions(etype, xi)  # (g, k)
+        dN = shape_gradients(etype, xi)  # (g, k, 3)
+        J = np.einsum("eai,gaj->egij", X[E[el]], dN)  # (e, g, 3, 3) dX/dxi
+        Ts, Tt = J @ T[0], J @ T[1]  # (e, g, 3)
+        dA = np.linalg.norm(np.cross(Ts, Tt), axis=2) * wts[None, :]  # (e, g)
+        nodal = dA @ N  # (e, k): int N_a dA
+        np.add.at(forces, E[el].ravel(), (nodal.ravel()[:, None] * t[None, :]))
+        loaded.append(el * nf + f)
+        area += float(dA.sum())
+    sel = np.sort(np.concatenate(loaded)) if loaded else np.zeros(0, np.int64)
+    return forces, sel, area
+
+
+def boundary_surface(mesh):
+    """Default render surface: ``(vertex ids (s,), triangles (f, 3) into them)`` of the mesh boundary
+    (tet faces; Tet10/Hex faces triangulated through their nodes, see ``ElementMesh.boundary_faces``)."""
+    if getattr(mesh, "element_type", "tet4") == "tet4":
+        from warpfem.skinning import mesh_boundary_surface
+
+        return mesh_boundary_surface(mesh.vertices, mesh.tets)
+    ids, tri = np.unique(np.asarray(mesh.boundary_faces(), dtype=np.int64).reshape(-1), return_inverse=True)
+    return ids.astype(np.int64), tri.reshape(-1, 3).astype(np.int64)
+
+
+def quadrature_points_per_element(element_type, volumetric_integration="full"):
+    """Quadrature points per element the simulator allocates (stiffness rule, + 1 with
+    selective reduced integration on hex8)."""
+    from warpfem.elements.library import gauss_rule
+
+    q = len(gauss_rule(element_type)[1])
+    return q + (1 if volumetric_integration == "reduced" else 0)
+
+
+def _volume_cell_types(path) -> dict:
+    """{meshio cell type: count} of a mesh file (all cell blocks)."""
+    import meshio
+
+    try:
+        mesh = meshio.read(path)
+    except Exception as e:  # meshio raises many types
+        from warpfem.mesh import MeshError
+
+        raise MeshError(f"{path}: meshio could not read the file: {type(e).__name__}: {e}") from e
+    out = {}
+    for c in mesh.cells:
+        if len(c.data):
+            out[c.type] = out.get(c.type, 0) + len(c.data)
+    return out
+
+
 def _block_nnz(elements, k, n):
     e = np.asarray(elements, dtype=np.int64).reshape(-1, k)
     pairs = (e[:, :, None] * n + e[:, None, :]).ravel()
@@ -78,7 +198,8 @@ def _block_nnz(elements, k, n):
 
 
 def estimate_device_memory(*, num_vertices, num_elements, nodes_per_element, num_points, block_nnz,
-                           precision="float64", surface_points=0, stiffness_damping=False) -> int:
+                           precision="float64", surface_points=0, stiffness_damping=False,
+                           weights_per_point=4) -> int:
     """Estimated device bytes of a built scene (arrays the simulator and skinner allocate).
 
     Counts: quadrature data, connectivity, ~16 vec3 work vectors (state, Newton, PCG), the mass and
@@ -93,7 +214,7 @@ def estimate_device_memory(*, num_vertices, num_elements, nodes_per_element, num
     nmat = 3 if stiffness_damping else 2
     b += nmat * block_nnz * 9 * s + block_nnz * 4 + (n + 1) * 4 + m * k * k * 4  # values, cols, offsets, block index
     b += n * 9 * s + q * s                             # PCG diagonal, per-qp energy
-    b += surface_points * (4 * 4 + 4 * s + 3 * s)      # skinning
+    b += surface_points * (weights_per_point * (4 + s) + 3 * s)  # skinning: ids, weights, output
     return int(b)
 
 
@@ -153,24 +274,59 @@ class Scene:
 
     # -- mesh and selections (numpy) --------------------------------------------------------------
     def mesh(self):
-        """The simulation mesh (loaded / generated once)."""
+        """The simulation mesh (loaded / generated once): a ``TetMesh`` for tet4, an
+        ``ElementMesh`` of the scene's element type otherwise."""
         if self._mesh is None:
             import warnings
 
-            from warpfem.mesh import MeshError, box_tet_mesh, load_mesh
+            from warpfem.elements import ElementError
+            from warpfem.mesh import MeshError
 
-            m = self.spec.mesh
             try:
-                if m["generator"] == "box":
-                    mesh = box_tet_mesh(size=m["size"], cells=m["cells"], origin=m["origin"])
-                else:
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore")  # reorientation / unreferenced notes
-                        mesh = load_mesh(m["path"], inside_surface=m["inside_surface"])
-            except (MeshError, ValueError) as e:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # reorientation / unreferenced notes
+                    self._mesh = self._make_mesh()
+            except (MeshError, ElementError, ValueError) as e:
+                if isinstance(e, SceneError):
+                    raise
                 self._fail("[mesh]", str(e))
-            self._mesh = ELEMENTS[m["element"]](mesh)
         return self._mesh
+
+    def _make_mesh(self):
+        from warpfem.elements import box_hex_mesh, load_element_mesh, tet10_from_tet4
+        from warpfem.mesh import MeshError, box_tet_mesh, load_mesh
+
+        m = self.spec.mesh
+        element = m["element"]
+        if m["generator"] == "box":
+            if element in ("hex8", "hex27"):
+                return box_hex_mesh(size=m["size"], cells=m["cells"], origin=m["origin"],
+                                    order=1 if element == "hex8" else 2)
+            mesh = box_tet_mesh(size=m["size"], cells=m["cells"], origin=m["origin"])
+            return tet10_from_tet4(mesh) if element == "tet10" else mesh
+        path = m["path"]
+        wanted = {"tet10": "tetra10", "hex8": "hexahedron", "hex27": "hexahedron27"}.get(element)
+        if element in ("tet4", "tet10"):
+            try:
+                mesh = load_mesh(path, inside_surface=m["inside_surface"])
+            except MeshError:
+                cells = _volume_cell_types(path)
+                if "tetra" in cells or not (wanted in cells):
+                    raise
+            else:
+                return tet10_from_tet4(mesh, name=path) if element == "tet10" else mesh
+        cells = _volume_cell_types(path)  # only tetra10 / hex files get here (read twice: small files)
+        if wanted in cells:
+            if m["inside_surface"]:
+                self._fail("[mesh].inside_surface", f"{path}: only applies to linear tetra cells (the file has {wanted})")
+            return load_element_mesh(path, element_type=element)
+        found = ", ".join(f"{k} ({v})" for k, v in sorted(cells.items())) or "none"
+        if "tetra" in cells:
+            hint = (f"a tet mesh cannot be turned into {element} elements; use element = \"tet4\" or \"tet10\" with "
+                    f"this file, generator = \"box\" for a hex grid, or a file with {wanted} cells")
+        else:
+            hint = f"element {element!r} needs {wanted} cells"
+        self._fail("[mesh].element", f"{path} holds cells {found}: {hint}")
 
     def _select(self, section, i, entry):
         from warpfem.mesh import select_vertices_in_box
@@ -194,12 +350,16 @@ class Scene:
     def tractions(self):
         """[(forces (n, 3), loaded faces, area)] per ``[[traction]]`` entry (consistent loads)."""
         mesh = self.mesh()
-        faces = mesh.boundary_faces()
+        tet4 = getattr(mesh, "element_type", "tet4") == "tet4"
+        faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
         out = []
         for i, t in enumerate(self.spec.traction):
-            f, sel, area = traction_forces(mesh.vertices, faces, t["box_min"], t["box_max"], t["force_per_area"])
+            if tet4:
+                f, sel, area = traction_forces(mesh.vertices, faces, t["box_min"], t["box_max"], t["force_per_area"])
+            else:
+                f, sel, area = element_traction_forces(mesh, t["box_min"], t["box_max"], t["force_per_area"])
             if sel.size == 0:
-                self._fail(f"[[traction]] #{i + 1}", "no boundary face has all three vertices inside the box")
+                self._fail(f"[[traction]] #{i + 1}", "no boundary face has all its nodes inside the box")
             out.append((f, sel, area))
         return out
 
@@ -218,10 +378,16 @@ class Scene:
         src = (f"box generator size {list(sp.mesh['size'])} m, cells {list(sp.mesh['cells'])}" if sp.mesh["generator"]
                else f"file {sp.mesh['path']}" + (" (tets inside its surface)" if sp.mesh["inside_surface"] else ""))
         lines.append(f"mesh: {src}")
-        lines.append(f"  element {sp.mesh['element']}: {m} elements, {n} vertices, {3 * n} DOFs")
+        etype = sp.mesh["element"]
+        vi = sp.material["volumetric_integration"]
+        qpe = quadrature_points_per_element(etype, vi)
+        lines.append(f"  element {etype} ({ELEMENTS[etype]}): {m} elements, {n} vertices, {3 * n} DOFs")
+        lines.append(f"  {k} nodes per element, {qpe} quadrature point(s) per element"
+                     + (" (2x2x2 shear + 1 volumetric: selective reduced integration)" if vi == "reduced" else "")
+                     + f", {m * qpe} quadrature points")
         mat = sp.material
         lines.append(f"material: {mat['model']} E = {mat['youngs_modulus']:g} Pa, nu = {mat['poisson_ratio']:g}, "
-                     f"density = {mat['density']:g} kg/m^3, {mat['mass_matrix']} mass")
+                     f"density = {mat['density']:g} kg/m^3, {mat['mass_matrix']} mass, {vi} volumetric integration")
         lines.append(f"gravity: {list(sp.top['gravity'])} m/s^2")
         for s in ("fixed", "handle", "force"):
             for i, (e, ids) in enumerate(zip(getattr(sp, s), sel[s])):
@@ -243,6 +409,9 @@ class Scene:
         else:
             lines.append(f"integrator: {self.integrator_type}, {integ.get('load_steps', 1)} load step(s) per frame")
         lines.append(f"  builds: {', '.join(entry.builds)}")
+        if sp.subspace is not None:  # reduced run (warpfem.reduced)
+            from warpfem.reduced.scene import describe_subspace
+            lines.append(describe_subspace(self))
         out = sp.output
         lines.append(f"frames: {out['frames']} at {out['fps']:g} fps ({out['frames'] / out['fps']:g} s)")
         if sp.surface is not None:
@@ -250,18 +419,21 @@ class Scene:
 
             sv, st = load_surface(sp.surface["path"])
             p = len(sv)
-            lines.append(f"render surface: {sp.surface['path']} ({p} vertices, {len(st)} triangles), embedded in the tets")
+            how = "barycentric" if etype == "tet4" else f"{k} shape functions"
+            lines.append(f"render surface: {sp.surface['path']} ({p} vertices, {len(st)} triangles), embedded in the "
+                         f"{etype} elements ({how} per vertex)")
         else:
-            from warpfem.skinning import mesh_boundary_surface
-
-            ids, tri = mesh_boundary_surface(mesh.vertices, mesh.tets)
+            ids, tri = boundary_surface(mesh)
             p = 0
-            lines.append(f"render surface: tet boundary ({ids.size} vertices, {len(tri)} triangles); no embedding")
-        lines.append(f"outputs: usd {out['usd'] or '-'}, states {out['states'] or '-'}, stats {self.stats_path(out['usd'], out['stats']) or '-'}")
+            lines.append(f"render surface: mesh boundary ({ids.size} vertices, {len(tri)} triangles); no embedding")
+        clips = (f"value clips of {out['clip_frames']} frames in {os.path.splitext(out['usd'])[0]}.clips/"
+                 if out["clip_frames"] else "one file") if out["usd"] else ""
+        lines.append(f"outputs: usd {out['usd'] or '-'}{' (' + clips + ')' if clips else ''}, states {out['states'] or '-'}, "
+                     f"stats {self.stats_path(out['usd'], out['stats']) or '-'}")
         nnz = _block_nnz(mesh.elements, k, n)
         for prec in ("float32", "float64"):
-            b = estimate_device_memory(num_vertices=n, num_elements=m, nodes_per_element=k, num_points=m * getattr(mesh, "points_per_element", 1),
-                                       block_nnz=nnz, precision=prec, surface_points=p,
+            b = estimate_device_memory(num_vertices=n, num_elements=m, nodes_per_element=k, num_points=m * qpe,
+                                       block_nnz=nnz, precision=prec, surface_points=p, weights_per_point=k,
                                        stiffness_damping=sp.integrator.get("damping_stiffness", 0.0) > 0)
             lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz} 3x3 matrix blocks)")
         return "\n".join(lines)
@@ -291,7 +463,11 @@ class Scene:
         mat = sp.material
         material = make_material(mat["model"], youngs_modulus=mat["youngs_modulus"], poisson_ratio=mat["poisson_ratio"],
                                  density=mat["density"])
-        model = Model(mesh, material, gravity=sp.top["gravity"], mass_matrix=mat["mass_matrix"])
+        try:
+            model = Model(mesh, material, gravity=sp.top["gravity"], mass_matrix=mat["mass_matrix"],
+                          volumetric_integration=mat["volumetric_integration"])
+        except ValueError as e:  # e.g. an element with det J <= 0 at a quadrature point (named)
+            self._fail("[mesh]" if "element" in str(e).lower() else "[material]", str(e))
         for e, ids in zip(sp.fixed, sel["fixed"]):
             model.fix(ids, e["components"])
         for e, ids in zip(sp.force, sel["force"]):
@@ -308,6 +484,8 @@ class Scene:
                 sim = build_reduced_simulator(self, model, device=device, precision=precision)
             else:
                 sim = entry.build(self, model, device=device, precision=precision)
+        except SceneError:
+            raise
         except ValueError as e:
             self._fail("[integrator]", str(e))
         return SceneRun(self, model, sim, sel["handle"], device=device, precision=precision)
@@ -333,34 +511,42 @@ class SceneRun:
         self._gravity = model.gravity.copy()
         self._forces = model.forces.copy()
         mesh = scene.mesh()
+        # a simulator may map an embedding to surface points itself (e.g. a reduced one, O(r) per point)
+        self._sim_surface_points = getattr(sim, "surface_points", None)
         if sp.surface is not None:
-            from warpfem.skinning import SurfaceSkinner, embed_points, load_surface
+            from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
 
             pts, tris = load_surface(sp.surface["path"])
-            self.embedding = embed_points(pts, mesh.vertices, mesh.tets)
-            self.skinner = SurfaceSkinner(self.embedding, mesh.tets, device=device, precision=precision)
+            self.embedding = embed_points_in_mesh(pts, mesh)  # k weights per point (k = nodes per element)
+            self.skinner = None
+            if self._sim_surface_points is None:
+                self.skinner = SurfaceSkinner(self.embedding, mesh, device=device, precision=precision)
             self.surface_faces = tris
             self.surface_vertex_ids = None
             self.surface_name = sp.surface["name"]
         else:
-            from warpfem.skinning import mesh_boundary_surface
-
             self.embedding = None
             self.skinner = None
-            self.surface_vertex_ids, self.surface_faces = mesh_boundary_surface(mesh.vertices, mesh.tets)
+            self.surface_vertex_ids, self.surface_faces = boundary_surface(mesh)
             self.surface_name = "boundary"
 
     @property
     def num_surface_points(self) -> int:
-        return self.skinner.num_points if self.skinner is not None else int(self.surface_vertex_ids.size)
+        if self.embedding is not None:
+            return self.embedding.num_points
+        return int(self.surface_vertex_ids.size)
 
     def duration(self, frames=None) -> float:
         """Length of the run (s) over which handles ramp by default."""
         return (self.frames if frames is None else frames) / self.fps
 
     def surface_points(self) -> np.ndarray:
-        """Current render-surface points (p, 3)."""
-        if self.skinner is not None:
+        """Current render-surface points (p, 3): x_surface = W x on the device (the skinner), or the
+        simulator's own ``surface_points(embedding)`` when it has one; without ``[surface]`` the
+        boundary vertices' positions."""
+        if self.embedding is not None:
+            if self._sim_surface_points is not None:
+                return np.asarray(self._sim_surface_points(self.embedding), dtype=np.float64)
             return self.skinner.apply(self.sim.x).numpy().astype(np.float64)
         return self.sim.positions()[self.surface_vertex_ids]
 
@@ -421,7 +607,7 @@ class SceneRun:
         frames done so far, the npz/stats hold them too, and the exception propagates.
         Returns the list of :class:`FrameStats`.
         """
-        from warpfem.io import UsdMeshWriter
+        from warpfem.io import StatesWriter, UsdMeshWriter
 
         out = self.scene.spec.output
         total = self.frames if frames is None else int(frames)
@@ -432,11 +618,13 @@ class SceneRun:
         stats = Scene.stats_path(usd, out["stats"] if stats is None else stats)
         writer = log = None
         history = []
-        positions = [self.sim.positions()] if states else None
-        rest = self.model.rest_positions.copy()
+        positions = None  # frames stream to disk (StatesWriter): memory does not grow with the run
+        if states:
+            positions = StatesWriter(states, rest=self.model.rest_positions, max_frames=total + 1, fps=self.fps)
+            positions.write_frame(self.sim.positions(), self._time())
         try:
             if usd:
-                writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"])
+                writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
                 writer.add_mesh(self.surface_name, self.surface_faces, self.num_surface_points)
                 writer.write_frame(self.frame, {self.surface_name: self.surface_points()})
             if stats:
@@ -456,7 +644,7 @@ class SceneRun:
                     log.write(json.dumps(fs.as_dict()) + "\n")
                     log.flush()
                 if positions is not None:
-                    positions.append(self.sim.positions())
+                    positions.write_frame(self.sim.positions(), fs.time)
                 if writer is not None:
                     writer.write_frame(self.frame, {self.surface_name: self.surface_points()})
                 if progress is not None:
@@ -472,7 +660,11 @@ class SceneRun:
             if log is not None:
                 log.close()
             if positions is not None:
-                os.makedirs(os.path.dirname(os.path.abspath(states)), exist_ok=True)
-                np.savez(states, rest=rest, positions=np.stack(positions),
-                         times=np.array([0.0] + [h.time for h in history]), fps=self.fps)
+                positions.close()
         return history
+
+    def _time(self):
+        """Simulated time of the current state (s): the integrator's clock, or frame / fps (static)."""
+        if self.scene.dynamic and hasattr(self.sim, "time"):
+            return float(self.sim.time)
+        return self.frame / self.fps

@@ -24,7 +24,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
 __all__ = ["SceneError", "Key", "SCHEMA", "SceneSpec", "parse_scene_file", "parse_scene_dict",
-           "INTEGRATOR_KEYS", "ELEMENTS"]
+           "INTEGRATOR_KEYS", "ELEMENTS", "INTEGRATOR_ELEMENTS"]
 
 
 class SceneError(ValueError):
@@ -77,9 +77,20 @@ def _components(v):
     return None if ok else "must be a non-empty subset of 'xyz' without repeats, e.g. \"xyz\", \"z\", \"xz\""
 
 
-# Elements a scene may name; the value says what turns a TetMesh into that element's mesh
-# (None: known name, not available in this version). Other modules register converters here.
-ELEMENTS: dict[str, Callable | None] = {"tet4": (lambda mesh: mesh), "tet10": None, "hex8": None, "hex27": None}
+# Elements a scene may name ([mesh].element) -> what it is (warpfem.elements; see docs/elements.md).
+# With generator = "box": tet4 / tet10 split each cell into 6 tets (tet10 adds shared edge
+# mid-nodes), hex8 / hex27 use one hexahedron per cell. With path = "file": tet4 / tet10 read
+# tetra cells (tet10 also tetra10 cells), hex8 / hex27 read hexahedron / hexahedron27 cells.
+ELEMENTS: dict[str, str] = {
+    "tet4": "linear tetrahedron, 4 nodes, 1 quadrature point",
+    "tet10": "quadratic tetrahedron, 10 nodes, 4 quadrature points",
+    "hex8": "trilinear hexahedron, 8 nodes, 2x2x2 quadrature points",
+    "hex27": "triquadratic hexahedron, 27 nodes, 3x3x3 quadrature points",
+}
+
+# Integrators that work with some element types only (others: every element type). An
+# IntegratorType may also carry its own ``elements`` tuple, which takes precedence.
+INTEGRATOR_ELEMENTS: dict[str, tuple] = {"stiffness_warping": ("tet4",)}
 
 _SELECTION = {
     "box_min": Key("vec3", doc="lower corner of the selection box (m)"),
@@ -97,11 +108,11 @@ SCHEMA: dict[str, dict[str, Key]] = {
     "mesh": {
         "generator": Key("choice", choices=("box",), doc="procedural mesh"),
         "size": Key("vec3", check=_positive_vec3, doc="box size (m)"),
-        "cells": Key("int3", check=_positive_int3, doc="box cells per axis (6 tets each)"),
+        "cells": Key("int3", check=_positive_int3, doc="box cells per axis (6 tets or 1 hex each)"),
         "origin": Key("vec3", default=(0.0, 0.0, 0.0), doc="box min corner (m)"),
         "path": Key("path", doc="volume mesh file (meshio: .mesh, .msh, .vtu, ...)"),
-        "inside_surface": Key("bool", default=False, doc="keep only tets inside the file's triangles"),
-        "element": Key("choice", default="tet4", choices=tuple(ELEMENTS), doc="element type"),
+        "inside_surface": Key("bool", default=False, doc="keep only tets inside the file's triangles (tet files)"),
+        "element": Key("choice", default="tet4", choices=tuple(ELEMENTS), doc="element type: " + ", ".join(ELEMENTS)),
     },
     "material": {
         "model": Key("choice", required=True, choices=("linear", "stvk", "corotated", "stable_neo_hookean")),
@@ -109,6 +120,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "poisson_ratio": Key("float", required=True, check=_poisson, doc="nu"),
         "density": Key("float", default=1000.0, check=_positive, doc="kg/m^3"),
         "mass_matrix": Key("choice", default="lumped", choices=("lumped", "consistent")),
+        "volumetric_integration": Key("choice", default="full", choices=("full", "reduced"),
+                                      doc="hex8 only: 'reduced' = selective reduced integration of the volumetric energy (no locking)"),
     },
     "fixed": {**_SELECTION, "components": Key("str", default="xyz", check=_components)},
     "handle": {
@@ -136,6 +149,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "states": Key("outpath", default=None, doc=".npz with rest and per-frame positions"),
         "stats": Key("outpath", default=None, doc="JSON-lines per-frame statistics; default next to usd"),
         "up_axis": Key("choice", default="Y", choices=("Y", "Z")),
+        "clip_frames": Key("int", default=100, check=_non_negative,
+                           doc="frames per USD value clip (bounds the writer's memory); 0 = one file, all in memory"),
     },
     "surface": {
         "path": Key("path", required=True, doc="render surface (.obj/.off/.ply/.stl)"),
@@ -151,7 +166,18 @@ SCHEMA: dict[str, dict[str, Key]] = {
                                   doc="relative training force error at which greedy cubature stops"),
         "max_cubature_points": Key("int", default=200, check=_positive, doc="cap on cubature elements"),
         "seed": Key("int", default=0, doc="seed of training poses and candidate sampling"),
-        "cache": Key("outpath", default=None, doc=".npz holding basis + cubature; default next to the scene"),
+        "cache": Key("outpath", default=None,
+                     doc=".npz holding basis + cubature (relative to the scene file); default <scene>.subspace.npz next to it"),
+        "load_response": Key("bool", default=True,
+                             doc="make the linear static response to the loads (K^-1 f_ext) one of the r columns"),
+        "training": Key("choice", default="mixed", choices=("mixed", "snapshots", "random"),
+                        doc="cubature training poses: 'snapshots' = frames of a full run of this scene projected onto "
+                            "the basis (every 4th held out for validation); 'random' = random poses with amplitude "
+                            "~ 1/frequency; 'mixed' = both (random poses validate)"),
+        "training_frames": Key("int", default=None, check=_positive,
+                               doc="frames of the full training run (snapshots); default [output].frames"),
+        "training_poses": Key("int", default=100, check=_positive, doc="number of random training poses (random)"),
+        "validation_poses": Key("int", default=30, check=_positive, doc="number of random validation poses (random)"),
     },
 }
 
@@ -368,10 +394,18 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
                 ctx.fail(f"[mesh].{k}", "required with generator = \"box\"")
     elif any(data["mesh"].get(k) is not None for k in ("size", "cells", "origin")):
         ctx.fail("[mesh].path", "size/cells/origin only apply to generator = \"box\"")
-    if ELEMENTS.get(mesh["element"]) is None:
-        avail = [e for e, f in ELEMENTS.items() if f is not None]
-        ctx.fail("[mesh].element", f"element {mesh['element']!r} is not available in this version (available: {', '.join(avail)})")
+    element = mesh["element"]
+    if mesh["inside_surface"] and element in ("hex8", "hex27"):
+        ctx.fail("[mesh].inside_surface", f"only applies to tetra meshes (element = \"tet4\" or \"tet10\"), not {element!r}")
     material = _check_table(ctx, "material", data["material"], SCHEMA["material"])
+    if material["volumetric_integration"] == "reduced":
+        if element != "hex8":
+            ctx.fail("[material].volumetric_integration", "'reduced' (selective reduced integration of the volumetric "
+                     f"energy) is only available for element = \"hex8\"; this scene uses {element!r} (use \"full\", or "
+                     "element = \"tet10\" / \"hex27\", which do not lock)")
+        if material["poisson_ratio"] < 0.0:
+            ctx.fail("[material].volumetric_integration", "'reduced' needs poisson_ratio >= 0 (the one-point "
+                     f"volumetric part must be non-negative); this scene uses {material['poisson_ratio']!r}")
 
     # integrator: type first, then its own keys
     raw_int = data.get("integrator", {})
@@ -386,10 +420,20 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
     entry = integrators[itype]
     int_schema = {"type": SCHEMA["integrator"]["type"], **entry.keys}
     integrator = _check_table(ctx, "integrator", raw_int, int_schema)
+    def _elements_of(name):
+        return getattr(integrators[name], "elements", None) or INTEGRATOR_ELEMENTS.get(name)
+
+    allowed = _elements_of(itype)
+    if allowed and element not in allowed:
+        others = sorted(n for n in integrators if not _elements_of(n) or element in _elements_of(n))
+        ctx.fail("[integrator].type", f"{itype!r} supports element {' / '.join(repr(a) for a in allowed)} only, "
+                 f"the mesh uses {element!r} (integrators for {element}: {', '.join(others)})")
 
     output = _check_table(ctx, "output", data.get("output", {}), SCHEMA["output"])
     surface = _check_table(ctx, "surface", data["surface"], SCHEMA["surface"]) if "surface" in data else None
     subspace = _check_table(ctx, "subspace", data["subspace"], SCHEMA["subspace"]) if "subspace" in data else None
+    if subspace is not None and element != "tet4":
+        ctx.fail("[subspace]", f"reduced simulation supports element = \"tet4\" only; the mesh uses {element!r}")
 
     arrays = {}
     for s in ARRAY_SECTIONS:

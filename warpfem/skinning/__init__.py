@@ -1,12 +1,13 @@
-"""Embedding a render surface in the tet mesh (barycentric skinning), numpy and Warp."""
+"""Embedding a render surface in the volume mesh (barycentric / shape-function skinning), numpy and Warp."""
 
-from .embedding import Embedding, barycentric_coordinates, embed_points, point_tet_distance
+from .embedding import Embedding, barycentric_coordinates, embed_points, embed_points_in_mesh, point_tet_distance
 from .skinner import SurfaceSkinner, resolve_precision
 from .surface import SurfaceError, boundary_faces, load_surface, mesh_boundary_surface
 
 __all__ = [
     "Embedding",
     "embed_points",
+    "embed_points_in_mesh",
     "barycentric_coordinates",
     "point_tet_distance",
     "SurfaceSkinner",

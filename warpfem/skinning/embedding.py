@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial import cKDTree
 
-__all__ = ["Embedding", "embed_points", "barycentric_coordinates", "point_tet_distance"]
+__all__ = ["Embedding", "embed_points", "embed_points_in_mesh", "barycentric_coordinates", "point_tet_distance"]
 
 # A point is inside a tet when its smallest barycentric coordinate is >= -INSIDE_TOL
 # (barycentric coordinates are scale free, so the tolerance is relative).
@@ -41,6 +41,10 @@ class Embedding:
     distances : (p,) float64, distance from each point to its tet (0 inside).
     outside : (p,) bool, points not inside any tet (within ``INSIDE_TOL``).
     num_vertices : number of mesh vertices n (columns of W).
+    element_type : "tet4" (barycentric), or "tet10" / "hex8" / "hex27" from
+        :func:`embed_points_in_mesh`: then ``tet_index`` is the element index, ``vertex_ids`` /
+        ``weights`` are (p, k) with k the element's nodes and the weights its shape functions at
+        the point (rows still sum to 1).
     """
 
     tet_index: np.ndarray
@@ -49,6 +53,17 @@ class Embedding:
     distances: np.ndarray
     outside: np.ndarray
     num_vertices: int
+    element_type: str = "tet4"
+
+    @property
+    def element_index(self) -> np.ndarray:
+        """(p,) the element each point is attached to (= ``tet_index``)."""
+        return self.tet_index
+
+    @property
+    def weights_per_point(self) -> int:
+        """k, the stored entries per row of W (4 for tets, 10, 8, 27 for tet10, hex8, hex27)."""
+        return int(np.shape(self.weights)[1])
 
     @property
     def num_points(self) -> int:
@@ -67,9 +82,9 @@ class Embedding:
         return float(self.distances[self.outside].max())
 
     def matrix(self) -> scipy.sparse.csr_matrix:
-        """The skinning matrix W (p x n, csr, 4 stored entries per row, rows sum to 1)."""
-        p = self.num_points
-        indptr = np.arange(0, 4 * p + 1, 4, dtype=np.int64)
+        """The skinning matrix W (p x n, csr, k stored entries per row, rows sum to 1)."""
+        p, k = self.num_points, self.weights_per_point
+        indptr = np.arange(0, k * p + 1, k, dtype=np.int64)
         return scipy.sparse.csr_matrix(
             (self.weights.reshape(-1).copy(), self.vertex_ids.reshape(-1).copy(), indptr),
             shape=(p, self.num_vertices),
@@ -356,3 +371,25 @@ def embed_points(points, vertices, tets=None, *, k_nearest: int = 12) -> Embeddi
         outside=~inside,
         num_vertices=n,
     )
+
+
+def embed_points_in_mesh(points, mesh) -> Embedding:
+    """Embed points (p, 3) in a volume mesh of any element type (``TetMesh`` or ``ElementMesh``).
+
+    Tet4: :func:`embed_points` (barycentric coordinates, k = 4). Tet10 / Hex8 / Hex27: the point's
+    element and reference coordinates from :func:`warpfem.elements.embed_points_in_elements`
+    (corner-tet search, then Newton on the isoparametric map), weights = the element's k shape
+    functions there (k = 10, 8, 27), so x = sum_a N_a(xi) x_a reproduces every deformation the
+    element represents (affine ones exactly). ``distances`` / ``outside`` come from the corner-tet
+    search: the distance of an outside point to the mesh's straight-sided corner tets.
+    """
+    etype = getattr(mesh, "element_type", "tet4")
+    if etype == "tet4":
+        return embed_points(points, mesh.vertices, np.asarray(mesh.elements))
+    from warpfem.elements import embed_points_in_elements
+
+    corner = embed_points(points, mesh.vertices, mesh.corner_tets())
+    ids, weights, elem = embed_points_in_elements(points, mesh)
+    return Embedding(tet_index=np.asarray(elem, dtype=np.int64), vertex_ids=np.asarray(ids, dtype=np.int64),
+                     weights=np.asarray(weights, dtype=np.float64), distances=corner.distances,
+                     outside=corner.outside, num_vertices=int(mesh.num_vertices), element_type=etype)

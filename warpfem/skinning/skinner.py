@@ -33,30 +33,35 @@ class SurfaceSkinner:
 
     Parameters
     ----------
-    embedding : the embedding of the surface points into the tet mesh.
-    tets : (m, 4) tet connectivity the embedding was computed with (its ``tet_index`` refers to
-        it), or the mesh object itself.
+    embedding : the embedding of the surface points into the mesh (:func:`embed_points` or
+        :func:`embed_points_in_mesh`; k weights per point, k = 4, 10, 8 or 27).
+    tets : (m, k) element connectivity the embedding was computed with (its ``tet_index`` refers
+        to it), or the mesh object itself (``TetMesh`` or ``ElementMesh``).
     device : Warp device ("cpu", "cuda:0", ...); None means the default device.
     precision : "float32" or "float64"; positions are arrays of wp.vec3 / wp.vec3d.
     """
 
     def __init__(self, embedding: Embedding, tets, *, device=None, precision="float32"):
-        if hasattr(tets, "tets"):  # a mesh object
+        if hasattr(tets, "elements"):  # a mesh object (TetMesh or ElementMesh)
+            tets = tets.elements
+        elif hasattr(tets, "tets"):
             tets = tets.tets
         tets = np.asarray(tets)
-        if tets.ndim != 2 or tets.shape[1] != 4:
-            raise ValueError(f"tets must have shape (m, 4), got {tets.shape}")
+        k = int(np.shape(embedding.weights)[1]) if np.ndim(embedding.weights) == 2 else -1
+        if tets.ndim != 2 or tets.shape[1] != k:
+            raise ValueError(f"elements must have shape (m, {k}) (k = weights per point of the embedding), got {tets.shape}")
         ti = np.asarray(embedding.tet_index)
         if ti.size and (ti.min() < 0 or ti.max() >= tets.shape[0]):
             raise ValueError(f"embedding refers to tet {int(ti.max())} but the mesh has {tets.shape[0]} tets")
         vids = tets[ti].astype(np.int64)
         if not np.array_equal(vids, np.asarray(embedding.vertex_ids)):
-            raise ValueError("embedding was computed with a different tet connectivity")
+            raise ValueError("embedding was computed with a different element connectivity")
         if embedding.num_vertices >= 2**31:
             raise ValueError("mesh too large for int32 vertex ids")
         self.scalar_type, self.vec_type = resolve_precision(precision)
         self.device = wp.get_device(device)
         self.num_points = int(ti.shape[0])
+        self.weights_per_point = k
         self.num_vertices = int(embedding.num_vertices)
         np_scalar = np.float32 if self.scalar_type == wp.float32 else np.float64
         self.vertex_ids = wp.array(vids.astype(np.int32), dtype=wp.int32, device=self.device)

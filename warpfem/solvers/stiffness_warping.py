@@ -44,14 +44,11 @@ from warpfem.kernels import linalg as LK
 from warpfem.kernels import warping as WK
 from warpfem.solvers.newton import SolveFailed, SolveStats
 from warpfem.solvers.pcg import BlockJacobiPCG
+from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
 
 __all__ = ["StiffnessWarpingSimulator", "ROTATIONS", "tet_linear_stiffness_blocks"]
 
-_PRECISIONS = {
-    "float32": (wp.float32, wp.vec3, wp.mat33, np.float32),
-    "float64": (wp.float64, wp.vec3d, wp.mat33d, np.float64),
-}
 
 #: rotation estimators: name -> kernel int
 ROTATIONS = {"identity": WK.ROTATION_IDENTITY, "polar": WK.ROTATION_POLAR, "qr": WK.ROTATION_QR}
@@ -72,7 +69,7 @@ def tet_linear_stiffness_blocks(dNdX: np.ndarray, volumes: np.ndarray, mu: float
     return K * V[:, None, None, None, None]
 
 
-class StiffnessWarpingSimulator:
+class StiffnessWarpingSimulator(SimulatorState):
     """Corotational linear FEM (stiffness warping) with linearly implicit backward Euler.
 
     Same state API as :class:`warpfem.Simulator` (``step``, ``positions``, ``velocities``,
@@ -99,19 +96,13 @@ class StiffnessWarpingSimulator:
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, rotation="polar", cg_tol=1e-6,
                  max_cg_iters=2000, damping_mass=0.0, damping_stiffness=0.0, require_convergence=False):
-        if precision not in _PRECISIONS:
-            raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
-        if not (isinstance(dt, (int, float, np.floating)) and np.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+        types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         if rotation not in ROTATIONS:
             raise ValueError(f"rotation must be one of {sorted(ROTATIONS)}, got {rotation!r}")
         if not (np.isfinite(cg_tol) and 0.0 < cg_tol < 1.0):
             raise ValueError(f"cg_tol must be in (0, 1), got {cg_tol!r}")
         if int(max_cg_iters) != max_cg_iters or max_cg_iters < 1:
             raise ValueError(f"max_cg_iters must be a positive integer, got {max_cg_iters!r}")
-        if not (damping_mass >= 0 and damping_stiffness >= 0):
-            raise ValueError(f"Rayleigh damping coefficients must be >= 0, got damping_mass={damping_mass!r}, "
-                             f"damping_stiffness={damping_stiffness!r}")
         qd = model.quadrature
         if qd.element_type != "tet4":
             raise ValueError(f"StiffnessWarpingSimulator supports tet4 meshes only; the model's mesh has "
@@ -124,7 +115,7 @@ class StiffnessWarpingSimulator:
         self.model = model
         self.device = wp.get_device(device)
         self.precision = precision
-        self._s, self._vec, self._mat, self._np = _PRECISIONS[precision]
+        self._s, self._vec, self._mat, self._np = types
         self.dt = float(dt)
         self.rotation = rotation
         self.cg_tol = float(cg_tol)
@@ -171,46 +162,6 @@ class StiffnessWarpingSimulator:
         """Upload the model's fixed mask and external forces (call after changing them on the model)."""
         self._mask = self._vec_array((~self.model.fixed).astype(np.float64))
         self._fext = self._vec_array(self.model.external_forces())
-
-    def fix(self, indices, components="xyz"):
-        """Fix vertex components at their current positions from the next step on (no re-assembly)."""
-        self.model.fix(indices, components)
-        self.sync_model()
-
-    def release(self, indices, components="xyz"):
-        """Release fixed components (no re-assembly)."""
-        self.model.release(indices, components)
-        self.sync_model()
-
-    def set_targets(self, indices, positions):
-        """Prescribe end-of-step positions (m) of fixed vertices for the next step (kinematic handles)."""
-        idx = self.model._indices(indices)
-        pos = np.asarray(positions, dtype=np.float64).reshape(len(idx), 3)
-        if not np.all(np.isfinite(pos)):
-            raise ValueError("target positions must be finite")
-        for i, p in zip(idx.tolist(), pos):
-            self._targets[i] = p
-
-    # -- state access --------------------------------------------------------------------------
-    def positions(self) -> np.ndarray:
-        """Current positions (n, 3), m, float64 copy."""
-        return self.x.numpy().astype(np.float64)
-
-    def velocities(self) -> np.ndarray:
-        """Current velocities (n, 3), m/s, float64 copy."""
-        return self.v.numpy().astype(np.float64)
-
-    def set_positions(self, x):
-        x = np.asarray(x, dtype=np.float64)
-        if x.shape != (self.num_vertices, 3) or not np.all(np.isfinite(x)):
-            raise ValueError(f"positions must be finite with shape ({self.num_vertices}, 3), got {x.shape}")
-        self.x = self._vec_array(x)
-
-    def set_velocities(self, v):
-        v = np.asarray(v, dtype=np.float64)
-        if v.shape != (self.num_vertices, 3) or not np.all(np.isfinite(v)):
-            raise ValueError(f"velocities must be finite with shape ({self.num_vertices}, 3), got {v.shape}")
-        self.v = self._vec_array(v)
 
     # -- stages ------------------------------------------------------------------------------------
     def _launch(self, kernel, dim, inputs):

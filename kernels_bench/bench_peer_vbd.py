@@ -1,0 +1,299 @@
+"""Peer comparison: warpfem Newton backward Euler vs the ``newton`` engine's VBD soft-body solver.
+
+The same cantilever in both, on the same device in the same run: the `make demo` beam (1 m x 0.2 m
+x 0.2 m, 20x2x2 cells split into 6 tets each: 480 tets, 189 vertices), stable neo-Hookean
+E = 1e6 Pa, nu = 0.3, density 1000 kg/m^3 (total mass 40 kg), gravity 9.81 m/s^2 along -z, every
+vertex on the face x = 0 clamped, no damping, released from rest at t = 0.
+
+Both codes use the same energy: newton's VBD tet energy is the stable neo-Hookean of Smith, de Goes
+& Kim (2018, sec. 3.4) without the log term, reparametrised from the Lame parameters it is given
+(``k_mu`` = mu_L, ``k_lambda`` = lambda_L) exactly as warpfem's ``StableNeoHookean`` is; both lump
+rho V / 4 of each tet on its vertices. Builder quirks handled here: ``ModelBuilder(up_axis=Z,
+gravity=(0, 0, -9.81))`` (the gravity argument must be a 3-vector), ``k_damp = 0`` passed explicitly
+(its builder default, 0, could be changed by a caller), clamped particles get mass 0 and lose ``ParticleFlags.ACTIVE`` (so the particle mass sum
+is 39 kg = 40 kg minus the clamped vertices' share; warpfem keeps that mass on fixed vertices, where
+it has no effect), ``builder.color()`` before ``finalize`` (VBD needs the graph colouring). VBD
+works in float32 only.
+
+Quantity: the mean z displacement of the 21 vertices on the tip face x = 1, sampled every 1/60 s
+for ``--duration`` seconds. Error = RMS over the samples of (tip - tip_ref), divided by the peak
+|tip_ref| (the largest tip displacement of the reference). Reference: warpfem float64, tol = cg_tol
+= 1e-8 (1e-6 with --quick), run at dt_r = 1/60 / ``--ref-substeps`` and at 2 dt_r, Richardson-extrapolated
+(x_ref = 2 x(dt_r) - x(2 dt_r): backward Euler is first order, so this is second order); how far the
+dt_r run itself is from it is printed (``self_error``) as a scale for the reference's uncertainty. Time: wall-clock
+seconds per simulated second (``wp.synchronize_device`` before and after; every kernel is compiled
+by a warm-up run first). Ratios: for every point on warpfem's Pareto frontier (time, error), the
+best VBD error reached within the same time budget ("error ratio at equal time") and the least VBD
+time that reaches the same error ("time ratio at equal error"), where VBD gets there at all.
+
+    .venv/bin/python kernels_bench/bench_peer_vbd.py [--device cpu] [--quick] [--json PATH] [--markdown PATH]
+
+Skips with a message (exit code 0) when ``newton`` is not installed (``pip install newton`` or
+``pip install -e .[peer]``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+import warnings
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # as in bench_kernels.py
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+import warp as wp  # noqa: E402
+
+import warpfem as wf  # noqa: E402
+
+SIZE, CELLS = (1.0, 0.2, 0.2), (20, 2, 2)
+E, NU, RHO, G = 1.0e6, 0.3, 1000.0, 9.81
+FRAME_DT = 1.0 / 60.0
+
+
+def beam():
+    mesh = wf.box_tet_mesh(size=SIZE, cells=CELLS)
+    fixed = np.flatnonzero(mesh.vertices[:, 0] < 1e-9)
+    tip = np.flatnonzero(mesh.vertices[:, 0] > SIZE[0] - 1e-9)
+    return mesh, fixed, tip
+
+
+def lame(E, nu):
+    return E / (2 * (1 + nu)), E * nu / ((1 + nu) * (1 - 2 * nu))
+
+
+def run_warpfem(mesh, fixed, tip, *, device, precision, dt, tol, cg_tol, frames, max_iters=50):
+    """Tip z displacement per frame (frames,), wall seconds, Newton and CG iterations, unconverged steps."""
+    mat = wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=NU, density=RHO)
+    model = wf.Model(mesh, mat, gravity=(0.0, 0.0, -G), mass_matrix="lumped")
+    model.fix(fixed)
+    sub = int(round(FRAME_DT / dt))
+    assert abs(sub * dt - FRAME_DT) < 1e-12, "dt must divide 1/60 s"
+    sim = wf.Simulator(model, device=device, precision=precision, dt=dt, tol=tol, cg_tol=cg_tol,
+                       max_iters=max_iters, max_cg_iters=5000)
+    z0 = mesh.vertices[tip, 2].mean()
+    out = np.zeros(frames)
+    newton = cg = bad = 0
+    secs = 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for k in range(frames):
+            wp.synchronize_device(device)
+            t = time.perf_counter()
+            for _ in range(sub):
+                st = sim.step()
+                newton += st.newton_iterations
+                cg += st.cg_iterations
+                bad += not st.converged
+            wp.synchronize_device(device)
+            secs += time.perf_counter() - t
+            out[k] = sim.positions()[tip, 2].mean() - z0  # read-back outside the timed region
+    steps = frames * sub
+    return dict(tip=out, seconds=secs, newton_per_step=newton / steps, cg_per_step=cg / steps, unconverged_steps=bad,
+                steps=steps)
+
+
+class VBDBeam:
+    """The same beam in newton's SolverVBD (float32)."""
+
+    def __init__(self, newton, mesh, fixed, *, device):
+        self.newton, self.device = newton, device
+        mu, lam = lame(E, NU)
+        b = newton.ModelBuilder(up_axis=newton.Axis.Z, gravity=(0.0, 0.0, -G))
+        b.add_soft_mesh(pos=(0.0, 0.0, 0.0), rot=wp.quat_identity(), scale=1.0, vel=(0.0, 0.0, 0.0),
+                        vertices=mesh.vertices.tolist(), indices=mesh.tets.reshape(-1).tolist(),
+                        density=RHO, k_mu=mu, k_lambda=lam, k_damp=0.0)
+        active = int(newton.ParticleFlags.ACTIVE)
+        for i in fixed:
+            b.particle_mass[i] = 0.0
+            b.particle_flags[i] = int(b.particle_flags[i]) & ~active
+        b.color()
+        self.model = b.finalize(device=device)
+        pm = self.model.particle_mass.numpy()
+        self.total_mass = float(pm.sum())
+        self.gravity = np.asarray(self.model.gravity.numpy()).reshape(-1, 3)[0].tolist()
+        self.num_tets = int(self.model.tet_count)
+
+    def run(self, tip, *, iterations, substeps, frames):
+        newton = self.newton
+        solver = newton.solvers.SolverVBD(self.model, iterations=iterations, particle_enable_tile_solve=False)
+        s0, s1, ctl = self.model.state(), self.model.state(), self.model.control()
+        z0 = s0.particle_q.numpy()[tip, 2].mean()
+        dt = FRAME_DT / substeps
+        out = np.zeros(frames)
+        secs = 0.0
+        for k in range(frames):
+            wp.synchronize_device(self.device)
+            t = time.perf_counter()
+            for _ in range(substeps):
+                s0.clear_forces()
+                solver.step(s0, s1, ctl, None, dt)
+                s0, s1 = s1, s0
+            wp.synchronize_device(self.device)
+            secs += time.perf_counter() - t
+            out[k] = s0.particle_q.numpy()[tip, 2].mean() - z0
+        return dict(tip=out, seconds=secs)
+
+
+def pareto(points):
+    """Indices of the (time, error) points not dominated by another (less time and less error)."""
+    order = sorted(range(len(points)), key=lambda i: (points[i][0], points[i][1]))
+    front, best = [], np.inf
+    for i in order:
+        if points[i][1] < best:
+            front.append(i)
+            best = points[i][1]
+    return front
+
+
+def compare(wf_rows, vbd_rows):
+    """Error ratio at equal time and time ratio at equal error, for each warpfem frontier point."""
+    out = []
+    wf_front = pareto([(r["wall_s_per_sim_s"], r["error"]) for r in wf_rows])
+    for i in wf_front:
+        r = wf_rows[i]
+        t, e = r["wall_s_per_sim_s"], r["error"]
+        within = [v for v in vbd_rows if v["wall_s_per_sim_s"] <= t and np.isfinite(v["error"])]
+        reach = [v for v in vbd_rows if v["error"] <= e]
+        row = dict(warpfem=r["config"], time=t, error=e)
+        if within:
+            v = min(within, key=lambda v: v["error"])
+            row.update(vbd_best_within_time=v["config"], vbd_error=v["error"], error_ratio_vbd_over_warpfem=v["error"] / e)
+        if reach:
+            v = min(reach, key=lambda v: v["wall_s_per_sim_s"])
+            row.update(vbd_fastest_reaching_error=v["config"], vbd_time=v["wall_s_per_sim_s"],
+                       time_ratio_vbd_over_warpfem=v["wall_s_per_sim_s"] / t)
+        out.append(row)
+    return out
+
+
+def error_of(tip, ref, amp):
+    return float(np.sqrt(np.mean((tip - ref) ** 2)) / amp) if np.all(np.isfinite(tip)) else float("inf")
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--quick", action="store_true", help="0.5 s of simulation and a smaller grid of settings")
+    ap.add_argument("--duration", type=float, default=None, help="simulated seconds (default 1.0; 0.35 with --quick: to the first peak)")
+    ap.add_argument("--ref-substeps", type=int, default=None, help="reference dt = 1/60 / this, even (default 8; 4 with --quick)")
+    ap.add_argument("--json", default=None)
+    ap.add_argument("--markdown", default=None)
+    args = ap.parse_args(argv)
+    wp.config.quiet = True
+    try:
+        import newton  # noqa: PLC0415
+    except ImportError as exc:
+        print(f"SKIP: the 'newton' package is not installed ({exc}); install it with "
+              "`pip install newton` or `pip install -e .[peer]` to run the peer comparison.")
+        return {"skipped": True, "reason": f"newton not installed: {exc}"}
+    wp.init()
+    device = wp.get_device(args.device)
+    duration = args.duration or (0.35 if args.quick else 1.0)
+    frames = int(round(duration / FRAME_DT))
+    ref_sub = args.ref_substeps or (4 if args.quick else 8)
+    mesh, fixed, tip = beam()
+
+    if args.quick:
+        wf_grid = [(p, sub, tol, cg) for p in ("float32", "float64")
+                   for sub, tol, cg in ((1, 1e-2, 1e-1), (1, 1e-5, 1e-3), (4, 1e-2, 1e-1), (10, 1e-2, 1e-1))]
+        vbd_grid = [(1, 10), (5, 5), (5, 20), (10, 5)]
+    else:
+        wf_grid = [(p, sub, tol, cg) for p in ("float32", "float64") for sub in (1, 2, 4, 10)
+                   for tol, cg in ((1e-1, 1e-1), (1e-2, 1e-1), (1e-5, 1e-3))]
+        vbd_grid = [(sub, it) for sub in (1, 2, 5, 10, 20) for it in (5, 10, 20)]
+
+    # reference: float64, tight, at dt_r = 1/60/ref_sub and 2 dt_r; Richardson-extrapolated (backward Euler is
+    # first order: x_ref = 2 x(dt_r) - x(2 dt_r), second-order accurate); self-error = |x(dt_r) - x_ref|
+    t0 = time.perf_counter()
+    ref_tol = 1e-6 if args.quick else 1e-8
+    fine = run_warpfem(mesh, fixed, tip, device=device, precision="float64", dt=FRAME_DT / ref_sub, tol=ref_tol,
+                       cg_tol=ref_tol, frames=frames)
+    coarse = run_warpfem(mesh, fixed, tip, device=device, precision="float64", dt=FRAME_DT / (ref_sub // 2), tol=ref_tol,
+                         cg_tol=ref_tol, frames=frames)
+    ref = dict(tip=2 * fine["tip"] - coarse["tip"])
+    amp = float(np.abs(ref["tip"]).max())
+    ref_self = error_of(fine["tip"], ref["tip"], amp)
+    print(f"device {device.alias}, beam {mesh.num_tets} tets / {mesh.num_vertices} vertices, {duration:g} s simulated; "
+          f"reference = Richardson(dt 1/{60 * ref_sub}, 1/{30 * ref_sub}): peak tip displacement {amp:.4f} m; "
+          f"the dt 1/{60 * ref_sub} run differs from it by {ref_self:.2e} ({time.perf_counter() - t0:.0f} s)", flush=True)
+
+    wf_rows = []
+    run_warpfem(mesh, fixed, tip, device=device, precision="float32", dt=FRAME_DT, tol=1e-2, cg_tol=1e-3, frames=1)  # warm
+    for prec, sub, tol, cg in wf_grid:
+        r = run_warpfem(mesh, fixed, tip, device=device, precision=prec, dt=FRAME_DT / sub, tol=tol, cg_tol=cg, frames=frames)
+        row = dict(code="warpfem", config=f"{prec} dt=1/{60 * sub} tol={tol:g} cg_tol={cg:g}", precision=prec,
+                   dt=FRAME_DT / sub, tol=tol, cg_tol=cg, wall_s_per_sim_s=r["seconds"] / duration,
+                   error=error_of(r["tip"], ref["tip"], amp), newton_per_step=r["newton_per_step"],
+                   cg_per_step=r["cg_per_step"], unconverged_steps=r["unconverged_steps"], steps=r["steps"])
+        wf_rows.append(row)
+        print(f"  warpfem {row['config']:34s} {row['wall_s_per_sim_s']:8.2f} s/sim-s  err {row['error']:.3e}  "
+              f"newton/step {row['newton_per_step']:.1f} cg/step {row['cg_per_step']:.0f} unconverged {row['unconverged_steps']}",
+              flush=True)
+
+    t0 = time.perf_counter()
+    vb = VBDBeam(newton, mesh, fixed, device=device)
+    vb.run(tip, iterations=1, substeps=1, frames=1)  # warm (compiles newton's kernels on first use)
+    print(f"  newton {newton.__version__} SolverVBD: {vb.num_tets} tets, particle mass {vb.total_mass:.3f} kg "
+          f"(40 kg minus the clamped vertices), gravity {vb.gravity} (set-up + compile {time.perf_counter() - t0:.0f} s)",
+          flush=True)
+    vbd_rows = []
+    for sub, it in vbd_grid:
+        r = vb.run(tip, iterations=it, substeps=sub, frames=frames)
+        row = dict(code="newton-vbd", config=f"float32 dt=1/{60 * sub} iterations={it}", precision="float32",
+                   dt=FRAME_DT / sub, iterations=it, wall_s_per_sim_s=r["seconds"] / duration,
+                   error=error_of(r["tip"], ref["tip"], amp))
+        vbd_rows.append(row)
+        print(f"  vbd     {row['config']:34s} {row['wall_s_per_sim_s']:8.2f} s/sim-s  err {row['error']:.3e}", flush=True)
+
+    cmp_rows = compare(wf_rows, vbd_rows)
+    device_name = f"{device.alias} ({platform.processor() or platform.machine()})" if device.is_cpu else f"{device.alias} ({device.name})"
+    result = dict(device=device_name, newton_version=newton.__version__, warp_version=wp.config.version,
+                  scene=dict(size_m=SIZE, cells=CELLS, tets=mesh.num_tets, vertices=mesh.num_vertices, youngs_modulus=E,
+                             poisson_ratio=NU, density=RHO, gravity=G, duration_s=duration),
+                  reference=dict(dt=FRAME_DT / ref_sub, richardson_from=[FRAME_DT / ref_sub, 2 * FRAME_DT / ref_sub], tol=ref_tol,
+                                 cg_tol=ref_tol, peak_tip_m=amp, self_error=ref_self,
+                                 tip=ref["tip"].tolist()),
+                  vbd_particle_mass=vb.total_mass, warpfem=wf_rows, vbd=vbd_rows, comparison=cmp_rows,
+                  warpfem_frontier=[wf_rows[i]["config"] for i in pareto([(r["wall_s_per_sim_s"], r["error"]) for r in wf_rows])],
+                  vbd_frontier=[vbd_rows[i]["config"] for i in pareto([(r["wall_s_per_sim_s"], r["error"]) for r in vbd_rows])])
+    md = markdown(result)
+    print(md)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(result, fh, indent=2)
+    if args.markdown:
+        with open(args.markdown, "w") as fh:
+            fh.write(md)
+    return result
+
+
+def markdown(res):
+    L = [f"### Peer comparison: warpfem vs newton {res['newton_version']} VBD ({res['device']})", "",
+         f"Cantilever {res['scene']['tets']} tets, {res['scene']['duration_s']:g} s simulated; reference: warpfem float64, "
+         f"tol = cg_tol = {res['reference']['tol']:g}, Richardson extrapolation of dt {res['reference']['dt']:.3g} s and twice that; peak tip displacement "
+         f"{res['reference']['peak_tip_m']:.4f} m (the dt {res['reference']['dt']:.3g} s run itself is off by "
+         f"{res['reference']['self_error']:.1e}). Error = RMS over frames (1/60 s) of the tip-displacement error / peak.", "",
+         "| code | configuration | wall s per simulated s | tip error | Newton/step | CG/step |", "|---|---|---|---|---|---|"]
+    for r in res["warpfem"] + res["vbd"]:
+        nt = f"{r['newton_per_step']:.1f}" if "newton_per_step" in r else "-"
+        cg = f"{r['cg_per_step']:.0f}" if "cg_per_step" in r else "-"
+        L.append(f"| {r['code']} | {r['config']} | {r['wall_s_per_sim_s']:.2f} | {r['error']:.2e} | {nt} | {cg} |")
+    L += ["", "Ratios on warpfem's Pareto frontier (VBD / warpfem; > 1 means warpfem is better):", "",
+          "| warpfem point | time | error | VBD best error within that time | error ratio | VBD fastest to that error | time ratio |",
+          "|---|---|---|---|---|---|---|"]
+    for c in res["comparison"]:
+        e1 = f"{c['vbd_error']:.2e} ({c['vbd_best_within_time']})" if "vbd_error" in c else "none that fast"
+        r1 = f"{c['error_ratio_vbd_over_warpfem']:.2g}" if "vbd_error" in c else "-"
+        e2 = f"{c['vbd_time']:.2f} s ({c['vbd_fastest_reaching_error']})" if "vbd_time" in c else "not reached"
+        r2 = f"{c['time_ratio_vbd_over_warpfem']:.2g}" if "vbd_time" in c else "-"
+        L.append(f"| {c['warpfem']} | {c['time']:.2f} | {c['error']:.2e} | {e1} | {r1} | {e2} | {r2} |")
+    return "\n".join(L) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(0 if main() is not None else 1)

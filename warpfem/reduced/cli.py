@@ -1,0 +1,76 @@
+"""``warpfem train SCENE``: precompute and cache a scene's subspace (basis + cubature).
+
+Registered on the ``warpfem`` command line when :mod:`warpfem.cli` builds its parser (PLUGINS).
+Exit codes as in :mod:`warpfem.cli`: 0 trained (or up to date), 1 training failed (e.g. the
+snapshot run diverged, a basis that cannot be built), 2 invalid scene or command line, 130
+interrupted.
+"""
+
+from __future__ import annotations
+
+from warpfem import cli as _cli
+
+
+def _cmd_train(args) -> int:
+    from warpfem.scenes import SceneError
+    from warpfem.solvers.newton import SolveFailed
+
+    try:
+        scene = _cli._load(args.scene)
+    except SceneError as e:
+        _cli._err(str(e))
+        return _cli.EXIT_INVALID
+    if scene.spec.subspace is None:
+        _cli._err(f"{args.scene}: no [subspace] section: nothing to train (add [subspace] with modes, "
+                  "cubature_tolerance, ... to make the run reduced)")
+        return _cli.EXIT_INVALID
+    from warpfem.reduced.scene import subspace_cache_path, train_scene
+    from warpfem.reduced.subspace import format_report
+
+    s = scene.spec.subspace
+    if not args.quiet:
+        snap = f"a full run of {s['training_frames'] or scene.spec.output['frames']} frames"
+        how = {"snapshots": snap, "random": f"{s['training_poses']} random poses",
+               "mixed": f"{s['training_poses']} random poses + {snap}"}[s["training"]]
+        print(f"{scene.name}: training r = {s['modes']} subspace, cubature tolerance {s['cubature_tolerance']:g} "
+              f"from {how} on {args.device} ({args.precision}) -> {subspace_cache_path(scene)}", flush=True)
+
+    init = getattr(_cli, "_init_warp", None)
+    if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
+        init(args.device, args.verbose)
+
+    def progress(k, total):
+        if not args.quiet:
+            print(f"  training frame {k}/{total}", flush=True)
+
+    try:
+        sub = train_scene(scene, device=args.device, precision=args.precision, retrain=args.retrain, progress=progress)
+    except SceneError as e:
+        _cli._err(str(e))
+        return _cli.EXIT_INVALID
+    except SolveFailed as e:
+        _cli._err(f"{args.scene}: the full training run failed: {e}")
+        return _cli.EXIT_FAILED
+    except (ValueError, RuntimeError, OSError) as e:
+        _cli._err(f"{args.scene}: training failed: {e}")
+        return _cli.EXIT_FAILED
+    except KeyboardInterrupt:
+        _cli._err("interrupted; the cache was not written")
+        return _cli.EXIT_INTERRUPTED
+    print(format_report(sub.report), flush=True)
+    return _cli.EXIT_OK
+
+
+def register(subparsers):
+    p = subparsers.add_parser("train", help="train and cache a scene's reduced subspace (basis + cubature)")
+    p.add_argument("scene", help="TOML scene file with a [subspace] section")
+    p.add_argument("--retrain", action="store_true",
+                   help="train even when the cache is up to date (default: reuse a cache that matches the scene)")
+    p.add_argument("--device", default="cpu", help="Warp device for the training run: cpu, cuda, cuda:0, ... (default cpu)")
+    p.add_argument("--precision", choices=("float32", "float64"), default="float64")
+    p.add_argument("--quiet", action="store_true", help="only the final report")
+    p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages")
+    p.set_defaults(func=_cmd_train)
+
+
+_cli.add_subcommand(register)

@@ -1,0 +1,228 @@
+"""Scenes with a ``[subspace]`` section: training the cache (``warpfem train``) and reduced runs.
+
+``Scene.build`` calls :func:`build_reduced_simulator` when the scene has ``[subspace]``; it loads
+the cache written by :func:`train_scene` and returns a :class:`~warpfem.reduced.ReducedSimulator`
+(reduced backward Euler) that offers what :class:`warpfem.scenes.SceneRun` drives: ``positions()``,
+``x``, ``set_targets``, ``sync_model``, ``step`` / ``dt`` / ``time`` and, for the render surface,
+``surface_positions_for(run)`` (W U precomputed: O(r) per surface point, no full-mesh rebuild).
+
+Kinematic ``[[handle]]``s: the basis is built with the handle vertices fixed and the handle motion
+enters as a prescribed displacement field (``warpfem.reduced.lifting``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import time
+
+import numpy as np
+
+__all__ = ["build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
+           "scene_settings"]
+
+_FULL_RUN = [False]  # while True, build_reduced_simulator hands back the full simulator (training runs)
+
+
+@contextlib.contextmanager
+def _full_simulation():
+    _FULL_RUN[0] = True
+    try:
+        yield
+    finally:
+        _FULL_RUN[0] = False
+
+
+def subspace_cache_path(scene) -> str:
+    """The cache file: ``[subspace].cache`` relative to the scene file, default ``<name>.subspace.npz``
+    next to it."""
+    sp = scene.spec
+    c = sp.subspace.get("cache") or f"{os.path.splitext(os.path.basename(sp.path or 'scene'))[0]}.subspace.npz"
+    return os.path.normpath(c if os.path.isabs(c) else os.path.join(sp.base_dir, c))
+
+
+def scene_handles(scene) -> list:
+    """[(vertex ids, components)] per ``[[handle]]``."""
+    sel = scene.selections()["handle"]
+    return [(ids, h["components"]) for h, ids in zip(scene.spec.handle, sel)]
+
+
+def scene_settings(scene) -> dict:
+    """The ``[subspace]`` keys as :func:`~warpfem.reduced.train_subspace` settings (for staleness checks)."""
+    s = scene.spec.subspace
+    return {"modes": int(s["modes"]), "modal_derivatives": bool(s["modal_derivatives"]),
+            "cubature_tolerance": float(s["cubature_tolerance"]), "max_cubature_points": int(s["max_cubature_points"]),
+            "seed": int(s["seed"]), "pose_source": _POSE_SOURCE[s["training"]],
+            "load_response": bool(s.get("load_response", False))}
+
+
+_POSE_SOURCE = {"mixed": "random+snapshots", "snapshots": "snapshots", "random": "random"}
+
+
+def _where(scene):
+    return scene.path or "<scene>"
+
+
+def _scene_error(scene, where, msg):
+    from warpfem.scenes import SceneError
+
+    return SceneError(f"{_where(scene)}: {where}: {msg}")
+
+
+def _check_integrator(scene):
+    el = scene.spec.mesh.get("element", "tet4")
+    if el != "tet4":
+        raise _scene_error(scene, "[subspace]", f"reduced simulation supports [mesh] element = \"tet4\" only, got {el!r}")
+    t = scene.integrator_type
+    if t != "backward_euler":
+        raise _scene_error(scene, "[subspace]", f"reduced simulation needs [integrator] type = \"backward_euler\", "
+                           f"got {t!r} (remove [subspace] to run {t!r} on the full mesh)")
+
+
+def _stale(scene, sub) -> list:
+    want = scene_settings(scene)
+    have = sub.settings
+    out = []
+    for k, v in want.items():
+        got = have.get(k, {"pose_source": "random", "load_response": False}.get(k))
+        if got != v:
+            out.append(f"{k}: cache {got!r} vs scene {v!r}")
+    if want["pose_source"] != "random":
+        frames = int(scene.spec.subspace["training_frames"] or scene.spec.output["frames"])
+        if have.get("snapshots") != frames + 1:
+            out.append(f"training frames: cache {(have.get('snapshots') or 1) - 1} vs scene {frames}")
+    if want["pose_source"] != "snapshots":
+        for k, key in (("num_training_poses", "training_poses"), ("num_validation_poses", "validation_poses")):
+            if have.get(k) != scene.spec.subspace[key]:
+                out.append(f"{key}: cache {have.get(k)!r} vs scene {scene.spec.subspace[key]!r}")
+    return out
+
+
+def _load_checked(scene, model):
+    from warpfem.reduced.subspace import SubspaceMismatch, load_subspace
+
+    path = subspace_cache_path(scene)
+    hint = f"run `warpfem train {_where(scene)}` first"
+    if not os.path.exists(path):
+        raise _scene_error(scene, "[subspace].cache", f"subspace cache {path} not found; {hint}")
+    try:
+        sub = load_subspace(path, model, handles=scene_handles(scene))
+    except SubspaceMismatch as e:
+        raise _scene_error(scene, "[subspace].cache", f"{e}; {hint}") from e
+    stale = _stale(scene, sub)
+    if stale:
+        raise _scene_error(scene, "[subspace].cache", f"subspace cache {path} was trained with other [subspace] "
+                           f"settings ({'; '.join(stale)}); {hint}")
+    return sub, path
+
+
+def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
+    """The reduced backward Euler simulator of a scene with ``[subspace]`` (cache from ``warpfem train``).
+
+    Raises :class:`~warpfem.scenes.SceneError` when the integrator is not backward Euler, or the
+    cache is missing, belongs to another mesh / material / fixed set / handle set, or was trained
+    with other ``[subspace]`` settings.
+    """
+    from warpfem.reduced.simulator import ReducedSimulator
+
+    _check_integrator(scene)
+    if _FULL_RUN[0]:
+        from warpfem.scenes import INTEGRATORS
+
+        return INTEGRATORS["backward_euler"].build(scene, model, device=device, precision=precision)
+    sub, _ = _load_checked(scene, model)
+    o = scene.spec.integrator
+    return ReducedSimulator(model, sub, device=device, precision=precision, dt=o["dt"], damping_mass=o["damping_mass"],
+                            damping_stiffness=o["damping_stiffness"], require_convergence=o["require_convergence"],
+                            tol=o["tol"], atol=o["atol"], max_iters=o["max_iters"], project_hessian=o["project_hessian"])
+
+
+def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progress=None):
+    """Train (or, with ``retrain=False`` and an up-to-date cache, load) the scene's subspace.
+
+    ``[subspace].training = "snapshots"`` (or ``"mixed"``, the default: snapshots + random poses): the full scene is simulated for ``training_frames``
+    frames (handles and loads as in ``warpfem run``) and the per-frame positions, projected on the
+    basis, are the cubature training poses (every 4th held out for validation). ``"random"``:
+    random poses (amplitude ~ 1/frequency), handles at random ramp fractions.
+    ``progress(frame, total)`` is called after each training frame. Writes the cache and returns
+    the :class:`~warpfem.reduced.Subspace` (its ``report`` includes ``snapshot_seconds``).
+    """
+    from warpfem.reduced.subspace import train_subspace
+    from warpfem.scenes import handle_targets
+
+    _check_integrator(scene)
+    sp = scene.spec
+    s = sp.subspace
+    path = subspace_cache_path(scene)
+    with _full_simulation():
+        run = scene.build(device=device, precision=precision)
+    model = run.model
+    if not retrain and os.path.exists(path):
+        try:
+            sub, _ = _load_checked(scene, model)
+            sub.report["cache"] = f"up to date: {path} (use --retrain to train again)"
+            return sub
+        except ValueError:  # SceneError / SubspaceMismatch: stale or mismatched, train below
+            pass
+    sel = scene_handles(scene)
+    rest = [model.rest_positions[ids].copy() for ids, _ in sel]
+
+    def targets_at(frac):
+        return [handle_targets(r0, h, frac) for r0, h in zip(rest, sp.handle)]
+
+    snapshots, t_snap = None, None
+    if s["training"] in ("snapshots", "mixed"):
+        frames = int(s["training_frames"] or sp.output["frames"])
+        if frames < 4:
+            raise _scene_error(scene, "[subspace].training_frames", f"snapshot training needs >= 4 frames, got {frames}")
+        t0 = time.perf_counter()
+        snapshots = [model.rest_positions.copy()]
+        for k in range(frames):
+            run.step_frame(total_frames=frames)
+            snapshots.append(run.sim.positions())
+            if progress is not None:
+                progress(k + 1, frames)
+        t_snap = time.perf_counter() - t0
+    sub = train_subspace(model, modes=s["modes"], modal_derivatives=s["modal_derivatives"],
+                         cubature_tolerance=s["cubature_tolerance"], max_cubature_points=s["max_cubature_points"],
+                         seed=s["seed"], cache=path, retrain=True, num_training_poses=s["training_poses"],
+                         num_validation_poses=s["validation_poses"], snapshots=snapshots,
+                         pose_source=_POSE_SOURCE[s["training"]],
+                         handles=sel, handle_targets_at=targets_at if sel else None,
+                         load_response=bool(s.get("load_response", False)))
+    if t_snap is not None:
+        sub.report["snapshot_seconds"] = t_snap
+        sub.report["snapshot_frames"] = len(snapshots) - 1
+        sub.save(path)
+    return sub
+
+
+def describe_subspace(scene) -> str:
+    """Lines for ``warpfem describe``: reduced settings and, when cached, r and cubature points."""
+    s = scene.spec.subspace
+    path = subspace_cache_path(scene)
+    lines = [f"reduced: [subspace] r = {s['modes']} (modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
+             f"cubature tolerance {s['cubature_tolerance']:g}, at most {s['max_cubature_points']} points, "
+             f"training {s['training']}"]
+    if scene.integrator_type != "backward_euler":
+        lines.append(f"  error: [subspace] needs [integrator] type = \"backward_euler\", got {scene.integrator_type!r}")
+    if not os.path.exists(path):
+        lines.append(f"  cache {path}: not trained yet (run `warpfem train {_where(scene)}`)")
+        return "\n".join(lines)
+    try:
+        import json
+
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            r = int(z["U"].shape[1])
+            pts = int(z["cubature_elements"].shape[0])
+        rep = meta.get("report", {})
+        lines.append(f"  cache {path}: r = {r}, {pts} cubature points of {rep.get('num_elements', '?')} elements, "
+                     f"training error {rep.get('training_error', float('nan')):.3g}, validation error "
+                     f"{rep.get('validation_error', float('nan')):.3g}"
+                     + (f", {rep['handles']} handle(s)" if rep.get("handles") else ""))
+        lines.append("  the run is reduced (x = X + U q, cubature forces); `warpfem run` checks the cache against "
+                     "the mesh, material, fixed set and handles")
+    except Exception as e:  # noqa: BLE001 - describe must not fail on a bad cache
+        lines.append(f"  cache {path}: unreadable ({e}); retrain with `warpfem train {_where(scene)}`")
+    return "\n".join(lines)
