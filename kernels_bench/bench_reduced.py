@@ -1,13 +1,21 @@
 """Reduced (cubature) vs full backward Euler on the cantilever beam and the Stanford bunny (seed 000).
 
-For each object, r in {10, 20, 40} (modal derivatives on) and cubature tolerance in
-{0.1, 0.05, 0.01}, and two sources of cubature training poses:
+For each object, r in {10, 20, 40} (modal derivatives on; by default the load-response column
+K^-1 f_ext is one of the r columns, as in scenes) and cubature tolerance in {0.1, 0.05, 0.01}, and
+one or more sources of cubature training poses (default ``random+snapshots``, the scenes'
+``training = "mixed"``):
 
 * ``random``: 100 random poses, per-column amplitude ~ 1/frequency (30 random validation poses);
 * ``snapshots``: the frames of a full run under a *different* load (gravity x 1.3, same steps),
   projected onto the basis; every 4th frame held out for validation. The reduced run itself is
   compared with the full run at the nominal gravity, so the test trajectory is not in the
-  training set.
+  training set;
+* ``random+snapshots``: both train, the random validation poses validate.
+
+One full reference run (and one snapshot run) per object serves every row.
+
+``--exact-cubature`` adds, per r, a row with every tet at weight 1 (poses ``exact``): the Galerkin
+reduced model without cubature error, which separates the subspace's error from the cubature's.
 
 Reported per row: cubature points, training / validation force error, training time (basis +
 cubature; the snapshot run's time is printed once per object), time per reduced step, time per
@@ -17,8 +25,8 @@ peak tip displacement of the full run (tip: mean of the beam's end face / the bu
 ``RMS err / size`` = max over steps of the RMS vertex error divided by the bounding-box diagonal.
 
     .venv/bin/python kernels_bench/bench_reduced.py [--objects beam,bunny] [--beam-steps 30]
-        [--bunny-steps 12] [--device cpu] [--poses random,snapshots,random+snapshots] [--load-response]
-        [--out kernels_bench/results/reduced]
+        [--bunny-steps 12] [--device cpu] [--poses random,snapshots,random+snapshots] [--no-load-response]
+        [--exact-cubature] [--machine "cpu, 2 cores, shared/loaded machine"] [--out kernels_bench/results/reduced]
 
 Writes ``<out>_<object>.json`` and ``.md`` (and prints the markdown). The device is named in the
 output; on the project's CI machine it is "cpu, 2 cores, shared/loaded machine".
@@ -39,6 +47,7 @@ import warp as wp
 import warpfem as wf
 from warpfem.reduced import ReducedSimulator, Subspace, build_basis, train_cubature
 from warpfem.reduced.basis import _full_simulator
+from warpfem.reduced.cubature import Cubature
 from warpfem.reduced.subspace import material_parameters, mesh_hash
 
 wp.config.quiet = True
@@ -110,36 +119,39 @@ def run_object(key, args):
         t0 = time.perf_counter()
         basis = build_basis(model, modes=r, modal_derivatives_=True, load_response=args.load_response, sim=sim)
         t_basis = time.perf_counter() - t0
-        for tol in [float(v) for v in args.tols.split(",")]:
-            for source in args.poses.split(","):
+        runs = [(float(tol), source) for tol in args.tols.split(",") for source in args.poses.split(",")]
+        for tol, source in runs + ([(0.0, "exact")] if args.exact_cubature else []):
+            if source == "exact":  # every tet at weight 1: the Galerkin reduced model without cubature error
+                cub = Cubature.full(model.quadrature.num_elements)
+            else:
                 kw = dict(snapshots=snapshots, pose_source=source) if "snapshots" in source else {}
                 cub = train_cubature(model, basis.U, tolerance=tol, max_points=obj["max_points"], seed=0, sim=sim, **kw)
-                sub = Subspace(basis, cub, mesh_hash(model), material_parameters(model))
-                rs = ReducedSimulator(model, sub, dt=obj["dt"], device=args.device, **obj["sim_options"])
-                t_red, err_tip, err_rms, failed = 0.0, 0.0, 0.0, ""
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", RuntimeWarning)
-                    for k in range(steps):
-                        t1 = time.perf_counter()
-                        try:
-                            rs.step()
-                        except wf.SolveFailed as e:
-                            failed = str(e)
-                            break
-                        t_red += time.perf_counter() - t1
-                        x = rs.positions()
-                        err_tip = max(err_tip, float(np.linalg.norm(x[tip].mean(0) - tip_full[k])))
-                        err_rms = max(err_rms, float(np.sqrt(((x - x_full[k]) ** 2).sum(1).mean())))
-                t_red /= max(rs.step_count, 1)
-                row = dict(r=r, tol=tol, poses=source, points=cub.num_points, train_err=cub.training_error,
-                           valid_err=cub.validation_error, training_s=t_basis + cub.training_seconds,
-                           reduced_step_ms=1e3 * t_red, full_step_ms=1e3 * t_full, speedup=t_full / max(t_red, 1e-12),
-                           tip_err_rel_peak=err_tip / peak if not failed else float("nan"),
-                           rms_err_rel_size=err_rms / size if not failed else float("nan"), failed=failed)
-                rows.append(row)
-                write(rows, partial=True)
-                print(f"# {key} r={r} tol={tol} {source}: {cub.num_points} pts, tip err/peak {row['tip_err_rel_peak']:.3f}, "
-                      f"rms/size {row['rms_err_rel_size']:.4f}, reduced {row['reduced_step_ms']:.1f} ms", flush=True)
+            sub = Subspace(basis, cub, mesh_hash(model), material_parameters(model))
+            rs = ReducedSimulator(model, sub, dt=obj["dt"], device=args.device, **obj["sim_options"])
+            t_red, err_tip, err_rms, failed = 0.0, 0.0, 0.0, ""
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                for k in range(steps):
+                    t1 = time.perf_counter()
+                    try:
+                        rs.step()
+                    except wf.SolveFailed as e:
+                        failed = str(e)
+                        break
+                    t_red += time.perf_counter() - t1
+                    x = rs.positions()
+                    err_tip = max(err_tip, float(np.linalg.norm(x[tip].mean(0) - tip_full[k])))
+                    err_rms = max(err_rms, float(np.sqrt(((x - x_full[k]) ** 2).sum(1).mean())))
+            t_red /= max(rs.step_count, 1)
+            row = dict(r=r, tol=tol, poses=source, points=cub.num_points, train_err=cub.training_error,
+                       valid_err=cub.validation_error, training_s=t_basis + cub.training_seconds,
+                       reduced_step_ms=1e3 * t_red, full_step_ms=1e3 * t_full, speedup=t_full / max(t_red, 1e-12),
+                       tip_err_rel_peak=err_tip / peak if not failed else float("nan"),
+                       rms_err_rel_size=err_rms / size if not failed else float("nan"), failed=failed)
+            rows.append(row)
+            write(rows, partial=True)
+            print(f"# {key} r={r} tol={tol} {source}: {cub.num_points} pts, tip err/peak {row['tip_err_rel_peak']:.3f}, "
+                  f"rms/size {row['rms_err_rel_size']:.4f}, reduced {row['reduced_step_ms']:.1f} ms", flush=True)
     write(rows, partial=False)
     return rows
 
@@ -150,7 +162,8 @@ def _report(key, obj, args, rows, *, steps, peak, size, t_full, t_snap, partial)
     head = (f"### {key}: {obj['name']}\n\n{steps} steps of dt = {obj['dt']:.4g} s; peak tip displacement of the full run "
             f"{peak:.4g} m, object size (bbox diagonal) {size:.4g} m; device: {device}. Full step "
             f"{1e3 * t_full:.0f} ms (Newton + block-Jacobi PCG, float64). Snapshot training run (gravity x 1.3, "
-            f"{steps} steps): {t_snap:.1f} s, not included in 'training s'.\n")
+            f"{steps} steps): {t_snap:.1f} s, not included in 'training s'. Basis: modal derivatives, load-response "
+            f"column {'on' if args.load_response else 'off'}.\n")
     table = ["| r | tol | poses | cubature pts | train err | valid err | training s | reduced step ms | full step ms | "
              "speed-up | tip err / peak | RMS err / size |", "|" + "---|" * 12]
     for w in rows:
@@ -165,7 +178,7 @@ def _report(key, obj, args, rows, *, steps, peak, size, t_full, t_snap, partial)
         with open(f"{args.out}_{key}.json", "w") as f:
             json.dump(dict(object=key, description=obj["name"], steps=steps, dt=obj["dt"], device=device, partial=partial,
                            peak_tip_displacement=peak, size=size, full_step_ms=1e3 * t_full,
-                           snapshot_run_s=t_snap, rows=rows), f, indent=1)
+                           snapshot_run_s=t_snap, load_response=bool(args.load_response), rows=rows), f, indent=1)
         with open(f"{args.out}_{key}.md", "w") as f:
             f.write(md)
 
@@ -178,9 +191,13 @@ def main():
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--modes", default="10,20,40")
     ap.add_argument("--tols", default="0.1,0.05,0.01")
-    ap.add_argument("--poses", default="random,snapshots", help="comma list of random, snapshots, random+snapshots")
-    ap.add_argument("--load-response", action="store_true", help="K^-1 f_ext as a basis column (scene default)")
-    ap.add_argument("--machine", default="2 cores shared with ~6 agents (loaded machine)")
+    ap.add_argument("--poses", default="random+snapshots",
+                    help="comma list of random, snapshots, random+snapshots (default: the scenes' 'mixed')")
+    ap.add_argument("--load-response", action=argparse.BooleanOptionalAction, default=True,
+                    help="K^-1 f_ext as a basis column (default on, as in scenes)")
+    ap.add_argument("--exact-cubature", action="store_true",
+                    help="add a row per r with every tet at weight 1 (poses 'exact'): the reduced model's own error")
+    ap.add_argument("--machine", default="cpu, 2 cores, shared/loaded machine", help="how loaded the machine is (printed)")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "reduced"))
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)

@@ -247,6 +247,22 @@ def incompressible(mat_name, precision, nu, *, a=1.5, cells=(2, 2, 2), load_step
 
 
 # -- large time steps and stiff materials: cantilever under gravity ------------------------------
+
+def _step_tracking_energy(run, sim, steps, scale):
+    """Step ``steps`` times (giving up after 3 failed steps); return the total energies after each
+    accepted step and the largest one-step energy growth in units of ``scale``."""
+    energies = [sim.total_energy()]
+    growth = 0.0
+    for _ in range(steps):
+        if run.step() is None:
+            if run.failed > 2:
+                break
+            continue
+        energies.append(sim.total_energy())
+        growth = max(growth, (energies[-1] - energies[-2]) / scale)
+    return energies, growth
+
+
 def cantilever_dynamics(mat_name, precision, *, dt, youngs_modulus, steps=10, cells=(6, 2, 2), **solver):
     """A 3 x 0.5 x 0.5 m bar clamped at x = 0 falling under gravity from rest (backward Euler).
 
@@ -261,16 +277,7 @@ def cantilever_dynamics(mat_name, precision, *, dt, youngs_modulus, steps=10, ce
     t0 = time.perf_counter()
     # energy scale: the gravitational work of a tip-size drop, rho g V L
     scale = RHO * 9.81 * mesh.total_volume() * 3.0
-    energies = [sim.total_energy()]
-    growth = 0.0
-    for _ in range(steps):
-        st = run.step()
-        if st is None:
-            if run.failed > 2:
-                break
-            continue
-        energies.append(sim.total_energy())
-        growth = max(growth, (energies[-1] - energies[-2]) / scale)
+    energies, growth = _step_tracking_energy(run, sim, steps, scale)
     x = sim.positions()
     finite = bool(np.all(np.isfinite(x))) and bool(np.all(np.isfinite(energies)))
     ok = finite and growth < 1e-6 and run.not_converged == 0 and run.failed == 0
@@ -550,16 +557,7 @@ def cantilever_any(mat_name, precision, *, dt, youngs_modulus, integrator="newto
     run = Run(sim)
     t0 = time.perf_counter()
     scale = RHO * 9.81 * mesh.total_volume() * 3.0
-    energies = [sim.total_energy()]
-    growth = 0.0
-    for _ in range(steps):
-        st = run.step()
-        if st is None:
-            if run.failed > 2:
-                break
-            continue
-        energies.append(sim.total_energy())
-        growth = max(growth, (energies[-1] - energies[-2]) / scale)
+    energies, growth = _step_tracking_energy(run, sim, steps, scale)
     x = sim.positions()
     finite = bool(np.all(np.isfinite(x))) and bool(np.all(np.isfinite(energies)))
     J = qp_jacobians(x, model) if finite else np.array([np.nan])

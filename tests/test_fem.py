@@ -46,7 +46,7 @@ def _numpy_snh_forces(X, tets, x, mu, lam):
 def small_sims():
     mesh, _ = _jittered_cube(2, seed=3)
     sims = {}
-    for name in ("linear", "stvk", "corotated", "stable_neo_hookean"):
+    for name in ("linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log"):
         sims[name] = wf.Simulator(wf.Model(mesh, _material(name)), precision="float64")
     return mesh, sims
 
@@ -62,7 +62,7 @@ def test_force_kernel_matches_numpy(small_sims, rng):
     assert np.abs(f).max() > 1e-3  # a real deformation, not a trivially zero force
 
 
-@pytest.mark.parametrize("name", ["linear", "stvk", "corotated", "stable_neo_hookean"])
+@pytest.mark.parametrize("name", ["linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log"])
 def test_force_is_minus_energy_gradient_and_hessian_is_force_jacobian(small_sims, rng, name):
     mesh, sims = small_sims
     sim = sims[name]
@@ -123,7 +123,7 @@ def test_linear_patch_test(precision, tol):
     assert np.abs(f.sum(axis=0)).max() < 10 * tol * np.abs(f).max()
 
 
-@pytest.mark.parametrize("name", ["stvk", "corotated", "stable_neo_hookean"])
+@pytest.mark.parametrize("name", ["stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log"])
 def test_finite_strain_patch_test(name):
     mesh, interior = _jittered_cube(2, seed=2, amount=0.1)
     X = mesh.vertices
@@ -135,7 +135,7 @@ def test_finite_strain_patch_test(name):
     np.testing.assert_allclose(sim.positions(), exact, atol=1e-8)
 
 
-@pytest.mark.parametrize("name", ["linear", "stvk", "corotated", "stable_neo_hookean"])
+@pytest.mark.parametrize("name", ["linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log"])
 def test_rigid_motion_gives_zero_force_except_linear(small_sims, name):
     mesh, sims = small_sims
     axis = np.ones(3) / np.sqrt(3)

@@ -8,10 +8,12 @@ from warpfem.materials import (
     LINEAR,
     MATERIALS,
     STABLE_NEO_HOOKEAN,
+    STABLE_NEO_HOOKEAN_LOG,
     STVK,
     Corotated,
     LinearElastic,
     StableNeoHookean,
+    StableNeoHookeanLog,
     StVenantKirchhoff,
     evaluate,
     make_material,
@@ -131,7 +133,7 @@ def test_all_materials_agree_with_linear_at_identity(nu):
 def test_rigid_rotation():
     R = rotation([1, 1, 1], np.pi / 2)
     assert np.isclose(np.linalg.det(R), 1.0)
-    for name in ("stvk", "corotated", "stable_neo_hookean"):
+    for name in ("stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log"):
         m = mat(name)
         assert np.max(np.abs(m.pk1(R))) < 1e-13, name
         # zero energy at rest and under any rotation (SNH's constant is shifted so psi(I) = 0)
@@ -210,12 +212,13 @@ def test_float32_agrees_with_float64():
 
 
 def test_kinds_and_classes():
-    assert (LINEAR, STVK, COROTATED, STABLE_NEO_HOOKEAN) == (0, 1, 2, 3)
+    assert (LINEAR, STVK, COROTATED, STABLE_NEO_HOOKEAN, STABLE_NEO_HOOKEAN_LOG) == (0, 1, 2, 3, 4)
     for name, cls, kind in [
         ("linear", LinearElastic, LINEAR),
         ("stvk", StVenantKirchhoff, STVK),
         ("corotated", Corotated, COROTATED),
         ("stable_neo_hookean", StableNeoHookean, STABLE_NEO_HOOKEAN),
+        ("stable_neo_hookean_log", StableNeoHookeanLog, STABLE_NEO_HOOKEAN_LOG),
     ]:
         m = make_material(name, youngs_modulus=1e5, poisson_ratio=0.3, density=1100.0)
         assert type(m) is cls and m.kind == kind and m.name == name
@@ -244,7 +247,7 @@ def test_kinds_and_classes():
 def test_invalid_parameters(kw, param):
     args = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
     args.update(kw)
-    for cls in (LinearElastic, StVenantKirchhoff, Corotated, StableNeoHookean):
+    for cls in (LinearElastic, StVenantKirchhoff, Corotated, StableNeoHookean, StableNeoHookeanLog):
         with pytest.raises(ValueError, match=param) as exc:
             cls(**args)
         assert repr(args[param])[:4] in str(exc.value)
@@ -267,7 +270,8 @@ def test_degenerate_F_stays_finite():
         for key, v in r.items():
             assert np.all(np.isfinite(v)), (name, key)
         for n in range(len(F)):
-            assert np.linalg.eigvalsh(r["hessian_projected"][n]).min() > -1e-9 * np.abs(r["hessian"][n]).max()
+            # >=: the log form's Hessian at F = 0 is exactly zero
+            assert np.linalg.eigvalsh(r["hessian_projected"][n]).min() >= -1e-9 * np.abs(r["hessian"][n]).max()
     # repeated singular values: Hessian still matches FD (closed forms have no 1/(s_i - s_j))
     h = 1e-6
     E9 = np.eye(9).reshape(9, 3, 3)
@@ -282,3 +286,130 @@ def test_unknown_kind_gives_zero():
     r = evaluate(7, np.eye(3) * 1.1, 1.0, 1.0)
     for v in r.values():
         assert np.all(v == 0.0)
+
+
+# -- stable neo-Hookean with the log term (Smith, de Goes, Kim 2018) ---------------------------
+def snh_log_reference(F, mu, lam):
+    """Textbook psi (with the rest offset removed) and P of the log form, in numpy."""
+    alpha = 1 + 0.75 * mu / lam
+    IC, J = np.sum(F * F), np.linalg.det(F)
+    psi = mu / 2 * (IC - 3) + lam / 2 * (J - alpha) ** 2 - mu / 2 * np.log(1 + IC)
+    psi -= lam / 2 * (1 - alpha) ** 2 - mu * np.log(2.0)
+    P = mu * F + lam * (J - alpha) * J * np.linalg.inv(F).T - mu * F / (1 + IC)
+    return psi, P
+
+
+def test_stable_neo_hookean_log_parameters_and_hessian_at_identity():
+    m = mat("stable_neo_hookean_log")
+    mu_L, lam_L = 1.0, 10.0
+    assert np.isclose(m.mu_lame, mu_L) and np.isclose(m.lam_lame, lam_L)
+    assert np.isclose(m.mu, 4 / 3 * mu_L) and np.isclose(m.lam, lam_L + 5 / 6 * mu_L)
+    # paper's alpha = 1 + mu/lambda - mu/(4 lambda) makes P(I) = 0 exactly
+    alpha = 1 + m.mu / m.lam - m.mu / (4 * m.lam)
+    assert np.isclose(m.mu - m.mu / 4 + m.lam * (1 - alpha), 0.0, atol=1e-14)
+    w = np.sort(np.linalg.eigvalsh(m.hessian(np.eye(3))))
+    expected = np.sort([0.0] * 3 + [2 * mu_L] * 5 + [3 * lam_L + 2 * mu_L])
+    assert np.allclose(w, expected, rtol=0, atol=1e-12)
+    assert np.allclose(m.pk1(np.eye(3)), 0.0, atol=1e-14) and abs(m.psi(np.eye(3))) < 1e-14
+
+
+def test_stable_neo_hookean_log_matches_textbook_formulas():
+    m = mat("stable_neo_hookean_log")
+    F = np.concatenate([sample_F(), [2.5 * np.eye(3), 0.2 * np.eye(3), np.diag([3.0, 0.1, -0.5])]])
+    psi, P = m.psi(F), m.pk1(F)
+    for n, Fn in enumerate(F):
+        psi_ref, P_ref = snh_log_reference(Fn, m.mu, m.lam)
+        assert abs(psi[n] - psi_ref) < 1e-12 * max(1.0, abs(psi_ref)), n
+        assert np.allclose(P[n], P_ref, rtol=0, atol=1e-12 * max(1.0, np.abs(P_ref).max())), n
+
+
+def test_stable_neo_hookean_log_origin_is_a_saddle_not_a_minimum():
+    """The log term cancels mu/2 I_C to second order at F = 0: P(0) = 0, dP/dF(0) = 0 and
+    psi(eps I) - psi(0) = -lambda alpha eps^3 + O(eps^4) < 0, where the log-free energy has a
+    strict minimum (+mu/2 eps^2 |I|^2)."""
+    log, plain = mat("stable_neo_hookean_log"), mat("stable_neo_hookean")
+    Z = np.zeros((3, 3))
+    assert np.all(log.pk1(Z) == 0.0) and np.all(log.hessian(Z) == 0.0)
+    alpha = 1 + 0.75 * log.mu / log.lam
+    for eps in (1e-3, 1e-2, 0.1):
+        d_log = log.psi(eps * np.eye(3)) - log.psi(Z)
+        assert d_log < 0.0
+        assert abs(d_log / (-log.lam * alpha * eps ** 3) - 1.0) < 10 * eps, eps
+        assert plain.psi(eps * np.eye(3)) - plain.psi(Z) > 0.0
+
+
+@pytest.mark.parametrize("nu", [0.0, 0.3, 0.45])
+def test_stable_neo_hookean_log_small_strain_uniaxial_gives_E_and_nu(nu):
+    """Uniaxial stress at a = 1 + 1e-6 (lateral b from P22 = 0, solved on the kernel's P):
+    -(b - 1)/(a - 1) = nu and P11/(a - 1) = E, i.e. the reparametrised moduli are E, nu."""
+    from scipy.optimize import brentq
+
+    E = 7.0
+    m = mat("stable_neo_hookean_log", E, nu)
+    d = 1e-6
+    a = 1.0 + d
+    b = brentq(lambda b: m.pk1(np.diag([a, b, b]))[1, 1], 1 - 10 * d, 1 + 10 * d, xtol=1e-15)
+    assert abs(-(b - 1) / d - nu) < 1e-5
+    P = m.pk1(np.diag([a, b, b]))
+    assert abs(P[0, 0] / d / E - 1.0) < 1e-5
+    assert abs(P[2, 2]) < 1e-12
+
+
+@pytest.mark.parametrize("a", [0.5, 1.5, 2.0])
+def test_stable_neo_hookean_log_finite_uniaxial(a):
+    """Uniaxial stress state at finite stretch: lateral stretch b from the textbook P22 = 0
+    (mu (1 - 1/(1 + I_C)) + lambda (a b^2 - alpha) a = 0, solved in numpy), then the kernel's P
+    is uniaxial with the textbook P11, and stiffer than the log-free form's lateral contraction."""
+    from scipy.optimize import brentq
+
+    m = mat("stable_neo_hookean_log")
+    mu, lam = m.mu, m.lam
+    alpha = 1 + 0.75 * mu / lam
+
+    def p22(b):
+        return mu * (1 - 1 / (1 + a * a + 2 * b * b)) + lam * (a * b * b - alpha) * a
+
+    b = brentq(p22, 0.05, 3.0, xtol=1e-15)
+    P = m.pk1(np.diag([a, b, b]))
+    P11 = mu * a * (1 - 1 / (1 + a * a + 2 * b * b)) + lam * (a * b * b - alpha) * b * b
+    assert abs(P[0, 0] - P11) < 1e-12 * max(1.0, abs(P11))
+    assert abs(P[1, 1]) < 1e-12 and abs(P[2, 2]) < 1e-12
+    assert (P[0, 0] > 0) == (a > 1)
+
+
+def test_stable_neo_hookean_log_float32_energy_is_accurate_at_small_strain():
+    """psi is evaluated in H = F - I with an accurate x - log(1 + x): in float32 it keeps ~1e-6
+    relative accuracy at strains 1e-2 .. 1e-6 (the textbook form subtracts O(mu) terms and would
+    keep none below ~1e-3). F is rounded to float32 first so both precisions see the same F."""
+    m = mat("stable_neo_hookean_log")
+    rng = np.random.default_rng(7)
+    F = np.array([np.eye(3) + s * rng.normal(size=(3, 3)) for s in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)])
+    F = F.astype(np.float32).astype(np.float64)
+    p64 = evaluate(m.kind, F, m.mu, m.lam, outputs=("psi",))["psi"]
+    p32 = evaluate(m.kind, F, m.mu, m.lam, dtype=np.float32, outputs=("psi",))["psi"]
+    assert np.all(p64 > 0)
+    assert np.max(np.abs(p32 - p64) / p64) < 2e-6
+    # and float64 agrees with the textbook formula where that is still accurate (strain 1e-2)
+    assert abs(p64[0] - snh_log_reference(F[0], m.mu, m.lam)[0]) < 1e-9 * p64[0]
+
+
+def test_stable_neo_hookean_log_volumetric_split_is_exact_and_psd_at_rest():
+    m = mat("stable_neo_hookean_log", 7.0, 0.45)
+    (mu_f, lam_f), (mu_v, lam_v) = m.volumetric_split()
+    assert mu_v == 0.0 and np.isclose(lam_v, m.lam_lame)  # the 1-point part is lambda_L/2 (J - 1)^2
+    F = np.concatenate([sample_F(), [0.3 * np.eye(3)]])
+    full = evaluate(m.kind, F, mu_f, lam_f)
+    vol = evaluate(m.kind, F, mu_v, lam_v)
+    whole = evaluate(m.kind, F, m.mu, m.lam)
+    for key in ("psi", "pk1", "hessian"):
+        assert np.allclose(full[key] + vol[key], whole[key], rtol=0, atol=1e-12 * np.abs(whole[key]).max()), key
+    J = np.linalg.det(F)
+    assert np.allclose(vol["psi"], lam_v / 2 * (J - 1) ** 2, rtol=1e-12)
+    I = np.eye(3)
+    for mu_p, lam_p in ((mu_f, lam_f), (mu_v, lam_v)):
+        r = evaluate(m.kind, I, mu_p, lam_p)
+        assert np.allclose(r["pk1"], 0.0, atol=1e-14) and abs(r["psi"]) < 1e-14
+        assert np.linalg.eigvalsh(r["hessian"]).min() > -1e-12
+    # the full-rule part is this material with Lame (mu_L, 0): small-strain moduli 2 mu_L (x5) and 2 mu_L
+    w = np.sort(np.linalg.eigvalsh(evaluate(m.kind, I, mu_f, lam_f)["hessian"]))
+    assert np.allclose(w, [0, 0, 0] + [2 * m.mu_lame] * 6, atol=1e-12)

@@ -181,3 +181,33 @@ def test_load_response_column_spans_the_static_load_response():
     assert miss(with_load) <= 1e-10
     assert np.allclose(with_load.T @ (M @ with_load), np.eye(4), atol=1e-10)
     assert np.all(with_load[model.fixed.reshape(-1)] == 0.0)
+
+
+def test_homogeneous_basis_needs_one_cubature_point():
+    """A basis of homogeneous deformations (u = G X, the same F in every tet) makes every tet's reduced
+    force proportional to its volume, so one cubature tet with weight V / v_e is exact at any pose
+    (why the bunny pinned at a small patch, whose modes are rigid-like rotations about the patch plus
+    their quadratic modal derivatives, trains to 1 point). A non-affine column must need more."""
+    from warpfem.reduced import train_cubature
+
+    mesh = wf.box_tet_mesh(size=(2.0, 1.0, 1.0), cells=(4, 2, 2))
+    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.4, density=100.0))
+    X = mesh.vertices
+    grads = [np.outer(np.eye(3)[i], np.eye(3)[j]) for i, j in [(0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2)]]
+    U = np.stack([(X @ G.T).reshape(-1) for G in grads], axis=1)
+    cub = train_cubature(model, U, tolerance=1e-6, max_points=20, seed=0, num_training_poses=20, num_validation_poses=10)
+    vol = mesh.rest_volumes()
+    assert cub.num_points == 1
+    assert cub.weights[0] * vol[cub.elements[0]] == pytest.approx(vol.sum(), rel=1e-9)
+    assert cub.training_error < 1e-9 and cub.validation_error < 1e-9
+    # exact for poses far outside the training range too (large, inverting): same F everywhere
+    q = np.array([0.8, -1.6, 0.3, 0.9, -0.7, 0.4])
+    exact = CubatureForces(model, U, np.arange(mesh.num_tets), np.ones(mesh.num_tets)).evaluate(q)[1]
+    one = CubatureForces(model, U, cub.elements, cub.weights).evaluate(q)[1]
+    assert np.linalg.norm(one - exact) <= 1e-9 * np.linalg.norm(exact)
+    # a bending column (u_z = x^2) varies F over the body: one point no longer suffices
+    bend = np.zeros_like(X)
+    bend[:, 2] = X[:, 0] ** 2
+    cub2 = train_cubature(model, np.hstack([U, bend.reshape(-1, 1)]), tolerance=1e-3, max_points=40, seed=0,
+                          num_training_poses=20, num_validation_poses=10)
+    assert cub2.num_points > 1

@@ -15,6 +15,7 @@ from warpfem.materials import (
     Corotated,
     LinearElastic,
     StableNeoHookean,
+    StableNeoHookeanLog,
     StVenantKirchhoff,
     make_material,
 )
@@ -45,6 +46,7 @@ __all__ = [
     "SolveStats",
     "StVenantKirchhoff",
     "StableNeoHookean",
+    "StableNeoHookeanLog",
     "StiffnessWarpingSimulator",
     "TetMesh",
     "box_tet_mesh",

@@ -24,8 +24,8 @@ from typing import Any
 import warp as wp
 
 from warpfem.kernels.generic import both_precisions
-from warpfem.materials.dispatch import material_eigensystem, material_pk1, material_psi
-from warpfem.materials.eigensystem import hessian_block
+from warpfem.materials.dispatch import material_hessian_parts, material_pk1, material_psi
+from warpfem.materials.eigensystem import hessian_point_block, hessian_point_prepare
 
 wp.set_module_options({"enable_backward": False})
 
@@ -77,11 +77,17 @@ def cubature_element_kernel(
     for a in range(4):
         f_out[c * 4 + a] = -w * (P * dNdX[e * 4 + a])
     if want_hessian != 0:
-        Us, Vs, Qs, ds, tw, fl = material_eigensystem(kind, F, mu, lam)
+        # dP/dF once per point (shared with the full assembly, warpfem.kernels.fem), then the
+        # 10 blocks a <= b from gradients rotated into the singular frame; H_ba = H_ab^T.
+        U0, V0, A0, tw, fl = material_hessian_parts(kind, F, mu, lam)
+        Uh, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
         for a in range(4):
-            ga = dNdX[e * 4 + a]
-            for b in range(4):
-                H_out[c * 16 + a * 4 + b] = w * hessian_block(Us, Vs, Qs, ds, tw, fl, ga, dNdX[e * 4 + b], project)
+            ra = Vt * dNdX[e * 4 + a]
+            for b in range(a, 4):
+                blk = w * hessian_point_block(Uh, A, cp, cm, ra, Vt * dNdX[e * 4 + b])
+                H_out[c * 16 + a * 4 + b] = blk
+                if b != a:
+                    H_out[c * 16 + b * 4 + a] = wp.transpose(blk)
 
 
 @_both(U="v[,]", f_in="v[]", H_in="m[]", force="s[]", K="s[,]")

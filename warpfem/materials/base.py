@@ -6,7 +6,8 @@ Lame parameters from Young's modulus E and Poisson ratio nu (small-strain moduli
     lambda = E nu / ((1 + nu) (1 - 2 nu))
 
 Each material stores the values its Warp functions expect in ``mu`` and ``lam`` (for the
-stable neo-Hookean material these are reparametrised, see ``stable_neo_hookean.py``); the plain
+stable neo-Hookean materials these are reparametrised, see ``stable_neo_hookean.py`` and
+``stable_neo_hookean_log.py``); the plain
 Lame values are kept in ``mu_lame`` and ``lam_lame``.
 """
 
@@ -25,6 +26,7 @@ __all__ = [
     "STVK",
     "COROTATED",
     "STABLE_NEO_HOOKEAN",
+    "STABLE_NEO_HOOKEAN_LOG",
 ]
 
 # Material kinds: runtime ints switched on by the Warp dispatch functions (docs/design.md).
@@ -32,6 +34,7 @@ LINEAR = 0
 STVK = 1
 COROTATED = 2
 STABLE_NEO_HOOKEAN = 3
+STABLE_NEO_HOOKEAN_LOG = 4
 
 
 def _check_real(name: str, value) -> float:

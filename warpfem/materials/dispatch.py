@@ -7,7 +7,7 @@
 
 The eigensystem is that of Smith, de Goes, Kim 2019 (see ``eigensystem.py``): feed it to
 ``hessian_block(U, V, Q, d, twist, flip, ga, gb, project)``. For linear elasticity U = V = I.
-kind: LINEAR = 0, STVK = 1, COROTATED = 2, STABLE_NEO_HOOKEAN = 3. An unknown kind gives
+kind: LINEAR = 0, STVK = 1, COROTATED = 2, STABLE_NEO_HOOKEAN = 3, STABLE_NEO_HOOKEAN_LOG = 4. An unknown kind gives
 psi = 0, P = 0 and a zero Hessian (kernels never crash; Python validates kinds).
 All functions are generic over float32/float64; mu and lam must have F's scalar type.
 """
@@ -20,6 +20,7 @@ from .corotated import corotated_eigen, corotated_pk1, corotated_psi
 from .eigensystem import hessian_block, scaling_eigensystem, signed_svd
 from .linear import linear_eigen, linear_pk1, linear_psi
 from .stable_neo_hookean import snh_eigen, snh_pk1, snh_psi
+from .stable_neo_hookean_log import snh_log_eigen, snh_log_pk1, snh_log_psi
 from .stvk import stvk_eigen, stvk_pk1, stvk_psi
 
 __all__ = ["material_psi", "material_pk1", "material_eigensystem", "material_hessian_parts", "hessian_block"]
@@ -28,6 +29,7 @@ _LINEAR = wp.constant(0)
 _STVK = wp.constant(1)
 _COROTATED = wp.constant(2)
 _STABLE_NEO_HOOKEAN = wp.constant(3)
+_STABLE_NEO_HOOKEAN_LOG = wp.constant(4)
 
 
 @wp.func
@@ -35,6 +37,8 @@ def material_psi(kind: int, F: Any, mu: Any, lam: Any):
     """Energy density psi(F) of material ``kind``."""
     if kind == _STABLE_NEO_HOOKEAN:
         return snh_psi(F, mu, lam)
+    if kind == _STABLE_NEO_HOOKEAN_LOG:
+        return snh_log_psi(F, mu, lam)
     if kind == _COROTATED:
         return corotated_psi(F, mu, lam)
     if kind == _STVK:
@@ -49,6 +53,8 @@ def material_pk1(kind: int, F: Any, mu: Any, lam: Any):
     """First Piola-Kirchhoff stress P(F) of material ``kind``."""
     if kind == _STABLE_NEO_HOOKEAN:
         return snh_pk1(F, mu, lam)
+    if kind == _STABLE_NEO_HOOKEAN_LOG:
+        return snh_log_pk1(F, mu, lam)
     if kind == _COROTATED:
         return corotated_pk1(F, mu, lam)
     if kind == _STVK:
@@ -78,6 +84,8 @@ def material_hessian_parts(kind: int, F: Any, mu: Any, lam: Any):
     fl = wp.vector(length=3, dtype=F.dtype)
     if kind == _STABLE_NEO_HOOKEAN:
         A, tw, fl = snh_eigen(s, mu, lam)
+    elif kind == _STABLE_NEO_HOOKEAN_LOG:
+        A, tw, fl = snh_log_eigen(s, mu, lam)
     elif kind == _COROTATED:
         A, tw, fl = corotated_eigen(s, mu, lam)
     elif kind == _STVK:

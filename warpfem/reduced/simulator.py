@@ -20,11 +20,8 @@ import warp as wp
 
 from warpfem.kernels import reduced as RK
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats
+from warpfem.solvers.state import PRECISIONS, check_simulator_options
 
-_PRECISIONS = {
-    "float32": (wp.float32, wp.vec3, wp.mat33, np.float32),
-    "float64": (wp.float64, wp.vec3d, wp.mat33d, np.float64),
-}
 
 
 def _basis_array(U, n, vec, npdt, device):
@@ -60,7 +57,9 @@ class CubatureForces:
         if np.any(weights < 0) or not np.all(np.isfinite(weights)):
             raise ValueError("cubature weights must be finite and non-negative")
         self.device = dev = wp.get_device(device)
-        self._s, vec, mat, npdt = _PRECISIONS[precision]
+        if precision not in PRECISIONS:
+            raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
+        self._s, vec, mat, npdt = PRECISIONS[precision]
         self.r = r = U.shape[1]
         self.c = c = len(elements)
         mat_ = model.material
@@ -117,12 +116,7 @@ class ReducedSimulator:
 
     def __init__(self, model, subspace, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
                  damping_stiffness=0.0, require_convergence=False, **newton_options):
-        if precision not in _PRECISIONS:
-            raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
-        if not (np.isfinite(dt) and dt > 0):
-            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
-        if damping_mass < 0 or damping_stiffness < 0:
-            raise ValueError("Rayleigh damping coefficients must be >= 0")
+        self._s, self._vec, _, self._np = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
         if unknown:
             raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
@@ -133,7 +127,6 @@ class ReducedSimulator:
         self.model, self.subspace = model, subspace
         self.device = wp.get_device(device)
         self.precision = precision
-        self._s, self._vec, _, self._np = _PRECISIONS[precision]
         self.dt, self.damping_mass, self.damping_stiffness = float(dt), float(damping_mass), float(damping_stiffness)
         self.require_convergence = require_convergence
         U = subspace.U

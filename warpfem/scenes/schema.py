@@ -115,7 +115,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "element": Key("choice", default="tet4", choices=tuple(ELEMENTS), doc="element type: " + ", ".join(ELEMENTS)),
     },
     "material": {
-        "model": Key("choice", required=True, choices=("linear", "stvk", "corotated", "stable_neo_hookean")),
+        "model": Key("choice", required=True, choices=("linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log")),
         "youngs_modulus": Key("float", required=True, check=_positive, doc="E (Pa)"),
         "poisson_ratio": Key("float", required=True, check=_poisson, doc="nu"),
         "density": Key("float", default=1000.0, check=_positive, doc="kg/m^3"),
@@ -464,14 +464,19 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
                      integrator=integrator, output=output, surface=surface, subspace=subspace, **arrays)
 
 
+def read_toml(path, error: type[Exception], *, what: str) -> dict:
+    """Read a TOML file; a missing file or a syntax error raises ``error`` naming the file."""
+    if not os.path.isfile(path):
+        raise error(f"{path}: {what} not found")
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as e:
+        raise error(f"{path}: not valid TOML: {e}") from e
+
+
 def parse_scene_file(path, *, integrators: dict | None = None) -> SceneSpec:
     """Read and validate a TOML scene file (nothing is built)."""
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise SceneError(f"{path}: scene file not found")
-    try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as e:
-        raise SceneError(f"{path}: not valid TOML: {e}") from e
+    data = read_toml(path, SceneError, what="scene file")
     return parse_scene_dict(data, path=os.path.abspath(path), integrators=integrators)

@@ -44,10 +44,7 @@ from dataclasses import asdict, dataclass, field, fields
 
 import numpy as np
 
-try:  # Python 3.11+
-    import tomllib
-except ModuleNotFoundError:  # pragma: no cover - Python 3.10
-    import tomli as tomllib
+from warpfem.scenes.schema import read_toml
 
 __all__ = ["TradeoffConfig", "TradeoffGrid", "GridError", "StudyResult", "ConfigResult", "builtin_grid",
            "load_grid", "pareto_front", "run_study", "load_study", "format_table", "plot_pareto",
@@ -219,13 +216,7 @@ def load_grid(path) -> TradeoffGrid:
     (explicit configurations; keys of :class:`TradeoffConfig`).
     """
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise GridError(f"{path}: grid file not found")
-    try:
-        with open(path, "rb") as f:
-            data = tomllib.load(f)
-    except tomllib.TOMLDecodeError as e:
-        raise GridError(f"{path}: not valid TOML: {e}") from e
+    data = read_toml(path, GridError, what="grid file")
     bad = sorted(set(data) - _GRID_KEYS)
     if bad:
         raise GridError(f"{path}: {bad[0]}: unknown key; known: {', '.join(sorted(_GRID_KEYS))}")
@@ -318,14 +309,7 @@ def scene_document(scene_path) -> dict:
     """The scene file's TOML document (raises SceneError like load_scene)."""
     from warpfem.scenes import SceneError
 
-    path = os.fspath(scene_path)
-    if not os.path.isfile(path):
-        raise SceneError(f"{path}: scene file not found")
-    try:
-        with open(path, "rb") as f:
-            return tomllib.load(f)
-    except tomllib.TOMLDecodeError as e:
-        raise SceneError(f"{path}: not valid TOML: {e}") from e
+    return read_toml(os.fspath(scene_path), SceneError, what="scene file")
 
 
 class Unavailable(Exception):
