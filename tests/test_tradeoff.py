@@ -189,14 +189,9 @@ def test_pareto_plot(study, tmp_path, monkeypatch):
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
 
 
-def test_element_variant_compared_through_its_shape_functions(beam_path, monkeypatch):
+def test_element_variant_compared_through_its_shape_functions(beam_path):
     """A variant with another vertex set (Tet10: + edge mid-nodes) is sampled at the reference's
     vertices through its own elements; identical settings on the same element give zero error."""
-    from warpfem.elements.meshes import tet10_from_tet4
-    from warpfem.scenes import ELEMENTS
-
-    if ELEMENTS.get("tet10") is None:  # until the scene layer wires element types
-        monkeypatch.setitem(ELEMENTS, "tet10", tet10_from_tet4)
     ref = TradeoffConfig(name="reference", tol=1e-9, cg_tol=1e-9, max_cg_iters=20000, substeps=2)
     t10 = TradeoffConfig(**{**ref.as_dict(), "name": "tet10", "element": "tet10", "subspace": None})
     s = run_study(beam_path, TradeoffGrid(configs=[t10], reference=ref, frames=1))
