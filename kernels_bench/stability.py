@@ -207,10 +207,10 @@ def uniaxial_closed_form_J(mat_name, a, mu, lam):
     return a * b * b
 
 
-def incompressible(mat_name, precision, nu, *, a=1.5, cells=(2, 2, 2), load_steps=4, **solver):
-    """Uniaxial stress (faces x = 0 and x = 1 held at x1 = a X1, normal component only) at Poisson
-    ratio ``nu``: Newton must converge and the volume ratio must match the closed form."""
-    mesh = wf.box_tet_mesh(size=(1.0, 1.0, 1.0), cells=cells)
+def _uniaxial_stress_J(mesh, mat_name, precision, nu, *, a, load_steps, volume, solver_defaults, solver):
+    """Hold the faces x = 0 and x = 1 of a unit cube at x1 = a X1 (normal component only, plus two
+    points against rigid motion), solve statically, and compare the volume ratio with the closed
+    form. Returns (fields for the result dict, run, t0)."""
     X = mesh.vertices
     mat = material(mat_name, poisson_ratio=nu)
     model = wf.Model(mesh, mat)
@@ -221,7 +221,8 @@ def incompressible(mat_name, precision, nu, *, a=1.5, cells=(2, 2, 2), load_step
     model.fix(np.concatenate([left, right]), "x")
     model.fix(origin, "yz")
     model.fix(ey, "z")
-    opts = dict(tol=1e-9 if precision == "float64" else 1e-5, cg_tol=1e-10 if precision == "float64" else 1e-6, max_iters=80)
+    opts = dict(tol=1e-9 if precision == "float64" else 1e-5, cg_tol=1e-10 if precision == "float64" else 1e-6,
+                max_iters=80, **solver_defaults)
     opts.update(solver)
     sim = wf.Simulator(model, device=DEVICE, precision=precision, **opts)
     targets = X.copy()
@@ -236,14 +237,26 @@ def incompressible(mat_name, precision, nu, *, a=1.5, cells=(2, 2, 2), load_step
     mu_l = mat.youngs_modulus / (2 * (1 + nu))
     lam_l = mat.youngs_modulus * nu / ((1 + nu) * (1 - 2 * nu))
     J_closed = uniaxial_closed_form_J(mat_name, a, mu_l, lam_l)
-    from warpfem.mesh import tet_volumes
-
-    J = float(tet_volumes(x, mesh.tets).sum() / mesh.total_volume()) if finite else float("nan")
+    J = volume(x, model) / mesh.total_volume() if finite else float("nan")
     rel = abs(J - J_closed) / J_closed if finite else float("nan")
     ok = finite and st is not None and st.converged and rel < (1e-6 if precision == "float64" else 1e-3)
-    return dict(case=f"poisson:{nu}", material=mat_name, precision=precision, a=a, J=J, J_closed_form=J_closed,
-                J_rel_error=rel, residual=(st.residual if st else float("nan")), seconds=time.perf_counter() - t0,
-                verdict=_verdict(finite, run.not_converged + run.failed > 0, ok), **run.summary())
+    fields = dict(a=a, J=float(J), J_closed_form=J_closed, J_rel_error=rel,
+                  residual=(st.residual if st else float("nan")),
+                  verdict=_verdict(finite, run.not_converged + run.failed > 0, ok))
+    return fields, run, t0
+
+
+def incompressible(mat_name, precision, nu, *, a=1.5, cells=(2, 2, 2), load_steps=4, **solver):
+    """Uniaxial stress (faces x = 0 and x = 1 held at x1 = a X1, normal component only) at Poisson
+    ratio ``nu``: Newton must converge and the volume ratio must match the closed form."""
+    from warpfem.mesh import tet_volumes
+
+    mesh = wf.box_tet_mesh(size=(1.0, 1.0, 1.0), cells=cells)
+    fields, run, t0 = _uniaxial_stress_J(mesh, mat_name, precision, nu, a=a, load_steps=load_steps,
+                                         volume=lambda x, model: tet_volumes(x, mesh.tets).sum(),
+                                         solver_defaults={}, solver=solver)
+    return dict(case=f"poisson:{nu}", material=mat_name, precision=precision, **fields,
+                seconds=time.perf_counter() - t0, **run.summary())
 
 
 # -- large time steps and stiff materials: cantilever under gravity ------------------------------
@@ -687,38 +700,12 @@ def warping_bar(precision, mode, *, rotation="polar", cells=(8, 2, 2), ramp=32, 
 def element_incompressible(element, mat_name, precision, nu, *, a=1.5, load_steps=4, **solver):
     """``incompressible`` (uniaxial stress of a unit cube, closed-form J) on a one-cell mesh of any element type."""
     mesh = box_mesh(element, (1.0, 1.0, 1.0), (1, 1, 1))
-    X = mesh.vertices
-    mat = material(mat_name, poisson_ratio=nu)
-    model = wf.Model(mesh, mat)
-    left = np.flatnonzero(np.abs(X[:, 0]) < 1e-9)
-    right = np.flatnonzero(np.abs(X[:, 0] - 1) < 1e-9)
-    origin = np.flatnonzero(np.linalg.norm(X, axis=1) < 1e-9)
-    ey = np.flatnonzero(np.linalg.norm(X - [0, 1, 0], axis=1) < 1e-9)
-    model.fix(np.concatenate([left, right]), "x")
-    model.fix(origin, "yz")
-    model.fix(ey, "z")
-    opts = dict(tol=1e-9 if precision == "float64" else 1e-5, cg_tol=1e-10 if precision == "float64" else 1e-6,
-                max_iters=80, max_cg_iters=20000)
-    opts.update(solver)
-    sim = wf.Simulator(model, device=DEVICE, precision=precision, **opts)
-    targets = X.copy()
-    targets[right, 0] = a
-    moved = np.concatenate([left, right, origin, ey])
-    sim.set_targets(moved, targets[moved])
-    run = Run(sim)
-    t0 = time.perf_counter()
-    st = run.static(load_steps)
-    x = sim.positions()
-    finite = bool(np.all(np.isfinite(x)))
-    mu_l = mat.youngs_modulus / (2 * (1 + nu))
-    lam_l = mat.youngs_modulus * nu / ((1 + nu) * (1 - 2 * nu))
-    J_closed = uniaxial_closed_form_J(mat_name, a, mu_l, lam_l)
-    J = deformed_volume(x, model) / mesh.total_volume() if finite else float("nan")
-    rel = abs(J - J_closed) / J_closed if finite else float("nan")
-    ok = finite and st is not None and st.converged and rel < (1e-6 if precision == "float64" else 1e-3)
+    fields, run, t0 = _uniaxial_stress_J(mesh, mat_name, precision, nu, a=a, load_steps=load_steps,
+                                         volume=deformed_volume, solver_defaults=dict(max_cg_iters=20000),
+                                         solver=solver)
+    fields.pop("residual")
     return dict(case=f"poisson:{nu}[{element}]", material=mat_name, precision=precision, integrator="newton",
-                element=element, a=a, J=J, J_closed_form=J_closed, J_rel_error=rel, seconds=time.perf_counter() - t0,
-                verdict=_verdict(finite, run.not_converged + run.failed > 0, ok), **run.summary())
+                element=element, **fields, seconds=time.perf_counter() - t0, **run.summary())
 
 
 def element_locking(element, precision="float64", *, nu=0.4999, volumetric_integration="full", cells=(6, 1, 1)):

@@ -37,6 +37,14 @@ def warpfem_info(stage):
     return dict(stage.GetRootLayer().customLayerData["warpfem"])
 
 
+def _run_killed_writer(script):
+    """Run a writer script in a fresh Python process (it ends with os._exit, as a kill would)."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                                         env.get("PYTHONPATH", "")])
+    return subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+
+
 @pytest.mark.parametrize("ext", [".usda", ".usdc", ".usd"])
 def test_write_five_frames(tmp_path, ext):
     from pxr import Usd, UsdGeom, UsdValidation
@@ -137,10 +145,7 @@ def test_killed_process_keeps_periodically_saved_frames(tmp_path):
         os._exit(3)  # frame 4 written but not saved; close() never runs
         """
     )
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                         env.get("PYTHONPATH", "")])
-    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    proc = _run_killed_writer(script)
     assert proc.returncode == 3, proc.stderr
     stage = open_stage(path)
     assert stage.GetEndTimeCode() == 3.0 and stage.GetTimeCodesPerSecond() == 24
@@ -302,10 +307,7 @@ def test_killed_process_mid_clip_keeps_saved_frames(tmp_path):
         os._exit(3)  # frames 0-3: a full clip; 4, 5 saved (save_every = 2); 6 not saved
         """
     )
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                         env.get("PYTHONPATH", "")])
-    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120)
+    proc = _run_killed_writer(script)
     assert proc.returncode == 3, proc.stderr
     stage = open_stage(path)
     assert stage.GetEndTimeCode() == 5.0
