@@ -49,7 +49,7 @@ import warpfem as wf  # noqa: E402
 wp.config.quiet = True
 
 MESHES = ROOT.parent / "shared" / "data" / "meshes"
-MATERIALS = ("linear", "stvk", "corotated", "stable_neo_hookean")
+MATERIALS = ("linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log")
 PRECISIONS = ("float64", "float32")
 
 E_SOFT, NU_SOFT, RHO = 1.0e5, 0.3, 1000.0
@@ -200,6 +200,12 @@ def uniaxial_closed_form_J(mat_name, a, mu, lam):
         m, l = mu, lam + mu
         alpha = 1.0 + m / l
         b = math.sqrt((alpha * l * a - m) / (l * a * a))
+    elif mat_name == "stable_neo_hookean_log":
+        # Smith et al. 2018 with the log term: P = m F (1 - 1/(1 + I_C)) + l (J - alpha) cof F;
+        # lateral P_22 = m b (1 - 1/(1 + a^2 + 2 b^2)) + l (a b^2 - alpha) a b = 0
+        m, l = 4.0 * mu / 3.0, lam + 5.0 * mu / 6.0
+        alpha = 1.0 + 0.75 * m / l
+        b = brentq(lambda b: m * (1.0 - 1.0 / (1.0 + a * a + 2 * b * b)) + l * (a * b * b - alpha) * a, 1e-3, 2.0)
     elif mat_name == "corotated":
         b = brentq(lambda b: 4 * mu * (b - 1) + 2 * lam * (a * b * b - 1) * a * b, 1e-3, 2.0)
     else:

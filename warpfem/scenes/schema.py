@@ -161,7 +161,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
     "subspace": {
         "modes": Key("int", default=20, check=lambda v: None if v >= 1 else "must be >= 1",
                      doc="subspace size r (columns of U)"),
-        "modal_derivatives": Key("bool", default=False, doc="add modal derivatives, mass-PCA down to r"),
+        "modal_derivatives": Key("bool", default=True,
+                                 doc="add modal derivatives, mass-PCA down to r (false: linear modes only, "
+                                     "which cannot follow large deflections: docs/tradeoff.md)"),
         "cubature_tolerance": Key("float", default=0.01, check=_unit_interval,
                                   doc="relative training force error at which greedy cubature stops"),
         "max_cubature_points": Key("int", default=200, check=_positive, doc="cap on cubature elements"),
