@@ -88,11 +88,12 @@ class Run:
         self.steps = self.not_converged = self.failed = self.newton = self.cg = 0
         self.last_error = ""
 
-    def step(self):
+    def _solve(self, solve):
+        """Run one solve, counting iterations, non-converged and failed (SolveFailed) solves."""
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                st = self.sim.step()
+                st = solve()
         except wf.SolveFailed as exc:
             self.failed += 1
             self.last_error = str(exc)
@@ -104,21 +105,11 @@ class Run:
             self.not_converged += 1
         return st
 
+    def step(self):
+        return self._solve(self.sim.step)
+
     def static(self, load_steps):
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)
-                st = self.sim.solve_static(load_steps=load_steps)
-        except wf.SolveFailed as exc:
-            self.failed += 1
-            self.last_error = str(exc)
-            return None
-        self.steps += 1
-        self.newton += st.newton_iterations
-        self.cg += st.cg_iterations
-        if not st.converged:
-            self.not_converged += 1
-        return st
+        return self._solve(lambda: self.sim.solve_static(load_steps=load_steps))
 
     def summary(self):
         return dict(steps=self.steps, not_converged=self.not_converged, failed=self.failed,

@@ -296,7 +296,7 @@ def save_element_mesh(mesh, path, **kw):
     return path
 
 
-def embed_points_in_elements(points, mesh, *, max_newton_iters: int = 30):
+def embed_points_in_elements(points, mesh, *, max_newton_iters: int = 30, corner_embedding=None):
     """Embed points (p, 3) in an element mesh: x(point) = sum_a w_a x_{ids_a}.
 
     Returns ``(ids (p, k) int64, weights (p, k) float64, element (p,) int64)``: the element's
@@ -305,6 +305,8 @@ def embed_points_in_elements(points, mesh, *, max_newton_iters: int = 30):
     outside points); reference coordinates: barycentric for tets, refined for every type by Newton
     on the isoparametric map X(xi) = sum_a N_a(xi) X_a (the inverse map of hexes and curved Tet10).
     A point outside the mesh keeps extrapolated coordinates (weights may be negative).
+    ``corner_embedding``: the result of ``embed_points(points, mesh.vertices, mesh.corner_tets())``
+    when the caller already has it (the search is then not repeated).
     """
     from warpfem.skinning import embed_points
 
@@ -318,7 +320,7 @@ def embed_points_in_elements(points, mesh, *, max_newton_iters: int = 30):
     elements = np.asarray(mesh.elements, dtype=np.int64)
     X = np.asarray(mesh.vertices, dtype=np.float64)
     corner = mesh.corner_tets() if hasattr(mesh, "corner_tets") else elements[:, :4]
-    emb = embed_points(points, X, corner)
+    emb = corner_embedding if corner_embedding is not None else embed_points(points, X, corner)
     s = len(corner) // len(elements)
     elem = emb.tet_index // s
     # initial reference coordinates: barycentric interpolation of the corner tet's reference nodes

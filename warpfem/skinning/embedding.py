@@ -389,7 +389,7 @@ def embed_points_in_mesh(points, mesh) -> Embedding:
     from warpfem.elements import embed_points_in_elements
 
     corner = embed_points(points, mesh.vertices, mesh.corner_tets())
-    ids, weights, elem = embed_points_in_elements(points, mesh)
+    ids, weights, elem = embed_points_in_elements(points, mesh, corner_embedding=corner)
     return Embedding(tet_index=np.asarray(elem, dtype=np.int64), vertex_ids=np.asarray(ids, dtype=np.int64),
                      weights=np.asarray(weights, dtype=np.float64), distances=corner.distances,
                      outside=corner.outside, num_vertices=int(mesh.num_vertices), element_type=etype)
