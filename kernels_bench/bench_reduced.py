@@ -52,7 +52,7 @@ from warpfem.reduced.subspace import material_parameters, mesh_hash
 
 wp.config.quiet = True
 HERE = os.path.dirname(os.path.abspath(__file__))
-BUNNY = os.path.join(HERE, "..", "..", "shared", "data", "meshes", "bunny.mesh")
+BUNNY = os.path.join(HERE, "..", "examples", "meshes", "bunny.mesh")
 
 
 def beam(gravity_scale=1.0):

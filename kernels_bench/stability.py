@@ -48,7 +48,7 @@ import warpfem as wf  # noqa: E402
 
 wp.config.quiet = True
 
-MESHES = ROOT.parent / "shared" / "data" / "meshes"
+MESHES = ROOT / "examples" / "meshes"
 MATERIALS = ("linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log")
 PRECISIONS = ("float64", "float32")
 

@@ -9,14 +9,13 @@ import warp as wp
 wp.config.quiet = True
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = ROOT.parent / "shared"
-MESHES = SHARED / "data" / "meshes"
+MESHES = ROOT / "examples" / "meshes"  # shipped with the repository (see its README)
 
 
 @pytest.fixture(scope="session")
 def meshes_dir():
     if not MESHES.is_dir():
-        pytest.fail(f"shared meshes not found at {MESHES}")
+        pytest.fail(f"repository meshes not found at {MESHES}")
     return MESHES
 
 

@@ -18,10 +18,9 @@ from warpfem.mesh import (
     select_vertices_in_box,
 )
 
-MESH_DIR = "/work/shared/data/meshes"
+MESH_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples", "meshes")
 BUNNY = os.path.join(MESH_DIR, "bunny.mesh")
 OCTOPUS = os.path.join(MESH_DIR, "octopus-low.mesh")
-needs_data = pytest.mark.skipif(not os.path.isdir(MESH_DIR), reason="shared mesh data not present")
 
 UNIT_TET_X = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
 
@@ -308,7 +307,6 @@ def test_triangles_ignored_and_unreferenced_warned(tmp_path):
     assert m.num_vertices == 4 and m.num_tets == 1 and m.rest_volumes()[0] > 0
 
 
-@needs_data
 def test_load_bunny():
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # clean file: no reorientation, no unreferenced vertices
@@ -334,7 +332,6 @@ def test_load_bunny():
     assert ml.sum() == pytest.approx(1000.0 * b.total_volume(), rel=1e-13) and np.all(ml > 0)
 
 
-@needs_data
 def test_load_octopus():
     with warnings.catch_warnings():
         warnings.simplefilter("error")

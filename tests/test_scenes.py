@@ -122,7 +122,7 @@ def test_shipped_scenes_validate():
     names = sorted(p.stem for p in root.glob("*.toml"))
     assert {"cantilever", "bunny", "octopus"} <= set(names)
     for p in root.glob("*.toml"):
-        load_scene(p)  # paths to ../shared meshes resolve
+        load_scene(p)  # paths to the shipped meshes resolve (relative to the scene file)
     bunny = load_scene(root / "bunny.toml")
     assert bunny.spec.surface is not None and bunny.spec.mesh["inside_surface"]
 

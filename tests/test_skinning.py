@@ -16,7 +16,7 @@ from warpfem.skinning import (
     point_tet_distance,
 )
 
-MESH_DIR = "/work/shared/data/meshes"
+MESH_DIR = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "examples", "meshes")
 BUNNY_TET = os.path.join(MESH_DIR, "bunny.mesh")
 BUNNY_OFF = os.path.join(MESH_DIR, "bunny.off")
 
