@@ -90,7 +90,12 @@ def _cmd_describe(args) -> int:
 
     try:
         scene = _load(args.scene)
-        print(scene.describe(precision=args.precision))
+        if getattr(args, "json", False):
+            import json
+
+            print(json.dumps(scene.summary(), indent=2))
+        else:
+            print(scene.describe(precision=args.precision))
     except SceneError as e:
         _err(str(e))
         return EXIT_INVALID
@@ -101,6 +106,7 @@ def _register_describe(subparsers):
     p = subparsers.add_parser("describe", help="print what a scene builds (counts, memory) without running it")
     p.add_argument("scene", help="TOML scene file")
     p.add_argument("--precision", choices=("float32", "float64"), default="float64")
+    p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
     p.set_defaults(func=_cmd_describe)
 
 
@@ -114,6 +120,17 @@ def _cmd_run(args) -> int:
     if args.out is not None and not args.out.lower().endswith((".usda", ".usd", ".usdc")):
         _err(f"--out must end in .usda, .usd or .usdc, got {args.out!r}")
         return EXIT_INVALID
+    if getattr(args, "preview", None) is not None:
+        if not args.preview.lower().endswith(".png"):
+            _err(f"--preview must end in .png, got {args.preview!r}")
+            return EXIT_INVALID
+        from warpfem.io.preview import require_matplotlib
+
+        try:
+            require_matplotlib()
+        except ImportError as e:
+            _err(f"--preview: {e}")
+            return EXIT_INVALID
     try:
         scene = _load(args.scene)  # validation only: fails before anything is built or written
     except SceneError as e:
@@ -147,16 +164,34 @@ def _cmd_run(args) -> int:
         print(f"[{'#' * done}{'.' * (width - done)}] frame {fs.frame}/{frames}  t = {fs.time:.4f} s  "
               f"newton {fs.newton_iterations}  cg {fs.cg_iterations}  {fs.step_seconds:.3f} s{flag}", flush=True)
 
+    on_frame, recorder = progress, None
+    if getattr(args, "preview", None) is not None:  # keep the render surface at a few frames for the picture
+        from warpfem.io.preview import PreviewRecorder
+
+        recorder = PreviewRecorder(frames)
+        recorder.add(0, 0.0, run.surface_points())
+
+        def on_frame(fs, _report=progress):
+            if recorder.wants(fs.frame):
+                recorder.add(fs.frame, fs.time, run.surface_points())
+            _report(fs)
+
     try:
-        run.run(frames=frames, usd=usd, stats=stats, progress=progress)
+        run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
     except SolveFailed as e:
         _err(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
         return EXIT_FAILED
     except KeyboardInterrupt:
         _err(f"interrupted at frame {run.frame}" + (f"; {usd} holds the frames done (marked incomplete)" if usd else ""))
         return EXIT_INTERRUPTED
+    if recorder is not None:
+        from warpfem.io.preview import render_preview
+
+        render_preview(args.preview, recorder.snapshots, run.surface_faces, up_axis=scene.spec.output["up_axis"],
+                       title=scene.name)
     if not args.quiet:
-        outs = [p for p in (usd, stats, scene.spec.output["states"]) if p]
+        outs = [p for p in (usd, stats, scene.spec.output["states"], scene.spec.output.get("vtu"),
+                            getattr(args, "preview", None)) if p]
         print(f"done: {frames} frames" + (f"; wrote {', '.join(outs)}" if outs else ""), flush=True)
     return EXIT_OK
 
@@ -168,6 +203,8 @@ def _register_run(subparsers):
     p.add_argument("--precision", choices=("float32", "float64"), default="float64")
     p.add_argument("--frames", type=int, default=None, help="number of frames (default: the scene's [output].frames)")
     p.add_argument("--out", default=None, help="USD file (.usda/.usd/.usdc); default: the scene's [output].usd")
+    p.add_argument("--preview", default=None, metavar="PNG",
+                   help="after the run, draw 4 evenly spaced frames of the render surface to this PNG (needs the plot extra)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages")
     p.set_defaults(func=_cmd_run)

@@ -1,7 +1,10 @@
-"""Input/output: USD export of animated surfaces (pxr imported lazily), streamed npz states."""
+"""Input/output: USD export of animated surfaces (pxr imported lazily), streamed npz states, ParaView
+collections (.pvd + .vtu) of the volume mesh, preview pictures (matplotlib, lazily)."""
 
 from .states import StatesWriter
+from .vtu import VtuSeriesWriter, VtuWriterError, element_stress_fields, read_pvd, warpfem_version
 from .usd import UsdMeshWriter, UsdWriterError, clip_directory, read_usd_mesh_frames, usd_validation_errors
 
 __all__ = ["UsdMeshWriter", "UsdWriterError", "clip_directory", "read_usd_mesh_frames", "usd_validation_errors",
-           "StatesWriter"]
+           "StatesWriter", "VtuSeriesWriter", "VtuWriterError", "element_stress_fields", "read_pvd",
+           "warpfem_version"]

@@ -430,6 +430,8 @@ class Scene:
                  if out["clip_frames"] else "one file") if out["usd"] else ""
         lines.append(f"outputs: usd {out['usd'] or '-'}{' (' + clips + ')' if clips else ''}, states {out['states'] or '-'}, "
                      f"stats {self.stats_path(out['usd'], out['stats']) or '-'}")
+        if out.get("vtu"):
+            lines.append(f"  vtu: {out['vtu']} (ParaView collection; one .vtu per frame in {os.path.splitext(out['vtu'])[0]}.vtu/)")
         nnz = _block_nnz(mesh.elements, k, n)
         for prec in ("float32", "float64"):
             b = estimate_device_memory(num_vertices=n, num_elements=m, nodes_per_element=k, num_points=m * qpe,
@@ -437,6 +439,72 @@ class Scene:
                                        stiffness_damping=sp.integrator.get("damping_stiffness", 0.0) > 0)
             lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz} 3x3 matrix blocks)")
         return "\n".join(lines)
+
+    def summary(self) -> dict:
+        """What :meth:`describe` prints, as a JSON-serialisable dict (``warpfem describe --json``)."""
+        from warpfem.io.vtu import warpfem_version
+
+        from . import INTEGRATORS
+
+        sp, mesh = self.spec, self.mesh()
+        k, n, m = mesh.nodes_per_element, mesh.num_vertices, mesh.num_elements
+        etype, vi = sp.mesh["element"], sp.material["volumetric_integration"]
+        qpe = quadrature_points_per_element(etype, vi)
+        entry = INTEGRATORS[self.integrator_type]
+        sel = self.selections()
+        out = sp.output
+
+        def plain(v):
+            return list(v) if isinstance(v, tuple) else v
+
+        selections = {}
+        for s in ("fixed", "handle", "force"):
+            selections[s] = [{**{key: plain(val) for key, val in e.items() if key not in ("indices",)},
+                              "vertices": int(ids.size)} for e, ids in zip(getattr(sp, s), sel[s])]
+        tractions = [{"faces": int(faces.size), "area": float(area), "total_force": f.sum(axis=0).round(9).tolist()}
+                     for f, faces, area in self.tractions()]
+        if sp.surface is not None:
+            from warpfem.skinning import load_surface
+
+            sv, st = load_surface(sp.surface["path"])
+            p = len(sv)
+            surface = {"source": sp.surface["path"], "vertices": int(len(sv)), "triangles": int(len(st)), "embedded": True}
+        else:
+            ids, tri = boundary_surface(mesh)
+            p = 0
+            surface = {"source": "boundary", "vertices": int(ids.size), "triangles": int(len(tri)), "embedded": False}
+        nnz = _block_nnz(mesh.elements, k, n)
+        memory = {prec: estimate_device_memory(num_vertices=n, num_elements=m, nodes_per_element=k, num_points=m * qpe,
+                                               block_nnz=nnz, precision=prec, surface_points=p, weights_per_point=k,
+                                               stiffness_damping=sp.integrator.get("damping_stiffness", 0.0) > 0)
+                  for prec in ("float32", "float64")}
+        subspace = None
+        if sp.subspace is not None:
+            from warpfem.reduced.scene import describe_subspace
+
+            subspace = {**{key: plain(val) for key, val in sp.subspace.items()}, "describe": describe_subspace(self)}
+        return {
+            "scene": self.name, "path": self.path, "warpfem_version": warpfem_version(),
+            "mesh": {"source": "box" if sp.mesh["generator"] else sp.mesh["path"],
+                     **({"size": list(sp.mesh["size"]), "cells": list(sp.mesh["cells"])} if sp.mesh["generator"] else
+                        {"inside_surface": bool(sp.mesh["inside_surface"])}),
+                     "element": etype, "element_description": ELEMENTS[etype], "elements": int(m), "vertices": int(n),
+                     "dofs": int(3 * n), "nodes_per_element": int(k), "quadrature_points_per_element": int(qpe),
+                     "quadrature_points": int(m * qpe)},
+            "material": {key: plain(val) for key, val in sp.material.items()},
+            "gravity": list(sp.top["gravity"]),
+            "selections": selections, "tractions": tractions,
+            "integrator": {**{key: plain(val) for key, val in sp.integrator.items()}, "dynamic": bool(entry.dynamic),
+                           "builds": list(entry.builds)},
+            "subspace": subspace,
+            "frames": int(out["frames"]), "fps": float(out["fps"]), "duration": float(out["frames"] / out["fps"]),
+            "render_surface": surface,
+            "outputs": {"usd": out["usd"], "usd_clip_frames": out["clip_frames"] if out["usd"] else None,
+                        "states": out["states"], "stats": self.stats_path(out["usd"], out["stats"]),
+                        "vtu": out.get("vtu")},
+            "matrix_blocks": int(nnz),
+            "estimated_device_memory_bytes": memory,
+        }
 
     @staticmethod
     def stats_path(usd, stats):
@@ -597,12 +665,14 @@ class SceneRun:
                           newton_iterations=newton, cg_iterations=cg, residual=float(residual),
                           energy=float(energy), converged=converged, reason="; ".join(reasons))
 
-    def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None):
+    def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None, vtu=None):
         """Run ``frames`` output frames (default: the scene's) writing the outputs.
 
         Frame 0 is the rest state; frames 1..N follow every 1/fps s (static: load fraction k/N).
         ``usd``/``states``/``stats`` default to the scene's [output] (paths relative to the
-        current directory). ``progress(FrameStats)`` is called after each frame. On
+        current directory). ``vtu``: a ParaView collection (.pvd) of the volume mesh, written frame
+        by frame (:class:`warpfem.io.VtuSeriesWriter`); default the scene's [output].vtu. Every
+        stats record carries ``warpfem_version``. ``progress(FrameStats)`` is called after each frame. On
         :class:`warpfem.SolveFailed` (or Ctrl-C) the USD is closed marked incomplete with the
         frames done so far, the npz/stats hold them too, and the exception propagates.
         Returns the list of :class:`FrameStats`.
@@ -616,7 +686,11 @@ class SceneRun:
         usd = out["usd"] if usd is None else usd
         states = out["states"] if states is None else states
         stats = Scene.stats_path(usd, out["stats"] if stats is None else stats)
-        writer = log = None
+        vtu = out.get("vtu") if vtu is None else vtu
+        writer = log = volume = None
+        from warpfem.io.vtu import VtuSeriesWriter, warpfem_version
+
+        version = warpfem_version()
         history = []
         positions = None  # frames stream to disk (StatesWriter): memory does not grow with the run
         if states:
@@ -627,6 +701,10 @@ class SceneRun:
                 writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
                 writer.add_mesh(self.surface_name, self.surface_faces, self.num_surface_points)
                 writer.write_frame(self.frame, {self.surface_name: self.surface_points()})
+            if vtu:
+                qd = self.model.quadrature
+                volume = VtuSeriesWriter(vtu, cells=qd.elements, element_type=qd.element_type)
+                volume.write_state(self._time(), self.sim, self.model)
             if stats:
                 os.makedirs(os.path.dirname(os.path.abspath(stats)), exist_ok=True)
                 log = open(stats, "w")
@@ -637,25 +715,32 @@ class SceneRun:
                     if log is not None:
                         failed = getattr(e, "stats", None)
                         log.write(json.dumps({"frame": self.frame, "converged": False, "error": str(e),
-                                              "newton_iterations": getattr(failed, "newton_iterations", None)}) + "\n")
+                                              "newton_iterations": getattr(failed, "newton_iterations", None),
+                                              "warpfem_version": version}) + "\n")
                     raise
                 history.append(fs)
                 if log is not None:
-                    log.write(json.dumps(fs.as_dict()) + "\n")
+                    log.write(json.dumps({**fs.as_dict(), "warpfem_version": version}) + "\n")
                     log.flush()
                 if positions is not None:
                     positions.write_frame(self.sim.positions(), fs.time)
                 if writer is not None:
                     writer.write_frame(self.frame, {self.surface_name: self.surface_points()})
+                if volume is not None:
+                    volume.write_state(fs.time, self.sim, self.model)
                 if progress is not None:
                     progress(fs)
         except BaseException as e:
             if writer is not None:
                 writer.close(complete=False, reason=f"{type(e).__name__}: {e}")
+            if volume is not None:
+                volume.close(complete=False, reason=f"{type(e).__name__}: {e}")
             raise
         else:
             if writer is not None:
                 writer.close(complete=True)
+            if volume is not None:
+                volume.close(complete=True)
         finally:
             if log is not None:
                 log.close()

@@ -148,6 +148,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "usd": Key("outpath", default=None, doc="animated USD (.usda/.usd/.usdc)"),
         "states": Key("outpath", default=None, doc=".npz with rest and per-frame positions"),
         "stats": Key("outpath", default=None, doc="JSON-lines per-frame statistics; default next to usd"),
+        "vtu": Key("outpath", default=None, check=lambda v: None if v.lower().endswith(".pvd") else "must end in .pvd",
+                   doc="ParaView collection (.pvd + one .vtu per frame in <name>.vtu/) of the volume mesh"),
         "up_axis": Key("choice", default="Y", choices=("Y", "Z")),
         "clip_frames": Key("int", default=100, check=_non_negative,
                            doc="frames per USD value clip (bounds the writer's memory); 0 = one file, all in memory"),
