@@ -182,3 +182,64 @@ def test_warp_banner_only_with_verbose(tmp_path):
     quiet, verbose = outputs[False], outputs[True]
     assert "Warp " not in quiet and "Module " not in quiet, quiet
     assert "initialized:" in verbose and "Module warpfem." in verbose and "load on device 'cpu'" in verbose, verbose
+
+
+def test_describe_json_counts_and_outputs(tmp_path, capsys):
+    """``describe --json`` is one JSON object with the counts the text prints (24 tets, 20 vertices, 4
+    clamped vertices at x = 0), the outputs and the memory estimates."""
+    text = SCENE.format(states="x.npz") + 'vtu = "out/tiny.pvd"\nusd = "out/tiny.usda"\n'
+    scene = write_scene(tmp_path, text)
+    assert main(["describe", scene, "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert main(["describe", scene]) == 0
+    described = capsys.readouterr().out
+    mesh = d["mesh"]
+    assert (mesh["elements"], mesh["vertices"], mesh["dofs"], mesh["nodes_per_element"]) == (24, 20, 60, 4)
+    assert mesh["quadrature_points_per_element"] == 1 and mesh["quadrature_points"] == 24 and mesh["element"] == "tet4"
+    assert f"{mesh['elements']} elements, {mesh['vertices']} vertices" in described
+    assert [s["vertices"] for s in d["selections"]["fixed"]] == [4] and "fixed #1: 4 vertices" in described
+    assert d["material"]["model"] == "stable_neo_hookean" and d["material"]["youngs_modulus"] == 1e5
+    assert d["integrator"]["type"] == "backward_euler" and d["integrator"]["substeps"] == 2 and d["integrator"]["dynamic"]
+    assert (d["frames"], d["fps"], d["duration"]) == (5, 20.0, 0.25)
+    assert d["render_surface"] == {"source": "boundary", "vertices": 20, "triangles": 36, "embedded": False}
+    assert d["outputs"] == {"usd": "out/tiny.usda", "usd_clip_frames": 100, "states": "x.npz",
+                            "stats": "out/tiny.stats.jsonl", "vtu": "out/tiny.pvd"}
+    from warpfem.scenes.scene import _fmt_bytes
+
+    mem = d["estimated_device_memory_bytes"]
+    assert 0 < mem["float32"] < mem["float64"]
+    assert f"estimated device memory (float64): {_fmt_bytes(mem['float64'])}" in described
+    assert d["warpfem_version"] == __import__("warpfem").__version__
+
+
+def test_preview_png_and_version_in_stats(tmp_path, capsys):
+    """``--preview`` draws frames 0..3 (4 panels of 300 x 300 px) into a PNG; every stats record carries
+    warpfem_version."""
+    import matplotlib.image
+
+    import warpfem
+
+    scene = write_scene(tmp_path, SCENE.format(states=tmp_path / "p.npz"))
+    png, out = tmp_path / "pic" / "p.png", tmp_path / "p.usda"
+    assert main(["run", scene, "--frames", "3", "--out", str(out), "--preview", str(png), "--quiet"]) == 0
+    assert 5_000 < png.stat().st_size < 200_000
+    img = matplotlib.image.imread(str(png))
+    assert img.shape[:2] == (300, 1200)
+    rgb = img[..., :3]
+    body = (rgb[..., 2] > rgb[..., 0] + 0.2)  # the blue-shaded surface
+    assert 0.01 < body.mean() < 0.5
+    # four panels, each with some of the body in it
+    assert all(body[:, 300 * i:300 * (i + 1)].any() for i in range(4))
+    log = [json.loads(line) for line in (tmp_path / "p.stats.jsonl").read_text().splitlines()]
+    assert len(log) == 3 and all(r["warpfem_version"] == warpfem.__version__ for r in log)
+
+
+def test_preview_needs_png_and_matplotlib(tmp_path, capsys, monkeypatch):
+    scene = write_scene(tmp_path, SCENE.format(states=tmp_path / "q.npz"))
+    assert main(["run", scene, "--preview", str(tmp_path / "q.jpg"), "--quiet"]) == 2
+    assert "--preview must end in .png" in capsys.readouterr().err
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib -> ImportError
+    assert main(["run", scene, "--preview", str(tmp_path / "q.png"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert 'install the "plot" extra' in err and "warpfem[plot]" in err
+    assert not (tmp_path / "q.npz").exists()  # nothing ran

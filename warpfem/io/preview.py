@@ -15,12 +15,12 @@ MISSING = 'the preview needs matplotlib: install the "plot" extra (pip install "
 
 
 def require_matplotlib():
-    """Import matplotlib with the headless Agg backend; ImportError naming the ``plot`` extra if missing."""
+    """Import matplotlib; ImportError naming the ``plot`` extra if it is missing. The preview draws on
+    an Agg canvas of its own (no pyplot, no display, the global backend is left alone)."""
     try:
         import matplotlib
     except ImportError as e:
         raise ImportError(MISSING) from e
-    matplotlib.use("Agg", force=True)
     return matplotlib
 
 
@@ -68,7 +68,8 @@ def render_preview(path, snapshots, faces, *, up_axis: str = "Y", title: str | N
     require_matplotlib()
     import os
 
-    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
     if not snapshots:
@@ -83,28 +84,26 @@ def render_preview(path, snapshots, faces, *, up_axis: str = "Y", title: str | N
     light /= np.linalg.norm(light)
     n = len(snapshots)
     w_px, h_px = int(round(n * panel_inches * dpi)), int(round(panel_inches * dpi))
-    fig = plt.figure(figsize=(w_px / dpi, h_px / dpi), dpi=dpi)
-    try:
-        for i, ((frame, t, _), p) in enumerate(zip(snapshots, pts)):
-            ax = fig.add_subplot(1, n, i + 1, projection="3d")
-            tri = p[faces]
-            nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-            nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-            shade = 0.35 + 0.65 * np.abs(nrm @ light)
-            colors = np.clip(shade[:, None] * np.array([0.35, 0.55, 0.85])[None, :], 0.0, 1.0)
-            ax.add_collection3d(Poly3DCollection(tri, facecolors=colors, edgecolors=(0, 0, 0, 0.15), linewidths=0.2))
-            ax.set_xlim(centre[0] - half[0], centre[0] + half[0])
-            ax.set_ylim(centre[1] - half[1], centre[1] + half[1])
-            ax.set_zlim(centre[2] - half[2], centre[2] + half[2])
-            ax.set_box_aspect(tuple(half))  # equal scale on the three axes
-            ax.view_init(elev=20.0, azim=-60.0)
-            ax.set_axis_off()
-            ax.set_title(f"frame {frame}, t = {t:.3g} s", fontsize=9)
-        if title:
-            fig.suptitle(title, fontsize=10)
-        fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.88 if title else 0.92, wspace=0.0)
-        os.makedirs(os.path.dirname(os.path.abspath(os.fspath(path))), exist_ok=True)
-        fig.savefig(path, dpi=dpi, format="png")
-    finally:
-        plt.close(fig)
+    fig = Figure(figsize=(w_px / dpi, h_px / dpi), dpi=dpi)
+    FigureCanvasAgg(fig)
+    for i, ((frame, t, _), p) in enumerate(zip(snapshots, pts)):
+        ax = fig.add_subplot(1, n, i + 1, projection="3d")
+        tri = p[faces]
+        nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        shade = 0.35 + 0.65 * np.abs(nrm @ light)
+        colors = np.clip(shade[:, None] * np.array([0.35, 0.55, 0.85])[None, :], 0.0, 1.0)
+        ax.add_collection3d(Poly3DCollection(tri, facecolors=colors, edgecolors=(0, 0, 0, 0.15), linewidths=0.2))
+        ax.set_xlim(centre[0] - half[0], centre[0] + half[0])
+        ax.set_ylim(centre[1] - half[1], centre[1] + half[1])
+        ax.set_zlim(centre[2] - half[2], centre[2] + half[2])
+        ax.set_box_aspect(tuple(half))  # equal scale on the three axes
+        ax.view_init(elev=20.0, azim=-60.0)
+        ax.set_axis_off()
+        ax.text2D(0.5, 0.04, f"frame {frame}, t = {t:.3g} s", transform=ax.transAxes, ha="center", fontsize=9)
+    if title:
+        fig.suptitle(title, fontsize=10)
+    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.92 if title else 1.0, wspace=0.0)
+    os.makedirs(os.path.dirname(os.path.abspath(os.fspath(path))), exist_ok=True)
+    fig.savefig(path, dpi=dpi, format="png")
     return w_px, h_px
