@@ -63,6 +63,9 @@ def _cmd_tradeoff(args) -> int:
 
     if not args.quiet:
         print(f"{args.scene}: reference + {len(grid.configs)} configurations ({grid.name} grid) on {args.device}", flush=True)
+    init = getattr(_cli, "_init_warp", None)
+    if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
+        init(args.device, args.verbose)
     bar = Progress(1 + len(grid.configs), unit="configuration", enabled=not args.quiet)
     done = 0
 
