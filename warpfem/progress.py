@@ -37,17 +37,19 @@ class Progress:
         bar: draw a live bar (default: when stderr is a terminal).
         write: where plain lines go (default: print to stdout, flushed).
         clock: time source (seconds), for tests.
+        started: ``clock()`` value at which the work began (default: now).
     """
 
     WIDTH = 24
 
-    def __init__(self, total, *, unit="frame", enabled=True, bar=None, write=None, clock=time.perf_counter):
+    def __init__(self, total, *, unit="frame", enabled=True, bar=None, write=None, clock=time.perf_counter,
+                 started=None):
         self.total = max(int(total), 0)
         self.unit = unit
         self.enabled = enabled
         self._clock = clock
         self._write = write or (lambda line: print(line, flush=True))
-        self._t0 = clock()
+        self._t0 = clock() if started is None else started
         self._t_first = None  # time at which the first unit finished
         self._live = None
         if enabled and (sys.stderr.isatty() if bar is None else bar):

@@ -42,14 +42,16 @@ def _cmd_train(args) -> int:
     if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
         init(args.device, args.verbose)
 
+    import time
+
     from warpfem.progress import Progress
 
-    bar = None
+    bar, started = None, time.perf_counter()
 
     def progress(k, total):
         nonlocal bar
         if bar is None:
-            bar = Progress(total, unit="training frame", enabled=not args.quiet)
+            bar = Progress(total, unit="training frame", enabled=not args.quiet, started=started)
         bar.update(k)
 
     try:
