@@ -168,8 +168,9 @@ def test_describe_and_run_show_the_mesh_loader_warnings(tmp_path, capsys):
     assert any("1 unreferenced vertices removed" in w and "5" in w for w in warn)
     assert "2 elements, 5 vertices" in out
     # run: the same notes through logging (stderr), the frames with elapsed and ETA (stdout, not a tty)
-    assert main(["run", scene, "--out", str(tmp_path / "o.usda")]) == 0
+    assert main(["run", scene, "--device", "auto", "--out", str(tmp_path / "o.usda")]) == 0
     cap = capsys.readouterr()
+    assert f"2 frames on {resolve_device('auto')} (float64)" in cap.out  # auto: cpu without CUDA
     assert cap.err.count("warning: ") == 2 and "reoriented 1 of 2" in cap.err and "unreferenced" in cap.err, cap.err
     frames = [ln for ln in cap.out.splitlines() if "] frame " in ln]
     assert [ln.split("] frame ")[1].split()[0] for ln in frames] == ["1/2", "2/2"]

@@ -15,8 +15,7 @@ def _cmd_train(args) -> int:
     from warpfem.scenes import SceneError
     from warpfem.solvers.newton import SolveFailed
 
-    check = getattr(_cli, "_check_device", None)
-    if check is not None and check(args) is not None:  # a bad --device: before the scene is read
+    if _cli._check_device(args) is not None:  # a bad --device: before the scene is read
         return _cli.EXIT_INVALID
     try:
         scene = _cli._load(args.scene)

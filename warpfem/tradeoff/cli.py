@@ -29,8 +29,7 @@ def _cmd_tradeoff(args) -> int:
     if args.plot is not None and not args.plot.lower().endswith(".png"):
         _err(f"--plot must end in .png, got {args.plot!r}")
         return EXIT_INVALID
-    check = getattr(_cli, "_check_device", None)
-    if check is not None and check(args, _err) is not None:  # a bad --device: before the scene is read
+    if _cli._check_device(args, _err) is not None:  # a bad --device: before the scene is read
         return EXIT_INVALID
     try:
         load_scene(args.scene)
