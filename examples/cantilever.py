@@ -57,7 +57,7 @@ class Example:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device.")
+    parser.add_argument("--device", type=str, default=None, help="Override the default Warp device (cpu, cuda:0, ... or auto).")
     parser.add_argument("--stage-path", type=lambda x: None if x == "None" else str(x), default="out/cantilever.usda",
                         help="Path to the output USD file (None: no output).")
     parser.add_argument("--num-frames", type=int, default=48, help="Total number of frames.")
@@ -65,6 +65,13 @@ def main(argv=None):
     parser.add_argument("--scene", default=SCENE, help="Scene file (default: examples/scenes/cantilever.toml).")
     parser.add_argument("--headless", action="store_true", help="Run without an interactive viewer (USD output only).")
     args = parser.parse_known_args(argv)[0]
+    if args.device is not None:  # "auto", and a clear error for an unknown name (lists the devices)
+        from warpfem.device import DeviceError, resolve_device
+
+        try:
+            args.device = resolve_device(args.device)
+        except DeviceError as e:
+            parser.error(str(e))
 
     with wp.ScopedDevice(args.device):
         example = Example(stage_path=args.stage_path, num_frames=args.num_frames, precision=args.precision,

@@ -11,6 +11,7 @@ another runtime error, 2 invalid command line or scene, 130 interrupted.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 
 __all__ = ["main", "build_parser", "add_subcommand", "SUBCOMMANDS"]
@@ -19,16 +20,52 @@ EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED = 0, 1, 2, 130
 
 
 def _version():
-    from importlib.metadata import PackageNotFoundError, version
+    from warpfem import __version__  # the one definition (pyproject reads it too)
 
-    try:
-        return version("warpfem")
-    except PackageNotFoundError:  # running from a source tree
-        return "0.1.0"
+    return __version__
 
 
 def _err(msg):
     print(f"warpfem: error: {msg}", file=sys.stderr)
+
+
+class _LogHandler(logging.Handler):
+    """The library's log records on the current ``sys.stderr`` ("warning: ..." for warnings)."""
+
+    def emit(self, record):
+        try:
+            msg = record.getMessage()
+            if record.levelno >= logging.WARNING:
+                msg = f"{record.levelname.lower()}: {msg}"
+            elif record.levelno < logging.INFO:
+                msg = f"debug: {record.name}: {msg}"
+            print(msg, file=sys.stderr, flush=True)
+        except Exception:  # noqa: BLE001 - logging must not raise
+            self.handleError(record)
+
+
+def _configure_logging(verbose: bool) -> None:
+    """The ``warpfem`` loggers: INFO and up on stderr, DEBUG too with ``--verbose``."""
+    log = logging.getLogger("warpfem")
+    for h in [h for h in log.handlers if isinstance(h, _LogHandler)]:
+        log.removeHandler(h)
+    log.addHandler(_LogHandler())
+    log.setLevel(logging.DEBUG if verbose else logging.INFO)
+
+
+def _check_device(args, err=None):
+    """Validate ``args.device`` (before the scene is read) and replace it by the device's alias
+    (``auto``: CUDA when present, else cpu). Returns None, or EXIT_INVALID after the message."""
+    from warpfem.device import DeviceError, resolve_device
+
+    if str(args.device).strip().lower() != "cpu":  # listing the devices initialises Warp
+        _init_warp(args.device, getattr(args, "verbose", False))
+    try:
+        args.device = resolve_device(args.device)
+    except DeviceError as e:
+        (err or _err)(str(e))
+        return EXIT_INVALID
+    return None
 
 
 def _configure_warp(verbose: bool) -> None:
@@ -52,7 +89,7 @@ def _init_warp(device: str, verbose: bool) -> None:
     level) is dropped; anything else it prints is passed on to stderr."""
     import warp as wp
 
-    if verbose or not str(device).startswith("cpu"):
+    if verbose or str(device).startswith("cuda"):  # a CUDA device asked for: the note matters
         wp.init()
         return
     import os
@@ -120,6 +157,8 @@ def _cmd_run(args) -> int:
     if args.out is not None and not args.out.lower().endswith((".usda", ".usd", ".usdc")):
         _err(f"--out must end in .usda, .usd or .usdc, got {args.out!r}")
         return EXIT_INVALID
+    if _check_device(args) is not None:
+        return EXIT_INVALID
     if getattr(args, "preview", None) is not None:
         if not args.preview.lower().endswith(".png"):
             _err(f"--preview must end in .png, got {args.preview!r}")
@@ -155,14 +194,16 @@ def _cmd_run(args) -> int:
         print(f"{scene.name}: {scene.mesh().num_elements} elements, {scene.mesh().num_vertices} vertices, "
               f"{frames} frames on {args.device} ({args.precision})", flush=True)
 
+    from warpfem.progress import Progress
+
+    bar = Progress(frames, unit="frame", enabled=not args.quiet)
+
     def progress(fs):
-        if args.quiet:
-            return
-        width = 24
-        done = int(width * fs.frame / frames)
         flag = "" if fs.converged else "  NOT CONVERGED"
-        print(f"[{'#' * done}{'.' * (width - done)}] frame {fs.frame}/{frames}  t = {fs.time:.4f} s  "
-              f"newton {fs.newton_iterations}  cg {fs.cg_iterations}  {fs.step_seconds:.3f} s{flag}", flush=True)
+        bar.update(fs.frame, f"t = {fs.time:.4f} s  newton {fs.newton_iterations}  cg {fs.cg_iterations}  "
+                             f"{fs.step_seconds:.3f} s{flag}")
+        if flag and bar.drawing_bar:
+            bar.note(f"frame {fs.frame}/{frames}: NOT CONVERGED ({fs.reason})")
 
     on_frame, recorder = progress, None
     if getattr(args, "preview", None) is not None:  # keep the render surface at a few frames for the picture
@@ -177,7 +218,8 @@ def _cmd_run(args) -> int:
             _report(fs)
 
     try:
-        run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
+        with bar:
+            run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
     except SolveFailed as e:
         _err(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
         return EXIT_FAILED
@@ -199,14 +241,14 @@ def _cmd_run(args) -> int:
 def _register_run(subparsers):
     p = subparsers.add_parser("run", help="simulate a scene and write its outputs")
     p.add_argument("scene", help="TOML scene file")
-    p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... (default cpu)")
+    p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... or auto (CUDA when present, else cpu; default cpu)")
     p.add_argument("--precision", choices=("float32", "float64"), default="float64")
     p.add_argument("--frames", type=int, default=None, help="number of frames (default: the scene's [output].frames)")
     p.add_argument("--out", default=None, help="USD file (.usda/.usd/.usdc); default: the scene's [output].usd")
     p.add_argument("--preview", default=None, metavar="PNG",
                    help="after the run, draw 4 evenly spaced frames of the render surface to this PNG (needs the plot extra)")
-    p.add_argument("--quiet", action="store_true", help="no progress lines")
-    p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages")
+    p.add_argument("--quiet", action="store_true", help="no progress lines (a bar with ETA on a terminal, else a line per frame)")
+    p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages (and debug logging)")
     p.set_defaults(func=_cmd_run)
 
 
@@ -250,6 +292,7 @@ def main(argv=None) -> int:
     _configure_warp("--verbose" in argv)
     parser = build_parser()
     args = parser.parse_args(argv)
+    _configure_logging(getattr(args, "verbose", False))
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return EXIT_INVALID

@@ -19,6 +19,7 @@ import warnings
 import numpy as np
 import warp as wp
 
+from warpfem.device import get_device as _get_device
 from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
@@ -115,7 +116,7 @@ class Simulator(SimulatorState):
 
     Args:
         model: the :class:`~warpfem.model.Model`.
-        device: Warp device ("cpu", "cuda:0", ...).
+        device: Warp device ("cpu", "cuda:0", ..., or "auto": CUDA when present, else the CPU).
         precision: "float32" or "float64" (kernels, vectors and matrices; energies and dot
             products are always reduced in float64).
         dt: time step h (s). Smaller is more accurate (backward Euler damps a mode of angular
@@ -136,7 +137,7 @@ class Simulator(SimulatorState):
         self.options = NewtonOptions(**newton_options)
         self.options.validate()
         self.model = model
-        self.device = wp.get_device(device)
+        self.device = _get_device(device)
         self.precision = precision
         self._s, self._vec, self._mat, self._np = types
         self.dt = float(dt)

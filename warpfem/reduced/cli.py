@@ -15,6 +15,8 @@ def _cmd_train(args) -> int:
     from warpfem.scenes import SceneError
     from warpfem.solvers.newton import SolveFailed
 
+    if _cli._check_device(args) is not None:  # a bad --device: before the scene is read
+        return _cli.EXIT_INVALID
     try:
         scene = _cli._load(args.scene)
     except SceneError as e:
@@ -39,12 +41,24 @@ def _cmd_train(args) -> int:
     if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
         init(args.device, args.verbose)
 
+    import time
+
+    from warpfem.progress import Progress
+
+    bar, started = None, time.perf_counter()
+
     def progress(k, total):
-        if not args.quiet:
-            print(f"  training frame {k}/{total}", flush=True)
+        nonlocal bar
+        if bar is None:
+            bar = Progress(total, unit="training frame", enabled=not args.quiet, started=started)
+        bar.update(k)
 
     try:
-        sub = train_scene(scene, device=args.device, precision=args.precision, retrain=args.retrain, progress=progress)
+        try:
+            sub = train_scene(scene, device=args.device, precision=args.precision, retrain=args.retrain, progress=progress)
+        finally:
+            if bar is not None:
+                bar.close()
     except SceneError as e:
         _cli._err(str(e))
         return _cli.EXIT_INVALID
@@ -66,7 +80,7 @@ def register(subparsers):
     p.add_argument("scene", help="TOML scene file with a [subspace] section")
     p.add_argument("--retrain", action="store_true",
                    help="train even when the cache is up to date (default: reuse a cache that matches the scene)")
-    p.add_argument("--device", default="cpu", help="Warp device for the training run: cpu, cuda, cuda:0, ... (default cpu)")
+    p.add_argument("--device", default="cpu", help="Warp device for the training run: cpu, cuda, cuda:0, ... or auto (default cpu)")
     p.add_argument("--precision", choices=("float32", "float64"), default="float64")
     p.add_argument("--quiet", action="store_true", help="only the final report")
     p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages")

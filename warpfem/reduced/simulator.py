@@ -18,6 +18,7 @@ import warnings
 import numpy as np
 import warp as wp
 
+from warpfem.device import get_device as _get_device
 from warpfem.kernels import reduced as RK
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats
 from warpfem.solvers.state import PRECISIONS, check_simulator_options
@@ -56,7 +57,7 @@ class CubatureForces:
             raise ValueError(f"cubature element index out of range [0, {m}): {elements[(elements < 0) | (elements >= m)][:5]}")
         if np.any(weights < 0) or not np.all(np.isfinite(weights)):
             raise ValueError("cubature weights must be finite and non-negative")
-        self.device = dev = wp.get_device(device)
+        self.device = dev = _get_device(device)
         if precision not in PRECISIONS:
             raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
         self._s, vec, mat, npdt = PRECISIONS[precision]
@@ -125,7 +126,7 @@ class ReducedSimulator:
         self.options = NewtonOptions(**newton_options)
         self.options.validate()
         self.model, self.subspace = model, subspace
-        self.device = wp.get_device(device)
+        self.device = _get_device(device)
         self.precision = precision
         self.dt, self.damping_mass, self.damping_stiffness = float(dt), float(damping_mass), float(damping_stiffness)
         self.require_convergence = require_convergence

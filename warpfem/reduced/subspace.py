@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 from dataclasses import dataclass, field
 
@@ -174,6 +175,7 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
             field (:mod:`warpfem.reduced.lifting`) is built so the reduced simulator can move them.
         handle_targets_at: ``f(fraction in [0, 1]) -> [targets (h_g, 3) per handle]``, the handle
             motion random training poses sample (64 fractions); default: handles at rest.
+        verbose: log the training report (:func:`format_report`) at INFO level on this module's logger.
     """
     handles = [(np.unique(np.asarray(ids, dtype=np.int64)), str(c)) for ids, c in (handles or [])]
     settings = {"modes": int(modes), "modal_derivatives": bool(modal_derivatives),
@@ -241,7 +243,7 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
         sub.save(cache)
         report["cache"] += f", saved to {os.fspath(cache)!r}"
     if verbose:
-        print(format_report(report))
+        logging.getLogger(__name__).info("%s", format_report(report))
     return sub
 
 

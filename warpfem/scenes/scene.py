@@ -9,6 +9,7 @@ only what the scene names (no surface embedding without ``[surface]``, ...) and 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import time
@@ -252,6 +253,7 @@ class Scene:
         self.spec = spec
         self.path = spec.path
         self._mesh = None
+        self.mesh_warnings = []  # the mesh loader's warnings (filled by mesh())
 
     @property
     def name(self) -> str:
@@ -283,13 +285,15 @@ class Scene:
             from warpfem.mesh import MeshError
 
             try:
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore")  # reorientation / unreferenced notes
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")  # reorientation / unreferenced notes: kept, shown below
                     self._mesh = self._make_mesh()
             except (MeshError, ElementError, ValueError) as e:
                 if isinstance(e, SceneError):
                     raise
                 self._fail("[mesh]", str(e))
+            # the loader's notes (reoriented tets, removed vertices): `describe` lists them, `build` logs them
+            self.mesh_warnings = list(dict.fromkeys(str(w.message) for w in caught))
         return self._mesh
 
     def _make_mesh(self):
@@ -378,6 +382,7 @@ class Scene:
         src = (f"box generator size {list(sp.mesh['size'])} m, cells {list(sp.mesh['cells'])}" if sp.mesh["generator"]
                else f"file {sp.mesh['path']}" + (" (tets inside its surface)" if sp.mesh["inside_surface"] else ""))
         lines.append(f"mesh: {src}")
+        lines += [f"warning: {w}" for w in self.mesh_warnings]  # the mesh loader's (reoriented tets, ...)
         etype = sp.mesh["element"]
         vi = sp.material["volumetric_integration"]
         qpe = quadrature_points_per_element(etype, vi)
@@ -490,7 +495,7 @@ class Scene:
                         {"inside_surface": bool(sp.mesh["inside_surface"])}),
                      "element": etype, "element_description": ELEMENTS[etype], "elements": int(m), "vertices": int(n),
                      "dofs": int(3 * n), "nodes_per_element": int(k), "quadrature_points_per_element": int(qpe),
-                     "quadrature_points": int(m * qpe)},
+                     "quadrature_points": int(m * qpe), "warnings": list(self.mesh_warnings)},
             "material": {key: plain(val) for key, val in sp.material.items()},
             "gravity": list(sp.top["gravity"]),
             "selections": selections, "tractions": tractions,
@@ -524,8 +529,13 @@ class Scene:
 
         if precision not in ("float32", "float64"):
             raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
+        from warpfem.device import resolve_device
+
+        device = resolve_device(device)  # DeviceError (lists the devices) before any scene work
         sp = self.spec
         mesh = self.mesh()
+        for w in self.mesh_warnings:
+            logging.getLogger(__name__).warning("%s: [mesh]: %s", self.path or "<scene>", w)
         sel = self.selections()
         tractions = self.tractions()
         mat = sp.material

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from warpfem.device import get_device as _get_device
+
 from .embedding import Embedding
 from .kernels import skin_points_kernel
 
@@ -59,7 +61,7 @@ class SurfaceSkinner:
         if embedding.num_vertices >= 2**31:
             raise ValueError("mesh too large for int32 vertex ids")
         self.scalar_type, self.vec_type = resolve_precision(precision)
-        self.device = wp.get_device(device)
+        self.device = _get_device(device)
         self.num_points = int(ti.shape[0])
         self.weights_per_point = k
         self.num_vertices = int(embedding.num_vertices)

@@ -40,6 +40,7 @@ import warnings
 import numpy as np
 import warp as wp
 
+from warpfem.device import get_device as _get_device
 from warpfem.kernels import linalg as LK
 from warpfem.kernels import warping as WK
 from warpfem.solvers.newton import SolveFailed, SolveStats
@@ -113,7 +114,7 @@ class StiffnessWarpingSimulator(SimulatorState):
                 raise TypeError(f"model.material must be a warpfem material with {attr!r}, got {type(mat).__name__}")
 
         self.model = model
-        self.device = wp.get_device(device)
+        self.device = _get_device(device)
         self.precision = precision
         self._s, self._vec, self._mat, self._np = types
         self.dt = float(dt)

@@ -29,6 +29,8 @@ def _cmd_tradeoff(args) -> int:
     if args.plot is not None and not args.plot.lower().endswith(".png"):
         _err(f"--plot must end in .png, got {args.plot!r}")
         return EXIT_INVALID
+    if _cli._check_device(args, _err) is not None:  # a bad --device: before the scene is read
+        return EXIT_INVALID
     try:
         load_scene(args.scene)
     except SceneError as e:
@@ -55,17 +57,34 @@ def _cmd_tradeoff(args) -> int:
             _err("--plot needs matplotlib, which is not installed: pip install 'warpfem[plot]' (or drop --plot)")
             return EXIT_FAILED
 
+    from warpfem.progress import Progress
     from warpfem.solvers.newton import SolveFailed
-
-    def log(line):
-        if not args.quiet:
-            print(line, flush=True)
 
     if not args.quiet:
         print(f"{args.scene}: reference + {len(grid.configs)} configurations ({grid.name} grid) on {args.device}", flush=True)
+    init = getattr(_cli, "_init_warp", None)
+    if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
+        init(args.device, args.verbose)
+    bar = Progress(1 + len(grid.configs), unit="configuration", enabled=not args.quiet)
+    done = 0
+
+    def log(line):  # after each configuration (the reference first)
+        nonlocal done
+        done += 1
+        if bar.drawing_bar:
+            bar.note(line)
+            bar.update(done)
+        else:
+            bar.update(done, line)
+
+    def progress(cfg, fs):  # after each frame: the bar shows which run it is in
+        if bar.drawing_bar:
+            bar.update(done, f"{getattr(cfg, 'name', '')} frame {fs.frame}")
+
     try:
-        study = run_study(args.scene, grid, device=args.device, frames=args.frames, quantity=args.quantity,
-                          tip_point=tuple(args.tip_point) if args.tip_point else None, log=log)
+        with bar:
+            study = run_study(args.scene, grid, device=args.device, frames=args.frames, quantity=args.quantity,
+                              tip_point=tuple(args.tip_point) if args.tip_point else None, log=log, progress=progress)
     except (SceneError, GridError) as e:
         _err(str(e))
         return EXIT_INVALID
@@ -102,7 +121,7 @@ def register(subparsers):
     p.add_argument("--grid", default="quick",
                    help="'quick' (one knob at a time, default), 'full' (products) or a grid .toml file")
     p.add_argument("--frames", type=int, default=None, help="output frames per run (default: grid's, else the scene's)")
-    p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... (default cpu)")
+    p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... or auto (default cpu)")
     p.add_argument("--json", default=None, metavar="OUT.json", help="write every measurement as JSON")
     p.add_argument("--markdown", default=None, metavar="OUT.md", help="write the table as markdown")
     p.add_argument("--plot", default=None, metavar="OUT.png", help="Pareto plot, error vs time (needs matplotlib)")

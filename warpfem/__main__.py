@@ -1,0 +1,7 @@
+"""``python -m warpfem ...``: the ``warpfem`` command line (see :mod:`warpfem.cli`)."""
+
+import sys
+
+from warpfem.cli import main
+
+sys.exit(main())

@@ -1,0 +1,134 @@
+"""Progress of the long command-line jobs (frames of ``run``, training frames, ``tradeoff``
+configurations) with elapsed time and an ETA.
+
+On a terminal (stderr is a TTY) a live bar is drawn on stderr with ``rich``; otherwise (CI, pipes,
+files) one plain line per unit is written (to stdout by default)::
+
+    [######..................] frame 3/12  t = 0.1500 s  newton 3  cg 41  0.012 s  elapsed 0:00:01  ETA 0:00:03
+
+The ETA is (units left) x (mean time per unit after the first): the first unit usually includes
+Warp's kernel compilation and would inflate it.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+__all__ = ["Progress", "format_duration"]
+
+
+def format_duration(seconds) -> str:
+    """``H:MM:SS`` (``--:--:--`` for an unknown / infinite time)."""
+    if seconds is None or seconds != seconds or seconds == float("inf"):
+        return "-:--:--"
+    s = int(round(max(seconds, 0.0)))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}"
+
+
+class Progress:
+    """``update(done, detail)`` after each of ``total`` units; ``note(line)`` for a line that must stay
+    visible (a warning about a unit); ``close()`` (or use as a context manager) at the end.
+
+    Args:
+        total: number of units.
+        unit: what a unit is called in the plain lines ("frame", "configuration", ...).
+        enabled: False: nothing is shown (``--quiet``).
+        bar: draw a live bar (default: when stderr is a terminal).
+        write: where plain lines go (default: print to stdout, flushed).
+        clock: time source (seconds), for tests.
+        started: ``clock()`` value at which the work began (default: now).
+    """
+
+    WIDTH = 24
+
+    def __init__(self, total, *, unit="frame", enabled=True, bar=None, write=None, clock=time.perf_counter,
+                 started=None):
+        self.total = max(int(total), 0)
+        self.unit = unit
+        self.enabled = enabled
+        self._clock = clock
+        self._write = write or (lambda line: print(line, flush=True))
+        self._t0 = clock() if started is None else started
+        self._t_first = None  # time at which the first unit finished
+        self._live = None
+        if enabled and (sys.stderr.isatty() if bar is None else bar):
+            self._live = self._start_bar()
+
+    @property
+    def drawing_bar(self) -> bool:
+        """True while a live bar is drawn (plain lines otherwise)."""
+        return self._live is not None
+
+    # -- time ---------------------------------------------------------------------------------------
+    def elapsed(self) -> float:
+        return self._clock() - self._t0
+
+    def eta(self, done) -> float:
+        """Seconds left after ``done`` units (inf when unknown)."""
+        left = self.total - done
+        if left <= 0:
+            return 0.0
+        now = self._clock()
+        if done >= 2 and self._t_first is not None:
+            per = (now - self._t_first) / (done - 1)
+        elif done >= 1:
+            per = (now - self._t0) / done
+        else:
+            return float("inf")
+        return per * left
+
+    # -- output -------------------------------------------------------------------------------------
+    def _start_bar(self):
+        try:
+            from rich.console import Console
+            from rich.progress import (BarColumn, MofNCompleteColumn, Progress as RichProgress, TextColumn,
+                                       TimeElapsedColumn, TimeRemainingColumn)
+        except ImportError:  # rich is a declared dependency; plain lines if it is broken or missing
+            return None
+        live = RichProgress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn(),
+                            TextColumn("{task.fields[detail]}"), console=Console(file=sys.stderr),
+                            transient=False)
+        live.start()
+        self._task = live.add_task(self.unit + "s", total=self.total or None, detail="")
+        return live
+
+    def line(self, done, detail="") -> str:
+        """The plain line for ``done`` units."""
+        n = self.WIDTH * done // self.total if self.total else self.WIDTH
+        bar = "#" * n + "." * (self.WIDTH - n)
+        mid = f"  {detail}" if detail else ""
+        return (f"[{bar}] {self.unit} {done}/{self.total}{mid}  elapsed {format_duration(self.elapsed())}  "
+                f"ETA {format_duration(self.eta(done))}")
+
+    def update(self, done, detail="") -> None:
+        if done >= 1 and self._t_first is None:
+            self._t_first = self._clock()
+        if not self.enabled:
+            return
+        if self._live is not None:
+            self._live.update(self._task, completed=done, detail=detail)
+        else:
+            self._write(self.line(done, detail))
+
+    def note(self, text) -> None:
+        """A line that stays (above the bar on a terminal; a plain line otherwise)."""
+        if not self.enabled:
+            return
+        if self._live is not None:
+            self._live.console.print(text, markup=False, highlight=False)
+        else:
+            self._write(text)
+
+    def close(self) -> None:
+        if self._live is not None:
+            self._live.stop()
+            self._live = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
