@@ -12,15 +12,12 @@ from .tetmesh import MeshError, TetMesh
 __all__ = ["load_mesh", "save_mesh"]
 
 
-_TETRA_OPTIONS = ("max_edge_length", "max_radius_edge_ratio", "mesher", "cache")
-
-
 def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
               cache=None, **kw):
     """Load the ``tetra`` cells of any meshio-readable file as a ``TetMesh``.
 
-    A surface file (.obj, .off, .ply, .stl, or a meshio file with triangles and no tets) is
-    checked and tetrahedralised instead, through a cache (``warpfem.mesh.tetrahedralize_file``,
+    A surface file (.obj, .off, .ply, .stl: chosen by the extension) is checked and
+    tetrahedralised instead, through a cache (``warpfem.mesh.tetrahedralize_file``,
     needs ``pip install warpfem[mesh]``); ``max_edge_length``, ``max_radius_edge_ratio``,
     ``mesher`` and ``cache`` apply to such files only (``MeshError`` for a tet file).
 
@@ -58,11 +55,12 @@ def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_ed
     if blocks and given:
         raise MeshError(f"{path}: {', '.join(given)} only apply to surface files (tetrahedralised on load); "
                         "this file already holds tets")
-    if not blocks and not inside_surface and any(c.type in ("triangle", "quad") and len(c.data) for c in m.cells):
-        return surface()
     if not blocks:
         found = sorted({f"{c.type} ({len(c.data)})" for c in m.cells}) or ["none"]
-        raise MeshError(f"{path}: no tetra cells found; cell types in file: {', '.join(found)}")
+        hint = ""
+        if any(c.type in ("triangle", "quad") and len(c.data) for c in m.cells):
+            hint = f" (a closed surface? save it as {'/'.join(SURFACE_EXTENSIONS)} to tetrahedralise it on load)"
+        raise MeshError(f"{path}: no tetra cells found; cell types in file: {', '.join(found)}{hint}")
     tets = np.concatenate(blocks, axis=0)
     points = np.asarray(m.points)
     if points.ndim == 2 and points.shape[1] == 2:

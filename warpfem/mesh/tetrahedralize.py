@@ -20,6 +20,7 @@ the file bytes and the options (``$WARPFEM_CACHE_DIR/tetra``, default ``~/.cache
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib
 import importlib.util
@@ -359,6 +360,7 @@ def _run_tetgen(V, F, opts):
     kw = {"quality": True, "minratio": opts["max_radius_edge_ratio"], "quiet": True}
     if opts["max_edge_length"] is not None:
         L = opts["max_edge_length"]
+        kw["fixedvolume"] = True  # TetGen -a<volume>
         kw["maxvolume"] = L ** 3 / (6.0 * math.sqrt(2.0))  # the regular tet of edge L
     try:
         tg = tetgen.TetGen(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
@@ -369,17 +371,38 @@ def _run_tetgen(V, F, opts):
     return np.asarray(nodes, dtype=np.float64), np.asarray(elems, dtype=np.int64)
 
 
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Send file descriptor 1 to /dev/null (native code writing to stdout) for the block."""
+    import sys
+
+    try:
+        sys.stdout.flush()
+        saved = os.dup(1)
+    except (OSError, ValueError, AttributeError):  # no usable fd 1: nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
 def _run_tetwild(V, F, opts, diag):
     wm = _import_mesher("tetwild")
     kw = {}
     if opts["max_edge_length"] is not None:
         kw["edge_length_r"] = min(opts["max_edge_length"] / diag, 1.0)  # relative to the bbox diagonal
     try:
-        t = wm.Tetrahedralizer(**kw)
-        t.set_log_level(6)
-        t.set_mesh(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
-        t.tetrahedralize()
-        out = t.get_tet_mesh(correct_surface_orientation=True)
+        with _quiet_stdout():  # TetWild prints its progress with C++ streams
+            t = wm.Tetrahedralizer(**kw)
+            t.set_log_level(6)
+            t.set_mesh(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
+            t.tetrahedralize()
+            out = t.get_tet_mesh(correct_surface_orientation=True)
     except (RuntimeError, ValueError) as exc:
         raise MeshError(f"TetWild failed: {exc}") from exc
     return np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.int64)
@@ -499,8 +522,7 @@ def _write_cache(path, mesh):
 
 def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None, cache=True,
                         check=True):
-    """Read a surface file (.obj, .off, .ply, .stl, or a meshio file with triangles and no tets),
-    check it and tetrahedralise it (see :func:`tetrahedralize`), through the cache.
+    """Read a surface file (.obj, .off, .ply, .stl, or any meshio file with triangles), check it and tetrahedralise it (see :func:`tetrahedralize`), through the cache.
 
     The cache key is a SHA-256 of the file bytes and the resolved options (mesher included), so
     editing the file or changing an option re-meshes; the entry is
