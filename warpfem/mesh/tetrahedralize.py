@@ -85,7 +85,7 @@ class Tetrahedralization:
 
     def describe(self) -> str:
         opts = ", ".join(f"{k} = {v:g}" if isinstance(v, float) else f"{k} = {v}"
-                         for k, v in self.options.items() if k != "mesher")
+                         for k, v in self.options.items() if k != "mesher" and v is not None)
         how = "cache hit" if self.cache_hit else f"meshed in {self.seconds:.2f} s"
         where = f", cache {self.cache_path}" if self.cache_path else ""
         return (f"tetrahedralised from a {self.surface_vertices}-vertex, {self.surface_faces}-triangle surface by "
