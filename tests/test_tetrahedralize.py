@@ -342,3 +342,24 @@ def test_scene_options_reach_the_mesher(tetgen, tmp_path):
     assert fine.tetrahedralization.options["max_edge_length"] == 0.05
     assert fine.num_elements > 10 * coarse.num_elements
     assert abs(tet_volumes(fine.vertices, fine.tets).sum() - 0.008) < 1e-14
+
+
+def test_python_options_are_validated():
+    for kw, words in (({"max_edge_length": -0.1}, "max_edge_length must be a finite number > 0"),
+                      ({"max_edge_length": float("nan")}, "max_edge_length must be a finite number > 0"),
+                      ({"max_radius_edge_ratio": 1.0}, "max_radius_edge_ratio must be a number >= 1.1"),
+                      ({"mesher": "gmsh"}, "mesher must be one of 'auto', 'tetgen', 'tetwild'")):
+        with pytest.raises(MeshError, match=words):
+            tetrahedralize(CUBE_V, CUBE_F, **kw)
+
+
+def test_self_intersection_between_faces_sharing_a_vertex():
+    # a closed tetrahedron-like fan whose apex face folds through the opposite face: faces (0, 1, 2) and
+    # (0, 3, 4) share vertex 0, and edge (3, 4) pierces face (0, 1, 2)
+    V = np.array([[0, 0, 0], [2, 0, 0], [0, 2, 0], [0.5, 0.5, -1], [0.5, 0.5, 1]], dtype=np.float64)
+    F = np.array([[0, 1, 2], [0, 3, 4]])
+    pairs = T._self_intersections(V, F, 3.0)
+    assert pairs.tolist() == [[0, 1]]
+    V2 = V.copy()
+    V2[3, 2] = 0.5  # the edge lifted above face 0 (both faces meet only at vertex 0): no crossing
+    assert len(T._self_intersections(V2, F, 3.0)) == 0

@@ -330,8 +330,15 @@ def _resolve_options(max_edge_length=None, max_radius_edge_ratio=None, mesher=No
     if opts["mesher"] not in ("auto", *MESHERS):
         raise MeshError(f"mesher must be one of 'auto', {', '.join(repr(k) for k in MESHERS)}, got {opts['mesher']!r}")
     if opts["mesher"] == "auto":
-        opts["mesher"] = next((k for k, (mod, _, _) in MESHERS.items() if importlib.util.find_spec(mod)), "tetgen")
+        opts["mesher"] = next((k for k, (mod, _, _) in MESHERS.items() if _installed(mod)), "tetgen")
     return opts
+
+
+def _installed(module):
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a broken or stubbed-out package
+        return False
 
 
 def _import_mesher(mesher):
