@@ -6,7 +6,7 @@ from .io import load_mesh, save_mesh
 from .mass import consistent_mass, lumped_mass
 from .select import select_vertices_in_box
 from .tetmesh import TET_FACES, MeshError, TetMesh, boundary_faces, tet_volumes
-from .tetrahedralize import (MesherNotInstalled, Tetrahedralization, check_surface, read_surface, tetrahedralize,
+from .tetrahedralization import (MesherNotInstalled, Tetrahedralization, check_surface, read_surface, tetrahedralize,
                              tetrahedralize_file)
 
 __all__ = [

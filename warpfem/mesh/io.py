@@ -1,5 +1,5 @@
 """Reading and writing tet meshes through meshio (.mesh, .msh, .vtu, .vtk, ...); surface files
-(.obj, .off, .ply, .stl) are tetrahedralised on load (see ``tetrahedralize.py``)."""
+(.obj, .off, .ply, .stl) are tetrahedralised on load (see ``tetrahedralization.py``)."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_ed
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"mesh file not found: {path}")
-    from .tetrahedralize import SURFACE_EXTENSIONS, tetrahedralize_file
+    from .tetrahedralization import SURFACE_EXTENSIONS, tetrahedralize_file
 
     tetra_opts = {"max_edge_length": max_edge_length, "max_radius_edge_ratio": max_radius_edge_ratio,
                   "mesher": mesher, "cache": cache}
