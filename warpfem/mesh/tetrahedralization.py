@@ -370,12 +370,26 @@ def _run_tetgen(V, F, opts):
         kw["fixedvolume"] = True  # TetGen -a<volume>
         kw["maxvolume"] = L ** 3 / (6.0 * math.sqrt(2.0))  # the regular tet of edge L
     try:
-        tg = tetgen.TetGen(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
-        nodes, elems = tg.tetrahedralize(**kw)[:2]
+        with _scratch_cwd():
+            tg = tetgen.TetGen(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
+            nodes, elems = tg.tetrahedralize(**kw)[:2]
     except (RuntimeError, ValueError) as exc:
         raise MeshError(f"TetGen failed: {exc} (a self-intersection or nearly touching faces that the surface check "
                         "did not catch? mesher = 'tetwild' tolerates those)") from exc
     return np.asarray(nodes, dtype=np.float64), np.asarray(elems, dtype=np.int64)
+
+
+@contextlib.contextmanager
+def _scratch_cwd():
+    """Run the block in a fresh temporary working directory: TetGen writes ``_skipped.node/.face``
+    on self-intersections and TetWild ``__tracked_surface.stl`` into the current directory."""
+    old = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="warpfem-mesher-") as tmp:
+        os.chdir(tmp)
+        try:
+            yield
+        finally:
+            os.chdir(old)
 
 
 @contextlib.contextmanager
@@ -404,7 +418,7 @@ def _run_tetwild(V, F, opts, diag):
     if opts["max_edge_length"] is not None:
         kw["edge_length_r"] = min(opts["max_edge_length"] / diag, 1.0)  # relative to the bbox diagonal
     try:
-        with _quiet_stdout():  # TetWild prints its progress with C++ streams
+        with _quiet_stdout(), _scratch_cwd():  # TetWild prints its progress with C++ streams
             t = wm.Tetrahedralizer(**kw)
             t.set_log_level(6)
             t.set_mesh(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
