@@ -1,4 +1,5 @@
-"""Reading and writing tet meshes through meshio (.mesh, .msh, .vtu, .vtk, ...)."""
+"""Reading and writing tet meshes through meshio (.mesh, .msh, .vtu, .vtk, ...); surface files
+(.obj, .off, .ply, .stl) are tetrahedralised on load (see ``tetrahedralization.py``)."""
 
 from __future__ import annotations
 
@@ -11,8 +12,14 @@ from .tetmesh import MeshError, TetMesh
 __all__ = ["load_mesh", "save_mesh"]
 
 
-def load_mesh(path, *, inside_surface=False, **kw):
+def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
+              cache=None, **kw):
     """Load the ``tetra`` cells of any meshio-readable file as a ``TetMesh``.
+
+    A surface file (.obj, .off, .ply, .stl: chosen by the extension) is checked and
+    tetrahedralised instead, through a cache (``warpfem.mesh.tetrahedralize_file``,
+    needs ``pip install warpfem[mesh]``); ``max_edge_length``, ``max_radius_edge_ratio``,
+    ``mesher`` and ``cache`` apply to such files only (``MeshError`` for a tet file).
 
     Other cell types (surface triangles, lines, ...) are ignored, except with
     ``inside_surface=True``: then only the tets inside the closed surface formed by the file's
@@ -25,15 +32,35 @@ def load_mesh(path, *, inside_surface=False, **kw):
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"mesh file not found: {path}")
+    from .tetrahedralization import SURFACE_EXTENSIONS, tetrahedralize_file
+
+    tetra_opts = {"max_edge_length": max_edge_length, "max_radius_edge_ratio": max_radius_edge_ratio,
+                  "mesher": mesher, "cache": cache}
+
+    def surface():
+        if inside_surface:
+            raise MeshError(f"{path}: inside_surface applies to tet files; this is a surface file, tetrahedralised as a whole")
+        opts = {k: v for k, v in tetra_opts.items() if v is not None}
+        return tetrahedralize_file(path, **opts)
+
+    if os.path.splitext(path)[1].lower() in SURFACE_EXTENSIONS:
+        return surface()
     try:
         m = meshio.read(path)
     except Exception as exc:  # meshio raises ReadError / ValueError / KeyError on bad input
         raise MeshError(f"{path}: meshio could not read the file: {type(exc).__name__}: {exc}") from exc
 
     blocks = [c.data for c in m.cells if c.type == "tetra" and len(c.data)]
+    given = [k for k, v in tetra_opts.items() if v is not None]
+    if blocks and given:
+        raise MeshError(f"{path}: {', '.join(given)} only apply to surface files (tetrahedralised on load); "
+                        "this file already holds tets")
     if not blocks:
         found = sorted({f"{c.type} ({len(c.data)})" for c in m.cells}) or ["none"]
-        raise MeshError(f"{path}: no tetra cells found; cell types in file: {', '.join(found)}")
+        hint = ""
+        if any(c.type in ("triangle", "quad") and len(c.data) for c in m.cells):
+            hint = f" (a closed surface? save it as {'/'.join(SURFACE_EXTENSIONS)} to tetrahedralise it on load)"
+        raise MeshError(f"{path}: no tetra cells found; cell types in file: {', '.join(found)}{hint}")
     tets = np.concatenate(blocks, axis=0)
     points = np.asarray(m.points)
     if points.ndim == 2 and points.shape[1] == 2:

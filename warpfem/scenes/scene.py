@@ -311,8 +311,10 @@ class Scene:
         path = m["path"]
         wanted = {"tet10": "tetra10", "hex8": "hexahedron", "hex27": "hexahedron27"}.get(element)
         if element in ("tet4", "tet10"):
-            try:
-                mesh = load_mesh(path, inside_surface=m["inside_surface"])
+            try:  # a surface file is tetrahedralised (warpfem.mesh.tetrahedralize; cached)
+                tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher") if m.get(k) is not None}
+                mesh = load_mesh(path, inside_surface=m["inside_surface"], **tetra)
+                self._tetrahedralization = getattr(mesh, "tetrahedralization", None)
             except MeshError:
                 cells = _volume_cell_types(path)
                 if "tetra" in cells or not (wanted in cells):
@@ -382,6 +384,8 @@ class Scene:
         src = (f"box generator size {list(sp.mesh['size'])} m, cells {list(sp.mesh['cells'])}" if sp.mesh["generator"]
                else f"file {sp.mesh['path']}" + (" (tets inside its surface)" if sp.mesh["inside_surface"] else ""))
         lines.append(f"mesh: {src}")
+        if getattr(self, "_tetrahedralization", None) is not None:
+            lines.append(f"  {self._tetrahedralization.describe()}")
         lines += [f"warning: {w}" for w in self.mesh_warnings]  # the mesh loader's (reoriented tets, ...)
         etype = sp.mesh["element"]
         vi = sp.material["volumetric_integration"]

@@ -110,9 +110,16 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "size": Key("vec3", check=_positive_vec3, doc="box size (m)"),
         "cells": Key("int3", check=_positive_int3, doc="box cells per axis (6 tets or 1 hex each)"),
         "origin": Key("vec3", default=(0.0, 0.0, 0.0), doc="box min corner (m)"),
-        "path": Key("path", doc="volume mesh file (meshio: .mesh, .msh, .vtu, ...)"),
+        "path": Key("path", doc="volume mesh file (meshio: .mesh, .msh, .vtu, ...) or closed surface (.obj, .off, .ply, .stl)"),
         "inside_surface": Key("bool", default=False, doc="keep only tets inside the file's triangles (tet files)"),
         "element": Key("choice", default="tet4", choices=tuple(ELEMENTS), doc="element type: " + ", ".join(ELEMENTS)),
+        # surface files (.obj/.off/.ply/.stl) are tetrahedralised on load (warpfem.mesh.tetrahedralize, docs/meshing.md)
+        "max_edge_length": Key("float", default=None, check=_positive,
+                               doc="surface files: target largest tet edge (m); default: the surface's own resolution"),
+        "max_radius_edge_ratio": Key("float", default=None, check=lambda v: None if v >= 1.1 else "must be >= 1.1",
+                                     doc="surface files: TetGen quality bound, circumradius / shortest edge (default 2)"),
+        "mesher": Key("choice", default=None, choices=("auto", "tetgen", "tetwild"),
+                      doc="surface files: 'tetgen' (warpfem[mesh]), 'tetwild' (warpfem[tetwild]); default auto"),
     },
     "material": {
         "model": Key("choice", required=True, choices=("linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log")),
@@ -399,6 +406,14 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
     elif any(data["mesh"].get(k) is not None for k in ("size", "cells", "origin")):
         ctx.fail("[mesh].path", "size/cells/origin only apply to generator = \"box\"")
     element = mesh["element"]
+    tetra_keys = [k for k in ("max_edge_length", "max_radius_edge_ratio", "mesher") if mesh[k] is not None]
+    if mesh["generator"] == "box" and tetra_keys:
+        ctx.fail(f"[mesh].{tetra_keys[0]}", "only applies to path = \"surface.obj/.off/.ply/.stl\" (tetrahedralised on load)")
+    if mesh["path"] and os.path.splitext(mesh["path"])[1].lower() in (".obj", ".off", ".ply", ".stl"):
+        if element not in ("tet4", "tet10"):
+            ctx.fail("[mesh].element", f"a surface file is tetrahedralised: use element = \"tet4\" or \"tet10\", not {element!r}")
+        if mesh["inside_surface"]:
+            ctx.fail("[mesh].inside_surface", "only applies to tet files; a surface file is tetrahedralised as a whole")
     if mesh["inside_surface"] and element in ("hex8", "hex27"):
         ctx.fail("[mesh].inside_surface", f"only applies to tetra meshes (element = \"tet4\" or \"tet10\"), not {element!r}")
     material = _check_table(ctx, "material", data["material"], SCHEMA["material"])

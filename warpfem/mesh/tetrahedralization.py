@@ -1,0 +1,578 @@
+"""Tetrahedralising a closed triangle surface (OBJ, STL, PLY, OFF) into a ``TetMesh``.
+
+The mesher is optional (``pip install warpfem[mesh]``):
+
+* ``"tetgen"`` -- TetGen (H. Si, "TetGen, a Delaunay-Based Quality Tetrahedral Mesh Generator")
+  through the ``tetgen`` wheel. Constrained Delaunay with radius-edge refinement: keeps the input
+  surface (Steiner points may be added on it), fast. **TetGen itself is AGPL-3.0** (the Python
+  wrapper is MIT): fine to use, but an application that ships it inherits the AGPL.
+* ``"tetwild"`` -- TetWild (Hu et al., "Tetrahedral Meshing in the Wild") through the
+  ``wildmeshing`` wheel (MPL-2.0; ``pip install warpfem[tetwild]``). Envelope-based: the boundary
+  approximates the input within a tolerance, tets are well shaped, but it is ~200x slower.
+* ``"auto"`` (default): TetGen when installed, else TetWild.
+
+docs/meshing.md has the measurements behind that choice. Before any mesher runs,
+:func:`check_surface` rejects what would make it fail or silently produce garbage (open,
+non-manifold, degenerate, self-intersecting surfaces, NaN, bad indices) with a ``MeshError``
+that says what is wrong and where. :func:`tetrahedralize_file` caches its result by a hash of
+the file bytes and the options (``$WARPFEM_CACHE_DIR/tetra``, default ``~/.cache/warpfem/tetra``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib
+import importlib.util
+import json
+import logging
+import math
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .tetmesh import MeshError, TetMesh, _fmt_list
+
+__all__ = ["tetrahedralize", "tetrahedralize_file", "check_surface", "read_surface", "cache_dir",
+           "Tetrahedralization", "MesherNotInstalled", "SURFACE_EXTENSIONS", "MESHERS", "DEFAULTS"]
+
+log = logging.getLogger(__name__)
+
+#: Files that hold a surface, never tets: always tetrahedralised on load.
+SURFACE_EXTENSIONS = (".obj", ".off", ".ply", ".stl")
+
+#: Mesher name -> (Python module, pip extra that installs it, what it is).
+MESHERS = {
+    "tetgen": ("tetgen", "mesh", "TetGen (constrained Delaunay, AGPL-3.0) via the tetgen wheel"),
+    "tetwild": ("wildmeshing", "tetwild", "TetWild (envelope-based, MPL-2.0) via the wildmeshing wheel"),
+}
+
+#: Option defaults (``None`` for max_edge_length: the surface's own resolution sets the size).
+DEFAULTS = {"max_edge_length": None, "max_radius_edge_ratio": 2.0, "mesher": "auto"}
+
+#: Refuse a max_edge_length that would give more tets than this (estimated from the volume).
+MAX_ESTIMATED_TETS = 20_000_000
+
+#: Bumped when the cache file layout or the meaning of an option changes.
+_CACHE_VERSION = 1
+
+_AREA_RTOL = 1e-14  # zero-area face: area <= _AREA_RTOL * bbox_diagonal**2
+
+
+class MesherNotInstalled(MeshError, ImportError):
+    """The requested mesher's Python package is missing; the message names the pip extra."""
+
+
+@dataclass
+class Tetrahedralization:
+    """How a mesh was made from a surface (``TetMesh.tetrahedralization`` of the result)."""
+
+    mesher: str
+    version: str
+    options: dict
+    num_tets: int
+    num_vertices: int
+    surface_vertices: int
+    surface_faces: int
+    seconds: float
+    source: str | None = None
+    cache_path: str | None = None
+    cache_hit: bool = False
+    extra: dict = field(default_factory=dict)
+
+    def describe(self) -> str:
+        opts = ", ".join(f"{k} = {v:g}" if isinstance(v, float) else f"{k} = {v}"
+                         for k, v in self.options.items() if k != "mesher" and v is not None)
+        how = "cache hit" if self.cache_hit else f"meshed in {self.seconds:.2f} s"
+        where = f", cache {self.cache_path}" if self.cache_path else ""
+        return (f"tetrahedralised from a {self.surface_vertices}-vertex, {self.surface_faces}-triangle surface by "
+                f"{self.mesher} ({MESHERS[self.mesher][0]} {self.version}): {self.num_tets} tets, "
+                f"{self.num_vertices} vertices ({opts}; {how}{where})")
+
+
+# ----------------------------------------------------------------------------- reading
+def read_surface(path):
+    """``(vertices (n, 3) float64, faces (m, 3) int64)`` of a surface file (meshio: .obj, .off,
+    .ply, .stl, or any meshio file holding triangle / quad cells). Quads are split in two.
+    Nothing is checked beyond shapes: see :func:`check_surface`."""
+    import meshio
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"surface file not found: {path}")
+    try:
+        m = meshio.read(path)
+    except Exception as exc:  # meshio raises ReadError / ValueError / KeyError on bad input
+        raise MeshError(f"{path}: meshio could not read the file: {type(exc).__name__}: {exc}") from exc
+    return _surface_of(m, path)
+
+
+def _surface_of(m, path):
+    tris = []
+    for c in m.cells:
+        data = np.asarray(c.data, dtype=np.int64)
+        if c.type == "triangle" and len(data):
+            tris.append(data.reshape(-1, 3))
+        elif c.type == "quad" and len(data):
+            q = data.reshape(-1, 4)
+            tris += [q[:, [0, 1, 2]], q[:, [0, 2, 3]]]
+    if not tris:
+        found = sorted({f"{c.type} ({len(c.data)})" for c in m.cells if len(c.data)}) or ["none"]
+        raise MeshError(f"{path}: no triangles to tetrahedralise; cell types in file: {', '.join(found)}")
+    points = np.asarray(m.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MeshError(f"{path}: points must be 3D to tetrahedralise, got shape {points.shape}")
+    return points, np.concatenate(tris, axis=0)
+
+
+# ----------------------------------------------------------------------------- checking
+def _edge(e):
+    return f"({int(e[0])}, {int(e[1])})"
+
+
+def check_surface(vertices, faces, *, name=None, self_intersections=True):
+    """Check that a triangle surface bounds a volume; raise ``MeshError`` naming the problem.
+
+    In order: shapes, fewer than 4 vertices, NaN/inf coordinates, face indices out of range,
+    faces repeating a vertex, zero-area faces (area <= 1e-14 * bbox diagonal^2), duplicated
+    faces, open boundary (edges in one face), non-manifold edges (in more than two faces), and
+    (``self_intersections=True``) self-intersections. The self-intersection test is approximate:
+    candidate face pairs come from a uniform grid over face bounding boxes; for pairs sharing no
+    vertex (or one vertex: the edges opposite it) it detects an edge whose ends lie strictly on
+    either side of the other face's plane and which passes through that face (interior, edges or
+    corners; orientation sign tests with a 1e-12 relative tolerance). Coplanar overlaps, a vertex
+    lying on another face, and pairs of faces sharing an edge are not tested. Orientation is not checked (the meshers do not need it).
+    Returns ``(vertices (n, 3) float64, faces (m, 3) int64)`` as arrays.
+    """
+    pre = f"{name}: " if name else ""
+    V = np.asarray(vertices)
+    F = np.asarray(faces)
+    if V.ndim != 2 or V.shape[1] != 3:
+        raise MeshError(f"{pre}vertices must have shape (n, 3), got {V.shape}")
+    if F.ndim != 2 or F.shape[1] != 3 or F.shape[0] == 0:
+        raise MeshError(f"{pre}faces must be triangles, shape (m, 3) with m > 0, got {F.shape}")
+    if not np.issubdtype(F.dtype, np.integer):
+        if not (np.issubdtype(F.dtype, np.floating) and np.all(np.isfinite(F)) and np.all(F == np.round(F))):
+            raise MeshError(f"{pre}face indices must be integers, got dtype {F.dtype}")
+    V = V.astype(np.float64)
+    F = F.astype(np.int64)
+    n, m = len(V), len(F)
+    if n < 4:
+        raise MeshError(f"{pre}a closed surface needs at least 4 vertices, got {n}")
+    bad = np.flatnonzero(~np.isfinite(V).all(axis=1))
+    if bad.size:
+        raise MeshError(f"{pre}vertex {bad[0]} has non-finite (NaN/inf) coordinates {V[bad[0]].tolist()}; "
+                        f"{bad.size} such vertices: {_fmt_list(bad)}")
+    oob = np.flatnonzero(((F < 0) | (F >= n)).any(axis=1))
+    if oob.size:
+        f = oob[0]
+        raise MeshError(f"{pre}face {f} = {F[f].tolist()} references a vertex out of range [0, {n}); "
+                        f"{oob.size} such faces: {_fmt_list(oob)}")
+    s = np.sort(F, axis=1)
+    rep = np.flatnonzero((s[:, 1:] == s[:, :-1]).any(axis=1))
+    if rep.size:
+        f = rep[0]
+        raise MeshError(f"{pre}degenerate face {f} = {F[f].tolist()} repeats a vertex; {rep.size} such faces: "
+                        f"{_fmt_list(rep)}")
+    used = np.unique(F)
+    lo, hi = V[used].min(axis=0), V[used].max(axis=0)
+    diag = float(np.linalg.norm(hi - lo))
+    if not diag > 0:
+        raise MeshError(f"{pre}all vertices coincide at {lo.tolist()}")
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    zero = np.flatnonzero(area <= _AREA_RTOL * diag * diag)
+    if zero.size:
+        f = zero[0]
+        raise MeshError(f"{pre}degenerate face {f} = {F[f].tolist()} has zero area ({area[f]:.3g}; its vertices are "
+                        f"collinear or coincide); {zero.size} zero-area faces: {_fmt_list(zero)}")
+    _, first, inv, cnt = np.unique(s, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    dup = np.flatnonzero(cnt[inv] > 1)
+    if dup.size:
+        f = dup[np.flatnonzero(dup != first[inv[dup]])[0]]
+        raise MeshError(f"{pre}face {f} = {F[f].tolist()} duplicates face {first[inv[f]]} (same three vertices); "
+                        f"{dup.size - int((cnt > 1).sum())} duplicated faces")
+    # edges: 3 per face, undirected
+    E = np.sort(np.stack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1).reshape(-1, 2), axis=1)
+    ue, einv, ecnt = np.unique(E, axis=0, return_inverse=True, return_counts=True)
+    einv = einv.ravel()
+    open_ = np.flatnonzero(ecnt == 1)
+    if open_.size:
+        e = open_[0]
+        f = int(np.flatnonzero(einv == e)[0] // 3)
+        raise MeshError(f"{pre}the surface is open: {open_.size} boundary edges (in only one face), e.g. edge "
+                        f"{_edge(ue[e])} of face {f}; close the holes (the tetrahedraliser needs a closed surface)")
+    nm = np.flatnonzero(ecnt > 2)
+    if nm.size:
+        e = nm[0]
+        fs = np.flatnonzero(einv == e) // 3
+        raise MeshError(f"{pre}{nm.size} non-manifold edges (in more than two faces), e.g. edge {_edge(ue[e])} "
+                        f"at {np.round(V[ue[e]], 6).tolist()} shared by faces {_fmt_list(fs)}")
+    if self_intersections:
+        pairs = _self_intersections(V, F, diag)
+        if len(pairs):
+            f, g = (int(i) for i in pairs[0])
+            raise MeshError(f"{pre}the surface intersects itself: faces {f} = {F[f].tolist()} and {g} = {F[g].tolist()} "
+                            f"cross near {np.round(V[F[[f, g]]].reshape(-1, 3).mean(axis=0), 6).tolist()}; "
+                            f"{len(pairs)} crossing face pairs found")
+    return V, F
+
+
+def _candidate_pairs(lo, hi, max_cells_per_face=64):
+    """Face pairs (i < j) whose bounding boxes share a cell of a uniform grid and overlap."""
+    m = len(lo)
+    ext = hi - lo
+    h = float(np.median(ext.max(axis=1)))
+    h = max(h, float(ext.max()) * 1e-6, 1e-300)
+    while True:
+        c0 = np.floor(lo / h).astype(np.int64)
+        c1 = np.floor(hi / h).astype(np.int64)
+        span = c1 - c0 + 1
+        cells = np.prod(span, axis=1)
+        if cells.max() <= max_cells_per_face or cells.sum() <= 8 * m:
+            break
+        h *= 2.0
+    total = int(cells.sum())
+    owner = np.repeat(np.arange(m), cells)
+    local = np.arange(total) - np.repeat(np.cumsum(cells) - cells, cells)
+    sy, sz = span[owner, 1], span[owner, 2]
+    ix = c0[owner, 0] + local // (sy * sz)
+    iy = c0[owner, 1] + (local // sz) % sy
+    iz = c0[owner, 2] + local % sz
+    key = (ix * 73856093) ^ (iy * 19349663) ^ (iz * 83492791)  # hash collisions only add candidates
+    order = np.lexsort((owner, key))
+    key, owner = key[order], owner[order]
+    pairs = []
+    k = 1
+    while k < total:
+        same = key[k:] == key[:-k]
+        if not same.any():
+            break
+        pairs.append(np.stack([owner[:-k][same], owner[k:][same]], axis=1))
+        k += 1
+    if not pairs:
+        return np.zeros((0, 2), np.int64)
+    p = np.sort(np.concatenate(pairs), axis=1)
+    code = np.unique(p[p[:, 0] != p[:, 1]] @ np.array([m, 1], dtype=np.int64))  # 1D keys: fast unique
+    p = np.stack([code // m, code % m], axis=1)
+    ov = np.all((lo[p[:, 0]] <= hi[p[:, 1]]) & (lo[p[:, 1]] <= hi[p[:, 0]]), axis=1)
+    return p[ov]
+
+
+def _orient(a, b, c, d):
+    return np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a))
+
+
+def _segment_crosses_triangle(p, q, a, b, c, eps):
+    """Segment pq crosses the plane of triangle abc strictly (its ends on either side) at a point
+    of the closed triangle (vectorised)."""
+    sp, sq = _orient(a, b, c, p), _orient(a, b, c, q)
+    cross = ((sp > eps) & (sq < -eps)) | ((sp < -eps) & (sq > eps))
+    s1, s2, s3 = _orient(p, q, a, b), _orient(p, q, b, c), _orient(p, q, c, a)
+    inside = ((s1 >= -eps) & (s2 >= -eps) & (s3 >= -eps)) | ((s1 <= eps) & (s2 <= eps) & (s3 <= eps))
+    return cross & inside
+
+
+def _self_intersections(V, F, diag):
+    """Face pairs (i, j) where an edge of one properly crosses the other (see check_surface)."""
+    tri = V[F]
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    pairs = _candidate_pairs(lo, hi)
+    if len(pairs) == 0:
+        return pairs
+    Fi, Fj = F[pairs[:, 0]], F[pairs[:, 1]]
+    shared = (Fi[:, :, None] == Fj[:, None, :])
+    nshared = shared.sum(axis=(1, 2))
+    eps = 1e-12 * diag ** 3
+    hit = np.zeros(len(pairs), dtype=bool)
+    edges = ((0, 1), (1, 2), (2, 0))
+    # no shared vertex: each of the six edges against the other face
+    sel = np.flatnonzero(nshared == 0)
+    for A, B, idx in ((Fi, Fj, sel), (Fj, Fi, sel)):
+        for u, v in edges:
+            hit[idx] |= _segment_crosses_triangle(V[A[idx, u]], V[A[idx, v]], V[B[idx, 0]], V[B[idx, 1]],
+                                                  V[B[idx, 2]], eps)
+    # one shared vertex: the edge opposite it in each face against the other face
+    sel = np.flatnonzero(nshared == 1)
+    if sel.size:
+        for A, B, axis in ((Fi, Fj, 2), (Fj, Fi, 1)):
+            k = np.argmax(shared[sel].any(axis=axis), axis=1)  # local index of the shared vertex in A
+            a = A[sel]
+            r = np.arange(sel.size)
+            p, q = a[r, (k + 1) % 3], a[r, (k + 2) % 3]
+            b = B[sel]
+            hit[sel] |= _segment_crosses_triangle(V[p], V[q], V[b[:, 0]], V[b[:, 1]], V[b[:, 2]], eps)
+    return pairs[hit]
+
+
+# ----------------------------------------------------------------------------- meshing
+def _resolve_options(max_edge_length=None, max_radius_edge_ratio=None, mesher=None):
+    opts = dict(DEFAULTS)
+    if max_edge_length is not None:
+        opts["max_edge_length"] = max_edge_length
+    if max_radius_edge_ratio is not None:
+        opts["max_radius_edge_ratio"] = max_radius_edge_ratio
+    if mesher is not None:
+        opts["mesher"] = mesher
+    L = opts["max_edge_length"]
+    if L is not None:
+        if isinstance(L, bool) or not isinstance(L, (int, float, np.floating, np.integer)) or not (math.isfinite(L) and L > 0):
+            raise MeshError(f"max_edge_length must be a finite number > 0 (m), got {L!r}")
+        opts["max_edge_length"] = float(L)
+    q = opts["max_radius_edge_ratio"]
+    if isinstance(q, bool) or not isinstance(q, (int, float, np.floating, np.integer)) or not (math.isfinite(q) and q >= 1.1):
+        raise MeshError(f"max_radius_edge_ratio must be a number >= 1.1 (TetGen may not terminate below), got {q!r}")
+    opts["max_radius_edge_ratio"] = float(q)
+    if opts["mesher"] not in ("auto", *MESHERS):
+        raise MeshError(f"mesher must be one of 'auto', {', '.join(repr(k) for k in MESHERS)}, got {opts['mesher']!r}")
+    if opts["mesher"] == "auto":
+        opts["mesher"] = next((k for k, (mod, _, _) in MESHERS.items() if _installed(mod)), "tetgen")
+    return opts
+
+
+def _installed(module):
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # a broken or stubbed-out package
+        return False
+
+
+def _import_mesher(mesher):
+    module, extra, what = MESHERS[mesher]
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        others = [k for k in MESHERS if k != mesher]
+        raise MesherNotInstalled(
+            f"tetrahedralising a surface with {mesher!r} needs the Python package {module!r} ({what}), which is not "
+            f"installed: pip install 'warpfem[{extra}]' (or pip install {module}); other meshers: "
+            f"{', '.join(f'{k} (warpfem[{MESHERS[k][1]}])' for k in others)}") from exc
+
+
+def _version(module):
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version(module)
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def _run_tetgen(V, F, opts):
+    tetgen = _import_mesher("tetgen")
+    kw = {"quality": True, "minratio": opts["max_radius_edge_ratio"], "quiet": True}
+    if opts["max_edge_length"] is not None:
+        L = opts["max_edge_length"]
+        kw["fixedvolume"] = True  # TetGen -a<volume>
+        kw["maxvolume"] = L ** 3 / (6.0 * math.sqrt(2.0))  # the regular tet of edge L
+    try:
+        with _scratch_cwd():
+            tg = tetgen.TetGen(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
+            nodes, elems = tg.tetrahedralize(**kw)[:2]
+    except (RuntimeError, ValueError) as exc:
+        raise MeshError(f"TetGen failed: {exc} (a self-intersection or nearly touching faces that the surface check "
+                        "did not catch? mesher = 'tetwild' tolerates those)") from exc
+    return np.asarray(nodes, dtype=np.float64), np.asarray(elems, dtype=np.int64)
+
+
+@contextlib.contextmanager
+def _scratch_cwd():
+    """Run the block in a fresh temporary working directory: TetGen writes ``_skipped.node/.face``
+    on self-intersections and TetWild ``__tracked_surface.stl`` into the current directory."""
+    old = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="warpfem-mesher-") as tmp:
+        os.chdir(tmp)
+        try:
+            yield
+        finally:
+            os.chdir(old)
+
+
+@contextlib.contextmanager
+def _quiet_stdout():
+    """Send file descriptor 1 to /dev/null (native code writing to stdout) for the block."""
+    import sys
+
+    try:
+        sys.stdout.flush()
+        saved = os.dup(1)
+    except (OSError, ValueError, AttributeError):  # no usable fd 1: nothing to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _run_tetwild(V, F, opts, diag):
+    wm = _import_mesher("tetwild")
+    kw = {}
+    if opts["max_edge_length"] is not None:
+        kw["edge_length_r"] = min(opts["max_edge_length"] / diag, 1.0)  # relative to the bbox diagonal
+    try:
+        with _quiet_stdout(), _scratch_cwd():  # TetWild prints its progress with C++ streams
+            t = wm.Tetrahedralizer(**kw)
+            t.set_log_level(6)
+            t.set_mesh(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32))
+            t.tetrahedralize()
+            out = t.get_tet_mesh(correct_surface_orientation=True)
+    except (RuntimeError, ValueError) as exc:
+        raise MeshError(f"TetWild failed: {exc}") from exc
+    return np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.int64)
+
+
+def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
+                   name=None, check=True):
+    """Fill a closed triangle surface with tets; returns a ``TetMesh``.
+
+    Parameters
+    ----------
+    vertices, faces : (n, 3) float and (m, 3) int arrays of the surface.
+    max_edge_length : float, optional
+        Target largest tet edge (same units as ``vertices``). TetGen bounds each tet's volume by
+        that of the regular tet of this edge (L^3 / (6 sqrt 2)); TetWild uses it as its ideal edge
+        length. Default: none for TetGen (the surface's own triangles set the size), TetWild's
+        bbox diagonal / 20.
+    max_radius_edge_ratio : float, default 2.0
+        TetGen's quality bound (circumradius / shortest edge of every tet, -q): smaller is better
+        shaped, more tets; >= 1.1. TetWild ignores it (it optimises its own AMIPS energy).
+    mesher : "auto" (default), "tetgen" or "tetwild".
+    name : used as the prefix of error messages (a file name).
+    check : run :func:`check_surface` first (default True).
+
+    The result carries ``.tetrahedralization`` (a :class:`Tetrahedralization`).
+    """
+    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher)
+    if check:
+        V, F = check_surface(vertices, faces, name=name)
+    else:
+        V, F = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
+    nsurf_v, nsurf_f = len(V), len(F)
+    used = np.unique(F)
+    if used.size < len(V):  # isolated vertices would become points of the tet mesh
+        remap = np.full(len(V), -1, dtype=np.int64)
+        remap[used] = np.arange(used.size)
+        log.info("%s%d surface vertices used by no face dropped", f"{name}: " if name else "", len(V) - used.size)
+        V, F = V[used], remap[F]
+    diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    L = opts["max_edge_length"]
+    if L is not None:
+        a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        vol = abs(float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0))
+        est = vol / (L ** 3 / (6.0 * math.sqrt(2.0)))
+        if est > MAX_ESTIMATED_TETS:
+            raise MeshError(f"{name + ': ' if name else ''}max_edge_length = {L:g} would give about {est:.3g} tets "
+                            f"(enclosed volume {vol:.4g}, limit {MAX_ESTIMATED_TETS:.0e}); use a larger max_edge_length")
+    t0 = time.perf_counter()
+    if opts["mesher"] == "tetgen":
+        nodes, tets = _run_tetgen(V, F, opts)
+    else:
+        nodes, tets = _run_tetwild(V, F, opts, diag)
+    seconds = time.perf_counter() - t0
+    if len(tets) == 0:
+        raise MeshError(f"{name + ': ' if name else ''}{opts['mesher']} produced no tets (does the surface enclose a volume?)")
+    mesh = TetMesh(nodes, tets, name=name)
+    module = MESHERS[opts["mesher"]][0]
+    mesh.tetrahedralization = Tetrahedralization(
+        mesher=opts["mesher"], version=_version(module), options=opts, num_tets=mesh.num_elements,
+        num_vertices=mesh.num_vertices, surface_vertices=nsurf_v, surface_faces=nsurf_f, seconds=seconds, source=name)
+    log.info("%s", mesh.tetrahedralization.describe())
+    return mesh
+
+
+# ----------------------------------------------------------------------------- file + cache
+def cache_dir():
+    """Folder of cached tetrahedralisations: ``$WARPFEM_CACHE_DIR/tetra`` if set, else
+    ``$XDG_CACHE_HOME/warpfem/tetra`` or ``~/.cache/warpfem/tetra``."""
+    root = os.environ.get("WARPFEM_CACHE_DIR")
+    if not root:
+        base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+        root = os.path.join(base, "warpfem")
+    return os.path.join(root, "tetra")
+
+
+def _cache_key(data: bytes, opts: dict) -> str:
+    h = hashlib.sha256()
+    h.update(f"warpfem-tetra-v{_CACHE_VERSION}\0".encode())
+    h.update(data)
+    h.update(b"\0" + json.dumps(opts, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def _read_cache(path):
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            V, T, meta = z["vertices"], z["tets"], json.loads(str(z["meta"]))
+        if V.ndim != 2 or V.shape[1] != 3 or T.ndim != 2 or T.shape[1] != 4:
+            raise ValueError("bad array shapes")
+        return V, T, meta
+    except FileNotFoundError:
+        return None
+    except Exception as exc:  # a truncated / foreign file: re-mesh and overwrite it
+        log.warning("ignoring unreadable tetrahedralisation cache %s: %s", path, exc)
+        return None
+
+
+def _write_cache(path, mesh):
+    """Write atomically (temporary file in the same folder, then rename); failures only warn."""
+    info = mesh.tetrahedralization
+    meta = {"mesher": info.mesher, "version": info.version, "options": info.options, "seconds": info.seconds,
+            "surface_vertices": info.surface_vertices, "surface_faces": info.surface_faces, "source": info.source}
+    tmp = None
+    try:
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=".tmp-", suffix=".npz", dir=os.path.dirname(path))
+        with os.fdopen(fd, "wb") as f:
+            np.savez(f, vertices=mesh.vertices, tets=mesh.tets, meta=np.array(json.dumps(meta)))
+        os.replace(tmp, path)
+        tmp = None
+    except OSError as exc:
+        log.warning("could not write the tetrahedralisation cache %s: %s", path, exc)
+    finally:
+        if tmp is not None and os.path.exists(tmp):
+            os.unlink(tmp)
+
+
+def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None, cache=True,
+                        check=True):
+    """Read a surface file (.obj, .off, .ply, .stl, or any meshio file with triangles), check it and tetrahedralise it (see :func:`tetrahedralize`), through the cache.
+
+    The cache key is a SHA-256 of the file bytes and the resolved options (mesher included), so
+    editing the file or changing an option re-meshes; the entry is
+    ``cache_dir()/<stem>-<key>.npz``. ``cache=False`` neither reads nor writes it.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"surface file not found: {path}")
+    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher)
+    with open(path, "rb") as f:
+        data = f.read()
+    entry = None
+    if cache:
+        stem = "".join(ch if ch.isalnum() or ch in "-_" else "_" for ch in os.path.splitext(os.path.basename(path))[0])
+        entry = os.path.join(cache_dir(), f"{stem[:40]}-{_cache_key(data, opts)[:32]}.npz")
+        hit = _read_cache(entry)
+        if hit is not None:
+            V, T, meta = hit
+            mesh = TetMesh(V, T, name=path)
+            mesh.tetrahedralization = Tetrahedralization(
+                mesher=meta["mesher"], version=meta["version"], options=meta["options"], num_tets=mesh.num_elements,
+                num_vertices=mesh.num_vertices, surface_vertices=meta["surface_vertices"],
+                surface_faces=meta["surface_faces"], seconds=meta["seconds"], source=path, cache_path=entry,
+                cache_hit=True)
+            log.info("%s: tetrahedralisation cache hit %s", path, entry)
+            return mesh
+    V, F = read_surface(path)
+    mesh = tetrahedralize(V, F, name=path, check=check, **opts)
+    if entry is not None:
+        _write_cache(entry, mesh)
+        mesh.tetrahedralization.cache_path = entry
+    return mesh
