@@ -482,10 +482,14 @@ def box_mesh(element, size, cells):
 
 
 def make_sim(model, integrator, precision, *, dt=1.0 / 60.0, **solver):
-    """``integrator``: "newton" (warpfem.Simulator) or "warping-polar" / "warping-qr"
+    """``integrator``: "newton" (warpfem.Simulator, backward Euler), "newton-bdf2" / "newton-newmark"
+    (warpfem.Simulator with that time integrator) or "warping-polar" / "warping-qr"
     (StiffnessWarpingSimulator; Newton-only options are dropped, ``cg_tol`` kept)."""
     if integrator == "newton":
         return wf.Simulator(model, device=DEVICE, precision=precision, dt=dt, **solver)
+    if integrator.startswith("newton-"):  # newton-bdf2, newton-newmark: the core solver with that time integrator
+        return wf.Simulator(model, device=DEVICE, precision=precision, dt=dt, integrator=integrator.split("-", 1)[1],
+                            **solver)
     if integrator.startswith("warping-"):
         keep = {k: v for k, v in solver.items() if k in ("cg_tol", "max_cg_iters", "damping_mass", "damping_stiffness",
                                                           "require_convergence")}

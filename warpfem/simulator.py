@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import fem as FK
+from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.pcg import BlockJacobiPCG
@@ -120,6 +121,8 @@ class Simulator(SimulatorState):
             products are always reduced in float64).
         dt: time step h (s). Smaller is more accurate (backward Euler damps a mode of angular
             frequency omega by 1/(1 + omega^2 h^2) in energy per step) and costs more steps.
+        integrator: "backward_euler" (default), "bdf2" or "newmark" (average acceleration), or an
+            instance from :mod:`warpfem.integrators` (see there and docs/integrators.md).
         damping_mass, damping_stiffness: Rayleigh coefficients alpha (1/s) and beta (s).
         require_convergence: raise :class:`SolveFailed` (state untouched) instead of accepting a
             non-converged step. NaN/inf always raises and never touches the state.
@@ -127,9 +130,10 @@ class Simulator(SimulatorState):
             ``max_line_search``, ``armijo``, ``project_hessian`` (see :class:`NewtonOptions`).
     """
 
-    def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
-                 damping_stiffness=0.0, require_convergence=False, **newton_options):
+    def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
+                 damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
+        self.integrator = make_integrator(integrator)
         unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
         if unknown:
             raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
@@ -287,32 +291,76 @@ class Simulator(SimulatorState):
                 raise SolveFailed(f"{what} did not converge ({stats.reason}); state left unchanged", stats)
             warnings.warn(f"{what} did not converge: {stats.reason} (relative gradient {stats.residual:.2e})", RuntimeWarning, stacklevel=3)
 
+    def _prescribed_velocity(self, xb, s):
+        """Device array: the end-of-step velocity that puts fixed components at their target (or
+        keeps them where they are), (p - x_b) / s; only its fixed components are used."""
+        out = self._vec_array()
+        if not self._targets:
+            if xb is not self.x:  # (x - x_b) first, then the scale: exact zero where x_b = x
+                wp.launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0), self.x, self._s(-1.0), xb, out],
+                          device=self.device)
+                wp.launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0 / s), out, self._s(0.0), out, out],
+                          device=self.device)
+            return out
+        p = self.positions()
+        for i, t in self._targets.items():
+            p[i] = t
+        out.assign(((p - xb.numpy().astype(np.float64)) / s).astype(self._np))
+        return out
+
+    def _equation_of_motion_acceleration(self, out):
+        """out = a with M a = f(x) + f_ext - C v on the free components (0 on fixed ones), C the
+        Rayleigh damping alpha M + beta K(x): the acceleration of the current state (Newmark's a_0)."""
+        n = self.num_vertices
+        rhs = self._vec_array()
+        for count, args, _ in self._qp_sets:
+            wp.launch(FK.qp_force_kernel, dim=count, inputs=[self.x, *args, self._s(1.0), rhs], device=self.device)
+        wp.launch(LK.axpy_kernel, dim=n, inputs=[self._s(1.0), self._fext, rhs], device=self.device)
+        if self.damping_mass != 0.0:
+            self._bsr_mv(self._mass_values, self.v, -self.damping_mass, rhs)
+        if self.damping_stiffness != 0.0:
+            kn = self._pattern.new_values()
+            self._assemble_stiffness(self.x, 1.0, kn)
+            self._bsr_mv(kn, self.v, -self.damping_stiffness, rhs)
+        wp.launch(LK.mask_kernel, dim=n, inputs=[self._mask, rhs], device=self.device)
+        res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.options.max_cg_iters, 100))
+        if not np.isfinite(res.residual):
+            raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
+                              SolveStats(reason="non-finite initial acceleration"))
+
     def step(self) -> SolveStats:
-        """Advance one backward Euler step of ``dt``; returns its statistics.
+        """Advance one step of ``dt`` with the simulator's integrator; returns its statistics.
 
         On NaN/inf (or non-convergence with ``require_convergence``) raises :class:`SolveFailed`
-        and leaves positions, velocities and time as they were.
+        and leaves positions, velocities, time and the integrator's history as they were.
         """
         t0 = time.perf_counter()
-        h = self.dt
         n = self.num_vertices
         if self._kn_values is not None:
             self._kn_values.zero_()
             self._assemble_stiffness(self.x, 1.0, self._kn_values)
-        fixed_v = self._vec_array(self._prescribed(self.x, h))
+        prediction = self.integrator.predict(self)
+        xb, y0, s = prediction
+        fixed_v = self._prescribed_velocity(xb, s)
         y = self._vec_array()
         # initial guess: previous velocity on free components, prescribed on fixed ones
         wp.launch(LK.select_kernel, dim=n, inputs=[self._mask, self.v, fixed_v, y], device=self.device)
-        pot = _Potential(self, a=1.0, y0=self.v, cm=h * self.damping_mass, ck=h * self.damping_stiffness, s=h, xb=self.x)
+        pot = _Potential(self, a=1.0, y0=y0, cm=s * self.damping_mass, ck=s * self.damping_stiffness, s=s, xb=xb)
         stats = newton_solve(pot, y, self.options, self._pcg)
         self._finish(stats, t0, f"step {self.step_count}")
-        x_new = self._vec_array()
-        wp.launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self.x, self._s(h), y, x_new], device=self.device)
-        self.x, self.v = x_new, y
+        self.integrator.advance(self, y, prediction)
         self._targets.clear()
-        self.time += h
+        self.time += self.dt
         self.step_count += 1
         return stats
+
+    def set_positions(self, x):
+        super().set_positions(x)
+        self.integrator.reset()
+
+    def set_velocities(self, v):
+        super().set_velocities(v)
+        self.integrator.reset()
 
     def solve_static(self, *, load_steps: int = 1) -> SolveStats:
         """Quasi-static equilibrium: minimise V(x) - x^T f_ext with the fixed components held.

@@ -66,7 +66,7 @@ def register_integrator(entry: IntegratorType, *, replace: bool = False) -> Inte
 _NEWTON = ("tol", "atol", "cg_tol", "max_iters", "max_cg_iters", "project_hessian")
 
 
-def _simulator(model, opts, *, device, precision, dt, dynamic):
+def _simulator(model, opts, *, device, precision, dt, dynamic, integrator="backward_euler"):
     from warpfem.simulator import Simulator
 
     kw = {k: opts[k] for k in _NEWTON}
@@ -74,12 +74,13 @@ def _simulator(model, opts, *, device, precision, dt, dynamic):
     if dynamic:
         damping = {"damping_mass": opts["damping_mass"], "damping_stiffness": opts["damping_stiffness"]}
     return Simulator(model, device=device, precision=precision, dt=dt, require_convergence=opts["require_convergence"],
-                     **damping, **kw)
+                     integrator=integrator, **damping, **kw)
 
 
 def _build_backward_euler(scene, model, *, device, precision):
     o = scene.spec.integrator
-    return _simulator(model, o, device=device, precision=precision, dt=o["dt"], dynamic=True)
+    return _simulator(model, o, device=device, precision=precision, dt=o["dt"], dynamic=True,
+                      integrator=o.get("type", "backward_euler"))
 
 
 def _build_static(scene, model, *, device, precision):
@@ -100,6 +101,12 @@ _STATIC_KEYS = {k: v for k, v in INTEGRATOR_KEYS.items() if k not in ("dt", "dam
 register_integrator(IntegratorType(
     "backward_euler", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
     builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities")))
+register_integrator(IntegratorType(
+    "bdf2", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
+    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities + previous step's")))
+register_integrator(IntegratorType(
+    "newmark", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
+    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities/accelerations")))
 register_integrator(IntegratorType(
     "static", _build_static, keys=_STATIC_KEYS, dynamic=False, static_solve=_static_solve,
     builds=("Hessian (Newton + block-Jacobi PCG)", "positions")))
