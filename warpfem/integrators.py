@@ -38,15 +38,18 @@ succeeds, so a failed step leaves the state (and the history) as it was.
 from __future__ import annotations
 
 import numpy as np
-import warp as wp
-
-from warpfem.kernels import linalg as LK
 
 __all__ = ["Integrator", "BackwardEuler", "BDF2", "Newmark", "Static", "INTEGRATOR_NAMES", "make_integrator"]
 
 
 class Integrator:
-    """Base class: an implicit one-step (or two-step) scheme as a velocity-form minimisation."""
+    """Base class: an implicit one-step (or two-step) scheme as a velocity-form minimisation.
+
+    It talks to its simulator through a small interface, so the same objects drive the full-space
+    simulators (device vec3 arrays) and the reduced one (numpy coordinate vectors):
+    ``sim._istate() -> (x, v)``, ``sim._iset_state(x, v)``, ``sim._ivec()`` (a new zero vector),
+    ``sim._ilincomb(a, x, b, y, out)`` (out = a x + b y), ``sim.dt`` and, for Newmark,
+    ``sim._equation_of_motion_acceleration(out)``."""
 
     name = "integrator"
     order = 1
@@ -56,27 +59,16 @@ class Integrator:
         self._h = None
 
     def reset(self):
-        """Forget the history (called when positions/velocities are set from outside or dt changes)."""
+        """Forget the history (called when positions/velocities are set from outside)."""
         self._h = None
 
-    # the simulator's vec3 device arrays are built with sim._vec_array(); kernels are the linalg ones
-    @staticmethod
-    def _lincomb(sim, a, x, b, y, out):
-        wp.launch(LK.lincomb_kernel, dim=sim.num_vertices, inputs=[sim._s(a), x, sim._s(b), y, out], device=sim.device)
-
-    def _buffers(self, sim, *names):
-        for name in names:
-            buf = getattr(self, name, None)
-            if buf is None or buf.shape[0] != sim.num_vertices or buf.dtype != sim._vec or buf.device != sim.device:
-                setattr(self, name, sim._vec_array())
-
     def predict(self, sim):
-        """(x_b, v_hat, s) for the coming step of ``sim`` (device arrays; read-only for the caller)."""
+        """(x_b, v_hat, s) for the coming step of ``sim`` (read-only for the caller)."""
         raise NotImplementedError
 
     def advance(self, sim, v, prediction):
         """Accept the converged end-of-step velocity ``v`` of the step ``prediction`` (what
-        :meth:`predict` returned): set sim.x, sim.v and the history."""
+        :meth:`predict` returned): set the simulator's state and the history."""
         raise NotImplementedError
 
     def __repr__(self):
@@ -91,12 +83,14 @@ class BackwardEuler(Integrator):
     order = 1
 
     def predict(self, sim):
-        return sim.x, sim.v, sim.dt
+        x, v = sim._istate()
+        return x, v, sim.dt
 
     def advance(self, sim, v, prediction):
-        x_new = sim._vec_array()
-        self._lincomb(sim, 1.0, sim.x, prediction[2], v, x_new)
-        sim.x, sim.v = x_new, v
+        xb, _, s = prediction
+        x_new = sim._ivec()
+        sim._ilincomb(1.0, xb, s, v, x_new)
+        sim._iset_state(x_new, v)
 
 
 class BDF2(Integrator):
@@ -109,23 +103,25 @@ class BDF2(Integrator):
     order = 2
 
     def predict(self, sim):
-        self._buffers(sim, "_xb", "_vh")
-        if self._h is None or self._h != sim.dt:
+        x, v = sim._istate()
+        if self._h is None or self._h != sim.dt:  # first step, new state or new step size
             self._h = None
-            return sim.x, sim.v, sim.dt
-        # x_b = x_n + (x_n - x_{n-1}) / 3 (difference first: keeps float32 round-off small)
-        self._lincomb(sim, 1.0, sim.x, -1.0, self._x_prev, self._xb)
-        self._lincomb(sim, 1.0, sim.x, 1.0 / 3.0, self._xb, self._xb)
-        self._lincomb(sim, 1.0, sim.v, -1.0, self._v_prev, self._vh)
-        self._lincomb(sim, 1.0, sim.v, 1.0 / 3.0, self._vh, self._vh)
-        return self._xb, self._vh, 2.0 * sim.dt / 3.0
+            return x, v, sim.dt
+        # x_b = x_n + (x_n - x_{n-1}) / 3 (the difference first: keeps float32 round-off small)
+        xb, vh = sim._ivec(), sim._ivec()
+        sim._ilincomb(1.0, x, -1.0, self._x_prev, xb)
+        sim._ilincomb(1.0, x, 1.0 / 3.0, xb, xb)
+        sim._ilincomb(1.0, v, -1.0, self._v_prev, vh)
+        sim._ilincomb(1.0, v, 1.0 / 3.0, vh, vh)
+        return xb, vh, 2.0 * sim.dt / 3.0
 
     def advance(self, sim, v, prediction):
         xb, _, s = prediction
-        x_new = sim._vec_array()
-        self._lincomb(sim, 1.0, xb, s, v, x_new)
-        self._x_prev, self._v_prev = sim.x, sim.v
-        sim.x, sim.v = x_new, v
+        x_old, v_old = sim._istate()
+        x_new = sim._ivec()
+        sim._ilincomb(1.0, xb, s, v, x_new)
+        sim._iset_state(x_new, v)
+        self._x_prev, self._v_prev = x_old, v_old
         self._h = sim.dt
 
 
@@ -136,27 +132,25 @@ class Newmark(Integrator):
     name = "newmark"
     order = 2
 
-    def _initial_acceleration(self, sim):
-        """a_0: M a = f(x_n) + f_ext - C v_n on free components (0 on fixed ones)."""
-        self._buffers(sim, "_a")
-        sim._equation_of_motion_acceleration(self._a)
-        self._h = sim.dt
-
     def predict(self, sim):
-        self._buffers(sim, "_xb", "_vh")
-        if self._h is None:
-            self._initial_acceleration(sim)
+        x, v = sim._istate()
+        if self._h is None:  # a_0 from the equations of motion
+            a = sim._ivec()
+            sim._equation_of_motion_acceleration(a)
+            self._a, self._h = a, sim.dt
         h = sim.dt
-        self._lincomb(sim, 1.0, sim.x, 0.5 * h, sim.v, self._xb)
-        self._lincomb(sim, 1.0, sim.v, 0.5 * h, self._a, self._vh)
-        return self._xb, self._vh, 0.5 * h
+        xb, vh = sim._ivec(), sim._ivec()
+        sim._ilincomb(1.0, x, 0.5 * h, v, xb)
+        sim._ilincomb(1.0, v, 0.5 * h, self._a, vh)
+        return xb, vh, 0.5 * h
 
     def advance(self, sim, v, prediction):
         xb, vh, s = prediction
-        x_new, a_new = sim._vec_array(), sim._vec_array()
-        self._lincomb(sim, 1.0, xb, s, v, x_new)
-        self._lincomb(sim, 1.0 / s, v, -1.0 / s, vh, a_new)  # a_{n+1} = (v - v_hat) / s
-        sim.x, sim.v, self._a = x_new, v, a_new
+        x_new, a_new = sim._ivec(), sim._ivec()
+        sim._ilincomb(1.0, xb, s, v, x_new)
+        sim._ilincomb(1.0 / s, v, -1.0 / s, vh, a_new)  # a_{n+1} = (v - v_hat) / s
+        sim._iset_state(x_new, v)
+        self._a = a_new
         self._h = sim.dt
 
 

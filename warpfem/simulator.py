@@ -22,93 +22,12 @@ import warp as wp
 from warpfem.kernels import fem as FK
 from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
+from warpfem.kernels.generic import launch
+from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.pcg import BlockJacobiPCG
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
-
-
-class _Potential:
-    """E(y) = a/2 (y - y0)^T M (y - y0) + 1/2 y^T (cm M + ck Kn) y + V(xb + s y) - s y^T f_ext."""
-
-    def __init__(self, sim, *, a, y0, cm, ck, s, xb, fext_scale=1.0):
-        self.sim, self.a, self.y0, self.cm, self.ck, self.s, self.xb = sim, a, y0, cm, ck, s, xb
-        self.fext_scale = fext_scale
-        self.mask, self.n = sim._mask, sim.num_vertices
-
-    def _x_of(self, y):
-        sim = self.sim
-        wp.launch(LK.lincomb_kernel, dim=self.n, inputs=[sim._s(1.0), self.xb, sim._s(self.s), y, sim._x_tmp], device=sim.device)
-        return sim._x_tmp
-
-    def _quadratic(self, y, out):
-        """out = a M (y - y0) + (cm M + ck Kn) y."""
-        sim = self.sim
-        out.zero_()
-        sim._bsr_mv(sim._mass_values, y, self.a + self.cm, out)
-        if self.a != 0.0:
-            sim._bsr_mv(sim._mass_values, self.y0, -self.a, out)
-        if self.ck != 0.0:
-            sim._bsr_mv(sim._kn_values, y, self.ck, out)
-
-    def energy(self, y):
-        sim = self.sim
-        V, Vmag = sim._elastic_energy(self._x_of(y))
-        q = sim._tmp2
-        self._quadratic(y, q)
-        # a/2 (y-y0)^T M (y-y0) + 1/2 y^T C y = 1/2 y^T q - a/2 y0^T M y + a/2 y0^T M y0 ... evaluate directly:
-        quad = 0.5 * sim._pcg.dot(y, q)
-        if self.a != 0.0:
-            sim._tmp3.zero_()
-            sim._bsr_mv(sim._mass_values, self.y0, self.a, sim._tmp3)
-            quad += -0.5 * sim._pcg.dot(self.y0, q) + 0.5 * sim._pcg.dot(self.y0, sim._tmp3) - 0.5 * sim._pcg.dot(y, sim._tmp3) + 0.5 * sim._pcg.dot(y, sim._tmp3)
-            # (the last two cancel; kept explicit: q = aM(y-y0)+Cy so 1/2 (y-y0)^T aM(y-y0) + 1/2 y^T C y
-            #  = 1/2 y^T q - 1/2 y0^T q + 1/2 y0^T C y, and y0^T C y is added below)
-            if self.cm != 0.0 or self.ck != 0.0:
-                sim._tmp3.zero_()
-                sim._bsr_mv(sim._mass_values, y, self.cm, sim._tmp3)
-                if self.ck != 0.0:
-                    sim._bsr_mv(sim._kn_values, y, self.ck, sim._tmp3)
-                quad += 0.5 * sim._pcg.dot(self.y0, sim._tmp3)
-            quad -= 0.5 * sim._pcg.dot(self.y0, sim._tmp3) * 0.0
-        work = self.s * self.fext_scale * sim._pcg.dot(y, sim._fext)
-        E = quad + V - work
-        return E, abs(quad) + Vmag + abs(work)
-
-    def gradient(self, y, g):
-        """g = P grad E(y); returns the sum of the norms of its terms (the scale of its round-off)."""
-        sim = self.sim
-        self._quadratic(y, g)
-        x = self._x_of(y)
-        f = sim._tmp3
-        f.zero_()
-        for count, args, _ in sim._qp_sets:
-            wp.launch(FK.qp_force_kernel, dim=count, inputs=[x, *args, sim._s(-self.s), f], device=sim.device)
-        dot = sim._pcg.dot
-        fa = sim._tmp2
-        fa.zero_()
-        for count, args, _ in sim._qp_sets:
-            wp.launch(FK.qp_force_abs_kernel, dim=count, inputs=[x, *args, sim._s(self.s), fa], device=sim.device)
-        magnitude = np.sqrt(dot(g, g)) + np.sqrt(dot(fa, fa)) + abs(self.s * self.fext_scale) * sim._fext_norm
-        wp.launch(LK.add_scaled_kernel, dim=self.n, inputs=[f, sim._s(1.0), g], device=sim.device)
-        wp.launch(LK.add_scaled_kernel, dim=self.n, inputs=[sim._fext, sim._s(-self.s * self.fext_scale), g], device=sim.device)
-        wp.launch(LK.mask_kernel, dim=self.n, inputs=[self.mask, g], device=sim.device)
-        return magnitude
-
-    def resolution_scale(self, y):
-        ymax = float(np.abs(y.numpy()).max())
-        if self.s == 0.0:
-            return ymax
-        return ymax + float(np.abs(self._x_of(y).numpy()).max()) / abs(self.s)
-
-    def assemble_hessian(self, y):
-        sim = self.sim
-        vals = sim._hess_values
-        wp.launch(LK.scale_copy_kernel, dim=sim._pattern.nnz, inputs=[sim._mass_values, sim._s(self.a + self.cm), vals], device=sim.device)
-        if self.ck != 0.0:
-            wp.launch(LK.add_scaled_kernel, dim=sim._pattern.nnz, inputs=[sim._kn_values, sim._s(self.ck), vals], device=sim.device)
-        sim._assemble_stiffness(self._x_of(y), self.s * self.s, vals)
-        return vals
 
 
 class Simulator(SimulatorState):
@@ -193,7 +112,7 @@ class Simulator(SimulatorState):
         self.x = vec_array(model.rest_positions)
         self.v = vec_array()
         self._zero = vec_array()
-        self._x_tmp, self._tmp2, self._tmp3 = vec_array(), vec_array(), vec_array()
+        self._work = Workspace(self)
         self._targets = {}  # vertex -> target position for the next step (kinematic handles)
         self.sync_model()
 
@@ -208,28 +127,32 @@ class Simulator(SimulatorState):
     # -- stages (each a function that can be timed) ------------------------------------------------
     def _bsr_mv(self, values, x, alpha, y):
         pt = self._pattern
-        wp.launch(LK.bsr_mv_kernel, dim=pt.num_rows, inputs=[pt.offsets, pt.columns, values, x, self._s(alpha), y], device=self.device)
+        launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, x, self._s(alpha), y], self.device)
+
+    def _linear_solve(self, values, rhs, out, opts):
+        """out ~ A^-1 rhs on the free components (A the masked block matrix ``values``, rhs masked):
+        the Newton systems' linear solver (block-Jacobi PCG); returns a result with ``iterations``."""
+        return self._pcg.solve(values, self._mask, rhs, out, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
 
     def _elastic_energy(self, x):
         parts = []
         for count, args, buf in self._qp_sets:
-            wp.launch(FK.qp_energy_kernel, dim=count, inputs=[x, *args, buf], device=self.device)
+            launch(FK.qp_energy_kernel, dim=count, inputs=[x, *args, buf], device=self.device)
             parts.append(buf.numpy().astype(np.float64))
         e = np.concatenate(parts)
         return float(e.sum()), float(np.abs(e).sum())
 
     def _assemble_stiffness(self, x, scale, values):
         for count, args, _ in self._qp_sets:
-            wp.launch(FK.qp_hessian_kernel, dim=count,
-                      inputs=[x, *args, self._s(scale), int(self.options.project_hessian),
-                              self._pattern.block_index, values], device=self.device)
+            launch(FK.qp_hessian_kernel, count, [x, *args, self._s(scale), int(self.options.project_hessian),
+                                                 self._pattern.block_index, values], self.device)
 
     def elastic_forces(self, x=None) -> np.ndarray:
         """Internal elastic forces -dV/dx (N) at x (default: current positions), (n, 3)."""
         xa = self.x if x is None else self._vec_array(x)
         f = self._vec_array()
         for count, args, _ in self._qp_sets:
-            wp.launch(FK.qp_force_kernel, dim=count, inputs=[xa, *args, self._s(1.0), f], device=self.device)
+            launch(FK.qp_force_kernel, dim=count, inputs=[xa, *args, self._s(1.0), f], device=self.device)
         return f.numpy().astype(np.float64)
 
     def stresses(self, x=None) -> np.ndarray:
@@ -237,7 +160,7 @@ class Simulator(SimulatorState):
         xa = self.x if x is None else self._vec_array(x)
         P = wp.zeros(self._qp_count, dtype=self._mat, device=self.device)
         a = self._qp_args
-        wp.launch(FK.qp_stress_kernel, dim=self._qp_count, inputs=[xa, a[0], a[1], a[2], a[3], a[5], a[6], a[7], a[8], P], device=self.device)
+        launch(FK.qp_stress_kernel, dim=self._qp_count, inputs=[xa, a[0], a[1], a[2], a[3], a[5], a[6], a[7], a[8], P], device=self.device)
         return P.numpy().astype(np.float64)
 
     def elastic_energy(self, x=None) -> float:
@@ -297,9 +220,9 @@ class Simulator(SimulatorState):
         out = self._vec_array()
         if not self._targets:
             if xb is not self.x:  # (x - x_b) first, then the scale: exact zero where x_b = x
-                wp.launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0), self.x, self._s(-1.0), xb, out],
+                launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0), self.x, self._s(-1.0), xb, out],
                           device=self.device)
-                wp.launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0 / s), out, self._s(0.0), out, out],
+                launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0 / s), out, self._s(0.0), out, out],
                           device=self.device)
             return out
         p = self.positions()
@@ -314,15 +237,15 @@ class Simulator(SimulatorState):
         n = self.num_vertices
         rhs = self._vec_array()
         for count, args, _ in self._qp_sets:
-            wp.launch(FK.qp_force_kernel, dim=count, inputs=[self.x, *args, self._s(1.0), rhs], device=self.device)
-        wp.launch(LK.axpy_kernel, dim=n, inputs=[self._s(1.0), self._fext, rhs], device=self.device)
+            launch(FK.qp_force_kernel, dim=count, inputs=[self.x, *args, self._s(1.0), rhs], device=self.device)
+        launch(LK.axpy_kernel, dim=n, inputs=[self._s(1.0), self._fext, rhs], device=self.device)
         if self.damping_mass != 0.0:
             self._bsr_mv(self._mass_values, self.v, -self.damping_mass, rhs)
         if self.damping_stiffness != 0.0:
             kn = self._pattern.new_values()
             self._assemble_stiffness(self.x, 1.0, kn)
             self._bsr_mv(kn, self.v, -self.damping_stiffness, rhs)
-        wp.launch(LK.mask_kernel, dim=n, inputs=[self._mask, rhs], device=self.device)
+        launch(LK.mask_kernel, dim=n, inputs=[self._mask, rhs], device=self.device)
         res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.options.max_cg_iters, 100))
         if not np.isfinite(res.residual):
             raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
@@ -344,23 +267,19 @@ class Simulator(SimulatorState):
         fixed_v = self._prescribed_velocity(xb, s)
         y = self._vec_array()
         # initial guess: previous velocity on free components, prescribed on fixed ones
-        wp.launch(LK.select_kernel, dim=n, inputs=[self._mask, self.v, fixed_v, y], device=self.device)
-        pot = _Potential(self, a=1.0, y0=y0, cm=s * self.damping_mass, ck=s * self.damping_stiffness, s=s, xb=xb)
-        stats = newton_solve(pot, y, self.options, self._pcg)
+        launch(LK.select_kernel, dim=n, inputs=[self._mask, self.v, fixed_v, y], device=self.device)
+        quadratic = [InertiaForm(self, y0)]
+        if self.damping_mass != 0.0 or self.damping_stiffness != 0.0:
+            quadratic.append(DampingForm(self, s * self.damping_mass, s * self.damping_stiffness))
+        pot = FullSpacePotential(self, xb=xb, s=s, quadratic=quadratic, elastic=ElasticForm(self, s),
+                                 load=LoadForm(self, s))
+        stats = newton_solve(pot, y, self.options)
         self._finish(stats, t0, f"step {self.step_count}")
         self.integrator.advance(self, y, prediction)
         self._targets.clear()
         self.time += self.dt
         self.step_count += 1
         return stats
-
-    def set_positions(self, x):
-        super().set_positions(x)
-        self.integrator.reset()
-
-    def set_velocities(self, v):
-        super().set_velocities(v)
-        self.integrator.reset()
 
     def solve_static(self, *, load_steps: int = 1) -> SolveStats:
         """Quasi-static equilibrium: minimise V(x) - x^T f_ext with the fixed components held.
@@ -384,9 +303,9 @@ class Simulator(SimulatorState):
             frac = step / load_steps
             self._targets = {i: x_start[i] + frac * (p - x_start[i]) for i, p in targets.items()}
             fixed_x = self._vec_array(self._prescribed(self._vec_array(x_start), 0.0))
-            wp.launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
-            pot = _Potential(self, a=0.0, y0=self._zero, cm=0.0, ck=0.0, s=1.0, xb=self._zero, fext_scale=frac)
-            st = newton_solve(pot, y, self.options, self._pcg)
+            launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
+            pot = FullSpacePotential(self, xb=None, s=1.0, elastic=ElasticForm(self, 1.0), load=LoadForm(self, frac))
+            st = newton_solve(pot, y, self.options)
             total.newton_iterations += st.newton_iterations
             total.cg_iterations += st.cg_iterations
             total.line_search_steps += st.line_search_steps

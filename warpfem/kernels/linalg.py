@@ -163,3 +163,22 @@ def add_scaled_kernel(src: wp.array(dtype=Any), a: Any, dst: wp.array(dtype=Any)
 
 both_precisions(src="v[]", a="s", dst="v[]")(add_scaled_kernel)
 both_precisions(src="m[]", a="s", dst="m[]")(add_scaled_kernel)
+
+
+@both_precisions(a="v[]", b="v[]")
+@wp.kernel
+def dot_slot_kernel(a: wp.array(dtype=Any), b: wp.array(dtype=Any), alpha: wp.float64, acc: wp.array(dtype=wp.float64),
+                    slot: int):
+    """acc[slot] += alpha a . b (float64): several reductions land in one small array that is read
+    back once."""
+    i = wp.tid()
+    wp.atomic_add(acc, slot, alpha * wp.float64(wp.dot(a[i], b[i])))
+
+
+@both_precisions(a="v[]")
+@wp.kernel
+def max_abs_slot_kernel(a: wp.array(dtype=Any), acc: wp.array(dtype=wp.float64), slot: int):
+    """acc[slot] = max(acc[slot], max_i |a_i|_inf)."""
+    i = wp.tid()
+    v = a[i]
+    wp.atomic_max(acc, slot, wp.float64(wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2]))))

@@ -120,7 +120,7 @@ def _build_stiffness_warping(scene, model, *, device, precision):
     return StiffnessWarpingSimulator(model, device=device, precision=precision, dt=o["dt"], rotation=o["rotation"],
                                      cg_tol=o["cg_tol"], max_cg_iters=o["max_cg_iters"], damping_mass=o["damping_mass"],
                                      damping_stiffness=o["damping_stiffness"],
-                                     require_convergence=o["require_convergence"])
+                                     require_convergence=o["require_convergence"], integrator=o["scheme"])
 
 
 _WARPING_KEYS = {k: INTEGRATOR_KEYS[k] for k in ("dt", "max_cg_iters", "damping_mass", "damping_stiffness",
@@ -129,6 +129,8 @@ _WARPING_KEYS["cg_tol"] = Key("float", default=1e-6, check=INTEGRATOR_KEYS["cg_t
                               doc="relative PCG tolerance of the one linear solve per step")
 _WARPING_KEYS["rotation"] = Key("choice", default="polar", choices=("polar", "qr"),
                                 doc="element rotation: polar decomposition or Gram-Schmidt (OpenTissue)")
+_WARPING_KEYS["scheme"] = Key("choice", default="backward_euler", choices=("backward_euler", "bdf2", "newmark"),
+                              doc="time scheme of the one linear solve per step (docs/integrators.md)")
 register_integrator(IntegratorType(
     "stiffness_warping", _build_stiffness_warping, keys=_WARPING_KEYS, dynamic=True,
     builds=("mass matrix", "warped stiffness K' (one block-Jacobi PCG solve per step)", "per-tet 12x12 K_e",
