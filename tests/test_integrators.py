@@ -208,3 +208,57 @@ def test_scene_integrator_types(tmp_path, name, cls):
     p.write_text(text)
     run = load_scene(p).build()
     assert isinstance(run.sim.integrator, cls)
+
+
+@pytest.mark.parametrize("integrator", ["bdf2", "newmark"])
+def test_reduced_identity_basis_matches_full_simulator(integrator):
+    """The reduced simulator runs the same terms and Newton loop: with the identity basis and full
+    cubature it reproduces the full-space run of the same integrator (with Rayleigh damping)."""
+    from warpfem.reduced import ReducedSimulator, Subspace
+    from warpfem.reduced.cubature import Cubature
+    from warpfem.reduced.subspace import material_parameters
+
+    mesh = wf.box_tet_mesh(size=(3.0, 1.0, 1.0), cells=(3, 1, 1))
+    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e4, poisson_ratio=0.3, density=10.0),
+                     gravity=(0, 0, -9.81))
+    model.fix(wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1e-6, 2, 2)))
+    free = np.flatnonzero(~model.fixed.reshape(-1))
+    U = np.zeros((3 * mesh.num_vertices, len(free)))
+    U[free, np.arange(len(free))] = 1.0
+    basis = wf.reduced.Basis(U=U, linear_frequencies=np.zeros(0), frequencies=np.zeros(0))
+    sub = Subspace(basis, Cubature.full(mesh.num_tets), wf.reduced.mesh_hash(model), material_parameters(model))
+    opts = dict(dt=0.05, damping_mass=0.3, damping_stiffness=0.01, tol=1e-11, integrator=integrator)
+    rs = ReducedSimulator(model, sub, **opts)
+    fs = wf.Simulator(model, cg_tol=1e-12, **opts)
+    for _ in range(4):
+        rs.step()
+        fs.step()
+    moved = np.abs(fs.positions() - model.rest_positions).max()
+    assert moved > 0.05
+    assert np.abs(rs.positions() - fs.positions()).max() <= 1e-8 * moved
+    assert np.abs(rs.velocities() - fs.velocities()).max() <= 1e-7 * np.abs(fs.velocities()).max()
+
+
+@pytest.mark.parametrize("integrator", ["backward_euler", "bdf2", "newmark"])
+def test_stiffness_warping_identity_is_one_newton_iteration_of_the_same_scheme(integrator):
+    """With R = I stiffness warping is linear FEM, so its one linear solve per step is the exact
+    Newton step of the scheme's potential: it matches the Newton simulator with the linear
+    material for every integrator (damping and a moving target included)."""
+    mesh = wf.box_tet_mesh(size=(2.0, 0.5, 0.5), cells=(4, 1, 1))
+    model = wf.Model(mesh, wf.LinearElastic(youngs_modulus=1e4, poisson_ratio=0.3, density=100.0),
+                     gravity=(0, 0, -9.81))
+    ids = wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1e-6, 2, 2))
+    model.fix(ids)
+    kw = dict(dt=0.02, damping_mass=0.2, damping_stiffness=0.01, integrator=integrator)
+    ws = wf.StiffnessWarpingSimulator(model, rotation="identity", cg_tol=1e-13, **kw)
+    ns = wf.Simulator(model, tol=1e-12, cg_tol=1e-13, **kw)
+    for k in range(6):
+        target = mesh.vertices[ids] + [0.0, 0.0, 0.01 * k]
+        ws.set_targets(ids, target)
+        ns.set_targets(ids, target)
+        ws.step()
+        ns.step()
+    moved = np.abs(ns.positions() - mesh.vertices).max()
+    assert moved > 1e-2
+    assert np.abs(ws.positions() - ns.positions()).max() <= 1e-9 * moved
+    assert np.abs(ws.velocities() - ns.velocities()).max() <= 1e-8 * np.abs(ns.velocities()).max()
