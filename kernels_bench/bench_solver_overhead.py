@@ -51,23 +51,37 @@ def measure(steps: int, integrators) -> dict:
         counts = collections.Counter()
         launch, to_numpy = wp.launch, wp.array.numpy
 
+        depth = [0]  # inside the linear solver (block-Jacobi PCG) or not
+
         def counted_launch(kernel, *a, **kw):
             counts["launches"] += 1
+            counts["launches_outside_linear_solve"] += depth[0] == 0
             return launch(kernel, *a, **kw)
 
         def counted_numpy(self):
             counts["readbacks"] += 1
+            counts["readbacks_outside_linear_solve"] += depth[0] == 0
             return to_numpy(self)
 
+        pcg_type = type(sim._pcg)
+        solve = pcg_type.solve
+
+        def counted_solve(self, *a, **kw):
+            depth[0] += 1
+            try:
+                return solve(self, *a, **kw)
+            finally:
+                depth[0] -= 1
+
         newton = cg = 0
-        wp.launch, wp.array.numpy = counted_launch, counted_numpy
+        wp.launch, wp.array.numpy, pcg_type.solve = counted_launch, counted_numpy, counted_solve
         try:
             for _ in range(5):
                 st = sim.step()
                 newton += st.newton_iterations
                 cg += st.cg_iterations
         finally:
-            wp.launch, wp.array.numpy = launch, to_numpy
+            wp.launch, wp.array.numpy, pcg_type.solve = launch, to_numpy, solve
         t0 = time.perf_counter()
         n_it = 0
         for _ in range(steps):
@@ -77,7 +91,9 @@ def measure(steps: int, integrators) -> dict:
                                 cg_per_newton=cg / max(newton, 1),
                                 launches_per_step=counts["launches"] / 5, readbacks_per_step=counts["readbacks"] / 5,
                                 launches_per_newton=counts["launches"] / max(newton, 1),
-                                readbacks_per_newton=counts["readbacks"] / max(newton, 1)))
+                                readbacks_per_newton=counts["readbacks"] / max(newton, 1),
+                                outside_launches_per_newton=counts["launches_outside_linear_solve"] / max(newton, 1),
+                                outside_readbacks_per_newton=counts["readbacks_outside_linear_solve"] / max(newton, 1)))
     return out
 
 
@@ -108,12 +124,13 @@ def main(argv=None):
     print(f"480-tet cantilever, cpu ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}); baseline {args.baseline}")
     print(f"{'':28s} {'ms/step':>8s} {'newton':>7s} {'cg/newton':>9s} {'launch/step':>11s} {'read/step':>9s} "
-          f"{'launch/newton':>13s} {'read/newton':>11s}")
+          f"{'launch/newton':>13s} {'read/newton':>11s}  outside the linear solve: {'launch/newton':>13s} {'read/newton':>11s}")
     rows = [(f"baseline {args.baseline} (BE)", b)] + [(f"this checkout ({r['integrator']})", r) for r in new["runs"]]
     for name, r in rows:
         print(f"{name:28s} {r['ms_per_step']:8.2f} {r['newton_per_step']:7.2f} {r['cg_per_newton']:9.1f} "
               f"{r['launches_per_step']:11.1f} {r['readbacks_per_step']:9.1f} {r['launches_per_newton']:13.1f} "
-              f"{r['readbacks_per_newton']:11.1f}")
+              f"{r['readbacks_per_newton']:11.1f}  {'':26s}{r['outside_launches_per_newton']:13.1f} "
+              f"{r['outside_readbacks_per_newton']:11.1f}")
     be = new["runs"][0]
     print(f"backward Euler speed-up vs baseline: {b['ms_per_step'] / be['ms_per_step']:.2f}x per step")
     if args.json:
