@@ -114,6 +114,9 @@ class Simulator(SimulatorState):
         self._zero = vec_array()
         self._work = Workspace(self)
         self._targets = {}  # vertex -> target position for the next step (kinematic handles)
+        #: control: the external forces (gravity + applied) act scaled by this (load ramps); the
+        #: model itself is never rescaled
+        self.load_scale = 1.0
         self.sync_model()
 
     # -- model changes (no pattern rebuild) -----------------------------------------------------------
@@ -174,8 +177,9 @@ class Simulator(SimulatorState):
         return 0.5 * self._pcg.dot(self.v, q)
 
     def total_energy(self) -> float:
-        """Kinetic + elastic - x^T f_ext (J): conserved by the exact dynamics without damping."""
-        return self.kinetic_energy() + self.elastic_energy() - self._pcg.dot(self.x, self._fext)
+        """Kinetic + elastic - x^T f_ext (J, f_ext times ``load_scale``): conserved by the exact
+        dynamics without damping."""
+        return self.kinetic_energy() + self.elastic_energy() - self.load_scale * self._pcg.dot(self.x, self._fext)
 
     def stiffness_matrix(self, x=None, *, project=None):
         """The assembled stiffness d2V/dx2 at x as scipy CSR (3n x 3n), for analysis and tests."""
@@ -238,7 +242,7 @@ class Simulator(SimulatorState):
         rhs = self._vec_array()
         for count, args, _ in self._qp_sets:
             launch(FK.qp_force_kernel, dim=count, inputs=[self.x, *args, self._s(1.0), rhs], device=self.device)
-        launch(LK.axpy_kernel, dim=n, inputs=[self._s(1.0), self._fext, rhs], device=self.device)
+        launch(LK.axpy_kernel, dim=n, inputs=[self._s(self.load_scale), self._fext, rhs], device=self.device)
         if self.damping_mass != 0.0:
             self._bsr_mv(self._mass_values, self.v, -self.damping_mass, rhs)
         if self.damping_stiffness != 0.0:
@@ -272,7 +276,7 @@ class Simulator(SimulatorState):
         if self.damping_mass != 0.0 or self.damping_stiffness != 0.0:
             quadratic.append(DampingForm(self, s * self.damping_mass, s * self.damping_stiffness))
         pot = FullSpacePotential(self, xb=xb, s=s, quadratic=quadratic, elastic=ElasticForm(self, s),
-                                 load=LoadForm(self, s))
+                                 load=LoadForm(self, s * self.load_scale))
         stats = newton_solve(pot, y, self.options)
         self._finish(stats, t0, f"step {self.step_count}")
         self.integrator.advance(self, y, prediction)
@@ -304,7 +308,7 @@ class Simulator(SimulatorState):
             self._targets = {i: x_start[i] + frac * (p - x_start[i]) for i, p in targets.items()}
             fixed_x = self._vec_array(self._prescribed(self._vec_array(x_start), 0.0))
             launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
-            pot = FullSpacePotential(self, xb=None, s=1.0, elastic=ElasticForm(self, 1.0), load=LoadForm(self, frac))
+            pot = FullSpacePotential(self, xb=None, s=1.0, elastic=ElasticForm(self, 1.0), load=LoadForm(self, frac * self.load_scale))
             st = newton_solve(pot, y, self.options)
             total.newton_iterations += st.newton_iterations
             total.cg_iterations += st.cg_iterations
