@@ -4,7 +4,8 @@ tol 1e-5, cg_tol 1e-3), for this checkout and for a baseline revision measured i
 
 The baseline is the revision's ``warpfem`` package extracted with ``git archive`` into a temporary
 folder and run in a child process (so both use the same machine at the same time). Counts come
-from wrapping ``warp.launch`` and ``warp.array.numpy`` during a few counted steps; times from
+from wrapping ``warp.launch``, ``warp.Launch.launch`` (recorded launches) and ``warp.array.numpy``
+during a few counted steps; times from
 separate, uncounted steps after a warm-up (every kernel compiled first).
 
     .venv/bin/python kernels_bench/bench_solver_overhead.py [--baseline e400908] [--steps 40] [--json PATH]
@@ -53,10 +54,20 @@ def measure(steps: int, integrators) -> dict:
 
         depth = [0]  # inside the linear solver (block-Jacobi PCG) or not
 
-        def counted_launch(kernel, *a, **kw):
+        def count_launch():
             counts["launches"] += 1
             counts["launches_outside_linear_solve"] += depth[0] == 0
+
+        def counted_launch(kernel, *a, **kw):
+            if not kw.get("record_cmd"):  # a recorded launch counts when it is launched
+                count_launch()
             return launch(kernel, *a, **kw)
+
+        replay = wp.Launch.launch
+
+        def counted_replay(self, *a, **kw):
+            count_launch()
+            return replay(self, *a, **kw)
 
         def counted_numpy(self):
             counts["readbacks"] += 1
@@ -75,6 +86,7 @@ def measure(steps: int, integrators) -> dict:
 
         newton = cg = 0
         wp.launch, wp.array.numpy, pcg_type.solve = counted_launch, counted_numpy, counted_solve
+        wp.Launch.launch = counted_replay
         try:
             for _ in range(5):
                 st = sim.step()
@@ -82,6 +94,7 @@ def measure(steps: int, integrators) -> dict:
                 cg += st.cg_iterations
         finally:
             wp.launch, wp.array.numpy, pcg_type.solve = launch, to_numpy, solve
+            wp.Launch.launch = replay
         t0 = time.perf_counter()
         n_it = 0
         for _ in range(steps):

@@ -20,6 +20,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import reduced as RK
+from warpfem.kernels.generic import launch
 from warpfem.integrators import make_integrator
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.state import PRECISIONS, check_simulator_options
@@ -84,13 +85,13 @@ class CubatureForces:
         """(energy J, force (r,), stiffness (r, r) or None) at q, float64 numpy."""
         self._q.assign(np.asarray(q, dtype=self._npdt))
         wh = int(bool(hessian))
-        wp.launch(RK.cubature_element_kernel, dim=self.c,
+        launch(RK.cubature_element_kernel, dim=self.c,
                   inputs=[self.U, self._q, self.elements, self.cub_element, self.cub_weight, self.dNdX, self.kind,
                           self.mu, self.lam, wh, int(bool(project)), self._energy, self._f, self._H], device=self.device)
         self._force.zero_()
         if hessian:
             self._K.zero_()
-        wp.launch(RK.cubature_project_kernel, dim=(self.c, self.r),
+        launch(RK.cubature_project_kernel, dim=(self.c, self.r),
                   inputs=[self.U, self.elements, self.cub_element, self._f, self._H, wh, self._force, self._K],
                   device=self.device)
         E = float(self._energy.numpy().astype(np.float64).sum())
@@ -177,7 +178,7 @@ class ReducedSimulator:
     # -- state ------------------------------------------------------------------------------------
     def _reconstruct(self, X, U, q, out):
         self._qdev.assign(np.asarray(q, dtype=self._np))
-        wp.launch(RK.reconstruct_kernel, dim=len(X), inputs=[X, U, self._qdev, out], device=self.device)
+        launch(RK.reconstruct_kernel, dim=len(X), inputs=[X, U, self._qdev, out], device=self.device)
         return out
 
     @property

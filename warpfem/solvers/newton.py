@@ -1,9 +1,12 @@
-"""Newton's method with a backtracking Armijo line search on an incremental potential.
+"""Newton's method with a backtracking Armijo line search on an incremental potential: the one
+loop every simulator uses (full space, stiffness warping's potential, reduced).
 
-The potential is E(y) over per-vertex vec3 unknowns y with some components fixed (mask). Each
-Newton system H d = -g is solved by block-Jacobi PCG on the device (``warpfem.solvers.pcg``).
-The loop runs *while* the gradient norm is above the tolerance, and a step length a is accepted
-when E(y + a d) <= E(y) + c a d^T g (seed 004, with its slips corrected).
+The potential is E(y) over unknowns y (per-vertex vec3 device arrays with some components fixed by
+a mask, or a reduced coordinate vector), given as a ``problem`` (``warpfem.solvers.forms``
+for the full space, ``warpfem.reduced.simulator`` for subspaces) that also solves its Newton
+systems H d = -g (sparse on the device, or dense). The loop runs *while* the gradient norm is above
+the tolerance, and a step length a is accepted when E(y + a d) <= E(y) + c a d^T g (seed 004, with
+its slips corrected).
 """
 
 from __future__ import annotations
