@@ -983,6 +983,15 @@ def all_cases(quick=False):
             for name in meshes:
                 add(f"mesh {m} {prec} newton tet4", lambda m=m, p=prec, name=name: real_mesh(m, p, name))
         add(f"locking linear {prec} newton tet4", lambda p=prec: locking(p))
+        # second-order time integrators of the core solver (docs/integrators.md), stable neo-Hookean Tet4
+        for integ in ("newton-bdf2", "newton-newmark"):
+            tag = f"stable_neo_hookean {prec} {integ} tet4"
+            for start in ("scrambled", "mirrored"):
+                add(f"recover {tag}", lambda p=prec, i=integ, s=start: recover_any("stable_neo_hookean", p, s, integrator=i))
+            for dt in (1 / 24, 1 / 10):
+                for E in (E_SOFT, 1e9):
+                    add(f"dt {tag}", lambda p=prec, i=integ, dt=dt, E=E: cantilever_any(
+                        "stable_neo_hookean", p, dt=dt, youngs_modulus=E, integrator=i, steps=10))
         # stiffness warping (material kind ignored: corotated E, nu), Tet4
         for integ in ("warping-polar", "warping-qr"):
             tag = f"corotated {prec} {integ} tet4"
