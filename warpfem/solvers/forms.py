@@ -43,6 +43,7 @@ class Workspace:
         self.acc = wp.zeros(_SLOTS, dtype=wp.float64, device=sim.device)
         self.g, self.d, self.rhs, self.y_try = (sim._vec_array() for _ in range(4))
         self.x, self.tmp, self.tmp2, self.fa = (sim._vec_array() for _ in range(4))
+        self.inv_diag = None  # block-Jacobi inverse for the fallback direction, allocated on first use
 
 
 class InertiaForm:
@@ -241,9 +242,16 @@ class FullSpacePotential:
         return res.iterations
 
     def fallback_direction(self, g, d):
-        """d = -B^-1 g, B the block diagonal of the last Newton system (a descent direction)."""
+        """d = -B^-1 g, B the (masked) block diagonal of the last Newton system: a descent direction
+        whatever linear solver produced the rejected one."""
         sim = self.sim
-        launch(LK.block_apply_kernel, self.n, [sim._pcg.inv_diag, sim._work.rhs, d], sim.device)
+        pt, w = sim._pattern, sim._work
+        if w.inv_diag is None:
+            w.inv_diag = wp.zeros(self.n, dtype=sim._mat, device=sim.device)
+        launch(LK.block_jacobi_setup_kernel, self.n, [pt.offsets, pt.columns, sim._hess_values, self.mask, w.inv_diag],
+               sim.device)
+        launch(LK.scale_copy_kernel, self.n, [g, sim._s(-1.0), w.rhs], sim.device)
+        launch(LK.block_apply_kernel, self.n, [w.inv_diag, w.rhs, d], sim.device)
 
     def direction_check(self, y, g, d):
         """(g . d, whether the step d is below the resolution of y and of x = x_b + s y): one read-back."""
