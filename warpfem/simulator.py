@@ -1,13 +1,17 @@
-"""Backward Euler and quasi-static solves of a :class:`~warpfem.model.Model` on a Warp device.
+"""Implicit time stepping and quasi-static solves of a :class:`~warpfem.model.Model` on a Warp device.
 
-Backward Euler as minimisation of the incremental potential (seed 004, slips corrected):
+Every time integrator (backward Euler, BDF2, Newmark: :mod:`warpfem.integrators`) is one
+minimisation per step of the incremental potential over the end-of-step velocity v (seed 004,
+slips corrected), e.g. for backward Euler
 
     E(v) = 1/2 (v - v_n)^T M (v - v_n) + h/2 v^T C v + V(x_n + h v) - h v^T f_ext,
     x_{n+1} = x_n + h v_{n+1},
 
 with Rayleigh damping C = alpha M + beta K(x_n) (K the SPD-projected stiffness at the start of
 the step, so the damping term is a fixed quadratic and E stays a potential). Its gradient is
-M (v - v_n) + h C v - h f(x_n + h v) - h f_ext = 0, the backward Euler equations.
+M (v - v_n) + h C v - h f(x_n + h v) - h f_ext = 0, the backward Euler equations. BDF2 and
+Newmark change the prediction (x_b, v_hat) and the scale s (h -> 2h/3, h/2). The potential is a
+sum of terms (:mod:`warpfem.solvers.forms`) minimised by :func:`~warpfem.solvers.newton.newton_solve`.
 The quasi-static solve minimises V(x) - x^T f_ext over the free components of x.
 """
 
@@ -323,5 +327,6 @@ class Simulator(SimulatorState):
         self._finish(total, t0, "static solve")
         self.x = y
         self.v = self._vec_array()
+        self.integrator.reset()  # a new state: BDF2 / Newmark restart their history
         self._targets.clear()
         return total
