@@ -8,7 +8,7 @@ from wrapping ``warp.launch``, ``warp.Launch.launch`` (recorded launches) and ``
 during a few counted steps; times from
 separate, uncounted steps after a warm-up (every kernel compiled first).
 
-    .venv/bin/python kernels_bench/bench_solver_overhead.py [--baseline e400908] [--steps 40] [--json PATH]
+    .venv/bin/python kernels_bench/bench_solver_overhead.py [--baseline e400908] [--steps 40] [--device cpu] [--json PATH]
 """
 
 from __future__ import annotations
@@ -30,20 +30,20 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENE = os.path.join(ROOT, "examples", "scenes", "cantilever.toml")
 
 
-def measure(steps: int, integrators) -> dict:
+def measure(steps: int, integrators, device="cpu") -> dict:
     import warp as wp
 
     wp.config.quiet = True
     import warpfem as wf
     from warpfem.scenes import load_scene
 
-    out = {"warpfem": os.path.dirname(wf.__file__), "device": str(wp.get_device("cpu")), "runs": []}
+    out = {"warpfem": os.path.dirname(wf.__file__), "device": str(wp.get_device(device)), "runs": []}
     for integ in integrators:
-        run = load_scene(SCENE).build(device="cpu", precision="float64")
+        run = load_scene(SCENE).build(device=device, precision="float64")
         sim = run.sim
         if integ != "backward_euler":
             try:
-                sim = wf.Simulator(run.model, dt=sim.dt, integrator=integ, tol=sim.options.tol,
+                sim = wf.Simulator(run.model, device=device, dt=sim.dt, integrator=integ, tol=sim.options.tol,
                                    cg_tol=sim.options.cg_tol, max_iters=sim.options.max_iters)
             except TypeError:
                 continue  # the baseline has no integrators
@@ -110,12 +110,13 @@ def measure(steps: int, integrators) -> dict:
     return out
 
 
-def baseline(rev: str, steps: int) -> dict:
+def baseline(rev: str, steps: int, device: str) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         archive = subprocess.run(["git", "-C", ROOT, "archive", rev, "warpfem"], check=True, capture_output=True).stdout
         subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
         env = dict(os.environ, PYTHONPATH=tmp)
-        res = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", "--steps", str(steps)],
+        res = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", "--steps", str(steps),
+                              "--device", device],
                              env=env, cwd=tmp, capture_output=True, text=True, check=True)
         return json.loads(res.stdout.strip().splitlines()[-1])
 
@@ -125,27 +126,33 @@ def main(argv=None):
     ap.add_argument("--baseline", default="e400908", help="git revision to compare against (default: e400908)")
     ap.add_argument("--steps", type=int, default=40)
     ap.add_argument("--json")
+    ap.add_argument("--device", default="cpu")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.child:
-        print(json.dumps(measure(args.steps, ["backward_euler"])))
+        print(json.dumps(measure(args.steps, ["backward_euler"], args.device)))
         return 0
-    base = baseline(args.baseline, args.steps)
+    try:
+        base = baseline(args.baseline, args.steps, args.device)
+    except subprocess.CalledProcessError as e:  # no git history (a shallow clone) or an unknown revision
+        print(f"baseline {args.baseline} not measured: {e}", file=sys.stderr)
+        base = None
     sys.path.insert(0, ROOT)
-    new = measure(args.steps, ["backward_euler", "bdf2", "newmark"])
-    b = base["runs"][0]
-    print(f"480-tet cantilever, cpu ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+    new = measure(args.steps, ["backward_euler", "bdf2", "newmark"], args.device)
+    print(f"480-tet cantilever, {new['device']} ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}); baseline {args.baseline}")
     print(f"{'':28s} {'ms/step':>8s} {'newton':>7s} {'cg/newton':>9s} {'launch/step':>11s} {'read/step':>9s} "
           f"{'launch/newton':>13s} {'read/newton':>11s}  outside the linear solve: {'launch/newton':>13s} {'read/newton':>11s}")
-    rows = [(f"baseline {args.baseline} (BE)", b)] + [(f"this checkout ({r['integrator']})", r) for r in new["runs"]]
+    rows = ([(f"baseline {args.baseline} (BE)", base["runs"][0])] if base else []) + [
+        (f"this checkout ({r['integrator']})", r) for r in new["runs"]]
     for name, r in rows:
         print(f"{name:28s} {r['ms_per_step']:8.2f} {r['newton_per_step']:7.2f} {r['cg_per_newton']:9.1f} "
               f"{r['launches_per_step']:11.1f} {r['readbacks_per_step']:9.1f} {r['launches_per_newton']:13.1f} "
               f"{r['readbacks_per_newton']:11.1f}  {'':26s}{r['outside_launches_per_newton']:13.1f} "
               f"{r['outside_readbacks_per_newton']:11.1f}")
-    be = new["runs"][0]
-    print(f"backward Euler speed-up vs baseline: {b['ms_per_step'] / be['ms_per_step']:.2f}x per step")
+    if base:
+        be = new["runs"][0]
+        print(f"backward Euler speed-up vs baseline: {base['runs'][0]['ms_per_step'] / be['ms_per_step']:.2f}x per step")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"baseline": base, "new": new, "load": os.getloadavg()[0]}, f, indent=1)
