@@ -49,6 +49,7 @@ def _type_key(a):
 
 
 _LAUNCH_CACHE: dict = {}
+_LAUNCH_CACHE_SIZE = 256
 
 
 def launch(kernel, dim, inputs, device):
@@ -84,6 +85,8 @@ def launch(kernel, dim, inputs, device):
     try:
         module = kernel.module
         exec_key = next(k for k, v in module.execs.items() if v is cmd.module_exec)
+        if len(_LAUNCH_CACHE) >= _LAUNCH_CACHE_SIZE:  # a recorded launch keeps its last arrays alive
+            _LAUNCH_CACHE.clear()
         _LAUNCH_CACHE[lkey] = (cmd, module, exec_key)
     except (AttributeError, StopIteration):  # a Warp without these internals: no caching
         pass
