@@ -240,8 +240,13 @@ class StiffnessWarpingSimulator(SimulatorState):
     def _prescribed_velocity(self, xb, c):
         """Device array with the end-of-step velocity (p - x_b) / c that puts fixed components at
         their target p (or keeps them at x_n); only fixed components are used."""
-        if not self._targets and xb is self.x:
-            return self._zero
+        if not self._targets:
+            if xb is self.x:
+                return self._zero
+            out = self._vec_array()  # (x - x_b) first, then the scale
+            self._launch(LK.lincomb_kernel, self.num_vertices, [self._s(1.0), self.x, self._s(-1.0), xb, out])
+            self._launch(LK.lincomb_kernel, self.num_vertices, [self._s(1.0 / c), out, self._s(0.0), out, out])
+            return out
         p = self.positions()
         for i, t in self._targets.items():
             p[i] = t
