@@ -52,22 +52,16 @@ class InertiaForm:
     def __init__(self, sim, y_hat, a=1.0):
         self.sim, self.y_hat, self.a = sim, y_hat, float(a)
 
-    def _diff(self, y):
-        sim = self.sim
-        d = sim._work.tmp
-        launch(LK.lincomb_kernel, sim.num_vertices, [sim._s(1.0), y, sim._s(-1.0), self.y_hat, d], sim.device)
-        return d
+    def _apply(self, y, g, acc, gradient, energy):
+        sim, pt = self.sim, self.sim._pattern
+        launch(LK.bsr_diff_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, sim._mass_values, y, self.y_hat,
+                                                    sim._s(self.a), g, acc, _E_QUAD, gradient, energy], sim.device)
 
     def energy(self, y, x, acc):
-        sim = self.sim
-        d = self._diff(y)
-        q = sim._work.tmp2
-        q.zero_()
-        sim._bsr_mv(sim._mass_values, d, self.a, q)
-        launch(LK.dot_slot_kernel, sim.num_vertices, [d, q, _F64_HALF, acc, _E_QUAD], sim.device)
+        self._apply(y, self.sim._work.tmp, acc, 0, 1)
 
     def gradient(self, y, x, g, acc):
-        self.sim._bsr_mv(self.sim._mass_values, self._diff(y), self.a, g)
+        self._apply(y, g, acc, 1, 0)
 
     def hessian(self, y, x, values):
         sim = self.sim
@@ -80,22 +74,18 @@ class DampingForm:
     def __init__(self, sim, cm, ck):
         self.sim, self.cm, self.ck = sim, float(cm), float(ck)
 
-    def _apply(self, y, out):
-        sim = self.sim
-        if self.cm != 0.0:
-            sim._bsr_mv(sim._mass_values, y, self.cm, out)
-        if self.ck != 0.0:
-            sim._bsr_mv(sim._kn_values, y, self.ck, out)
+    def _apply(self, y, g, acc, gradient, energy):
+        sim, pt = self.sim, self.sim._pattern
+        for values, c in ((sim._mass_values, self.cm), (sim._kn_values, self.ck)):
+            if c != 0.0:
+                launch(LK.bsr_diff_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, y, sim._zero, sim._s(c), g,
+                                                            acc, _E_QUAD, gradient, energy], sim.device)
 
     def energy(self, y, x, acc):
-        sim = self.sim
-        q = sim._work.tmp2
-        q.zero_()
-        self._apply(y, q)
-        launch(LK.dot_slot_kernel, sim.num_vertices, [y, q, _F64_HALF, acc, _E_QUAD], sim.device)
+        self._apply(y, self.sim._work.tmp, acc, 0, 1)
 
     def gradient(self, y, x, g, acc):
-        self._apply(y, g)
+        self._apply(y, g, acc, 1, 0)
 
     def hessian(self, y, x, values):
         sim = self.sim
@@ -140,8 +130,7 @@ class LoadForm:
         launch(LK.dot_slot_kernel, sim.num_vertices, [y, sim._fext, _F64_ONE, acc, _E_WORK], sim.device)
 
     def gradient(self, y, x, g, acc):
-        sim = self.sim
-        launch(LK.add_scaled_kernel, sim.num_vertices, [sim._fext, sim._s(-self.c), g], sim.device)
+        pass  # -c f_ext is added by FullSpacePotential.gradient's last pass (with the mask and the norm)
 
     def hessian(self, y, x, values):
         pass
@@ -214,8 +203,8 @@ class FullSpacePotential:
             self.elastic.gradient(y, x, g, acc)
         if self.load is not None:
             self.load.gradient(y, x, g, acc)
-        launch(LK.mask_kernel, self.n, [self.mask, g], sim.device)
-        launch(LK.dot_slot_kernel, self.n, [g, g, _F64_ONE, acc, _G_NORM], sim.device)
+        c = self.load.c if self.load is not None else 0.0
+        launch(LK.gradient_finish_kernel, self.n, [g, sim._fext, sim._s(c), self.mask, acc, _G_NORM], sim.device)
         a = acc.numpy()
         mag = np.sqrt(a[_G_QUAD]) + np.sqrt(a[_G_FORCE_ABS])
         if self.load is not None:
@@ -258,11 +247,9 @@ class FullSpacePotential:
         sim = self.sim
         acc = sim._work.acc
         acc.zero_()
-        launch(LK.dot_slot_kernel, self.n, [g, d, _F64_ONE, acc, _D_GD], sim.device)
-        launch(LK.max_abs_slot_kernel, self.n, [d, acc, _D_MAX], sim.device)
-        launch(LK.max_abs_slot_kernel, self.n, [y, acc, _Y_MAX], sim.device)
-        if self.s != 0.0:
-            launch(LK.max_abs_slot_kernel, self.n, [self._x_of(y), acc, _X_MAX], sim.device)
+        use_xb = self.xb is not None
+        launch(LK.newton_check_kernel, self.n, [g, d, y, self.xb if use_xb else y, sim._s(self.s), int(use_xb), acc,
+                                                _D_GD], sim.device)
         a = acc.numpy()
         scale = a[_Y_MAX] + (a[_X_MAX] / abs(self.s) if self.s != 0.0 else 0.0)
         negligible = bool(a[_D_MAX] <= 8.0 * self.eps * scale)
