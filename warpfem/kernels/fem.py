@@ -27,7 +27,6 @@ __all__ = [
     "qp_deformation_gradient_kernel",
     "qp_energy_kernel",
     "qp_force_kernel",
-    "qp_force_abs_kernel",
     "qp_stress_kernel",
     "qp_hessian_kernel",
     "qp_energy_sum_kernel",
@@ -97,34 +96,6 @@ def qp_force_kernel(
     c = -scale * qp_weight[q]
     for a in range(k):
         wp.atomic_add(f, elements[e * k + a], c * (P * qp_dNdX[q * k + a]))
-
-
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s", scale="s", f_abs="v[]")
-@wp.kernel
-def qp_force_abs_kernel(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_weight: wp.array(dtype=Any),
-    qp_dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
-    scale: Any,
-    f_abs: wp.array(dtype=Any),
-):
-    """f_abs[node] += |scale w P dN/dX| component-wise: the size of the contributions whose
-    cancellation gives the nodal force, i.e. the scale of the force's round-off error."""
-    q = wp.tid()
-    e = qp_element[q]
-    F = qp_deformation_gradient(x, X, elements, k, e, q, qp_dNdX)
-    P = material_pk1(kind, F, mu, lam)
-    c = scale * qp_weight[q]
-    for a in range(k):
-        v = c * (P * qp_dNdX[q * k + a])
-        wp.atomic_add(f_abs, elements[e * k + a], type(v)(wp.abs(v[0]), wp.abs(v[1]), wp.abs(v[2])))
 
 
 @both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", mu="s", lam="s", P_out="m[]")
@@ -248,7 +219,8 @@ def qp_force_and_abs_kernel(
     f: wp.array(dtype=Any),
     f_abs: wp.array(dtype=Any),
 ):
-    """``qp_force_kernel`` and ``qp_force_abs_kernel`` in one pass (F and P evaluated once):
+    """``qp_force_kernel`` plus the size of the contributions whose cancellation gives the nodal
+    force (the scale of its round-off), in one pass (F and P evaluated once):
     f[node] += -scale w P dN/dX, f_abs[node] += |scale w P dN/dX| component-wise."""
     q = wp.tid()
     e = qp_element[q]

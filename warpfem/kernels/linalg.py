@@ -175,15 +175,6 @@ def dot_slot_kernel(a: wp.array(dtype=Any), b: wp.array(dtype=Any), alpha: wp.fl
     wp.atomic_add(acc, slot, alpha * wp.float64(wp.dot(a[i], b[i])))
 
 
-@both_precisions(a="v[]")
-@wp.kernel
-def max_abs_slot_kernel(a: wp.array(dtype=Any), acc: wp.array(dtype=wp.float64), slot: int):
-    """acc[slot] = max(acc[slot], max_i |a_i|_inf)."""
-    i = wp.tid()
-    v = a[i]
-    wp.atomic_max(acc, slot, wp.float64(wp.max(wp.max(wp.abs(v[0]), wp.abs(v[1])), wp.abs(v[2]))))
-
-
 @both_precisions(values="m[]", x="v[]", x0="v[]", alpha="s", y="v[]")
 @wp.kernel
 def bsr_diff_mv_kernel(
