@@ -10,6 +10,8 @@ Warp kernel cache is shared, so only the first run of a module compiles it), its
   elements                          bench_elements.py  Tet4/Tet10/Hex8/Hex27 accuracy per second
   reduced                           bench_reduced.py   reduced (cubature) vs full steps
   stability                         stability.py       stability at the extremes, every material
+  integrators                       bench_integrators.py  error vs dt and wall time per time integrator
+  solver-overhead                   bench_solver_overhead.py  launches / read-backs / ms per Newton step vs a baseline
   peer-vbd                          bench_peer_vbd.py  warpfem vs newton's VBD on the cantilever (skips without newton)
 
 ``--quick`` shrinks every benchmark (about 5 minutes on 2 idle CPU cores); ``--only`` / ``--skip`` take
@@ -72,6 +74,12 @@ def plan(args, out: Path):
     P.append(("stability", py + [str(HERE / "stability.py")]
               + flags("stability.py", [("--device", args.device), ("--json", str(j)), ("--markdown", str(m))]
                       + ([("--quick",)] if q else [])), j, m))
+    j = out / "integrators.json"
+    P.append(("integrators", py + [str(HERE / "bench_integrators.py"), *dev, "--json", str(j)]
+              + (["--quick"] if q else []), j, None))
+    j = out / "solver_overhead.json"
+    P.append(("solver-overhead", py + [str(HERE / "bench_solver_overhead.py"), *dev, "--json", str(j)]
+              + (["--steps", "10"] if q else []), j, None))
     j, m = out / "peer_vbd.json", out / "peer_vbd.md"
     P.append(("peer-vbd", py + [str(HERE / "bench_peer_vbd.py"), *dev, "--json", str(j), "--markdown", str(m)]
               + (["--quick"] if q else []), j, m))

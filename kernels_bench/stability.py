@@ -482,10 +482,14 @@ def box_mesh(element, size, cells):
 
 
 def make_sim(model, integrator, precision, *, dt=1.0 / 60.0, **solver):
-    """``integrator``: "newton" (warpfem.Simulator) or "warping-polar" / "warping-qr"
+    """``integrator``: "newton" (warpfem.Simulator, backward Euler), "newton-bdf2" / "newton-newmark"
+    (warpfem.Simulator with that time integrator) or "warping-polar" / "warping-qr"
     (StiffnessWarpingSimulator; Newton-only options are dropped, ``cg_tol`` kept)."""
     if integrator == "newton":
         return wf.Simulator(model, device=DEVICE, precision=precision, dt=dt, **solver)
+    if integrator.startswith("newton-"):  # newton-bdf2, newton-newmark: the core solver with that time integrator
+        return wf.Simulator(model, device=DEVICE, precision=precision, dt=dt, integrator=integrator.split("-", 1)[1],
+                            **solver)
     if integrator.startswith("warping-"):
         keep = {k: v for k, v in solver.items() if k in ("cg_tol", "max_cg_iters", "damping_mass", "damping_stiffness",
                                                           "require_convergence")}
@@ -979,6 +983,15 @@ def all_cases(quick=False):
             for name in meshes:
                 add(f"mesh {m} {prec} newton tet4", lambda m=m, p=prec, name=name: real_mesh(m, p, name))
         add(f"locking linear {prec} newton tet4", lambda p=prec: locking(p))
+        # second-order time integrators of the core solver (docs/integrators.md), stable neo-Hookean Tet4
+        for integ in ("newton-bdf2", "newton-newmark"):
+            tag = f"stable_neo_hookean {prec} {integ} tet4"
+            for start in ("scrambled", "mirrored"):
+                add(f"recover {tag}", lambda p=prec, i=integ, s=start: recover_any("stable_neo_hookean", p, s, integrator=i))
+            for dt in (1 / 24, 1 / 10):
+                for E in (E_SOFT, 1e9):
+                    add(f"dt {tag}", lambda p=prec, i=integ, dt=dt, E=E: cantilever_any(
+                        "stable_neo_hookean", p, dt=dt, youngs_modulus=E, integrator=i, steps=10))
         # stiffness warping (material kind ignored: corotated E, nu), Tet4
         for integ in ("warping-polar", "warping-qr"):
             tag = f"corotated {prec} {integ} tet4"

@@ -23,6 +23,7 @@ from warpfem.mesh import MeshError, TetMesh, box_tet_mesh, load_mesh, save_mesh,
 from warpfem.elements import (ElementMesh, box_hex_mesh, embed_points_in_elements, load_element_mesh,
                               save_element_mesh, tet10_from_tet4)
 from warpfem.model import Model
+from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
 from warpfem.simulator import Simulator
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats
 from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
@@ -30,6 +31,10 @@ from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
 __version__ = "0.1.0"
 
 __all__ = [
+    "BDF2",
+    "BackwardEuler",
+    "Integrator",
+    "Newmark",
     "ElementMesh",
     "box_hex_mesh",
     "embed_points_in_elements",

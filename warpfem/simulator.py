@@ -1,13 +1,17 @@
-"""Backward Euler and quasi-static solves of a :class:`~warpfem.model.Model` on a Warp device.
+"""Implicit time stepping and quasi-static solves of a :class:`~warpfem.model.Model` on a Warp device.
 
-Backward Euler as minimisation of the incremental potential (seed 004, slips corrected):
+Every time integrator (backward Euler, BDF2, Newmark: :mod:`warpfem.integrators`) is one
+minimisation per step of the incremental potential over the end-of-step velocity v (seed 004,
+slips corrected), e.g. for backward Euler
 
     E(v) = 1/2 (v - v_n)^T M (v - v_n) + h/2 v^T C v + V(x_n + h v) - h v^T f_ext,
     x_{n+1} = x_n + h v_{n+1},
 
 with Rayleigh damping C = alpha M + beta K(x_n) (K the SPD-projected stiffness at the start of
 the step, so the damping term is a fixed quadratic and E stays a potential). Its gradient is
-M (v - v_n) + h C v - h f(x_n + h v) - h f_ext = 0, the backward Euler equations.
+M (v - v_n) + h C v - h f(x_n + h v) - h f_ext = 0, the backward Euler equations. BDF2 and
+Newmark change the prediction (x_b, v_hat) and the scale s (h -> 2h/3, h/2). The potential is a
+sum of terms (:mod:`warpfem.solvers.forms`) minimised by :func:`~warpfem.solvers.newton.newton_solve`.
 The quasi-static solve minimises V(x) - x^T f_ext over the free components of x.
 """
 
@@ -21,94 +25,14 @@ import warp as wp
 
 from warpfem.device import get_device as _get_device
 from warpfem.kernels import fem as FK
+from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
+from warpfem.kernels.generic import launch
+from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.pcg import BlockJacobiPCG
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
-
-
-class _Potential:
-    """E(y) = a/2 (y - y0)^T M (y - y0) + 1/2 y^T (cm M + ck Kn) y + V(xb + s y) - s y^T f_ext."""
-
-    def __init__(self, sim, *, a, y0, cm, ck, s, xb, fext_scale=1.0):
-        self.sim, self.a, self.y0, self.cm, self.ck, self.s, self.xb = sim, a, y0, cm, ck, s, xb
-        self.fext_scale = fext_scale
-        self.mask, self.n = sim._mask, sim.num_vertices
-
-    def _x_of(self, y):
-        sim = self.sim
-        wp.launch(LK.lincomb_kernel, dim=self.n, inputs=[sim._s(1.0), self.xb, sim._s(self.s), y, sim._x_tmp], device=sim.device)
-        return sim._x_tmp
-
-    def _quadratic(self, y, out):
-        """out = a M (y - y0) + (cm M + ck Kn) y."""
-        sim = self.sim
-        out.zero_()
-        sim._bsr_mv(sim._mass_values, y, self.a + self.cm, out)
-        if self.a != 0.0:
-            sim._bsr_mv(sim._mass_values, self.y0, -self.a, out)
-        if self.ck != 0.0:
-            sim._bsr_mv(sim._kn_values, y, self.ck, out)
-
-    def energy(self, y):
-        sim = self.sim
-        V, Vmag = sim._elastic_energy(self._x_of(y))
-        q = sim._tmp2
-        self._quadratic(y, q)
-        # a/2 (y-y0)^T M (y-y0) + 1/2 y^T C y = 1/2 y^T q - a/2 y0^T M y + a/2 y0^T M y0 ... evaluate directly:
-        quad = 0.5 * sim._pcg.dot(y, q)
-        if self.a != 0.0:
-            sim._tmp3.zero_()
-            sim._bsr_mv(sim._mass_values, self.y0, self.a, sim._tmp3)
-            quad += -0.5 * sim._pcg.dot(self.y0, q) + 0.5 * sim._pcg.dot(self.y0, sim._tmp3) - 0.5 * sim._pcg.dot(y, sim._tmp3) + 0.5 * sim._pcg.dot(y, sim._tmp3)
-            # (the last two cancel; kept explicit: q = aM(y-y0)+Cy so 1/2 (y-y0)^T aM(y-y0) + 1/2 y^T C y
-            #  = 1/2 y^T q - 1/2 y0^T q + 1/2 y0^T C y, and y0^T C y is added below)
-            if self.cm != 0.0 or self.ck != 0.0:
-                sim._tmp3.zero_()
-                sim._bsr_mv(sim._mass_values, y, self.cm, sim._tmp3)
-                if self.ck != 0.0:
-                    sim._bsr_mv(sim._kn_values, y, self.ck, sim._tmp3)
-                quad += 0.5 * sim._pcg.dot(self.y0, sim._tmp3)
-            quad -= 0.5 * sim._pcg.dot(self.y0, sim._tmp3) * 0.0
-        work = self.s * self.fext_scale * sim._pcg.dot(y, sim._fext)
-        E = quad + V - work
-        return E, abs(quad) + Vmag + abs(work)
-
-    def gradient(self, y, g):
-        """g = P grad E(y); returns the sum of the norms of its terms (the scale of its round-off)."""
-        sim = self.sim
-        self._quadratic(y, g)
-        x = self._x_of(y)
-        f = sim._tmp3
-        f.zero_()
-        for count, args, _ in sim._qp_sets:
-            wp.launch(FK.qp_force_kernel, dim=count, inputs=[x, *args, sim._s(-self.s), f], device=sim.device)
-        dot = sim._pcg.dot
-        fa = sim._tmp2
-        fa.zero_()
-        for count, args, _ in sim._qp_sets:
-            wp.launch(FK.qp_force_abs_kernel, dim=count, inputs=[x, *args, sim._s(self.s), fa], device=sim.device)
-        magnitude = np.sqrt(dot(g, g)) + np.sqrt(dot(fa, fa)) + abs(self.s * self.fext_scale) * sim._fext_norm
-        wp.launch(LK.add_scaled_kernel, dim=self.n, inputs=[f, sim._s(1.0), g], device=sim.device)
-        wp.launch(LK.add_scaled_kernel, dim=self.n, inputs=[sim._fext, sim._s(-self.s * self.fext_scale), g], device=sim.device)
-        wp.launch(LK.mask_kernel, dim=self.n, inputs=[self.mask, g], device=sim.device)
-        return magnitude
-
-    def resolution_scale(self, y):
-        ymax = float(np.abs(y.numpy()).max())
-        if self.s == 0.0:
-            return ymax
-        return ymax + float(np.abs(self._x_of(y).numpy()).max()) / abs(self.s)
-
-    def assemble_hessian(self, y):
-        sim = self.sim
-        vals = sim._hess_values
-        wp.launch(LK.scale_copy_kernel, dim=sim._pattern.nnz, inputs=[sim._mass_values, sim._s(self.a + self.cm), vals], device=sim.device)
-        if self.ck != 0.0:
-            wp.launch(LK.add_scaled_kernel, dim=sim._pattern.nnz, inputs=[sim._kn_values, sim._s(self.ck), vals], device=sim.device)
-        sim._assemble_stiffness(self._x_of(y), self.s * self.s, vals)
-        return vals
 
 
 class Simulator(SimulatorState):
@@ -121,6 +45,8 @@ class Simulator(SimulatorState):
             products are always reduced in float64).
         dt: time step h (s). Smaller is more accurate (backward Euler damps a mode of angular
             frequency omega by 1/(1 + omega^2 h^2) in energy per step) and costs more steps.
+        integrator: "backward_euler" (default), "bdf2" or "newmark" (average acceleration), or an
+            instance from :mod:`warpfem.integrators` (see there and docs/integrators.md).
         damping_mass, damping_stiffness: Rayleigh coefficients alpha (1/s) and beta (s).
         require_convergence: raise :class:`SolveFailed` (state untouched) instead of accepting a
             non-converged step. NaN/inf always raises and never touches the state.
@@ -128,9 +54,10 @@ class Simulator(SimulatorState):
             ``max_line_search``, ``armijo``, ``project_hessian`` (see :class:`NewtonOptions`).
     """
 
-    def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
-                 damping_stiffness=0.0, require_convergence=False, **newton_options):
+    def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
+                 damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
+        self.integrator = make_integrator(integrator)
         unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
         if unknown:
             raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
@@ -190,8 +117,11 @@ class Simulator(SimulatorState):
         self.x = vec_array(model.rest_positions)
         self.v = vec_array()
         self._zero = vec_array()
-        self._x_tmp, self._tmp2, self._tmp3 = vec_array(), vec_array(), vec_array()
+        self._work = Workspace(self)
         self._targets = {}  # vertex -> target position for the next step (kinematic handles)
+        #: control: the external forces (gravity + applied) act scaled by this (load ramps); the
+        #: model itself is never rescaled
+        self.load_scale = 1.0
         self.sync_model()
 
     # -- model changes (no pattern rebuild) -----------------------------------------------------------
@@ -205,28 +135,32 @@ class Simulator(SimulatorState):
     # -- stages (each a function that can be timed) ------------------------------------------------
     def _bsr_mv(self, values, x, alpha, y):
         pt = self._pattern
-        wp.launch(LK.bsr_mv_kernel, dim=pt.num_rows, inputs=[pt.offsets, pt.columns, values, x, self._s(alpha), y], device=self.device)
+        launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, x, self._s(alpha), y], self.device)
+
+    def _linear_solve(self, values, rhs, out, opts):
+        """out ~ A^-1 rhs on the free components (A the masked block matrix ``values``, rhs masked):
+        the Newton systems' linear solver (block-Jacobi PCG); returns a result with ``iterations``."""
+        return self._pcg.solve(values, self._mask, rhs, out, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
 
     def _elastic_energy(self, x):
         parts = []
         for count, args, buf in self._qp_sets:
-            wp.launch(FK.qp_energy_kernel, dim=count, inputs=[x, *args, buf], device=self.device)
+            launch(FK.qp_energy_kernel, dim=count, inputs=[x, *args, buf], device=self.device)
             parts.append(buf.numpy().astype(np.float64))
         e = np.concatenate(parts)
         return float(e.sum()), float(np.abs(e).sum())
 
     def _assemble_stiffness(self, x, scale, values):
         for count, args, _ in self._qp_sets:
-            wp.launch(FK.qp_hessian_kernel, dim=count,
-                      inputs=[x, *args, self._s(scale), int(self.options.project_hessian),
-                              self._pattern.block_index, values], device=self.device)
+            launch(FK.qp_hessian_kernel, count, [x, *args, self._s(scale), int(self.options.project_hessian),
+                                                 self._pattern.block_index, values], self.device)
 
     def elastic_forces(self, x=None) -> np.ndarray:
         """Internal elastic forces -dV/dx (N) at x (default: current positions), (n, 3)."""
         xa = self.x if x is None else self._vec_array(x)
         f = self._vec_array()
         for count, args, _ in self._qp_sets:
-            wp.launch(FK.qp_force_kernel, dim=count, inputs=[xa, *args, self._s(1.0), f], device=self.device)
+            launch(FK.qp_force_kernel, dim=count, inputs=[xa, *args, self._s(1.0), f], device=self.device)
         return f.numpy().astype(np.float64)
 
     def stresses(self, x=None) -> np.ndarray:
@@ -234,7 +168,7 @@ class Simulator(SimulatorState):
         xa = self.x if x is None else self._vec_array(x)
         P = wp.zeros(self._qp_count, dtype=self._mat, device=self.device)
         a = self._qp_args
-        wp.launch(FK.qp_stress_kernel, dim=self._qp_count, inputs=[xa, a[0], a[1], a[2], a[3], a[5], a[6], a[7], a[8], P], device=self.device)
+        launch(FK.qp_stress_kernel, dim=self._qp_count, inputs=[xa, a[0], a[1], a[2], a[3], a[5], a[6], a[7], a[8], P], device=self.device)
         return P.numpy().astype(np.float64)
 
     def elastic_energy(self, x=None) -> float:
@@ -248,8 +182,9 @@ class Simulator(SimulatorState):
         return 0.5 * self._pcg.dot(self.v, q)
 
     def total_energy(self) -> float:
-        """Kinetic + elastic - x^T f_ext (J): conserved by the exact dynamics without damping."""
-        return self.kinetic_energy() + self.elastic_energy() - self._pcg.dot(self.x, self._fext)
+        """Kinetic + elastic - x^T f_ext (J, f_ext times ``load_scale``): conserved by the exact
+        dynamics without damping."""
+        return self.kinetic_energy() + self.elastic_energy() - self.load_scale * self._pcg.dot(self.x, self._fext)
 
     def stiffness_matrix(self, x=None, *, project=None):
         """The assembled stiffness d2V/dx2 at x as scipy CSR (3n x 3n), for analysis and tests."""
@@ -288,30 +223,70 @@ class Simulator(SimulatorState):
                 raise SolveFailed(f"{what} did not converge ({stats.reason}); state left unchanged", stats)
             warnings.warn(f"{what} did not converge: {stats.reason} (relative gradient {stats.residual:.2e})", RuntimeWarning, stacklevel=3)
 
+    def _prescribed_velocity(self, xb, s):
+        """Device array: the end-of-step velocity that puts fixed components at their target (or
+        keeps them where they are), (p - x_b) / s; only its fixed components are used."""
+        out = self._vec_array()
+        if not self._targets:
+            if xb is not self.x:  # (x - x_b) first, then the scale: exact zero where x_b = x
+                launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0), self.x, self._s(-1.0), xb, out],
+                          device=self.device)
+                launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0 / s), out, self._s(0.0), out, out],
+                          device=self.device)
+            return out
+        p = self.positions()
+        for i, t in self._targets.items():
+            p[i] = t
+        out.assign(((p - xb.numpy().astype(np.float64)) / s).astype(self._np))
+        return out
+
+    def _equation_of_motion_acceleration(self, out):
+        """out = a with M a = f(x) + f_ext - C v on the free components (0 on fixed ones), C the
+        Rayleigh damping alpha M + beta K(x): the acceleration of the current state (Newmark's a_0)."""
+        n = self.num_vertices
+        rhs = self._vec_array()
+        for count, args, _ in self._qp_sets:
+            launch(FK.qp_force_kernel, dim=count, inputs=[self.x, *args, self._s(1.0), rhs], device=self.device)
+        launch(LK.axpy_kernel, dim=n, inputs=[self._s(self.load_scale), self._fext, rhs], device=self.device)
+        if self.damping_mass != 0.0:
+            self._bsr_mv(self._mass_values, self.v, -self.damping_mass, rhs)
+        if self.damping_stiffness != 0.0:
+            kn = self._pattern.new_values()
+            self._assemble_stiffness(self.x, 1.0, kn)
+            self._bsr_mv(kn, self.v, -self.damping_stiffness, rhs)
+        launch(LK.mask_kernel, dim=n, inputs=[self._mask, rhs], device=self.device)
+        res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.options.max_cg_iters, 100))
+        if not np.isfinite(res.residual):
+            raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
+                              SolveStats(reason="non-finite initial acceleration"))
+
     def step(self) -> SolveStats:
-        """Advance one backward Euler step of ``dt``; returns its statistics.
+        """Advance one step of ``dt`` with the simulator's integrator; returns its statistics.
 
         On NaN/inf (or non-convergence with ``require_convergence``) raises :class:`SolveFailed`
-        and leaves positions, velocities and time as they were.
+        and leaves positions, velocities, time and the integrator's history as they were.
         """
         t0 = time.perf_counter()
-        h = self.dt
         n = self.num_vertices
         if self._kn_values is not None:
             self._kn_values.zero_()
             self._assemble_stiffness(self.x, 1.0, self._kn_values)
-        fixed_v = self._vec_array(self._prescribed(self.x, h))
+        prediction = self.integrator.predict(self)
+        xb, y0, s = prediction
+        fixed_v = self._prescribed_velocity(xb, s)
         y = self._vec_array()
         # initial guess: previous velocity on free components, prescribed on fixed ones
-        wp.launch(LK.select_kernel, dim=n, inputs=[self._mask, self.v, fixed_v, y], device=self.device)
-        pot = _Potential(self, a=1.0, y0=self.v, cm=h * self.damping_mass, ck=h * self.damping_stiffness, s=h, xb=self.x)
-        stats = newton_solve(pot, y, self.options, self._pcg)
+        launch(LK.select_kernel, dim=n, inputs=[self._mask, self.v, fixed_v, y], device=self.device)
+        quadratic = [InertiaForm(self, y0)]
+        if self.damping_mass != 0.0 or self.damping_stiffness != 0.0:
+            quadratic.append(DampingForm(self, s * self.damping_mass, s * self.damping_stiffness))
+        pot = FullSpacePotential(self, xb=xb, s=s, quadratic=quadratic, elastic=ElasticForm(self, s),
+                                 load=LoadForm(self, s * self.load_scale))
+        stats = newton_solve(pot, y, self.options)
         self._finish(stats, t0, f"step {self.step_count}")
-        x_new = self._vec_array()
-        wp.launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self.x, self._s(h), y, x_new], device=self.device)
-        self.x, self.v = x_new, y
+        self.integrator.advance(self, y, prediction)
         self._targets.clear()
-        self.time += h
+        self.time += self.dt
         self.step_count += 1
         return stats
 
@@ -337,9 +312,9 @@ class Simulator(SimulatorState):
             frac = step / load_steps
             self._targets = {i: x_start[i] + frac * (p - x_start[i]) for i, p in targets.items()}
             fixed_x = self._vec_array(self._prescribed(self._vec_array(x_start), 0.0))
-            wp.launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
-            pot = _Potential(self, a=0.0, y0=self._zero, cm=0.0, ck=0.0, s=1.0, xb=self._zero, fext_scale=frac)
-            st = newton_solve(pot, y, self.options, self._pcg)
+            launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
+            pot = FullSpacePotential(self, xb=None, s=1.0, elastic=ElasticForm(self, 1.0), load=LoadForm(self, frac * self.load_scale))
+            st = newton_solve(pot, y, self.options)
             total.newton_iterations += st.newton_iterations
             total.cg_iterations += st.cg_iterations
             total.line_search_steps += st.line_search_steps
@@ -353,5 +328,6 @@ class Simulator(SimulatorState):
         self._finish(total, t0, "static solve")
         self.x = y
         self.v = self._vec_array()
+        self.integrator.reset()  # a new state: BDF2 / Newmark restart their history
         self._targets.clear()
         return total

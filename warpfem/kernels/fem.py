@@ -27,9 +27,10 @@ __all__ = [
     "qp_deformation_gradient_kernel",
     "qp_energy_kernel",
     "qp_force_kernel",
-    "qp_force_abs_kernel",
     "qp_stress_kernel",
     "qp_hessian_kernel",
+    "qp_energy_sum_kernel",
+    "qp_force_and_abs_kernel",
 ]
 
 wp.set_module_options({"enable_backward": False})
@@ -95,34 +96,6 @@ def qp_force_kernel(
     c = -scale * qp_weight[q]
     for a in range(k):
         wp.atomic_add(f, elements[e * k + a], c * (P * qp_dNdX[q * k + a]))
-
-
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s", scale="s", f_abs="v[]")
-@wp.kernel
-def qp_force_abs_kernel(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_weight: wp.array(dtype=Any),
-    qp_dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
-    scale: Any,
-    f_abs: wp.array(dtype=Any),
-):
-    """f_abs[node] += |scale w P dN/dX| component-wise: the size of the contributions whose
-    cancellation gives the nodal force, i.e. the scale of the force's round-off error."""
-    q = wp.tid()
-    e = qp_element[q]
-    F = qp_deformation_gradient(x, X, elements, k, e, q, qp_dNdX)
-    P = material_pk1(kind, F, mu, lam)
-    c = scale * qp_weight[q]
-    for a in range(k):
-        v = c * (P * qp_dNdX[q * k + a])
-        wp.atomic_add(f_abs, elements[e * k + a], type(v)(wp.abs(v[0]), wp.abs(v[1]), wp.abs(v[2])))
 
 
 @both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", mu="s", lam="s", P_out="m[]")
@@ -202,3 +175,60 @@ def qp_hessian_kernel(
                 wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)
                 if b != a:
                     wp.atomic_add(values, block_index[(e * k + b) * k + a], wp.transpose(blk))
+
+
+@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s")
+@wp.kernel
+def qp_energy_sum_kernel(
+    x: wp.array(dtype=Any),
+    X: wp.array(dtype=Any),
+    elements: wp.array(dtype=wp.int32),
+    k: int,
+    qp_element: wp.array(dtype=wp.int32),
+    qp_weight: wp.array(dtype=Any),
+    qp_dNdX: wp.array(dtype=Any),
+    kind: int,
+    mu: Any,
+    lam: Any,
+    acc: wp.array(dtype=wp.float64),
+    slot: int,
+):
+    """acc[slot] += sum_q w_q psi(F_q), acc[slot + 1] += sum_q |w_q psi(F_q)| (J, float64 sums):
+    the energy and the scale of its round-off, with no per-point array read back."""
+    q = wp.tid()
+    F = qp_deformation_gradient(x, X, elements, k, qp_element[q], q, qp_dNdX)
+    e = wp.float64(qp_weight[q] * material_psi(kind, F, mu, lam))
+    wp.atomic_add(acc, slot, e)
+    wp.atomic_add(acc, slot + 1, wp.abs(e))
+
+
+@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s", scale="s", f="v[]", f_abs="v[]")
+@wp.kernel
+def qp_force_and_abs_kernel(
+    x: wp.array(dtype=Any),
+    X: wp.array(dtype=Any),
+    elements: wp.array(dtype=wp.int32),
+    k: int,
+    qp_element: wp.array(dtype=wp.int32),
+    qp_weight: wp.array(dtype=Any),
+    qp_dNdX: wp.array(dtype=Any),
+    kind: int,
+    mu: Any,
+    lam: Any,
+    scale: Any,
+    f: wp.array(dtype=Any),
+    f_abs: wp.array(dtype=Any),
+):
+    """``qp_force_kernel`` plus the size of the contributions whose cancellation gives the nodal
+    force (the scale of its round-off), in one pass (F and P evaluated once):
+    f[node] += -scale w P dN/dX, f_abs[node] += |scale w P dN/dX| component-wise."""
+    q = wp.tid()
+    e = qp_element[q]
+    F = qp_deformation_gradient(x, X, elements, k, e, q, qp_dNdX)
+    P = material_pk1(kind, F, mu, lam)
+    c = scale * qp_weight[q]
+    for a in range(k):
+        v = c * (P * qp_dNdX[q * k + a])
+        node = elements[e * k + a]
+        wp.atomic_add(f, node, -v)
+        wp.atomic_add(f_abs, node, type(v)(wp.abs(v[0]), wp.abs(v[1]), wp.abs(v[2])))

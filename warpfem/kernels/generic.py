@@ -36,3 +36,58 @@ def both_precisions(**roles):
         return kernel
 
     return decorate
+
+
+_OVERLOAD_CACHE: dict = {}
+
+
+def _type_key(a):
+    dt = getattr(a, "dtype", None)
+    if dt is not None and hasattr(a, "ndim"):
+        return (dt, a.ndim)
+    return type(a)
+
+
+_LAUNCH_CACHE: dict = {}
+_LAUNCH_CACHE_SIZE = 256
+
+
+def launch(kernel, dim, inputs, device):
+    """``wp.launch`` with less host overhead for the solver loops.
+
+    The concrete overload of a generic kernel is looked up once per argument-type signature (Warp
+    infers it on every launch of a generic kernel, about 4x the rest of the launch on the CPU), and
+    the launch itself is a recorded :class:`warp.Launch` per (overload, dim, device) whose
+    parameters are replaced (about half the cost of a fresh launch). Measured in
+    kernels_bench/bench_solver_overhead.py."""
+    if kernel.is_generic:
+        key = (kernel, *map(_type_key, inputs))
+        ovl = _OVERLOAD_CACHE.get(key)
+        if ovl is None:
+            try:
+                ovl = kernel._add_normalized_overload(kernel.infer_argument_types(inputs))
+            except AttributeError:  # a Warp without these internals: the plain (slower) launch
+                ovl = kernel
+            _OVERLOAD_CACHE[key] = ovl
+        kernel = ovl
+    lkey = (kernel, dim if isinstance(dim, tuple) else (dim,), str(device))
+    entry = _LAUNCH_CACHE.get(lkey)
+    if entry is not None:
+        cmd, module, exec_key = entry
+        # valid while the module was not modified (new overloads) or reloaded since it was recorded
+        if module.hashers and module.execs.get(exec_key) is cmd.module_exec:
+            cmd.set_params(inputs)
+            cmd.launch()
+            return
+    cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=device, record_cmd=True)
+    if cmd is None:  # nothing to launch (e.g. dim 0)
+        return
+    try:
+        module = kernel.module
+        exec_key = next(k for k, v in module.execs.items() if v is cmd.module_exec)
+        if len(_LAUNCH_CACHE) >= _LAUNCH_CACHE_SIZE:  # a recorded launch keeps its last arrays alive
+            _LAUNCH_CACHE.clear()
+        _LAUNCH_CACHE[lkey] = (cmd, module, exec_key)
+    except (AttributeError, StopIteration):  # a Warp without these internals: no caching
+        pass
+    cmd.launch()

@@ -163,3 +163,70 @@ def add_scaled_kernel(src: wp.array(dtype=Any), a: Any, dst: wp.array(dtype=Any)
 
 both_precisions(src="v[]", a="s", dst="v[]")(add_scaled_kernel)
 both_precisions(src="m[]", a="s", dst="m[]")(add_scaled_kernel)
+
+
+@both_precisions(a="v[]", b="v[]")
+@wp.kernel
+def dot_slot_kernel(a: wp.array(dtype=Any), b: wp.array(dtype=Any), alpha: wp.float64, acc: wp.array(dtype=wp.float64),
+                    slot: int):
+    """acc[slot] += alpha a . b (float64): several reductions land in one small array that is read
+    back once."""
+    i = wp.tid()
+    wp.atomic_add(acc, slot, alpha * wp.float64(wp.dot(a[i], b[i])))
+
+
+@both_precisions(values="m[]", x="v[]", x0="v[]", alpha="s", y="v[]")
+@wp.kernel
+def bsr_diff_mv_kernel(
+    offsets: wp.array(dtype=wp.int32),
+    columns: wp.array(dtype=wp.int32),
+    values: wp.array(dtype=Any),
+    x: wp.array(dtype=Any),
+    x0: wp.array(dtype=Any),
+    alpha: Any,
+    y: wp.array(dtype=Any),
+    acc: wp.array(dtype=wp.float64),
+    slot: int,
+    want_gradient: int,
+    want_energy: int,
+):
+    """With r = A (x - x0): y += alpha r (want_gradient) and acc[slot] += alpha/2 (x - x0) . r
+    (want_energy, float64): a quadratic term's gradient or energy in one pass."""
+    i = wp.tid()
+    acc_r = x[i] - x[i]
+    for p in range(offsets[i], offsets[i + 1]):
+        j = columns[p]
+        acc_r += values[p] * (x[j] - x0[j])
+    if want_gradient != 0:
+        y[i] = y[i] + alpha * acc_r
+    if want_energy != 0:
+        wp.atomic_add(acc, slot, wp.float64(0.5) * wp.float64(alpha * wp.dot(x[i] - x0[i], acc_r)))
+
+
+@both_precisions(g="v[]", fext="v[]", c="s", mask="v[]")
+@wp.kernel
+def gradient_finish_kernel(g: wp.array(dtype=Any), fext: wp.array(dtype=Any), c: Any, mask: wp.array(dtype=Any),
+                           acc: wp.array(dtype=wp.float64), slot: int):
+    """g = P (g - c f_ext) and acc[slot] += |g_i|^2 (float64)."""
+    i = wp.tid()
+    v = cw_mul(mask[i], g[i] - c * fext[i])
+    g[i] = v
+    wp.atomic_add(acc, slot, wp.float64(wp.dot(v, v)))
+
+
+@both_precisions(g="v[]", d="v[]", y="v[]", xb="v[]", s="s")
+@wp.kernel
+def newton_check_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), y: wp.array(dtype=Any),
+                        xb: wp.array(dtype=Any), s: Any, use_xb: int, acc: wp.array(dtype=wp.float64), slot: int):
+    """acc[slot] += g . d; acc[slot+1..3] = max |d|, max |y|, max |x| (x = x_b + s y, or y without
+    x_b): the descent test and the resolution of a Newton step in one pass."""
+    i = wp.tid()
+    wp.atomic_add(acc, slot, wp.float64(wp.dot(g[i], d[i])))
+    a = d[i]
+    wp.atomic_max(acc, slot + 1, wp.float64(wp.max(wp.max(wp.abs(a[0]), wp.abs(a[1])), wp.abs(a[2]))))
+    b = y[i]
+    wp.atomic_max(acc, slot + 2, wp.float64(wp.max(wp.max(wp.abs(b[0]), wp.abs(b[1])), wp.abs(b[2]))))
+    x = b
+    if use_xb != 0:
+        x = xb[i] + s * b
+    wp.atomic_max(acc, slot + 3, wp.float64(wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))))

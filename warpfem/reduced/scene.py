@@ -74,9 +74,9 @@ def _check_integrator(scene):
     if el != "tet4":
         raise _scene_error(scene, "[subspace]", f"reduced simulation supports [mesh] element = \"tet4\" only, got {el!r}")
     t = scene.integrator_type
-    if t != "backward_euler":
+    if t not in ("backward_euler", "bdf2", "newmark"):
         raise _scene_error(scene, "[subspace]", f"reduced simulation needs [integrator] type = \"backward_euler\", "
-                           f"got {t!r} (remove [subspace] to run {t!r} on the full mesh)")
+                           f"\"bdf2\" or \"newmark\", got {t!r} (remove [subspace] to run {t!r} on the full mesh)")
 
 
 def _stale(scene, sub) -> list:
@@ -117,9 +117,9 @@ def _load_checked(scene, model):
 
 
 def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
-    """The reduced backward Euler simulator of a scene with ``[subspace]`` (cache from ``warpfem train``).
+    """The reduced simulator of a scene with ``[subspace]`` (cache from ``warpfem train``).
 
-    Raises :class:`~warpfem.scenes.SceneError` when the integrator is not backward Euler, or the
+    Raises :class:`~warpfem.scenes.SceneError` when the integrator is not backward Euler, BDF2 or Newmark, or the
     cache is missing, belongs to another mesh / material / fixed set / handle set, or was trained
     with other ``[subspace]`` settings.
     """
@@ -134,7 +134,8 @@ def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
     o = scene.spec.integrator
     return ReducedSimulator(model, sub, device=device, precision=precision, dt=o["dt"], damping_mass=o["damping_mass"],
                             damping_stiffness=o["damping_stiffness"], require_convergence=o["require_convergence"],
-                            tol=o["tol"], atol=o["atol"], max_iters=o["max_iters"], project_hessian=o["project_hessian"])
+                            tol=o["tol"], atol=o["atol"], max_iters=o["max_iters"], project_hessian=o["project_hessian"],
+                            integrator=scene.integrator_type)
 
 
 def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progress=None):
@@ -204,8 +205,9 @@ def describe_subspace(scene) -> str:
     lines = [f"reduced: [subspace] r = {s['modes']} (modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
              f"cubature tolerance {s['cubature_tolerance']:g}, at most {s['max_cubature_points']} points, "
              f"training {s['training']}"]
-    if scene.integrator_type != "backward_euler":
-        lines.append(f"  error: [subspace] needs [integrator] type = \"backward_euler\", got {scene.integrator_type!r}")
+    if scene.integrator_type not in ("backward_euler", "bdf2", "newmark"):
+        lines.append(f"  error: [subspace] needs [integrator] type = \"backward_euler\", \"bdf2\" or \"newmark\", "
+                     f"got {scene.integrator_type!r}")
     if not os.path.exists(path):
         lines.append(f"  cache {path}: not trained yet (run `warpfem train {_where(scene)}`)")
         return "\n".join(lines)

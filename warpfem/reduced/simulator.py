@@ -1,6 +1,7 @@
-"""Reduced backward Euler on a subspace x = X + U q with cubature forces (seed 000).
+"""Reduced implicit time stepping on a subspace x = X + U q with cubature forces (seed 000).
 
-Incremental potential over the reduced velocity v (r-vector), h = dt:
+Incremental potential over the reduced velocity v (r-vector); for backward Euler (s = h; BDF2 and
+Newmark change the prediction and s, see :mod:`warpfem.integrators`):
 
     E(v) = 1/2 (v - v_n)^T M_r (v - v_n) + h/2 v^T C_r v + V_c(q_n + h v) - h v^T U^T f_ext,
 
@@ -20,7 +21,9 @@ import warp as wp
 
 from warpfem.device import get_device as _get_device
 from warpfem.kernels import reduced as RK
-from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats
+from warpfem.kernels.generic import launch
+from warpfem.integrators import make_integrator
+from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.state import PRECISIONS, check_simulator_options
 
 
@@ -83,13 +86,13 @@ class CubatureForces:
         """(energy J, force (r,), stiffness (r, r) or None) at q, float64 numpy."""
         self._q.assign(np.asarray(q, dtype=self._npdt))
         wh = int(bool(hessian))
-        wp.launch(RK.cubature_element_kernel, dim=self.c,
+        launch(RK.cubature_element_kernel, dim=self.c,
                   inputs=[self.U, self._q, self.elements, self.cub_element, self.cub_weight, self.dNdX, self.kind,
                           self.mu, self.lam, wh, int(bool(project)), self._energy, self._f, self._H], device=self.device)
         self._force.zero_()
         if hessian:
             self._K.zero_()
-        wp.launch(RK.cubature_project_kernel, dim=(self.c, self.r),
+        launch(RK.cubature_project_kernel, dim=(self.c, self.r),
                   inputs=[self.U, self.elements, self.cub_element, self._f, self._H, wh, self._force, self._K],
                   device=self.device)
         E = float(self._energy.numpy().astype(np.float64).sum())
@@ -107,6 +110,8 @@ class ReducedSimulator:
             :func:`~warpfem.reduced.train_subspace` or :func:`~warpfem.reduced.load_subspace`.
         device, precision, dt (s), damping_mass alpha (1/s), damping_stiffness beta (s),
         require_convergence: as for :class:`warpfem.Simulator`.
+        integrator: "backward_euler" (default), "bdf2" or "newmark" (reduced Newmark is the classic
+            choice of the reduced-model literature), or an instance from :mod:`warpfem.integrators`.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``max_line_search``, ``armijo``,
             ``project_hessian`` (``cg_tol`` / ``max_cg_iters`` are accepted and unused: the r x r
             system is solved directly).
@@ -116,8 +121,9 @@ class ReducedSimulator:
     """
 
     def __init__(self, model, subspace, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
-                 damping_stiffness=0.0, require_convergence=False, **newton_options):
+                 damping_stiffness=0.0, require_convergence=False, integrator="backward_euler", **newton_options):
         self._s, self._vec, _, self._np = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
+        self.integrator = make_integrator(integrator)
         unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
         if unknown:
             raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
@@ -173,7 +179,7 @@ class ReducedSimulator:
     # -- state ------------------------------------------------------------------------------------
     def _reconstruct(self, X, U, q, out):
         self._qdev.assign(np.asarray(q, dtype=self._np))
-        wp.launch(RK.reconstruct_kernel, dim=len(X), inputs=[X, U, self._qdev, out], device=self.device)
+        launch(RK.reconstruct_kernel, dim=len(X), inputs=[X, U, self._qdev, out], device=self.device)
         return out
 
     @property
@@ -269,15 +275,6 @@ class ReducedSimulator:
             self._surface_embedding = embedding
         return self.surface_positions()
 
-    def set_state(self, q=None, qdot=None):
-        """Set reduced coordinates / velocities (r,)."""
-        for name, val in (("q", q), ("qdot", qdot)):
-            if val is not None:
-                a = np.asarray(val, dtype=np.float64)
-                if a.shape != (self.r,) or not np.all(np.isfinite(a)):
-                    raise ValueError(f"{name} must be {self.r} finite numbers, got shape {a.shape}")
-                setattr(self, name, a.copy())
-
     def project(self, x) -> np.ndarray:
         """q = M_r^-1 U^T M (x - X - L a(x)) for full positions x (n, 3) (exact for x in the subspace)."""
         M3 = self._mass3()
@@ -290,104 +287,72 @@ class ReducedSimulator:
     def elastic_energy(self) -> float:
         return self.forces.evaluate(self.z)[0]
 
-    # -- step ---------------------------------------------------------------------------------------
-    def step(self) -> SolveStats:
-        """One reduced backward Euler step of ``dt``; raises SolveFailed on NaN (state untouched)."""
-        t0 = time.perf_counter()
-        h, opts = self.dt, self.options
-        Mr, fr_ext = self.mass_r, self.fext_r
-        qn, vn = self.q, self.qdot
+    # -- the interface time integrators use (warpfem.integrators): z = [q; a], z' = [qdot; adot] ----------
+    def _istate(self):
+        return np.concatenate([self.q, self.a]), np.concatenate([self.qdot, self.adot])
+
+    def _iset_state(self, z, zdot):
         r = self.r
-        # handles: a_{n+1} prescribed, adot_{n+1} = (a_{n+1} - a_n) / h; the kinetic and damping
-        # energies of V = U v + L adot couple through M_ul = U^T M L (and beta K_ul)
-        a_next = self._next_handle_coords()
-        adot = (a_next - self.a) / h
-        C = self.damping_mass * Mr
+        self.q, self.a = np.array(z[:r]), np.array(z[r:])
+        self.qdot, self.adot = np.array(zdot[:r]), np.array(zdot[r:])
+
+    def _ivec(self):
+        return np.zeros(self.r + self.p)
+
+    @staticmethod
+    def _ilincomb(a, x, b, y, out):
+        out[:] = a * x + b * y
+
+    def set_state(self, q=None, qdot=None):
+        """Set reduced coordinates / velocities (r,); time integrators restart their history."""
+        for name, val in (("q", q), ("qdot", qdot)):
+            if val is not None:
+                a = np.asarray(val, dtype=np.float64)
+                if a.shape != (self.r,) or not np.all(np.isfinite(a)):
+                    raise ValueError(f"{name} must be {self.r} finite numbers, got shape {a.shape}")
+                setattr(self, name, a.copy())
+        self.integrator.reset()
+
+    def _damping(self, z):
+        """Rows r of the reduced Rayleigh damping C = alpha B^T M B + beta B^T K(z) B: (C_rr, C_rl)."""
+        r = self.r
+        C = self.damping_mass * self.mass_r
         C_ul = self.damping_mass * self.mass_ul
         if self.damping_stiffness > 0:
-            Kn = self.forces.evaluate(self.z, hessian=True, project=True)[2]
+            Kn = self.forces.evaluate(z, hessian=True, project=True)[2]
             C = C + self.damping_stiffness * Kn[:r, :r]
             C_ul = C_ul + self.damping_stiffness * Kn[:r, r:]
-        A = Mr + h * C
-        lin = self.mass_ul @ (adot - self.adot) + h * (C_ul @ adot)  # constant part of the gradient
+        return C, C_ul
 
-        def coords(v):
-            return np.concatenate([qn + h * v, a_next])
+    def _equation_of_motion_acceleration(self, out):
+        """out = [a_q; 0]: M_r a_q = U^T f(z) + U^T f_ext - (C z')_q (handles start unaccelerated)."""
+        r = self.r
+        z, zdot = self._istate()
+        C, C_ul = self._damping(z)
+        f = self.forces.evaluate(z)[1][:r]
+        rhs = f + self.fext_r - C @ self.qdot - C_ul @ self.adot
+        out[:] = 0.0
+        out[:r] = np.linalg.solve(self.mass_r, rhs)
+        if not np.all(np.isfinite(out)):
+            raise SolveFailed("the initial acceleration is not finite; state left unchanged",
+                              SolveStats(reason="non-finite initial acceleration"))
 
-        def energy(v):
-            E, f, _ = self.forces.evaluate(coords(v))
-            dv = v - vn
-            quad = 0.5 * dv @ (Mr @ dv) + 0.5 * h * v @ (C @ v) + v @ lin
-            work = h * v @ fr_ext
-            return quad + E - work, abs(quad) + abs(E) + abs(work)
-
-        def gradient(v, hess=False):
-            E, f, K = self.forces.evaluate(coords(v), hessian=hess, project=opts.project_hessian)
-            terms = (Mr @ (v - vn) + lin, h * (C @ v), h * f[:r], h * fr_ext)
-            g = terms[0] + terms[1] - terms[2] - terms[3]
-            return g, sum(np.linalg.norm(t) for t in terms), (K[:r, :r] if K is not None else None)
-
-        st = SolveStats()
-        eps = float(np.finfo(self._np).eps)
-        v = vn.copy()
-        E, mag = energy(v)
-        g, gmag, K = gradient(v, hess=True)
-        gnorm0 = gnorm = float(np.linalg.norm(g))
-        st.energy, st.gradient_norm = E, gnorm0
-        if not (np.isfinite(E) and np.isfinite(gnorm0)):
-            st.reason = "non-finite energy or gradient at the start"
-        elif gnorm0 <= opts.atol or gnorm0 <= 64 * eps * gmag:
-            st.converged, st.reason = True, "already at equilibrium"
-        else:
-            for _ in range(opts.max_iters):
-                H = A + h * h * K
-                try:
-                    d = np.linalg.solve(H, -g)
-                except np.linalg.LinAlgError:
-                    d = -g
-                gd = float(g @ d)
-                if not gd < 0.0:
-                    d, gd = -g, -float(g @ g)
-                alpha, accepted = 1.0, False
-                noise = 16.0 * eps * mag
-                for _ls in range(opts.max_line_search):
-                    E_try, mag_try = energy(v + alpha * d)
-                    if np.isfinite(E_try) and E_try <= E + opts.armijo * alpha * gd + noise:
-                        accepted = True
-                        break
-                    if _ls == 0 and np.isfinite(E_try) and abs(E_try - E) <= 1e-9 * mag:
-                        # energy change below what float64 sums resolve: accept the full Newton
-                        # step if it halves the gradient norm (it is then a contraction)
-                        g_try = gradient(v + d)[0]
-                        if np.linalg.norm(g_try) <= 0.5 * gnorm:
-                            accepted = True
-                            break
-                    alpha *= 0.5
-                    st.line_search_steps += 1
-                if not accepted:
-                    if gnorm <= 1e3 * 64 * eps * gmag:
-                        st.converged, st.reason = True, "at the precision limit (energy differences below round-off)"
-                    else:
-                        st.reason = "line search could not decrease the energy"
-                    break
-                v = v + alpha * d
-                E, mag = E_try, mag_try
-                g, gmag, K = gradient(v, hess=True)
-                gnorm = float(np.linalg.norm(g))
-                st.newton_iterations += 1
-                st.history.append((E, gnorm, alpha, 0))
-                if not np.isfinite(gnorm):
-                    st.reason = "non-finite gradient"
-                    break
-                if gnorm <= opts.tol * gnorm0 or gnorm <= opts.atol:
-                    st.converged, st.reason = True, "gradient below tolerance"
-                    break
-                if gnorm <= 64 * eps * gmag:
-                    st.converged, st.reason = True, "gradient at the round-off floor of its terms"
-                    break
-            else:
-                st.reason = f"reached max_iters={opts.max_iters}"
-            st.energy, st.gradient_norm, st.residual = E, gnorm, gnorm / gnorm0
+    # -- step ---------------------------------------------------------------------------------------
+    def step(self) -> SolveStats:
+        """One reduced step of ``dt`` with the simulator's integrator (the same Newton loop as the
+        full-space simulators, :func:`~warpfem.solvers.newton.newton_solve`, with a dense r x r
+        solve); raises SolveFailed on NaN (state untouched)."""
+        t0 = time.perf_counter()
+        r = self.r
+        prediction = self.integrator.predict(self)
+        zb, zhat, s = prediction
+        # handles: a_{n+1} prescribed, so their end-of-step velocity is (a_{n+1} - a_b) / s; the
+        # kinetic and damping energies of V = U v + L adot couple through M_ul = U^T M L (and beta K_ul)
+        a_next = self._next_handle_coords()
+        adot = (a_next - zb[r:]) / s
+        pot = _ReducedPotential(self, zb=zb, v_hat=zhat[:r], adot_hat=zhat[r:], adot=adot, s=s)
+        v = self.qdot.copy()
+        st = newton_solve(pot, v, self.options)
         st.seconds = time.perf_counter() - t0
         what = f"reduced step {self.step_count}"
         if not st.converged:
@@ -396,10 +361,81 @@ class ReducedSimulator:
             if self.require_convergence:
                 raise SolveFailed(f"{what} did not converge ({st.reason}); state left unchanged", st)
             warnings.warn(f"{what} did not converge: {st.reason} (relative gradient {st.residual:.2e})", RuntimeWarning, stacklevel=2)
-        self.q = qn + h * v
-        self.qdot = v
-        self.a, self.adot = a_next, adot
+        self.integrator.advance(self, np.concatenate([v, adot]), prediction)
+        self.a = a_next  # exactly the prescribed coordinates
         self._a_target = {}
-        self.time += h
+        self.time += self.dt
         self.step_count += 1
         return st
+
+
+class _ReducedPotential:
+    """The incremental potential of a reduced step, the same terms as the full-space forms
+    (:mod:`warpfem.solvers.forms`) projected on the basis B = [U | L] (L: handle lifting):
+
+        inertia    1/2 (v - v_hat)^T M_r (v - v_hat) + v^T M_ul (adot - adot_hat)
+        damping    s/2 v^T C_r v + s v^T C_ul adot        (C frozen at the step start)
+        elastic    V_c(z_b + s [v; adot])                 (cubature)
+        loads      -s v^T U^T f_ext
+
+    over the reduced velocity v (r numbers); the Newton system is dense (r x r, numpy)."""
+
+    gradient_test_below = 1e-9  # float64 dense sums of cubature terms resolve no finer energy change
+
+    def __init__(self, sim, *, zb, v_hat, adot_hat, adot, s):
+        self.sim, self.zb, self.v_hat, self.adot, self.s = sim, zb, v_hat, adot, float(s)
+        C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
+        self.C = C
+        self.A = sim.mass_r + s * C
+        self.lin = sim.mass_ul @ (adot - adot_hat) + s * (C_ul @ adot)  # constant part of the gradient
+        self.eps = float(np.finfo(sim._np).eps)
+        self.opts = sim.options
+        self._K, self._K_at = None, None
+
+    def coords(self, v):
+        return self.zb + self.s * np.concatenate([v, self.adot])
+
+    def new_vector(self):
+        return np.zeros(self.sim.r)
+
+    @staticmethod
+    def trial(y, alpha, d, out):
+        out[:] = y + alpha * d
+
+    @staticmethod
+    def assign(dst, src):
+        dst[:] = src
+
+    def energy(self, v):
+        sim, s = self.sim, self.s
+        E, _, _ = sim.forces.evaluate(self.coords(v))
+        dv = v - self.v_hat
+        quad = 0.5 * dv @ (sim.mass_r @ dv) + 0.5 * s * v @ (self.C @ v) + v @ self.lin
+        work = s * v @ sim.fext_r
+        return quad + E - work, abs(quad) + abs(E) + abs(work)
+
+    def gradient(self, v, g):
+        sim, s, r = self.sim, self.s, self.sim.r
+        _, f, K = sim.forces.evaluate(self.coords(v), hessian=True, project=self.opts.project_hessian)
+        terms = (sim.mass_r @ (v - self.v_hat) + self.lin, s * (self.C @ v), s * f[:r], s * sim.fext_r)
+        g[:] = terms[0] + terms[1] - terms[2] - terms[3]
+        self._K, self._K_at = K[:r, :r], v.copy()
+        return float(sum(np.linalg.norm(t) for t in terms)), float(np.linalg.norm(g))
+
+    def solve_newton_system(self, v, g, d, opts):
+        if self._K_at is None or not np.array_equal(self._K_at, v):
+            self.gradient(v, self.new_vector())
+        H = self.A + self.s * self.s * self._K
+        try:
+            d[:] = np.linalg.solve(H, -g)
+        except np.linalg.LinAlgError:
+            d[:] = -g
+        return 0
+
+    @staticmethod
+    def fallback_direction(g, d):
+        d[:] = -g
+
+    def direction_check(self, v, g, d):
+        scale = np.abs(v).max() + np.abs(self.coords(v)).max() / abs(self.s)
+        return float(g @ d), bool(np.abs(d).max() <= 8.0 * self.eps * scale)

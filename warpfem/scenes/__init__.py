@@ -66,7 +66,7 @@ def register_integrator(entry: IntegratorType, *, replace: bool = False) -> Inte
 _NEWTON = ("tol", "atol", "cg_tol", "max_iters", "max_cg_iters", "project_hessian")
 
 
-def _simulator(model, opts, *, device, precision, dt, dynamic):
+def _simulator(model, opts, *, device, precision, dt, dynamic, integrator="backward_euler"):
     from warpfem.simulator import Simulator
 
     kw = {k: opts[k] for k in _NEWTON}
@@ -74,12 +74,13 @@ def _simulator(model, opts, *, device, precision, dt, dynamic):
     if dynamic:
         damping = {"damping_mass": opts["damping_mass"], "damping_stiffness": opts["damping_stiffness"]}
     return Simulator(model, device=device, precision=precision, dt=dt, require_convergence=opts["require_convergence"],
-                     **damping, **kw)
+                     integrator=integrator, **damping, **kw)
 
 
 def _build_backward_euler(scene, model, *, device, precision):
     o = scene.spec.integrator
-    return _simulator(model, o, device=device, precision=precision, dt=o["dt"], dynamic=True)
+    return _simulator(model, o, device=device, precision=precision, dt=o["dt"], dynamic=True,
+                      integrator=o.get("type", "backward_euler"))
 
 
 def _build_static(scene, model, *, device, precision):
@@ -101,6 +102,12 @@ register_integrator(IntegratorType(
     "backward_euler", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
     builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities")))
 register_integrator(IntegratorType(
+    "bdf2", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
+    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities + previous step's")))
+register_integrator(IntegratorType(
+    "newmark", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
+    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities/accelerations")))
+register_integrator(IntegratorType(
     "static", _build_static, keys=_STATIC_KEYS, dynamic=False, static_solve=_static_solve,
     builds=("Hessian (Newton + block-Jacobi PCG)", "positions")))
 
@@ -113,7 +120,7 @@ def _build_stiffness_warping(scene, model, *, device, precision):
     return StiffnessWarpingSimulator(model, device=device, precision=precision, dt=o["dt"], rotation=o["rotation"],
                                      cg_tol=o["cg_tol"], max_cg_iters=o["max_cg_iters"], damping_mass=o["damping_mass"],
                                      damping_stiffness=o["damping_stiffness"],
-                                     require_convergence=o["require_convergence"])
+                                     require_convergence=o["require_convergence"], integrator=o["scheme"])
 
 
 _WARPING_KEYS = {k: INTEGRATOR_KEYS[k] for k in ("dt", "max_cg_iters", "damping_mass", "damping_stiffness",
@@ -122,6 +129,8 @@ _WARPING_KEYS["cg_tol"] = Key("float", default=1e-6, check=INTEGRATOR_KEYS["cg_t
                               doc="relative PCG tolerance of the one linear solve per step")
 _WARPING_KEYS["rotation"] = Key("choice", default="polar", choices=("polar", "qr"),
                                 doc="element rotation: polar decomposition or Gram-Schmidt (OpenTissue)")
+_WARPING_KEYS["scheme"] = Key("choice", default="backward_euler", choices=("backward_euler", "bdf2", "newmark"),
+                              doc="time scheme of the one linear solve per step (docs/integrators.md)")
 register_integrator(IntegratorType(
     "stiffness_warping", _build_stiffness_warping, keys=_WARPING_KEYS, dynamic=True,
     builds=("mass matrix", "warped stiffness K' (one block-Jacobi PCG solve per step)", "per-tet 12x12 K_e",

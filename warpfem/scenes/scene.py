@@ -666,9 +666,12 @@ class SceneRun:
         else:
             steps = 1
             frac = self.frame / total
-            self.model.gravity = self._gravity * frac
-            self.model.forces = self._forces * frac
-            sim.sync_model()
+            if hasattr(sim, "load_scale"):  # a control of the solver: the model is not rescaled
+                sim.load_scale = frac
+            else:
+                self.model.gravity = self._gravity * frac
+                self.model.forces = self._forces * frac
+                sim.sync_model()
             self._set_handles(lambda h: frac)
             st = entry.static_solve(sim, integ)
             newton, cg, residual, energy = st.newton_iterations, st.cg_iterations, st.residual, st.energy

@@ -1,9 +1,12 @@
-"""Newton's method with a backtracking Armijo line search on an incremental potential.
+"""Newton's method with a backtracking Armijo line search on an incremental potential: the one
+loop every simulator uses (full space, stiffness warping's potential, reduced).
 
-The potential is E(y) over per-vertex vec3 unknowns y with some components fixed (mask). Each
-Newton system H d = -g is solved by block-Jacobi PCG on the device (``warpfem.solvers.pcg``).
-The loop runs *while* the gradient norm is above the tolerance, and a step length a is accepted
-when E(y + a d) <= E(y) + c a d^T g (seed 004, with its slips corrected).
+The potential is E(y) over unknowns y (per-vertex vec3 device arrays with some components fixed by
+a mask, or a reduced coordinate vector), given as a ``problem`` (``warpfem.solvers.forms``
+for the full space, ``warpfem.reduced.simulator`` for subspaces) that also solves its Newton
+systems H d = -g (sparse on the device, or dense). The loop runs *while* the gradient norm is above
+the tolerance, and a step length a is accepted when E(y + a d) <= E(y) + c a d^T g (seed 004, with
+its slips corrected).
 """
 
 from __future__ import annotations
@@ -11,9 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import warp as wp
-
-from warpfem.kernels import linalg as K
 
 
 @dataclass
@@ -93,25 +93,30 @@ class SolveFailed(RuntimeError):
         self.stats = stats
 
 
-def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
-    """Minimise ``problem``'s potential over ``y`` (device array, updated in place).
+def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
+    """Minimise ``problem``'s potential over ``y`` (updated in place): Newton with a backtracking
+    Armijo line search, one loop for every simulator.
 
-    ``problem`` provides ``energy(y) -> (E, magnitude)``, ``gradient(y, g) -> magnitude`` (g masked),
-    ``resolution_scale(y)`` (max |y| + max |x| / s, the scale of y's round-off),
-    ``assemble_hessian(y) -> values``, ``mask`` and ``n``; ``pcg`` a ``BlockJacobiPCG``.
+    ``problem`` provides (vectors are whatever it uses: device arrays, numpy arrays):
+
+    * ``energy(y) -> (E, magnitude)`` and ``gradient(y, g) -> (magnitude, ||g||)`` (g masked),
+      the magnitudes being the sums of the sizes of their terms (the scale of their round-off);
+    * ``solve_newton_system(y, g, d, opts) -> linear iterations``: d ~ -H(y)^-1 g (a sparse iterative
+      or direct solve, or a dense one for reduced models);
+    * ``fallback_direction(g, d)``: a descent direction (preconditioned -g) when d is not one;
+    * ``direction_check(y, g, d) -> (g . d, negligible)``: negligible when d is below the resolution
+      of the unknowns (and positions) in the working precision;
+    * ``new_vector()``, ``trial(y, alpha, d, out)`` (out = y + alpha d), ``assign(dst, src)``;
+    * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
+      step changes the energy by less than that fraction of its magnitude (below what the energy
+      sum resolves), the step is accepted if it halves the gradient norm.
     """
     st = SolveStats()
-    dev, n, s = pcg.device, problem.n, pcg.scalar
-    vec = y.dtype
-    g = wp.zeros(n, dtype=vec, device=dev)
-    d = wp.zeros(n, dtype=vec, device=dev)
-    rhs = wp.zeros(n, dtype=vec, device=dev)
-    y_try = wp.zeros(n, dtype=vec, device=dev)
-    eps_mach = float(np.finfo(np.float32 if s == wp.float32 else np.float64).eps)
+    g, d, y_try = problem.new_vector(), problem.new_vector(), problem.new_vector()
+    eps_mach = problem.eps
 
     E, mag = problem.energy(y)
-    gmag = problem.gradient(y, g)
-    gnorm0 = np.sqrt(pcg.dot(g, g))
+    gmag, gnorm0 = problem.gradient(y, g)
     # Below this the gradient is round-off of its own terms: no precision can reduce it further.
     floor_factor = 64.0 * eps_mach
     st.energy, st.gradient_norm = E, gnorm0
@@ -123,31 +128,36 @@ def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
         return st
     gnorm = gnorm0
     for _ in range(opts.max_iters):
-        values = problem.assemble_hessian(y)
-        wp.launch(K.scale_copy_kernel, dim=n, inputs=[g, s(-1.0), rhs], device=dev)
-        res = pcg.solve(values, problem.mask, rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
-        st.cg_iterations += res.iterations
-        gd = pcg.dot(g, d)
+        iterations = problem.solve_newton_system(y, g, d, opts)
+        st.cg_iterations += iterations
+        gd, negligible = problem.direction_check(y, g, d)
         if not (gd < 0.0):  # not a descent direction (indefinite Hessian or CG breakdown)
-            wp.launch(K.block_apply_kernel, dim=n, inputs=[pcg.inv_diag, rhs, d], device=dev)
-            gd = pcg.dot(g, d)
+            problem.fallback_direction(g, d)
+            gd, negligible = problem.direction_check(y, g, d)
             if not (gd < 0.0):
                 st.reason = "no descent direction"
                 break
         # A Newton step below the resolution of the unknowns (and of x = xb + s y) in this precision
         # cannot be taken: the state is as converged as the precision allows.
-        if np.abs(d.numpy()).max() <= 8.0 * eps_mach * problem.resolution_scale(y):
+        if negligible:
             st.converged = True
             st.reason = "at the precision limit (Newton step below the resolution of the positions)"
             break
         alpha, accepted = 1.0, False
         noise = 16.0 * eps_mach * mag
         for _ls in range(opts.max_line_search):
-            wp.launch(K.lincomb_kernel, dim=n, inputs=[s(1.0), y, s(alpha), d, y_try], device=dev)
+            problem.trial(y, alpha, d, y_try)
             E_try, mag_try = problem.energy(y_try)
             if np.isfinite(E_try) and E_try <= E + opts.armijo * alpha * gd + noise:
                 accepted = True
                 break
+            if (_ls == 0 and problem.gradient_test_below > 0.0 and np.isfinite(E_try)
+                    and abs(E_try - E) <= problem.gradient_test_below * mag):
+                # energy change below what the sums resolve: accept the full Newton step if it
+                # halves the gradient norm (it is then a contraction)
+                if problem.gradient(y_try, problem.new_vector())[1] <= 0.5 * gnorm:
+                    accepted = True
+                    break
             alpha *= 0.5
             st.line_search_steps += 1
         if not accepted:
@@ -156,12 +166,11 @@ def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
             else:
                 st.reason = "line search could not decrease the energy"
             break
-        wp.copy(y, y_try)
+        problem.assign(y, y_try)
         E, mag = E_try, mag_try
-        gmag = problem.gradient(y, g)
-        gnorm = np.sqrt(pcg.dot(g, g))
+        gmag, gnorm = problem.gradient(y, g)
         st.newton_iterations += 1
-        st.history.append((E, gnorm, alpha, res.iterations))
+        st.history.append((E, gnorm, alpha, iterations))
         if not np.isfinite(gnorm):
             st.reason = "non-finite gradient"
             break

@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import linalg as K
+from warpfem.kernels.generic import launch
 
 
 @dataclass
@@ -45,25 +46,25 @@ class BlockJacobiPCG:
 
     def dot(self, a, b) -> float:
         self._dot.zero_()
-        wp.launch(K.dot_kernel, dim=a.shape[0], inputs=[a, b, self._dot], device=self.device)
+        launch(K.dot_kernel, dim=a.shape[0], inputs=[a, b, self._dot], device=self.device)
         return float(self._dot.numpy()[0])
 
     def matvec(self, values, mask, x, y):
         pt = self.pattern
-        wp.launch(K.bsr_masked_mv_kernel, dim=pt.num_rows,
+        launch(K.bsr_masked_mv_kernel, dim=pt.num_rows,
                   inputs=[pt.offsets, pt.columns, values, mask, x, y, 1], device=self.device)
 
     def solve(self, values, mask, b, x, *, tol: float, maxiter: int) -> PCGResult:
         """Solve for x (initial guess 0; ``x`` is overwritten). ``b`` must already be masked."""
         n, dev, s = self.pattern.num_rows, self.device, self.scalar
         pt = self.pattern
-        wp.launch(K.block_jacobi_setup_kernel, dim=n, inputs=[pt.offsets, pt.columns, values, mask, self.inv_diag], device=dev)
+        launch(K.block_jacobi_setup_kernel, dim=n, inputs=[pt.offsets, pt.columns, values, mask, self.inv_diag], device=dev)
         x.zero_()
         wp.copy(self.r, b)
         bnorm = np.sqrt(self.dot(b, b))
         if bnorm == 0.0 or not np.isfinite(bnorm):
             return PCGResult(0, 0.0 if bnorm == 0.0 else float("nan"), bnorm == 0.0)
-        wp.launch(K.block_apply_kernel, dim=n, inputs=[self.inv_diag, self.r, self.z], device=dev)
+        launch(K.block_apply_kernel, dim=n, inputs=[self.inv_diag, self.r, self.z], device=dev)
         wp.copy(self.p, self.z)
         rz = self.dot(self.r, self.z)
         rnorm = bnorm
@@ -78,16 +79,16 @@ class BlockJacobiPCG:
                     wp.copy(x, self.z)
                 break
             alpha = rz / pAp
-            wp.launch(K.axpy_kernel, dim=n, inputs=[s(alpha), self.p, x], device=dev)
-            wp.launch(K.axpy_kernel, dim=n, inputs=[s(-alpha), self.Ap, self.r], device=dev)
+            launch(K.axpy_kernel, dim=n, inputs=[s(alpha), self.p, x], device=dev)
+            launch(K.axpy_kernel, dim=n, inputs=[s(-alpha), self.Ap, self.r], device=dev)
             it += 1
             rnorm = np.sqrt(self.dot(self.r, self.r))
             if rnorm <= tol * bnorm:
                 break
-            wp.launch(K.block_apply_kernel, dim=n, inputs=[self.inv_diag, self.r, self.z], device=dev)
+            launch(K.block_apply_kernel, dim=n, inputs=[self.inv_diag, self.r, self.z], device=dev)
             rz_new = self.dot(self.r, self.z)
             beta = rz_new / rz
             rz = rz_new
-            wp.launch(K.xpby_kernel, dim=n, inputs=[self.z, s(beta), self.p], device=dev)
+            launch(K.xpby_kernel, dim=n, inputs=[self.z, s(beta), self.p], device=dev)
         rel = rnorm / bnorm
         return PCGResult(it, float(rel), bool(rel <= tol), negative)

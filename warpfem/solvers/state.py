@@ -16,6 +16,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from warpfem.kernels import linalg as LK
+from warpfem.kernels.generic import launch
+
 __all__ = ["SimulatorState", "PRECISIONS", "check_simulator_options"]
 
 #: precision name -> (scalar, vec3, mat33 Warp types, numpy dtype)
@@ -83,7 +86,29 @@ class SimulatorState:
     def set_positions(self, x):
         """Replace the positions (m), (n, 3); raises ValueError (state untouched) for a wrong shape or NaN/inf."""
         self.x = self._vec_array(self._checked_state(x, "positions"))
+        self._state_changed()
 
     def set_velocities(self, v):
         """Replace the velocities (m/s), (n, 3); raises ValueError (state untouched) for a wrong shape or NaN/inf."""
         self.v = self._vec_array(self._checked_state(v, "velocities"))
+        self._state_changed()
+
+    # -- the interface time integrators use (warpfem.integrators) -----------------------------------
+    def _istate(self):
+        return self.x, self.v
+
+    def _iset_state(self, x, v):
+        self.x, self.v = x, v
+
+    def _ivec(self):
+        return self._vec_array()
+
+    def _ilincomb(self, a, x, b, y, out):
+        launch(LK.lincomb_kernel, self.num_vertices, [self._s(a), x, self._s(b), y, out], self.device)
+
+    def _state_changed(self):
+        """The state was set from outside: time integrators restart their history (BDF2 takes a
+        backward Euler step, Newmark recomputes the acceleration)."""
+        integrator = getattr(self, "integrator", None)
+        if integrator is not None:
+            integrator.reset()

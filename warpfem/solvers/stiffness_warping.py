@@ -43,6 +43,8 @@ import warp as wp
 from warpfem.device import get_device as _get_device
 from warpfem.kernels import linalg as LK
 from warpfem.kernels import warping as WK
+from warpfem.kernels.generic import launch
+from warpfem.integrators import make_integrator
 from warpfem.solvers.newton import SolveFailed, SolveStats
 from warpfem.solvers.pcg import BlockJacobiPCG
 from warpfem.solvers.state import SimulatorState, check_simulator_options
@@ -93,11 +95,16 @@ class StiffnessWarpingSimulator(SimulatorState):
         damping_mass, damping_stiffness: Rayleigh alpha (1/s) and beta (s); C = alpha M + beta K'.
         require_convergence: raise :class:`SolveFailed` (state untouched) when PCG does not reach
             ``cg_tol``; otherwise a warning. NaN/inf always raises and leaves the state untouched.
+        integrator: the time scheme, as for :class:`warpfem.Simulator`: "backward_euler" (default),
+            "bdf2" or "newmark" (or an instance from :mod:`warpfem.integrators`); each step is one
+            Newton iteration of that scheme's incremental potential with the warped linear model.
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, rotation="polar", cg_tol=1e-6,
-                 max_cg_iters=2000, damping_mass=0.0, damping_stiffness=0.0, require_convergence=False):
+                 max_cg_iters=2000, damping_mass=0.0, damping_stiffness=0.0, require_convergence=False,
+                 integrator="backward_euler"):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
+        self.integrator = make_integrator(integrator)
         if rotation not in ROTATIONS:
             raise ValueError(f"rotation must be one of {sorted(ROTATIONS)}, got {rotation!r}")
         if not (np.isfinite(cg_tol) and 0.0 < cg_tol < 1.0):
@@ -154,7 +161,6 @@ class StiffnessWarpingSimulator(SimulatorState):
         self.v = vec_array()
         self._zero = vec_array()
         self._f0, self._fel, self._rhs, self._w, self._dv, self._tmp = (vec_array() for _ in range(6))
-        self._x_next, self._v_next = vec_array(), vec_array()
         self._targets = {}
         self.sync_model()
 
@@ -166,7 +172,7 @@ class StiffnessWarpingSimulator(SimulatorState):
 
     # -- stages ------------------------------------------------------------------------------------
     def _launch(self, kernel, dim, inputs):
-        wp.launch(kernel, dim=dim, inputs=inputs, device=self.device)
+        launch(kernel, dim, inputs, self.device)
 
     def _rotations(self, x):
         self._launch(WK.element_rotation_kernel, self.num_elements,
@@ -232,18 +238,43 @@ class StiffnessWarpingSimulator(SimulatorState):
         return self.kinetic_energy() + self.elastic_energy() - self._pcg.dot(self.x, self._fext)
 
     # -- time stepping ------------------------------------------------------------------------------
-    def _prescribed_velocity(self):
-        """Device array with the prescribed end-of-step velocity on fixed components (0 unless targets)."""
+    def _prescribed_velocity(self, xb, c):
+        """Device array with the end-of-step velocity (p - x_b) / c that puts fixed components at
+        their target p (or keeps them at x_n); only fixed components are used."""
         if not self._targets:
-            return self._zero
-        x0 = self.positions()
-        val = np.zeros_like(x0)
-        for i, p in self._targets.items():
-            val[i] = (p - x0[i]) / self.dt
-        return self._vec_array(val)
+            if xb is self.x:
+                return self._zero
+            out = self._vec_array()  # (x - x_b) first, then the scale
+            self._launch(LK.lincomb_kernel, self.num_vertices, [self._s(1.0), self.x, self._s(-1.0), xb, out])
+            self._launch(LK.lincomb_kernel, self.num_vertices, [self._s(1.0 / c), out, self._s(0.0), out, out])
+            return out
+        p = self.positions()
+        for i, t in self._targets.items():
+            p[i] = t
+        return self._vec_array((p - xb.numpy().astype(np.float64)) / c)
+
+    def _equation_of_motion_acceleration(self, out):
+        """out = a with M a = f_w(x) + f_ext - C v on the free components (0 on fixed ones), f_w the
+        warped force and C = alpha M + beta K' at the current state (Newmark's a_0)."""
+        n, s = self.num_vertices, self._s
+        b = self.damping_stiffness
+        self._assemble(self.x, matrix=b != 0.0, force_scale=1.0)
+        rhs = self._vec_array()
+        launch(LK.lincomb_kernel, n, [s(1.0), self._fext, s(1.0), self._fel, rhs], self.device)
+        if self.damping_mass != 0.0:
+            self._bsr_mv(self._mass_values, self.v, -self.damping_mass, rhs)
+        if b != 0.0:
+            self._bsr_mv(self._k_values, self.v, -b, rhs)
+        launch(LK.mask_kernel, n, [self._mask, rhs], self.device)
+        res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.max_cg_iters, 100))
+        if not np.isfinite(res.residual):
+            raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
+                              SolveStats(reason="non-finite initial acceleration"))
 
     def step(self) -> SolveStats:
-        """Advance one linearly implicit backward Euler step of ``dt`` (one PCG solve).
+        """Advance one linearly implicit step of ``dt`` (one PCG solve) with the simulator's
+        integrator: one Newton iteration, from v_n, of the integrator's incremental potential with
+        the warped linear model frozen at the start of the step.
 
         Returns :class:`~warpfem.SolveStats` (``newton_iterations`` = 1, ``cg_iterations``,
         ``residual`` = the PCG relative residual). On NaN/inf (or PCG non-convergence with
@@ -254,28 +285,37 @@ class StiffnessWarpingSimulator(SimulatorState):
         n, nnz = self.num_vertices, self._pattern.nnz
         s = self._s
         x, v = self.x, self.v
-        # K', f0' and h * f_el = -h (K' x + f0') at the start of the step
-        self._assemble(x, matrix=True, force_scale=h)
-        # A = (1 + h alpha) M + h (beta + h) K'
-        self._launch(LK.scale_copy_kernel, nnz, [self._mass_values, s(1.0 + h * a), self._a_values])
-        self._launch(LK.add_scaled_kernel, nnz, [self._k_values, s(h * (b + h)), self._a_values])
-        # rhs = h f_ext + h f_el - h alpha M v - h (beta + h) K' v
+        prediction = self.integrator.predict(self)
+        xb, vh, c = prediction
+        # K', f0' and c * f_el = -c (K' x_n + f0') at the start of the step
+        self._assemble(x, matrix=True, force_scale=c)
+        # A = (1 + c alpha) M + c (beta + c) K'
+        self._launch(LK.scale_copy_kernel, nnz, [self._mass_values, s(1.0 + c * a), self._a_values])
+        self._launch(LK.add_scaled_kernel, nnz, [self._k_values, s(c * (b + c)), self._a_values])
+        # rhs = -grad E(v_n) = c f_ext + c f_el(x_n) - c alpha M v_n - c (beta + c) K' v_n
+        #       - c K' (x_b - x_n) + M (v_hat - v_n)
         rhs = self._rhs
-        self._launch(LK.lincomb_kernel, n, [s(h), self._fext, s(1.0), self._fel, rhs])
+        self._launch(LK.lincomb_kernel, n, [s(c), self._fext, s(1.0), self._fel, rhs])
         if a != 0.0:
-            self._bsr_mv(self._mass_values, v, -h * a, rhs)
-        self._bsr_mv(self._k_values, v, -h * (b + h), rhs)
+            self._bsr_mv(self._mass_values, v, -c * a, rhs)
+        self._bsr_mv(self._k_values, v, -c * (b + c), rhs)
+        if xb is not x:
+            self._launch(LK.lincomb_kernel, n, [s(1.0), xb, s(-1.0), x, self._tmp])
+            self._bsr_mv(self._k_values, self._tmp, -c, rhs)
+        if vh is not v:
+            self._launch(LK.lincomb_kernel, n, [s(1.0), vh, s(-1.0), v, self._tmp])
+            self._bsr_mv(self._mass_values, self._tmp, 1.0, rhs)
         # prescribed components: w = (I - P)(v_prescribed - v), moved to the right-hand side
-        self._launch(LK.lincomb_kernel, n, [s(1.0), self._prescribed_velocity(), s(-1.0), v, self._tmp])
+        self._launch(LK.lincomb_kernel, n, [s(1.0), self._prescribed_velocity(xb, c), s(-1.0), v, self._tmp])
         self._launch(LK.select_kernel, n, [self._mask, self._zero, self._tmp, self._w])
         self._bsr_mv(self._a_values, self._w, -1.0, rhs)
         self._launch(LK.mask_kernel, n, [self._mask, rhs])
         res = self._pcg.solve(self._a_values, self._mask, rhs, self._dv, tol=self.cg_tol, maxiter=self.max_cg_iters)
-        # dv = free solution + prescribed part; v+ = v + dv; x+ = x + h v+
+        # dv = free solution + prescribed part; v+ = v + dv; x+ = x_b + c v+ (the integrator)
         self._launch(LK.axpy_kernel, n, [s(1.0), self._w, self._dv])
-        self._launch(LK.lincomb_kernel, n, [s(1.0), v, s(1.0), self._dv, self._v_next])
-        self._launch(LK.lincomb_kernel, n, [s(1.0), x, s(h), self._v_next, self._x_next])
-        vv = self._pcg.dot(self._v_next, self._v_next)
+        v_next = self._vec_array()
+        self._launch(LK.lincomb_kernel, n, [s(1.0), v, s(1.0), self._dv, v_next])
+        vv = self._pcg.dot(v_next, v_next)
         stats = SolveStats(converged=bool(res.converged), newton_iterations=1, cg_iterations=res.iterations,
                            residual=res.residual)
         stats.reason = "linear solve converged" if res.converged else f"PCG stopped at relative residual {res.residual:.2e}"
@@ -288,9 +328,7 @@ class StiffnessWarpingSimulator(SimulatorState):
             if self.require_convergence:
                 raise SolveFailed(f"{what} did not converge ({stats.reason}); state left unchanged", stats)
             warnings.warn(f"{what}: {stats.reason} (cg_tol {self.cg_tol:g})", RuntimeWarning, stacklevel=2)
-        # swap buffers (positions()/velocities() return copies, so no caller holds these)
-        self.x, self._x_next = self._x_next, x
-        self.v, self._v_next = self._v_next, v
+        self.integrator.advance(self, v_next, prediction)
         self._targets.clear()
         self.time += h
         self.step_count += 1
