@@ -151,7 +151,7 @@ class HostLinearSolver(LinearSolver):
     symbolic analyses stay valid) and hands the CSR matrix to the backend.
     """
 
-    triangle = "full"  # "full" or "lower" (lower CSR == upper CSC)
+    triangle = "full"  # "full", "lower" or "upper" (lower CSR arrays == upper CSC arrays)
 
     def _analyse(self, pattern):
         import scipy.sparse
@@ -165,8 +165,8 @@ class HostLinearSolver(LinearSolver):
         bsr = scipy.sparse.bsr_matrix((idx, pattern.cols_np, offsets), shape=(3 * n, 3 * n))
         A = bsr.tocsr()
         A.sort_indices()
-        if self.triangle == "lower":
-            A = scipy.sparse.tril(A, format="csr")
+        if self.triangle in ("lower", "upper"):
+            A = (scipy.sparse.tril if self.triangle == "lower" else scipy.sparse.triu)(A, format="csr")
             A.sort_indices()
         self._src = (A.data - 1.0).astype(np.int64)
         self._indptr = A.indptr.astype(np.int32)
