@@ -74,6 +74,8 @@ class SolveStats:
     gradient_norm: float = 0.0
     energy: float = 0.0
     seconds: float = 0.0
+    linear_iterations: int = 0  # iterations of the linear solver (CG iterations; 1 per direct solve)
+    host_syncs: int = 0  # host read-backs made inside the linear solves (see warpfem.solvers.linear)
     history: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -127,6 +129,8 @@ def newton_solve(problem, y, opts: NewtonOptions, pcg) -> SolveStats:
         wp.launch(K.scale_copy_kernel, dim=n, inputs=[g, s(-1.0), rhs], device=dev)
         res = pcg.solve(values, problem.mask, rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
         st.cg_iterations += res.iterations
+        st.linear_iterations += res.iterations
+        st.host_syncs += getattr(res, "host_syncs", 0)
         gd = pcg.dot(g, d)
         if not (gd < 0.0):  # not a descent direction (indefinite Hessian or CG breakdown)
             wp.launch(K.block_apply_kernel, dim=n, inputs=[pcg.inv_diag, rhs, d], device=dev)

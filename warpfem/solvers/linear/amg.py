@@ -109,6 +109,7 @@ class AMGSolver(HostLinearSolver):
             count[0] += 1
 
         xh, info = spla.cg(self._A_host, bh, rtol=tol, atol=0.0, maxiter=maxiter, M=self._M, callback=cb)
+        xh *= self._mask_host  # exactly zero at fixed DOFs (CG leaves round-off there)
         rel = float(np.linalg.norm(self._A_host @ xh - bh) / bn)
         failed = "" if np.all(np.isfinite(xh)) else "non-finite solution"
         if info < 0:

@@ -201,26 +201,36 @@ _REGISTRY: dict[str, str] = {
 LINEAR_SOLVERS = ("auto", *_REGISTRY)
 
 
-def make_linear_solver(name: str, pattern, *, vec_type, scalar, **options):
+def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, poisson_ratio=None, **options):
     """Build the linear solver ``name`` ("auto", "pcg", "direct", "amg") for ``pattern``.
 
     ``options`` go to the solver's constructor (e.g. ``check_every`` for pcg, ``backend`` for
-    direct); ``auto`` chooses by device and size (see :func:`warpfem.solvers.linear.auto.choose`).
+    direct, ``rebuild_every`` for amg). ``positions`` ((n, 3), for the rigid-body modes of amg) and
+    ``poisson_ratio`` (for ``auto``) describe the model; ``auto`` chooses by device, size and
+    compressibility (see :func:`warpfem.solvers.linear.auto.choose`) and passes on only the
+    options the chosen solver accepts.
     """
     import importlib
+    import inspect
 
     if not isinstance(name, str) or name not in LINEAR_SOLVERS:
         raise ValueError(f"unknown linear solver {name!r}; available: {', '.join(LINEAR_SOLVERS)}")
-    if name == "auto":
+    auto = name == "auto"
+    if auto:
         from warpfem.solvers.linear.auto import choose
 
-        name = choose(pattern, options)
-        options = {k: v for k, v in options.items() if k not in ("nearly_incompressible", "rest_positions")}
-        if name == "amg" and "rest_positions" in options:  # pragma: no cover - kept for clarity
-            pass
+        name = choose(pattern, poisson_ratio=poisson_ratio)
     modname, clsname = _REGISTRY[name].split(":")
     cls = getattr(importlib.import_module(modname), clsname)
-    try:
-        return cls(pattern, vec_type=vec_type, scalar=scalar, **options)
-    except TypeError as e:
-        raise TypeError(f"linear solver {name!r}: {e}") from e
+    accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "pattern", "vec_type", "scalar"}
+    if name == "amg" and positions is not None and "positions" not in options:
+        options = {**options, "positions": positions}
+    unknown = set(options) - accepted
+    if unknown:
+        if auto:  # options meant for a solver auto did not choose
+            log.info("linear solver auto -> %s: ignoring options %s", name, sorted(unknown))
+            options = {k: v for k, v in options.items() if k in accepted}
+        else:
+            raise TypeError(f"linear solver {name!r}: unknown option(s) {sorted(unknown)}; known: {sorted(accepted)}")
+    log.info("linear solver: %s%s", name, " (auto)" if auto else "")
+    return cls(pattern, vec_type=vec_type, scalar=scalar, **options)

@@ -199,7 +199,7 @@ class DirectSolver(HostLinearSolver):
             return LinearSolveResult(0, float("nan"), False, host_syncs=0, failed=self._failure)
         bh = b.numpy().astype(np.float64).reshape(-1)
         bh = bh * self._mask_host  # the system is P b (b should already be masked)
-        xh = self.backend.solve(bh)
+        xh = self.backend.solve(bh) * self._mask_host  # exactly zero at fixed DOFs
         syncs = 1
         bn = float(np.linalg.norm(bh))
         if not np.all(np.isfinite(xh)):
