@@ -246,3 +246,19 @@ def test_missing_extra_names_it(monkeypatch, name, module, extra):
     opts = {"backend": backend} if backend else {}
     with pytest.raises(MissingExtra, match=rf'pip install "warpfem\[{extra}\]"'):
         _make(solver, sim, model, **opts)
+
+
+def test_tradeoff_grid_has_a_linear_solver_axis(tmp_path):
+    from warpfem.tradeoff.study import GridError, TradeoffConfig, scene_document, variant_scene
+
+    from test_scenes import BASE
+
+    p = tmp_path / "s.toml"
+    p.write_text(BASE)
+    cfg = TradeoffConfig.from_dict({"linear_solver": "pcg", "cg_tol": 1e-6})
+    assert "pcg" in cfg.name
+    scene = variant_scene(scene_document(p), str(p), cfg)
+    assert scene.spec.integrator["linear_solver"] == "pcg"
+    assert scene.build().sim._pcg.name == "pcg"
+    with pytest.raises(GridError, match="linear_solver"):
+        TradeoffConfig.from_dict({"linear_solver": "lu"})

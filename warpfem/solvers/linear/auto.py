@@ -17,7 +17,7 @@ NEARLY_INCOMPRESSIBLE_NU = 0.45
 def _direct_available() -> bool:
     from warpfem.solvers.linear.direct import available_backends
 
-    return available_backends()[0] != "superlu"
+    return available_backends()[0] == "pardiso"
 
 
 def _amg_available() -> bool:
