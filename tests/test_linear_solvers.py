@@ -262,3 +262,28 @@ def test_tradeoff_grid_has_a_linear_solver_axis(tmp_path):
     assert scene.build().sim._pcg.name == "pcg"
     with pytest.raises(GridError, match="linear_solver"):
         TradeoffConfig.from_dict({"linear_solver": "lu"})
+
+
+@pytest.mark.skipif(not HAVE_AMG, reason="pyamg not installed (pip install warpfem[amg])")
+def test_amg_reuses_its_hierarchy_until_the_iterations_grow():
+    sim, model, vals, b, Am = _system(cells=(8, 2, 2), h2=1e-2)
+    solver = _make("amg", sim, model)
+    bd, xd = sim._vec_array(b), sim._vec_array()
+    its = []
+    for scale in (1.0, 1.05, 1.1):  # a slowly drifting matrix: one build serves all three
+        v = wp.clone(vals)
+        wp.launch(LK.scale_copy_kernel, dim=len(v), inputs=[vals, sim._s(scale), v])
+        res = solver.solve(v, sim._mask, bd, xd, tol=1e-8, maxiter=500)
+        assert res.converged
+        its.append(res.iterations)
+        np.testing.assert_allclose(xd.numpy().ravel(), spla.spsolve(_scaled(Am, scale, model), b.ravel()),
+                                   rtol=0, atol=1e-6 * np.abs(b).max())
+    assert solver.setup_count == 1 and solver.prepare_count == 3
+    # a stale hierarchy (forced) triggers a rebuild at the next prepare
+    solver._stale = True
+    solver.prepare(vals, sim._mask)
+    assert solver.setup_count == 2
+    always = _make("amg", sim, model, rebuild_every=1)
+    for _ in range(2):
+        always.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=500)
+    assert always.setup_count == 2

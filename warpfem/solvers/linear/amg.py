@@ -8,9 +8,10 @@ the coarse levels represent rigid motions of aggregates exactly, which is what b
 Fixed DOFs are identity rows and columns of the solved matrix; their rows of the near-null space are
 zero. CG (scipy) runs on the host in float64 with one V-cycle per iteration.
 
-``prepare`` builds the hierarchy (the expensive part) every ``rebuild_every``-th call and
-otherwise keeps the previous hierarchy as the preconditioner of the new matrix (still SPD, so CG
-stays valid; it only converges a little slower as the Hessian drifts within a step).
+``prepare`` builds the hierarchy (the expensive part) on the first call, then keeps it as the
+preconditioner of the new matrices (still SPD, so CG stays valid; it converges more slowly as the
+Hessian drifts) until a solve needs more than ``rebuild_factor`` times the iterations of the first
+solve after the last build, or ``rebuild_every`` prepares have passed; then it rebuilds.
 Extra ``[amg]`` (pyamg).
 """
 
@@ -51,8 +52,10 @@ class AMGSolver(HostLinearSolver):
     Args:
         positions: (n, 3) vertex positions for the rigid-body modes (rest positions are fine:
             the modes only need to be near the null space). Default: translations only.
-        rebuild_every: rebuild the hierarchy every this many ``prepare`` calls (1: every Newton
-            iteration).
+        rebuild_every: rebuild the hierarchy at least every this many ``prepare`` calls (1: every
+            Newton iteration; default 0: only when the iterations grow).
+        rebuild_factor: rebuild when a solve takes more than this times the iterations of the first
+            solve with the current hierarchy.
         max_coarse: size of the coarsest level, solved directly.
         strength, aggregate, smooth, presmoother, postsmoother, max_levels, improve_candidates:
             passed to ``pyamg.smoothed_aggregation_solver`` (its defaults otherwise).
@@ -61,15 +64,19 @@ class AMGSolver(HostLinearSolver):
     name = "amg"
     triangle = "full"
 
-    def __init__(self, pattern, *, vec_type, scalar, positions=None, rebuild_every: int = 1, max_coarse: int = 300,
+    def __init__(self, pattern, *, vec_type, scalar, positions=None, rebuild_every: int = 0, rebuild_factor: float = 2.0,
+                 max_coarse: int = 300,
                  **sa_options):
         self.pyamg = require("pyamg", "amg", "'amg' linear solver")
-        if int(rebuild_every) != rebuild_every or rebuild_every < 1:
-            raise ValueError(f"rebuild_every must be a positive integer, got {rebuild_every!r}")
+        if int(rebuild_every) != rebuild_every or rebuild_every < 0:
+            raise ValueError(f"rebuild_every must be an integer >= 0, got {rebuild_every!r}")
+        if not (np.isfinite(rebuild_factor) and rebuild_factor >= 1.0):
+            raise ValueError(f"rebuild_factor must be >= 1, got {rebuild_factor!r}")
+        self.rebuild_factor = float(rebuild_factor)
         allowed = {"strength", "aggregate", "smooth", "presmoother", "postsmoother", "max_levels", "improve_candidates"}
         unknown = set(sa_options) - allowed
         if unknown:
-            raise TypeError(f"unknown option(s) {sorted(unknown)}; known: rebuild_every, max_coarse, positions, "
+            raise TypeError(f"unknown option(s) {sorted(unknown)}; known: rebuild_every, rebuild_factor, max_coarse, positions, "
                             f"{', '.join(sorted(allowed))}")
         self.rebuild_every = int(rebuild_every)
         # pyamg's defaults otherwise (symmetric strength, Jacobi-smoothed prolongation, symmetric
@@ -88,6 +95,9 @@ class AMGSolver(HostLinearSolver):
             self._B0 = rigid_body_modes(P)
         self.ml = None
         self.setup_count = 0
+        self._since_build = 0
+        self._base_iters = None
+        self._stale = False
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     def _prepare(self, values, mask):
@@ -95,12 +105,17 @@ class AMGSolver(HostLinearSolver):
 
         A = self.host_matrix(values, mask)
         self._A_host = A
-        if self.ml is None or (self.prepare_count - 1) % self.rebuild_every == 0:
+        self._since_build += 1
+        if (self.ml is None or self._stale or self.rebuild_every == 1
+                or not np.array_equal(self._mask_host, self._built_mask)
+                or (self.rebuild_every > 1 and self._since_build > self.rebuild_every)):
             B = self._B0 * self._mask_host[:, None]
             Ab = scipy.sparse.bsr_matrix(A, blocksize=(3, 3))
             self.ml = self.pyamg.smoothed_aggregation_solver(Ab, B=B, symmetry="hermitian", **self.sa_options)
             self._M = self.ml.aspreconditioner(cycle="V")
             self.setup_count += 1
+            self._since_build, self._base_iters, self._stale = 1, None, False
+            self._built_mask = self._mask_host.copy()
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         import scipy.sparse.linalg as spla
@@ -123,5 +138,9 @@ class AMGSolver(HostLinearSolver):
             failed = f"scipy cg breakdown (info {info})"
         np_t = np.float32 if x.dtype == wp.vec3 else np.float64
         wp.copy(x, wp.array(xh.reshape(-1, 3).astype(np_t), dtype=x.dtype, device=self.device))
+        if self._base_iters is None:
+            self._base_iters = max(count[0], 1)
+        elif count[0] > self.rebuild_factor * self._base_iters + 2:
+            self._stale = True  # the next prepare rebuilds
         # converged: CG's own test (on its recursive residual) passed; ``residual`` is the true one
         return LinearSolveResult(count[0], rel, info == 0 and not failed, host_syncs=1, failed=failed)
