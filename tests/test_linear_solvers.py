@@ -287,3 +287,20 @@ def test_amg_reuses_its_hierarchy_until_the_iterations_grow():
     for _ in range(2):
         always.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=500)
     assert always.setup_count == 2
+
+
+def test_auto_rule(monkeypatch):
+    from warpfem.solvers.linear import auto
+
+    class _Pattern:
+        def __init__(self, n, cuda=False):
+            self.num_rows = n
+            self.device = type("D", (), {"is_cuda": cuda})()
+
+    monkeypatch.setattr(auto, "_pardiso_available", lambda: True)
+    assert auto.choose(_Pattern(1000, cuda=True)) == "pcg"
+    assert auto.choose(_Pattern(auto.DIRECT_MAX_DOFS_CPU // 3)) == "direct"
+    assert auto.choose(_Pattern(auto.DIRECT_MAX_DOFS_CPU // 3 + 1)) == "pcg"
+    monkeypatch.setattr(auto, "_pardiso_available", lambda: False)
+    assert auto.choose(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3)) == "direct"
+    assert auto.choose(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3 + 1)) == "pcg"

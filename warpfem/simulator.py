@@ -165,9 +165,7 @@ class Simulator(SimulatorState):
         self._hess_values = self._pattern.new_values()
         self._kn_values = self._pattern.new_values() if damping_stiffness > 0 else None
         self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
-                                       positions=model.rest_positions,
-                                       poisson_ratio=getattr(mat, "poisson_ratio", None),
-                                       **(linear_solver_options or {}))
+                                       positions=model.rest_positions, **(linear_solver_options or {}))
         self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
         # quadrature-point sets the kernels run over: (count, args, energy buffer). Selective reduced
         # integration (qd.volumetric) runs the same material kernels with the split parameters of

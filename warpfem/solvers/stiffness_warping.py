@@ -145,9 +145,7 @@ class StiffnessWarpingSimulator(SimulatorState):
         self._k_values = self._pattern.new_values()  # K'
         self._a_values = self._pattern.new_values()  # M + h C + h^2 K'
         self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
-                                       positions=model.rest_positions,
-                                       poisson_ratio=getattr(mat, "poisson_ratio", None),
-                                       **(linear_solver_options or {}))
+                                       positions=model.rest_positions, **(linear_solver_options or {}))
 
         def vec_array(a=None):
             if a is None:

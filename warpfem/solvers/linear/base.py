@@ -201,14 +201,13 @@ _REGISTRY: dict[str, str] = {
 LINEAR_SOLVERS = ("auto", *_REGISTRY)
 
 
-def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, poisson_ratio=None, **options):
+def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, **options):
     """Build the linear solver ``name`` ("auto", "pcg", "direct", "amg") for ``pattern``.
 
     ``options`` go to the solver's constructor (e.g. ``check_every`` for pcg, ``backend`` for
-    direct, ``rebuild_every`` for amg). ``positions`` ((n, 3), for the rigid-body modes of amg) and
-    ``poisson_ratio`` (for ``auto``) describe the model; ``auto`` chooses by device, size and
-    compressibility (see :func:`warpfem.solvers.linear.auto.choose`) and passes on only the
-    options the chosen solver accepts.
+    direct, ``rebuild_every`` for amg). ``positions`` ((n, 3), the model's rest positions) give
+    amg its rigid-body modes; ``auto`` chooses by device and size (see
+    :mod:`warpfem.solvers.linear.auto`) and passes on only the options the chosen solver accepts.
     """
     import importlib
     import inspect
@@ -219,7 +218,7 @@ def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, 
     if auto:
         from warpfem.solvers.linear.auto import choose
 
-        name = choose(pattern, poisson_ratio=poisson_ratio)
+        name = choose(pattern)
     modname, clsname = _REGISTRY[name].split(":")
     cls = getattr(importlib.import_module(modname), clsname)
     accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "pattern", "vec_type", "scalar"}
