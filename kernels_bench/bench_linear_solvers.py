@@ -6,11 +6,12 @@ a clamped box beam (``--box-cells``; 6 tets per cell), each as shipped and with 
 ``linear_solver=<name>``, runs one warm-up step (kernel loads, first factorisation) and then
 ``--steps`` timed steps, recording per step: wall seconds, Newton iterations, linear iterations
 (CG iterations; 1 per direct solve) and the linear solver's host read-backs. The ratio column is
-the per-step time relative to pcg in the same run. The device and the machine's load average are
+the per-step time relative to pcg in the same run; ``pcg-legacy`` is the previous PCG loop
+(8 launches and 3 host read-backs per iteration), the baseline of the device-scalar loop. The device and the machine's load average are
 recorded with the results (this machine's CPUs are shared; compare ratios, not absolutes).
 
     .venv/bin/python kernels_bench/bench_linear_solvers.py [--steps 2] [--box-cells 24 6 6]
-        [--solvers pcg direct amg] [--cases bunny octopus box] [--out kernels_bench/results/linear_solvers]
+        [--solvers pcg direct amg pcg-legacy] [--cases bunny octopus box] [--out kernels_bench/results/linear_solvers]
 """
 
 from __future__ import annotations
@@ -52,11 +53,34 @@ def _box_sim(cells, *, solver, nu, device):
     return wf.Simulator(model, device=device, dt=1.0 / 60.0, linear_solver=solver, tol=1e-5, cg_tol=1e-3)
 
 
+class _Legacy:
+    """The previous PCG loop (warpfem.solvers.pcg: 8 launches and 3 read-backs per iteration),
+    as the baseline of the device-scalar loop."""
+
+    name = "pcg-legacy"
+
+    def __init__(self, sim):
+        from warpfem.solvers.pcg import BlockJacobiPCG
+
+        self.impl = BlockJacobiPCG(sim._pattern, vec_type=sim._vec, scalar=sim._s)
+        self.device, self.scalar, self.inv_diag = self.impl.device, self.impl.scalar, self.impl.inv_diag
+
+    def dot(self, a, b):
+        return self.impl.dot(a, b)
+
+    def solve(self, *args, **kw):
+        res = self.impl.solve(*args, **kw)
+        res.host_syncs = 3 * res.iterations + 2  # two before the loop, three per iteration
+        return res
+
+
 def run_case(label, make, steps):
     t0 = time.perf_counter()
     obj = make()
     build_s = time.perf_counter() - t0
     sim = obj.sim if hasattr(obj, "sim") else obj
+    if getattr(make, "legacy", False):
+        sim._pcg = _Legacy(sim)
     records = []
     orig = sim.step
 
@@ -113,12 +137,14 @@ def main(argv=None):
         for nu_s in args.nus:
             nu = None if nu_s == "scene" else float(nu_s)
             label = f"{case}" + ("" if nu is None else f" nu={nu:g}")
-            for solver in args.solvers:
+            for solver_arg in args.solvers:
+                solver = "pcg" if solver_arg == "pcg-legacy" else solver_arg
                 if case == "box":
                     make = lambda s=solver, n=nu: _box_sim(args.box_cells, solver=s, nu=n, device=args.device)  # noqa: E731
                 else:
                     path = ROOT / "examples" / "scenes" / f"{case}.toml"
                     make = lambda s=solver, n=nu, pth=path: _scene_run(pth, solver=s, nu=n, device=args.device)  # noqa: E731
+                make.legacy = solver_arg == "pcg-legacy"
                 r = run_case(label, make, args.steps)
                 results.append(r)
                 print(f"{label:18s} {r['solver']:7s} {r['step_seconds']*1e3:9.1f} ms/step  newton {r['newton_per_step']:5.1f}"

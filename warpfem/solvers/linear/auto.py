@@ -13,7 +13,7 @@ scenes at their Poisson ratio and at 0.49, on this project's 2-core CPU):
   step at nu = 0.3). Above that the factorisation (O(n^2) flops on 3D meshes) falls behind.
 * CPU without PARDISO: ``direct`` (SuperLU, no symbolic reuse) up to SUPERLU_MAX_DOFS_CPU
   (its bunny factorisation, 1.9 s, is about one Newton iteration of PCG there).
-* Larger: ``pcg``. ``amg`` is not chosen automatically: it needs 10-40x fewer iterations than
+* Larger: ``pcg``. ``amg`` is not chosen automatically: it needs 7-28x fewer iterations than
   block-Jacobi but pyamg's setup and host V-cycles cost more than they save on every mesh
   measured here except the octopus (where direct is faster still) and the 100k-tet box at nu = 0.3
   (0.88x of PCG's time); select it explicitly for large, stiff, nearly incompressible problems
