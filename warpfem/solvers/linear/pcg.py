@@ -7,8 +7,9 @@ iterations; iterations after convergence inside a chunk are no-ops (each kernel 
 status first). Per iteration: three launches (masked product + p.Ap; x, r, z update + r.z, r.r;
 direction update), per chunk one bookkeeping launch and one read-back.
 
-Every launch of a chunk has fixed arguments, so on CUDA the chunk is captured once as a graph and
-replayed (``use_cuda_graph``); the right-hand side and solution are copied through internal
+Every launch of a chunk has fixed arguments: the launches are recorded once (``record_cmd``) and
+replayed, which skips Warp's per-launch argument handling, and on CUDA the chunk is captured once
+as a graph and replayed (``use_cuda_graph``); the right-hand side and solution are copied through internal
 buffers so the graph does not depend on the caller's arrays. The scalars of iteration j live in
 slot j of small per-chunk arrays (rz, rr, pAp, status, iteration count), so no kernel reads a
 value another thread of the same launch writes.
@@ -220,48 +221,70 @@ class DevicePCG(LinearSolver):
         self._maxiter = wp.zeros(1, dtype=wp.int32, device=dev)
         self._report = wp.zeros(4, dtype=wp.float64, device=dev)
         self._graph = None
-        self._graph_key = None
+        self._start_cmds = None
+        self._chunk_cmds, self._chunk_key = None, None
         self._chunk_runs = 0
 
+    def _record(self, kernel, dim, inputs):
+        return wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
+
+    def _start_commands(self):
+        """The solve's first launches, recorded once (their arrays are this object's buffers)."""
+        if self._start_cmds is None:
+            n, k = self.num_rows, self.check_every
+            self._start_cmds = [
+                self._record(_pcg_init_kernel, n, [self.b, self.inv_diag, self.x, self.r, self.z, self.p,
+                                                   self._rz, self._rr, k]),
+                self._record(_pcg_start_kernel, 1, [self._rr, self._status, self._iters, self._bb, self._report, k]),
+            ]
+        return self._start_cmds
+
+    def _chunk_commands(self):
+        """The 3 k + 1 launches of a chunk, recorded once per (values, mask) arrays: replaying a
+        recorded launch skips Warp's per-launch argument inference and packing, which on the CPU
+        cost more than the kernels of a small mesh."""
+        key = (self._values.ptr, self._mask.ptr)
+        if self._chunk_key != key:
+            pt, n, k = self.pattern, self.num_rows, self.check_every
+            values, mask = self._values, self._mask
+            cmds = [self._record(_pcg_carry_kernel, 1, [self._rz, self._rr, self._pap, self._status, self._iters, k])]
+            for j in range(k):
+                cmds.append(self._record(_pcg_matvec_kernel, n, [pt.offsets, pt.columns, values, mask, self.p, self.Ap,
+                                                                 self._status, self._pap, j]))
+                cmds.append(self._record(_pcg_update_kernel, n, [self.inv_diag, self.x, self.r, self.z, self.p, self.Ap,
+                                                                 self._status, self._iters, self._rz, self._rr,
+                                                                 self._pap, j]))
+                cmds.append(self._record(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz,
+                                                                    self._rr, self._pap, self._bb, self._tol2,
+                                                                    self._maxiter, self._report, j]))
+            self._chunk_cmds, self._chunk_key = cmds, key
+            self._graph = None
+        return self._chunk_cmds
+
     def _launch_start(self):
-        n, dev, k = self.num_rows, self.device, self.check_every
         self._rz.zero_()
         self._rr.zero_()
-        wp.launch(_pcg_init_kernel, dim=n, inputs=[self.b, self.inv_diag, self.x, self.r, self.z, self.p,
-                                                  self._rz, self._rr, k], device=dev)
-        wp.launch(_pcg_start_kernel, dim=1, inputs=[self._rr, self._status, self._iters, self._bb, self._report, k],
-                  device=dev)
-
-    def _launch_chunk(self):
-        pt, n, dev, k = self.pattern, self.num_rows, self.device, self.check_every
-        values, mask = self._values, self._mask
-        wp.launch(_pcg_carry_kernel, dim=1, inputs=[self._rz, self._rr, self._pap, self._status, self._iters, k],
-                  device=dev)
-        for j in range(k):
-            wp.launch(_pcg_matvec_kernel, dim=n, inputs=[pt.offsets, pt.columns, values, mask, self.p, self.Ap,
-                                                         self._status, self._pap, j], device=dev)
-            wp.launch(_pcg_update_kernel, dim=n, inputs=[self.inv_diag, self.x, self.r, self.z, self.p, self.Ap,
-                                                         self._status, self._iters, self._rz, self._rr, self._pap, j],
-                      device=dev)
-            wp.launch(_pcg_direction_kernel, dim=n, inputs=[self.z, self.p, self._status, self._iters, self._rz,
-                                                            self._rr, self._pap, self._bb, self._tol2, self._maxiter,
-                                                            self._report, j], device=dev)
+        for c in self._start_commands():
+            c.launch()
 
     def _run_chunk(self):
         dev = self.device
+        cmds = self._chunk_commands()
         if dev.is_cuda and self.use_cuda_graph:
-            key = (self._values.ptr, self._mask.ptr)
-            if self._graph is None or self._graph_key != key:
+            if self._graph is None:
                 if self._chunk_runs == 0:  # first run uncaptured: loads the modules
-                    self._launch_chunk()
+                    for c in cmds:
+                        c.launch()
                     self._chunk_runs += 1
                     return
                 with wp.ScopedCapture(device=dev, force_module_load=False) as cap:
-                    self._launch_chunk()
-                self._graph, self._graph_key = cap.graph, key
+                    for c in cmds:
+                        c.launch()
+                self._graph = cap.graph
             wp.capture_launch(self._graph)
         else:
-            self._launch_chunk()
+            for c in cmds:
+                c.launch()
         self._chunk_runs += 1
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
