@@ -289,8 +289,25 @@ def test_amg_reuses_its_hierarchy_until_the_iterations_grow():
     assert always.setup_count == 2
 
 
-def test_auto_rule(monkeypatch):
+def test_auto_switches_from_pcg_to_direct_on_hard_systems(monkeypatch):
     from warpfem.solvers.linear import auto
+
+    sim, model, vals, b, Am = _system(cells=(8, 2, 2), h2=1e-2)
+    x_ref = spla.spsolve(Am, b.ravel())
+    bd, xd = sim._vec_array(b), sim._vec_array()
+    easy = _make("auto", sim, model)  # default threshold: these systems stay with PCG
+    for _ in range(2):
+        res = easy.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=2000)
+        assert 10 < res.iterations <= auto.SWITCH_ITERATIONS
+    assert easy.active == "pcg" and easy.direct is None
+    hard = _make("auto", sim, model, switch_iterations=10)
+    r1 = hard.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=2000)
+    assert r1.iterations > 10 and hard.active == "direct"  # this solve was PCG; the next ones are direct
+    for _ in range(2):
+        r = hard.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=2000)
+        assert r.iterations == 1 and r.converged
+        np.testing.assert_allclose(xd.numpy().ravel(), x_ref, rtol=0, atol=1e-10 * np.abs(x_ref).max())
+    assert hard.direct.analyse_count == 1 and hard.direct.prepare_count == 2
 
     class _Pattern:
         def __init__(self, n, cuda=False):
@@ -298,9 +315,9 @@ def test_auto_rule(monkeypatch):
             self.device = type("D", (), {"is_cuda": cuda})()
 
     monkeypatch.setattr(auto, "_pardiso_available", lambda: True)
-    assert auto.choose(_Pattern(1000, cuda=True)) == "pcg"
-    assert auto.choose(_Pattern(auto.DIRECT_MAX_DOFS_CPU // 3)) == "direct"
-    assert auto.choose(_Pattern(auto.DIRECT_MAX_DOFS_CPU // 3 + 1)) == "pcg"
+    assert not auto.direct_allowed(_Pattern(1000, cuda=True))  # CUDA: PCG only
+    assert auto.direct_allowed(_Pattern(auto.DIRECT_MAX_DOFS_CPU // 3))
+    assert not auto.direct_allowed(_Pattern(auto.DIRECT_MAX_DOFS_CPU // 3 + 1))
     monkeypatch.setattr(auto, "_pardiso_available", lambda: False)
-    assert auto.choose(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3)) == "direct"
-    assert auto.choose(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3 + 1)) == "pcg"
+    assert auto.direct_allowed(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3))
+    assert not auto.direct_allowed(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3 + 1))

@@ -193,12 +193,13 @@ class HostLinearSolver(LinearSolver):
 
 
 _REGISTRY: dict[str, str] = {
+    "auto": "warpfem.solvers.linear.auto:AutoSolver",
     "pcg": "warpfem.solvers.linear.pcg:DevicePCG",
     "direct": "warpfem.solvers.linear.direct:DirectSolver",
     "amg": "warpfem.solvers.linear.amg:AMGSolver",
 }
 
-LINEAR_SOLVERS = ("auto", *_REGISTRY)
+LINEAR_SOLVERS = tuple(_REGISTRY)
 
 
 def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, **options):
@@ -206,30 +207,21 @@ def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, 
 
     ``options`` go to the solver's constructor (e.g. ``check_every`` for pcg, ``backend`` for
     direct, ``rebuild_every`` for amg). ``positions`` ((n, 3), the model's rest positions) give
-    amg its rigid-body modes; ``auto`` chooses by device and size (see
-    :mod:`warpfem.solvers.linear.auto`) and passes on only the options the chosen solver accepts.
+    amg its rigid-body modes. ``auto`` is PCG that switches to direct when the systems turn out
+    hard (see :mod:`warpfem.solvers.linear.auto`).
     """
     import importlib
     import inspect
 
     if not isinstance(name, str) or name not in LINEAR_SOLVERS:
         raise ValueError(f"unknown linear solver {name!r}; available: {', '.join(LINEAR_SOLVERS)}")
-    auto = name == "auto"
-    if auto:
-        from warpfem.solvers.linear.auto import choose
-
-        name = choose(pattern)
     modname, clsname = _REGISTRY[name].split(":")
     cls = getattr(importlib.import_module(modname), clsname)
     accepted = set(inspect.signature(cls.__init__).parameters) - {"self", "pattern", "vec_type", "scalar"}
-    if name == "amg" and positions is not None and "positions" not in options:
+    if "positions" in accepted and positions is not None and "positions" not in options:
         options = {**options, "positions": positions}
     unknown = set(options) - accepted
     if unknown:
-        if auto:  # options meant for a solver auto did not choose
-            log.info("linear solver auto -> %s: ignoring options %s", name, sorted(unknown))
-            options = {k: v for k, v in options.items() if k in accepted}
-        else:
-            raise TypeError(f"linear solver {name!r}: unknown option(s) {sorted(unknown)}; known: {sorted(accepted)}")
-    log.info("linear solver: %s%s", name, " (auto)" if auto else "")
+        raise TypeError(f"linear solver {name!r}: unknown option(s) {sorted(unknown)}; known: {sorted(accepted)}")
+    log.info("linear solver: %s", name)
     return cls(pattern, vec_type=vec_type, scalar=scalar, **options)
