@@ -146,7 +146,7 @@ class HostLinearSolver(LinearSolver):
     """A solver that works on the host in float64 scalar CSR form (direct and AMG backends).
 
     ``analyse`` builds, once, the map from the block values to the scalar CSR data of the
-    (3n x 3n) matrix, full or lower triangle; ``prepare`` copies the blocks to the host (one
+    (3n x 3n) matrix, full or one triangle; ``prepare`` copies the blocks to the host (one
     read-back), applies the mask (identity rows and columns at fixed DOFs, keeping the pattern so
     symbolic analyses stay valid) and hands the CSR matrix to the backend.
     """

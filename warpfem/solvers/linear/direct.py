@@ -82,6 +82,13 @@ class _Pardiso:
     def solve(self, b):
         return self._call(33, self.A, np.asfortranarray(b.reshape(-1, 1))).ravel()
 
+    def __del__(self):  # release MKL's factorisation memory with the solver
+        try:
+            if self.analysed:
+                self.ps.free_memory(everything=True)
+        except Exception:  # noqa: BLE001 - interpreter shutdown or a failed init; nothing to free
+            pass
+
 
 class _QDLDL:
     triangle = "lower"  # lower CSR arrays == upper CSC arrays (symmetric)
