@@ -30,7 +30,7 @@ from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
 from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.pcg import BlockJacobiPCG
+from warpfem.solvers.linear import make_linear_solver
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
 
@@ -50,12 +50,15 @@ class Simulator(SimulatorState):
         damping_mass, damping_stiffness: Rayleigh coefficients alpha (1/s) and beta (s).
         require_convergence: raise :class:`SolveFailed` (state untouched) instead of accepting a
             non-converged step. NaN/inf always raises and never touches the state.
+        linear_solver: "auto", "pcg", "direct" or "amg": the solver of each Newton system
+            (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
             ``max_line_search``, ``armijo``, ``project_hessian`` (see :class:`NewtonOptions`).
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
-                 damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, **newton_options):
+                 damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, linear_solver="auto",
+                 linear_solver_options=None, **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         self.integrator = make_integrator(integrator)
         unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
@@ -89,7 +92,8 @@ class Simulator(SimulatorState):
         self._mass_values = self._pattern.values_from_scalar_matrix(model.mass)
         self._hess_values = self._pattern.new_values()
         self._kn_values = self._pattern.new_values() if damping_stiffness > 0 else None
-        self._pcg = BlockJacobiPCG(self._pattern, vec_type=self._vec, scalar=self._s)
+        self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
+                                       positions=model.rest_positions, **(linear_solver_options or {}))
         self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
         # quadrature-point sets the kernels run over: (count, args, energy buffer). Selective reduced
         # integration (qd.volumetric) runs the same material kernels with the split parameters of

@@ -74,7 +74,7 @@ def _simulator(model, opts, *, device, precision, dt, dynamic, integrator="backw
     if dynamic:
         damping = {"damping_mass": opts["damping_mass"], "damping_stiffness": opts["damping_stiffness"]}
     return Simulator(model, device=device, precision=precision, dt=dt, require_convergence=opts["require_convergence"],
-                     integrator=integrator, **damping, **kw)
+                     integrator=integrator, linear_solver=opts.get("linear_solver", "auto"), **damping, **kw)
 
 
 def _build_backward_euler(scene, model, *, device, precision):
@@ -120,11 +120,12 @@ def _build_stiffness_warping(scene, model, *, device, precision):
     return StiffnessWarpingSimulator(model, device=device, precision=precision, dt=o["dt"], rotation=o["rotation"],
                                      cg_tol=o["cg_tol"], max_cg_iters=o["max_cg_iters"], damping_mass=o["damping_mass"],
                                      damping_stiffness=o["damping_stiffness"],
-                                     require_convergence=o["require_convergence"], integrator=o["scheme"])
+                                     require_convergence=o["require_convergence"], integrator=o["scheme"],
+                                     linear_solver=o.get("linear_solver", "auto"))
 
 
 _WARPING_KEYS = {k: INTEGRATOR_KEYS[k] for k in ("dt", "max_cg_iters", "damping_mass", "damping_stiffness",
-                                                 "require_convergence")}
+                                                 "require_convergence", "linear_solver")}
 _WARPING_KEYS["cg_tol"] = Key("float", default=1e-6, check=INTEGRATOR_KEYS["cg_tol"].check,
                               doc="relative PCG tolerance of the one linear solve per step")
 _WARPING_KEYS["rotation"] = Key("choice", default="polar", choices=("polar", "qr"),

@@ -222,13 +222,13 @@ class FullSpacePotential:
 
     # -- Newton system ------------------------------------------------------------------------------
     def solve_newton_system(self, y, g, d, opts):
-        """d ~ -H(y)^-1 g on the free components (the simulator's linear solver); returns its iterations."""
+        """d ~ -H(y)^-1 g on the free components (the simulator's linear solver); returns its result
+        (``iterations``, ``host_syncs``, ...)."""
         sim = self.sim
         values = self.assemble_hessian(y, sim._hess_values)
         rhs = sim._work.rhs
         launch(LK.scale_copy_kernel, self.n, [g, sim._s(-1.0), rhs], sim.device)
-        res = sim._linear_solve(values, rhs, d, opts)
-        return res.iterations
+        return sim._linear_solve(values, rhs, d, opts)
 
     def fallback_direction(self, g, d):
         """d = -B^-1 g, B the (masked) block diagonal of the last Newton system: a descent direction

@@ -74,6 +74,8 @@ class SolveStats:
     gradient_norm: float = 0.0
     energy: float = 0.0
     seconds: float = 0.0
+    linear_iterations: int = 0  # iterations of the linear solver (CG iterations; 1 per direct solve)
+    host_syncs: int = 0  # host read-backs made inside the linear solves (see warpfem.solvers.linear)
     history: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -101,7 +103,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
 
     * ``energy(y) -> (E, magnitude)`` and ``gradient(y, g) -> (magnitude, ||g||)`` (g masked),
       the magnitudes being the sums of the sizes of their terms (the scale of their round-off);
-    * ``solve_newton_system(y, g, d, opts) -> linear iterations``: d ~ -H(y)^-1 g (a sparse iterative
+    * ``solve_newton_system(y, g, d, opts) -> iterations or a result with ``iterations`` and
+      ``host_syncs````: d ~ -H(y)^-1 g (a sparse iterative
       or direct solve, or a dense one for reduced models);
     * ``fallback_direction(g, d)``: a descent direction (preconditioned -g) when d is not one;
     * ``direction_check(y, g, d) -> (g . d, negligible)``: negligible when d is below the resolution
@@ -128,8 +131,11 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
         return st
     gnorm = gnorm0
     for _ in range(opts.max_iters):
-        iterations = problem.solve_newton_system(y, g, d, opts)
+        lin = problem.solve_newton_system(y, g, d, opts)  # an iteration count or a LinearSolveResult
+        iterations = int(getattr(lin, "iterations", lin))
         st.cg_iterations += iterations
+        st.linear_iterations += iterations
+        st.host_syncs += int(getattr(lin, "host_syncs", 0))
         gd, negligible = problem.direction_check(y, g, d)
         if not (gd < 0.0):  # not a descent direction (indefinite Hessian or CG breakdown)
             problem.fallback_direction(g, d)

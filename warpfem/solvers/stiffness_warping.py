@@ -46,7 +46,7 @@ from warpfem.kernels import warping as WK
 from warpfem.kernels.generic import launch
 from warpfem.integrators import make_integrator
 from warpfem.solvers.newton import SolveFailed, SolveStats
-from warpfem.solvers.pcg import BlockJacobiPCG
+from warpfem.solvers.linear import make_linear_solver
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
 
@@ -98,11 +98,13 @@ class StiffnessWarpingSimulator(SimulatorState):
         integrator: the time scheme, as for :class:`warpfem.Simulator`: "backward_euler" (default),
             "bdf2" or "newmark" (or an instance from :mod:`warpfem.integrators`); each step is one
             Newton iteration of that scheme's incremental potential with the warped linear model.
+        linear_solver, linear_solver_options: the solver of the step's linear system ("auto",
+            "pcg", "direct", "amg"; docs/linear_solvers.md) and its constructor options.
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, rotation="polar", cg_tol=1e-6,
                  max_cg_iters=2000, damping_mass=0.0, damping_stiffness=0.0, require_convergence=False,
-                 integrator="backward_euler"):
+                 integrator="backward_euler", linear_solver="auto", linear_solver_options=None):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         self.integrator = make_integrator(integrator)
         if rotation not in ROTATIONS:
@@ -149,7 +151,8 @@ class StiffnessWarpingSimulator(SimulatorState):
         self._mass_values = self._pattern.values_from_scalar_matrix(model.mass)
         self._k_values = self._pattern.new_values()  # K'
         self._a_values = self._pattern.new_values()  # M + h C + h^2 K'
-        self._pcg = BlockJacobiPCG(self._pattern, vec_type=self._vec, scalar=self._s)
+        self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
+                                       positions=model.rest_positions, **(linear_solver_options or {}))
 
         def vec_array(a=None):
             if a is None:
@@ -317,7 +320,7 @@ class StiffnessWarpingSimulator(SimulatorState):
         self._launch(LK.lincomb_kernel, n, [s(1.0), v, s(1.0), self._dv, v_next])
         vv = self._pcg.dot(v_next, v_next)
         stats = SolveStats(converged=bool(res.converged), newton_iterations=1, cg_iterations=res.iterations,
-                           residual=res.residual)
+                           residual=res.residual, linear_iterations=res.iterations, host_syncs=res.host_syncs)
         stats.reason = "linear solve converged" if res.converged else f"PCG stopped at relative residual {res.residual:.2e}"
         stats.seconds = time.perf_counter() - t0
         what = f"step {self.step_count}"

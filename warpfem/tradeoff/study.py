@@ -82,6 +82,7 @@ class TradeoffConfig:
     element: str | None = None
     subspace: tuple | None = None  # sorted (key, value) pairs (hashable); see subspace_dict()
     max_cg_iters: int | None = None
+    linear_solver: str | None = None  # [integrator].linear_solver: "auto" | "pcg" | "direct" | "amg"
 
     def subspace_dict(self) -> dict | None:
         return None if self.subspace is None else dict(self.subspace)
@@ -120,6 +121,8 @@ class TradeoffConfig:
             v = getattr(self, k)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise GridError(f"{where}.{k}: must be an integer >= 1, got {v!r}")
+        if self.linear_solver is not None and self.linear_solver not in ("auto", "pcg", "direct", "amg"):
+            raise GridError(f"{where}.linear_solver: must be one of auto, pcg, direct, amg, got {self.linear_solver!r}")
         for k in ("integrator", "element", "name"):
             v = getattr(self, k)
             if v is not None and not isinstance(v, str):
@@ -137,6 +140,8 @@ def _auto_name(d: dict) -> str:
         parts.append({"stiffness_warping": "warping", "backward_euler": "newton"}.get(d["integrator"], d["integrator"]))
     if d.get("element"):
         parts.append(d["element"])
+    if d.get("linear_solver"):
+        parts.append(d["linear_solver"])
     sub = d.get("subspace")
     if sub is not None:
         s = dict(sub)
@@ -335,7 +340,7 @@ def variant_scene(doc: dict, scene_path: str, cfg: TradeoffConfig, *, cache_dir:
         d["integrator"] = integ
     integ["type"] = itype
     integ["require_convergence"] = False  # non-convergence is counted, not fatal
-    for k in ("tol", "max_iters", "cg_tol", "max_cg_iters"):
+    for k in ("tol", "max_iters", "cg_tol", "max_cg_iters", "linear_solver"):
         v = getattr(cfg, k)
         if v is not None and k in entry.keys:
             integ[k] = v

@@ -1,0 +1,235 @@
+"""Sparse direct solves of the Newton systems: Cholesky / LDL^T with the symbolic analysis reused.
+
+The matrix of every Newton iteration has the same pattern (the mesh's block pattern; fixed DOFs
+become identity rows and columns *inside* that pattern, explicit zeros kept), so the fill-reducing
+ordering and the symbolic factorisation are computed once in ``analyse`` (on the first matrix when
+the backend needs values) and only the numeric factorisation runs in ``prepare``.
+
+Backends (``backend=``), measured in docs/linear_solvers.md:
+
+* ``"pardiso"``: Intel MKL PARDISO (supernodal, multithreaded) through ``pypardiso``; phase 11
+  (ordering + symbolic) once, phase 22 (numeric Cholesky, matrix type 2) per prepare, phase 33
+  per solve. Extra ``[direct]`` (x86-64 only: MKL has no ARM build).
+* ``"qdldl"``: QDLDL (up-looking LDL^T, AMD ordering) through ``qdldl``; ``update()`` reuses the
+  ordering and the elimination tree. Light and single-threaded, but its non-supernodal
+  factorisation was the slowest of the three on the bunny; installed by the ``test`` extra only.
+* ``"superlu"``: scipy's SuperLU (``splu``, symmetric mode, no pivoting); always available but
+  redoes the ordering and symbolic analysis every prepare.
+* ``"auto"``: pardiso when installed, else superlu.
+
+The matrices are assumed symmetric positive definite (Hessians are SPD-projected by default).
+If a factorisation finds a non-positive pivot (an indefinite or singular matrix), ``solve``
+returns ``failed`` with the reason and ``x`` = the block-Jacobi direction, so the Newton loop
+can fall back; nothing raises.
+
+The data path is device -> host (blocks) -> factor -> host solve -> device, fine on the CPU; on
+CUDA it costs two copies of the blocks per Newton iteration (a GPU direct solver, e.g. cuDSS,
+would avoid that; not implemented).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import warp as wp
+
+from warpfem.kernels import linalg as K
+from warpfem.solvers.linear.base import HostLinearSolver, LinearSolveResult, MissingExtra, require
+
+log = logging.getLogger(__name__)
+
+BACKENDS = ("auto", "pardiso", "qdldl", "superlu")
+
+
+class _NotPositiveDefinite(RuntimeError):
+    pass
+
+
+class _Pardiso:
+    triangle = "upper"
+
+    def __init__(self):
+        pypardiso = require("pypardiso", "direct", "direct linear solver's 'pardiso' backend")
+        self.mod = pypardiso
+        self.ps = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
+        self.ps.set_iparm(1, 1)  # non-default iparms follow
+        self.ps.set_iparm(2, 2)  # nested dissection ordering (METIS)
+        self.ps.set_iparm(10, 8)  # pivot perturbation 1e-8 (only used by indefinite types)
+        self.ps.set_iparm(21, 0)
+        self.analysed = False
+        self.symbolic_count = 0
+
+    def _call(self, phase, A, b):
+        self.ps.set_phase(phase)
+        try:
+            return self.ps._call_pardiso(A, b)
+        except self.mod.pardiso_wrapper.PyPardisoError as e:
+            code = getattr(e, "value", None)
+            if phase == 22 and code == -4:
+                raise _NotPositiveDefinite("PARDISO found a non-positive pivot (matrix not positive definite)") from e
+            raise
+
+    def factor(self, A):
+        z = np.zeros((A.shape[0], 1))
+        if not self.analysed:
+            self._call(11, A, z)
+            self.analysed = True
+            self.symbolic_count += 1
+        self._call(22, A, z)
+        self.A = A
+
+    def solve(self, b):
+        return self._call(33, self.A, np.asfortranarray(b.reshape(-1, 1))).ravel()
+
+    def __del__(self):  # release MKL's factorisation memory with the solver
+        try:
+            if self.analysed:
+                self.ps.free_memory(everything=True)
+        except Exception:  # noqa: BLE001 - interpreter shutdown or a failed init; nothing to free
+            pass
+
+
+class _QDLDL:
+    triangle = "lower"  # lower CSR arrays == upper CSC arrays (symmetric)
+
+    def __init__(self, check_definite=True):
+        self.mod = require("qdldl", "direct", "direct linear solver's 'qdldl' backend")
+        self.solver = None
+        self.symbolic_count = 0
+        self.check_definite = check_definite
+
+    def factor(self, A):
+        import scipy.sparse
+
+        U = scipy.sparse.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)
+        if self.solver is None:
+            self.solver = self.mod.Solver(U, upper=True)
+            self.symbolic_count += 1
+        else:
+            self.solver.update(U, upper=True)
+        if self.check_definite:
+            _, D, _ = self.solver.factors()
+            if not np.all(D > 0.0):
+                raise _NotPositiveDefinite(f"QDLDL found {int(np.sum(~(D > 0.0)))} non-positive pivot(s) "
+                                           "(matrix not positive definite)")
+
+    def solve(self, b):
+        return self.solver.solve(b)
+
+
+class _SuperLU:
+    triangle = "full"
+
+    def __init__(self):
+        self.symbolic_count = 0  # SuperLU redoes the ordering every factorisation (no reuse)
+        self.lu = None
+
+    def factor(self, A):
+        import scipy.sparse
+        import scipy.sparse.linalg as spla
+
+        C = scipy.sparse.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)  # symmetric: CSR == CSC
+        try:
+            self.lu = spla.splu(C, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                options={"SymmetricMode": True})
+        except RuntimeError as e:  # exactly singular
+            raise _NotPositiveDefinite(f"SuperLU: {e}") from e
+        self.symbolic_count += 1
+        d = self.lu.U.diagonal()
+        if not np.all(d > 0.0):
+            raise _NotPositiveDefinite(f"SuperLU found {int(np.sum(~(d > 0.0)))} non-positive pivot(s) "
+                                       "(matrix not positive definite)")
+
+    def solve(self, b):
+        return self.lu.solve(b)
+
+
+def _make_backend(name):
+    if name == "pardiso":
+        return _Pardiso()
+    if name == "qdldl":
+        return _QDLDL()
+    if name == "superlu":
+        return _SuperLU()
+    raise ValueError(f"unknown direct backend {name!r}; available: {', '.join(BACKENDS)}")
+
+
+def available_backends() -> list[str]:
+    """The installed direct backends in the order ``auto`` prefers them (measured: PARDISO, then
+    SuperLU, whose factorisation was faster than QDLDL's on the bunny despite redoing the ordering)."""
+    out = []
+    try:
+        _make_backend("pardiso")
+        out.append("pardiso")
+    except (MissingExtra, ImportError, OSError):
+        pass
+    out.append("superlu")
+    try:
+        _make_backend("qdldl")
+        out.append("qdldl")
+    except (MissingExtra, ImportError, OSError):
+        pass
+    return out
+
+
+class DirectSolver(HostLinearSolver):
+    """Sparse Cholesky/LDL^T of (P A P + I - P) on the host, symbolic analysis reused.
+
+    Args:
+        backend: "auto", "pardiso", "qdldl" or "superlu" (see the module docstring).
+    """
+
+    name = "direct"
+
+    def __init__(self, pattern, *, vec_type, scalar, backend: str = "auto"):
+        if backend not in BACKENDS:
+            raise ValueError(f"unknown direct backend {backend!r}; available: {', '.join(BACKENDS)}")
+        if backend == "auto":
+            backend = available_backends()[0]
+        self.backend_name = backend
+        self.backend = _make_backend(backend)
+        self.triangle = self.backend.triangle
+        super().__init__(pattern, vec_type=vec_type, scalar=scalar)
+
+    @property
+    def symbolic_count(self) -> int:
+        """How many symbolic analyses (orderings) the backend has done."""
+        return self.backend.symbolic_count
+
+    def _prepare(self, values, mask):
+        A = self.host_matrix(values, mask)
+        self._A_host = A
+        self._failure = ""
+        try:
+            self.backend.factor(A)
+        except _NotPositiveDefinite as e:
+            self._failure = str(e)
+            log.warning("direct solver (%s): %s; returning the block-Jacobi direction", self.backend_name, e)
+
+    def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
+        if self._failure:
+            wp.launch(K.block_apply_kernel, dim=self.num_rows, inputs=[self.inv_diag, b, x], device=self.device)
+            return LinearSolveResult(0, float("nan"), False, host_syncs=0, failed=self._failure)
+        bh = b.numpy().astype(np.float64).reshape(-1)
+        bh = bh * self._mask_host  # the system is P b (b should already be masked)
+        xh = self.backend.solve(bh) * self._mask_host  # exactly zero at fixed DOFs
+        syncs = 1
+        bn = float(np.linalg.norm(bh))
+        if not np.all(np.isfinite(xh)):
+            return LinearSolveResult(1, float("nan"), False, host_syncs=syncs, failed="non-finite solution")
+        r = self._host_residual(xh, bh)
+        rel = 0.0 if bn == 0.0 else float(np.linalg.norm(r) / bn)
+        wp.copy(x, wp.array(xh.reshape(-1, 3).astype(_np_of(x)), dtype=x.dtype, device=self.device))
+        return LinearSolveResult(1, rel, bool(rel <= tol), host_syncs=syncs)
+
+    def _host_residual(self, xh, bh):
+        A = self._A_host
+        if self.triangle == "full":
+            return A @ xh - bh
+        d = A.diagonal()
+        return A @ xh + A.T @ xh - d * xh - bh
+
+
+def _np_of(arr):
+    return np.float32 if arr.dtype == wp.vec3 else np.float64

@@ -1,0 +1,311 @@
+"""Block-Jacobi preconditioned conjugate gradients with the scalars kept on the device.
+
+The classic loop (one host read-back per dot product to form alpha and beta) is replaced by a
+loop whose alpha, beta and stopping decisions are computed by the kernels themselves from float64
+scalars in device memory. The host reads a 4-number report once per chunk of ``check_every``
+iterations; iterations after convergence inside a chunk are no-ops (each kernel checks the device
+status first). Per iteration: three launches (masked product + p.Ap; x, r, z update + r.z, r.r;
+direction update), per chunk one bookkeeping launch and one read-back.
+
+Every launch of a chunk has fixed arguments: the launches are recorded once (``record_cmd``) and
+replayed, which skips Warp's per-launch argument handling, and on CUDA the chunk is captured once
+as a graph and replayed (``use_cuda_graph``); the right-hand side and solution are copied through internal
+buffers so the graph does not depend on the caller's arrays. The scalars of iteration j live in
+slot j of small per-chunk arrays (rz, rr, pAp, status, iteration count), so no kernel reads a
+value another thread of the same launch writes.
+
+Algorithm: preconditioned CG as in "An Introduction to the Conjugate Gradient Method Without the
+Agonizing Pain" (Shewchuk), with the masked operator (P A P + I - P) of the Newton systems.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.linalg import cw_mul
+from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
+
+log = logging.getLogger(__name__)
+
+wp.set_module_options({"enable_backward": False})
+
+# status codes (device): 1 running; the rest say why the iteration stopped
+_RUNNING, _CONVERGED, _MAXITER, _NEGATIVE, _NONFINITE = 1, 2, 3, 4, 5
+_REASONS = {_CONVERGED: "converged", _MAXITER: "iteration cap", _NEGATIVE: "non-positive curvature",
+            _NONFINITE: "non-finite residual"}
+
+
+@both_precisions(b="v[]", inv_diag="m[]", x="v[]", r="v[]", z="v[]", p="v[]")
+@wp.kernel
+def _pcg_init_kernel(b: wp.array(dtype=Any), inv_diag: wp.array(dtype=Any), x: wp.array(dtype=Any),
+                     r: wp.array(dtype=Any), z: wp.array(dtype=Any), p: wp.array(dtype=Any),
+                     rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64), slot: int):
+    """x = 0, r = b, z = M^-1 r, p = z; rz[slot] += r.z, rr[slot] += r.r."""
+    i = wp.tid()
+    bi = b[i]
+    zi = inv_diag[i] * bi
+    x[i] = bi - bi
+    r[i] = bi
+    z[i] = zi
+    p[i] = zi
+    wp.atomic_add(rz, slot, wp.float64(wp.dot(bi, zi)))
+    wp.atomic_add(rr, slot, wp.float64(wp.dot(bi, bi)))
+
+
+@wp.kernel
+def _pcg_start_kernel(rr: wp.array(dtype=wp.float64), status: wp.array(dtype=wp.int32),
+                      iters: wp.array(dtype=wp.int32), bb: wp.array(dtype=wp.float64),
+                      report: wp.array(dtype=wp.float64), slot: int):
+    """Status of the first iteration from ||b||^2 (zero: done; non-finite: failed)."""
+    b2 = rr[slot]
+    bb[0] = b2
+    iters[slot] = 0
+    st = int(_RUNNING)
+    if not wp.isfinite(b2):
+        st = int(_NONFINITE)
+    elif b2 <= wp.float64(0.0):
+        st = int(_CONVERGED)
+    status[slot] = st
+    report[0] = wp.float64(st)
+    report[1] = wp.float64(0.0)
+    report[2] = b2
+    report[3] = b2
+
+
+@wp.kernel
+def _pcg_carry_kernel(rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64),
+                      pap: wp.array(dtype=wp.float64), status: wp.array(dtype=wp.int32),
+                      iters: wp.array(dtype=wp.int32), k: int):
+    """Start of a chunk: slot 0 takes the last slot of the previous chunk; the others are zeroed."""
+    rz[0] = rz[k]
+    rr[0] = rr[k]
+    status[0] = status[k]
+    iters[0] = iters[k]
+    for j in range(k + 1):
+        pap[j] = wp.float64(0.0)
+        if j > 0:
+            rz[j] = wp.float64(0.0)
+            rr[j] = wp.float64(0.0)
+
+
+@both_precisions(values="m[]", mask="v[]", p="v[]", Ap="v[]")
+@wp.kernel
+def _pcg_matvec_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                       values: wp.array(dtype=Any), mask: wp.array(dtype=Any), p: wp.array(dtype=Any),
+                       Ap: wp.array(dtype=Any), status: wp.array(dtype=wp.int32),
+                       pap: wp.array(dtype=wp.float64), j: int):
+    """Ap = (P A P + I - P) p and pap[j] += p.Ap, while running."""
+    i = wp.tid()
+    if status[j] != int(_RUNNING):
+        return
+    pi = p[i]
+    acc = pi - pi
+    for q in range(offsets[i], offsets[i + 1]):
+        c = columns[q]
+        acc += values[q] * cw_mul(mask[c], p[c])
+    m = mask[i]
+    y = cw_mul(m, acc) + pi - cw_mul(m, pi)
+    Ap[i] = y
+    wp.atomic_add(pap, j, wp.float64(wp.dot(pi, y)))
+
+
+@both_precisions(inv_diag="m[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]")
+@wp.kernel
+def _pcg_update_kernel(inv_diag: wp.array(dtype=Any), x: wp.array(dtype=Any), r: wp.array(dtype=Any),
+                       z: wp.array(dtype=Any), p: wp.array(dtype=Any), Ap: wp.array(dtype=Any),
+                       status: wp.array(dtype=wp.int32), iters: wp.array(dtype=wp.int32),
+                       rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64),
+                       pap: wp.array(dtype=wp.float64), j: int):
+    """alpha = rz/pAp; x += alpha p; r -= alpha Ap; z = M^-1 r; rz[j+1], rr[j+1] accumulated.
+    With non-positive curvature on the first iteration, x = z (the preconditioned residual)."""
+    i = wp.tid()
+    if status[j] != int(_RUNNING):
+        return
+    a = pap[j]
+    if not (a > wp.float64(0.0)) or not wp.isfinite(a):
+        if iters[j] == 0:
+            x[i] = z[i]
+        return
+    xi = x[i]
+    alpha = type(xi[0])(rz[j] / a)
+    x[i] = xi + alpha * p[i]
+    ri = r[i] - alpha * Ap[i]
+    r[i] = ri
+    zi = inv_diag[i] * ri
+    z[i] = zi
+    wp.atomic_add(rz, j + 1, wp.float64(wp.dot(ri, zi)))
+    wp.atomic_add(rr, j + 1, wp.float64(wp.dot(ri, ri)))
+
+
+@both_precisions(z="v[]", p="v[]")
+@wp.kernel
+def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status: wp.array(dtype=wp.int32),
+                          iters: wp.array(dtype=wp.int32), rz: wp.array(dtype=wp.float64),
+                          rr: wp.array(dtype=wp.float64), pap: wp.array(dtype=wp.float64),
+                          bb: wp.array(dtype=wp.float64), tol2: wp.array(dtype=wp.float64),
+                          maxiter: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.float64), j: int):
+    """Stopping test on the device; p = z + beta p while running. Thread 0 writes slot j+1's
+    status and iteration count and the report the host reads."""
+    i = wp.tid()
+    st = status[j]
+    it = iters[j]
+    res2 = rr[j]
+    new_st = st
+    if st == int(_RUNNING):
+        a = pap[j]
+        if not (a > wp.float64(0.0)) or not wp.isfinite(a):
+            new_st = int(_NEGATIVE)
+        else:
+            it = it + 1
+            res2 = rr[j + 1]
+            if not wp.isfinite(res2):
+                new_st = int(_NONFINITE)
+            elif res2 <= tol2[0] * bb[0]:
+                new_st = int(_CONVERGED)
+            elif it >= maxiter[0]:
+                new_st = int(_MAXITER)
+            else:
+                beta = type(p[i][0])(rz[j + 1] / rz[j])
+                p[i] = z[i] + beta * p[i]
+    if i == 0:
+        status[j + 1] = new_st
+        iters[j + 1] = it
+        rr[j + 1] = res2  # unchanged while running; carries the last residual once stopped
+        report[0] = wp.float64(new_st)
+        report[1] = wp.float64(it)
+        report[2] = res2
+        report[3] = bb[0]
+
+
+class DevicePCG(LinearSolver):
+    """Block-Jacobi PCG with device-side scalars and a host check every ``check_every`` iterations.
+
+    Args:
+        pattern, vec_type, scalar: see :class:`~warpfem.solvers.linear.base.LinearSolver`.
+        check_every: iterations between host read-backs of the residual (k). A solve makes
+            ceil(iterations / k) read-backs (at least one), and runs at most k - 1 no-op
+            iterations past convergence.
+        use_cuda_graph: on CUDA, capture a chunk of k iterations as a graph and replay it.
+    """
+
+    name = "pcg"
+
+    def __init__(self, pattern, *, vec_type, scalar, check_every: int = 16, use_cuda_graph: bool = True):
+        if int(check_every) != check_every or check_every < 1:
+            raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
+        self.check_every = int(check_every)
+        self.use_cuda_graph = bool(use_cuda_graph)
+        super().__init__(pattern, vec_type=vec_type, scalar=scalar)
+
+    def _analyse(self, pattern):
+        n, dev, k = pattern.num_rows, self.device, self.check_every
+        vec = self.vec_type
+        self.b = wp.zeros(n, dtype=vec, device=dev)
+        self.x = wp.zeros(n, dtype=vec, device=dev)
+        self.r = wp.zeros(n, dtype=vec, device=dev)
+        self.z = wp.zeros(n, dtype=vec, device=dev)
+        self.p = wp.zeros(n, dtype=vec, device=dev)
+        self.Ap = wp.zeros(n, dtype=vec, device=dev)
+        self._rz = wp.zeros(k + 1, dtype=wp.float64, device=dev)
+        self._rr = wp.zeros(k + 1, dtype=wp.float64, device=dev)
+        self._pap = wp.zeros(k + 1, dtype=wp.float64, device=dev)
+        self._status = wp.zeros(k + 1, dtype=wp.int32, device=dev)
+        self._iters = wp.zeros(k + 1, dtype=wp.int32, device=dev)
+        self._bb = wp.zeros(1, dtype=wp.float64, device=dev)
+        self._tol2 = wp.zeros(1, dtype=wp.float64, device=dev)
+        self._maxiter = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._report = wp.zeros(4, dtype=wp.float64, device=dev)
+        self._graph = None
+        self._start_cmds = None
+        self._chunk_cmds, self._chunk_key = None, None
+        self._chunk_runs = 0
+
+    def _record(self, kernel, dim, inputs):
+        return wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
+
+    def _start_commands(self):
+        """The solve's first launches, recorded once (their arrays are this object's buffers)."""
+        if self._start_cmds is None:
+            n, k = self.num_rows, self.check_every
+            self._start_cmds = [
+                self._record(_pcg_init_kernel, n, [self.b, self.inv_diag, self.x, self.r, self.z, self.p,
+                                                   self._rz, self._rr, k]),
+                self._record(_pcg_start_kernel, 1, [self._rr, self._status, self._iters, self._bb, self._report, k]),
+            ]
+        return self._start_cmds
+
+    def _chunk_commands(self):
+        """The 3 k + 1 launches of a chunk, recorded once per (values, mask) arrays: replaying a
+        recorded launch skips Warp's per-launch argument inference and packing, which on the CPU
+        cost more than the kernels of a small mesh."""
+        key = (self._values.ptr, self._mask.ptr)
+        if self._chunk_key != key:
+            pt, n, k = self.pattern, self.num_rows, self.check_every
+            values, mask = self._values, self._mask
+            cmds = [self._record(_pcg_carry_kernel, 1, [self._rz, self._rr, self._pap, self._status, self._iters, k])]
+            for j in range(k):
+                cmds.append(self._record(_pcg_matvec_kernel, n, [pt.offsets, pt.columns, values, mask, self.p, self.Ap,
+                                                                 self._status, self._pap, j]))
+                cmds.append(self._record(_pcg_update_kernel, n, [self.inv_diag, self.x, self.r, self.z, self.p, self.Ap,
+                                                                 self._status, self._iters, self._rz, self._rr,
+                                                                 self._pap, j]))
+                cmds.append(self._record(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz,
+                                                                    self._rr, self._pap, self._bb, self._tol2,
+                                                                    self._maxiter, self._report, j]))
+            self._chunk_cmds, self._chunk_key = cmds, key
+            self._graph = None
+        return self._chunk_cmds
+
+    def _launch_start(self):
+        self._rz.zero_()
+        self._rr.zero_()
+        for c in self._start_commands():
+            c.launch()
+
+    def _run_chunk(self):
+        dev = self.device
+        cmds = self._chunk_commands()
+        if dev.is_cuda and self.use_cuda_graph:
+            if self._graph is None:
+                if self._chunk_runs == 0:  # first run uncaptured: loads the modules
+                    for c in cmds:
+                        c.launch()
+                    self._chunk_runs += 1
+                    return
+                with wp.ScopedCapture(device=dev, force_module_load=False) as cap:
+                    for c in cmds:
+                        c.launch()
+                self._graph = cap.graph
+            wp.capture_launch(self._graph)
+        else:
+            for c in cmds:
+                c.launch()
+        self._chunk_runs += 1
+
+    def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
+        if maxiter < 1:
+            raise ValueError(f"maxiter must be >= 1, got {maxiter}")
+        wp.copy(self.b, b)
+        self._tol2.fill_(float(tol) ** 2)
+        self._maxiter.fill_(int(maxiter))
+        self._launch_start()
+        syncs = 0
+        while True:
+            self._run_chunk()
+            rep = self._report.numpy()  # the one host read-back of the chunk
+            syncs += 1
+            if int(rep[0]) != _RUNNING:
+                break
+        wp.copy(x, self.x)
+        status, it, rr, bb = int(rep[0]), int(rep[1]), float(rep[2]), float(rep[3])
+        if bb == 0.0:
+            return LinearSolveResult(0, 0.0, True, host_syncs=syncs)
+        rel = float(np.sqrt(max(rr, 0.0) / bb)) if np.isfinite(rr) and np.isfinite(bb) else float("nan")
+        return LinearSolveResult(it, rel, bool(rel <= tol), host_syncs=syncs,
+                                 negative_curvature=status == _NEGATIVE,
+                                 failed="" if status != _NONFINITE else "non-finite residual")
