@@ -103,9 +103,9 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
 
     * ``energy(y) -> (E, magnitude)`` and ``gradient(y, g) -> (magnitude, ||g||)`` (g masked),
       the magnitudes being the sums of the sizes of their terms (the scale of their round-off);
-    * ``solve_newton_system(y, g, d, opts) -> iterations or a result with ``iterations`` and
-      ``host_syncs````: d ~ -H(y)^-1 g (a sparse iterative
-      or direct solve, or a dense one for reduced models);
+    * ``solve_newton_system(y, g, d, opts)``: d ~ -H(y)^-1 g (a sparse iterative or direct solve,
+      or a dense one for reduced models); returns its iteration count, or a result with
+      ``iterations`` and ``host_syncs``;
     * ``fallback_direction(g, d)``: a descent direction (preconditioned -g) when d is not one;
     * ``direction_check(y, g, d) -> (g . d, negligible)``: negligible when d is below the resolution
       of the unknowns (and positions) in the working precision;
