@@ -43,8 +43,7 @@ class ContactSet:
         edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
         self.mean_edge = float(np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1).mean())
         self.diagonal = float(np.linalg.norm(np.ptp(X, axis=0)))
-        self.total_mass = float(sim.model.total_mass()) if callable(getattr(sim.model, "total_mass", None)) \
-            else float(np.asarray(sim.model.gravity_mass).sum())
+        self.total_mass = float(sim.model.total_mass)
         dev = sim.device
         self._surf = wp.array(self.surface.astype(np.int32), dtype=wp.int32, device=dev)
         self._diag = wp.array(np.asarray(sim._pattern.diag_index).astype(np.int32), dtype=wp.int32, device=dev)
