@@ -185,3 +185,85 @@ def test_mesh_collider_from_file_and_moving_plane(tmp_path):
         t = sim.time
         assert sim.positions()[:, 1].min() > 0.02 * min(t / 0.2, 1.0)
     assert sim.positions()[:, 1].min() > 0.02
+
+
+SCENE = """
+gravity = [0.0, -9.81, 0.0]
+[mesh]
+generator = "box"
+size = [0.1, 0.1, 0.1]
+cells = [2, 2, 2]
+origin = [0.0, 0.01, 0.0]
+[material]
+model = "stable_neo_hookean"
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+[integrator]
+type = "{integrator}"
+dt = 0.01
+[output]
+fps = 50
+frames = 3
+{collider}
+"""
+
+FLOOR = """[[collider]]
+type = "plane"
+name = "floor"
+point = [0.0, 0.0, 0.0]
+friction = 0.5
+[[collider]]
+type = "sphere"
+name = "pusher"
+center = [0.05, 0.3, 0.05]
+radius = 0.1
+translation = [0.0, 0.1, 0.0]
+"""
+
+
+def _scene(tmp_path, collider, integrator="backward_euler"):
+    from warpfem.scenes import load_scene
+
+    p = tmp_path / "s.toml"
+    p.write_text(SCENE.format(integrator=integrator, collider=collider))
+    return load_scene(p)
+
+
+@pytest.mark.parametrize("collider,where,what", [
+    ('[[collider]]\ntype = "plane"\nfrictoin = 0.2\n', "[[collider]] #1.frictoin", "friction"),
+    ('[[collider]]\ntype = "sphere"\ncenter = [0, 0, 0]\n', "[[collider]] #1.radius", "required"),
+    ('[[collider]]\ntype = "plane"\nradius = 1.0\n', "[[collider]] #1.radius", "not a key of type = 'plane'"),
+    ('[[collider]]\ntype = "cone"\n', "[[collider]] #1.type", "cone"),
+    ('[[collider]]\ntype = "plane"\nfriction = -1.0\n', "[[collider]] #1.friction", ">= 0"),
+    ('[[collider]]\ntype = "box"\nbox_min = [0, 0, 0]\nbox_max = [1, -1, 1]\n', "[[collider]] #1.box_max", "exceed"),
+])
+def test_scene_collider_keys_are_validated(tmp_path, collider, where, what):
+    from warpfem.scenes import SceneError
+
+    with pytest.raises(SceneError) as e:
+        _scene(tmp_path, collider)
+    assert "s.toml" in str(e.value) and where in str(e.value) and what in str(e.value)
+
+
+def test_scene_colliders_refused_by_stiffness_warping_and_intersecting_rejected_at_build(tmp_path):
+    from warpfem.scenes import SceneError
+
+    with pytest.raises(SceneError, match="full-space dynamic integrator"):
+        _scene(tmp_path, FLOOR, integrator="stiffness_warping")
+    s = _scene(tmp_path, '[[collider]]\ntype = "plane"\nname = "slab"\npoint = [0, 0.05, 0]\n')
+    with pytest.raises(SceneError, match=r"\[\[collider\]\] #1.*'slab'"):
+        s.build()
+
+
+def test_scene_with_colliders_writes_their_geometry_to_usd(tmp_path):
+    pytest.importorskip("pxr")
+    from warpfem.io.usd import read_usd_mesh_frames
+
+    run = _scene(tmp_path, FLOOR).build()
+    run.run(usd=str(tmp_path / "o.usda"), stats=str(tmp_path / "o.jsonl"))
+    _, floor = read_usd_mesh_frames(str(tmp_path / "o.usda"), "collider_floor")
+    _, ball = read_usd_mesh_frames(str(tmp_path / "o.usda"), "collider_pusher")
+    assert len(floor) == 4 and np.allclose(floor[0][:, 1], 0.0) and np.allclose(floor[3], floor[0])
+    # the sphere moves 0.1 m over the run (ramp_time default: the whole run, 3 frames)
+    assert np.allclose(ball[3][:, 1] - ball[0][:, 1], 0.1, atol=1e-6)
+    assert run.sim.positions()[:, 1].min() > 0.0
