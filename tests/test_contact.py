@@ -267,3 +267,15 @@ def test_scene_with_colliders_writes_their_geometry_to_usd(tmp_path):
     # the sphere moves 0.1 m over the run (ramp_time default: the whole run, 3 frames)
     assert np.allclose(ball[3][:, 1] - ball[0][:, 1], 0.1, atol=1e-6)
     assert run.sim.positions()[:, 1].min() > 0.0
+
+
+def test_collider_moving_into_the_body_within_a_step_fails_cleanly():
+    from warpfem import SolveFailed
+
+    m = block_model(origin=(0.0, 0.0, 0.0), gravity=(0, 0, 0))
+    hammer = Sphere(center=(0.05, 0.2, 0.05), radius=0.05, translation=(0, -0.2, 0), ramp_time=0.02, name="hammer")
+    sim = Simulator(m, dt=0.01, colliders=[hammer])
+    x0 = sim.positions()
+    with pytest.raises(SolveFailed, match="'hammer'.*moved into the body"):
+        sim.step()
+    assert sim.time == 0.0 and np.array_equal(sim.positions(), x0)
