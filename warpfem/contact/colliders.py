@@ -36,7 +36,8 @@ def _vec3(v, what):
 class Collider:
     """Base class. Args (keyword): ``friction`` (Coulomb mu >= 0), ``dhat`` (contact distance, m;
     None: a tenth of the body's mean surface edge length), ``stiffness`` (barrier kappa, N/m;
-    None: the body's weight under 1 g spread over its surface vertices, per dhat),
+    None: Young's modulus x the mean surface edge, at least the weight under 1 g per surface vertex
+    per dhat),
     ``friction_velocity`` (m/s, below which friction is smoothed into sticking; None: 1e-3 body
     diagonals per second), the motion ``translation``, ``rotation_axis``, ``rotation_angle``
     (degrees), ``rotation_center``, ``ramp_time`` (s; required when it moves), and ``name``."""

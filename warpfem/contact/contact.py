@@ -56,9 +56,16 @@ class ContactSet:
     def defaults(self, c: Collider):
         """(dhat, kappa, eps_v) of a collider with the body-based defaults filled in."""
         dhat = c.dhat if c.dhat is not None else 0.1 * self.mean_edge
-        kappa = c.stiffness if c.stiffness is not None else self.total_mass * 9.81 / (len(self.surface) * dhat)
+        kappa = c.stiffness if c.stiffness is not None else self.default_stiffness(dhat)
         epsv = c.friction_velocity if c.friction_velocity is not None else 1e-3 * self.diagonal
         return dhat, kappa, epsv
+
+    def default_stiffness(self, dhat):
+        """Barrier stiffness kappa (N/m): as stiff as the material over a surface edge (E x mean edge,
+        so an impact is stopped within a fraction of dhat rather than at a float32-unresolvable
+        gap), and at least the weight under 1 g spread over the surface vertices, per dhat."""
+        E = float(getattr(self.sim.model.material, "youngs_modulus", 0.0) or 0.0)
+        return max(E * self.mean_edge, self.total_mass * 9.81 / (len(self.surface) * dhat))
 
     def add(self, collider: Collider):
         if not isinstance(collider, Collider):
