@@ -67,7 +67,7 @@ def _incline_run(mu, theta):
               gravity=(0.0, -G, 0.0))
     n = R[:, 1]
     t = -R[:, 0]  # down the slope
-    sim = Simulator(m, dt=0.01, colliders=[Plane(point=(0, 0, 0), normal=n, friction=mu)], tol=1e-8)
+    sim = Simulator(m, dt=0.01, colliders=[Plane(point=(0, 0, 0), normal=n, friction=mu)])
     Mv = m.lumped_mass
     com_v = []
     for _ in range(50):

@@ -346,7 +346,7 @@ class Simulator(SimulatorState):
         # y := y - y0 (the direction from the feasible start), cut by the step bound in step()
         launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), y, self._s(-1.0), y0, y], device=self.device)
         self._contact_start = y0
-        return ContactForm(self.contact, s, _E_CONTACT)
+        return ContactForm(self.contact, s, _E_CONTACT, xb=xb)
 
     def solve_static(self, *, load_steps: int = 1) -> SolveStats:
         """Quasi-static equilibrium: minimise V(x) - x^T f_ext with the fixed components held.

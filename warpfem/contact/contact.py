@@ -16,6 +16,7 @@ import warp as wp
 
 from warpfem.contact import kernels as CK
 from warpfem.contact.colliders import Collider
+from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 
 log = logging.getLogger(__name__)
@@ -125,6 +126,7 @@ class ContactSet:
         self._w = wp.zeros(m, dtype=V, device=dev)
         self._acc = wp.zeros(4, dtype=wp.float64, device=dev)
         self._x0 = sim.x
+        self._neg_x0 = sim._vec_array(-sim.positions())
         self.set_poses(sim.time, sim.time)
         self._ready = True
 
@@ -140,12 +142,15 @@ class ContactSet:
         self._t1 = wp.array(np.array([p[1] for p in p1], dtype=npt).reshape(-1, 3), dtype=sim._vec, device=dev)
 
     # -- kernel launch --------------------------------------------------------------------------------
-    def _run(self, mode, x, *, scale=1.0, g=None, values=None, acc=None, slot=0, lam=None):
+    def _run(self, mode, x, *, scale=1.0, g=None, values=None, acc=None, slot=0, lam=None, y=None, sy=1.0, dbase=None):
+        """Launch the contact kernel; friction's step displacement is dbase + sy * y (default: x - x_n)."""
         sim = self.sim
+        if y is None:
+            y, sy, dbase = x, 1.0, self._neg_x0
         launch(CK.contact_kernel, len(self.surface), [
             x, self._surf, self.nc, self._kinds, self._R1, self._t1, self._R0, self._t0, self._pa, self._pb,
             self._tri_start, self._tri_count, self._tris, self._kappa, self._dhat, self._mu, self._epsf,
-            self._lam if lam is None else lam, self._nrm, self._w, self._x0, sim._s(STEP_ETA), sim._s(scale), int(mode),
+            self._lam if lam is None else lam, self._nrm, self._w, dbase, y, sim._s(sy), sim._s(STEP_ETA), sim._s(scale), int(mode),
             sim._zero if g is None else g, self._diag, sim._hess_values if values is None else values,
             self._acc if acc is None else acc, int(slot)], sim.device)
 
@@ -173,6 +178,9 @@ class ContactSet:
         self.set_poses(t0, t1)
         self._epsf.assign((self.epsv * dt).astype(sim._np))
         self._x0 = wp.clone(sim.x)
+        self._neg_x0 = sim._vec_array()
+        launch(LK.lincomb_kernel, sim.num_vertices, [sim._s(-1.0), self._x0, sim._s(0.0), self._x0, self._neg_x0],
+               sim.device)
         self._run(CK.MODE_LAG, self._x0)
 
     def barrier_energy(self, x=None) -> float:
@@ -201,17 +209,29 @@ class ContactForm:
     """Barrier + lagged friction of a :class:`ContactSet`, as a term of the potential over y with
     x = x_b + s y (static: x = y, s = 1): gradient s dE/dx, Hessian s^2 d2E/dx2 (vertex-diagonal)."""
 
-    def __init__(self, contact: ContactSet, s, slot):
+    def __init__(self, contact: ContactSet, s, slot, xb=None):
+        """``xb``: the step's x_b (x = x_b + s y); None: x is the unknown itself (y = x, s = 1)."""
         self.contact, self.s, self.slot = contact, float(s), int(slot)
+        self._dbase = None
+        if xb is not None:  # x - x_n = (x_b - x_n) + s y
+            sim = contact.sim
+            self._dbase = sim._vec_array()
+            launch(LK.lincomb_kernel, sim.num_vertices, [sim._s(1.0), xb, sim._s(-1.0), contact._x0, self._dbase],
+                   sim.device)
+
+    def _disp(self, y):
+        if self._dbase is None or y is None:
+            return {}
+        return {"y": y, "sy": self.s, "dbase": self._dbase}
 
     def energy(self, y, x, acc):
-        self.contact._run(CK.MODE_ENERGY, x, acc=acc, slot=self.slot)
+        self.contact._run(CK.MODE_ENERGY, x, acc=acc, slot=self.slot, **self._disp(y))
 
     def gradient(self, y, x, g, acc):
-        self.contact._run(CK.MODE_GRADIENT, x, scale=self.s, g=g, acc=acc, slot=self.slot)
+        self.contact._run(CK.MODE_GRADIENT, x, scale=self.s, g=g, acc=acc, slot=self.slot, **self._disp(y))
 
     def hessian(self, y, x, values):
-        self.contact._run(CK.MODE_HESSIAN, x, scale=self.s * self.s, values=values)
+        self.contact._run(CK.MODE_HESSIAN, x, scale=self.s * self.s, values=values, **self._disp(y))
 
     def max_step(self, x, d, acc):
         """Largest alpha <= 1 with no vertex crossing (or coming closer than STEP_ETA of its distance

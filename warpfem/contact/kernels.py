@@ -22,7 +22,8 @@ and a Hessian that is PSD and orthogonal to n, so the SPD projection of the barr
 kappa (b'' n n^T + b' d2d/dx2) is exactly kappa b'' n n^T (b' <= 0, b'' >= 0), and the convexity
 gives the step bound d(x + a dx) >= d(x) + a n.dx used by ``MODE_MAX_STEP``.
 
-Friction (same paper, lagged): D = mu lambda f0(|u|), u = P (x - x0 - w), P = I - n n^T with the
+Friction (same paper, lagged): D = mu lambda f0(|u|), u = P (x - x_n - w), x - x_n passed as
+x0 + sy * ydisp (x_b - x_n plus s y in a step's potential), P = I - n n^T with the
 normal n and normal force lambda from the start of the step, w the collider's motion at the contact
 point, f0 the C1 smoothing of |u| over eps = eps_v h (static/dynamic transition).
 """
@@ -132,7 +133,7 @@ def friction_f0(y: Any, eps: Any):
 
 @both_precisions(x="v[]", rots="m[]", trans="v[]", rots0="m[]", trans0="v[]", pa="v[]", pb="v[]", tris="v[]",
                  kappa="s[]", dhat="s[]", mu="s[]", epsf="s[]", lam="s[]", nrm="v[]", wdisp="v[]", x0="v[]",
-                 eta="s", scale="s", g="v[]", values="m[]")
+                 ydisp="v[]", sy="s", eta="s", scale="s", g="v[]", values="m[]")
 @wp.kernel
 def contact_kernel(
     x: wp.array(dtype=Any),
@@ -156,6 +157,8 @@ def contact_kernel(
     nrm: wp.array(dtype=Any),
     wdisp: wp.array(dtype=Any),
     x0: wp.array(dtype=Any),
+    ydisp: wp.array(dtype=Any),
+    sy: Any,
     eta: Any,
     scale: Any,
     mode: int,
@@ -244,7 +247,9 @@ def contact_kernel(
             if lm > zero:
                 nv = nrm[p_idx]
                 Pm = wp.identity(3, type(eta)) - wp.outer(nv, nv)
-                u = Pm * (xi - x0[vi] - wdisp[p_idx])
+                # displacement over the step x - x_n = x0 + sy * ydisp (x0 = x_b - x_n, ydisp = y: no
+                # cancellation of positions in float32)
+                u = Pm * (x0[vi] + sy * ydisp[vi] - wdisp[p_idx])
                 y = wp.length(u)
                 eps = epsf[j]
                 c = mu[j] * lm
