@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 DIRECT_MAX_DOFS_CPU = 200_000
 SUPERLU_MAX_DOFS_CPU = 20_000
 SWITCH_ITERATIONS = 250
-SMALL_DIRECT_DOFS_CPU = 6_000  # crossover measured in kernels_bench/bench_auto_crossover.py
+SMALL_DIRECT_DOFS_CPU = 10_000  # crossover measured in kernels_bench/bench_auto_crossover.py
 INITIAL_CHOICES = ("pcg", "size")
 
 
