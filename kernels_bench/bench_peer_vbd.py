@@ -45,6 +45,8 @@ import warnings
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # as in bench_kernels.py
     os.environ.setdefault(_var, "1")
 
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # this checkout's warpfem
+
 import numpy as np  # noqa: E402
 import warp as wp  # noqa: E402
 
