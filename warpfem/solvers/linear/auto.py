@@ -78,6 +78,7 @@ class AutoSolver(LinearSolver):
     """
 
     name = "auto"
+    eager_inv_diag = False  # the inner solvers keep their own (``self.pcg.inv_diag``, ``self.direct.inv_diag``)
 
     def __init__(self, pattern, *, vec_type, scalar, switch_iterations: int = SWITCH_ITERATIONS,
                  check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto", positions=None,

@@ -26,6 +26,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import linalg as K
+from warpfem.kernels.generic import launch
 
 log = logging.getLogger(__name__)
 
@@ -122,8 +123,7 @@ class LinearSolver:
     # -- shared helpers ---------------------------------------------------------------------------
     def _setup_inv_diag(self, values, mask):
         pt = self.pattern
-        wp.launch(K.block_jacobi_setup_kernel, dim=pt.num_rows,
-                  inputs=[pt.offsets, pt.columns, values, mask, self.inv_diag], device=self.device)
+        launch(K.block_jacobi_setup_kernel, pt.num_rows, [pt.offsets, pt.columns, values, mask, self.inv_diag], self.device)
 
     def dot(self, a, b) -> float:
         """a . b reduced in float64, read on the host (one host sync)."""
