@@ -1,9 +1,10 @@
-"""Peer comparison: warpfem Newton backward Euler vs the ``newton`` engine's VBD soft-body solver.
+"""Peer comparison: warpfem (backward Euler, BDF2, Newmark; pcg / direct / auto) vs the ``newton`` engine's VBD.
 
 The same cantilever in both, on the same device in the same run: the `make demo` beam (1 m x 0.2 m
-x 0.2 m, 20x2x2 cells split into 6 tets each: 480 tets, 189 vertices), stable neo-Hookean
-E = 1e6 Pa, nu = 0.3, density 1000 kg/m^3 (total mass 40 kg), gravity 9.81 m/s^2 along -z, every
-vertex on the face x = 0 clamped, no damping, released from rest at t = 0.
+x 0.2 m, 20x2x2 cells split into 6 tets each: 480 tets, 189 vertices), stable neo-Hookean,
+density 1000 kg/m^3 (total mass 40 kg), gravity 9.81 m/s^2 along -z, every vertex on the face
+x = 0 clamped, no damping, released from rest at t = 0; three materials (``--beams``): soft
+(E = 1e6 Pa, nu = 0.3), stiff (E = 1e8, nu = 0.3) and nearly incompressible (E = 1e6, nu = 0.48).
 
 Both codes use the same energy: newton's VBD tet energy is the stable neo-Hookean of Smith, de Goes
 & Kim (2018, sec. 3.4) without the log term, reparametrised from the Lame parameters it is given
@@ -17,16 +18,19 @@ works in float32 only.
 
 Quantity: the mean z displacement of the 21 vertices on the tip face x = 1, sampled every 1/60 s
 for ``--duration`` seconds. Error = RMS over the samples of (tip - tip_ref), divided by the peak
-|tip_ref| (the largest tip displacement of the reference). Reference: warpfem float64, tol = cg_tol
-= 1e-8 (1e-6 with --quick), run at dt_r = 1/60 / ``--ref-substeps`` and at 2 dt_r, Richardson-extrapolated
-(x_ref = 2 x(dt_r) - x(2 dt_r): backward Euler is first order, so this is second order); how far the
-dt_r run itself is from it is printed (``self_error``) as a scale for the reference's uncertainty. Time: wall-clock
-seconds per simulated second (``wp.synchronize_device`` before and after; every kernel is compiled
-by a warm-up run first). Ratios: for every point on warpfem's Pareto frontier (time, error), the
-best VBD error reached within the same time budget ("error ratio at equal time") and the least VBD
-time that reaches the same error ("time ratio at equal error"), where VBD gets there at all.
+|tip_ref| (the largest tip displacement of the reference). Reference: warpfem Newmark (second
+order), float64, tol = cg_tol = 1e-8 (1e-6 with --quick), direct solves, at dt_r = 1/60 /
+``--ref-substeps``; its own error is estimated from the run at 2 dt_r as |x(dt_r) - x(2 dt_r)| / 3
+(Richardson's estimate for a second-order scheme) and printed. Time: seconds per simulated second,
+both wall-clock and this process's CPU time (``wp.synchronize_device`` before and after; every
+kernel compiled by a warm-up run first); the targets and frontiers use CPU time unless ``--time
+wall`` (on a machine shared with other jobs wall time depends on their load; both codes run
+single-threaded on the CPU). Targets, per beam: within the time of VBD's default setting (dt 1/60,
+10 iterations) warpfem's error is >= 10x lower (aim 100x), and for every VBD point warpfem reaches
+its error in no more time.
 
-    .venv/bin/python kernels_bench/bench_peer_vbd.py [--device cpu] [--quick] [--json PATH] [--markdown PATH]
+    .venv/bin/python kernels_bench/bench_peer_vbd.py [--device cpu] [--quick] [--beams soft,stiff,incompressible]
+        [--time cpu|wall] [--json PATH] [--markdown PATH]
 
 Skips with a message (exit code 0) when ``newton`` is not installed (``pip install newton`` or
 ``pip install -e .[peer]``).

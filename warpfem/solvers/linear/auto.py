@@ -8,7 +8,9 @@ Rule (measurements in docs/linear_solvers.md):
 * CPU, small systems (at most SMALL_DIRECT_DOFS_CPU unknowns): ``direct`` from the first solve,
   when the solver is built by a simulator (``initial="size"``, the simulators' default): one
   factorisation costs less than the launches of even a few dozen PCG iterations (measured with
-  kernels_bench/bench_auto_crossover.py).
+  kernels_bench/bench_auto_crossover.py). If a factorisation finds the matrix not positive
+  definite (an unprojected Hessian, a singular static system), that system and all later ones go
+  to PCG.
 * CPU, larger systems: start with ``pcg``; when a solve needs more than ``switch_iterations`` (250) iterations,
   every later ``prepare`` uses ``direct`` instead (its symbolic analysis is done at that moment,
   once), provided the system has at most DIRECT_MAX_DOFS_CPU unknowns (PARDISO installed) or
@@ -109,7 +111,16 @@ class AutoSolver(LinearSolver):
             from warpfem.solvers.linear.direct import DirectSolver
 
             self.direct = DirectSolver(self.pattern, vec_type=self.vec_type, scalar=self.scalar, backend=self._backend)
-        (self.direct if self.active == "direct" else self.pcg).prepare(values, mask)
+        if self.active == "direct":
+            self.direct.prepare(values, mask)
+            if self.direct._failure:
+                # not positive definite (an unprojected Hessian, a singular static system): PCG
+                # handles these (it stops at negative curvature with a descent direction), so this
+                # and every later system go to PCG; no switching back
+                log.info("linear solver auto: %s; PCG from now on", self.direct._failure)
+                self.active, self._may_switch = "pcg", False
+        if self.active == "pcg":
+            self.pcg.prepare(values, mask)
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         if self.active == "direct":
