@@ -49,6 +49,7 @@ def _type_key(a):
 
 
 _LAUNCH_CACHE: dict = {}
+_IMMUTABLE = (int, float, bool)
 _LAUNCH_CACHE_SIZE = 256
 
 
@@ -77,10 +78,12 @@ def launch(kernel, dim, inputs, device):
         cmd, module, exec_key, last = entry
         # valid while the module was not modified (new overloads) or reloaded since it was recorded
         if module.hashers and module.execs.get(exec_key) is cmd.module_exec:
-            # re-pack only the arguments that are not the very objects of the last launch (the
-            # recorded launch holds those alive, so an identical object is an identical argument)
+            # re-pack only the arguments that are not the very objects of the last launch: arrays
+            # (the recorded launch holds them alive; what is packed is their pointer and shape) and
+            # immutable Python scalars. Anything else (e.g. a struct instance, which may have been
+            # changed in place) is always re-packed.
             for i, v in enumerate(inputs):
-                if v is not last[i]:
+                if v is not last[i] or not (isinstance(v, wp.array) or type(v) in _IMMUTABLE):
                     cmd.set_param_at_index(i, v)
                     last[i] = v
             cmd.launch()
