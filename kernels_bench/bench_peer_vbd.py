@@ -354,7 +354,7 @@ def main(argv=None):
 def markdown(res):
     L = [f"### Peer comparison: warpfem vs newton {res['newton_version']} VBD ({res['device']}, load {res['load']:.1f})", "",
          f"Cantilever {res['scene']['tets']} tets, {res['scene']['duration_s']:g} s simulated, three materials. Error = RMS over "
-         "frames (1/60 s) of the tip-displacement error / peak tip displacement of the reference. Time = wall seconds per "
+         "frames (1/60 s) of the tip-displacement error / peak tip displacement of the reference. Time = seconds per "
          f"simulated second ({'CPU seconds of the process' if res['time'].startswith('cpu') else 'wall seconds'} in the "
          f"targets and frontiers; both in the tables). Whole run {res['seconds']:.0f} s wall.", "",
          "| beam | VBD default (dt 1/60, 10 it.): time, error | warpfem best within that time | its error | error ratio | "
