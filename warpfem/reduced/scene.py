@@ -13,12 +13,16 @@ enters as a prescribed displacement field (``warpfem.reduced.lifting``).
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
+import sys
 import time
 
 import numpy as np
 
-__all__ = ["build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
+logger = logging.getLogger(__name__)
+
+__all__ = ["check_validation_error", "build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
            "scene_settings"]
 
 _FULL_RUN = [False]  # while True, build_reduced_simulator hands back the full simulator (training runs)
@@ -53,7 +57,7 @@ def scene_settings(scene) -> dict:
     return {"modes": int(s["modes"]), "modal_derivatives": bool(s["modal_derivatives"]),
             "cubature_tolerance": float(s["cubature_tolerance"]), "max_cubature_points": int(s["max_cubature_points"]),
             "seed": int(s["seed"]), "pose_source": _POSE_SOURCE[s["training"]],
-            "load_response": bool(s.get("load_response", False))}
+            "load_response": bool(s.get("load_response", False)), "pod_modes": int(s.get("pod_modes") or 0)}
 
 
 _POSE_SOURCE = {"mixed": "random+snapshots", "snapshots": "snapshots", "random": "random"}
@@ -84,7 +88,7 @@ def _stale(scene, sub) -> list:
     have = sub.settings
     out = []
     for k, v in want.items():
-        got = have.get(k, {"pose_source": "random", "load_response": False}.get(k))
+        got = have.get(k, {"pose_source": "random", "load_response": False, "pod_modes": 0}.get(k))
         if got != v:
             out.append(f"{k}: cache {got!r} vs scene {v!r}")
     if want["pose_source"] != "random":
@@ -130,11 +134,35 @@ def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
         from warpfem.scenes import INTEGRATORS
 
         return INTEGRATORS["backward_euler"].build(scene, model, device=device, precision=precision)
-    sub, _ = _load_checked(scene, model)
+    sub, path = _load_checked(scene, model)
+    check_validation_error(scene, sub, path)
+    return _reduced_simulator(scene, model, sub, device=device, precision=precision)
+
+
+def _reduced_simulator(scene, model, sub, *, device="cpu", precision="float64"):
+    from warpfem.reduced.simulator import ReducedSimulator
+
     o = scene.spec.integrator
     return ReducedSimulator(model, sub, device=device, precision=precision, dt=o["dt"], damping_mass=o["damping_mass"],
                             damping_stiffness=o["damping_stiffness"], require_convergence=o["require_convergence"],
                             tol=o["tol"], atol=o["atol"], max_iters=o["max_iters"], project_hessian=o["project_hessian"])
+
+
+def check_validation_error(scene, sub, path=None) -> str | None:
+    """Warn loudly (a ``logging`` warning and a line on stderr) when the subspace's cubature
+    validation error (force error on poses not used in training) is above the scene's
+    ``[subspace] max_validation_error``. Returns the message, or None when within the threshold
+    (or no threshold is set)."""
+    limit = scene.spec.subspace.get("max_validation_error")
+    err = float(sub.cubature.validation_error)
+    if limit is None or not (np.isnan(err) or err > limit):
+        return None
+    msg = (f"{_where(scene)}: reduced run NOT TRUSTED: the subspace's validation error {err:.3g} is above "
+           f"[subspace] max_validation_error = {limit:g} (cache {path or subspace_cache_path(scene)}); lower "
+           "cubature_tolerance, add modes / pod_modes and retrain, or check the run against a full one")
+    logger.warning(msg)
+    print(f"warpfem: warning: {msg}", file=sys.stderr, flush=True)
+    return msg
 
 
 def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progress=None):
@@ -170,7 +198,7 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
     def targets_at(frac):
         return [handle_targets(r0, h, frac) for r0, h in zip(rest, sp.handle)]
 
-    snapshots, t_snap = None, None
+    snapshots, t_snap, full_steps = None, None, 0
     if s["training"] in ("snapshots", "mixed"):
         frames = int(s["training_frames"] or sp.output["frames"])
         if frames < 4:
@@ -178,23 +206,79 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
         t0 = time.perf_counter()
         snapshots = [model.rest_positions.copy()]
         for k in range(frames):
-            run.step_frame(total_frames=frames)
+            full_steps += run.step_frame(total_frames=frames).steps
             snapshots.append(run.sim.positions())
             if progress is not None:
                 progress(k + 1, frames)
         t_snap = time.perf_counter() - t0
+    else:  # no training run: time one full step for the predicted speed-up
+        t0 = time.perf_counter()
+        run.sim.step()
+        t_snap, full_steps = time.perf_counter() - t0, 1
     sub = train_subspace(model, modes=s["modes"], modal_derivatives=s["modal_derivatives"],
                          cubature_tolerance=s["cubature_tolerance"], max_cubature_points=s["max_cubature_points"],
                          seed=s["seed"], cache=path, retrain=True, num_training_poses=s["training_poses"],
                          num_validation_poses=s["validation_poses"], snapshots=snapshots,
                          pose_source=_POSE_SOURCE[s["training"]],
                          handles=sel, handle_targets_at=targets_at if sel else None,
-                         load_response=bool(s.get("load_response", False)))
-    if t_snap is not None:
-        sub.report["snapshot_seconds"] = t_snap
-        sub.report["snapshot_frames"] = len(snapshots) - 1
-        sub.save(path)
+                         load_response=bool(s.get("load_response", False)), pod_modes=int(s.get("pod_modes") or 0))
+    rep = sub.report
+    if snapshots is not None:
+        rep["snapshot_seconds"] = t_snap
+        rep["snapshot_frames"] = len(snapshots) - 1
+    rep["full_steps"] = full_steps
+    rep["full_step_seconds"] = t_snap / max(full_steps, 1)
+    _replay(scene, run, sub, snapshots, device=device, precision=precision)
+    rep["training_seconds"] = (t_snap + rep.get("basis_seconds", 0.0) + rep.get("cubature_seconds", 0.0)
+                               + rep.get("replay_seconds", 0.0))
+    red, full = rep["reduced_step_seconds"], rep["full_step_seconds"]
+    rep["predicted_speedup"] = full / max(red, 1e-12)
+    per_frame = (full - red) * int(sp.integrator["substeps"])
+    rep["break_even_frames"] = (int(np.ceil(rep["training_seconds"] / per_frame)) if per_frame > 0 else None)
+    sub.save(path)
     return sub
+
+
+def _replay(scene, run, sub, snapshots, *, device, precision):
+    """Run the reduced simulator over the training run (or a few frames without one) on the same
+    SceneRun driver: the reduced step time (for the predicted speed-up) and, with snapshots, the
+    in-sample trajectory error against the full training run (tip: the free vertex that moved most;
+    relative to its peak displacement; RMS relative to the bounding-box diagonal)."""
+    import warnings
+
+    model = run.model
+    rsim = _reduced_simulator(scene, model, sub, device=device, precision=precision)
+    frames = len(snapshots) - 1 if snapshots is not None else min(int(scene.spec.output["frames"]), 4)
+    run.sim, run.frame = rsim, 0
+    xs = [model.rest_positions.copy()]
+    steps, t = 0, 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # non-converged reduced steps show in the error
+        for _ in range(frames):
+            fs = run.step_frame(total_frames=frames)
+            steps += fs.steps
+            t += fs.step_seconds
+            xs.append(rsim.positions())
+    rep = sub.report
+    rep["replay_seconds"] = t
+    rep["reduced_step_seconds"] = t / max(steps, 1)
+    if snapshots is not None:
+        rep.update(trajectory_errors(model, np.array(snapshots), np.array(xs)))
+
+
+def trajectory_errors(model, x_full, x_red) -> dict:
+    """Trajectory errors of x_red against x_full ((T, n, 3) each): ``tip_error`` = max over frames
+    of |x_red - x_full| at the free vertex that moved most in x_full, over its peak displacement;
+    ``rms_error`` = max over frames of the RMS vertex error over the bounding-box diagonal."""
+    X = model.rest_positions
+    size = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    disp = np.linalg.norm(x_full - X, axis=2)
+    free = ~np.asarray(model.fixed).all(axis=1)
+    tip = int(np.argmax(disp.max(axis=0) * free))
+    peak = max(float(disp[:, tip].max()), 1e-300)
+    e = np.linalg.norm(x_red - x_full, axis=2)
+    return {"replay_tip_error": float(e[:, tip].max() / peak),
+            "replay_rms_error": float(np.sqrt((e ** 2).mean(axis=1)).max() / size)}
 
 
 def describe_subspace(scene) -> str:
