@@ -211,10 +211,10 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
             if progress is not None:
                 progress(k + 1, frames)
         t_snap = time.perf_counter() - t0
-    else:  # no training run: time one full step for the predicted speed-up
+    else:  # no training run: time one full frame of the scene for the predicted speed-up
         t0 = time.perf_counter()
-        run.sim.step()
-        t_snap, full_steps = time.perf_counter() - t0, 1
+        full_steps = run.step_frame().steps
+        t_snap = time.perf_counter() - t0
     sub = train_subspace(model, modes=s["modes"], modal_derivatives=s["modal_derivatives"],
                          cubature_tolerance=s["cubature_tolerance"], max_cubature_points=s["max_cubature_points"],
                          seed=s["seed"], cache=path, retrain=True, num_training_poses=s["training_poses"],
