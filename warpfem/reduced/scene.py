@@ -92,14 +92,26 @@ def _stale(scene, sub) -> list:
         if got != v:
             out.append(f"{k}: cache {got!r} vs scene {v!r}")
     if want["pose_source"] != "random":
-        frames = int(scene.spec.subspace["training_frames"] or scene.spec.output["frames"])
-        if have.get("snapshots") != frames + 1:
-            out.append(f"training frames: cache {(have.get('snapshots') or 1) - 1} vs scene {frames}")
+        count = _training_snapshot_count(scene)
+        if have.get("snapshots") != count + 1:
+            out.append(f"training snapshots: cache {(have.get('snapshots') or 1) - 1} vs scene {count} "
+                       "(training_frames / training_dt_scale changed)")
     if want["pose_source"] != "snapshots":
         for k, key in (("num_training_poses", "training_poses"), ("num_validation_poses", "validation_poses")):
             if have.get(k) != scene.spec.subspace[key]:
                 out.append(f"{key}: cache {have.get(k)!r} vs scene {scene.spec.subspace[key]!r}")
     return out
+
+
+def _training_snapshot_count(scene) -> int:
+    """Snapshots of the full training run (rest excluded): one per frame, or with
+    ``training_dt_scale`` = k > 1 one per coarse step (frames x substeps / k steps)."""
+    s = scene.spec.subspace
+    frames = int(s["training_frames"] or scene.spec.output["frames"])
+    k = int(s.get("training_dt_scale") or 1)
+    if k == 1:
+        return frames
+    return max(1, int(round(frames * int(scene.spec.integrator["substeps"]) / k)))
 
 
 def _load_checked(scene, model):
@@ -204,12 +216,7 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
         if frames < 4:
             raise _scene_error(scene, "[subspace].training_frames", f"snapshot training needs >= 4 frames, got {frames}")
         t0 = time.perf_counter()
-        snapshots = [model.rest_positions.copy()]
-        for k in range(frames):
-            full_steps += run.step_frame(total_frames=frames).steps
-            snapshots.append(run.sim.positions())
-            if progress is not None:
-                progress(k + 1, frames)
+        snapshots, full_steps, _ = _drive(scene, run, frames, progress)
         t_snap = time.perf_counter() - t0
     else:  # no training run: time one full frame of the scene for the predicted speed-up
         t0 = time.perf_counter()
@@ -239,26 +246,65 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
     return sub
 
 
+def _drive(scene, run, frames, progress=None):
+    """Run ``run.sim`` over ``frames`` frames of the scene, handles ramped over those frames.
+    Positions after every frame, or with ``[subspace] training_dt_scale`` = k > 1 after every step
+    of k x dt (the same simulated time in fewer steps). Returns (positions list with the rest pose
+    first, steps, seconds spent stepping)."""
+    sp = scene.spec
+    sim = run.sim
+    xs = [run.model.rest_positions.copy()]
+    steps, seconds = 0, 0.0
+    scale = int(sp.subspace.get("training_dt_scale") or 1)
+    if scale == 1:
+        for k in range(frames):
+            fs = run.step_frame(total_frames=frames)
+            steps += fs.steps
+            seconds += fs.step_seconds
+            xs.append(sim.positions())
+            if progress is not None:
+                progress(k + 1, frames)
+        return xs, steps, seconds
+    sim.dt = float(sp.integrator["dt"]) * scale
+    count = _training_snapshot_count(scene)
+    duration = frames / float(sp.output["fps"])
+    for k in range(count):
+        t_next = sim.time + sim.dt
+        run._set_handles(lambda h, t=t_next: t / (h["ramp_time"] or duration))
+        t0 = time.perf_counter()
+        sim.step()
+        seconds += time.perf_counter() - t0
+        steps += 1
+        xs.append(sim.positions())
+        if progress is not None:
+            progress(k + 1, count)
+    return xs, steps, seconds
+
+
 def _replay(scene, run, sub, snapshots, *, device, precision):
-    """Run the reduced simulator over the training run (or a few frames without one) on the same
-    SceneRun driver: the reduced step time (for the predicted speed-up) and, with snapshots, the
-    in-sample trajectory error against the full training run (tip: the free vertex that moved most;
-    relative to its peak displacement; RMS relative to the bounding-box diagonal)."""
+    """Run the reduced simulator over the training run (same frames and step; or a few frames
+    without one) on the same SceneRun driver: the reduced step time (for the predicted speed-up)
+    and, with snapshots, the in-sample trajectory error against the full training run (tip: the
+    free vertex that moved most; relative to its peak displacement; RMS relative to the
+    bounding-box diagonal)."""
     import warnings
 
     model = run.model
     rsim = _reduced_simulator(scene, model, sub, device=device, precision=precision)
-    frames = len(snapshots) - 1 if snapshots is not None else min(int(scene.spec.output["frames"]), 4)
+    s = scene.spec.subspace
+    frames = int(s["training_frames"] or scene.spec.output["frames"]) if snapshots is not None \
+        else min(int(scene.spec.output["frames"]), 4)
     run.sim, run.frame = rsim, 0
-    xs = [model.rest_positions.copy()]
-    steps, t = 0, 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # non-converged reduced steps show in the error
-        for _ in range(frames):
-            fs = run.step_frame(total_frames=frames)
-            steps += fs.steps
-            t += fs.step_seconds
-            xs.append(rsim.positions())
+        if snapshots is None:
+            xs, steps, t = [], 0, 0.0
+            for _ in range(frames):
+                fs = run.step_frame(total_frames=frames)
+                steps += fs.steps
+                t += fs.step_seconds
+        else:
+            xs, steps, t = _drive(scene, run, frames)
     rep = sub.report
     rep["replay_seconds"] = t
     rep["reduced_step_seconds"] = t / max(steps, 1)

@@ -185,6 +185,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "pod_modes": Key("int", default=0, check=_non_negative,
                          doc="extra basis columns from the training run: mass-weighted POD of its displacements "
                              "(r = modes + pod_modes; needs training 'snapshots' or 'mixed')"),
+        "training_dt_scale": Key("int", default=1, check=_positive,
+                                 doc="the full training run steps dt x this (same simulated time, fewer full steps; "
+                                     "snapshots per step)"),
         "max_validation_error": Key("float", default=None, check=_unit_interval,
                                     doc="`warpfem run` warns (log + stderr) when the cache's cubature validation "
                                         "error is above this"),
