@@ -77,20 +77,30 @@ class CubatureForces:
         self._force = wp.zeros(r, dtype=self._s, device=dev)
         self._K = wp.zeros((r, r), dtype=self._s, device=dev)
         self._npdt = npdt
+        self._cmds = {}
 
     def evaluate(self, q, *, hessian: bool = False, project: bool = True):
         """(energy J, force (r,), stiffness (r, r) or None) at q, float64 numpy."""
         self._q.assign(np.asarray(q, dtype=self._npdt))
         wh = int(bool(hessian))
-        wp.launch(RK.cubature_element_kernel, dim=self.c,
-                  inputs=[self.U, self._q, self.elements, self.cub_element, self.cub_weight, self.dNdX, self.kind,
-                          self.mu, self.lam, wh, int(bool(project)), self._energy, self._f, self._H], device=self.device)
+        # the launches are recorded once per (hessian, project) and replayed: the arrays never change
+        # identity, and resolving a generic kernel's arguments costs more than the kernel on the CPU
+        key = (wh, int(bool(project)))
+        cmds = self._cmds.get(key)
+        if cmds is None:
+            cmds = self._cmds[key] = (
+                wp.launch(RK.cubature_element_kernel, dim=self.c,
+                          inputs=[self.U, self._q, self.elements, self.cub_element, self.cub_weight, self.dNdX,
+                                  self.kind, self.mu, self.lam, wh, key[1], self._energy, self._f, self._H],
+                          device=self.device, record_cmd=True),
+                wp.launch(RK.cubature_project_kernel, dim=(self.c, self.r),
+                          inputs=[self.U, self.elements, self.cub_element, self._f, self._H, wh, self._force, self._K],
+                          device=self.device, record_cmd=True))
+        cmds[0].launch()
         self._force.zero_()
         if hessian:
             self._K.zero_()
-        wp.launch(RK.cubature_project_kernel, dim=(self.c, self.r),
-                  inputs=[self.U, self.elements, self.cub_element, self._f, self._H, wh, self._force, self._K],
-                  device=self.device)
+        cmds[1].launch()
         E = float(self._energy.numpy().astype(np.float64).sum())
         f = self._force.numpy().astype(np.float64)
         K = self._K.numpy().astype(np.float64) if hessian else None
