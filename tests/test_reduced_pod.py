@@ -221,3 +221,23 @@ def test_ninety_degree_handle_rotation(tmp_path, monkeypatch):
     print("3/4-span error / peak, 90-degree handle rotation (pod 0, pod 8):", errs)
     assert errs[0] > 0.10  # the stated limit of the linear lifting with modal columns only
     assert errs[8] < 0.02  # stated: within 2 % with POD columns from the training run
+
+
+def test_coarse_training_run(tmp_path, monkeypatch):
+    """training_dt_scale = 2: the training run covers the same 8 frames in 4 full steps of 2 dt
+    (one snapshot per step); changing it makes the cache stale, naming what changed."""
+    monkeypatch.chdir(tmp_path)
+    sub = "[subspace]\nmodes = 6\npod_modes = 3\ntraining_frames = 8\ntraining_dt_scale = 2\nmax_cubature_points = 48\n"
+    path = _write(tmp_path, "c", subspace=sub)
+    assert main(["train", path, "--quiet"]) == 0
+    with np.load(tmp_path / "c.subspace.npz") as z:
+        import json
+
+        meta = json.loads(str(z["meta"]))
+    assert meta["report"]["full_steps"] == 4 and meta["report"]["snapshot_frames"] == 4
+    assert meta["settings"]["snapshots"] == 5 and meta["report"]["pod_modes"] == 3
+    load_scene(path).build()  # up to date
+    text = open(path).read()
+    open(path, "w").write(text.replace("training_dt_scale = 2", "training_dt_scale = 1"))
+    with pytest.raises(SceneError, match=r"training snapshots: cache 4 vs scene 8"):
+        load_scene(path).build()
