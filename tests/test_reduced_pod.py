@@ -170,6 +170,9 @@ def test_train_reports_validation_cost_speedup_and_run_warns_above_threshold(tmp
     err = capsys.readouterr().err
     assert "warpfem: warning:" in err and "NOT TRUSTED" in err and "max_validation_error = 1e-09" in err
     assert any(r.levelno == logging.WARNING and "max_validation_error" in r.getMessage() for r in caplog.records)
+    assert main(["describe", path]) == 0
+    desc = capsys.readouterr().out
+    assert "r = 6 + 4 POD" in desc and "not trusted" in desc and "predicted" in desc
 
 
 def test_schema_checks_pod_and_threshold(tmp_path):

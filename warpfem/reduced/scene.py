@@ -331,7 +331,9 @@ def describe_subspace(scene) -> str:
     """Lines for ``warpfem describe``: reduced settings and, when cached, r and cubature points."""
     s = scene.spec.subspace
     path = subspace_cache_path(scene)
-    lines = [f"reduced: [subspace] r = {s['modes']} (modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
+    pod = int(s.get("pod_modes") or 0)
+    lines = [f"reduced: [subspace] r = {s['modes']}{f' + {pod} POD' if pod else ''} "
+             f"(modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
              f"cubature tolerance {s['cubature_tolerance']:g}, at most {s['max_cubature_points']} points, "
              f"training {s['training']}"]
     if scene.integrator_type != "backward_euler":
@@ -350,7 +352,13 @@ def describe_subspace(scene) -> str:
         lines.append(f"  cache {path}: r = {r}, {pts} cubature points of {rep.get('num_elements', '?')} elements, "
                      f"training error {rep.get('training_error', float('nan')):.3g}, validation error "
                      f"{rep.get('validation_error', float('nan')):.3g}"
-                     + (f", {rep['handles']} handle(s)" if rep.get("handles") else ""))
+                     + (f", {rep['handles']} handle(s)" if rep.get("handles") else "")
+                     + (f"; predicted {rep['predicted_speedup']:.0f}x faster per step, cheaper than a full run "
+                        f"beyond {rep['break_even_frames']} frames" if rep.get("break_even_frames") else ""))
+        limit = s.get("max_validation_error")
+        if limit is not None and not rep.get("validation_error", 0.0) <= limit:
+            lines.append(f"  WARNING: validation error above [subspace] max_validation_error = {limit:g}: "
+                         "the reduced run is not trusted")
         lines.append("  the run is reduced (x = X + U q, cubature forces); `warpfem run` checks the cache against "
                      "the mesh, material, fixed set and handles")
     except Exception as e:  # noqa: BLE001 - describe must not fail on a bad cache
