@@ -28,6 +28,13 @@ peak tip displacement of the full run (tip: mean of the beam's end face / the bu
         [--bunny-steps 12] [--device cpu] [--poses random,snapshots,random+snapshots] [--no-load-response]
         [--exact-cubature] [--machine "cpu, 2 cores, shared/loaded machine"] [--out kernels_bench/results/reduced]
 
+``--scenes thin_cantilever,octopus,bunny`` measures example scenes instead (their own loads,
+handles, integrator and step): one full reference run, one full training run (``warpfem train``'s,
+``--training-dt-scale`` for coarse steps) and, per ``--mixes modes:pod_modes`` and ``--scene-tols``,
+a basis with POD columns of the training run, its cubature and a reduced run, with the floor (best
+mass-weighted fit of the full run in the span), training cost and break-even frames. Writes
+``<out>_scene_<name>.json`` / ``.md``.
+
 Writes ``<out>_<object>.json`` and ``.md`` (and prints the markdown). The device is named in the
 output; on the project's CI machine it is "cpu, 2 cores, shared/loaded machine".
 """
@@ -211,7 +218,7 @@ def _scene_full_run(scene, frames, total):
 
 def run_scene(key, args):
     from warpfem.reduced import train_subspace
-    from warpfem.reduced.basis import projection_error, snapshot_displacements
+    from warpfem.reduced.basis import snapshot_displacements
     from warpfem.reduced.scene import _reduced_simulator, scene_handles
     from warpfem.scenes import handle_targets, load_scene
 
@@ -363,8 +370,7 @@ def main():
     warnings.simplefilter("ignore", RuntimeWarning)
     if args.scenes:
         for key in args.scenes.split(","):
-            rows = run_scene(key, args)
-            print(rows and "", flush=True)
+            run_scene(key, args)
         return
     for key in args.objects.split(","):
         run_object(key, args)

@@ -2,7 +2,6 @@
 large handle rotations in reduced runs."""
 
 import logging
-import os
 import textwrap
 import warnings
 
