@@ -222,10 +222,16 @@ def run_scene(key, args):
     from warpfem.reduced.scene import _reduced_simulator, scene_handles
     from warpfem.scenes import handle_targets, load_scene
 
-    fname, N, T = SCENES[key]
+    if key.endswith(".toml"):  # any scene file: --scene-frames and --scene-training-frames give N and T
+        fname, N, T = key, 0, 0
+        scene = load_scene(key)
+        key = scene.name
+        SCENES[key] = (os.path.basename(fname), 0, 0)
+    else:
+        fname, N, T = SCENES[key]
+        scene = load_scene(os.path.join(HERE, "..", "examples", "scenes", fname))
     N = args.scene_frames or N
     T = args.scene_training_frames or T
-    scene = load_scene(os.path.join(HERE, "..", "examples", "scenes", fname))
     scene.spec.surface = None  # the render surface is not what is measured
     spec_frames = int(scene.spec.output["frames"])
     print(f"# {key}: full reference run ({N} frames, ramps over {spec_frames}) ...", flush=True)
