@@ -46,7 +46,7 @@ import numpy as np
 
 from warpfem.scenes.schema import read_toml
 
-__all__ = ["TradeoffConfig", "TradeoffGrid", "GridError", "StudyResult", "ConfigResult", "builtin_grid",
+__all__ = ["TruthSpec", "SerialExecutor", "run_job", "work_proxy", "TradeoffConfig", "TradeoffGrid", "GridError", "StudyResult", "ConfigResult", "builtin_grid",
            "load_grid", "pareto_front", "run_study", "load_study", "format_table", "plot_pareto",
            "QUANTITIES", "SCHEMA_VERSION", "scene_document", "set_quantity", "format_markdown"]
 
@@ -82,6 +82,7 @@ class TradeoffConfig:
     element: str | None = None
     subspace: tuple | None = None  # sorted (key, value) pairs (hashable); see subspace_dict()
     max_cg_iters: int | None = None
+    refine: int | None = None  # box generator: [mesh].cells multiplied by this (spatial refinement)
 
     def subspace_dict(self) -> dict | None:
         return None if self.subspace is None else dict(self.subspace)
@@ -116,7 +117,7 @@ class TradeoffConfig:
             v = getattr(self, k)
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v < 1):
                 raise GridError(f"{where}.{k}: must be a number in (0, 1), got {v!r}")
-        for k in ("max_iters", "substeps", "max_cg_iters"):
+        for k in ("max_iters", "substeps", "max_cg_iters", "refine"):
             v = getattr(self, k)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise GridError(f"{where}.{k}: must be an integer >= 1, got {v!r}")
@@ -137,6 +138,8 @@ def _auto_name(d: dict) -> str:
         parts.append({"stiffness_warping": "warping", "backward_euler": "newton"}.get(d["integrator"], d["integrator"]))
     if d.get("element"):
         parts.append(d["element"])
+    if d.get("refine") not in (None, 1):
+        parts.append(f"cells x{d['refine']}")
     sub = d.get("subspace")
     if sub is not None:
         s = dict(sub)
@@ -151,15 +154,54 @@ def _cfg(**kw) -> TradeoffConfig:
     return TradeoffConfig(**kw)
 
 
+@dataclass(frozen=True)
+class TruthSpec:
+    """The converged reference ("truth") of a study.
+
+    element: the higher-order element of the reference mesh (None: tet10 for a tet scene, hex27 for
+        a hex scene). refine: the box generator's cells multiplied by this (>= 2 also runs the
+        same element at half of it, showing the space convergence). substeps: the finest time step
+        of the ladder S, S/2, S/4 (None: the grid reference's substeps); the reference trajectory is
+        the Richardson extrapolation 2 x(S) - x(S/2). The solver settings are the grid's reference."""
+
+    element: str | None = None
+    refine: int = 2
+    substeps: int | None = None
+
+    def as_dict(self) -> dict:
+        return {"element": self.element, "refine": self.refine, "substeps": self.substeps}
+
+    @classmethod
+    def from_dict(cls, d: dict, *, where: str = "truth") -> "TruthSpec":
+        from warpfem.scenes import ELEMENTS
+
+        bad = sorted(set(d) - {"element", "refine", "substeps"})
+        if bad:
+            raise GridError(f"{where}: unknown key {bad[0]!r}; known keys: element, refine, substeps")
+        el = d.get("element")
+        if el is not None and el not in ELEMENTS:
+            raise GridError(f"{where}.element: must be one of {', '.join(ELEMENTS)}, got {el!r}")
+        for k in ("refine", "substeps"):
+            v = d.get(k)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise GridError(f"{where}.{k}: must be an integer >= 1, got {v!r}")
+        return cls(element=el, refine=int(d.get("refine", 2)), substeps=d.get("substeps"))
+
+
 @dataclass
 class TradeoffGrid:
-    """Configurations to run, the reference settings, frames and the tip point."""
+    """Configurations to run, the reference settings, frames and the tip point.
+
+    ``truth``: a :class:`TruthSpec` (converged reference in space and time; the built-in grids and
+    grid files use one) or None: the ``reference`` configuration on the scene's mesh is the truth
+    (solver / time-step error only)."""
 
     configs: list
     reference: TradeoffConfig
     frames: int | None = None
     tip_point: tuple | None = None
     name: str = "custom"
+    truth: TruthSpec | None = None
 
 
 _REFERENCE = dict(name="reference", precision="float64", tol=1e-9, max_iters=100, cg_tol=1e-9, max_cg_iters=20000)
@@ -201,10 +243,10 @@ def builtin_grid(name: str) -> TradeoffGrid:
         ref_sub = 8
     else:
         raise GridError(f"unknown built-in grid {name!r}; choose 'quick', 'full' or a .toml file")
-    return TradeoffGrid(configs=cs, reference=_cfg(**_REFERENCE, substeps=ref_sub), name=name)
+    return TradeoffGrid(configs=cs, reference=_cfg(**_REFERENCE, substeps=ref_sub), name=name, truth=TruthSpec())
 
 
-_GRID_KEYS = {"base", "exclude", "frames", "tip_point", "reference", "axes", "config"}
+_GRID_KEYS = {"base", "exclude", "frames", "tip_point", "reference", "axes", "config", "truth"}
 
 
 def load_grid(path) -> TradeoffGrid:
@@ -220,8 +262,17 @@ def load_grid(path) -> TradeoffGrid:
     bad = sorted(set(data) - _GRID_KEYS)
     if bad:
         raise GridError(f"{path}: {bad[0]}: unknown key; known: {', '.join(sorted(_GRID_KEYS))}")
-    grid = builtin_grid(data["base"]) if "base" in data else TradeoffGrid(configs=[], reference=_cfg(**_REFERENCE, substeps=4))
+    grid = builtin_grid(data["base"]) if "base" in data else TradeoffGrid(configs=[], reference=_cfg(**_REFERENCE, substeps=4),
+                                                                          truth=TruthSpec())
     grid.name = os.path.basename(path)
+    if "truth" in data:  # [truth] table, or truth = false: the reference on the scene's own mesh
+        t = data["truth"]
+        if t is False:
+            grid.truth = None
+        elif isinstance(t, dict):
+            grid.truth = TruthSpec.from_dict(t, where=f"{path}: [truth]")
+        else:
+            raise GridError(f"{path}: truth: expected a table or false, got {t!r}")
     if "reference" in data:
         if not isinstance(data["reference"], dict):
             raise GridError(f"{path}: [reference]: expected a table")
@@ -346,6 +397,12 @@ def variant_scene(doc: dict, scene_path: str, cfg: TradeoffConfig, *, cache_dir:
         integ["dt"] = 1.0 / (fps * cfg.substeps)
     if cfg.element is not None:
         d.setdefault("mesh", {})["element"] = cfg.element
+    if cfg.refine not in (None, 1):
+        mesh = d.setdefault("mesh", {})
+        if mesh.get("generator") != "box" or "cells" not in mesh:
+            raise Unavailable("spatial refinement needs [mesh] generator = \"box\" with cells (a mesh file cannot be "
+                              "refined here)")
+        mesh["cells"] = [int(c) * cfg.refine for c in mesh["cells"]]
     if cfg.subspace is not None:
         sub = dict(cfg.subspace_dict())
         if "cache" not in sub and cache_dir is not None:
@@ -412,7 +469,7 @@ def _warm_up_signature(doc, scene_path, cfg, *, device, frames, cache_dir):
         return
     _WARMED.add(sig)
     light = dataclasses.replace(cfg, name="warm-up", tol=None, max_iters=None, cg_tol=None, max_cg_iters=None,
-                                substeps=None)
+                                substeps=None, refine=None)
     try:
         run, _, _ = _build(variant_scene(doc, scene_path, light, cache_dir=cache_dir), device=device,
                            precision=cfg.precision)
@@ -451,6 +508,13 @@ class ConfigResult:
     energy_error: float = math.nan
     energy_drift: float = math.nan
     on_frontier: bool = False
+    # error split (against the converged reference; NaN when it is not available)
+    discretisation_tip_error: float = math.nan  # time-converged run on this mesh/element vs the truth
+    discretisation_rms_error: float = math.nan
+    solver_tip_error: float = math.nan  # this configuration vs the time-converged run on its own mesh
+    solver_rms_error: float = math.nan
+    work: float = math.nan  # deterministic cost proxy per simulated second (see work_proxy)
+    ran_on: str = ""  # host / process (and Dask worker) that ran and timed it
 
     @property
     def name(self) -> str:
@@ -570,12 +634,37 @@ def _run_one(doc, scene_path, cfg, *, device, frames, ref_info, cache_dir, tip_p
     res.newton_per_step = res.newton_iterations / max(res.steps, 1)
     res.cg_per_step = res.cg_iterations / max(res.steps, 1)
     res.cg_per_sim_second = res.cg_iterations / sim_seconds
+    res.work = work_proxy(res, run) / sim_seconds
     if res.unconverged_frames:
         res.note = f"{res.unconverged_frames} frame(s) with a non-converged step"
     traj.fps = run.fps
     traj.fixed = run.model.fixed.any(axis=1).copy()
     traj.boundary = np.unique(np.asarray(scene.mesh().boundary_faces()).ravel()) if run.skinner is None else None
     return res, traj
+
+
+_QUADRATURE_POINTS = {"tet4": 1, "tet10": 4, "hex8": 8, "hex27": 27}
+
+
+def work_proxy(res: ConfigResult, run) -> float:
+    """A deterministic, load-independent cost of a run (arbitrary units, comparable across
+    configurations): every Newton iteration assembles forces and Hessian over the quadrature points,
+    ~E q n^2 (E elements, q quadrature points, n nodes per element), every CG iteration is one
+    element-by-element matrix-vector product, ~E n^2. A reduced run assembles over its cubature
+    elements and solves an r x r system per Newton iteration (c q n^2 + r^3) and reconstructs the
+    full positions once per step (N r, N vertices)."""
+    mesh = run.scene.mesh()
+    etype = getattr(mesh, "element_type", "tet4")
+    n = int(np.asarray(mesh.elements).shape[1])
+    q = _QUADRATURE_POINTS.get(etype, 1)
+    E = mesh.num_elements
+    sim = run.sim
+    r = getattr(sim, "r", None)
+    forces = getattr(sim, "forces", None)
+    if r is not None and forces is not None:  # reduced
+        c = int(getattr(forces, "c", E))
+        return float(res.newton_iterations * (c * q * n * n + r ** 3) + res.steps * mesh.num_vertices * r)
+    return float(res.newton_iterations * E * q * n * n + res.cg_iterations * E * n * n)
 
 
 def _errors(res: ConfigResult, traj: _Trajectory, ref: dict):
@@ -629,12 +718,15 @@ class StudyResult:
     load_note: str = ""
     energy_scale: float = math.nan
     schema: str = SCHEMA_VERSION
+    truth: dict = field(default_factory=dict)  # what the reference is and its own convergence
+    executor: str = "serial (this process)"
 
     def to_dict(self) -> dict:
         d = {k: _json_value(getattr(self, k)) for k in ("schema", "scene", "scene_name", "grid", "device",
                                                        "device_description", "precision_note", "frames", "fps",
                                                        "simulated_seconds", "quantity", "object_size", "tip",
-                                                       "frontier", "comparison", "load_note", "energy_scale")}
+                                                       "frontier", "comparison", "load_note", "energy_scale",
+                                                       "truth", "executor")}
         d["reference"] = self.reference.as_dict()
         d["results"] = [r.as_dict() for r in self.results]
         return d
@@ -657,7 +749,7 @@ class StudyResult:
                 r.cg_per_sim_second = r.cg_iterations / (r.frames / float(d["fps"]))
         kw["object_size"] = float(kw["object_size"])
         names = {f.name for f in fields(cls)}
-        missing = sorted(names - set(kw) - {"load_note", "schema", "energy_scale"})
+        missing = sorted(names - set(kw) - {"load_note", "schema", "energy_scale", "truth", "executor"})
         if kw.get("energy_scale") is None:
             kw["energy_scale"] = math.nan
         if missing:
@@ -697,16 +789,58 @@ def _device_description(device) -> str:
     return f"cpu ({cpu}, {os.cpu_count()} logical cores; Warp's CPU backend runs kernels on one thread)"
 
 
+def _truth_element(scene_element: str, spec: TruthSpec) -> str:
+    if spec.element:
+        return spec.element
+    return "hex27" if scene_element.startswith("hex") else "tet10"
+
+
+def _key(cfg: TradeoffConfig):
+    import dataclasses
+
+    return dataclasses.replace(cfg, name="")
+
+
+def _combine(fine, coarse):
+    """Richardson extrapolation of a first-order-in-dt trajectory: 2 x(h) - x(2h), frame by frame."""
+    t = _Trajectory()
+    for k in ("points", "surface", "tip", "energy", "motion_energy"):
+        a, b = getattr(fine, k), getattr(coarse, k)
+        setattr(t, k, list(2.0 * np.asarray(a) - np.asarray(b)) if len(a) and len(a) == len(b) else [])
+    t.fps, t.fixed, t.boundary = fine.fps, getattr(fine, "fixed", None), getattr(fine, "boundary", None)
+    return t
+
+
+def _as_reference(traj, base: dict) -> dict:
+    """A reference dict with ``traj``'s trajectory and ``base``'s normalisation (size, tip, energy scale)."""
+    ref = dict(base)
+    ref["points"] = np.asarray(traj.points)
+    ref["tip"] = np.asarray(traj.tip) if base.get("tip_point") is not None else ref["points"][:, base["tip_vertex"]]
+    ref["surface"] = np.asarray(traj.surface) if traj.surface else None
+    ref["energy"] = np.asarray(traj.energy) if traj.energy else None
+    return ref
+
+
+def _pair_errors(traj, ref: dict) -> tuple:
+    r = ConfigResult(config={"name": ""}, status="ok")
+    _errors(r, traj, ref)
+    return r.tip_error, r.rms_error
+
+
 def run_study(scene_path, grid: TradeoffGrid, *, device="cpu", frames=None, quantity="tip", tip_point=None,
-              progress=None, log=None) -> StudyResult:
+              progress=None, log=None, executor=None, truth="grid") -> StudyResult:
     """Run ``grid`` on the scene file and compare every configuration with the reference.
 
     ``frames``: output frames per run (default: the grid's, else the scene's ``[output].frames``).
     ``quantity``: the error measure of the frontier ("tip", "rms", "surface", "energy").
     ``tip_point``: rest-space point (m) whose displacement is the named quantity (default: the free
-    reference vertex of largest displacement). ``progress(cfg, FrameStats)`` after each frame,
-    ``log(str)`` after each configuration. Raises SceneError for an invalid scene,
-    :class:`warpfem.SolveFailed` when the reference itself fails.
+    reference vertex of largest displacement). ``progress(cfg, FrameStats)`` after each frame (serial
+    runs), ``log(str)`` after each run. ``executor``: where runs execute (default: this process,
+    one after the other; :class:`warpfem.tradeoff.cluster.DaskExecutor` for a Dask cluster).
+    ``truth``: "grid" (the grid's ``truth``), None (the grid's reference on the scene's mesh: solver
+    and time-step error only) or a :class:`TruthSpec` (converged reference: refined higher-order mesh,
+    time-step ladder). Raises SceneError for an invalid scene, :class:`warpfem.SolveFailed` when the
+    reference itself fails.
     """
     from warpfem.scenes import load_scene
 
@@ -720,68 +854,245 @@ def run_study(scene_path, grid: TradeoffGrid, *, device="cpu", frames=None, quan
         raise GridError(f"frames must be >= 1, got {frames}")
     tip_point = tip_point if tip_point is not None else grid.tip_point
     log = log or (lambda s: None)
+    executor = executor or SerialExecutor()
+    tspec = grid.truth if truth == "grid" else truth
     configs, dropped = _dedupe(grid.configs, base.spec)
+    plan = plan_reference(doc, scene_path, base, grid.reference, tspec, configs)
 
-    with tempfile.TemporaryDirectory(prefix="warpfem_tradeoff_") as cache_dir:
-        ref_res, ref_traj = _run_one(doc, scene_path, grid.reference, device=device, frames=frames, ref_info=None,
-                                     cache_dir=cache_dir, tip_point=tip_point, progress=progress)
-        if ref_res.status != "ok":
-            from warpfem.solvers.newton import SolveFailed
+    # every run is an independent job (the reference ladder, the per-mesh references, the configurations)
+    jobs, index = [], {}
 
-            raise SolveFailed(f"the reference run ({grid.reference.as_dict()}) did not complete: {ref_res.note}")
-        ref_scene = variant_scene(doc, scene_path, grid.reference)
-        rest = np.asarray(ref_scene.mesh().vertices, dtype=np.float64)
-        pts = np.asarray(ref_traj.points)
-        size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
-        if tip_point is not None:
-            tip = np.asarray(ref_traj.tip)
-            tip_info = {"vertex": None, "point": list(map(float, tip_point)), "how": "given point (rest position)"}
-        else:
-            disp = np.linalg.norm(pts - pts[0][None], axis=2).max(axis=0)
-            disp[ref_traj.fixed] = -1.0
-            v = int(np.argmax(disp))
-            tip = pts[:, v]
-            tip_info = {"vertex": v, "point": rest[v].tolist(),
-                        "how": "free reference vertex of largest displacement over the trajectory"}
-        tip_peak = float(np.linalg.norm(tip - tip[0], axis=1).max())
-        tip_info["peak_displacement_m"] = tip_peak
-        ref = {"rest": rest, "points": pts, "size": size, "tip": tip, "tip_peak": tip_peak,
-               "tip_vertex": tip_info["vertex"], "tip_point": tip_point,
-               "surface": np.asarray(ref_traj.surface) if ref_traj.surface else None,
-               "boundary": ref_traj.boundary,
-               "energy": np.asarray(ref_traj.energy) if ref_traj.energy else None,
-               "energy_scale": float(np.max(ref_traj.motion_energy)) if ref_traj.motion_energy else 0.0}
-        _errors(ref_res, ref_traj, ref)
-        log(_one_line(ref_res))
-        results = []
-        for cfg in configs:
-            res, traj = _run_one(doc, scene_path, cfg, device=device, frames=frames, ref_info=ref, cache_dir=cache_dir,
-                                 tip_point=tip_point, progress=progress)
-            if traj is not None:
-                _errors(res, traj, ref)
-            results.append(res)
-            log(_one_line(res))
-        for cfg, same_as in dropped:
-            res = ConfigResult(config=cfg.as_dict(), status="skipped", note=f"same settings as {same_as!r} for this scene")
-            results.append(res)
-            log(_one_line(res))
+    def add(cfg):
+        k = _key(cfg)
+        if k not in index:
+            index[k] = len(jobs)
+            jobs.append(cfg)
+        return index[k]
+
+    ladder_ids = [add(c) for c in plan["ladder"]]
+    space_id = add(plan["space"]) if plan["space"] is not None else None
+    mesh_ids = {mk: [add(c) for c in cs] for mk, cs in plan["mesh_refs"].items()}
+    n_internal = len(jobs)
+    config_ids = []
+    for c in configs:  # configurations always run (and are timed) on their own, in grid order
+        config_ids.append(len(jobs))
+        jobs.append(c)
+    payload = [dict(doc=doc, scene_path=scene_path, config=c.as_dict(), device=str(device), frames=frames,
+                    sample_rest=plan["sample_rest"], tip_point=tip_point) for c in jobs]
+    done_names = {}
+
+    def on_done(i, out):
+        done_names[i] = True
+        log(_one_line(out[0]) if i >= n_internal else "reference run: " + _one_line(out[0]))
+
+    outs = executor.map(run_job, payload, on_done=on_done, progress=progress)
+    ref_res, ref_traj = outs[ladder_ids[0]]
+    if ref_res.status != "ok":
+        from warpfem.solvers.newton import SolveFailed
+
+        raise SolveFailed(f"the reference run ({plan['ladder'][0].as_dict()}) did not complete: {ref_res.note}")
+    ladder = [outs[i] for i in ladder_ids]
+    # the reference trajectory: Richardson extrapolation of the two finest steps when both ran
+    truth_traj = ref_traj
+    if len(ladder) >= 2 and all(r.status == "ok" for r, _ in ladder[:2]):
+        truth_traj = _combine(ladder[0][1], ladder[1][1])
+    mask_traj = outs[mesh_ids[plan["scene_mesh"]][0]][1] if plan["scene_mesh"] in mesh_ids else ref_traj
+    if mask_traj is None:
+        mask_traj = ref_traj
+    rest = plan["sample_rest"]
+    pts = np.asarray(truth_traj.points)
+    size = float(np.linalg.norm(rest.max(axis=0) - rest.min(axis=0)))
+    if tip_point is not None:
+        tip = np.asarray(truth_traj.tip)
+        tip_info = {"vertex": None, "point": list(map(float, tip_point)), "how": "given point (rest position)"}
+    else:
+        disp = np.linalg.norm(pts - pts[0][None], axis=2).max(axis=0)
+        disp[mask_traj.fixed] = -1.0
+        v = int(np.argmax(disp))
+        tip = pts[:, v]
+        tip_info = {"vertex": v, "point": rest[v].tolist(),
+                    "how": "free reference vertex of largest displacement over the trajectory"}
+    tip_peak = float(np.linalg.norm(tip - tip[0], axis=1).max())
+    tip_info["peak_displacement_m"] = tip_peak
+    ref = {"rest": rest, "points": pts, "size": size, "tip": tip, "tip_peak": tip_peak,
+           "tip_vertex": tip_info["vertex"], "tip_point": tip_point,
+           "surface": np.asarray(truth_traj.surface) if truth_traj.surface else None,
+           "boundary": mask_traj.boundary,
+           "energy": np.asarray(truth_traj.energy) if truth_traj.energy else None,
+           "energy_scale": float(np.max(ref_traj.motion_energy)) if ref_traj.motion_energy else 0.0}
+    _errors(ref_res, ref_traj, ref)
+
+    # time-converged run on each mesh: the split of every configuration's error
+    mesh_truth = {}
+    for mk, ids in mesh_ids.items():
+        runs = [outs[i] for i in ids]
+        if all(r.status == "ok" for r, _ in runs):
+            mesh_truth[mk] = _combine(runs[0][1], runs[1][1]) if len(runs) == 2 else runs[0][1]
+    truth_info = describe_reference(plan, ladder, outs[space_id] if space_id is not None else None, ref, mesh_truth,
+                                    {mk: [outs[i][0] for i in ids] for mk, ids in mesh_ids.items()})
+    results = []
+    for c, i in zip(configs, config_ids):
+        res, traj = outs[i]
+        if traj is not None:
+            _errors(res, traj, ref)
+            mt = mesh_truth.get(plan["mesh_of"](c))
+            if mt is not None and plan["split"]:
+                res.discretisation_tip_error, res.discretisation_rms_error = _pair_errors(mt, ref)
+                res.solver_tip_error, res.solver_rms_error = _pair_errors(traj, _as_reference(mt, ref))
+        results.append(res)
+    for cfg, same_as in dropped:
+        res = ConfigResult(config=cfg.as_dict(), status="skipped", note=f"same settings as {same_as!r} for this scene")
+        results.append(res)
+        log(_one_line(res))
     key = QUANTITIES[quantity]
     ok = [r for r in results if r.status == "ok"]
     idx = pareto_front([r.seconds_per_sim_second for r in ok], [getattr(r, key) for r in ok])
     for i in idx:
         ok[i].on_frontier = True
     fps = float(base.spec.output["fps"])
-    comparison = ("errors at the reference's simulation vertices (rest positions); variants with another vertex set "
-                  "(element type) are sampled there through their own shape functions (embedding); 'surface' is the "
+    comparison = ("errors at the " + ("scene mesh's" if plan["split"] else "reference's") + " simulation vertices "
+                  "(rest positions); runs with another vertex set (element type, refined mesh) are sampled there "
+                  "through their own shape functions (embedding); 'surface' is the "
                   + ("[surface] render points skinned on each run's mesh" if ref["surface"] is not None
                      else "reference mesh's boundary vertices"))
     return StudyResult(scene=os.path.abspath(scene_path), scene_name=base.name, grid=grid.name, device=str(device),
                        device_description=_device_description(device),
-                       precision_note="reference: " + ", ".join(f"{k}={v}" for k, v in grid.reference.as_dict().items()
+                       precision_note="reference: " + ", ".join(f"{k}={v}" for k, v in plan["ladder"][0].as_dict().items()
                                                                if v is not None and k != "name"),
                        frames=frames, fps=fps, simulated_seconds=frames / fps, quantity=quantity, object_size=size,
                        tip=tip_info, reference=ref_res, results=results, frontier=[ok[i].name for i in idx],
-                       comparison=comparison, load_note=_load_note(), energy_scale=ref["energy_scale"])
+                       comparison=comparison, load_note=_load_note(), energy_scale=ref["energy_scale"],
+                       truth=truth_info, executor=executor.description)
+
+
+def plan_reference(doc, scene_path, base, reference: TradeoffConfig, tspec, configs) -> dict:
+    """Which reference runs a study needs.
+
+    Without a truth spec: the grid's reference alone (on the scene's mesh unless it names another
+    element), errors at its vertices. With one: the time-step ladder S, S/2, S/4 on the refined
+    higher-order mesh (Richardson extrapolation of the two finest is the reference; the third shows
+    the time convergence), the same element at half the refinement at step S (the space
+    convergence), and for every mesh the configurations use, the tight run at S and S/2 (the
+    time-converged solution on that mesh: splits each error into discretisation and solver/step
+    parts). A scene read from a mesh file cannot be refined: the ladder then runs on the scene's
+    own mesh and the report says so (``flag``)."""
+    import dataclasses
+
+    scene_el = base.spec.mesh["element"]
+    sample_cfg = dataclasses.replace(reference, element=None, refine=None, subspace=None)
+    plan = {"spec": tspec, "split": False, "space": None, "mesh_refs": {}, "flag": "", "scene_mesh": (scene_el, 1)}
+    plan["mesh_of"] = lambda c: (c.element or scene_el, c.refine or 1)
+    if tspec is None:
+        plan["ladder"] = [reference]
+        plan["sample_rest"] = np.asarray(variant_scene(doc, scene_path, reference).mesh().vertices, dtype=np.float64)
+        plan["flag"] = ("reference = the grid's reference on its own mesh: errors are solver, precision and time-step "
+                        "errors only (no spatial convergence)")
+        return plan
+    plan["sample_rest"] = np.asarray(variant_scene(doc, scene_path, sample_cfg).mesh().vertices, dtype=np.float64)
+    S = int(tspec.substeps or reference.substeps or 4)
+    steps = [S]
+    while len(steps) < 3 and steps[-1] % 2 == 0:
+        steps.append(steps[-1] // 2)
+    el = _truth_element(scene_el, tspec)
+    refine = int(tspec.refine)
+    can_refine = doc.get("mesh", {}).get("generator") == "box"
+    if not can_refine:
+        plan["flag"] = ("the scene reads a mesh file, which cannot be refined here: the reference is the time-step "
+                        "ladder on the scene's own mesh and element (solver and time-step error only; no "
+                        "discretisation error)")
+        el, refine = scene_el, 1
+    base_ref = dataclasses.replace(reference, name="reference", element=el, refine=refine if refine != 1 else None,
+                                   subspace=None)
+    plan["ladder"] = [dataclasses.replace(base_ref, name=f"reference {el}" + (f" cells x{refine}" if refine != 1 else "")
+                                          + f" {s} substeps", substeps=s) for s in steps]
+    plan["ladder"][0] = dataclasses.replace(plan["ladder"][0], name="reference")
+    if can_refine and refine >= 2:
+        plan["space"] = dataclasses.replace(base_ref, name=f"space check: {el} cells x{refine // 2} {S} substeps",
+                                            refine=(refine // 2) if refine // 2 != 1 else None, substeps=S)
+    if not can_refine:
+        return plan
+    plan["split"] = True
+    meshes = {plan["scene_mesh"]} | {plan["mesh_of"](c) for c in configs}
+    for mk in sorted(meshes):
+        e, r = mk
+        cs = [dataclasses.replace(base_ref, name=f"mesh reference {e}" + (f" cells x{r}" if r != 1 else "") + f" {s} substeps",
+                                  element=e, refine=r if r != 1 else None, substeps=s) for s in steps[:2]]
+        plan["mesh_refs"][mk] = cs
+    return plan
+
+
+def describe_reference(plan, ladder, space, ref, mesh_truth, mesh_runs) -> dict:
+    """The report's account of the reference: what it is, its own convergence in time and space."""
+    info = {"kind": "converged" if plan["split"] else "solver/time-step only", "flag": plan["flag"],
+            "runs": [r.as_dict() for r, _ in ladder]}
+    if plan["spec"] is not None:
+        info["spec"] = plan["spec"].as_dict()
+    L = ref
+    if len(ladder) >= 2 and all(r.status == "ok" for r, _ in ladder):
+        trajs = [t for _, t in ladder]
+        steps = [r.config["substeps"] for r, _ in ladder]
+        diffs = [_pair_errors(trajs[k], _as_reference(trajs[k + 1], L)) for k in range(len(trajs) - 1)]
+        t = {"substeps": steps, "method": "Richardson extrapolation 2 x(h) - x(2h) of the two finest steps "
+                                          "(backward Euler is first order in dt)" if plan["spec"] is not None else "",
+             "difference_tip": [d[0] for d in diffs], "difference_rms": [d[1] for d in diffs]}
+        if len(diffs) >= 2 and diffs[0][0] > 0 and diffs[1][0] > 0:
+            t["observed_order_tip"] = float(math.log2(diffs[1][0] / diffs[0][0]))
+        if len(trajs) >= 3:  # the extrapolation's own error ~ |R(h) - R(2h)| / 3 (second order)
+            R1, R2 = _combine(trajs[0], trajs[1]), _combine(trajs[1], trajs[2])
+            e = _pair_errors(R1, _as_reference(R2, L))
+            t["estimated_error_tip"], t["estimated_error_rms"] = e[0] / 3.0, e[1] / 3.0
+        elif diffs:
+            t["estimated_error_tip"], t["estimated_error_rms"] = diffs[0]
+        info["time"] = t
+    if space is not None:
+        sres, straj = space
+        info["space_run"] = sres.as_dict()
+        if straj is not None and ladder[0][1] is not None:
+            d = _pair_errors(straj, _as_reference(ladder[0][1], L))
+            info["space"] = {"difference_tip": d[0], "difference_rms": d[1],
+                             "note": f"{sres.name} vs the reference mesh, same dt: the error of the coarser level; "
+                                     "the reference's own (quadratic element, error ~ h^3) is about 1/8 of it"}
+    info["meshes"] = {f"{mk[0]}" + (f" cells x{mk[1]}" if mk[1] != 1 else ""):
+                      {"discretisation_tip_error": (_pair_errors(mesh_truth[mk], L)[0] if mk in mesh_truth else None),
+                       "discretisation_rms_error": (_pair_errors(mesh_truth[mk], L)[1] if mk in mesh_truth else None),
+                       "notes": [r.note for r in runs if r.note]}
+                      for mk, runs in mesh_runs.items()}
+    return _json_value(info)
+
+
+def run_job(job: dict, progress=None) -> tuple:
+    """One run as a self-contained, picklable job (in this process or on a Dask worker): builds the
+    variant, warms this process's kernels for its signature, then runs and times it here.
+    Returns (ConfigResult, _Trajectory or None)."""
+    cfg = TradeoffConfig.from_dict(job["config"])
+    rest = job.get("sample_rest")
+    with tempfile.TemporaryDirectory(prefix="warpfem_tradeoff_") as cache_dir:  # reduced training cache
+        res, traj = _run_one(job["doc"], job["scene_path"], cfg, device=job["device"], frames=job["frames"],
+                             ref_info=None if rest is None else {"rest": np.asarray(rest)}, cache_dir=cache_dir,
+                             tip_point=job.get("tip_point"), progress=progress)
+    res.ran_on = f"{platform.node()} pid {os.getpid()}"
+    try:
+        from distributed import get_worker
+
+        res.ran_on += f" dask worker {get_worker().address}"
+    except (ImportError, ValueError):
+        pass
+    return res, traj
+
+
+class SerialExecutor:
+    """Runs jobs one after the other in this process (the default)."""
+
+    description = "serial (this process)"
+
+    def map(self, fn, jobs, *, on_done=None, progress=None):
+        out = []
+        for i, job in enumerate(jobs):
+            r = fn(job, progress=progress) if progress is not None else fn(job)
+            out.append(r)
+            if on_done is not None:
+                on_done(i, r)
+        return out
 
 
 def _load_note() -> str:
