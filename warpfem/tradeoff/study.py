@@ -989,7 +989,7 @@ def plan_reference(doc, scene_path, base, reference: TradeoffConfig, tspec, conf
                         "errors only (no spatial convergence)")
         return plan
     plan["sample_rest"] = np.asarray(variant_scene(doc, scene_path, sample_cfg).mesh().vertices, dtype=np.float64)
-    S = int(tspec.substeps or reference.substeps or 4)
+    S = int(tspec.substeps or max(8, reference.substeps or 1))
     steps = [S]
     while len(steps) < 3 and steps[-1] % 2 == 0:
         steps.append(steps[-1] // 2)
@@ -1121,15 +1121,18 @@ def _one_line(r: ConfigResult) -> str:
 def format_table(study: StudyResult) -> str:
     """The terminal table: one row per configuration, frontier rows marked '*', skipped ones last."""
     key = QUANTITIES[study.quantity]
+    split = _split_key(study)
     head = ["", "configuration", "s/sim-s", "newton/step", "cg/step", "cg/sim-s", "rms err", "surf err", "tip err", "energy err",
-            "drift", "unconv"]
+            "drift", "unconv"] + ([f"{split} disc", f"{split} solver"] if split else [])
     rows = []
     ok = sorted(study.ok_results(), key=lambda r: r.seconds_per_sim_second)
     for r in [study.reference] + ok:
         rows.append(["*" if r.on_frontier else ("R" if r is study.reference else ""), r.name,
                      _fmt(r.seconds_per_sim_second, ".3g"), _fmt(r.newton_per_step, ".2f"), _fmt(r.cg_per_step, ".1f"),
                      _fmt(r.cg_per_sim_second, ".4g"), _fmt(r.rms_error), _fmt(r.surface_error), _fmt(r.tip_error), _fmt(r.energy_error),
-                     _fmt(r.energy_drift, "+.2e"), str(r.unconverged_frames)])
+                     _fmt(r.energy_drift, "+.2e"), str(r.unconverged_frames)]
+                    + ([_fmt(getattr(r, f"discretisation_{split}_error")), _fmt(getattr(r, f"solver_{split}_error"))]
+                       if split else []))
     widths = [max(len(str(x)) for x in col) for col in zip(head, *rows)]
     lines = [f"{study.scene_name}: {study.frames} frames ({study.simulated_seconds:g} s simulated) on {study.device_description}",
              f"frontier (*) on {study.quantity} error ({key}) vs wall time; R = reference ({study.precision_note})",
@@ -1138,10 +1141,41 @@ def format_table(study: StudyResult) -> str:
     for r in study.results:
         if r.status != "ok":
             lines.append(f"  {r.status}: {r.name}: {r.note}")
+    lines += reference_lines(study)
     tip = study.tip
     lines.append(f"tip: {tip['how']} at {np.round(tip['point'], 4).tolist()} m, peak displacement "
                  f"{tip['peak_displacement_m']:.4g} m; object size (bbox diagonal) {study.object_size:.4g} m")
     return "\n".join(lines)
+
+
+def _split_key(study: StudyResult) -> str | None:
+    """The error whose split is shown: the frontier's quantity when it is tip or rms, else tip."""
+    if not any(math.isfinite(r.discretisation_tip_error) for r in study.ok_results()):
+        return None
+    return study.quantity if study.quantity in ("tip", "rms") else "tip"
+
+
+def reference_lines(study: StudyResult) -> list:
+    """What the reference is and how converged it is (lines of text)."""
+    t = study.truth or {}
+    if not t:
+        return []
+    out = [f"reference: {t.get('kind', '')}" + (f" -- {t['flag']}" if t.get("flag") else "")]
+    tm = t.get("time")
+    if tm:
+        d = ", ".join(_fmt(x) for x in tm.get("difference_tip", []))
+        out.append(f"  time: substeps {tm.get('substeps')}, successive tip differences {d}"
+                   + (f", observed order {tm['observed_order_tip']:.2f}" if tm.get("observed_order_tip") is not None else "")
+                   + f"; estimated reference error: tip {_fmt(tm.get('estimated_error_tip'))}, rms {_fmt(tm.get('estimated_error_rms'))}"
+                   + (f" ({tm['method']})" if tm.get("method") else ""))
+    sp = t.get("space")
+    if sp:
+        out.append(f"  space: {t['space_run']['config']['name']}: tip difference {_fmt(sp['difference_tip'])}, "
+                   f"rms {_fmt(sp['difference_rms'])} ({sp['note']})")
+    for name, m in (t.get("meshes") or {}).items():
+        out.append(f"  discretisation error of {name} (time-converged run on that mesh vs the reference): tip "
+                   f"{_fmt(m.get('discretisation_tip_error'))}, rms {_fmt(m.get('discretisation_rms_error'))}")
+    return out
 
 
 def format_markdown(study: StudyResult, *, frontier_only=False) -> str:
@@ -1149,13 +1183,17 @@ def format_markdown(study: StudyResult, *, frontier_only=False) -> str:
     rows = sorted(study.ok_results(), key=lambda r: r.seconds_per_sim_second)
     if frontier_only:
         rows = [r for r in rows if r.on_frontier]
-    out = ["| configuration | s / simulated s | Newton / step | CG / step | CG / simulated s | RMS err / size | tip err / peak | energy err | frontier |",
-           "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    split = _split_key(study)
+    extra = f" {split} discretisation | {split} solver/step |" if split else ""
+    out = ["| configuration | s / simulated s | Newton / step | CG / step | CG / simulated s | RMS err / size | tip err / peak | energy err | frontier |" + extra,
+           "| --- | --- | --- | --- | --- | --- | --- | --- | --- |" + (" --- | --- |" if split else "")]
     for r in [study.reference] + rows:
         name = "reference" if r is study.reference else r.name
         out.append(f"| {name} | {_fmt(r.seconds_per_sim_second, '.3g')} | {_fmt(r.newton_per_step, '.2f')} | "
                    f"{_fmt(r.cg_per_step, '.1f')} | {_fmt(r.cg_per_sim_second, '.4g')} | {_fmt(r.rms_error)} | {_fmt(r.tip_error)} | {_fmt(r.energy_error)} | "
-                   f"{'yes' if r.on_frontier else ''} |")
+                   f"{'yes' if r.on_frontier else ''} |"
+                   + (f" {_fmt(getattr(r, f'discretisation_{split}_error'))} | {_fmt(getattr(r, f'solver_{split}_error'))} |"
+                      if split else ""))
     return "\n".join(out)
 
 
