@@ -60,12 +60,23 @@ def _cmd_tradeoff(args) -> int:
     from warpfem.progress import Progress
     from warpfem.solvers.newton import SolveFailed
 
+    from .cluster import executor_from_args
+
+    if getattr(args, "retries", 0) < 0:
+        _err(f"--retries must be >= 0, got {args.retries}")
+        return EXIT_INVALID
+    if args.no_truth:
+        grid.truth = None
+
     if not args.quiet:
-        print(f"{args.scene}: reference + {len(grid.configs)} configurations ({grid.name} grid) on {args.device}", flush=True)
+        print(f"{args.scene}: {len(grid.configs)} configurations ({grid.name} grid) + reference runs on {args.device}",
+              flush=True)
     init = getattr(_cli, "_init_warp", None)
     if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
         init(args.device, args.verbose)
-    bar = Progress(1 + len(grid.configs), unit="configuration", enabled=not args.quiet)
+    from .study import planned_runs
+
+    bar = Progress(planned_runs(args.scene, grid), unit="run", enabled=not args.quiet)
     done = 0
 
     def log(line):  # after each configuration (the reference first)
@@ -81,10 +92,14 @@ def _cmd_tradeoff(args) -> int:
         if bar.drawing_bar:
             bar.update(done, f"{getattr(cfg, 'name', '')} frame {fs.frame}")
 
+    executor, code = executor_from_args(args, _err)
+    if code is not None:
+        return code
     try:
         with bar:
             study = run_study(args.scene, grid, device=args.device, frames=args.frames, quantity=args.quantity,
-                              tip_point=tuple(args.tip_point) if args.tip_point else None, log=log, progress=progress)
+                              tip_point=tuple(args.tip_point) if args.tip_point else None, log=log, progress=progress,
+                              executor=executor)
     except (SceneError, GridError) as e:
         _err(str(e))
         return EXIT_INVALID
@@ -94,6 +109,9 @@ def _cmd_tradeoff(args) -> int:
     except KeyboardInterrupt:
         _err("interrupted")
         return EXIT_INTERRUPTED
+    finally:
+        if executor is not None:
+            executor.close()
     print(format_table(study))
     if args.json:
         study.to_json(args.json)
@@ -130,6 +148,12 @@ def register(subparsers):
     p.add_argument("--tip-point", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
                    help="rest position (m) whose displacement is the named quantity (default: free vertex of max displacement)")
     p.add_argument("--skip", action="append", default=[], metavar="NAME", help="drop a configuration by name (repeatable)")
+    p.add_argument("--no-truth", action="store_true",
+                   help="compare with the grid's reference on the scene's own mesh (solver / time-step error only) "
+                        "instead of the converged reference (refined higher-order mesh, time-step ladder)")
+    from .cluster import add_cluster_args
+
+    add_cluster_args(p)
     p.add_argument("--list", action="store_true", help="list the configurations and exit")
     p.add_argument("--quiet", action="store_true", help="no per-configuration lines")
     p.add_argument("--verbose", action="store_true", help="show Warp's messages")

@@ -879,13 +879,12 @@ def run_study(scene_path, grid: TradeoffGrid, *, device="cpu", frames=None, quan
         jobs.append(c)
     payload = [dict(doc=doc, scene_path=scene_path, config=c.as_dict(), device=str(device), frames=frames,
                     sample_rest=plan["sample_rest"], tip_point=tip_point) for c in jobs]
-    done_names = {}
-
     def on_done(i, out):
-        done_names[i] = True
-        log(_one_line(out[0]) if i >= n_internal else "reference run: " + _one_line(out[0]))
+        res = _job_outcome(out, jobs[i], None)[0]
+        log(_one_line(res) if i >= n_internal else "reference run: " + _one_line(res))
 
     outs = executor.map(run_job, payload, on_done=on_done, progress=progress)
+    outs = [_job_outcome(out, jobs[i], getattr(executor, "retried", {}).get(i)) for i, out in enumerate(outs)]
     ref_res, ref_traj = outs[ladder_ids[0]]
     if ref_res.status != "ok":
         from warpfem.solvers.newton import SolveFailed
@@ -963,6 +962,19 @@ def run_study(scene_path, grid: TradeoffGrid, *, device="cpu", frames=None, quan
                        tip=tip_info, reference=ref_res, results=results, frontier=[ok[i].name for i in idx],
                        comparison=comparison, load_note=_load_note(), energy_scale=ref["energy_scale"],
                        truth=truth_info, executor=executor.description)
+
+
+def planned_runs(scene_path, grid: TradeoffGrid, *, truth="grid") -> int:
+    """How many runs :func:`run_study` will do (reference runs included)."""
+    from warpfem.scenes import load_scene
+
+    base = load_scene(os.fspath(scene_path))
+    configs, _ = _dedupe(grid.configs, base.spec)
+    plan = plan_reference(scene_document(scene_path), os.fspath(scene_path), base, grid.reference,
+                          grid.truth if truth == "grid" else truth, configs)
+    internal = {_key(c) for c in plan["ladder"] + ([plan["space"]] if plan["space"] is not None else [])
+                + [c for cs in plan["mesh_refs"].values() for c in cs]}
+    return len(internal) + len(configs)
 
 
 def plan_reference(doc, scene_path, base, reference: TradeoffConfig, tspec, configs) -> dict:
@@ -1060,10 +1072,28 @@ def describe_reference(plan, ladder, space, ref, mesh_truth, mesh_runs) -> dict:
     return _json_value(info)
 
 
+def _job_outcome(out, cfg: TradeoffConfig, retried) -> tuple:
+    """(ConfigResult, trajectory) of a job: a job the executor gave up on is a failed row; retries
+    are written into the note."""
+    if not isinstance(out, tuple):  # cluster.JobFailed
+        return ConfigResult(config=cfg.as_dict(), status="failed", note=out.message), None
+    res, traj = out
+    if retried:
+        res.note = (res.note + "; " if res.note else "") + "retried on the cluster: " + "; ".join(retried)
+    return res, traj
+
+
 def run_job(job: dict, progress=None) -> tuple:
     """One run as a self-contained, picklable job (in this process or on a Dask worker): builds the
     variant, warms this process's kernels for its signature, then runs and times it here.
     Returns (ConfigResult, _Trajectory or None)."""
+    if job.get("job_id"):  # on a Dask worker: record the start (restarts are reported), keep Warp quiet
+        from .cluster import log_job_start
+
+        log_job_start(job)
+        import warp as wp
+
+        wp.config.quiet = True
     cfg = TradeoffConfig.from_dict(job["config"])
     rest = job.get("sample_rest")
     with tempfile.TemporaryDirectory(prefix="warpfem_tradeoff_") as cache_dir:  # reduced training cache
