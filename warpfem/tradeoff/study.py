@@ -46,7 +46,7 @@ import numpy as np
 
 from warpfem.scenes.schema import read_toml
 
-__all__ = ["TruthSpec", "SerialExecutor", "run_job", "work_proxy", "TradeoffConfig", "TradeoffGrid", "GridError", "StudyResult", "ConfigResult", "builtin_grid",
+__all__ = ["without_timings", "planned_runs", "TruthSpec", "SerialExecutor", "run_job", "work_proxy", "TradeoffConfig", "TradeoffGrid", "GridError", "StudyResult", "ConfigResult", "builtin_grid",
            "load_grid", "pareto_front", "run_study", "load_study", "format_table", "plot_pareto",
            "QUANTITIES", "SCHEMA_VERSION", "scene_document", "set_quantity", "format_markdown"]
 
@@ -772,6 +772,23 @@ def set_quantity(study: StudyResult, quantity: str) -> StudyResult:
         ok[i].on_frontier = True
     study.quantity, study.frontier = quantity, [ok[i].name for i in idx]
     return study
+
+
+TIMING_FIELDS = ("build_seconds", "train_seconds", "step_seconds", "seconds_per_sim_second", "ran_on", "on_frontier")
+
+
+def without_timings(d):
+    """A study's JSON document without what depends on wall time or on where runs executed
+    (timings, the frontier on time, the load note, the executor): what a serial run and a
+    cluster run of the same study must agree on exactly."""
+    if isinstance(d, StudyResult):
+        d = d.to_dict()
+    if isinstance(d, dict):
+        return {k: without_timings(v) for k, v in d.items()
+                if k not in TIMING_FIELDS + ("frontier", "load_note", "executor")}
+    if isinstance(d, list):
+        return [without_timings(v) for v in d]
+    return d
 
 
 def load_study(path) -> StudyResult:
