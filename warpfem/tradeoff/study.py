@@ -875,43 +875,122 @@ def run_study(scene_path, grid: TradeoffGrid, *, device="cpu", frames=None, quan
     tspec = grid.truth if truth == "grid" else truth
     configs, dropped = _dedupe(grid.configs, base.spec)
     plan = plan_reference(doc, scene_path, base, grid.reference, tspec, configs)
+    internal = plan["jobs"]
+    jobs = internal + list(configs)  # configurations always run (and are timed) on their own, in grid order
+    n_internal = len(internal)
+    payload = [make_job(doc, scene_path, c, device=device, frames=frames, plan=plan, tip_point=tip_point) for c in jobs]
 
-    # every run is an independent job (the reference ladder, the per-mesh references, the configurations)
-    jobs, index = [], {}
-
-    def add(cfg):
-        k = _key(cfg)
-        if k not in index:
-            index[k] = len(jobs)
-            jobs.append(cfg)
-        return index[k]
-
-    ladder_ids = [add(c) for c in plan["ladder"]]
-    space_id = add(plan["space"]) if plan["space"] is not None else None
-    mesh_ids = {mk: [add(c) for c in cs] for mk, cs in plan["mesh_refs"].items()}
-    n_internal = len(jobs)
-    config_ids = []
-    for c in configs:  # configurations always run (and are timed) on their own, in grid order
-        config_ids.append(len(jobs))
-        jobs.append(c)
-    payload = [dict(doc=doc, scene_path=scene_path, config=c.as_dict(), device=str(device), frames=frames,
-                    sample_rest=plan["sample_rest"], tip_point=tip_point) for c in jobs]
     def on_done(i, out):
         res = _job_outcome(out, jobs[i], None)[0]
         log(_one_line(res) if i >= n_internal else "reference run: " + _one_line(res))
 
     outs = executor.map(run_job, payload, on_done=on_done, progress=progress)
     outs = [_job_outcome(out, jobs[i], getattr(executor, "retried", {}).get(i)) for i, out in enumerate(outs)]
-    ref_res, ref_traj = outs[ladder_ids[0]]
+    reference = finish_reference(plan, outs[:n_internal], tip_point=tip_point, frames=frames)
+    results = []
+    for res, traj in outs[n_internal:]:
+        if traj is not None:
+            reference.errors(res, traj)
+        results.append(res)
+    for cfg, same_as in dropped:
+        res = ConfigResult(config=cfg.as_dict(), status="skipped", note=f"same settings as {same_as!r} for this scene")
+        results.append(res)
+        log(_one_line(res))
+    key = QUANTITIES[quantity]
+    ok = [r for r in results if r.status == "ok"]
+    idx = pareto_front([r.seconds_per_sim_second for r in ok], [getattr(r, key) for r in ok])
+    for i in idx:
+        ok[i].on_frontier = True
+    fps = float(base.spec.output["fps"])
+    ref = reference.ref
+    comparison = ("errors at the " + ("scene mesh's" if plan["split"] else "reference's") + " simulation vertices "
+                  "(rest positions); runs with another vertex set (element type, refined mesh) are sampled there "
+                  "through their own shape functions (embedding); 'surface' is the "
+                  + ("[surface] render points skinned on each run's mesh" if ref["surface"] is not None
+                     else "reference mesh's boundary vertices"))
+    return StudyResult(scene=os.path.abspath(scene_path), scene_name=base.name, grid=grid.name, device=str(device),
+                       device_description=_device_description(device),
+                       precision_note="reference: " + ", ".join(f"{k}={v}" for k, v in plan["ladder"][0].as_dict().items()
+                                                               if v is not None and k != "name"),
+                       frames=frames, fps=fps, simulated_seconds=frames / fps, quantity=quantity, object_size=ref["size"],
+                       tip=reference.tip_info, reference=reference.result, results=results,
+                       frontier=[ok[i].name for i in idx], comparison=comparison, load_note=_load_note(),
+                       energy_scale=ref["energy_scale"], truth=reference.info, executor=executor.description)
+
+
+def make_job(doc, scene_path, cfg: TradeoffConfig, *, device, frames, plan, tip_point=None, cache_dir=None) -> dict:
+    """The picklable description of one run (see :func:`run_job`)."""
+    return dict(doc=doc, scene_path=scene_path, config=cfg.as_dict(), device=str(device), frames=int(frames),
+                sample_rest=plan["sample_rest"], tip_point=tip_point, cache_dir=cache_dir)
+
+
+class Reference:
+    """A scene's reference trajectory at the sample points (the converged one, or the grid's
+    reference on the scene's mesh), the time-converged run on each mesh, and what is known about
+    its own convergence. :meth:`errors` fills a run's error fields (total and split)."""
+
+    def __init__(self, plan, ref, result, mesh_truth, info, tip_info, frames):
+        self.plan, self.ref, self.result, self.mesh_truth = plan, ref, result, mesh_truth
+        self.info, self.tip_info, self.frames = info, tip_info, frames
+
+    @property
+    def sample_rest(self):
+        return self.plan["sample_rest"]
+
+    def _prefix(self, n):
+        if n is None or n >= self.frames:
+            return self.ref
+        ref = dict(self.ref)
+        for k in ("points", "tip", "surface", "energy"):
+            if ref.get(k) is not None:
+                ref[k] = ref[k][:n + 1]
+        return ref
+
+    def errors(self, res: ConfigResult, traj, *, frames: int | None = None) -> ConfigResult:
+        """Errors of ``traj`` (a run of ``res``'s configuration over its first ``frames`` frames,
+        default all) against the reference, split into discretisation and solver/step parts."""
+        n = len(traj.points) - 1 if frames is None else frames
+        ref = self._prefix(n)
+        _errors(res, traj, ref)
+        cfg = TradeoffConfig.from_dict(res.config)
+        mt = self.mesh_truth.get(self.plan["mesh_of"](cfg))
+        if mt is not None and self.plan["split"]:
+            mt = _slice(mt, n)
+            res.discretisation_tip_error, res.discretisation_rms_error = _pair_errors(mt, ref)
+            res.solver_tip_error, res.solver_rms_error = _pair_errors(traj, _as_reference(mt, ref))
+        return res
+
+    def discretisation_error(self, element: str, refine: int = 1, quantity: str = "tip") -> float:
+        """The time-converged run on that mesh vs the reference (NaN: not measured)."""
+        mt = self.mesh_truth.get((element, refine))
+        if mt is None or not self.plan["split"]:
+            return math.nan
+        tip, rms = _pair_errors(mt, self.ref)
+        return tip if quantity == "tip" else rms
+
+
+def _slice(traj, n):
+    t = _Trajectory()
+    for k in ("points", "surface", "tip", "energy", "motion_energy"):
+        setattr(t, k, list(getattr(traj, k))[:n + 1])
+    t.fps, t.fixed, t.boundary = getattr(traj, "fps", None), getattr(traj, "fixed", None), getattr(traj, "boundary", None)
+    return t
+
+
+def finish_reference(plan, outs, *, tip_point=None, frames) -> Reference:
+    """Combine the reference runs (``outs``, in the order of ``plan["jobs"]``) into a :class:`Reference`."""
+    ids = plan["ids"]
+    ladder = [outs[i] for i in ids["ladder"]]
+    ref_res, ref_traj = ladder[0]
     if ref_res.status != "ok":
         from warpfem.solvers.newton import SolveFailed
 
         raise SolveFailed(f"the reference run ({plan['ladder'][0].as_dict()}) did not complete: {ref_res.note}")
-    ladder = [outs[i] for i in ladder_ids]
     # the reference trajectory: Richardson extrapolation of the two finest steps when both ran
     truth_traj = ref_traj
     if len(ladder) >= 2 and all(r.status == "ok" for r, _ in ladder[:2]):
         truth_traj = _combine(ladder[0][1], ladder[1][1])
+    mesh_ids = ids["mesh_refs"]
     mask_traj = outs[mesh_ids[plan["scene_mesh"]][0]][1] if plan["scene_mesh"] in mesh_ids else ref_traj
     if mask_traj is None:
         mask_traj = ref_traj
@@ -937,48 +1016,14 @@ def run_study(scene_path, grid: TradeoffGrid, *, device="cpu", frames=None, quan
            "energy": np.asarray(truth_traj.energy) if truth_traj.energy else None,
            "energy_scale": float(np.max(ref_traj.motion_energy)) if ref_traj.motion_energy else 0.0}
     _errors(ref_res, ref_traj, ref)
-
-    # time-converged run on each mesh: the split of every configuration's error
     mesh_truth = {}
-    for mk, ids in mesh_ids.items():
-        runs = [outs[i] for i in ids]
+    for mk, jj in mesh_ids.items():
+        runs = [outs[i] for i in jj]
         if all(r.status == "ok" for r, _ in runs):
             mesh_truth[mk] = _combine(runs[0][1], runs[1][1]) if len(runs) == 2 else runs[0][1]
-    truth_info = describe_reference(plan, ladder, outs[space_id] if space_id is not None else None, ref, mesh_truth,
-                                    {mk: [outs[i][0] for i in ids] for mk, ids in mesh_ids.items()})
-    results = []
-    for c, i in zip(configs, config_ids):
-        res, traj = outs[i]
-        if traj is not None:
-            _errors(res, traj, ref)
-            mt = mesh_truth.get(plan["mesh_of"](c))
-            if mt is not None and plan["split"]:
-                res.discretisation_tip_error, res.discretisation_rms_error = _pair_errors(mt, ref)
-                res.solver_tip_error, res.solver_rms_error = _pair_errors(traj, _as_reference(mt, ref))
-        results.append(res)
-    for cfg, same_as in dropped:
-        res = ConfigResult(config=cfg.as_dict(), status="skipped", note=f"same settings as {same_as!r} for this scene")
-        results.append(res)
-        log(_one_line(res))
-    key = QUANTITIES[quantity]
-    ok = [r for r in results if r.status == "ok"]
-    idx = pareto_front([r.seconds_per_sim_second for r in ok], [getattr(r, key) for r in ok])
-    for i in idx:
-        ok[i].on_frontier = True
-    fps = float(base.spec.output["fps"])
-    comparison = ("errors at the " + ("scene mesh's" if plan["split"] else "reference's") + " simulation vertices "
-                  "(rest positions); runs with another vertex set (element type, refined mesh) are sampled there "
-                  "through their own shape functions (embedding); 'surface' is the "
-                  + ("[surface] render points skinned on each run's mesh" if ref["surface"] is not None
-                     else "reference mesh's boundary vertices"))
-    return StudyResult(scene=os.path.abspath(scene_path), scene_name=base.name, grid=grid.name, device=str(device),
-                       device_description=_device_description(device),
-                       precision_note="reference: " + ", ".join(f"{k}={v}" for k, v in plan["ladder"][0].as_dict().items()
-                                                               if v is not None and k != "name"),
-                       frames=frames, fps=fps, simulated_seconds=frames / fps, quantity=quantity, object_size=size,
-                       tip=tip_info, reference=ref_res, results=results, frontier=[ok[i].name for i in idx],
-                       comparison=comparison, load_note=_load_note(), energy_scale=ref["energy_scale"],
-                       truth=truth_info, executor=executor.description)
+    space = outs[ids["space"]] if ids["space"] is not None else None
+    info = describe_reference(plan, ladder, space, ref, mesh_truth, {mk: [outs[i][0] for i in jj] for mk, jj in mesh_ids.items()})
+    return Reference(plan, ref, ref_res, mesh_truth, info, tip_info, frames)
 
 
 def planned_runs(scene_path, grid: TradeoffGrid, *, truth="grid") -> int:
@@ -989,12 +1034,30 @@ def planned_runs(scene_path, grid: TradeoffGrid, *, truth="grid") -> int:
     configs, _ = _dedupe(grid.configs, base.spec)
     plan = plan_reference(scene_document(scene_path), os.fspath(scene_path), base, grid.reference,
                           grid.truth if truth == "grid" else truth, configs)
-    internal = {_key(c) for c in plan["ladder"] + ([plan["space"]] if plan["space"] is not None else [])
-                + [c for cs in plan["mesh_refs"].values() for c in cs]}
-    return len(internal) + len(configs)
+    return len(plan["jobs"]) + len(configs)
 
 
-def plan_reference(doc, scene_path, base, reference: TradeoffConfig, tspec, configs) -> dict:
+def plan_reference(doc, scene_path, base, reference: TradeoffConfig, tspec, configs, *, meshes=()) -> dict:
+    """Which reference runs a study needs (``plan["jobs"]``, distinct; see :func:`_plan`).
+    ``meshes``: more (element, refine) keys whose time-converged run is wanted."""
+    plan = _plan(doc, scene_path, base, reference, tspec, configs, meshes)
+    jobs, index = [], {}
+
+    def add(cfg):
+        k = _key(cfg)
+        if k not in index:
+            index[k] = len(jobs)
+            jobs.append(cfg)
+        return index[k]
+
+    plan["ids"] = {"ladder": [add(c) for c in plan["ladder"]],
+                   "space": add(plan["space"]) if plan["space"] is not None else None,
+                   "mesh_refs": {mk: [add(c) for c in cs] for mk, cs in plan["mesh_refs"].items()}}
+    plan["jobs"] = jobs
+    return plan
+
+
+def _plan(doc, scene_path, base, reference: TradeoffConfig, tspec, configs, extra_meshes=()) -> dict:
     """Which reference runs a study needs.
 
     Without a truth spec: the grid's reference alone (on the scene's mesh unless it names another
@@ -1041,7 +1104,7 @@ def plan_reference(doc, scene_path, base, reference: TradeoffConfig, tspec, conf
     if not can_refine:
         return plan
     plan["split"] = True
-    meshes = {plan["scene_mesh"]} | {plan["mesh_of"](c) for c in configs}
+    meshes = {plan["scene_mesh"]} | {plan["mesh_of"](c) for c in configs} | set(extra_meshes)
     for mk in sorted(meshes):
         e, r = mk
         cs = [dataclasses.replace(base_ref, name=f"mesh reference {e}" + (f" cells x{r}" if r != 1 else "") + f" {s} substeps",
@@ -1113,7 +1176,9 @@ def run_job(job: dict, progress=None) -> tuple:
         wp.config.quiet = True
     cfg = TradeoffConfig.from_dict(job["config"])
     rest = job.get("sample_rest")
-    with tempfile.TemporaryDirectory(prefix="warpfem_tradeoff_") as cache_dir:  # reduced training cache
+    shared = job.get("cache_dir")
+    with tempfile.TemporaryDirectory(prefix="warpfem_tradeoff_") as own:  # reduced training cache
+        cache_dir = shared if shared and os.path.isdir(shared) else own
         res, traj = _run_one(job["doc"], job["scene_path"], cfg, device=job["device"], frames=job["frames"],
                              ref_info=None if rest is None else {"rest": np.asarray(rest)}, cache_dir=cache_dir,
                              tip_point=job.get("tip_point"), progress=progress)
