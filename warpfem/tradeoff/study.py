@@ -83,6 +83,7 @@ class TradeoffConfig:
     subspace: tuple | None = None  # sorted (key, value) pairs (hashable); see subspace_dict()
     max_cg_iters: int | None = None
     refine: int | None = None  # box generator: [mesh].cells multiplied by this (spatial refinement)
+    linear_solver: str | None = None  # [integrator].linear_solver, for integrators that take one
 
     def subspace_dict(self) -> dict | None:
         return None if self.subspace is None else dict(self.subspace)
@@ -121,7 +122,7 @@ class TradeoffConfig:
             v = getattr(self, k)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise GridError(f"{where}.{k}: must be an integer >= 1, got {v!r}")
-        for k in ("integrator", "element", "name"):
+        for k in ("integrator", "element", "name", "linear_solver"):
             v = getattr(self, k)
             if v is not None and not isinstance(v, str):
                 raise GridError(f"{where}.{k}: expected a string, got {v!r}")
@@ -140,6 +141,8 @@ def _auto_name(d: dict) -> str:
         parts.append(d["element"])
     if d.get("refine") not in (None, 1):
         parts.append(f"cells x{d['refine']}")
+    if d.get("linear_solver"):
+        parts.append(d["linear_solver"])
     sub = d.get("subspace")
     if sub is not None:
         s = dict(sub)
@@ -370,12 +373,27 @@ class Unavailable(Exception):
 def variant_scene(doc: dict, scene_path: str, cfg: TradeoffConfig, *, cache_dir: str | None = None):
     """A :class:`warpfem.scenes.Scene` for ``cfg``: the scene document with the overrides applied,
     validated again by :func:`parse_scene_dict`. Raises :class:`Unavailable` when rejected."""
-    from warpfem.scenes import INTEGRATORS, SCHEMA, Scene, SceneError, parse_scene_dict
+    from warpfem.scenes import Scene, SceneError, parse_scene_dict
+
+    d = variant_document(doc, cfg, cache_dir=cache_dir)
+    try:
+        spec = parse_scene_dict(d, path=os.path.abspath(scene_path))
+    except SceneError as e:
+        raise Unavailable(str(e)) from e
+    return Scene(spec)
+
+
+def variant_document(doc: dict, cfg: TradeoffConfig, *, cache_dir: str | None = None, for_study: bool = True) -> dict:
+    """The scene's TOML document with ``cfg``'s overrides written in (not validated).
+    ``for_study``: drop the scene's outputs and make non-convergence non-fatal (a study counts it);
+    False keeps the document as a user would run it (``warpfem tune`` writes it)."""
+    from warpfem.scenes import INTEGRATORS, SCHEMA
 
     d = copy.deepcopy(doc)
     out = d.setdefault("output", {})
-    for k in ("usd", "states", "stats"):
-        out.pop(k, None)  # a study writes no scene outputs
+    if for_study:
+        for k in ("usd", "states", "stats", "vtu"):
+            out.pop(k, None)  # a study writes no scene outputs
     integ = d.setdefault("integrator", {})
     itype = cfg.integrator or integ.get("type", SCHEMA["integrator"]["type"].default)
     if itype not in INTEGRATORS:
@@ -385,11 +403,16 @@ def variant_scene(doc: dict, scene_path: str, cfg: TradeoffConfig, *, cache_dir:
         integ = {k: v for k, v in integ.items() if k in entry.keys}  # keys the new type does not take are dropped
         d["integrator"] = integ
     integ["type"] = itype
-    integ["require_convergence"] = False  # non-convergence is counted, not fatal
+    if for_study:
+        integ["require_convergence"] = False  # non-convergence is counted, not fatal
     for k in ("tol", "max_iters", "cg_tol", "max_cg_iters"):
         v = getattr(cfg, k)
         if v is not None and k in entry.keys:
             integ[k] = v
+    if cfg.linear_solver is not None:
+        if "linear_solver" not in entry.keys:
+            raise Unavailable(f"integrator {itype!r} has no linear_solver option")
+        integ["linear_solver"] = cfg.linear_solver
     if cfg.substeps is not None:
         if not entry.dynamic:
             raise Unavailable(f"integrator {itype!r} is quasi-static: no time step to vary")
@@ -409,11 +432,7 @@ def variant_scene(doc: dict, scene_path: str, cfg: TradeoffConfig, *, cache_dir:
             key = "_".join(f"{k}{v}" for k, v in sorted(sub.items()))
             sub["cache"] = os.path.join(cache_dir, f"subspace_{key}.npz")
         d["subspace"] = sub
-    try:
-        spec = parse_scene_dict(d, path=os.path.abspath(scene_path))
-    except SceneError as e:
-        raise Unavailable(str(e)) from e
-    return Scene(spec)
+    return d
 
 
 def _build(scene, *, device, precision):
