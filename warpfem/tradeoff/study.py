@@ -1050,10 +1050,10 @@ def planned_runs(scene_path, grid: TradeoffGrid, *, truth="grid") -> int:
     from warpfem.scenes import load_scene
 
     base = load_scene(os.fspath(scene_path))
-    configs, _ = _dedupe(grid.configs, base.spec)
+    configs, dropped = _dedupe(grid.configs, base.spec)
     plan = plan_reference(scene_document(scene_path), os.fspath(scene_path), base, grid.reference,
                           grid.truth if truth == "grid" else truth, configs)
-    return len(plan["jobs"]) + len(configs)
+    return len(plan["jobs"]) + len(configs) + len(dropped)
 
 
 def plan_reference(doc, scene_path, base, reference: TradeoffConfig, tspec, configs, *, meshes=()) -> dict:
@@ -1161,8 +1161,8 @@ def describe_reference(plan, ladder, space, ref, mesh_truth, mesh_runs) -> dict:
         if straj is not None and ladder[0][1] is not None:
             d = _pair_errors(straj, _as_reference(ladder[0][1], L))
             info["space"] = {"difference_tip": d[0], "difference_rms": d[1],
-                             "note": f"{sres.name} vs the reference mesh, same dt: the error of the coarser level; "
-                                     "the reference's own (quadratic element, error ~ h^3) is about 1/8 of it"}
+                             "note": "vs the reference mesh at the same dt: the error of the coarser level; the "
+                                     "reference's own is smaller (about 1/8 of it for a quadratic element, error ~ h^3)"}
     info["meshes"] = {f"{mk[0]}" + (f" cells x{mk[1]}" if mk[1] != 1 else ""):
                       {"discretisation_tip_error": (_pair_errors(mesh_truth[mk], L)[0] if mk in mesh_truth else None),
                        "discretisation_rms_error": (_pair_errors(mesh_truth[mk], L)[1] if mk in mesh_truth else None),
