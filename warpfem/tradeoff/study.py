@@ -1192,7 +1192,9 @@ def run_job(job: dict, progress=None) -> tuple:
         log_job_start(job)
         import warp as wp
 
-        wp.config.quiet = True
+        wp.config.quiet = True  # the banner and module-load lines (Warp 1.19 reads log_level)
+        if hasattr(wp, "LOG_WARNING"):
+            wp.config.log_level = wp.LOG_WARNING
     cfg = TradeoffConfig.from_dict(job["config"])
     rest = job.get("sample_rest")
     shared = job.get("cache_dir")

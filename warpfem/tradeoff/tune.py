@@ -226,7 +226,6 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
             outs = [_job_outcome(o, plan["jobs"][i], getattr(executor, "retried", {}).get(i)) for i, o in enumerate(outs)]
             reference = finish_reference(plan, outs, tip_point=tip_point, frames=frames)
             runs["reference"] = len(plan["jobs"])
-            frame_runs += frames * len(plan["jobs"])
         elif reference.frames != frames:
             raise GridError(f"the given reference covers {reference.frames} frames, the search {frames}")
         est = (reference.info.get("time") or {}).get(f"estimated_error_{quantity}")
@@ -381,6 +380,7 @@ def write_scene(result: TuneResult, path) -> str:
     d = variant_document(scene_document(result.scene), dataclasses.replace(cfg, name=""), for_study=False)
     if d.get("subspace") is not None:
         d["subspace"].pop("cache", None)
+    d["integrator"] = {"type": d["integrator"]["type"], **d["integrator"]}  # type first
     for sec, keys in _PATH_KEYS.items():
         items = d.get(sec)
         for item in (items if isinstance(items, list) else [items] if isinstance(items, dict) else []):
@@ -410,8 +410,8 @@ def format_tune(result: TuneResult) -> str:
              f"({result.frames} frames, cost = {result.cost}, {result.executor})",
              f"searched {result.candidates} candidates: {s['candidates_run']['prefix']} prefix runs "
              f"({'/'.join(map(str, s['prefixes'])) or '-'} frames), {s['candidates_run']['full']} full runs, "
-             f"{s['candidates_run']['reference']} reference runs; {s['frame_runs']} run-frames vs "
-             f"{s['whole_grid_frame_runs']} for the whole grid; {s['seconds']:.0f} s"]
+             f"{s['candidates_run']['reference']} reference runs; search: {s['frame_runs']} run-frames vs "
+             f"{s['whole_grid_frame_runs']} for the whole grid; {s['seconds']:.0f} s in all"]
     rows = ([("winner", result.winner)] if result.winner else []) + [("", r) for r in result.runners_up]
     if rows:
         lines.append(f"  {'':7}{'configuration':42} {q + ' err':>9} {'disc':>9} {'solver':>9} {'s/sim-s':>9} {'work/sim-s':>11}")
