@@ -48,7 +48,9 @@ def _cmd_tradeoff(args) -> int:
         _err(str(e))
         return EXIT_INVALID
     if args.list:
-        print("\n".join([f"reference: {grid.reference.as_dict()}"] + [c.name for c in grid.configs]))
+        truth = "none (--no-truth)" if args.no_truth or grid.truth is None else str(grid.truth.as_dict())
+        print("\n".join([f"reference: {grid.reference.as_dict()}", f"converged reference: {truth}"]
+                        + [c.name for c in grid.configs]))
         return EXIT_OK
     if args.plot is not None:  # fail before an hour of runs, not after
         try:
