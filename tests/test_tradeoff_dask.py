@@ -92,3 +92,18 @@ def test_missing_distributed_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "distributed", None)
     with pytest.raises(ImportError, match=r"warpfem\[dask\]"):
         require_distributed()
+
+
+def test_tune_on_the_cluster_picks_what_the_serial_search_picks(cluster, tmp_path):
+    from warpfem.tradeoff.tune import tune
+
+    p = tmp_path / "beam.toml"
+    p.write_text(BEAM)
+    axes = {"element": ["tet4"], "substeps": [1, 2, 4], "tol": [1e-3], "cg_tol": [1e-2], "precision": ["float64"]}
+    kw = dict(frames=2, axes=axes, truth=None, cost="work")  # the tight run on the scene mesh: a short test
+    serial = tune(str(p), 0.3, **kw)
+    dask = tune(str(p), 0.3, executor=cluster, **kw)
+    assert serial.winner is not None and dask.winner is not None
+    assert dask.winner["config"] == serial.winner["config"]
+    assert dask.winner["error"] == serial.winner["error"] and dask.winner["work"] == serial.winner["work"]
+    assert "dask worker tcp://127.0.0.1:" in dask.winner["ran_on"]
