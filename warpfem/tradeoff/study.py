@@ -5,13 +5,20 @@ Every configuration is a set of overrides of the scene file (precision, Newton `
 Variants are built by editing the parsed TOML document and validating it again with
 :func:`warpfem.scenes.parse_scene_dict`, so whatever the scene layer supports is available here and
 whatever it rejects is skipped with the scene layer's own message. Runs are stepped with
-:meth:`warpfem.scenes.SceneRun.step_frame` and compared with a converged reference run of the same
-scene (float64, tight tolerances, small time step).
+:meth:`warpfem.scenes.SceneRun.step_frame` and compared with a reference converged in space and
+time (:class:`TruthSpec`): the box generator's cells refined with a higher-order element, a ladder
+of time steps S, S/2, S/4 Richardson-extrapolated (backward Euler is first order), the same element
+at half the refinement as a space check; every error is split into a discretisation part (the
+time-converged run on the configuration's own mesh vs the reference) and a solver/step part (the
+configuration vs that run). Without a truth spec (or for a mesh file, which cannot be refined; the
+report says so) the reference is the grid's tight run on the scene's mesh: solver/step error only.
 
-Common ground for comparisons: the **reference's simulation vertices** (rest positions). A variant
-on the same mesh is sampled at those vertices directly; a variant with another vertex set (another
-element type) is sampled by embedding the reference's rest vertices in the variant's elements
-(:func:`warpfem.elements.meshes.embed_points_in_elements`, the variant's own shape functions).
+Common ground for comparisons: fixed material points, the **scene mesh's simulation vertices**
+(rest positions; without a truth spec, the reference's). A run on that mesh is sampled there
+directly; a run with another vertex set (another element type, a refined mesh) is sampled by
+embedding those points in its elements (:func:`warpfem.elements.meshes.embed_points_in_elements`,
+its own shape functions). Every run is an independent job (:func:`run_job`), executed serially or
+on a Dask cluster (:mod:`warpfem.tradeoff.cluster`).
 
 Errors (all over output frames 1..N, the rest state excluded):
 
