@@ -15,7 +15,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import sys
 import time
 
 import numpy as np
@@ -162,7 +161,7 @@ def _reduced_simulator(scene, model, sub, *, device="cpu", precision="float64"):
 
 
 def check_validation_error(scene, sub, path=None) -> str | None:
-    """Warn loudly (a ``logging`` warning and a line on stderr) when the subspace's cubature
+    """Warn loudly (a ``logging`` warning: a ``warning:`` line on stderr from the CLI) when the subspace's cubature
     validation error (force error on poses not used in training) is above the scene's
     ``[subspace] max_validation_error``. Returns the message, or None when within the threshold
     (or no threshold is set)."""
@@ -173,8 +172,7 @@ def check_validation_error(scene, sub, path=None) -> str | None:
     msg = (f"{_where(scene)}: reduced run NOT TRUSTED: the subspace's validation error {err:.3g} is above "
            f"[subspace] max_validation_error = {limit:g} (cache {path or subspace_cache_path(scene)}); lower "
            "cubature_tolerance, add modes / pod_modes and retrain, or check the run against a full one")
-    logger.warning(msg)
-    print(f"warpfem: warning: {msg}", file=sys.stderr, flush=True)
+    logger.warning(msg)  # the CLI prints warnings on stderr as "warning: ..." lines
     return msg
 
 
