@@ -9,7 +9,7 @@ positions perturbed from rest so nothing is trivially zero):
   pcg-matvec   one masked block-sparse mat-vec y = P A P x + (I - P) x (``bsr_masked_mv_kernel``)
   pcg-iter     one block-Jacobi PCG iteration (``BlockJacobiPCG.solve`` run for a fixed number of
                iterations: mat-vec, 3 dot products, 2 axpy, block apply, xpby, 3 host read-backs)
-  cubature     reduced force by cubature (``kernels.reduced``: per-point F, P and node forces, then
+  cubature     reduced force by cubature (``kernels.subspace``: per-point F, P and node forces, then
                the (point, column) projection onto the basis), ``--modes`` columns, every tet a
                cubature point (a random basis: throughput does not depend on the values)
   skinning     x_surface = W x with 4 weights per point (``SurfaceSkinner.apply``), ``--points``
@@ -59,7 +59,7 @@ import warp as wp  # noqa: E402
 import warpfem as wf  # noqa: E402
 from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
-from warpfem.kernels import reduced as RK
+from warpfem.kernels import subspace as RK
 from warpfem.reduced import CubatureForces
 from warpfem.skinning import SurfaceSkinner
 from warpfem.skinning.embedding import Embedding

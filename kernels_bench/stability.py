@@ -1,4 +1,4 @@
-"""Stability at the extremes (issue 7): every case x material x precision, as a table + JSON + markdown.
+"""Stability at the extremes: every case x material x precision, as a table + JSON + markdown.
 
 Each case function builds a small scene, drives an integrator into an extreme and returns a dict
 of measured numbers plus a ``verdict``. Integrators: the core Newton solver (``warpfem.Simulator``:
@@ -363,7 +363,7 @@ def clamped_bar(mat_name, precision, mode, *, cells=(16, 2, 2), load_steps=None,
     return out
 
 
-# -- the two-turn twist, studied (issue 7 follow-up) ---------------------------------------------------
+# -- the two-turn twist, studied (follow-up) ---------------------------------------------------
 def _rot_x(th):
     return np.array([[1, 0, 0], [0, math.cos(th), -math.sin(th)], [0, math.sin(th), math.cos(th)]])
 
@@ -966,7 +966,7 @@ def all_cases(quick=False):
         cases.append((tag, fn))
 
     for prec in PRECISIONS:
-        # core Newton solver, Tet4, every material (session 1)
+        # core Newton solver, Tet4, every material
         for m in MATERIALS:
             for start in ("scrambled", "plane", "line", "point", "mirrored"):
                 add(f"recover {m} {prec} newton tet4", lambda m=m, p=prec, s=start: recover(m, p, s))

@@ -1,4 +1,4 @@
-"""Stability at the extremes (issue 7), fast subset on small meshes; the full envelope
+"""Stability at the extremes, fast subset on small meshes; the full envelope
 (every case x material x precision) is ``kernels_bench/stability.py``, whose case functions these
 tests call. Every test asserts a number that could fail: recovery to the rest shape up to a rigid
 motion, a closed-form volume, energy that never grows, a failure that is reported, or the
@@ -182,7 +182,7 @@ def test_octopus_two_steps_under_gravity(meshes_dir):
 
 
 # =================================================================================================
-# Every integrator and element type (issue 7, session 2). Numbers in docs/stability.md.
+# Every integrator and element type. Numbers in docs/stability.md.
 # =================================================================================================
 
 # -- stiffness warping --------------------------------------------------------------------------

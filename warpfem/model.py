@@ -27,8 +27,8 @@ class Model:
         material: a material from ``warpfem.materials`` (carries the density, kg/m^3).
         gravity: acceleration (m/s^2), applied as lumped-mass body force (the total equals
             rho g V exactly for either mass matrix).
-        mass_matrix: "lumped" (diagonal, row sums) or "consistent" (seed 004,
-            rho V / 20 (1 + delta_ij) per tet).
+        mass_matrix: "lumped" (diagonal, row sums) or "consistent" (the linear-tet consistent mass,
+            rho V / 20 (1 + delta_ij) per tet; Zienkiewicz & Taylor, "The Finite Element Method").
         volumetric_integration: "full" or "reduced" (Hex8 meshes only, any material with
             ``volumetric_split()``, 0 <= nu < 0.5): selective reduced integration, the energy split
             exactly into a lambda-scaled volumetric part on 1 point per element and the rest on

@@ -1,8 +1,8 @@
 """Implicit time stepping and quasi-static solves of a :class:`~warpfem.model.Model` on a Warp device.
 
 Every time integrator (backward Euler, BDF2, Newmark: :mod:`warpfem.integrators`) is one
-minimisation per step of the incremental potential over the end-of-step velocity v (seed 004,
-slips corrected), e.g. for backward Euler
+minimisation per step of the incremental potential over the end-of-step velocity v (Gast, Schroeder, Stomakhin, Jiang & Teran 2015,
+"Optimization integrator for large time steps"), e.g. for backward Euler
 
     E(v) = 1/2 (v - v_n)^T M (v - v_n) + h/2 v^T C v + V(x_n + h v) - h v^T f_ext,
     x_{n+1} = x_n + h v_{n+1},
@@ -11,7 +11,7 @@ with Rayleigh damping C = alpha M + beta K(x_n) (K the SPD-projected stiffness a
 the step, so the damping term is a fixed quadratic and E stays a potential). Its gradient is
 M (v - v_n) + h C v - h f(x_n + h v) - h f_ext = 0, the backward Euler equations. BDF2 and
 Newmark change the prediction (x_b, v_hat) and the scale s (h -> 2h/3, h/2). The potential is a
-sum of terms (:mod:`warpfem.solvers.forms`) minimised by :func:`~warpfem.solvers.newton.newton_solve`.
+sum of terms (:mod:`warpfem.solvers.forms`) minimised by :func:`~warpfem.solvers.nonlinear.newton_solve`.
 The quasi-static solve minimises V(x) - x^T f_ext over the free components of x.
 """
 
@@ -29,7 +29,7 @@ from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
-from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
+from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.linear import make_linear_solver
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern

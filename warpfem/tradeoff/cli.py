@@ -1,5 +1,5 @@
 """``warpfem tradeoff SCENE``: run a scene over a grid of solver configurations, print the table,
-write JSON / a Pareto plot. Registered with :func:`warpfem.cli.add_subcommand` on import."""
+write JSON / a Pareto plot. Listed in the command table :data:`warpfem.cli.COMMANDS` (``register`` below)."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def _cmd_tradeoff(args) -> int:
     if args.plot is not None and not args.plot.lower().endswith(".png"):
         _err(f"--plot must end in .png, got {args.plot!r}")
         return EXIT_INVALID
-    if _cli._check_device(args, _err) is not None:  # a bad --device: before the scene is read
+    if _cli.check_device(args, _err) is not None:  # a bad --device: before the scene is read
         return EXIT_INVALID
     try:
         load_scene(args.scene)
@@ -58,11 +58,11 @@ def _cmd_tradeoff(args) -> int:
             return EXIT_FAILED
 
     from warpfem.progress import Progress
-    from warpfem.solvers.newton import SolveFailed
+    from warpfem.solvers.nonlinear import SolveFailed
 
     if not args.quiet:
         print(f"{args.scene}: reference + {len(grid.configs)} configurations ({grid.name} grid) on {args.device}", flush=True)
-    init = getattr(_cli, "_init_warp", None)
+    init = _cli.init_warp
     if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
         init(args.device, args.verbose)
     bar = Progress(1 + len(grid.configs), unit="configuration", enabled=not args.quiet)
@@ -136,4 +136,3 @@ def register(subparsers):
     p.set_defaults(func=_cmd_tradeoff)
 
 
-_cli.add_subcommand(register)

@@ -506,7 +506,7 @@ def _sampler(run, ref_rest, points_rest=None):
 
 def _run_one(doc, scene_path, cfg, *, device, frames, ref_info, cache_dir, tip_point=None, progress=None):
     """Run ``cfg``; returns (ConfigResult, _Trajectory or None)."""
-    from warpfem.solvers.newton import SolveFailed
+    from warpfem.solvers.nonlinear import SolveFailed
 
     res = ConfigResult(config=cfg.as_dict(), status="skipped")
     try:
@@ -731,7 +731,7 @@ def run_study(scene_path, grid: TradeoffGrid, *, device="cpu", frames=None, quan
         ref_res, ref_traj = _run_one(doc, scene_path, grid.reference, device=device, frames=frames, ref_info=None,
                                      cache_dir=cache_dir, tip_point=tip_point, progress=progress)
         if ref_res.status != "ok":
-            from warpfem.solvers.newton import SolveFailed
+            from warpfem.solvers.nonlinear import SolveFailed
 
             raise SolveFailed(f"the reference run ({grid.reference.as_dict()}) did not complete: {ref_res.note}")
         ref_scene = variant_scene(doc, scene_path, grid.reference)
