@@ -41,10 +41,7 @@ LAYERS = {
 }
 
 # Known violations still to remove: (importer prefix, imported prefix). Keep this empty.
-KNOWN_EXCEPTIONS: set = {
-    ("warpfem.elements", "warpfem.skinning"),  # point location, to move under warpfem.mesh
-    ("warpfem.scenes", "warpfem.reduced.scene"),  # Scene.build special-cases [subspace]
-}
+KNOWN_EXCEPTIONS: set = set()
 
 
 def _module_name(path: str) -> str:

@@ -301,14 +301,14 @@ def embed_points_in_elements(points, mesh, *, max_newton_iters: int = 30, corner
 
     Returns ``(ids (p, k) int64, weights (p, k) float64, element (p,) int64)``: the element's
     nodes and its shape functions at the point's reference coordinates (rows sum to 1). The
-    element is found on the corner tets (:func:`warpfem.skinning.embed_points`, nearest for
+    element is found on the corner tets (:func:`warpfem.mesh.locate.embed_points`, nearest for
     outside points); reference coordinates: barycentric for tets, refined for every type by Newton
     on the isoparametric map X(xi) = sum_a N_a(xi) X_a (the inverse map of hexes and curved Tet10).
     A point outside the mesh keeps extrapolated coordinates (weights may be negative).
     ``corner_embedding``: the result of ``embed_points(points, mesh.vertices, mesh.corner_tets())``
     when the caller already has it (the search is then not repeated).
     """
-    from warpfem.skinning import embed_points
+    from warpfem.mesh.locate import embed_points
 
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:

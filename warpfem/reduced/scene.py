@@ -1,6 +1,8 @@
 """Scenes with a ``[subspace]`` section: training the cache (``warpfem train``) and reduced runs.
 
-``Scene.build`` calls :func:`build_reduced_simulator` when the scene has ``[subspace]``; it loads
+This module registers :func:`build_reduced_simulator` in the scene integrator registry for the
+``[subspace]`` section (``warpfem.scenes.register_integrator``), so ``Scene.build`` calls it for a
+scene with ``[subspace]`` (``Scene.build(full=True)``, the training run, does not); it loads
 the cache written by :func:`train_scene` and returns a :class:`~warpfem.reduced.ReducedSimulator`
 (reduced backward Euler) that offers what :class:`warpfem.scenes.SceneRun` drives: ``positions()``,
 ``x``, ``set_targets``, ``sync_model``, ``step`` / ``dt`` / ``time`` and, for the render surface,
@@ -12,7 +14,6 @@ enters as a prescribed displacement field (``warpfem.reduced.lifting``).
 
 from __future__ import annotations
 
-import contextlib
 import os
 import time
 
@@ -20,18 +21,6 @@ import numpy as np
 
 __all__ = ["build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
            "scene_settings"]
-
-_FULL_RUN = [False]  # while True, build_reduced_simulator hands back the full simulator (training runs)
-
-
-@contextlib.contextmanager
-def _full_simulation():
-    _FULL_RUN[0] = True
-    try:
-        yield
-    finally:
-        _FULL_RUN[0] = False
-
 
 def subspace_cache_path(scene) -> str:
     """The cache file: ``[subspace].cache`` relative to the scene file, default ``<name>.subspace.npz``
@@ -126,10 +115,6 @@ def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
     from warpfem.reduced.simulator import ReducedSimulator
 
     _check_integrator(scene)
-    if _FULL_RUN[0]:
-        from warpfem.scenes import INTEGRATORS
-
-        return INTEGRATORS["backward_euler"].build(scene, model, device=device, precision=precision)
     sub, _ = _load_checked(scene, model)
     o = scene.spec.integrator
     return ReducedSimulator(model, sub, device=device, precision=precision, dt=o["dt"], damping_mass=o["damping_mass"],
@@ -155,8 +140,7 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
     sp = scene.spec
     s = sp.subspace
     path = subspace_cache_path(scene)
-    with _full_simulation():
-        run = scene.build(device=device, precision=precision)
+    run = scene.build(device=device, precision=precision, full=True)  # the full-space training run
     model = run.model
     if not retrain and os.path.exists(path):
         try:
@@ -228,3 +212,15 @@ def describe_subspace(scene) -> str:
     except Exception as e:  # noqa: BLE001 - describe must not fail on a bad cache
         lines.append(f"  cache {path}: unreadable ({e}); retrain with `warpfem train {_where(scene)}`")
     return "\n".join(lines)
+
+
+def _register():
+    from warpfem.scenes import IntegratorType, register_integrator
+
+    register_integrator(IntegratorType(
+        "subspace", build_reduced_simulator, section="subspace", dynamic=True, describe=describe_subspace,
+        builds=("reduced basis U and cubature points (from the cache)", "reduced Hessian (dense r x r)")),
+        replace=True)
+
+
+_register()

@@ -418,9 +418,11 @@ class Scene:
         else:
             lines.append(f"integrator: {self.integrator_type}, {integ.get('load_steps', 1)} load step(s) per frame")
         lines.append(f"  builds: {', '.join(entry.builds)}")
-        if sp.subspace is not None:  # reduced run (warpfem.reduced)
-            from warpfem.reduced.scene import describe_subspace
-            lines.append(describe_subspace(self))
+        from . import section_entries
+
+        for extra in section_entries(self):  # e.g. [subspace]: the reduced run (warpfem.reduced.scene)
+            if extra.describe is not None:
+                lines.append(extra.describe(self))
         out = sp.output
         lines.append(f"frames: {out['frames']} at {out['fps']:g} fps ({out['frames'] / out['fps']:g} s)")
         if sp.surface is not None:
@@ -489,9 +491,10 @@ class Scene:
                   for prec in ("float32", "float64")}
         subspace = None
         if sp.subspace is not None:
-            from warpfem.reduced.scene import describe_subspace
+            from . import section_entries
 
-            subspace = {**{key: plain(val) for key, val in sp.subspace.items()}, "describe": describe_subspace(self)}
+            lines = [e.describe(self) for e in section_entries(self) if e.section == "subspace" and e.describe]
+            subspace = {**{key: plain(val) for key, val in sp.subspace.items()}, "describe": "\n".join(lines)}
         return {
             "scene": self.name, "path": self.path, "warpfem_version": warpfem_version(),
             "mesh": {"source": "box" if sp.mesh["generator"] else sp.mesh["path"],
@@ -524,12 +527,15 @@ class Scene:
         return None
 
     # -- build ------------------------------------------------------------------------------------
-    def build(self, *, device="cpu", precision="float64") -> "SceneRun":
-        """Build the model, the integrator and (only with ``[surface]``) the surface embedding."""
+    def build(self, *, device="cpu", precision="float64", full: bool = False) -> "SceneRun":
+        """Build the model, the integrator and (only with ``[surface]``) the surface embedding.
+
+        ``full=True``: the full-space simulator even when a section (``[subspace]``) would replace
+        it (the training run of a reduced scene)."""
         from warpfem.materials import make_material
         from warpfem.model import Model
 
-        from . import INTEGRATORS
+        from . import integrator_entry
 
         if precision not in ("float32", "float64"):
             raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
@@ -558,14 +564,11 @@ class Scene:
             model.forces += f
         for e, ids in zip(sp.handle, sel["handle"]):
             model.fix(ids, e["components"])
-        entry = INTEGRATORS[self.integrator_type]
+        # the [integrator].type's entry, or one registered for a section the scene has ([subspace]:
+        # the reduced simulator, warpfem.reduced.scene); full=True: always the full-space simulator
+        entry = integrator_entry(self, full=full)
         try:
-            if sp.subspace is not None:  # reduced run: x = X + U q (basis + cubature from the cache)
-                from warpfem.reduced.scene import build_reduced_simulator
-
-                sim = build_reduced_simulator(self, model, device=device, precision=precision)
-            else:
-                sim = entry.build(self, model, device=device, precision=precision)
+            sim = entry.build(self, model, device=device, precision=precision)
         except SceneError:
             raise
         except ValueError as e:

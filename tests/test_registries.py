@@ -1,0 +1,50 @@
+"""Registries that keep the layers apart: the scene integrator registry (a layer above scenes, the
+subspace simulator, plugs in through it) and the material registry."""
+
+import textwrap
+
+import pytest
+
+from warpfem.scenes import INTEGRATORS, SECTION_INTEGRATORS, IntegratorType, integrator_entry, load_scene, register_integrator
+
+SCENE = """
+name = "tiny"
+[mesh]
+generator = "box"
+size = [2.0, 1.0, 1.0]
+cells = [2, 1, 1]
+[material]
+model = "linear"
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+density = 100.0
+[integrator]
+type = "{integrator}"
+[output]
+frames = 2
+{extra}
+"""
+
+
+def _scene(tmp_path, integrator="backward_euler", extra=""):
+    p = tmp_path / "tiny.toml"
+    p.write_text(textwrap.dedent(SCENE.format(integrator=integrator, extra=extra)))
+    return load_scene(str(p))
+
+
+def test_a_subspace_section_selects_the_registered_reduced_entry(tmp_path):
+    plain = _scene(tmp_path, "bdf2")
+    assert integrator_entry(plain) is INTEGRATORS["bdf2"]
+    reduced = _scene(tmp_path, "bdf2", "[subspace]\nmodes = 4\n")
+    entry = integrator_entry(reduced)
+    assert entry is SECTION_INTEGRATORS["subspace"] and entry.section == "subspace"
+    assert integrator_entry(reduced, full=True) is INTEGRATORS["bdf2"]  # the training run
+    assert "subspace" not in INTEGRATORS  # not an [integrator].type value
+    assert "r = 4" in reduced.describe()
+
+
+def test_register_integrator_refuses_a_second_entry_for_a_section():
+    entry = SECTION_INTEGRATORS["subspace"]
+    with pytest.raises(ValueError, match=r"\[subspace\] is already registered"):
+        register_integrator(IntegratorType("other", entry.build, section="subspace"))
+    assert SECTION_INTEGRATORS["subspace"] is entry
