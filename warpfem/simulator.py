@@ -87,7 +87,7 @@ class Simulator(SimulatorState):
         self._k = qd.nodes_per_element
         self._x_rest = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev)
         self._qp_args = [self._x_rest, self._elements, self._k, self._qp_element, self._qp_weight, self._qp_dNdX,
-                         int(mat.kind), self._s(mat.mu), self._s(mat.lam)]
+                         int(mat.kind), self._s(mat.kernel_mu), self._s(mat.kernel_lam)]
         self._pattern = BlockPattern(qd.elements, qd.nodes_per_element, n, device=dev, block_type=self._mat)
         self._mass_values = self._pattern.values_from_scalar_matrix(model.mass)
         self._hess_values = self._pattern.new_values()
@@ -104,7 +104,7 @@ class Simulator(SimulatorState):
         self._qp_sets = [(self._qp_count, self._qp_args, self._energy_q)]
         if getattr(qd, "volumetric", None) is not None:
             vq = qd.volumetric
-            split = getattr(model, "volumetric_parameters", None) or ((mat.mu, 0.0), (0.0, mat.lam))
+            split = getattr(model, "volumetric_parameters", None) or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
             (mu_f, lam_f), (mu_v, lam_v) = split
             vargs = [self._x_rest, self._elements, self._k, wp.array(vq.qp_element, dtype=wp.int32, device=dev),
                      wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),

@@ -68,7 +68,7 @@ class CubatureForces:
         self.r = r = U.shape[1]
         self.c = c = len(elements)
         mat_ = model.material
-        self.kind, self.mu, self.lam = int(mat_.kind), self._s(mat_.mu), self._s(mat_.lam)
+        self.kind, self.mu, self.lam = int(mat_.kind), self._s(mat_.kernel_mu), self._s(mat_.kernel_lam)
         self.U = _basis_array(U, n, vec, npdt, dev)
         tets = qd.elements.reshape(-1, 4)[elements]
         self.elements = wp.array(tets.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev)
