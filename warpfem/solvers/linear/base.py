@@ -223,5 +223,5 @@ def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, 
     unknown = set(options) - accepted
     if unknown:
         raise TypeError(f"linear solver {name!r}: unknown option(s) {sorted(unknown)}; known: {sorted(accepted)}")
-    log.info("linear solver: %s", name)
+    log.debug("linear solver: %s", name)
     return cls(pattern, vec_type=vec_type, scalar=scalar, **options)
