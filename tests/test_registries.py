@@ -73,3 +73,39 @@ def test_kernel_parameters_are_named_apart_from_lame():
     m = StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1.0)
     assert m.kernel_mu == pytest.approx(m.mu_lame) and m.kernel_lam == pytest.approx(m.lam_lame + m.mu_lame)
     assert (m.mu, m.lam) == (m.kernel_mu, m.kernel_lam)  # the aliases
+
+
+def test_every_element_type_object_is_consistent():
+    """Invariants every registered element type must satisfy (so a new one is checked too):
+    Kronecker property at its nodes, partition of unity, reference gradients against central
+    differences, rules summing to the reference volume, corner sub-tets filling the element with
+    positive volume, outward faces whose nodes lie on them."""
+    import numpy as np
+
+    from warpfem.elements import ELEMENTS
+
+    rng = np.random.default_rng(3)
+    assert set(ELEMENTS) >= {"tet4", "tet10", "hex8", "hex27"}
+    for name, e in ELEMENTS.items():
+        k = e.nodes_per_element
+        N, _ = e.shape(e.reference_nodes)
+        np.testing.assert_allclose(N, np.eye(k), atol=1e-13, err_msg=name)
+        xi = rng.uniform(0.05, 0.2, (5, 3)) if e.reference_volume < 1 else rng.uniform(-0.9, 0.9, (5, 3))
+        N, dN = e.shape(xi)
+        np.testing.assert_allclose(N.sum(axis=1), 1.0, atol=1e-13, err_msg=name)
+        h = 1e-6
+        for d in range(3):
+            dx = np.zeros(3)
+            dx[d] = h
+            fd = (e.shape(xi + dx)[0] - e.shape(xi - dx)[0]) / (2 * h)
+            np.testing.assert_allclose(dN[:, :, d], fd, atol=1e-8, err_msg=name)
+        for purpose in e.rule_degree:
+            assert e.rule(purpose)[1].sum() == pytest.approx(e.reference_volume, rel=1e-12), (name, purpose)
+        P = e.reference_nodes[e.corner_tets]  # (s, 4, 3)
+        vols = np.linalg.det(np.stack([P[:, i] - P[:, 0] for i in (1, 2, 3)], axis=2)) / 6
+        assert np.all(vols > 0) and vols.sum() == pytest.approx(e.reference_volume, rel=1e-12), name
+        centre = e.reference_nodes[e.corner_nodes].mean(axis=0)
+        for on, corners, origin, T, pts, wts in e.faces():
+            normal = np.cross(T[0], T[1])
+            assert normal @ (origin - centre) > 0, name  # outward
+            assert np.allclose((e.reference_nodes[on] - origin) @ normal, 0.0), name  # nodes on the face plane

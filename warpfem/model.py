@@ -67,7 +67,7 @@ class Model:
                                  f"{getattr(material, 'poisson_ratio', '?')!r} for {type(material).__name__}")
             self.volumetric_parameters = ((float(mu_f), float(lam_f)), (float(mu_v), float(lam_v)))
         self.volumetric_integration = volumetric_integration
-        self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, getattr(mesh, "element_type", "tet4"),
+        self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, mesh.element_type,
                                                 volumetric_integration=volumetric_integration)
         self.lumped_mass, self.mass = self._mass_matrices()
         # gravity is M (1 x g) with the chosen mass matrix, so free fall is exact with either; this is
@@ -78,17 +78,9 @@ class Model:
 
     # -- rest state -----------------------------------------------------------------------------
     def _mass_matrices(self):
-        qd = self.quadrature
-        rho = self.material.density
-        if qd.element_type == "tet4":
-            from warpfem.mesh import consistent_mass, lumped_mass
+        from warpfem.elements import mass_matrices  # every element type (Tet4: closed form)
 
-            lumped = lumped_mass(self.mesh, rho)
-            M = consistent_mass(self.mesh, rho) if self.mass_matrix_kind == "consistent" else scipy.sparse.diags(lumped)
-            return lumped, scipy.sparse.csr_matrix(M)
-        from warpfem.elements import mass_matrices  # higher-order elements
-
-        return mass_matrices(self, rho)
+        return mass_matrices(self, self.material.density)
 
     @property
     def total_mass(self) -> float:

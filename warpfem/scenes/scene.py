@@ -73,42 +73,11 @@ def traction_forces(vertices, faces, box_min, box_max, force_per_area):
 
 
 # Strang & Fix 6-point rule on the reference triangle (s, t >= 0, s + t <= 1), degree 4; weights sum to 1/2.
-_TRI_A, _TRI_B = 0.445948490915965, 0.091576213509771
-_TRI_RULE = (np.array([[_TRI_A, _TRI_A], [1 - 2 * _TRI_A, _TRI_A], [_TRI_A, 1 - 2 * _TRI_A],
-                       [_TRI_B, _TRI_B], [1 - 2 * _TRI_B, _TRI_B], [_TRI_B, 1 - 2 * _TRI_B]]),
-             0.5 * np.array([0.223381589678011] * 3 + [0.109951743655322] * 3))
-
-
 def _element_faces(element_type):
-    """Per local face of an element: (face node ids, corner ids, reference origin (3,), tangents
-    (2, 3), rule points (g, 2), rule weights (g,)), with xi(s, t) = origin + s T0 + t T1 and
-    T0 x T1 pointing out of the element."""
-    from warpfem.elements.library import REFERENCE_NODES
-    from warpfem.elements.meshes import _HEX_FACES, _TET_FACES
+    """Per local face of an element: the element type's ``faces()`` (warpfem.mesh.element_types)."""
+    from warpfem.mesh.element_types import get_element
 
-    nodes = REFERENCE_NODES[element_type]
-    out = []
-    if element_type in ("tet4", "tet10"):
-        P = REFERENCE_NODES["tet4"]
-        lam = np.concatenate([1.0 - nodes.sum(axis=1, keepdims=True), nodes], axis=1)  # barycentric of each node
-        for a, b, c in _TET_FACES:
-            d = ({0, 1, 2, 3} - {int(a), int(b), int(c)}).pop()
-            on = np.flatnonzero(np.abs(lam[:, d]) < 1e-12)
-            out.append((on, np.array([a, b, c]), P[a], np.stack([P[b] - P[a], P[c] - P[a]]), *_TRI_RULE))
-    else:
-        g = np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
-        w = np.array([5.0, 8.0, 5.0]) / 9.0
-        pts = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
-        wts = np.outer(w, w).ravel()
-        for axis, sign, u, v in _HEX_FACES:
-            on = np.flatnonzero(np.abs(nodes[:, axis] - sign) < 1e-12)
-            corners = on[np.all(np.abs(np.abs(nodes[on]) - 1.0) < 1e-12, axis=1)]
-            origin = np.zeros(3)
-            origin[axis] = sign
-            T = np.zeros((2, 3))
-            T[0, u] = T[1, v] = 1.0
-            out.append((on, corners, origin, T, pts, wts))
-    return out
+    return get_element(element_type).faces()
 
 
 def element_traction_forces(mesh, box_min, box_max, force_per_area):
@@ -122,7 +91,7 @@ def element_traction_forces(mesh, box_min, box_max, force_per_area):
     from warpfem.elements.library import shape_functions, shape_gradients
     from warpfem.mesh import select_vertices_in_box
 
-    etype = getattr(mesh, "element_type", "tet4")
+    etype = mesh.element_type
     X = np.asarray(mesh.vertices, dtype=np.float64)
     E = np.asarray(mesh.elements, dtype=np.int64)
     faces = _element_faces(etype)
@@ -158,7 +127,7 @@ def element_traction_forces(mesh, box_min, box_max, force_per_area):
 def boundary_surface(mesh):
     """Default render surface: ``(vertex ids (s,), triangles (f, 3) into them)`` of the mesh boundary
     (tet faces; Tet10/Hex faces triangulated through their nodes, see ``ElementMesh.boundary_faces``)."""
-    if getattr(mesh, "element_type", "tet4") == "tet4":
+    if mesh.element_type == "tet4":
         from warpfem.skinning import mesh_boundary_surface
 
         return mesh_boundary_surface(mesh.vertices, mesh.tets)
@@ -356,7 +325,7 @@ class Scene:
     def tractions(self):
         """[(forces (n, 3), loaded faces, area)] per ``[[traction]]`` entry (consistent loads)."""
         mesh = self.mesh()
-        tet4 = getattr(mesh, "element_type", "tet4") == "tet4"
+        tet4 = mesh.element_type == "tet4"
         faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
         out = []
         for i, t in enumerate(self.spec.traction):

@@ -25,7 +25,7 @@ def embed_points_in_mesh(points, mesh) -> Embedding:
     element represents (affine ones exactly). ``distances`` / ``outside`` come from the corner-tet
     search: the distance of an outside point to the mesh's straight-sided corner tets.
     """
-    etype = getattr(mesh, "element_type", "tet4")
+    etype = mesh.element_type
     if etype == "tet4":
         return embed_points(points, mesh.vertices, np.asarray(mesh.elements))
     from warpfem.elements import embed_points_in_elements
