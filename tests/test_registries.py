@@ -109,3 +109,23 @@ def test_every_element_type_object_is_consistent():
             normal = np.cross(T[0], T[1])
             assert normal @ (origin - centre) > 0, name  # outward
             assert np.allclose((e.reference_nodes[on] - origin) @ normal, 0.0), name  # nodes on the face plane
+
+
+def test_simulator_public_hooks_match_the_assembled_stiffness():
+    """The hooks benchmarks use (pattern, assemble_stiffness, new_vector, num_points) give the same
+    matrix as stiffness_matrix(), and assembling twice into the same values doubles it."""
+    import numpy as np
+
+    import warpfem as wf
+
+    mesh = wf.box_tet_mesh(size=(2.0, 1.0, 1.0), cells=(2, 1, 1))
+    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=100.0))
+    sim = wf.Simulator(model, device="cpu", precision="float64")
+    x = mesh.vertices * np.array([1.1, 0.95, 1.0])
+    xa = sim.new_vector(x)
+    K = sim.stiffness_matrix(x).toarray()
+    vals = sim.assemble_stiffness(xa)
+    np.testing.assert_allclose(sim.pattern.to_scipy(vals).toarray(), K, rtol=1e-12, atol=1e-9 * np.abs(K).max())
+    sim.assemble_stiffness(xa, vals)
+    np.testing.assert_allclose(sim.pattern.to_scipy(vals).toarray(), 2 * K, rtol=1e-12, atol=1e-9 * np.abs(K).max())
+    assert sim.num_points == mesh.num_tets and sim.linear_solver is not None

@@ -159,6 +159,38 @@ class Simulator(SimulatorState):
             launch(FK.qp_hessian_kernel, count, [x, *args, self._s(scale), int(self.options.project_hessian),
                                                  self._pattern.block_index, values], self.device)
 
+    # -- public hooks for benchmarks and tools (device arrays, no copies) ----------------------------
+    @property
+    def pattern(self):
+        """The block-sparse pattern of the Hessian (:class:`warpfem.solvers.sparse.BlockPattern`)."""
+        return self._pattern
+
+    @property
+    def linear_solver(self):
+        """The linear solver of the Newton systems (``warpfem.solvers.linear``)."""
+        return self._pcg
+
+    @property
+    def num_points(self) -> int:
+        """Quadrature points of the main (full-rule) set."""
+        return self._qp_count
+
+    def new_vector(self, a=None):
+        """A device array of vec3 in the simulator's precision: zeros, or a copy of ``a`` (n, 3)."""
+        return self._vec_array(a)
+
+    def new_matrix_values(self):
+        """Zeroed block values (3x3 per block) in the Hessian's pattern."""
+        return self._pattern.new_values()
+
+    def assemble_stiffness(self, x=None, values=None, *, scale=1.0):
+        """Add ``scale`` x the elastic Hessian at ``x`` (device vec3 array, default the current
+        positions; SPD-projected if the options say so) into ``values`` (default new zeroed values
+        in :attr:`pattern`), in place; returns ``values``."""
+        values = self.new_matrix_values() if values is None else values
+        self._assemble_stiffness(self.x if x is None else x, scale, values)
+        return values
+
     def elastic_forces(self, x=None) -> np.ndarray:
         """Internal elastic forces -dV/dx (N) at x (default: current positions), (n, 3)."""
         xa = self.x if x is None else self._vec_array(x)
