@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -33,6 +34,19 @@ from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, ne
 from warpfem.solvers.linear import make_linear_solver
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
+
+
+class QuadratureSet(NamedTuple):
+    """One set of quadrature points the element kernels run over (``Simulator._qp_sets``).
+
+    count: number of points (the launch dimension); args: the kernels' arguments after the
+    positions x, in order: rest positions X, connectivity, nodes per element k, point -> element,
+    point weight (Gauss weight x det J), dN/dX per point and node, material kind, kernel_mu,
+    kernel_lam; energy: per-point energy buffer (J). Unpacks as ``count, args, energy``."""
+
+    count: int
+    args: list
+    energy: object
 
 
 class Simulator(SimulatorState):
@@ -101,7 +115,7 @@ class Simulator(SimulatorState):
         # rule, the volumetric part on the 1-point rule; energy, force and Hessian are sums over the
         # sets (the Hessian of each part SPD-projected on its own). stresses() evaluates the full
         # material at the main (full-rule) points.
-        self._qp_sets = [(self._qp_count, self._qp_args, self._energy_q)]
+        self._qp_sets = [QuadratureSet(self._qp_count, self._qp_args, self._energy_q)]
         if getattr(qd, "volumetric", None) is not None:
             vq = qd.volumetric
             split = getattr(model, "volumetric_parameters", None) or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
@@ -111,8 +125,8 @@ class Simulator(SimulatorState):
                      wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev),
                      int(mat.kind), self._s(mu_v), self._s(lam_v)]
             main = self._qp_args[:7] + [self._s(mu_f), self._s(lam_f)]
-            self._qp_sets = [(self._qp_count, main, self._energy_q),
-                             (vq.num_points, vargs, wp.zeros(vq.num_points, dtype=self._s, device=dev))]
+            self._qp_sets = [QuadratureSet(self._qp_count, main, self._energy_q),
+                             QuadratureSet(vq.num_points, vargs, wp.zeros(vq.num_points, dtype=self._s, device=dev))]
 
         def vec_array(a=None):
             return wp.zeros(n, dtype=self._vec, device=dev) if a is None else wp.array(np.asarray(a, dtype=self._np), dtype=self._vec, device=dev)
