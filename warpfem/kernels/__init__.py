@@ -5,11 +5,11 @@
 Vocabulary: "subspace" is model reduction (x = X + U q); "selective reduced integration" (SRI) is
 the Hex8 quadrature with a separate one-point volumetric set (``QuadratureData.volumetric``)."""
 
-import sys as _sys
 
-# Transitional alias for code written before the rename (``from warpfem.kernels import reduced``).
-if "warpfem.kernels.reduced" not in _sys.modules:
-    from . import subspace as _subspace
+def __getattr__(name):
+    # Transitional alias for code written before the rename (``from warpfem.kernels import reduced``).
+    if name == "reduced":
+        from . import subspace
 
-    _sys.modules["warpfem.kernels.reduced"] = _subspace
-    reduced = _subspace
+        return subspace
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
