@@ -9,6 +9,7 @@ Public API (one import path per symbol)::
     model.fix(wf.select_vertices_in_box(mesh, (-1, -1, -1), (1e-6, 2, 2)))
     sim = wf.Simulator(model, device="cpu", precision="float64", dt=1 / 60)
     stats = sim.step()
+    sim.add_collider(wf.Plane(point=(0, -1, 0), normal=(0, 1, 0), friction=0.3))  # contact (docs/contact.md)
 """
 
 from warpfem.materials import (
@@ -27,6 +28,7 @@ from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
 from warpfem.simulator import Simulator
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats
 from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
+from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
 
 __version__ = "0.1.0"
 
@@ -60,4 +62,9 @@ __all__ = [
     "save_mesh",
     "select_vertices_in_box",
     "__version__",
+    "Plane",
+    "Sphere",
+    "Box",
+    "MeshCollider",
+    "CollisionError",
 ]

@@ -72,7 +72,7 @@ class Simulator(SimulatorState):
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
                  damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, linear_solver="auto",
-                 linear_solver_options=None, **newton_options):
+                 linear_solver_options=None, colliders=None, **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         self.integrator = make_integrator(integrator)
         unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
@@ -141,6 +141,25 @@ class Simulator(SimulatorState):
         #: model itself is never rescaled
         self.load_scale = 1.0
         self.sync_model()
+        self.contact = None  # warpfem.contact.ContactSet once a collider is added
+        for c in colliders or ():
+            self.add_collider(c)
+
+    def add_collider(self, collider=None, **kw):
+        """Add a kinematic collider (a :class:`warpfem.contact.Plane`, ``Sphere``, ``Box``,
+        ``MeshCollider``, or ``type="plane"`` and its keywords): barrier + friction contact with the
+        body's surface vertices in every step (docs/contact.md). Raises
+        :class:`warpfem.contact.CollisionError` naming it if it intersects the body now."""
+        from warpfem.contact import ContactSet, make_collider
+
+        if collider is None:
+            collider = make_collider(**kw)
+        elif kw:
+            raise TypeError("add_collider takes a collider object or keywords, not both")
+        if self.contact is None:
+            self.contact = ContactSet(self)
+        self.contact.add(collider)
+        return collider
 
     # -- model changes (no pattern rebuild) -----------------------------------------------------------
     def sync_model(self):
@@ -330,8 +349,15 @@ class Simulator(SimulatorState):
         quadratic = [InertiaForm(self, y0)]
         if self.damping_mass != 0.0 or self.damping_stiffness != 0.0:
             quadratic.append(DampingForm(self, s * self.damping_mass, s * self.damping_stiffness))
+        contact = None
+        if self.contact is not None and len(self.contact):
+            contact = self._begin_contact_step(xb, s, fixed_v, y)
         pot = FullSpacePotential(self, xb=xb, s=s, quadratic=quadratic, elastic=ElasticForm(self, s),
-                                 load=LoadForm(self, s * self.load_scale))
+                                 load=LoadForm(self, s * self.load_scale), contact=contact)
+        if contact is not None:  # start where no vertex is inside a collider (the previous velocity, cut)
+            alpha = min(1.0, pot.max_step(self._contact_start, y))
+            launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self._contact_start, self._s(alpha), y, y],
+                   device=self.device)
         stats = newton_solve(pot, y, self.options)
         self._finish(stats, t0, f"step {self.step_count}")
         self.integrator.advance(self, y, prediction)
@@ -340,12 +366,43 @@ class Simulator(SimulatorState):
         self.step_count += 1
         return stats
 
+    def _begin_contact_step(self, xb, s, fixed_v, y):
+        """Contact data of the coming step; ``y`` becomes the direction from a feasible start."""
+        from warpfem.contact import ContactForm
+        from warpfem.contact.contact import CollisionError
+        from warpfem.solvers.forms import _E_CONTACT
+
+        n = self.num_vertices
+        self.contact.begin_step(self.time, self.time + self.dt, self.dt)
+        # the unknown that keeps every vertex where it is (fixed ones at their targets): feasible
+        # unless a collider moved into the body
+        y0 = self._vec_array()
+        launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self.x, self._s(-1.0), xb, y0], device=self.device)
+        launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0 / s), y0, self._s(0.0), y0, y0], device=self.device)
+        launch(LK.select_kernel, dim=n, inputs=[self._mask, y0, fixed_v, y0], device=self.device)
+        x0 = self._vec_array()
+        launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), xb, self._s(s), y0, x0], device=self.device)
+        try:
+            self.contact.check(x0, self.time + self.dt, what="moved into the body within one step (reduce dt or "
+                               "slow the collider)")
+        except CollisionError as e:
+            raise SolveFailed(f"step {self.step_count}: {e}; state left unchanged",
+                              SolveStats(reason="collider intersects the body")) from e
+        self.contact.set_poses(self.time, self.time + self.dt)
+        # y := y - y0 (the direction from the feasible start), cut by the step bound in step()
+        launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), y, self._s(-1.0), y0, y], device=self.device)
+        self._contact_start = y0
+        return ContactForm(self.contact, s, _E_CONTACT, xb=xb)
+
     def solve_static(self, *, load_steps: int = 1) -> SolveStats:
         """Quasi-static equilibrium: minimise V(x) - x^T f_ext with the fixed components held.
 
         Loads and prescribed targets are ramped linearly over ``load_steps`` Newton solves
         (more steps: more robust for large deformation). Velocities are set to zero.
         """
+        if self.contact is not None and len(self.contact):
+            raise ValueError("solve_static does not handle colliders (contact is a dynamic term here); "
+                             "use a damped time integration to reach rest on a collider")
         if int(load_steps) != load_steps or load_steps < 1:
             raise ValueError(f"load_steps must be a positive integer, got {load_steps!r}")
         fixed_any = self.model.fixed.any(axis=0)

@@ -339,6 +339,10 @@ class ReducedSimulator:
                               SolveStats(reason="non-finite initial acceleration"))
 
     # -- step ---------------------------------------------------------------------------------------
+    def add_collider(self, *args, **kw):
+        """Not supported: a reduced simulator (x = X + U q) does not handle contact; use :class:`warpfem.Simulator`."""
+        raise ValueError("a reduced simulator (x = X + U q) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
+
     def step(self) -> SolveStats:
         """One reduced step of ``dt`` with the simulator's integrator (the same Newton loop as the
         full-space simulators, :func:`~warpfem.solvers.nonlinear.newton_solve`, with a dense r x r

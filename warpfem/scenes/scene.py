@@ -380,6 +380,10 @@ class Scene:
             raise
         except ValueError as e:
             self._fail("[integrator]", str(e))
+        if sp.collider:  # kinematic colliders (warpfem.contact)
+            from warpfem.contact.scene import add_scene_colliders
+
+            add_scene_colliders(self, sim, duration=sp.output["frames"] / sp.output["fps"])
         return SceneRun(self, model, sim, sel["handle"], device=device, precision=precision)
 
 
@@ -527,7 +531,13 @@ class SceneRun:
             if usd:
                 writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
                 writer.add_mesh(self.surface_name, self.surface_faces, self.num_surface_points)
-                writer.write_frame(self.frame, {self.surface_name: self.surface_points()})
+                from warpfem.contact.scene import collider_prims
+
+                colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
+                for name, faces, pts in colliders:
+                    writer.add_mesh(name, faces, len(pts()))
+                writer.write_frame(self.frame, {self.surface_name: self.surface_points(),
+                                                **{name: pts() for name, _, pts in colliders}})
             if vtu:
                 qd = self.model.quadrature
                 volume = VtuSeriesWriter(vtu, cells=qd.elements, element_type=qd.element_type)
@@ -552,7 +562,8 @@ class SceneRun:
                 if positions is not None:
                     positions.write_frame(self.sim.positions(), fs.time)
                 if writer is not None:
-                    writer.write_frame(self.frame, {self.surface_name: self.surface_points()})
+                    writer.write_frame(self.frame, {self.surface_name: self.surface_points(),
+                                                    **{name: pts() for name, _, pts in colliders}})
                 if volume is not None:
                     volume.write_state(fs.time, self.sim, self.model)
                 if progress is not None:

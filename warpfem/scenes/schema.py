@@ -141,6 +141,29 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "ramp_time": Key("float", default=None, check=_positive, doc="s; default: the whole run"),
     },
     "force": {**_SELECTION, "force": Key("vec3", required=True, doc="N on each selected vertex")},
+    # kinematic colliders (warpfem.contact, docs/contact.md): keys per type in COLLIDER_TYPE_KEYS
+    "collider": {
+        "type": Key("choice", required=True, choices=("plane", "sphere", "box", "mesh")),
+        "name": Key("str", default=None, doc="USD prim / message name (default: the type)"),
+        "friction": Key("float", default=0.0, check=_non_negative, doc="Coulomb coefficient mu"),
+        "dhat": Key("float", default=None, check=_positive, doc="contact distance (m); default 0.1 x mean surface edge"),
+        "stiffness": Key("float", default=None, check=_positive, doc="barrier stiffness kappa (N/m); default from the weight"),
+        "friction_velocity": Key("float", default=None, check=_positive, doc="m/s below which friction sticks (smoothing)"),
+        "point": Key("vec3", default=(0.0, 0.0, 0.0), doc="plane: a point on it (m)"),
+        "normal": Key("vec3", default=(0.0, 1.0, 0.0), doc="plane: normal towards the body"),
+        "center": Key("vec3", default=None, doc="sphere: centre (m)"),
+        "radius": Key("float", default=None, check=_positive, doc="sphere: radius (m)"),
+        "box_min": Key("vec3", default=None, doc="box: lower corner (m)"),
+        "box_max": Key("vec3", default=None, doc="box: upper corner (m)"),
+        "path": Key("path", default=None, doc="mesh: triangle mesh file (meshio)"),
+        "scale": Key("float", default=1.0, check=_positive, doc="mesh: scale of the file's coordinates"),
+        "offset": Key("vec3", default=(0.0, 0.0, 0.0), doc="mesh: translation after scaling (m)"),
+        "translation": Key("vec3", default=(0.0, 0.0, 0.0), doc="motion over the ramp (m), as [[handle]]"),
+        "rotation_axis": Key("vec3", default=None),
+        "rotation_angle": Key("float", default=0.0, doc="degrees over the ramp"),
+        "rotation_center": Key("vec3", default=None, doc="default: the collider's centre"),
+        "ramp_time": Key("float", default=None, check=_positive, doc="s; default: the whole run"),
+    },
     "traction": {
         "box_min": Key("vec3", required=True),
         "box_max": Key("vec3", required=True),
@@ -193,7 +216,11 @@ SCHEMA: dict[str, dict[str, Key]] = {
 }
 
 # the (repeated) [[array]] sections
-ARRAY_SECTIONS = ("fixed", "handle", "force", "traction")
+ARRAY_SECTIONS = ("fixed", "handle", "force", "traction", "collider")
+
+# [[collider]]: the keys each type needs (required) and the keys only some types take
+COLLIDER_TYPE_KEYS = {"plane": ((), ("point", "normal")), "sphere": (("center", "radius"), ()),
+                      "box": (("box_min", "box_max"), ()), "mesh": (("path",), ("scale", "offset"))}
 
 # Newton/time-stepping keys shared by the built-in integrators (integrators list which they accept).
 INTEGRATOR_KEYS: dict[str, Key] = {
@@ -231,6 +258,7 @@ class SceneSpec:
     handle: list = field(default_factory=list)
     force: list = field(default_factory=list)
     traction: list = field(default_factory=list)
+    collider: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)  # sections handled by registered extensions
 
 
@@ -461,7 +489,10 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
         entries = []
         for i, e in enumerate(data.get(s, [])):
             checked = _check_table(ctx, s, e, SCHEMA[s], index=i)
-            _check_selection(ctx, s, i, checked)
+            if s == "collider":
+                _check_collider(ctx, i, checked, e, itype, subspace)
+            else:
+                _check_selection(ctx, s, i, checked)
             entries.append(checked)
         arrays[s] = entries
     for i, h in enumerate(arrays["handle"]):
@@ -483,6 +514,28 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
         integrator["substeps"] = int(sub)
     return SceneSpec(path=path, base_dir=ctx.base_dir, top=top, mesh=mesh, material=material,
                      integrator=integrator, output=output, surface=surface, subspace=subspace, **arrays)
+
+
+def _check_collider(ctx, i, c, raw, itype, subspace):
+    label = _where_section("collider", i)
+    required, own = COLLIDER_TYPE_KEYS[c["type"]]
+    for k in required:
+        if c.get(k) is None:
+            ctx.fail(f"{label}.{k}", f"required for type = {c['type']!r}")
+    others = {k for t, (r, o) in COLLIDER_TYPE_KEYS.items() if t != c["type"] for k in r + o} - set(required + own)
+    for k in sorted(others & set(raw)):
+        ctx.fail(f"{label}.{k}", f"not a key of type = {c['type']!r} (its keys: {', '.join(required + own) or 'none'})")
+    if c["type"] == "plane" and all(v == 0 for v in c["normal"]):
+        ctx.fail(f"{label}.normal", "must be a non-zero vector")
+    if c["type"] == "box" and not all(h > l for l, h in zip(c["box_min"], c["box_max"])):
+        ctx.fail(f"{label}.box_max", "must exceed box_min on every axis")
+    if c["rotation_angle"] != 0.0 and c["rotation_axis"] is None:
+        ctx.fail(f"{label}.rotation_axis", "required with rotation_angle")
+    if subspace is not None:
+        ctx.fail(label, "reduced runs ([subspace]) do not handle colliders")
+    if itype not in ("backward_euler", "bdf2", "newmark"):
+        ctx.fail(label, f"colliders need a full-space dynamic integrator (backward_euler, bdf2, newmark), "
+                        f"[integrator].type is {itype!r}")
 
 
 def read_toml(path, error: type[Exception], *, what: str) -> dict:

@@ -32,7 +32,8 @@ __all__ = ["InertiaForm", "DampingForm", "ElasticForm", "LoadForm", "FullSpacePo
 _E_QUAD, _E_ELASTIC, _E_ELASTIC_ABS, _E_WORK = 0, 1, 2, 3
 _G_QUAD, _G_FORCE_ABS, _G_NORM = 4, 5, 6
 _D_GD, _D_MAX, _Y_MAX, _X_MAX = 7, 8, 9, 10
-_SLOTS = 12
+_E_CONTACT = 12  # contact: energy, pairs at distance <= 0, sum of squared gradient, step bound (12..15)
+_SLOTS = 16
 _F64_HALF, _F64_ONE = wp.float64(0.5), wp.float64(1.0)
 
 
@@ -142,8 +143,9 @@ class FullSpacePotential:
     The ``problem`` of :func:`~warpfem.solvers.nonlinear.newton_solve`: device vectors, a masked
     block-sparse Newton system solved by the simulator's linear solver."""
 
-    def __init__(self, sim, *, xb, s, quadratic=(), elastic=None, load=None):
+    def __init__(self, sim, *, xb, s, quadratic=(), elastic=None, load=None, contact=None):
         self.sim, self.xb, self.s = sim, xb, float(s)
+        self.contact = contact  # a warpfem.contact.ContactForm (barrier + friction, bounds the step) or None
         self.quadratic = tuple(quadratic)  # forms whose gradient norm forms the "quadratic" magnitude
         self.elastic, self.load = elastic, load
         self.mask, self.n = sim._mask, sim.num_vertices
@@ -183,10 +185,15 @@ class FullSpacePotential:
             self.elastic.energy(y, x, acc)
         if self.load is not None:
             self.load.energy(y, x, acc)
+        if self.contact is not None:
+            self.contact.energy(y, x, acc)
         a = acc.numpy()
         quad, V, Vabs = float(a[_E_QUAD]), float(a[_E_ELASTIC]), float(a[_E_ELASTIC_ABS])
         work = self.load.c * float(a[_E_WORK]) if self.load is not None else 0.0
-        return quad + V - work, abs(quad) + Vabs + abs(work)
+        if a[_E_CONTACT + 1] > 0:  # a vertex on or inside a collider: outside the barrier's domain
+            return float("inf"), float("inf")
+        Ec = float(a[_E_CONTACT])
+        return quad + V - work + Ec, abs(quad) + Vabs + abs(work) + Ec
 
     def gradient(self, y, g):
         """g = P grad E(y); returns (the sum of the norms of its terms, ||g||): one host read-back."""
@@ -203,12 +210,16 @@ class FullSpacePotential:
             self.elastic.gradient(y, x, g, acc)
         if self.load is not None:
             self.load.gradient(y, x, g, acc)
+        if self.contact is not None:
+            self.contact.gradient(y, x, g, acc)
         c = self.load.c if self.load is not None else 0.0
         launch(LK.gradient_finish_kernel, self.n, [g, sim._fext, sim._s(c), self.mask, acc, _G_NORM], sim.device)
         a = acc.numpy()
         mag = np.sqrt(a[_G_QUAD]) + np.sqrt(a[_G_FORCE_ABS])
         if self.load is not None:
             mag += abs(self.load.c) * sim._fext_norm
+        if self.contact is not None:
+            mag += np.sqrt(a[_E_CONTACT + 2])
         return float(mag), float(np.sqrt(a[_G_NORM]))
 
     def assemble_hessian(self, y, values):
@@ -218,7 +229,19 @@ class FullSpacePotential:
             f.hessian(y, x, values)
         if self.elastic is not None:
             self.elastic.hessian(y, x, values)
+        if self.contact is not None:
+            self.contact.hessian(y, x, values)
         return values
+
+    def max_step(self, y, d):
+        """The largest step length <= 1 along d that keeps every surface vertex outside the
+        colliders (continuous collision bound; 1 without contact): one read-back."""
+        if self.contact is None:
+            return 1.0
+        acc = self.sim._work.acc
+        acc.fill_(1.0)
+        self.contact.max_step(self._x_of(y), d, acc)
+        return float(acc.numpy()[_E_CONTACT + 3])
 
     # -- Newton system ------------------------------------------------------------------------------
     def solve_newton_system(self, y, g, d, opts):

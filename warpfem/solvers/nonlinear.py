@@ -110,6 +110,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     * ``direction_check(y, g, d) -> (g . d, negligible)``: negligible when d is below the resolution
       of the unknowns (and positions) in the working precision;
     * ``new_vector()``, ``trial(y, alpha, d, out)`` (out = y + alpha d), ``assign(dst, src)``;
+    * optionally ``max_step(y, d) -> alpha_max``: the line search starts at min(1, alpha_max)
+      (contact's continuous-collision bound: no step crosses a collider);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
       step changes the energy by less than that fraction of its magnitude (below what the energy
       sum resolves), the step is accepted if it halves the gradient norm.
@@ -149,7 +151,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             st.converged = True
             st.reason = "at the precision limit (Newton step below the resolution of the positions)"
             break
-        alpha, accepted = 1.0, False
+        # continuous-collision filter (contact): no step may carry the state across a collider
+        alpha, accepted = min(1.0, problem.max_step(y, d)) if hasattr(problem, "max_step") else 1.0, False
         noise = 16.0 * eps_mach * mag
         for _ls in range(opts.max_line_search):
             problem.trial(y, alpha, d, y_try)

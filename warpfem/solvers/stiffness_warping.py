@@ -275,6 +275,10 @@ class StiffnessWarpingSimulator(SimulatorState):
             raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
                               SolveStats(reason="non-finite initial acceleration"))
 
+    def add_collider(self, *args, **kw):
+        """Not supported: stiffness warping (a linearised step with no line search) does not handle contact; use :class:`warpfem.Simulator`."""
+        raise ValueError("stiffness warping (a linearised step with no line search) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
+
     def step(self) -> SolveStats:
         """Advance one linearly implicit step of ``dt`` (one PCG solve) with the simulator's
         integrator: one Newton iteration, from v_n, of the integrator's incremental potential with

@@ -1,0 +1,234 @@
+"""Kinematic colliders: a floor (plane), spheres, boxes and triangle meshes the body cannot enter.
+
+A collider is rigid and prescribed (it is not simulated). Its motion follows the schedule of a
+kinematic handle (docs/scenes.md, ``[[handle]]``): at time t, with f = min(t / ramp_time, 1),
+
+    x(t) = c + R(f * rotation_angle about rotation_axis) (X - c) + f * translation,
+
+X the collider's point at t = 0 and c the rotation centre (default: the collider's centre).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider", "COLLIDER_TYPES"]
+
+COLLIDER_TYPES = ("plane", "sphere", "box", "mesh")
+
+
+def _rotation(axis, angle):
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
+
+
+def _vec3(v, what):
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape != (3,) or not np.isfinite(a).all():
+        raise ValueError(f"{what} must be 3 finite numbers, got {v!r}")
+    return a
+
+
+class Collider:
+    """Base class. Args (keyword): ``friction`` (Coulomb mu >= 0), ``dhat`` (contact distance, m;
+    None: a tenth of the body's mean surface edge length), ``stiffness`` (barrier kappa, N/m;
+    None: Young's modulus x the mean surface edge, at least the weight under 1 g per surface vertex
+    per dhat),
+    ``friction_velocity`` (m/s, below which friction is smoothed into sticking; None: 1e-3 body
+    diagonals per second), the motion ``translation``, ``rotation_axis``, ``rotation_angle``
+    (degrees), ``rotation_center``, ``ramp_time`` (s; required when it moves), and ``name``."""
+
+    kind = -1
+    type_name = ""
+
+    def __init__(self, *, friction=0.0, dhat=None, stiffness=None, friction_velocity=None, translation=None,
+                 rotation_axis=None, rotation_angle=0.0, rotation_center=None, ramp_time=None, name=None):
+        self.name = name or self.type_name
+        self.friction = float(friction)
+        if not (np.isfinite(self.friction) and self.friction >= 0.0):
+            raise ValueError(f"collider {self.name!r}: friction must be >= 0, got {friction!r}")
+        for key, v in (("dhat", dhat), ("stiffness", stiffness), ("friction_velocity", friction_velocity),
+                       ("ramp_time", ramp_time)):
+            if v is not None and not (np.isfinite(v) and v > 0.0):
+                raise ValueError(f"collider {self.name!r}: {key} must be > 0, got {v!r}")
+        self.dhat = None if dhat is None else float(dhat)
+        self.stiffness = None if stiffness is None else float(stiffness)
+        self.friction_velocity = None if friction_velocity is None else float(friction_velocity)
+        self.translation = np.zeros(3) if translation is None else _vec3(translation, f"collider {self.name!r}: translation")
+        self.rotation_axis = None if rotation_axis is None else _vec3(rotation_axis, f"collider {self.name!r}: rotation_axis")
+        if self.rotation_axis is not None and np.linalg.norm(self.rotation_axis) == 0.0:
+            raise ValueError(f"collider {self.name!r}: rotation_axis must be nonzero")
+        self.rotation_angle = float(rotation_angle)
+        self.rotation_center = None if rotation_center is None else _vec3(rotation_center, f"collider {self.name!r}: rotation_center")
+        self.ramp_time = None if ramp_time is None else float(ramp_time)
+        if self.moving and self.ramp_time is None:
+            raise ValueError(f"collider {self.name!r} moves: give its ramp_time (s)")
+
+    @property
+    def moving(self) -> bool:
+        return bool(np.any(self.translation != 0.0) or (self.rotation_axis is not None and self.rotation_angle != 0.0))
+
+    def center(self) -> np.ndarray:
+        raise NotImplementedError
+
+    def pose(self, t: float):
+        """(R, p): the collider maps its t = 0 point X to R X + p at time t."""
+        if not self.moving:
+            return np.eye(3), np.zeros(3)
+        f = min(max(t / self.ramp_time, 0.0), 1.0)
+        R = np.eye(3)
+        c = self.center() if self.rotation_center is None else self.rotation_center
+        if self.rotation_axis is not None and self.rotation_angle != 0.0:
+            R = _rotation(self.rotation_axis, math.radians(self.rotation_angle) * f)
+        return R, c - R @ c + f * self.translation
+
+    def params(self):
+        """(a, b) vec3 parameters of the primitive in the t = 0 frame (see contact kernels)."""
+        return np.zeros(3), np.zeros(3)
+
+    def triangles(self) -> np.ndarray:
+        return np.zeros((0, 3, 3))
+
+    def surface(self, extent: float):
+        """(vertices (k, 3), triangles (m, 3)) of the collider at t = 0 for output; ``extent`` sizes
+        an infinite plane."""
+        raise NotImplementedError
+
+    def __repr__(self):
+        return f"{type(self).__name__}(name={self.name!r})"
+
+
+class Plane(Collider):
+    """The half-space n.(x - point) >= 0 (the body stays on the side n points to)."""
+
+    kind, type_name = 0, "plane"
+
+    def __init__(self, point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0), **kw):
+        self.point = _vec3(point, "plane point")
+        n = _vec3(normal, "plane normal")
+        if np.linalg.norm(n) == 0.0:
+            raise ValueError("plane normal must be nonzero")
+        self.normal = n / np.linalg.norm(n)
+        super().__init__(**kw)
+
+    def center(self):
+        return self.point
+
+    def params(self):
+        return self.point, self.normal
+
+    def surface(self, extent):
+        n = self.normal
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0])
+        t1 /= np.linalg.norm(t1)
+        t2 = np.cross(n, t1)
+        e = float(extent)
+        v = np.array([self.point + e * (a * t1 + b * t2) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+        return v, np.array([[0, 2, 1], [0, 3, 2]]) if np.dot(np.cross(v[1] - v[0], v[2] - v[0]), n) < 0 else np.array([[0, 1, 2], [0, 2, 3]])
+
+
+class Sphere(Collider):
+    """A solid ball of ``radius`` around ``center``."""
+
+    kind, type_name = 1, "sphere"
+
+    def __init__(self, center=(0.0, 0.0, 0.0), radius=1.0, **kw):
+        self.center_ = _vec3(center, "sphere center")
+        self.radius = float(radius)
+        if not (np.isfinite(self.radius) and self.radius > 0.0):
+            raise ValueError(f"sphere radius must be > 0, got {radius!r}")
+        super().__init__(**kw)
+
+    def center(self):
+        return self.center_
+
+    def params(self):
+        return self.center_, np.array([self.radius, 0.0, 0.0])
+
+    def surface(self, extent):
+        u, v = np.meshgrid(np.linspace(0, np.pi, 13), np.linspace(0, 2 * np.pi, 25), indexing="ij")
+        pts = np.stack([np.sin(u) * np.cos(v), np.cos(u), np.sin(u) * np.sin(v)], -1).reshape(-1, 3)
+        nu, nv = u.shape
+        tri = []
+        for i in range(nu - 1):
+            for j in range(nv - 1):
+                a, b, c, d = i * nv + j, i * nv + j + 1, (i + 1) * nv + j, (i + 1) * nv + j + 1
+                tri += [[a, b, d], [a, d, c]]
+        return self.center_ + self.radius * pts, np.array(tri)
+
+
+class Box(Collider):
+    """A solid axis-aligned box (at t = 0) from ``box_min`` to ``box_max``."""
+
+    kind, type_name = 2, "box"
+
+    def __init__(self, box_min=(-1.0, -1.0, -1.0), box_max=(1.0, 1.0, 1.0), **kw):
+        lo, hi = _vec3(box_min, "box_min"), _vec3(box_max, "box_max")
+        if not np.all(hi > lo):
+            raise ValueError(f"box_max must exceed box_min on every axis, got {box_min!r}, {box_max!r}")
+        self.lo, self.hi = lo, hi
+        super().__init__(**kw)
+
+    def center(self):
+        return 0.5 * (self.lo + self.hi)
+
+    def params(self):
+        return self.center(), 0.5 * (self.hi - self.lo)
+
+    def surface(self, extent):
+        c = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64)
+        v = self.lo + c * (self.hi - self.lo)
+        quads = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
+        return v, np.array([t for a, b, c_, d in quads for t in ((a, b, c_), (a, c_, d))])
+
+
+class MeshCollider(Collider):
+    """A rigid triangle mesh (``path`` read with meshio, or ``vertices`` and ``triangles``),
+    treated as a two-sided surface: the body is kept at a positive distance from every triangle
+    (point-triangle distances, brute force over the triangles: meant for small meshes)."""
+
+    kind, type_name = 3, "mesh"
+
+    def __init__(self, path=None, *, vertices=None, triangles=None, scale=1.0, offset=(0.0, 0.0, 0.0), **kw):
+        if path is not None:
+            import meshio
+
+            m = meshio.read(str(path))
+            tri = [c.data for c in m.cells if c.type == "triangle"]
+            if not tri:
+                raise ValueError(f"mesh collider {path}: no triangles in the file")
+            vertices, triangles = m.points, np.concatenate(tri)
+        if vertices is None or triangles is None:
+            raise ValueError("a mesh collider needs a path or vertices and triangles")
+        V = np.asarray(vertices, dtype=np.float64)[:, :3] * float(scale) + _vec3(offset, "mesh offset")
+        T = np.asarray(triangles, dtype=np.int64)
+        if T.ndim != 2 or T.shape[1] != 3 or T.min() < 0 or T.max() >= len(V):
+            raise ValueError(f"mesh collider {path or ''}: triangles must be (m, 3) indices into the vertices")
+        area = np.linalg.norm(np.cross(V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]), axis=1)
+        if np.any(area <= 1e-14 * max(np.ptp(V, axis=0).max(), 1e-300) ** 2):
+            raise ValueError(f"mesh collider {path or ''}: degenerate triangle {int(np.argmin(area))}")
+        self.vertices, self.faces = V, T
+        super().__init__(**kw)
+
+    def center(self):
+        return self.vertices.mean(axis=0)
+
+    def triangles(self):
+        return self.vertices[self.faces]
+
+    def surface(self, extent):
+        return self.vertices, self.faces
+
+
+_BY_TYPE = {"plane": Plane, "sphere": Sphere, "box": Box, "mesh": MeshCollider}
+
+
+def make_collider(type: str, **kw) -> Collider:
+    """A collider from a type name ("plane", "sphere", "box", "mesh") and its keywords."""
+    if type not in _BY_TYPE:
+        raise ValueError(f"collider type must be one of {COLLIDER_TYPES}, got {type!r}")
+    return _BY_TYPE[type](**kw)

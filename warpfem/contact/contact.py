@@ -1,0 +1,239 @@
+"""The contact term of the incremental potential: barrier + lagged friction against colliders.
+
+:class:`ContactSet` holds a simulator's colliders on the device (their parameters, their poses at
+the end of the current step, the friction data lagged from its start); :class:`ContactForm` is the
+form of :mod:`warpfem.solvers.forms` that adds their energy, gradient and (SPD-projected, vertex-
+diagonal: colliders are kinematic) Hessian blocks to the potential and bounds the line search's
+step (continuous collision: no surface vertex crosses a collider along y + alpha d).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import warp as wp
+
+from warpfem.contact import kernels as CK
+from warpfem.contact.colliders import Collider
+from warpfem.kernels import linalg as LK
+from warpfem.kernels.generic import launch
+
+log = logging.getLogger(__name__)
+
+__all__ = ["ContactSet", "ContactForm", "CollisionError"]
+
+# the line search may take a vertex at most this close (fraction of its current distance) to a collider
+STEP_ETA = 0.2
+
+
+class CollisionError(ValueError):
+    """A collider intersects the body (at the start, or a moving collider ran into it)."""
+
+
+class ContactSet:
+    """The colliders of one simulator and their device data."""
+
+    def __init__(self, sim):
+        self.sim = sim
+        self.colliders: list[Collider] = []
+        mesh = sim.model.mesh
+        faces = np.asarray(mesh.boundary_faces())
+        self.surface = np.unique(faces)
+        X = sim.model.rest_positions
+        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        self.mean_edge = float(np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1).mean())
+        self.diagonal = float(np.linalg.norm(np.ptp(X, axis=0)))
+        self.total_mass = float(sim.model.total_mass)
+        dev = sim.device
+        self._surf = wp.array(self.surface.astype(np.int32), dtype=wp.int32, device=dev)
+        self._diag = wp.array(np.asarray(sim._pattern.diag_index).astype(np.int32), dtype=wp.int32, device=dev)
+        self._ready = False
+
+    def __len__(self):
+        return len(self.colliders)
+
+    # -- set-up ---------------------------------------------------------------------------------------
+    def defaults(self, c: Collider):
+        """(dhat, kappa, eps_v) of a collider with the body-based defaults filled in."""
+        dhat = c.dhat if c.dhat is not None else 0.1 * self.mean_edge
+        kappa = c.stiffness if c.stiffness is not None else self.default_stiffness(dhat)
+        epsv = c.friction_velocity if c.friction_velocity is not None else 1e-3 * self.diagonal
+        return dhat, kappa, epsv
+
+    def default_stiffness(self, dhat):
+        """Barrier stiffness kappa (N/m): as stiff as the material over a surface edge (E x mean edge,
+        so an impact is stopped within a fraction of dhat rather than at a float32-unresolvable
+        gap), and at least the weight under 1 g spread over the surface vertices, per dhat."""
+        E = float(getattr(self.sim.model.material, "youngs_modulus", 0.0) or 0.0)
+        return max(E * self.mean_edge, self.total_mass * 9.81 / (len(self.surface) * dhat))
+
+    def add(self, collider: Collider):
+        if not isinstance(collider, Collider):
+            raise TypeError(f"add_collider expects a warpfem collider (Plane, Sphere, Box, MeshCollider), got {collider!r}")
+        names = {c.name for c in self.colliders}
+        if collider.name in names:
+            k = 2
+            while f"{collider.name}{k}" in names:
+                k += 1
+            collider.name = f"{collider.name}{k}"
+        self.colliders.append(collider)
+        self._ready = False
+        self._upload()
+        try:
+            self.check(self.sim.x, self.sim.time, what="starts intersecting the body")
+        except CollisionError:
+            self.colliders.pop()
+            self._ready = False
+            self._upload() if self.colliders else None
+            raise
+
+    def _upload(self):
+        sim, dev = self.sim, self.sim.device
+        cs = self.colliders
+        nc = len(cs)
+        self.nc = nc
+        tris, start, count = [], [], []
+        off = 0
+        for c in cs:
+            t = c.triangles()
+            start.append(off)
+            count.append(len(t))
+            off += len(t)
+            tris.append(t.reshape(-1, 3))
+        tri = np.concatenate(tris) if off else np.zeros((3, 3))
+        pars = [c.params() for c in cs]
+        d = [self.defaults(c) for c in cs]
+        self.dhat = np.array([x[0] for x in d])
+        self.kappa = np.array([x[1] for x in d])
+        self.epsv = np.array([x[2] for x in d])
+        S, V, M = sim._s, sim._vec, sim._mat
+        npt = sim._np
+        self._kinds = wp.array(np.array([c.kind for c in cs], dtype=np.int32), dtype=wp.int32, device=dev)
+        self._pa = wp.array(np.array([p[0] for p in pars], dtype=npt).reshape(-1, 3), dtype=V, device=dev)
+        self._pb = wp.array(np.array([p[1] for p in pars], dtype=npt).reshape(-1, 3), dtype=V, device=dev)
+        self._tri_start = wp.array(np.array(start, dtype=np.int32), dtype=wp.int32, device=dev)
+        self._tri_count = wp.array(np.array(count, dtype=np.int32), dtype=wp.int32, device=dev)
+        self._tris = wp.array(tri.astype(npt), dtype=V, device=dev)
+        self._kappa = wp.array(self.kappa.astype(npt), dtype=S, device=dev)
+        self._dhat = wp.array(self.dhat.astype(npt), dtype=S, device=dev)
+        self._mu = wp.array(np.array([c.friction for c in cs], dtype=npt), dtype=S, device=dev)
+        self._epsf = wp.zeros(nc, dtype=S, device=dev)
+        m = len(self.surface) * nc
+        self._lam = wp.zeros(m, dtype=S, device=dev)
+        self._dist = wp.zeros(m, dtype=S, device=dev)
+        self._nrm = wp.zeros(m, dtype=V, device=dev)
+        self._w = wp.zeros(m, dtype=V, device=dev)
+        self._acc = wp.zeros(4, dtype=wp.float64, device=dev)
+        self._x0 = sim.x
+        self._neg_x0 = sim._vec_array(-sim.positions())
+        self.set_poses(sim.time, sim.time)
+        self._ready = True
+
+    def set_poses(self, t0, t1):
+        """Poses of the colliders at the start (t0) and end (t1) of a step."""
+        sim, dev = self.sim, self.sim.device
+        p0 = [c.pose(t0) for c in self.colliders]
+        p1 = [c.pose(t1) for c in self.colliders]
+        npt = sim._np
+        self._R0 = wp.array(np.array([p[0] for p in p0], dtype=npt).reshape(-1, 3, 3), dtype=sim._mat, device=dev)
+        self._t0 = wp.array(np.array([p[1] for p in p0], dtype=npt).reshape(-1, 3), dtype=sim._vec, device=dev)
+        self._R1 = wp.array(np.array([p[0] for p in p1], dtype=npt).reshape(-1, 3, 3), dtype=sim._mat, device=dev)
+        self._t1 = wp.array(np.array([p[1] for p in p1], dtype=npt).reshape(-1, 3), dtype=sim._vec, device=dev)
+
+    # -- kernel launch --------------------------------------------------------------------------------
+    def _run(self, mode, x, *, scale=1.0, g=None, values=None, acc=None, slot=0, lam=None, y=None, sy=1.0, dbase=None):
+        """Launch the contact kernel; friction's step displacement is dbase + sy * y (default: x - x_n)."""
+        sim = self.sim
+        if y is None:
+            y, sy, dbase = x, 1.0, self._neg_x0
+        launch(CK.contact_kernel, len(self.surface), [
+            x, self._surf, self.nc, self._kinds, self._R1, self._t1, self._R0, self._t0, self._pa, self._pb,
+            self._tri_start, self._tri_count, self._tris, self._kappa, self._dhat, self._mu, self._epsf,
+            self._lam if lam is None else lam, self._nrm, self._w, dbase, y, sim._s(sy), sim._s(STEP_ETA), sim._s(scale), int(mode),
+            sim._zero if g is None else g, self._diag, sim._hess_values if values is None else values,
+            self._acc if acc is None else acc, int(slot)], sim.device)
+
+    def distances(self, x=None) -> np.ndarray:
+        """(surface vertices, colliders) distances (m) at x (default: the current positions), with
+        the colliders at their current pose."""
+        self._run(CK.MODE_DISTANCE, self.sim.x if x is None else x, lam=self._dist)
+        return self._dist.numpy().astype(np.float64).reshape(len(self.surface), self.nc)
+
+    def check(self, x, t, *, what):
+        """Raise :class:`CollisionError` naming the collider if a surface vertex of x is at distance <= 0
+        from a collider at its pose at time t."""
+        self.set_poses(t, t)
+        D = self.distances(x)
+        bad = np.argwhere(D <= 0.0)
+        if len(bad):
+            v, j = bad[0]
+            c = self.colliders[j]
+            raise CollisionError(f"collider {c.name!r} ({c.type_name}) {what}: {len(bad)} surface vertices inside it "
+                                 f"(first: vertex {int(self.surface[v])}, distance {D[v, j]:.3g} m)")
+
+    def begin_step(self, t0, t1, dt):
+        """Poses for the step [t0, t1] and the friction data lagged from the current positions."""
+        sim = self.sim
+        self.set_poses(t0, t1)
+        self._epsf.assign((self.epsv * dt).astype(sim._np))
+        self._x0 = wp.clone(sim.x)
+        self._neg_x0 = sim._vec_array()
+        launch(LK.lincomb_kernel, sim.num_vertices, [sim._s(-1.0), self._x0, sim._s(0.0), self._x0, self._neg_x0],
+               sim.device)
+        self._run(CK.MODE_LAG, self._x0)
+
+    def barrier_energy(self, x=None) -> float:
+        """Barrier energy (J) of x (default: current positions) with the colliders at their current
+        poses (friction excluded)."""
+        mu = self._mu
+        self._mu = wp.zeros_like(mu)
+        lam = wp.zeros_like(self._lam)
+        self._acc.zero_()
+        try:
+            self._run(CK.MODE_ENERGY, self.sim.x if x is None else x, lam=lam)
+        finally:
+            self._mu = mu
+        a = self._acc.numpy()
+        return float("inf") if a[1] > 0 else float(a[0])
+
+    def forces(self, x=None) -> np.ndarray:
+        """Contact forces (N) on the vertices at x (barrier + lagged friction of the last step), (n, 3)."""
+        f = self.sim._vec_array()
+        self._acc.zero_()
+        self._run(CK.MODE_GRADIENT, self.sim.x if x is None else x, scale=-1.0, g=f)
+        return f.numpy().astype(np.float64)
+
+
+class ContactForm:
+    """Barrier + lagged friction of a :class:`ContactSet`, as a term of the potential over y with
+    x = x_b + s y (static: x = y, s = 1): gradient s dE/dx, Hessian s^2 d2E/dx2 (vertex-diagonal)."""
+
+    def __init__(self, contact: ContactSet, s, slot, xb=None):
+        """``xb``: the step's x_b (x = x_b + s y); None: x is the unknown itself (y = x, s = 1)."""
+        self.contact, self.s, self.slot = contact, float(s), int(slot)
+        self._dbase = None
+        if xb is not None:  # x - x_n = (x_b - x_n) + s y
+            sim = contact.sim
+            self._dbase = sim._vec_array()
+            launch(LK.lincomb_kernel, sim.num_vertices, [sim._s(1.0), xb, sim._s(-1.0), contact._x0, self._dbase],
+                   sim.device)
+
+    def _disp(self, y):
+        if self._dbase is None or y is None:
+            return {}
+        return {"y": y, "sy": self.s, "dbase": self._dbase}
+
+    def energy(self, y, x, acc):
+        self.contact._run(CK.MODE_ENERGY, x, acc=acc, slot=self.slot, **self._disp(y))
+
+    def gradient(self, y, x, g, acc):
+        self.contact._run(CK.MODE_GRADIENT, x, scale=self.s, g=g, acc=acc, slot=self.slot, **self._disp(y))
+
+    def hessian(self, y, x, values):
+        self.contact._run(CK.MODE_HESSIAN, x, scale=self.s * self.s, values=values, **self._disp(y))
+
+    def max_step(self, x, d, acc):
+        """Largest alpha <= 1 with no vertex crossing (or coming closer than STEP_ETA of its distance
+        to) a collider along x + alpha s d (into acc[slot + 3], initialised by the caller)."""
+        self.contact._run(CK.MODE_MAX_STEP, x, scale=self.s, g=d, acc=acc, slot=self.slot)

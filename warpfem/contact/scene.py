@@ -1,0 +1,50 @@
+"""Scene support of colliders: ``[[collider]]`` tables -> colliders on the simulator, and their
+geometry in the USD output (one mesh prim per collider, its points written every frame)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from warpfem.contact.colliders import make_collider
+from warpfem.contact.contact import CollisionError
+
+_GEOMETRY = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "box": ("box_min", "box_max"),
+             "mesh": ("path", "scale", "offset")}
+_COMMON = ("name", "friction", "dhat", "stiffness", "friction_velocity", "translation", "rotation_axis",
+           "rotation_angle", "rotation_center", "ramp_time")
+
+
+def add_scene_colliders(scene, sim, *, duration):
+    """Add the scene's ``[[collider]]`` entries to ``sim`` (ramp_time default: ``duration``)."""
+    if not hasattr(sim, "add_collider"):
+        scene._fail("[[collider]] #1", f"{type(sim).__name__} does not handle colliders")
+    for i, c in enumerate(scene.spec.collider):
+        kw = {k: c[k] for k in _GEOMETRY[c["type"]] + _COMMON if c.get(k) is not None}
+        if c["type"] == "sphere":
+            kw["center"] = tuple(kw["center"])
+        if kw.get("ramp_time") is None:
+            kw["ramp_time"] = duration
+        kw.setdefault("name", f"{c['type']}{i + 1}")
+        try:
+            col = make_collider(c["type"], **kw)
+            sim.add_collider(col)
+        except (CollisionError, ValueError) as e:
+            scene._fail(f"[[collider]] #{i + 1}", str(e))
+
+
+def collider_prims(sim, extent):
+    """[(prim name, faces, points_at() -> (k, 3))] for the simulator's colliders (``extent``: half
+    size of the drawn floor square)."""
+    contact = getattr(sim, "contact", None)
+    if contact is None:
+        return []
+    out = []
+    for c in contact.colliders:
+        V, F = c.surface(extent)
+
+        def points(c=c, V=V):
+            R, p = c.pose(sim.time)
+            return V @ R.T + p
+
+        out.append((f"collider_{c.name}", np.asarray(F), points))
+    return out
