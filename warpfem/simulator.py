@@ -32,6 +32,7 @@ from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.linear import make_linear_solver
+from warpfem.solvers.linear.auto import simulator_options
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
 
@@ -107,7 +108,7 @@ class Simulator(SimulatorState):
         self._hess_values = self._pattern.new_values()
         self._kn_values = self._pattern.new_values() if damping_stiffness > 0 else None
         self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
-                                       positions=model.rest_positions, **(linear_solver_options or {}))
+                                       positions=model.rest_positions, **simulator_options(linear_solver, linear_solver_options))
         self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
         # quadrature-point sets the kernels run over: (count, args, energy buffer). Selective reduced
         # integration (qd.volumetric) runs the same material kernels with the split parameters of

@@ -157,11 +157,18 @@ class FullSpacePotential:
     def new_vector(self):
         return self.sim._vec_array()
 
+    def vectors(self):
+        """(g, d, y_try): the simulator's work vectors for the Newton loop."""
+        w = self.sim._work
+        return w.g, w.d, w.y_try
+
     def _x_of(self, y):
         if self.xb is None:
             return y
         sim = self.sim
         x = sim._work.x
+        if self._x_of_y is y:  # x already holds x_b + s y (see assign)
+            return x
         launch(LK.lincomb_kernel, self.n, [sim._s(1.0), self.xb, sim._s(self.s), y, x], sim.device)
         self._x_of_y = y
         return x
@@ -169,9 +176,13 @@ class FullSpacePotential:
     def trial(self, y, alpha, d, out):
         sim = self.sim
         launch(LK.lincomb_kernel, self.n, [sim._s(1.0), y, sim._s(alpha), d, out], sim.device)
+        if self._x_of_y is out:
+            self._x_of_y = None
 
     def assign(self, dst, src):
         wp.copy(dst, src)
+        # x = x_b + s src is still in the work buffer: it is now x of dst
+        self._x_of_y = dst if self._x_of_y is src else None
 
     # -- value, gradient, Hessian -------------------------------------------------------------------
     def energy(self, y):

@@ -109,7 +109,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     * ``fallback_direction(g, d)``: a descent direction (preconditioned -g) when d is not one;
     * ``direction_check(y, g, d) -> (g . d, negligible)``: negligible when d is below the resolution
       of the unknowns (and positions) in the working precision;
-    * ``new_vector()``, ``trial(y, alpha, d, out)`` (out = y + alpha d), ``assign(dst, src)``;
+    * ``new_vector()`` (optionally ``vectors()``: three work vectors g, d, y_try it keeps, distinct
+      from y), ``trial(y, alpha, d, out)`` (out = y + alpha d), ``assign(dst, src)``;
     * optionally ``max_step(y, d) -> alpha_max``: the line search starts at min(1, alpha_max)
       (contact's continuous-collision bound: no step crosses a collider);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
@@ -117,7 +118,10 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
       sum resolves), the step is accepted if it halves the gradient norm.
     """
     st = SolveStats()
-    g, d, y_try = problem.new_vector(), problem.new_vector(), problem.new_vector()
+    if hasattr(problem, "vectors"):  # work vectors the problem keeps (no allocation per solve)
+        g, d, y_try = problem.vectors()
+    else:
+        g, d, y_try = problem.new_vector(), problem.new_vector(), problem.new_vector()
     eps_mach = problem.eps
 
     E, mag = problem.energy(y)

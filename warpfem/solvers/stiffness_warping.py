@@ -48,6 +48,7 @@ from warpfem.kernels.generic import launch
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import SolveFailed, SolveStats
 from warpfem.solvers.linear import make_linear_solver
+from warpfem.solvers.linear.auto import simulator_options
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
 
@@ -153,7 +154,7 @@ class StiffnessWarpingSimulator(SimulatorState):
         self._k_values = self._pattern.new_values()  # K'
         self._a_values = self._pattern.new_values()  # M + h C + h^2 K'
         self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
-                                       positions=model.rest_positions, **(linear_solver_options or {}))
+                                       positions=model.rest_positions, **simulator_options(linear_solver, linear_solver_options))
 
         def vec_array(a=None):
             if a is None:

@@ -5,7 +5,13 @@ Rule (measurements in docs/linear_solvers.md):
 
 * CUDA: ``pcg`` only (the data stay on the device; the loop is a CUDA graph with a host check
   every k iterations; the host backends would copy the matrix down and back every iteration).
-* CPU: start with ``pcg``; when a solve needs more than ``switch_iterations`` (250) iterations,
+* CPU, small systems (at most SMALL_DIRECT_DOFS_CPU unknowns): ``direct`` from the first solve,
+  when the solver is built by a simulator (``initial="size"``, the simulators' default): one
+  factorisation costs less than the launches of even a few dozen PCG iterations (measured with
+  kernels_bench/bench_auto_crossover.py). If a factorisation finds the matrix not positive
+  definite (an unprojected Hessian, a singular static system), that system and all later ones go
+  to PCG.
+* CPU, larger systems: start with ``pcg``; when a solve needs more than ``switch_iterations`` (250) iterations,
   every later ``prepare`` uses ``direct`` instead (its symbolic analysis is done at that moment,
   once), provided the system has at most DIRECT_MAX_DOFS_CPU unknowns (PARDISO installed) or
   SUPERLU_MAX_DOFS_CPU (SuperLU only). The choice never goes back, so a run stays deterministic.
@@ -29,6 +35,22 @@ log = logging.getLogger(__name__)
 DIRECT_MAX_DOFS_CPU = 200_000
 SUPERLU_MAX_DOFS_CPU = 20_000
 SWITCH_ITERATIONS = 250
+SMALL_DIRECT_DOFS_CPU = 10_000  # crossover measured in kernels_bench/bench_auto_crossover.py
+INITIAL_CHOICES = ("pcg", "size")
+
+
+def starts_direct(pattern) -> bool:
+    """The small-system rule: direct from the first solve (CPU, at most SMALL_DIRECT_DOFS_CPU unknowns)."""
+    return (not pattern.device.is_cuda) and 3 * pattern.num_rows <= SMALL_DIRECT_DOFS_CPU
+
+
+def simulator_options(name: str, options: dict | None) -> dict:
+    """The options a simulator passes to ``make_linear_solver``: for ``auto``, the small-system
+    rule (``initial="size"``) unless the caller chose ``initial`` itself."""
+    options = dict(options or {})
+    if name == "auto":
+        options.setdefault("initial", "size")
+    return options
 
 
 def _pardiso_available() -> bool:
@@ -51,14 +73,21 @@ class AutoSolver(LinearSolver):
 
     Args:
         switch_iterations: the PCG iteration count that triggers the switch.
+        initial: "pcg" (start with PCG whatever the size) or "size" (direct from the first solve
+            when :func:`starts_direct`; what the simulators use).
         check_every, use_cuda_graph: passed to the PCG; backend: passed to the direct solver.
         positions: accepted and ignored (the model description the other solvers get).
     """
 
     name = "auto"
+    eager_inv_diag = False  # the inner solvers keep their own (``self.pcg.inv_diag``, ``self.direct.inv_diag``)
 
     def __init__(self, pattern, *, vec_type, scalar, switch_iterations: int = SWITCH_ITERATIONS,
-                 check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto", positions=None):
+                 check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto", positions=None,
+                 initial: str = "pcg"):
+        if initial not in INITIAL_CHOICES:
+            raise ValueError(f"initial must be one of {INITIAL_CHOICES}, got {initial!r}")
+        self._initial = initial
         if int(switch_iterations) != switch_iterations or switch_iterations < 1:
             raise ValueError(f"switch_iterations must be a positive integer, got {switch_iterations!r}")
         self.switch_iterations = int(switch_iterations)
@@ -73,13 +102,25 @@ class AutoSolver(LinearSolver):
         self.direct = None
         self.active = "pcg"
         self._may_switch = direct_allowed(pattern)
+        if self._initial == "size" and self._may_switch and starts_direct(pattern):
+            self.active = "direct"
+            log.info("linear solver auto: %d unknowns on the CPU; direct from the first solve", 3 * pattern.num_rows)
 
     def _prepare(self, values, mask):
         if self.active == "direct" and self.direct is None:
             from warpfem.solvers.linear.direct import DirectSolver
 
             self.direct = DirectSolver(self.pattern, vec_type=self.vec_type, scalar=self.scalar, backend=self._backend)
-        (self.direct if self.active == "direct" else self.pcg).prepare(values, mask)
+        if self.active == "direct":
+            self.direct.prepare(values, mask)
+            if self.direct._failure:
+                # not positive definite (an unprojected Hessian, a singular static system): PCG
+                # handles these (it stops at negative curvature with a descent direction), so this
+                # and every later system go to PCG; no switching back
+                log.info("linear solver auto: %s; PCG from now on", self.direct._failure)
+                self.active, self._may_switch = "pcg", False
+        if self.active == "pcg":
+            self.pcg.prepare(values, mask)
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         if self.active == "direct":

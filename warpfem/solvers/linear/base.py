@@ -26,6 +26,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import linalg as K
+from warpfem.kernels.generic import launch
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +69,8 @@ class LinearSolver:
     compatibility form of ``solve``. Subclasses implement ``_analyse``, ``_prepare``, ``_solve``."""
 
     name = "base"
+    #: whether ``prepare`` computes ``inv_diag`` (solvers that only need it on failure compute it then)
+    eager_inv_diag = True
 
     def __init__(self, pattern, *, vec_type, scalar):
         self.pattern = pattern
@@ -96,9 +99,8 @@ class LinearSolver:
     def prepare(self, values, mask):
         """Once per matrix: factorise / build the preconditioner of (P A P + I - P)."""
         self._values, self._mask = values, mask
-        pt = self.pattern
-        wp.launch(K.block_jacobi_setup_kernel, dim=pt.num_rows,
-                  inputs=[pt.offsets, pt.columns, values, mask, self.inv_diag], device=self.device)
+        if self.eager_inv_diag:
+            self._setup_inv_diag(values, mask)
         self.prepare_count += 1
         self._prepare(values, mask)
 
@@ -119,6 +121,10 @@ class LinearSolver:
         return res
 
     # -- shared helpers ---------------------------------------------------------------------------
+    def _setup_inv_diag(self, values, mask):
+        pt = self.pattern
+        launch(K.block_jacobi_setup_kernel, pt.num_rows, [pt.offsets, pt.columns, values, mask, self.inv_diag], self.device)
+
     def dot(self, a, b) -> float:
         """a . b reduced in float64, read on the host (one host sync)."""
         self._dot.zero_()

@@ -181,6 +181,7 @@ class DirectSolver(HostLinearSolver):
     """
 
     name = "direct"
+    eager_inv_diag = False  # the block-Jacobi inverse is only needed when a factorisation fails
 
     def __init__(self, pattern, *, vec_type, scalar, backend: str = "auto"):
         if backend not in BACKENDS:
@@ -205,14 +206,14 @@ class DirectSolver(HostLinearSolver):
             self.backend.factor(A)
         except _NotPositiveDefinite as e:
             self._failure = str(e)
+            self._setup_inv_diag(values, mask)
             log.warning("direct solver (%s): %s; returning the block-Jacobi direction", self.backend_name, e)
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         if self._failure:
             wp.launch(K.block_apply_kernel, dim=self.num_rows, inputs=[self.inv_diag, b, x], device=self.device)
             return LinearSolveResult(0, float("nan"), False, host_syncs=0, failed=self._failure)
-        bh = b.numpy().astype(np.float64).reshape(-1)
-        bh = bh * self._mask_host  # the system is P b (b should already be masked)
+        bh = b.numpy().reshape(-1) * self._mask_host  # float64; the system is P b (b should already be masked)
         xh = self.backend.solve(bh) * self._mask_host  # exactly zero at fixed DOFs
         syncs = 1
         bn = float(np.linalg.norm(bh))
@@ -220,7 +221,19 @@ class DirectSolver(HostLinearSolver):
             return LinearSolveResult(1, float("nan"), False, host_syncs=syncs, failed="non-finite solution")
         r = self._host_residual(xh, bh)
         rel = 0.0 if bn == 0.0 else float(np.linalg.norm(r) / bn)
-        wp.copy(x, wp.array(xh.reshape(-1, 3).astype(_np_of(x)), dtype=x.dtype, device=self.device))
+        for _ in range(2):  # iterative refinement when a tight tolerance is below the factor's accuracy
+            if rel <= tol:
+                break
+            x_new = xh - self.backend.solve(r) * self._mask_host
+            r_new = self._host_residual(x_new, bh)
+            rel_new = float(np.linalg.norm(r_new) / bn)
+            if not rel_new < rel:
+                break
+            xh, r, rel = x_new, r_new, rel_new
+        if self.device.is_cpu:  # x.numpy() is a view of x's memory on the CPU: write in place
+            x.numpy()[...] = xh.reshape(-1, 3)
+        else:
+            x.assign(xh.reshape(-1, 3).astype(_np_of(x)))
         return LinearSolveResult(1, rel, bool(rel <= tol), host_syncs=syncs)
 
     def _host_residual(self, xh, bh):
