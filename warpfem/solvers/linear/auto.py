@@ -104,7 +104,7 @@ class AutoSolver(LinearSolver):
         self._may_switch = direct_allowed(pattern)
         if self._initial == "size" and self._may_switch and starts_direct(pattern):
             self.active = "direct"
-            log.info("linear solver auto: %d unknowns on the CPU; direct from the first solve", 3 * pattern.num_rows)
+            log.debug("linear solver auto: %d unknowns on the CPU; direct from the first solve", 3 * pattern.num_rows)
 
     def _prepare(self, values, mask):
         if self.active == "direct" and self.direct is None:
