@@ -28,6 +28,13 @@ peak tip displacement of the full run (tip: mean of the beam's end face / the bu
         [--bunny-steps 12] [--device cpu] [--poses random,snapshots,random+snapshots] [--no-load-response]
         [--exact-cubature] [--machine "cpu, 2 cores, shared/loaded machine"] [--out kernels_bench/results/reduced]
 
+``--scenes thin_cantilever,octopus,bunny`` measures example scenes instead (their own loads,
+handles, integrator and step): one full reference run, one full training run (``warpfem train``'s,
+``--training-dt-scale`` for coarse steps) and, per ``--mixes modes:pod_modes`` and ``--scene-tols``,
+a basis with POD columns of the training run, its cubature and a reduced run, with the floor (best
+mass-weighted fit of the full run in the span), training cost and break-even frames. Writes
+``<out>_scene_<name>.json`` / ``.md``.
+
 Writes ``<out>_<object>.json`` and ``.md`` (and prints the markdown). The device is named in the
 output; on the project's CI machine it is "cpu, 2 cores, shared/loaded machine".
 """
@@ -183,9 +190,175 @@ def _report(key, obj, args, rows, *, steps, peak, size, t_full, t_snap, partial)
             f.write(md)
 
 
+# ------------------------------------------------------------------------------------------------
+# Scene rows: the scene's own loads and handles, the scene's integrator and step. One full run of
+# the scene (the reference) and one full training run (train_scene's: ``T`` frames, handle ramps
+# over those T frames) per scene; each row trains a basis (modal + POD columns of the training
+# run) and a cubature, and runs the reduced scene through the same SceneRun driver.
+SCENES = {  # name: (scene file, reference frames N, training frames T)
+    "thin_cantilever": ("thin_cantilever.toml", 48, 12),
+    "octopus": ("octopus.toml", 96, 48),
+    "bunny": ("bunny.toml", 8, 4),
+}
+
+
+def _scene_full_run(scene, frames, total):
+    from warpfem.reduced.scene import _full_simulation
+
+    with _full_simulation():
+        run = scene.build()
+    xs, steps, t = [run.model.rest_positions.copy()], 0, 0.0
+    for _ in range(frames):
+        fs = run.step_frame(total_frames=total)
+        steps += fs.steps
+        t += fs.step_seconds
+        xs.append(run.sim.positions())
+    return run, np.array(xs), steps, t
+
+
+def run_scene(key, args):
+    from warpfem.reduced import train_subspace
+    from warpfem.reduced.basis import snapshot_displacements
+    from warpfem.reduced.scene import _reduced_simulator, scene_handles
+    from warpfem.scenes import handle_targets, load_scene
+
+    if key.endswith(".toml"):  # any scene file: --scene-frames and --scene-training-frames give N and T
+        fname, N, T = key, 0, 0
+        scene = load_scene(key)
+        key = scene.name
+        SCENES[key] = (os.path.basename(fname), 0, 0)
+    else:
+        fname, N, T = SCENES[key]
+        scene = load_scene(os.path.join(HERE, "..", "examples", "scenes", fname))
+    N = args.scene_frames or N
+    T = args.scene_training_frames or T
+    scene.spec.surface = None  # the render surface is not what is measured
+    spec_frames = int(scene.spec.output["frames"])
+    print(f"# {key}: full reference run ({N} frames, ramps over {spec_frames}) ...", flush=True)
+    run, xs, full_steps, t_ref = _scene_full_run(scene, N, spec_frames)
+    t_full = t_ref / full_steps
+    print(f"# {key}: full step {t_full:.3f} s; training run ({T} frames, ramps over {T}) ...", flush=True)
+    k = args.training_dt_scale
+    if scene.spec.handle or T > N or k > 1:
+        from warpfem.reduced.scene import _drive, _full_simulation
+
+        scene.spec.subspace = dict(scene.spec.subspace or {}, training_frames=T, training_dt_scale=k)
+        with _full_simulation():
+            trun = scene.build()
+        snaps, train_steps, t_train_run = _drive(scene, trun, T)
+    else:  # same loads, no ramp: the training run is the reference's first T frames (timed as such)
+        snaps, train_steps = xs[:T + 1], T * int(scene.spec.integrator["substeps"])
+        t_train_run = train_steps * t_full
+    model = run.model
+    X = model.rest_positions
+    size = float(np.linalg.norm(X.max(0) - X.min(0)))
+    disp = np.linalg.norm(xs - X, axis=2)
+    free = ~np.asarray(model.fixed).all(axis=1)
+    tipv = int(np.argmax(disp.max(0) * free))
+    peak = float(disp[:, tipv].max())
+    sel = scene_handles(scene)
+    rest = [X[ids].copy() for ids, _ in sel]
+
+    def targets_at(f):
+        return [handle_targets(r0, h, f) for r0, h in zip(rest, scene.spec.handle)]
+
+    sim = _full_simulator(model)
+    M = sim.mass_matrix()
+    substeps = int(scene.spec.integrator["substeps"])
+    rows = []
+    for mix in args.mixes.split(","):
+        modes, pod = (int(v) for v in mix.split(":"))
+        for tol in (float(v) for v in args.scene_tols.split(",")):
+            sub = train_subspace(model, modes=modes, modal_derivatives=True, cubature_tolerance=tol,
+                                 max_cubature_points=args.scene_max_points, seed=0, snapshots=list(snaps),
+                                 pose_source="random+snapshots", handles=sel,
+                                 handle_targets_at=targets_at if sel else None, load_response=True, pod_modes=pod)
+            rep = sub.report
+            t_train = t_train_run + rep["basis_seconds"] + rep["cubature_seconds"]
+            D = snapshot_displacements(model, xs, sub.lifting)
+            R = (D - sub.U @ (sub.U.T @ (M @ D))).reshape(-1, 3, D.shape[1])
+            floor_tip = float(np.linalg.norm(R[tipv], axis=0).max() / peak)
+            floor_rms = float(np.sqrt((R ** 2).sum(1).mean(0)).max() / size)
+            rs = _reduced_simulator(scene, model, sub, device=args.device)
+            run.sim, run.frame = rs, 0
+            ys, t_red, failed = [X.copy()], 0.0, ""
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                for _ in range(N):
+                    try:
+                        fs = run.step_frame(total_frames=spec_frames)
+                    except wf.SolveFailed as e:
+                        failed = str(e)
+                        break
+                    t_red += fs.step_seconds
+                    ys.append(rs.positions())
+            t_red /= max(rs.step_count, 1)
+            if failed:
+                tip_err = rms_err = float("nan")
+            else:
+                e = np.linalg.norm(np.array(ys) - xs, axis=2)
+                tip_err = float(e[:, tipv].max() / peak)
+                rms_err = float(np.sqrt((e ** 2).mean(1)).max() / size)
+            gain = (t_full - t_red) * substeps
+            row = dict(modes=modes, pod=pod, r=sub.U.shape[1], tol=tol, points=sub.cubature.num_points,
+                       train_err=sub.cubature.training_error, valid_err=sub.cubature.validation_error,
+                       floor_tip=floor_tip, floor_rms=floor_rms, tip_err=tip_err, rms_err=rms_err,
+                       reduced_step_ms=1e3 * t_red, full_step_ms=1e3 * t_full, speedup=t_full / max(t_red, 1e-12),
+                       training_s=t_train, training_full_steps=train_steps,
+                       break_even_frames=int(np.ceil(t_train / gain)) if gain > 0 else None, failed=failed)
+            rows.append(row)
+            print(f"# {key} {modes}+{pod} (r={row['r']}) tol {tol}: {row['points']} pts, valid {row['valid_err']:.3g}, "
+                  f"floor tip {floor_tip:.4f} / rms {floor_rms:.5f}, tip {tip_err:.4f}, rms {rms_err:.5f}, "
+                  f"{row['reduced_step_ms']:.1f} ms ({row['speedup']:.0f}x), train {t_train:.0f} s", flush=True)
+            _scene_report(key, scene, args, rows, N=N, T=T, peak=peak, size=size, t_full=t_full,
+                          train_steps=train_steps, t_train_run=t_train_run, tipv=tipv)
+    return rows
+
+
+def _scene_report(key, scene, args, rows, *, N, T, peak, size, t_full, train_steps, t_train_run, tipv):
+    device = f"{args.device} ({platform.processor() or platform.machine()}, {os.cpu_count()} logical cores visible), " \
+             f"{args.machine}"
+    integ = scene.spec.integrator
+    m = scene.mesh()
+    head = (f"### {key} (examples/scenes/{SCENES[key][0]}): {m.num_elements} tets, {m.num_vertices} vertices\n\n"
+            f"{N} frames ({N * int(integ['substeps'])} backward Euler steps of {integ['dt']:.4g} s) of the scene; "
+            f"training run: {T} frames ({train_steps} full steps of {args.training_dt_scale} x dt, {t_train_run:.1f} s, "
+            f"handles ramped over those {T} frames). Tip: vertex {tipv} (the free vertex that moved most), peak displacement {peak:.4g} m; size "
+            f"(bbox diagonal) {size:.4g} m. Device: {device}. Full step {1e3 * t_full:.0f} ms. Errors are maxima over "
+            "all frames; 'floor' = the best mass-weighted fit of the full run in the span (same normalisation).\n")
+    table = ["| modes + POD | r | tol | cubature pts | train / valid err | floor tip | tip err / peak | floor RMS | "
+             "RMS err / size | reduced step ms | full step ms | speed-up | training s (full steps) | break-even frames |",
+             "|" + "---|" * 14]
+    for w in rows:
+        table.append(f"| {w['modes']} + {w['pod']} | {w['r']} | {w['tol']} | {w['points']} | {w['train_err']:.3f} / "
+                     f"{w['valid_err']:.3f} | {w['floor_tip']:.4f} | {w['tip_err']:.4f} | {w['floor_rms']:.5f} | "
+                     f"{w['rms_err']:.5f} | {w['reduced_step_ms']:.1f} | {w['full_step_ms']:.0f} | {w['speedup']:.0f}x | "
+                     f"{w['training_s']:.0f} ({w['training_full_steps']}) | {w['break_even_frames']} |"
+                     + (" failed" if w["failed"] else ""))
+    md = head + "\n" + "\n".join(table) + "\n"
+    if args.out:
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+        with open(f"{args.out}_scene_{key}.json", "w") as f:
+            json.dump(dict(scene=key, frames=N, training_frames=T, device=device, peak_tip_displacement=peak, size=size,
+                           full_step_ms=1e3 * t_full, training_run_s=t_train_run, rows=rows), f, indent=1)
+        with open(f"{args.out}_scene_{key}.md", "w") as f:
+            f.write(md)
+    return md
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--objects", default="beam,bunny")
+    ap.add_argument("--scenes", default="",
+                    help=f"comma list of {', '.join(SCENES)}: scene rows (modal + POD bases) instead of --objects")
+    ap.add_argument("--mixes", default="20:0,20:10,10:20",
+                    help="scene rows: comma list of modes:pod_modes (r = modes + pod_modes)")
+    ap.add_argument("--scene-tols", default="0.01")
+    ap.add_argument("--scene-max-points", type=int, default=300)
+    ap.add_argument("--scene-frames", type=int, default=None, help="override the reference frames N")
+    ap.add_argument("--scene-training-frames", type=int, default=None, help="override the training frames T")
+    ap.add_argument("--training-dt-scale", type=int, default=1,
+                    help="the training run steps k x dt over its T frames ([subspace] training_dt_scale)")
     ap.add_argument("--beam-steps", type=int, default=30)
     ap.add_argument("--bunny-steps", type=int, default=12)
     ap.add_argument("--device", default="cpu")
@@ -201,6 +374,10 @@ def main():
     ap.add_argument("--out", default=os.path.join(HERE, "results", "reduced"))
     args = ap.parse_args()
     warnings.simplefilter("ignore", RuntimeWarning)
+    if args.scenes:
+        for key in args.scenes.split(","):
+            run_scene(key, args)
+        return
     for key in args.objects.split(","):
         run_object(key, args)
 

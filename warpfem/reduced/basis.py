@@ -182,8 +182,64 @@ def _with_load_column(U, u, M, r):
     return np.hstack([s[:, None], mass_pca(rest, M, r - 1)])
 
 
+def snapshot_displacements(model, snapshots, lifting=None) -> np.ndarray:
+    """Displacements (3n, T) of full-mesh positions x_t (each (n, 3), m) with the handle motion
+    removed: d_t = x_t - X - L a(x_t) (``lifting``), zero at fixed components."""
+    X = np.asarray(model.rest_positions, dtype=np.float64)
+    fixed = np.asarray(model.fixed).reshape(-1)
+    cols = []
+    for x in snapshots:
+        x = np.asarray(x, dtype=np.float64).reshape(-1, 3)
+        if x.shape != X.shape or not np.all(np.isfinite(x)):
+            raise ValueError(f"snapshot positions must be finite with shape {X.shape}, got {x.shape}")
+        d = (x - X).reshape(-1)
+        if lifting is not None and lifting.size:
+            d = d - lifting.L @ lifting.coords_from_positions(x)
+        d[fixed] = 0.0
+        cols.append(d)
+    return np.array(cols).T if cols else np.zeros((X.size, 0))
+
+
+def pod_columns(D, M, U=None, k: int = 0, *, rel_tol: float = 1e-12):
+    """Mass-weighted POD (proper orthogonal decomposition) of snapshot displacements D (3n, T):
+    the k dominant M-orthonormal directions of D after removing its M-orthogonal projection on
+    span U (so [U | P] stays mass-orthonormal). Directions whose energy is below rel_tol of the
+    largest (relative to the snapshots' own M-norm) are dropped, so fewer than k may come back.
+
+    Returns (P (3n, <= k), captured: fraction of the residual's M-energy that P spans)."""
+    D = np.asarray(D, dtype=np.float64)
+    if k <= 0 or D.shape[1] == 0:
+        return np.zeros((D.shape[0], 0)), 1.0
+    R = D if U is None or U.shape[1] == 0 else D - U @ (U.T @ (M @ D))
+    G = R.T @ (M @ R)
+    G = 0.5 * (G + G.T)
+    s, V = np.linalg.eigh(G)
+    order = np.argsort(s)[::-1]
+    s, V = np.clip(s[order], 0.0, None), V[:, order]
+    total = float(np.einsum("ij,ij->", D, M @ D))
+    keep = s > rel_tol * max(total, 1e-300)
+    kk = min(int(k), int(keep.sum()))
+    if kk == 0:
+        return np.zeros((D.shape[0], 0)), 1.0
+    P = R @ (V[:, :kk] / np.sqrt(s[:kk]))
+    if U is not None and U.shape[1]:
+        P = P - U @ (U.T @ (M @ P))  # re-orthogonalise (round-off)
+    G = P.T @ (M @ P)
+    P = P @ np.linalg.inv(np.linalg.cholesky(0.5 * (G + G.T))).T
+    captured = float(s[:kk].sum() / max(s.sum(), 1e-300))
+    return P, captured
+
+
+def projection_error(U, M, D) -> np.ndarray:
+    """Per-snapshot M-norm of the part of D (3n, T) outside span U (M-orthonormal U): the error of
+    the best mass-weighted fit of each snapshot in the span (the floor of any reduced run)."""
+    D = np.asarray(D, dtype=np.float64)
+    R = D - U @ (U.T @ (M @ D)) if U.shape[1] else D
+    return np.sqrt(np.clip(np.einsum("ij,ij->j", R, M @ R), 0.0, None))
+
+
 def build_basis(model, *, modes: int, modal_derivatives_: bool = False, load_response: bool = False,
-                sim=None) -> Basis:
+                sim=None, snapshot_displacements_=None, pod_modes: int = 0) -> Basis:
     """The r = ``modes`` column basis used by the reduced simulator.
 
     * without modal derivatives: the ``modes`` lowest linear modes;
@@ -195,6 +251,11 @@ def build_basis(model, *, modes: int, modal_derivatives_: bool = False, load_res
       the modes / derivatives M-orthogonalised against it). Low vibration modes need not span the
       load response: the bunny's lowest modes sway, gravity compresses it (measured: r = 10 modal
       derivatives miss 72 % of K^-1 f_gravity).
+    * ``pod_modes`` = k > 0 with ``snapshot_displacements_`` (3n, T) (from
+      :func:`snapshot_displacements`, e.g. frames of a full run of the scene): k more columns, the
+      mass-weighted POD of the snapshots' part outside the modal span (:func:`pod_columns`), so
+      r = ``modes`` + k (fewer when the snapshots have fewer independent directions). The whole
+      basis stays mass-orthonormal.
     * Unconstrained objects: rigid modes are handled explicitly by keeping the 3 rigid
       translations as exact columns (so the body can move and fall); infinitesimal rotations are
       not kept (a linear subspace cannot rotate an object without shearing it), so
@@ -242,6 +303,14 @@ def build_basis(model, *, modes: int, modal_derivatives_: bool = False, load_res
         if u is not None:
             U = _with_load_column(U, u, M, modes)
             info["load_response"] = True
+    if pod_modes and snapshot_displacements_ is not None:
+        P, captured = pod_columns(snapshot_displacements_, M, U, int(pod_modes))
+        U = np.hstack([U, P])
+        info["pod_modes"] = int(P.shape[1])
+        info["pod_captured"] = captured
+        D = np.asarray(snapshot_displacements_)
+        dn = np.sqrt(np.einsum("ij,ij->j", D, M @ D))
+        info["snapshot_floor"] = float((projection_error(U, M, D) / max(dn.max(), 1e-300)).max())
     Kr = U.T @ (K @ U)
     ev = np.linalg.eigvalsh(0.5 * (Kr + Kr.T))
     freqs = np.sqrt(np.clip(ev, 0.0, None))

@@ -48,6 +48,7 @@ class Cubature:
     max_points: int
     seed: int
     reached_tolerance: bool
+    num_validation_poses: int = 0
 
     @property
     def num_points(self) -> int:
@@ -169,7 +170,8 @@ def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, 
             the basis (:func:`snapshot_poses`).
         pose_source: "random" (default without snapshots), "snapshots" (only the projected
             snapshots: every 4th one is held out as the validation set, the rest train) or
-            "random+snapshots" (default with snapshots: both train, random poses validate).
+            "random+snapshots" (default with snapshots: random poses and 3 of every 4 snapshots
+            train; the random validation poses and every 4th snapshot validate).
         lifting: a :class:`~warpfem.reduced.lifting.Lifting` (kinematic handles): poses are then
             z = [q; a] in the basis [U | L] and the forces are projected on U.
         handle_coords: (S, p) handle coordinates a that random poses draw from (e.g. the scene's
@@ -208,6 +210,7 @@ def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, 
         return z
 
     val_poses = None
+    val_snap = np.zeros((0, B.shape[1]))
     if pose_source == "snapshots":
         z = snapshot_poses(U, model, snapshots, lifting=lifting, sim=sim)
         held = np.arange(len(z)) % 4 == 3
@@ -215,7 +218,10 @@ def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, 
     else:
         poses = random_poses(num_training_poses, s_train)
         if pose_source == "random+snapshots":
-            poses = np.vstack([poses, snapshot_poses(U, model, snapshots, lifting=lifting, sim=sim)])
+            z = snapshot_poses(U, model, snapshots, lifting=lifting, sim=sim)
+            held = (np.arange(len(z)) % 4 == 3) if len(z) >= 4 else np.zeros(len(z), dtype=bool)
+            poses = np.vstack([poses, z[~held]])
+            val_snap = z[held]
     table = _ForceTable(sim, model, U, poses, B)
     m = len(table.tets)
     rng = np.random.default_rng(s_pick)
@@ -248,10 +254,12 @@ def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, 
     del table
     if val_poses is None:
         val_poses = random_poses(num_validation_poses, s_val) if num_validation_poses > 0 else np.zeros((0, B.shape[1]))
+        val_poses = np.vstack([val_poses, val_snap])
     val_err = _ForceTable(sim, model, U, val_poses, B).error(sel, w) if len(val_poses) else float("nan")
     return Cubature(elements=sel, weights=w, training_error=train_err, validation_error=val_err,
                     training_seconds=time.perf_counter() - t0, training_poses=poses, tolerance=float(tolerance),
-                    max_points=int(max_points), seed=int(seed), reached_tolerance=bool(train_err <= tolerance))
+                    max_points=int(max_points), seed=int(seed), reached_tolerance=bool(train_err <= tolerance),
+                    num_validation_poses=int(len(val_poses)))
 
 
 def relative_force_error(forces_approx, forces_exact) -> float:

@@ -14,12 +14,16 @@ enters as a prescribed displacement field (``warpfem.reduced.lifting``).
 
 from __future__ import annotations
 
+import logging
 import os
+import sys
 import time
 
 import numpy as np
 
-__all__ = ["build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
+logger = logging.getLogger(__name__)
+
+__all__ = ["check_validation_error", "build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
            "scene_settings"]
 
 def subspace_cache_path(scene) -> str:
@@ -42,7 +46,7 @@ def scene_settings(scene) -> dict:
     return {"modes": int(s["modes"]), "modal_derivatives": bool(s["modal_derivatives"]),
             "cubature_tolerance": float(s["cubature_tolerance"]), "max_cubature_points": int(s["max_cubature_points"]),
             "seed": int(s["seed"]), "pose_source": _POSE_SOURCE[s["training"]],
-            "load_response": bool(s.get("load_response", False))}
+            "load_response": bool(s.get("load_response", False)), "pod_modes": int(s.get("pod_modes") or 0)}
 
 
 _POSE_SOURCE = {"mixed": "random+snapshots", "snapshots": "snapshots", "random": "random"}
@@ -73,18 +77,30 @@ def _stale(scene, sub) -> list:
     have = sub.settings
     out = []
     for k, v in want.items():
-        got = have.get(k, {"pose_source": "random", "load_response": False}.get(k))
+        got = have.get(k, {"pose_source": "random", "load_response": False, "pod_modes": 0}.get(k))
         if got != v:
             out.append(f"{k}: cache {got!r} vs scene {v!r}")
     if want["pose_source"] != "random":
-        frames = int(scene.spec.subspace["training_frames"] or scene.spec.output["frames"])
-        if have.get("snapshots") != frames + 1:
-            out.append(f"training frames: cache {(have.get('snapshots') or 1) - 1} vs scene {frames}")
+        count = _training_snapshot_count(scene)
+        if have.get("snapshots") != count + 1:
+            out.append(f"training snapshots: cache {(have.get('snapshots') or 1) - 1} vs scene {count} "
+                       "(training_frames / training_dt_scale changed)")
     if want["pose_source"] != "snapshots":
         for k, key in (("num_training_poses", "training_poses"), ("num_validation_poses", "validation_poses")):
             if have.get(k) != scene.spec.subspace[key]:
                 out.append(f"{key}: cache {have.get(k)!r} vs scene {scene.spec.subspace[key]!r}")
     return out
+
+
+def _training_snapshot_count(scene) -> int:
+    """Snapshots of the full training run (rest excluded): one per frame, or with
+    ``training_dt_scale`` = k > 1 one per coarse step (frames x substeps / k steps)."""
+    s = scene.spec.subspace
+    frames = int(s["training_frames"] or scene.spec.output["frames"])
+    k = int(s.get("training_dt_scale") or 1)
+    if k == 1:
+        return frames
+    return max(1, int(round(frames * int(scene.spec.integrator["substeps"]) / k)))
 
 
 def _load_checked(scene, model):
@@ -112,15 +128,37 @@ def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
     cache is missing, belongs to another mesh / material / fixed set / handle set, or was trained
     with other ``[subspace]`` settings.
     """
+    _check_integrator(scene)
+    sub, path = _load_checked(scene, model)
+    check_validation_error(scene, sub, path)
+    return _reduced_simulator(scene, model, sub, device=device, precision=precision)
+
+
+def _reduced_simulator(scene, model, sub, *, device="cpu", precision="float64"):
     from warpfem.reduced.simulator import ReducedSimulator
 
-    _check_integrator(scene)
-    sub, _ = _load_checked(scene, model)
     o = scene.spec.integrator
     return ReducedSimulator(model, sub, device=device, precision=precision, dt=o["dt"], damping_mass=o["damping_mass"],
                             damping_stiffness=o["damping_stiffness"], require_convergence=o["require_convergence"],
                             tol=o["tol"], atol=o["atol"], max_iters=o["max_iters"], project_hessian=o["project_hessian"],
                             integrator=scene.integrator_type)
+
+
+def check_validation_error(scene, sub, path=None) -> str | None:
+    """Warn loudly (a ``logging`` warning and a line on stderr) when the subspace's cubature
+    validation error (force error on poses not used in training) is above the scene's
+    ``[subspace] max_validation_error``. Returns the message, or None when within the threshold
+    (or no threshold is set)."""
+    limit = scene.spec.subspace.get("max_validation_error")
+    err = float(sub.cubature.validation_error)
+    if limit is None or not (np.isnan(err) or err > limit):
+        return None
+    msg = (f"{_where(scene)}: reduced run NOT TRUSTED: the subspace's validation error {err:.3g} is above "
+           f"[subspace] max_validation_error = {limit:g} (cache {path or subspace_cache_path(scene)}); lower "
+           "cubature_tolerance, add modes / pod_modes and retrain, or check the run against a full one")
+    logger.warning(msg)
+    print(f"warpfem: warning: {msg}", file=sys.stderr, flush=True)
+    return msg
 
 
 def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progress=None):
@@ -155,18 +193,17 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
     def targets_at(frac):
         return [handle_targets(r0, h, frac) for r0, h in zip(rest, sp.handle)]
 
-    snapshots, t_snap = None, None
+    snapshots, t_snap, full_steps = None, None, 0
     if s["training"] in ("snapshots", "mixed"):
         frames = int(s["training_frames"] or sp.output["frames"])
         if frames < 4:
             raise _scene_error(scene, "[subspace].training_frames", f"snapshot training needs >= 4 frames, got {frames}")
         t0 = time.perf_counter()
-        snapshots = [model.rest_positions.copy()]
-        for k in range(frames):
-            run.step_frame(total_frames=frames)
-            snapshots.append(run.sim.positions())
-            if progress is not None:
-                progress(k + 1, frames)
+        snapshots, full_steps, _ = _drive(scene, run, frames, progress)
+        t_snap = time.perf_counter() - t0
+    else:  # no training run: time one full frame of the scene for the predicted speed-up
+        t0 = time.perf_counter()
+        full_steps = run.step_frame().steps
         t_snap = time.perf_counter() - t0
     sub = train_subspace(model, modes=s["modes"], modal_derivatives=s["modal_derivatives"],
                          cubature_tolerance=s["cubature_tolerance"], max_cubature_points=s["max_cubature_points"],
@@ -174,19 +211,112 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
                          num_validation_poses=s["validation_poses"], snapshots=snapshots,
                          pose_source=_POSE_SOURCE[s["training"]],
                          handles=sel, handle_targets_at=targets_at if sel else None,
-                         load_response=bool(s.get("load_response", False)))
-    if t_snap is not None:
-        sub.report["snapshot_seconds"] = t_snap
-        sub.report["snapshot_frames"] = len(snapshots) - 1
-        sub.save(path)
+                         load_response=bool(s.get("load_response", False)), pod_modes=int(s.get("pod_modes") or 0))
+    rep = sub.report
+    if snapshots is not None:
+        rep["snapshot_seconds"] = t_snap
+        rep["snapshot_frames"] = len(snapshots) - 1
+    rep["full_steps"] = full_steps
+    rep["full_step_seconds"] = t_snap / max(full_steps, 1)
+    _replay(scene, run, sub, snapshots, device=device, precision=precision)
+    rep["training_seconds"] = (t_snap + rep.get("basis_seconds", 0.0) + rep.get("cubature_seconds", 0.0)
+                               + rep.get("replay_seconds", 0.0))
+    red, full = rep["reduced_step_seconds"], rep["full_step_seconds"]
+    rep["predicted_speedup"] = full / max(red, 1e-12)
+    per_frame = (full - red) * int(sp.integrator["substeps"])
+    rep["break_even_frames"] = (int(np.ceil(rep["training_seconds"] / per_frame)) if per_frame > 0 else None)
+    sub.save(path)
     return sub
+
+
+def _drive(scene, run, frames, progress=None):
+    """Run ``run.sim`` over ``frames`` frames of the scene, handles ramped over those frames.
+    Positions after every frame, or with ``[subspace] training_dt_scale`` = k > 1 after every step
+    of k x dt (the same simulated time in fewer steps). Returns (positions list with the rest pose
+    first, steps, seconds spent stepping)."""
+    sp = scene.spec
+    sim = run.sim
+    xs = [run.model.rest_positions.copy()]
+    steps, seconds = 0, 0.0
+    scale = int(sp.subspace.get("training_dt_scale") or 1)
+    if scale == 1:
+        for k in range(frames):
+            fs = run.step_frame(total_frames=frames)
+            steps += fs.steps
+            seconds += fs.step_seconds
+            xs.append(sim.positions())
+            if progress is not None:
+                progress(k + 1, frames)
+        return xs, steps, seconds
+    sim.dt = float(sp.integrator["dt"]) * scale
+    count = _training_snapshot_count(scene)
+    duration = frames / float(sp.output["fps"])
+    for k in range(count):
+        t_next = sim.time + sim.dt
+        run._set_handles(lambda h, t=t_next: t / (h["ramp_time"] or duration))
+        t0 = time.perf_counter()
+        sim.step()
+        seconds += time.perf_counter() - t0
+        steps += 1
+        xs.append(sim.positions())
+        if progress is not None:
+            progress(k + 1, count)
+    return xs, steps, seconds
+
+
+def _replay(scene, run, sub, snapshots, *, device, precision):
+    """Run the reduced simulator over the training run (same frames and step; or a few frames
+    without one) on the same SceneRun driver: the reduced step time (for the predicted speed-up)
+    and, with snapshots, the in-sample trajectory error against the full training run (tip: the
+    free vertex that moved most; relative to its peak displacement; RMS relative to the
+    bounding-box diagonal)."""
+    import warnings
+
+    model = run.model
+    rsim = _reduced_simulator(scene, model, sub, device=device, precision=precision)
+    s = scene.spec.subspace
+    frames = int(s["training_frames"] or scene.spec.output["frames"]) if snapshots is not None \
+        else min(int(scene.spec.output["frames"]), 4)
+    run.sim, run.frame = rsim, 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # non-converged reduced steps show in the error
+        if snapshots is None:
+            xs, steps, t = [], 0, 0.0
+            for _ in range(frames):
+                fs = run.step_frame(total_frames=frames)
+                steps += fs.steps
+                t += fs.step_seconds
+        else:
+            xs, steps, t = _drive(scene, run, frames)
+    rep = sub.report
+    rep["replay_seconds"] = t
+    rep["reduced_step_seconds"] = t / max(steps, 1)
+    if snapshots is not None:
+        rep.update(trajectory_errors(model, np.array(snapshots), np.array(xs)))
+
+
+def trajectory_errors(model, x_full, x_red) -> dict:
+    """Trajectory errors of x_red against x_full ((T, n, 3) each): ``tip_error`` = max over frames
+    of |x_red - x_full| at the free vertex that moved most in x_full, over its peak displacement;
+    ``rms_error`` = max over frames of the RMS vertex error over the bounding-box diagonal."""
+    X = model.rest_positions
+    size = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
+    disp = np.linalg.norm(x_full - X, axis=2)
+    free = ~np.asarray(model.fixed).all(axis=1)
+    tip = int(np.argmax(disp.max(axis=0) * free))
+    peak = max(float(disp[:, tip].max()), 1e-300)
+    e = np.linalg.norm(x_red - x_full, axis=2)
+    return {"replay_tip_error": float(e[:, tip].max() / peak),
+            "replay_rms_error": float(np.sqrt((e ** 2).mean(axis=1)).max() / size)}
 
 
 def describe_subspace(scene) -> str:
     """Lines for ``warpfem describe``: reduced settings and, when cached, r and cubature points."""
     s = scene.spec.subspace
     path = subspace_cache_path(scene)
-    lines = [f"reduced: [subspace] r = {s['modes']} (modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
+    pod = int(s.get("pod_modes") or 0)
+    lines = [f"reduced: [subspace] r = {s['modes']}{f' + {pod} POD' if pod else ''} "
+             f"(modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
              f"cubature tolerance {s['cubature_tolerance']:g}, at most {s['max_cubature_points']} points, "
              f"training {s['training']}"]
     if scene.integrator_type not in ("backward_euler", "bdf2", "newmark"):
@@ -206,7 +336,13 @@ def describe_subspace(scene) -> str:
         lines.append(f"  cache {path}: r = {r}, {pts} cubature points of {rep.get('num_elements', '?')} elements, "
                      f"training error {rep.get('training_error', float('nan')):.3g}, validation error "
                      f"{rep.get('validation_error', float('nan')):.3g}"
-                     + (f", {rep['handles']} handle(s)" if rep.get("handles") else ""))
+                     + (f", {rep['handles']} handle(s)" if rep.get("handles") else "")
+                     + (f"; predicted {rep['predicted_speedup']:.0f}x faster per step, cheaper than a full run "
+                        f"beyond {rep['break_even_frames']} frames" if rep.get("break_even_frames") else ""))
+        limit = s.get("max_validation_error")
+        if limit is not None and not rep.get("validation_error", 0.0) <= limit:
+            lines.append(f"  WARNING: validation error above [subspace] max_validation_error = {limit:g}: "
+                         "the reduced run is not trusted")
         lines.append("  the run is reduced (x = X + U q, cubature forces); `warpfem run` checks the cache against "
                      "the mesh, material, fixed set and handles")
     except Exception as e:  # noqa: BLE001 - describe must not fail on a bad cache

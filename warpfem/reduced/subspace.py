@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from warpfem.reduced.basis import Basis, build_basis
+from warpfem.reduced.basis import Basis, build_basis, snapshot_displacements
 from warpfem.reduced.cubature import Cubature, train_cubature
 from warpfem.reduced.lifting import Lifting, build_lifting, handle_signature
 
@@ -98,7 +98,8 @@ class Subspace:
                 "modal_derivatives": b.modal_derivatives, "basis_info": b.info,
                 "cubature": {"training_error": c.training_error, "validation_error": c.validation_error,
                              "training_seconds": c.training_seconds, "tolerance": c.tolerance,
-                             "max_points": c.max_points, "seed": c.seed, "reached_tolerance": c.reached_tolerance}}
+                             "max_points": c.max_points, "seed": c.seed, "reached_tolerance": c.reached_tolerance,
+                             "num_validation_poses": c.num_validation_poses}}
         path = os.fspath(path)
         tmp = path + ".tmp.npz"
         np.savez(tmp, U=b.U, linear_frequencies=b.linear_frequencies, frequencies=b.frequencies,
@@ -132,7 +133,7 @@ def load_subspace(path, model=None, *, handles=None) -> Subspace:
                    training_error=cm["training_error"], validation_error=cm["validation_error"],
                    training_seconds=cm["training_seconds"], training_poses=arrays["training_poses"],
                    tolerance=cm["tolerance"], max_points=cm["max_points"], seed=cm["seed"],
-                   reached_tolerance=cm["reached_tolerance"])
+                   reached_tolerance=cm["reached_tolerance"], num_validation_poses=int(cm.get("num_validation_poses", 0)))
     lifting = None
     if meta.get("handles"):
         groups, row = [], 0
@@ -155,7 +156,8 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
                    max_cubature_points: int = 200, seed: int = 0, cache=None, retrain: bool = False,
                    num_training_poses: int = 100, num_validation_poses: int = 30, candidates: int = 256,
                    pose_amplitude: float = 0.1, snapshots=None, pose_source: str | None = None, handles=None,
-                   handle_targets_at=None, load_response: bool = False, verbose: bool = False) -> Subspace:
+                   handle_targets_at=None, load_response: bool = False, pod_modes: int = 0,
+                   verbose: bool = False) -> Subspace:
     """Build the basis and train the cubature for ``model`` (the ``warpfem train`` entry point).
 
     Args:
@@ -171,6 +173,9 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
             see :func:`warpfem.reduced.cubature.train_cubature`.
         load_response: make the linear static response to the loads, K^-1 f_ext, a basis column
             (see :func:`warpfem.reduced.basis.build_basis`).
+        pod_modes: k > 0 adds k basis columns from the ``snapshots`` (mass-weighted POD of their
+            displacements outside the modal span, handle motion removed; see
+            :func:`warpfem.reduced.basis.pod_columns`): r = ``modes`` + k.
         handles: kinematic handles [(vertex ids, components), ...], fixed in ``model``: a lifting
             field (:mod:`warpfem.reduced.lifting`) is built so the reduced simulator can move them.
         handle_targets_at: ``f(fraction in [0, 1]) -> [targets (h_g, 3) per handle]``, the handle
@@ -187,6 +192,12 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
                 "handles": handle_signature(handles) if handles else None}
     if load_response:
         settings["load_response"] = True
+    if int(pod_modes) != pod_modes or pod_modes < 0:
+        raise ValueError(f"pod_modes must be a non-negative integer, got {pod_modes!r}")
+    if pod_modes:
+        if snapshots is None or len(snapshots) < 2:
+            raise ValueError("pod_modes > 0 needs snapshots (full-mesh positions of a full run) to take the POD of")
+        settings["pod_modes"] = int(pod_modes)
     why = "no cache given"
     if cache is not None and not retrain:
         if os.path.exists(cache):
@@ -208,12 +219,14 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
 
     sim = _full_simulator(model)
     t0 = time.perf_counter()
-    basis = build_basis(model, modes=modes, modal_derivatives_=modal_derivatives, load_response=load_response, sim=sim)
     lifting, handle_coords = None, None
     if handles:
         lifting = build_lifting(model, handles, sim=sim)
         if handle_targets_at is not None:
             handle_coords = np.array([lifting.coords_from_targets(handle_targets_at(f)) for f in np.linspace(0, 1, 64)])
+    D = snapshot_displacements(model, snapshots, lifting) if pod_modes else None
+    basis = build_basis(model, modes=modes, modal_derivatives_=modal_derivatives, load_response=load_response, sim=sim,
+                        snapshot_displacements_=D, pod_modes=int(pod_modes))
     t_basis = time.perf_counter() - t0
     cub = train_cubature(model, basis.U, tolerance=cubature_tolerance, max_points=max_cubature_points, seed=seed,
                          num_training_poses=num_training_poses, num_validation_poses=num_validation_poses,
@@ -221,6 +234,7 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
                          pose_source=pose_source, lifting=lifting, handle_coords=handle_coords, sim=sim)
     report = {
         "modes": basis.size,
+        "pod_modes": int(basis.info.get("pod_modes", 0)),
         "num_rigid": basis.num_rigid,
         "modal_derivatives": basis.modal_derivatives,
         "linear_frequencies_hz": (basis.linear_frequencies / (2 * np.pi)).tolist(),
@@ -233,6 +247,7 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
         "num_elements": model.quadrature.num_elements,
         "training_error": cub.training_error,
         "validation_error": cub.validation_error,
+        "validation_poses": int(cub.num_validation_poses),
         "reached_tolerance": cub.reached_tolerance,
         "basis_seconds": t_basis,
         "cubature_seconds": cub.training_seconds,
@@ -250,7 +265,10 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
 def format_report(report: dict) -> str:
     """Human-readable training summary."""
     f = report.get("linear_frequencies_hz", [])
-    lines = [f"subspace: r = {report.get('modes')} ({report.get('num_rigid', 0)} rigid), modal derivatives: {report.get('modal_derivatives')}",
+    pod = int(report.get("pod_modes", 0) or 0)
+    lines = [f"subspace: r = {report.get('modes')} ({report.get('num_rigid', 0)} rigid"
+             + (f", {pod} POD columns from the training run" if pod else "")
+             + f"), modal derivatives: {report.get('modal_derivatives')}",
              "linear modal frequencies (Hz): " + ", ".join(f"{x:.4g}" for x in f[:10]) + (" ..." if len(f) > 10 else ""),
              *([f"handles: {report['handles']} (lifting field, {report.get('handle_coords')} handle coordinates)"]
                if report.get("handles") else []),
@@ -261,4 +279,16 @@ def format_report(report: dict) -> str:
              f"time: basis {report.get('basis_seconds', 0):.2f} s, cubature {report.get('cubature_seconds', 0):.2f} s"
              + (f", full-simulation snapshots {report['snapshot_seconds']:.2f} s" if "snapshot_seconds" in report else ""),
              f"cache: {report.get('cache')}"]
+    if "training_seconds" in report:
+        lines.append(f"training cost: {report['training_seconds']:.1f} s including {report.get('full_steps', 0)} full "
+                     f"step(s) ({report.get('full_step_seconds', float('nan')):.3g} s each)")
+    if "replay_tip_error" in report:
+        lines.append(f"reduced replay of the training run: tip error {report['replay_tip_error']:.3g} of its peak, "
+                     f"RMS error {report['replay_rms_error']:.3g} of the size (in-sample: the basis saw this run)")
+    if "predicted_speedup" in report:
+        be = report.get("break_even_frames")
+        lines.append(f"predicted: reduced step {1e3 * report['reduced_step_seconds']:.3g} ms vs full "
+                     f"{1e3 * report['full_step_seconds']:.4g} ms, {report['predicted_speedup']:.0f}x faster per step; "
+                     + (f"training + reduced run is cheaper than a full run for scenes longer than {be} frames"
+                        if be is not None else "no break-even (the reduced step is not faster here)"))
     return "\n".join(lines)

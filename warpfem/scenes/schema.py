@@ -212,6 +212,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
                                doc="frames of the full training run (snapshots); default [output].frames"),
         "training_poses": Key("int", default=100, check=_positive, doc="number of random training poses (random)"),
         "validation_poses": Key("int", default=30, check=_positive, doc="number of random validation poses (random)"),
+        "pod_modes": Key("int", default=0, check=_non_negative,
+                         doc="extra basis columns from the training run: mass-weighted POD of its displacements "
+                             "(r = modes + pod_modes; needs training 'snapshots' or 'mixed')"),
+        "training_dt_scale": Key("int", default=1, check=_positive,
+                                 doc="the full training run steps dt x this (same simulated time, fewer full steps; "
+                                     "snapshots per step)"),
+        "max_validation_error": Key("float", default=None, check=_unit_interval,
+                                    doc="`warpfem run` warns (log + stderr) when the cache's cubature validation "
+                                        "error is above this"),
     },
 }
 
@@ -483,6 +492,9 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
     subspace = _check_table(ctx, "subspace", data["subspace"], SCHEMA["subspace"]) if "subspace" in data else None
     if subspace is not None and element != "tet4":
         ctx.fail("[subspace]", f"reduced simulation supports element = \"tet4\" only; the mesh uses {element!r}")
+    if subspace is not None and subspace["pod_modes"] and subspace["training"] == "random":
+        ctx.fail("[subspace].pod_modes", "POD columns come from the full training run: set training = \"mixed\" or "
+                 "\"snapshots\", or pod_modes = 0")
 
     arrays = {}
     for s in ARRAY_SECTIONS:
