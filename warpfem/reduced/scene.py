@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import os
-import sys
 import time
 
 import numpy as np
@@ -130,8 +129,10 @@ def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
     """
     _check_integrator(scene)
     sub, path = _load_checked(scene, model)
-    check_validation_error(scene, sub, path)
-    return _reduced_simulator(scene, model, sub, device=device, precision=precision)
+    warning = check_validation_error(scene, sub, path)
+    sim = _reduced_simulator(scene, model, sub, device=device, precision=precision)
+    sim.trust_warning = warning  # the command line repeats it loudly (warpfem run)
+    return sim
 
 
 def _reduced_simulator(scene, model, sub, *, device="cpu", precision="float64"):
@@ -145,7 +146,7 @@ def _reduced_simulator(scene, model, sub, *, device="cpu", precision="float64"):
 
 
 def check_validation_error(scene, sub, path=None) -> str | None:
-    """Warn loudly (a ``logging`` warning and a line on stderr) when the subspace's cubature
+    """Warn (a ``logging`` warning; ``warpfem run`` also prints it as an error-style line) when the subspace's cubature
     validation error (force error on poses not used in training) is above the scene's
     ``[subspace] max_validation_error``. Returns the message, or None when within the threshold
     (or no threshold is set)."""
@@ -157,7 +158,6 @@ def check_validation_error(scene, sub, path=None) -> str | None:
            f"[subspace] max_validation_error = {limit:g} (cache {path or subspace_cache_path(scene)}); lower "
            "cubature_tolerance, add modes / pod_modes and retrain, or check the run against a full one")
     logger.warning(msg)
-    print(f"warpfem: warning: {msg}", file=sys.stderr, flush=True)
     return msg
 
 
