@@ -267,6 +267,7 @@ COMMANDS = {
     "describe": "warpfem.cli:_register_describe",
     "train": "warpfem.reduced.cli:register",
     "tradeoff": "warpfem.tradeoff.cli:register",
+    "tune": "warpfem.tradeoff.cli:register_tune",
 }
 
 # Names kept for modules written against the earlier API (subcommands registered on import).

@@ -82,7 +82,6 @@ class CubatureForces:
         self._force = wp.zeros(r, dtype=self._s, device=dev)
         self._K = wp.zeros((r, r), dtype=self._s, device=dev)
         self._npdt = npdt
-        self._cmds = {}
 
     def evaluate(self, q, *, hessian: bool = False, project: bool = True):
         """(energy J, force (r,), stiffness (r, r) or None) at q, float64 numpy."""

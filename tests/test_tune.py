@@ -1,0 +1,129 @@
+"""warpfem tune on the cantilever: the configuration chosen for an error budget meets it when its
+written scene file is rerun, a looser budget never picks a costlier configuration, and the search
+space follows the registries (integrators, elements, optional linear_solver)."""
+
+import math
+import os
+import tomllib
+
+import pytest
+
+from warpfem.tradeoff import TradeoffConfig, TruthSpec, scene_document
+from warpfem.tradeoff.study import _cfg, _REFERENCE, finish_reference, make_job, plan_reference, run_job
+from warpfem.tradeoff.tune import rerun_error, search_space, toml_dumps, tune, write_scene
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+CANTILEVER = os.path.join(ROOT, "examples", "scenes", "cantilever.toml")
+FRAMES = 3
+# small space (the default one is larger): both registered dynamic integrators, two elements
+AXES = {"element": ["tet4", "tet10"], "substeps": [1, 2, 4], "tol": [1e-3], "cg_tol": [1e-2],
+        "precision": ["float32", "float64"]}
+TRUTH = TruthSpec(refine=1, substeps=8)  # Tet10 on the scene's cells (within 0.2 % of Timoshenko), dt ladder 8/4/2
+
+
+@pytest.fixture(scope="module")
+def reference():
+    """The converged reference, computed once and shared by both searches."""
+    from warpfem.scenes import load_scene
+
+    doc = scene_document(CANTILEVER)
+    base = load_scene(CANTILEVER)
+    cands, _ = search_space(doc, CANTILEVER, AXES)
+    plan = plan_reference(doc, CANTILEVER, base, _cfg(**_REFERENCE, substeps=4), TRUTH, cands)
+    outs = [run_job(make_job(doc, CANTILEVER, c, device="cpu", frames=FRAMES, plan=plan)) for c in plan["jobs"]]
+    return finish_reference(plan, outs, frames=FRAMES)
+
+
+@pytest.fixture(scope="module")
+def results(reference):
+    # cost = work: the deterministic proxy (Newton / CG iterations x element work), so that the
+    # comparison between the two budgets does not depend on the load of this shared machine
+    return {e: tune(CANTILEVER, e, frames=FRAMES, axes=AXES, reference=reference, cost="work") for e in (0.25, 0.06)}
+
+
+def test_reference_is_converged_in_time(reference):
+    t = reference.info["time"]
+    assert t["substeps"] == [8, 4, 2]
+    assert 0.7 < t["observed_order_tip"] < 1.3  # backward Euler: first order in dt
+    assert t["estimated_error_tip"] < 0.01  # the Richardson reference, well below the budgets tested
+
+
+@pytest.mark.parametrize("budget", [0.25, 0.06])
+def test_chosen_configuration_meets_its_budget_when_rerun(results, reference, budget, tmp_path):
+    r = results[budget]
+    assert r.winner is not None, r.notes
+    assert r.winner["error"] <= budget
+    path = write_scene(r, tmp_path / "tuned.toml")
+    with open(path, "rb") as f:
+        doc = tomllib.load(f)  # a valid TOML scene with the chosen settings
+    cfg = r.winner_config()
+    assert doc["integrator"]["type"] == (cfg.integrator or "backward_euler")
+    assert doc["mesh"]["element"] == (cfg.element or "tet4")
+    assert doc["integrator"]["dt"] == pytest.approx(1.0 / (48 * (cfg.substeps or 1)))
+    err = rerun_error(path, reference, precision=cfg.precision)
+    assert err <= budget
+    assert err == pytest.approx(r.winner["error"], rel=1e-3, abs=1e-6)  # the same run, read back from the file
+
+
+def test_looser_budget_is_not_costlier(results):
+    loose, tight = results[0.25], results[0.06]
+    assert loose.winner["config"] == tight.winner["config"] or loose.winner["work"] <= tight.winner["work"]
+    assert loose.winner["error"] <= 0.25 and tight.winner["error"] <= 0.06
+    # the tight budget needs smaller steps than one per frame (backward Euler's error is O(dt))
+    assert (TradeoffConfig.from_dict(tight.winner["config"]).substeps or 1) >= 2
+    for r in (loose, tight):  # every runner-up that met the budget costs at least as much as the winner
+        for x in r.runners_up:
+            if x["status"] == "ok" and x["error"] <= r.max_error:
+                assert x["work"] >= r.winner["work"]
+        # no whole grid: fewer run-frames than every candidate over every frame
+        assert r.search["frame_runs"] < r.search["whole_grid_frame_runs"]
+
+
+def test_search_space_follows_the_registries(monkeypatch):
+    import warpfem.scenes.schema as schema
+    from warpfem.scenes import INTEGRATORS, Key
+
+    doc = scene_document(CANTILEVER)
+    cands, dropped = search_space(doc, CANTILEVER, {"substeps": [1], "tol": [1e-3], "cg_tol": [1e-2], "precision": ["float64"]})
+    integrators = {c.integrator for c in cands}
+    assert integrators == {n for n, e in INTEGRATORS.items() if e.dynamic}
+    # stiffness warping takes Tet4 only: its other elements are rejected by the scene layer
+    assert {c.element for c in cands if c.integrator == "stiffness_warping"} == {"tet4"}
+    assert {c.element for c in cands if c.integrator == "backward_euler"} == {"tet4", "tet10", "hex8", "hex27"}
+    assert any("warping" in name and "tet10" in name for name, _ in dropped)
+    assert all(c.linear_solver is None for c in cands)
+    # a schema with [integrator] linear_solver turns the axis on, for the integrators that take it
+    if "linear_solver" not in schema.INTEGRATOR_KEYS:
+        monkeypatch.setitem(schema.INTEGRATOR_KEYS, "linear_solver",
+                            Key("choice", default="auto", choices=("auto", "pcg", "direct")))
+        be = INTEGRATORS["backward_euler"]
+        monkeypatch.setitem(be.keys, "linear_solver", schema.INTEGRATOR_KEYS["linear_solver"])
+    cands2, _ = search_space(doc, CANTILEVER, {"substeps": [1], "tol": [1e-3], "cg_tol": [1e-2], "precision": ["float64"],
+                                               "element": ["tet4"]})
+    solvers = {c.linear_solver for c in cands2 if c.integrator == "backward_euler"}
+    assert solvers == set(schema.INTEGRATOR_KEYS["linear_solver"].choices)
+
+
+def test_toml_writer_round_trip():
+    doc = scene_document(CANTILEVER)
+    back = tomllib.loads(toml_dumps(doc))
+    assert back == doc
+
+
+def test_bad_budget_and_cli_errors(tmp_path, capsys):
+    from warpfem.cli import main
+    from warpfem.tradeoff import GridError
+
+    with pytest.raises(GridError, match="max error"):
+        tune(CANTILEVER, 0.0)
+    with pytest.raises(GridError, match="quantity"):
+        tune(CANTILEVER, 0.1, quantity="energy")
+    assert main(["tune", CANTILEVER, "--max-error", "-1"]) == 2
+    assert "--max-error" in capsys.readouterr().err
+    assert main(["tune", str(tmp_path / "missing.toml"), "--max-error", "0.1"]) == 2
+    bad = tmp_path / "space.toml"
+    bad.write_text("colour = [1]\n")
+    assert main(["tune", CANTILEVER, "--max-error", "0.1", "--space", str(bad)]) == 2
+    assert "colour" in capsys.readouterr().err
+    assert main(["tune", CANTILEVER, "--max-error", "0.1", "--out", "x.txt"]) == 2
+    assert math.isfinite(0.1)

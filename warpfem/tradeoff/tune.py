@@ -1,0 +1,438 @@
+"""``warpfem tune SCENE --max-error E``: the cheapest configuration of a scene whose error against
+the converged reference stays below E.
+
+The search space is data-driven: the registered dynamic integrator types
+(:data:`warpfem.scenes.INTEGRATORS`), every element type (:data:`warpfem.scenes.ELEMENTS`), substeps
+per frame, Newton and CG tolerances, precision, the ``[integrator] linear_solver`` choices when the
+scene schema has that key (:data:`warpfem.scenes.schema.INTEGRATOR_KEYS`), and optionally reduced
+runs of given subspace sizes. Candidates the scene layer rejects are dropped, and candidates whose
+effective settings coincide (a tolerance an integrator does not take) are run once.
+
+Search (no full grid): candidates whose mesh alone already misses the budget (the discretisation
+error of the time-converged run on that mesh, measured with the reference) are dropped before any
+run; then successive halving on prefixes of the run (frames/8, frames/4, frames/2): every survivor
+runs the prefix, those over the budget are dropped (the tip error, normalised by the reference's
+peak over the whole run, can only grow with the prefix), and the cheapest third (at least ``keep``)
+go on. The ``keep`` cheapest survivors of the last prefix then run the whole scene: the cheapest
+within budget is the winner (the others are the runners-up); if none is, the next ones are tried.
+
+Cost: ``time`` (wall seconds per simulated second, measured on the machine / worker that ran it;
+noisy on a shared machine) or ``work`` (:func:`warpfem.tradeoff.study.work_proxy`: Newton and CG
+iterations times element work, deterministic).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import math
+import os
+import tempfile
+import time
+from dataclasses import dataclass, field
+
+from .study import (GridError, SerialExecutor, TradeoffConfig, TruthSpec, Unavailable, _job_outcome, _json_value,
+                    _REFERENCE, _cfg, _fmt, finish_reference, make_job, plan_reference, run_job, scene_document,
+                    variant_document, variant_scene)
+
+__all__ = ["tune", "format_tune", "search_space", "TuneResult", "DEFAULT_AXES", "write_scene", "toml_dumps", "load_space",
+           "rerun_error"]
+
+# axes besides integrator / element / linear_solver (filled from the registries)
+DEFAULT_AXES = {"substeps": [1, 2, 4, 8], "tol": [1e-3, 1e-5], "cg_tol": [1e-2, 1e-4], "precision": ["float32", "float64"]}
+_AXES = ("integrator", "element", "substeps", "tol", "cg_tol", "precision", "linear_solver", "subspace")
+QUANTITY_FIELDS = {"tip": "tip_error", "rms": "rms_error"}
+
+
+def _registered_axes() -> dict:
+    from warpfem.scenes import ELEMENTS, INTEGRATORS
+    from warpfem.scenes.schema import INTEGRATOR_KEYS
+
+    axes = {"integrator": sorted(n for n, e in INTEGRATORS.items() if e.dynamic), "element": list(ELEMENTS)}
+    key = INTEGRATOR_KEYS.get("linear_solver")
+    if key is not None:  # optional axis: only once the schema has the key
+        axes["linear_solver"] = list(getattr(key, "choices", None) or [])
+    return axes
+
+
+def load_space(path) -> dict:
+    """A search-space TOML file: any of ``integrator``, ``element``, ``substeps``, ``tol``, ``cg_tol``,
+    ``precision``, ``linear_solver`` (arrays of values) and ``subspace`` (array of mode counts)."""
+    from warpfem.scenes.schema import read_toml
+
+    data = read_toml(os.fspath(path), GridError, what="search-space file")
+    bad = sorted(set(data) - set(_AXES))
+    if bad:
+        raise GridError(f"{path}: {bad[0]}: unknown axis; known: {', '.join(_AXES)}")
+    for k, v in data.items():
+        if not isinstance(v, list) or (k != "subspace" and not v):
+            raise GridError(f"{path}: {k}: expected a non-empty array of values")
+    return data
+
+
+def search_space(doc, scene_path, axes: dict | None = None) -> tuple:
+    """(candidates, dropped): every combination of the axes that the scene layer accepts, one per
+    distinct effective setting. ``axes`` overrides the defaults (registered integrators, all
+    elements, :data:`DEFAULT_AXES`, linear solvers when the schema has them); ``subspace``: a list of
+    mode counts for reduced candidates (default none: training takes minutes per size)."""
+    ax = {**_registered_axes(), **DEFAULT_AXES, "subspace": []}
+    ax.update(axes or {})
+    from warpfem.scenes import INTEGRATORS
+
+    out, seen, dropped = [], {}, []
+    solvers = ax.get("linear_solver") or [None]
+    for integ, el, sub, tol, cg, prec in itertools.product(ax["integrator"], ax["element"], ax["substeps"], ax["tol"],
+                                                          ax["cg_tol"], ax["precision"]):
+        entry = INTEGRATORS.get(integ)
+        for ls in (solvers if entry is not None and "linear_solver" in entry.keys else [None]):
+            _add(out, seen, dropped, doc, scene_path, dict(integrator=integ, element=el, substeps=sub, tol=tol, cg_tol=cg,
+                                                           precision=prec, linear_solver=ls))
+    for modes, sub, tol, prec in itertools.product(ax.get("subspace") or [], ax["substeps"], ax["tol"], ax["precision"]):
+        _add(out, seen, dropped, doc, scene_path, dict(subspace={"modes": int(modes)}, substeps=sub, tol=tol, precision=prec))
+    return out, dropped
+
+
+def _add(out, seen, dropped, doc, scene_path, kw):
+    from warpfem.scenes import INTEGRATORS
+
+    kw = {k: v for k, v in kw.items() if v is not None}
+    entry = INTEGRATORS.get(kw.get("integrator"))
+    if entry is not None:  # knobs this integrator does not take: not in its name (same run once)
+        for k in ("tol", "cg_tol", "linear_solver"):
+            if k not in entry.keys:
+                kw.pop(k, None)
+    try:
+        cfg = _cfg(**kw)
+        cfg.check("search space")
+    except (GridError, TypeError) as e:
+        raise GridError(f"search space: {e}") from e
+    try:
+        spec = variant_scene(doc, scene_path, cfg).spec
+    except Unavailable as e:
+        dropped.append((cfg.name, str(e).splitlines()[0][:200]))
+        return
+    eff = json.dumps([cfg.precision, {k: v for k, v in spec.integrator.items() if not k.startswith("require")},
+                      spec.mesh.get("element"), spec.subspace and {k: v for k, v in spec.subspace.items() if k != "cache"}],
+                     sort_keys=True, default=str)
+    if eff in seen:
+        return
+    seen[eff] = cfg.name
+    out.append(cfg)
+
+
+@dataclass
+class TuneResult:
+    """What ``tune`` found (JSON with :meth:`to_json`)."""
+
+    scene: str
+    max_error: float
+    quantity: str
+    cost: str
+    frames: int
+    winner: dict | None
+    runners_up: list
+    rungs: list
+    pruned: list
+    candidates: int
+    dropped: list
+    reference: dict
+    search: dict
+    scene_out: str | None = None
+    device: str = "cpu"
+    executor: str = ""
+    notes: list = field(default_factory=list)
+    schema: str = "warpfem.tune/1"
+
+    def to_dict(self) -> dict:
+        return _json_value(dataclasses.asdict(self))
+
+    def to_json(self, path) -> str:
+        os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+        with open(path, "w") as f:
+            json.dump(self.to_dict(), f, indent=1, allow_nan=False)
+        return path
+
+    def winner_config(self) -> TradeoffConfig | None:
+        return None if self.winner is None else TradeoffConfig.from_dict(self.winner["config"])
+
+
+def _cost(res, cost):
+    return res.work if cost == "work" else res.seconds_per_sim_second
+
+
+def _error(res, quantity):
+    return getattr(res, QUANTITY_FIELDS[quantity])
+
+
+def _row(res, quantity, cost) -> dict:
+    return {"name": res.name, "config": res.config, "status": res.status, "note": res.note,
+            "error": _error(res, quantity), "cost": _cost(res, cost), "seconds_per_sim_second": res.seconds_per_sim_second,
+            "work": res.work, "newton_per_step": res.newton_per_step, "cg_per_step": res.cg_per_step,
+            "tip_error": res.tip_error, "rms_error": res.rms_error,
+            "discretisation_error": getattr(res, f"discretisation_{quantity}_error"),
+            "solver_error": getattr(res, f"solver_{quantity}_error"), "ran_on": res.ran_on}
+
+
+def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="cpu", axes=None, candidates=None,
+         truth: TruthSpec | None = TruthSpec(), reference_config: TradeoffConfig | None = None, reference=None,
+         cost="time", eta: int = 3, keep: int = 3, executor=None, log=None, tip_point=None) -> TuneResult:
+    """Search the cheapest configuration of the scene whose ``quantity`` error ("tip" or "rms")
+    against the reference is at most ``max_error`` (see the module docstring).
+
+    ``axes``: overrides of the search space (:func:`search_space`), or ``candidates``: an explicit
+    list of :class:`TradeoffConfig`. ``truth``: the converged reference (None: the tight run on the
+    scene's own mesh, solver/step error only). ``reference``: a :class:`warpfem.tradeoff.study.Reference`
+    computed before (for these frames), reused instead of running it again. ``cost``: "time" or
+    "work". ``executor``: serial (default) or :class:`warpfem.tradeoff.cluster.DaskExecutor`."""
+    from warpfem.scenes import load_scene
+
+    if quantity not in QUANTITY_FIELDS:
+        raise GridError(f"quantity must be one of {', '.join(QUANTITY_FIELDS)}, got {quantity!r}")
+    if cost not in ("time", "work"):
+        raise GridError(f"cost must be 'time' or 'work', got {cost!r}")
+    if isinstance(max_error, bool) or not isinstance(max_error, (int, float)) or not max_error > 0 or not math.isfinite(max_error):
+        raise GridError(f"max error must be a number > 0, got {max_error!r}")
+    if eta < 2 or keep < 1:
+        raise GridError(f"eta must be >= 2 and keep >= 1, got {eta}, {keep}")
+    scene_path = os.fspath(scene_path)
+    base = load_scene(scene_path)
+    doc = scene_document(scene_path)
+    frames = int(frames or base.spec.output["frames"])
+    if frames < 1:
+        raise GridError(f"frames must be >= 1, got {frames}")
+    log = log or (lambda s: None)
+    executor = executor or SerialExecutor()
+    t_start = time.perf_counter()
+    dropped = []
+    if candidates is None:
+        candidates, dropped = search_space(doc, scene_path, axes)
+    if not candidates:
+        raise GridError("the search space has no configuration this scene accepts"
+                        + (f" (e.g. {dropped[0][0]}: {dropped[0][1]})" if dropped else ""))
+    log(f"{len(candidates)} candidate configurations ({len(dropped)} combinations the scene rejects or that repeat)")
+    notes = []
+    runs = {"reference": 0, "prefix": 0, "full": 0}
+    frame_runs = 0
+    with tempfile.TemporaryDirectory(prefix="warpfem_tune_") as cache_dir:
+        # the reference (and the time-converged run on every candidate mesh)
+        if reference is None:
+            ref_cfg = reference_config or _cfg(**_REFERENCE, substeps=4)
+            plan = plan_reference(doc, scene_path, base, ref_cfg, truth, candidates)
+            log(f"reference: {len(plan['jobs'])} runs")
+            outs = executor.map(run_job, [make_job(doc, scene_path, c, device=device, frames=frames, plan=plan,
+                                                   tip_point=tip_point) for c in plan["jobs"]],
+                                on_done=lambda i, o: log("  " + _job_outcome(o, plan["jobs"][i], None)[0].name))
+            outs = [_job_outcome(o, plan["jobs"][i], getattr(executor, "retried", {}).get(i)) for i, o in enumerate(outs)]
+            reference = finish_reference(plan, outs, tip_point=tip_point, frames=frames)
+            runs["reference"] = len(plan["jobs"])
+        elif reference.frames != frames:
+            raise GridError(f"the given reference covers {reference.frames} frames, the search {frames}")
+        est = (reference.info.get("time") or {}).get(f"estimated_error_{quantity}")
+        if est is not None and est > max_error / 3:
+            notes.append(f"the reference's own estimated {quantity} error ({est:.2e}) is not small against the budget "
+                         f"({max_error:.2e}): tighten it (truth substeps) or loosen the budget")
+        if reference.info.get("flag"):
+            notes.append(reference.info["flag"])
+        # a mesh that alone misses the budget cannot be in the answer
+        pruned, alive = [], []
+        for c in candidates:
+            el, rf = reference.plan["mesh_of"](c)
+            d = reference.discretisation_error(el, rf, quantity)
+            if math.isfinite(d) and d > max_error:
+                pruned.append({"name": c.name, "stage": "discretisation",
+                               "reason": f"{el} mesh: discretisation {quantity} error {d:.3g} > {max_error:g}"})
+            else:
+                alive.append(c)
+        log(f"{len(alive)} candidates after the discretisation check ({len(pruned)} dropped)")
+
+        def run_all(cfgs, n):
+            jobs = [make_job(doc, scene_path, c, device=device, frames=n, plan=reference.plan, tip_point=tip_point,
+                             cache_dir=cache_dir) for c in cfgs]
+            outs = executor.map(run_job, jobs)
+            res = []
+            for i, o in enumerate(outs):
+                r, traj = _job_outcome(o, cfgs[i], getattr(executor, "retried", {}).get(i))
+                if traj is not None:
+                    reference.errors(r, traj, frames=n)
+                res.append(r)
+            return res
+
+        _pretrain(doc, scene_path, alive, cache_dir, device, log)
+        prefixes = sorted({max(1, frames // 2 ** k) for k in (3, 2, 1)} - {frames})
+        rungs = []
+        ranked, fallback = alive, []
+        for n in prefixes:
+            if len(ranked) <= keep:
+                break
+            res = run_all(ranked, n)
+            runs["prefix"] += len(res)
+            frame_runs += n * len(res)
+            feasible = sorted([r for r in res if r.status == "ok" and _error(r, quantity) <= max_error],
+                              key=lambda r: (_cost(r, cost), _error(r, quantity)))
+            for r in res:
+                if r not in feasible:
+                    why = (f"{quantity} error {_error(r, quantity):.3g} > {max_error:g}" if r.status == "ok"
+                           else f"{r.status}: {r.note}")
+                    pruned.append({"name": r.name, "stage": f"prefix {n} frames", "reason": why})
+            n_keep = max(keep, math.ceil(len(feasible) / eta))
+            for r in feasible[n_keep:]:
+                pruned.append({"name": r.name, "stage": f"prefix {n} frames",
+                               "reason": f"not among the {n_keep} cheapest within budget (kept as a fallback)"})
+            rungs.append({"frames": n, "evaluated": [_row(r, quantity, cost) for r in res],
+                          "kept": [r.name for r in feasible[:n_keep]]})
+            log(f"prefix of {n} frame(s): {len(res)} run, {len(feasible)} within budget, {min(n_keep, len(feasible))} kept")
+            by_name = {c.name: c for c in ranked}
+            ranked = [by_name[r.name] for r in feasible[:n_keep]]
+            fallback = [by_name[r.name] for r in feasible[n_keep:]] + fallback  # tried if the kept ones fail
+            if not ranked:
+                break
+        ranked = ranked + fallback
+        # full runs of the cheapest survivors: the winner and its runners-up
+        full, winner, start = [], None, 0
+        while start < len(ranked) and winner is None:
+            batch = ranked[start:start + keep]
+            start += keep
+            res = run_all(batch, frames)
+            runs["full"] += len(res)
+            frame_runs += frames * len(res)
+            full += res
+            ok = sorted([r for r in full if r.status == "ok" and _error(r, quantity) <= max_error],
+                        key=lambda r: (_cost(r, cost), _error(r, quantity)))
+            winner = ok[0] if ok else None
+            log(f"full runs: {len(res)}, " + (f"winner {winner.name}" if winner else "none within budget yet"))
+        full_sorted = sorted(full, key=lambda r: (not (r.status == "ok" and _error(r, quantity) <= max_error),
+                                                  _cost(r, cost) if r.status == "ok" else math.inf))
+    if winner is None:
+        notes.append(f"no candidate meets {quantity} error <= {max_error:g}")
+    search = {"candidates_run": runs, "frame_runs": frame_runs, "whole_grid_frame_runs": len(candidates) * frames,
+              "prefixes": prefixes, "eta": eta, "keep": keep, "seconds": time.perf_counter() - t_start}
+    return TuneResult(scene=os.path.abspath(scene_path), max_error=float(max_error), quantity=quantity, cost=cost,
+                      frames=frames, winner=None if winner is None else _row(winner, quantity, cost),
+                      runners_up=[_row(r, quantity, cost) for r in full_sorted if r is not winner],
+                      rungs=rungs, pruned=pruned, candidates=len(candidates), dropped=[list(d) for d in dropped],
+                      reference=reference.info, search=search, device=str(device), executor=executor.description,
+                      notes=notes)
+
+
+def _pretrain(doc, scene_path, cfgs, cache_dir, device, log):
+    """Train every reduced candidate's subspace once, into the shared cache (offline cost, not in
+    the candidates' cost). Candidates on a cluster without this filesystem train their own."""
+    from .study import Unavailable, _build
+
+    done = set()
+    for c in cfgs:
+        if c.subspace is None or c.subspace in done:
+            continue
+        done.add(c.subspace)
+        try:
+            _build(variant_scene(doc, scene_path, dataclasses.replace(c, substeps=None, tol=None), cache_dir=cache_dir),
+                   device=device, precision="float64")
+            log(f"trained subspace {c.subspace_dict()}")
+        except Unavailable as e:
+            log(f"subspace {c.subspace_dict()}: {e}")
+
+
+# ----------------------------------------------------------------------------- writing the scene
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if not math.isfinite(v):
+            raise ValueError(f"cannot write {v!r} to TOML")
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_dumps(doc: dict) -> str:
+    """TOML text of a scene document (scalars, arrays, tables, arrays of tables)."""
+    lines = []
+    for k, v in doc.items():
+        if not isinstance(v, dict) and not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
+            lines.append(f"{k} = {_toml_value(v)}")
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            lines += ["", f"[{k}]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items() if vv is not None]
+        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            for item in v:
+                lines += ["", f"[[{k}]]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in item.items() if vv is not None]
+    return "\n".join(lines) + "\n"
+
+
+_PATH_KEYS = {"mesh": ("path",), "surface": ("path",), "output": ("usd", "states", "stats", "vtu"),
+              "subspace": ("cache",), "fixed": ("indices_file",), "handle": ("indices_file",), "force": ("indices_file",)}
+
+
+def write_scene(result: TuneResult, path) -> str:
+    """Write the winner as a scene file (relative paths re-anchored to its new location; outputs
+    kept; a reduced winner's cache is left to ``warpfem train``)."""
+    cfg = result.winner_config()
+    if cfg is None:
+        raise ValueError("no winner to write")
+    src_dir = os.path.dirname(result.scene)
+    out_dir = os.path.dirname(os.path.abspath(path))
+    d = variant_document(scene_document(result.scene), dataclasses.replace(cfg, name=""), for_study=False)
+    if d.get("subspace") is not None:
+        d["subspace"].pop("cache", None)
+    d["integrator"] = {"type": d["integrator"]["type"], **d["integrator"]}  # type first
+    for sec, keys in _PATH_KEYS.items():
+        items = d.get(sec)
+        for item in (items if isinstance(items, list) else [items] if isinstance(items, dict) else []):
+            for k in keys:
+                if isinstance(item.get(k), str) and not os.path.isabs(item[k]):
+                    item[k] = os.path.relpath(os.path.join(src_dir, item[k]), out_dir)
+    w = result.winner
+    head = [f"# Tuned by `warpfem tune` from {os.path.relpath(result.scene, out_dir)}: the cheapest configuration found",
+            f"# with {result.quantity} error <= {result.max_error:g} against the converged reference "
+            f"({result.frames} frames).",
+            f"# Measured: {result.quantity} error {w['error']:.3g} (discretisation {_fmt(w['discretisation_error'], '.3g')}, "
+            f"solver/step {_fmt(w['solver_error'], '.3g')}), {w['seconds_per_sim_second']:.3g} s per simulated second "
+            f"({result.device}), work {w['work']:.3g}.",
+            f"# Run it with: warpfem run {os.path.basename(path)} --precision {cfg.precision}"]
+    os.makedirs(out_dir, exist_ok=True)
+    with open(path, "w") as f:
+        f.write("\n".join(head) + "\n" + toml_dumps(d))
+    result.scene_out = os.path.abspath(path)
+    return path
+
+
+def format_tune(result: TuneResult) -> str:
+    """The terminal report."""
+    q = result.quantity
+    s = result.search
+    lines = [f"{os.path.basename(result.scene)}: cheapest configuration with {q} error <= {result.max_error:g} "
+             f"({result.frames} frames, cost = {result.cost}, {result.executor})",
+             f"searched {result.candidates} candidates: {s['candidates_run']['prefix']} prefix runs "
+             f"({'/'.join(map(str, s['prefixes'])) or '-'} frames), {s['candidates_run']['full']} full runs, "
+             f"{s['candidates_run']['reference']} reference runs; search: {s['frame_runs']} run-frames vs "
+             f"{s['whole_grid_frame_runs']} for the whole grid; {s['seconds']:.0f} s in all"]
+    rows = ([("winner", result.winner)] if result.winner else []) + [("", r) for r in result.runners_up]
+    if rows:
+        lines.append(f"  {'':7}{'configuration':42} {q + ' err':>9} {'disc':>9} {'solver':>9} {'s/sim-s':>9} {'work/sim-s':>11}")
+        for tag, r in rows:
+            err = _fmt(r["error"], ".3g") if r["status"] == "ok" else r["status"]
+            lines.append(f"  {tag:7}{r['name'][:42]:42} {err:>9} {_fmt(r['discretisation_error'], '.3g'):>9} "
+                         f"{_fmt(r['solver_error'], '.3g'):>9} {_fmt(r['seconds_per_sim_second'], '.3g'):>9} "
+                         f"{_fmt(r['work'], '.3g'):>11}")
+    lines += [f"note: {n}" for n in result.notes]
+    if result.scene_out:
+        lines.append(f"wrote {result.scene_out}")
+    return "\n".join(lines)
+
+
+def rerun_error(scene_file, reference, *, device="cpu", precision="float64", quantity="tip") -> float:
+    """Run a scene file as it is (e.g. the one ``tune`` wrote) and return its error against
+    ``reference`` (over the reference's frames)."""
+    job = make_job(scene_document(scene_file), os.fspath(scene_file), TradeoffConfig(name="rerun", precision=precision),
+                   device=device, frames=reference.frames, plan=reference.plan)
+    res, traj = run_job(job)
+    if traj is None:
+        raise RuntimeError(f"{scene_file}: {res.status}: {res.note}")
+    reference.errors(res, traj)
+    return _error(res, quantity)
