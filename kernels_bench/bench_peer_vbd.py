@@ -225,7 +225,8 @@ def targets(wf_rows, vbd_rows):
 
 
 def grids(quick):
-    """warpfem settings (integrator, precision, substeps, tol, cg_tol, linear solver) and VBD (substeps, iterations)."""
+    """warpfem settings (integrator, precision, substeps, tol, cg_tol, linear solver[, Newton iterations per step])
+    and VBD (substeps, iterations)."""
     if quick:
         wf_grid = ([(i, "float64", sub, 1e-2, 1e-1, "auto") for i in ("backward_euler", "newmark", "bdf2") for sub in (1, 4)]
                    + [("newmark", "float64", 1, 1e-5, 1e-3, "auto"), ("newmark", "float32", 1, 1e-2, 1e-1, "auto"),
@@ -236,7 +237,9 @@ def grids(quick):
                     for tol, cg in ((1e-2, 1e-1), (1e-5, 1e-3)) if sub < 10 or tol > 1e-3]
                    + [(i, "float32", sub, 1e-2, 1e-1, "auto") for i in ("backward_euler", "newmark") for sub in (1, 4)]
                    + [(i, "float64", sub, 1e-2, 1e-1, ls) for i in ("backward_euler", "newmark") for sub in (1, 4)
-                      for ls in ("pcg", "direct")])
+                      for ls in ("pcg", "direct")]
+                   # one Newton iteration per step (a linearly implicit step, flagged as not converged)
+                   + [(i, p, 1, 1e-2, 1e-1, "direct", 1) for i in ("newmark", "bdf2") for p in ("float32", "float64")])
         vbd_grid = [(1, 5), (1, 10), (1, 20), (2, 10), (5, 5), (5, 10), (10, 5), (10, 10), (20, 5)]
     return wf_grid, vbd_grid
 
@@ -260,10 +263,12 @@ def run_beam(newton, name, E_, nu_, args, device, duration, frames, ref_sub):
           f"{amp:.4g} m; its estimated error |x(dt) - x(2 dt)| / 3 = {ref_self:.2e} ({time.perf_counter() - t0:.0f} s)", flush=True)
 
     wf_rows = []
-    for integ, prec, sub, tol, cg, ls in wf_grid:
+    for integ, prec, sub, tol, cg, ls, *cap in wf_grid:
+        max_iters = cap[0] if cap else 50  # an optional 7th entry: Newton iterations per step
         r = run_warpfem(mesh, fixed, tip, device=device, precision=prec, dt=FRAME_DT / sub, tol=tol, cg_tol=cg, frames=frames,
-                        E=E_, nu=nu_, integrator=integ, linear_solver=ls)
-        row = dict(code="warpfem", config=f"{integ} {prec} dt=1/{60 * sub} tol={tol:g} cg_tol={cg:g} {ls}", integrator=integ,
+                        E=E_, nu=nu_, integrator=integ, linear_solver=ls, max_iters=max_iters)
+        one = f" max_iters={max_iters}" if cap else ""
+        row = dict(code="warpfem", config=f"{integ} {prec} dt=1/{60 * sub} tol={tol:g} cg_tol={cg:g} {ls}{one}", integrator=integ,
                    precision=prec, dt=FRAME_DT / sub, tol=tol, cg_tol=cg, linear_solver=ls,
                    wall_s_per_sim_s=r["seconds"] / duration, cpu_s_per_sim_s=r["cpu_seconds"] / duration,
                    error=error_of(r["tip"], ref["tip"], amp), newton_per_step=r["newton_per_step"], cg_per_step=r["cg_per_step"],

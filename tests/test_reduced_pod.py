@@ -167,7 +167,7 @@ def test_train_reports_validation_cost_speedup_and_run_warns_above_threshold(tmp
     open(path, "w").write(text.replace("max_validation_error = 0.5", "max_validation_error = 1e-9"))
     assert main(["run", path, "--quiet"]) == 0
     err = capsys.readouterr().err
-    assert "warpfem: warning:" in err and "NOT TRUSTED" in err and "max_validation_error = 1e-09" in err
+    assert "warning:" in err and "NOT TRUSTED" in err and "max_validation_error = 1e-09" in err
     assert any(r.levelno == logging.WARNING and "max_validation_error" in r.getMessage() for r in caplog.records)
     assert main(["describe", path]) == 0
     desc = capsys.readouterr().out

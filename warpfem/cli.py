@@ -193,9 +193,6 @@ def _cmd_run(args) -> int:
     except (ValueError, RuntimeError) as e:  # e.g. an unknown device
         error(f"{args.scene}: cannot build the scene: {e}")
         return EXIT_FAILED
-    trust_warning = getattr(run.sim, "trust_warning", None)  # e.g. a reduced run above its validation error
-    if trust_warning:
-        print(f"warpfem: warning: {trust_warning}", file=sys.stderr, flush=True)
     frames = args.frames if args.frames is not None else run.frames
     usd = args.out if args.out is not None else scene.spec.output["usd"]
     stats = scene.stats_path(usd, None if args.out is not None else scene.spec.output["stats"])

@@ -129,10 +129,8 @@ def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
     """
     _check_integrator(scene)
     sub, path = _load_checked(scene, model)
-    warning = check_validation_error(scene, sub, path)
-    sim = _reduced_simulator(scene, model, sub, device=device, precision=precision)
-    sim.trust_warning = warning  # the command line repeats it loudly (warpfem run)
-    return sim
+    check_validation_error(scene, sub, path)
+    return _reduced_simulator(scene, model, sub, device=device, precision=precision)
 
 
 def _reduced_simulator(scene, model, sub, *, device="cpu", precision="float64"):
@@ -146,7 +144,7 @@ def _reduced_simulator(scene, model, sub, *, device="cpu", precision="float64"):
 
 
 def check_validation_error(scene, sub, path=None) -> str | None:
-    """Warn (a ``logging`` warning; ``warpfem run`` also prints it as an error-style line) when the subspace's cubature
+    """Warn loudly (a ``logging`` warning: a ``warning:`` line on stderr from the CLI) when the subspace's cubature
     validation error (force error on poses not used in training) is above the scene's
     ``[subspace] max_validation_error``. Returns the message, or None when within the threshold
     (or no threshold is set)."""
@@ -157,7 +155,7 @@ def check_validation_error(scene, sub, path=None) -> str | None:
     msg = (f"{_where(scene)}: reduced run NOT TRUSTED: the subspace's validation error {err:.3g} is above "
            f"[subspace] max_validation_error = {limit:g} (cache {path or subspace_cache_path(scene)}); lower "
            "cubature_tolerance, add modes / pod_modes and retrain, or check the run against a full one")
-    logger.warning(msg)
+    logger.warning(msg)  # the CLI prints warnings on stderr as "warning: ..." lines
     return msg
 
 
