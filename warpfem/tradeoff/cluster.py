@@ -18,6 +18,8 @@ see the scene's files (mesh, surface) at the same paths as this machine and have
 
 from __future__ import annotations
 
+import os
+
 import logging
 import uuid
 
@@ -75,7 +77,15 @@ class DaskExecutor:
         self.cluster = None
         self.retried: dict = {}  # job index -> ["attempt 1: KilledWorker: ...", ...]
         if workers is not None:
-            with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+            # Dask's nanny sets OMP/MKL/OPENBLAS_NUM_THREADS = 1 in its workers; the sparse direct solver
+            # (MKL PARDISO) sums in another order with another thread count, so a worker would differ from
+            # the serial run in the last bits. Workers get this process's own settings instead.
+            environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ", {}).items()
+                       if not k.endswith("_NUM_THREADS")}
+            environ.update({k: os.environ[k] for k in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+                            if k in os.environ})
+            with dask.config.set({"distributed.scheduler.allowed-failures": 0,
+                                  "distributed.nanny.pre-spawn-environ": environ}):
                 self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, host="127.0.0.1",
                                             dashboard_address=None, memory_limit=memory_limit)
             self.client = Client(self.cluster)

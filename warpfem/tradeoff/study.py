@@ -227,7 +227,7 @@ def _element_names():
 
 def builtin_grid(name: str) -> TradeoffGrid:
     """``quick``: one knob at a time around the scene's own settings (float64), plus a "fast"
-    combination; ``full``: the product precision x tol x cg_tol x substeps plus the one-at-a-time
+    combination, the other time integrators (Newmark, BDF2) and linear solvers (pcg, direct); ``full``: the product precision x tol x cg_tol x substeps plus the one-at-a-time
     integrator / element / reduced / iteration-cap variants. Element and reduced variants are listed
     for every name the scene schema knows; unavailable ones are skipped at run time with a note."""
     if name == "quick":
@@ -235,7 +235,10 @@ def builtin_grid(name: str) -> TradeoffGrid:
               _cfg(tol=1e-3), _cfg(tol=1e-7), _cfg(max_iters=2),
               _cfg(cg_tol=1e-2), _cfg(cg_tol=1e-6), _cfg(substeps=2),
               _cfg(name="fast: f32 tol=1e-3 cg=1e-2", precision="float32", tol=1e-3, cg_tol=1e-2),
-              _cfg(integrator="stiffness_warping")]
+              _cfg(integrator="stiffness_warping"),
+              _cfg(integrator="newmark"), _cfg(integrator="bdf2"), _cfg(integrator="newmark", substeps=2),
+              _cfg(integrator="newmark", precision="float32", tol=1e-3, cg_tol=1e-2),
+              _cfg(linear_solver="pcg"), _cfg(linear_solver="direct")]
         cs += [_cfg(element=e) for e in _element_names()]
         cs += [_cfg(subspace={"modes": 20, "cubature_tolerance": 0.01})]
         ref_sub = 4

@@ -105,12 +105,16 @@ class AutoSolver(LinearSolver):
         if self._initial == "size" and self._may_switch and starts_direct(pattern):
             self.active = "direct"
             log.debug("linear solver auto: %d unknowns on the CPU; direct from the first solve", 3 * pattern.num_rows)
+            self._make_direct()  # its symbolic set-up now, with the simulator's, not inside the first timed step
+
+    def _make_direct(self):
+        from warpfem.solvers.linear.direct import DirectSolver
+
+        self.direct = DirectSolver(self.pattern, vec_type=self.vec_type, scalar=self.scalar, backend=self._backend)
 
     def _prepare(self, values, mask):
         if self.active == "direct" and self.direct is None:
-            from warpfem.solvers.linear.direct import DirectSolver
-
-            self.direct = DirectSolver(self.pattern, vec_type=self.vec_type, scalar=self.scalar, backend=self._backend)
+            self._make_direct()
         if self.active == "direct":
             self.direct.prepare(values, mask)
             if self.direct._failure:
