@@ -129,13 +129,12 @@ def run(et, cells, device, precision, repeats=2):
         if best is None or t < best[0]:
             best = (t, st, sim)
     t, st, sim = best
-    vals = sim._pattern.new_values()
-    sim._assemble_stiffness(sim.x, 1.0, vals)
+    vals = sim.assemble_stiffness()
     wp.synchronize_device(device)
     ta = time.perf_counter()
     for _ in range(3):
         vals.zero_()
-        sim._assemble_stiffness(sim.x, 1.0, vals)
+        sim.assemble_stiffness(sim.x, vals)
     wp.synchronize_device(device)
     ta = (time.perf_counter() - ta) / 3
     X = mesh.vertices
@@ -143,7 +142,7 @@ def run(et, cells, device, precision, repeats=2):
     d = -(sim.positions() - X)[tip, 2].mean()
     free = int((~model.fixed).sum())
     return dict(element=et, cells="x".join(map(str, cells)), dofs=free, newton=st.newton_iterations, cg=st.cg_iterations,
-                s_per_newton=t / max(st.newton_iterations, 1), assembly=ta, qp=sim._qp_count, tip=d, err=d / TIMOSHENKO - 1, converged=st.converged)
+                s_per_newton=t / max(st.newton_iterations, 1), assembly=ta, qp=sim.num_points, tip=d, err=d / TIMOSHENKO - 1, converged=st.converged)
 
 
 def assembly_rows(device, precision, repeats):
@@ -159,15 +158,15 @@ def assembly_rows(device, precision, repeats):
         for name in ("linear", "stable_neo_hookean"):
             mat = wf.make_material(name, youngs_modulus=1e4, poisson_ratio=0.3, density=1.0)
             sim = wf.Simulator(wf.Model(mesh, mat), device=device, precision=precision)
-            xa = sim._vec_array(x)
-            vals_new, vals_old = sim._pattern.new_values(), sim._pattern.new_values()
+            xa = sim.new_vector(x)
+            vals_new, vals_old = sim.new_matrix_values(), sim.new_matrix_values()
 
             def new():
-                sim._assemble_stiffness(xa, 1.0, vals_new)
+                sim.assemble_stiffness(xa, vals_new)
 
             def old():
-                wp.launch(legacy_qp_hessian_kernel, dim=sim._qp_count,
-                          inputs=[xa, *sim._qp_args, sim._s(1.0), 1, sim._pattern.block_index, vals_old], device=device)
+                wp.launch(legacy_qp_hessian_kernel, dim=sim.num_points,
+                          inputs=[xa, *sim._qp_args, sim._s(1.0), 1, sim.pattern.block_index, vals_old], device=device)
 
             new(), old()  # load the modules; then both must agree
             a, b = vals_new.numpy(), vals_old.numpy()
@@ -182,8 +181,8 @@ def assembly_rows(device, precision, repeats):
                     wp.synchronize_device(device)
                     times[key].append(time.perf_counter() - t)
             t_old, t_new = float(np.median(times["old"])), float(np.median(times["new"]))
-            r = dict(element=et, cells="x".join(map(str, cells)), material=name, qp=sim._qp_count, ms_old=1e3 * t_old,
-                     ms=1e3 * t_new, mqps=sim._qp_count / t_new / 1e6, speedup=t_old / t_new)
+            r = dict(element=et, cells="x".join(map(str, cells)), material=name, qp=sim.num_points, ms_old=1e3 * t_old,
+                     ms=1e3 * t_new, mqps=sim.num_points / t_new / 1e6, speedup=t_old / t_new)
             rows.append(r)
             print(f"| {et} | {r['cells']} | {name} | {r['qp']} | {r['ms_old']:.2f} | {r['ms']:.2f} | {r['mqps']:.3f} | "
                   f"{r['speedup']:.2f}x |", flush=True)

@@ -73,17 +73,17 @@ def main(argv=None):
     sim.set_positions(x_np)
     m = mesh.num_tets
     dev = sim.device
-    f = sim._vec_array()
-    vals = sim._pattern.new_values()
+    f = sim.new_vector()
+    vals = sim.new_matrix_values()
 
     def warp_forces():
         f.zero_()
-        wp.launch(FK.qp_force_kernel, dim=sim._qp_count, inputs=[sim.x, *sim._qp_args, sim._s(1.0), f], device=dev)
+        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, *sim._qp_args, sim._s(1.0), f], device=dev)
         wp.synchronize_device(dev)
 
     def warp_hessian():
         vals.zero_()
-        sim._assemble_stiffness(sim.x, 1.0, vals)
+        sim.assemble_stiffness(sim.x, vals)
         wp.synchronize_device(dev)
 
     X, tets = mesh.vertices, mesh.tets

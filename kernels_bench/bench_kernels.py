@@ -5,11 +5,11 @@ positions perturbed from rest so nothing is trivially zero):
 
   force        F, P and the atomic scatter of -w P dN/dX (``kernels.fem.qp_force_kernel``)
   hessian      per-tet 12x12 SPD-projected stiffness from the analytic eigensystem, accumulated
-               into the fixed block-sparse pattern (``Simulator._assemble_stiffness``)
+               into the fixed block-sparse pattern (``Simulator.assemble_stiffness``)
   pcg-matvec   one masked block-sparse mat-vec y = P A P x + (I - P) x (``bsr_masked_mv_kernel``)
   pcg-iter     one block-Jacobi PCG iteration (``BlockJacobiPCG.solve`` run for a fixed number of
                iterations: mat-vec, 3 dot products, 2 axpy, block apply, xpby, 3 host read-backs)
-  cubature     reduced force by cubature (``kernels.reduced``: per-point F, P and node forces, then
+  cubature     reduced force by cubature (``kernels.subspace``: per-point F, P and node forces, then
                the (point, column) projection onto the basis), ``--modes`` columns, every tet a
                cubature point (a random basis: throughput does not depend on the values)
   skinning     x_surface = W x with 4 weights per point (``SurfaceSkinner.apply``), ``--points``
@@ -59,7 +59,7 @@ import warp as wp  # noqa: E402
 import warpfem as wf  # noqa: E402
 from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
-from warpfem.kernels import reduced as RK
+from warpfem.kernels import subspace as RK
 from warpfem.reduced import CubatureForces
 from warpfem.skinning import SurfaceSkinner
 from warpfem.skinning.embedding import Embedding
@@ -154,17 +154,17 @@ def perturbed_beam(cells, precision, device):
 
 def bench_force_hessian(mesh, mat, sim, x_np, args, s):
     dev, m, n = sim.device, mesh.num_tets, mesh.num_vertices
-    f = sim._vec_array()
-    vals = sim._pattern.new_values()
-    nnz = sim._pattern.nnz
+    f = sim.new_vector()
+    vals = sim.new_matrix_values()
+    nnz = sim.pattern.nnz
 
     def warp_forces():
         f.zero_()
-        wp.launch(FK.qp_force_kernel, dim=sim._qp_count, inputs=[sim.x, *sim._qp_args, sim._s(1.0), f], device=dev)
+        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, *sim._qp_args, sim._s(1.0), f], device=dev)
 
     def warp_hessian():
         vals.zero_()
-        sim._assemble_stiffness(sim.x, 1.0, vals)
+        sim.assemble_stiffness(sim.x, vals)
 
     X, tets = mesh.vertices, mesh.tets
     Dm = np.stack([X[tets[:, i]] - X[tets[:, 0]] for i in (1, 2, 3)], axis=2)
@@ -196,9 +196,9 @@ def bench_force_hessian(mesh, mat, sim, x_np, args, s):
 
 def bench_pcg(mesh, sim, args, s):
     dev, n = sim.device, mesh.num_vertices
-    pt = sim._pattern
+    pt = sim.pattern
     vals = pt.new_values()
-    sim._assemble_stiffness(sim.x, 1.0, vals)
+    sim.assemble_stiffness(sim.x, vals)
     # a backward-Euler-like SPD system: M + h^2 K
     h2 = (1.0 / 60.0) ** 2
     wp.launch(LK.scale_copy_kernel, dim=pt.nnz, inputs=[vals, sim._s(h2), vals], device=dev)
@@ -210,9 +210,9 @@ def bench_pcg(mesh, sim, args, s):
     rng = np.random.default_rng(1)
     b_np = rng.standard_normal((n, 3)) * mask.numpy()
     b = wp.array(b_np.astype(sim._np), dtype=sim._vec, device=dev)
-    x = sim._vec_array()
-    y = sim._vec_array()
-    pcg = sim._pcg
+    x = sim.new_vector()
+    y = sim.new_vector()
+    pcg = sim.linear_solver
     iters = args.pcg_iters
 
     res = pcg.solve(vals, mask, b, x, tol=0.0, maxiter=iters)
@@ -373,7 +373,7 @@ def run(args):
     dev_name = f"{device.alias} ({platform.processor() or platform.machine()}, {os.cpu_count()} cores)" if device.is_cpu \
         else f"{device.alias} ({device.name})"
     res = dict(device=dev_name, precision=args.precision, cells=list(args.cells), tets=mesh.num_tets,
-               vertices=mesh.num_vertices, bsr_blocks=sim._pattern.nnz, modes=args.modes, points=args.points,
+               vertices=mesh.num_vertices, bsr_blocks=sim.pattern.nnz, modes=args.modes, points=args.points,
                memory_bandwidth_GBps={k: v / 1e9 for k, v in bw.items()}, reference_bandwidth_GBps=peak / 1e9,
                seconds=time.perf_counter() - t0, results=rows)
     return res

@@ -62,7 +62,7 @@ class _Legacy:
     def __init__(self, sim):
         from warpfem.solvers.pcg import BlockJacobiPCG
 
-        self.impl = BlockJacobiPCG(sim._pattern, vec_type=sim._vec, scalar=sim._s)
+        self.impl = BlockJacobiPCG(sim.pattern, vec_type=sim._vec, scalar=sim._s)
         self.device, self.scalar, self.inv_diag = self.impl.device, self.impl.scalar, self.impl.inv_diag
 
     def dot(self, a, b):
@@ -102,7 +102,7 @@ def run_case(label, make, steps):
                              linear=st.linear_iterations, host_syncs=st.host_syncs, converged=bool(st.converged),
                              warmup=k == 0))
     timed = [r for r in rows if not r["warmup"]]
-    solver = sim._pcg
+    solver = sim.linear_solver
     out = dict(case=label, solver=solver.name, vertices=sim.num_vertices, build_seconds=build_s,
                warmup_seconds=sum(r["seconds"] for r in rows if r["warmup"]),
                step_seconds=float(np.mean([r["seconds"] for r in timed])),

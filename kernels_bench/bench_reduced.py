@@ -1,4 +1,4 @@
-"""Reduced (cubature) vs full backward Euler on the cantilever beam and the Stanford bunny (seed 000).
+"""Reduced (cubature) vs full backward Euler on the cantilever beam and the Stanford bunny (An, Kim & James 2008, optimized cubature).
 
 For each object, r in {10, 20, 40} (modal derivatives on; by default the load-response column
 K^-1 f_ext is one of the r columns, as in scenes) and cubature tolerance in {0.1, 0.05, 0.01}, and

@@ -24,7 +24,7 @@ def _jittered_cube(cells=3, seed=0, amount=0.15):
 
 
 def _numpy_snh_forces(X, tets, x, mu, lam):
-    """Independent numpy force: f = -vol P Dm^-T scattered (seed 004), SNH without log term."""
+    """Independent numpy force: f = -vol P Dm^-T scattered (Sifakis & Barbič 2012), SNH without log term."""
     Dm = np.stack([X[tets[:, i]] - X[tets[:, 0]] for i in (1, 2, 3)], axis=2)
     Ds = np.stack([x[tets[:, i]] - x[tets[:, 0]] for i in (1, 2, 3)], axis=2)
     vol = np.linalg.det(Dm) / 6

@@ -1,4 +1,4 @@
-"""Reduced simulation with optimized cubature (seed 000): exactness, training, modes, trajectories."""
+"""Reduced simulation with optimized cubature (An, Kim & James 2008): exactness, training, modes, trajectories."""
 
 import numpy as np
 import pytest

@@ -1,20 +1,16 @@
-"""Stability at the extremes (issue 7), fast subset on small meshes; the full envelope
-(every case x material x precision) is ``kernels_bench/stability.py``, whose case functions these
-tests call. Every test asserts a number that could fail: recovery to the rest shape up to a rigid
-motion, a closed-form volume, energy that never grows, a failure that is reported, or the
+"""Stability at the extremes, fast subset on small meshes; the full envelope
+(every case x material x precision) is ``kernels_bench/stability.py``; these tests call its case
+functions in ``kernels_bench/stability_cases.py``. Every test asserts a number that could fail:
+recovery to the rest shape up to a rigid motion, a closed-form volume, energy that never grows, a failure that is reported, or the
 documented failure of a method.
 """
-
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 import warpfem as wf
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "kernels_bench"))
-import stability as S  # noqa: E402
+from kernels_bench import stability_cases as S
 
 
 def assert_not_silent(r):
@@ -182,7 +178,7 @@ def test_octopus_two_steps_under_gravity(meshes_dir):
 
 
 # =================================================================================================
-# Every integrator and element type (issue 7, session 2). Numbers in docs/stability.md.
+# Every integrator and element type. Numbers in docs/stability.md.
 # =================================================================================================
 
 # -- stiffness warping --------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""Stiffness warping (corotational linear FEM, seed 001) against linear FEM, Newton corotated and invariants."""
+"""Stiffness warping (corotational linear FEM, Müller et al. 2002) against linear FEM, Newton corotated and invariants."""
 
 import dataclasses
 import warnings

@@ -26,7 +26,7 @@ from warpfem.elements import (ElementMesh, box_hex_mesh, embed_points_in_element
 from warpfem.model import Model
 from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
 from warpfem.simulator import Simulator
-from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats
+from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats
 from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
 from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
 

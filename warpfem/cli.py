@@ -1,8 +1,13 @@
 """The ``warpfem`` command line: ``warpfem run SCENE``, ``warpfem describe SCENE``, ``--version``.
 
-Subcommands are added by functions in ``SUBCOMMANDS``: each is ``register(subparsers)`` and must
-``set_defaults(func=handler)`` on its parser, where ``handler(args) -> int`` returns the exit code.
-Other modules add theirs with :func:`add_subcommand`.
+The subcommands are listed in one table, :data:`COMMANDS` (name -> ``"module:function"``). Each
+function is ``register(subparsers)``: it adds its parser and must ``set_defaults(func=handler)``,
+where ``handler(args) -> int`` returns the exit code. A module is imported only when the parser is
+built, so a subcommand whose optional dependency is missing does not break the others. A new
+subcommand is one module with a ``register`` function plus one line in :data:`COMMANDS`.
+
+Subcommand modules use the public helpers here: :func:`error`, :func:`check_device`,
+:func:`init_warp`, :func:`load` and the exit codes.
 
 Exit codes: 0 success, 1 a step diverged / failed to converge (with ``require_convergence``) or
 another runtime error, 2 invalid command line or scene, 130 interrupted.
@@ -14,7 +19,8 @@ import argparse
 import logging
 import sys
 
-__all__ = ["main", "build_parser", "add_subcommand", "SUBCOMMANDS"]
+__all__ = ["main", "build_parser", "COMMANDS", "add_subcommand", "error", "check_device", "init_warp", "load",
+           "EXIT_OK", "EXIT_FAILED", "EXIT_INVALID", "EXIT_INTERRUPTED"]
 
 EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED = 0, 1, 2, 130
 
@@ -25,7 +31,7 @@ def _version():
     return __version__
 
 
-def _err(msg):
+def error(msg):
     print(f"warpfem: error: {msg}", file=sys.stderr)
 
 
@@ -53,17 +59,17 @@ def _configure_logging(verbose: bool) -> None:
     log.setLevel(logging.DEBUG if verbose else logging.INFO)
 
 
-def _check_device(args, err=None):
+def check_device(args, err=None):
     """Validate ``args.device`` (before the scene is read) and replace it by the device's alias
     (``auto``: CUDA when present, else cpu). Returns None, or EXIT_INVALID after the message."""
     from warpfem.device import DeviceError, resolve_device
 
     if str(args.device).strip().lower() != "cpu":  # listing the devices initialises Warp
-        _init_warp(args.device, getattr(args, "verbose", False))
+        init_warp(args.device, getattr(args, "verbose", False))
     try:
         args.device = resolve_device(args.device)
     except DeviceError as e:
-        (err or _err)(str(e))
+        (err or error)(str(e))
         return EXIT_INVALID
     return None
 
@@ -83,7 +89,7 @@ def _configure_warp(verbose: bool) -> None:
 _NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
 
 
-def _init_warp(device: str, verbose: bool) -> None:
+def init_warp(device: str, verbose: bool) -> None:
     """Initialise Warp now. Without ``--verbose`` on a CPU device, the native library's note that no
     CUDA driver was found (printed by C code straight to file descriptor 2, not through Warp's log
     level) is dropped; anything else it prints is passed on to stderr."""
@@ -115,7 +121,7 @@ def _init_warp(device: str, verbose: bool) -> None:
         print("\n".join(rest), file=sys.stderr)
 
 
-def _load(path):
+def load(path):
     from warpfem.scenes import load_scene
 
     return load_scene(path)
@@ -126,7 +132,7 @@ def _cmd_describe(args) -> int:
     from warpfem.scenes import SceneError
 
     try:
-        scene = _load(args.scene)
+        scene = load(args.scene)
         if getattr(args, "json", False):
             import json
 
@@ -134,7 +140,7 @@ def _cmd_describe(args) -> int:
         else:
             print(scene.describe(precision=args.precision))
     except SceneError as e:
-        _err(str(e))
+        error(str(e))
         return EXIT_INVALID
     return EXIT_OK
 
@@ -152,40 +158,40 @@ def _cmd_run(args) -> int:
     from warpfem.scenes import SceneError
 
     if args.frames is not None and args.frames < 1:
-        _err(f"--frames must be >= 1, got {args.frames}")
+        error(f"--frames must be >= 1, got {args.frames}")
         return EXIT_INVALID
     if args.out is not None and not args.out.lower().endswith((".usda", ".usd", ".usdc")):
-        _err(f"--out must end in .usda, .usd or .usdc, got {args.out!r}")
+        error(f"--out must end in .usda, .usd or .usdc, got {args.out!r}")
         return EXIT_INVALID
-    if _check_device(args) is not None:
+    if check_device(args) is not None:
         return EXIT_INVALID
     if getattr(args, "preview", None) is not None:
         if not args.preview.lower().endswith(".png"):
-            _err(f"--preview must end in .png, got {args.preview!r}")
+            error(f"--preview must end in .png, got {args.preview!r}")
             return EXIT_INVALID
         from warpfem.io.preview import require_matplotlib
 
         try:
             require_matplotlib()
         except ImportError as e:
-            _err(f"--preview: {e}")
+            error(f"--preview: {e}")
             return EXIT_INVALID
     try:
-        scene = _load(args.scene)  # validation only: fails before anything is built or written
+        scene = load(args.scene)  # validation only: fails before anything is built or written
     except SceneError as e:
-        _err(str(e))
+        error(str(e))
         return EXIT_INVALID
 
-    from warpfem.solvers.newton import SolveFailed
+    from warpfem.solvers.nonlinear import SolveFailed
 
     try:
-        _init_warp(args.device, getattr(args, "verbose", False))
+        init_warp(args.device, getattr(args, "verbose", False))
         run = scene.build(device=args.device, precision=args.precision)
     except SceneError as e:
-        _err(str(e))
+        error(str(e))
         return EXIT_INVALID
     except (ValueError, RuntimeError) as e:  # e.g. an unknown device
-        _err(f"{args.scene}: cannot build the scene: {e}")
+        error(f"{args.scene}: cannot build the scene: {e}")
         return EXIT_FAILED
     frames = args.frames if args.frames is not None else run.frames
     usd = args.out if args.out is not None else scene.spec.output["usd"]
@@ -221,10 +227,10 @@ def _cmd_run(args) -> int:
         with bar:
             run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
     except SolveFailed as e:
-        _err(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
+        error(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
         return EXIT_FAILED
     except KeyboardInterrupt:
-        _err(f"interrupted at frame {run.frame}" + (f"; {usd} holds the frames done (marked incomplete)" if usd else ""))
+        error(f"interrupted at frame {run.frame}" + (f"; {usd} holds the frames done (marked incomplete)" if usd else ""))
         return EXIT_INTERRUPTED
     if recorder is not None:
         from warpfem.io.preview import render_preview
@@ -252,43 +258,58 @@ def _register_run(subparsers):
     p.set_defaults(func=_cmd_run)
 
 
-SUBCOMMANDS = [_register_run, _register_describe]
+# The command table: subcommand name -> "module:register function", in --help order.
+COMMANDS = {
+    "run": "warpfem.cli:_register_run",
+    "describe": "warpfem.cli:_register_describe",
+    "train": "warpfem.reduced.cli:register",
+    "tradeoff": "warpfem.tradeoff.cli:register",
+    "tune": "warpfem.tradeoff.cli:register_tune",
+}
+
+# Names kept for modules written against the earlier API (subcommands registered on import).
+_check_device, _init_warp, _load, _err = check_device, init_warp, load, error
+SUBCOMMANDS: list = []  # extra ``register`` functions added at run time with add_subcommand()
 
 
 def add_subcommand(register) -> None:
-    """Add ``register(subparsers)`` to the command line (call at import time of your module)."""
+    """Add a ``register(subparsers)`` that is not in :data:`COMMANDS` (for scripts and tests; a
+    subcommand of the package belongs in the table). A function from a module of the table is ignored
+    (it is registered through the table)."""
+    module = getattr(register, "__module__", None)
+    if any(spec.split(":")[0] == module for spec in COMMANDS.values()):
+        return
     if register not in SUBCOMMANDS:
         SUBCOMMANDS.append(register)
 
 
-# Modules that add subcommands with add_subcommand() when imported (``warpfem train``, ``warpfem tradeoff``).
-PLUGINS = ("warpfem.reduced.cli", "warpfem.tradeoff.cli")
-
-
-def _load_plugins():
+def _resolve(spec: str):
+    """``"module:function"`` -> the function; None when the module's optional dependency is missing."""
     import importlib
 
-    for name in PLUGINS:
-        try:
-            importlib.import_module(name)
-        except ModuleNotFoundError as e:
-            if not (e.name and name.startswith(e.name)):  # a real missing dependency inside it: report
-                raise
+    module, _, func = spec.partition(":")
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError as e:
+        if e.name and module.startswith(e.name):  # the subcommand module itself is absent
+            return None
+        raise  # a real missing dependency inside it: report
+    return getattr(mod, func)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    _load_plugins()
     parser = argparse.ArgumentParser(prog="warpfem", description="Deformable-body FEM with NVIDIA Warp (CPU and CUDA).")
     parser.add_argument("--version", action="version", version=f"warpfem {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for register in SUBCOMMANDS:
+    registers = [_resolve(spec) for spec in COMMANDS.values()]
+    for register in [r for r in registers if r is not None] + SUBCOMMANDS:
         register(sub)
     return parser
 
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    # before anything (plugins included) can initialise Warp: banner / module-load lines only with --verbose
+    # before anything (subcommand modules included) can initialise Warp: banner / module-load lines only with --verbose
     _configure_warp("--verbose" in argv)
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -300,7 +321,7 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":  # pragma: no cover
-    # `python -m warpfem.cli`: run the imported module's main so plugins register on the same SUBCOMMANDS
+    # `python -m warpfem.cli`: the imported module's main, so the table resolves "warpfem.cli:..." to one module
     from warpfem.cli import main as _main
 
     sys.exit(_main())

@@ -27,8 +27,8 @@ class Model:
         material: a material from ``warpfem.materials`` (carries the density, kg/m^3).
         gravity: acceleration (m/s^2), applied as lumped-mass body force (the total equals
             rho g V exactly for either mass matrix).
-        mass_matrix: "lumped" (diagonal, row sums) or "consistent" (seed 004,
-            rho V / 20 (1 + delta_ij) per tet).
+        mass_matrix: "lumped" (diagonal, row sums) or "consistent" (the linear-tet consistent mass,
+            rho V / 20 (1 + delta_ij) per tet; Zienkiewicz & Taylor, "The Finite Element Method").
         volumetric_integration: "full" or "reduced" (Hex8 meshes only, any material with
             ``volumetric_split()``, 0 <= nu < 0.5): selective reduced integration, the energy split
             exactly into a lambda-scaled volumetric part on 1 point per element and the rest on
@@ -67,7 +67,7 @@ class Model:
                                  f"{getattr(material, 'poisson_ratio', '?')!r} for {type(material).__name__}")
             self.volumetric_parameters = ((float(mu_f), float(lam_f)), (float(mu_v), float(lam_v)))
         self.volumetric_integration = volumetric_integration
-        self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, getattr(mesh, "element_type", "tet4"),
+        self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, mesh.element_type,
                                                 volumetric_integration=volumetric_integration)
         self.lumped_mass, self.mass = self._mass_matrices()
         # gravity is M (1 x g) with the chosen mass matrix, so free fall is exact with either; this is
@@ -78,17 +78,9 @@ class Model:
 
     # -- rest state -----------------------------------------------------------------------------
     def _mass_matrices(self):
-        qd = self.quadrature
-        rho = self.material.density
-        if qd.element_type == "tet4":
-            from warpfem.mesh import consistent_mass, lumped_mass
+        from warpfem.elements import mass_matrices  # every element type (Tet4: closed form)
 
-            lumped = lumped_mass(self.mesh, rho)
-            M = consistent_mass(self.mesh, rho) if self.mass_matrix_kind == "consistent" else scipy.sparse.diags(lumped)
-            return lumped, scipy.sparse.csr_matrix(M)
-        from warpfem.elements import mass_matrices  # higher-order elements
-
-        return mass_matrices(self, rho)
+        return mass_matrices(self, self.material.density)
 
     @property
     def total_mass(self) -> float:

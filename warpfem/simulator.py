@@ -1,8 +1,8 @@
 """Implicit time stepping and quasi-static solves of a :class:`~warpfem.model.Model` on a Warp device.
 
 Every time integrator (backward Euler, BDF2, Newmark: :mod:`warpfem.integrators`) is one
-minimisation per step of the incremental potential over the end-of-step velocity v (seed 004,
-slips corrected), e.g. for backward Euler
+minimisation per step of the incremental potential over the end-of-step velocity v (Gast, Schroeder, Stomakhin, Jiang & Teran 2015,
+"Optimization integrator for large time steps"), e.g. for backward Euler
 
     E(v) = 1/2 (v - v_n)^T M (v - v_n) + h/2 v^T C v + V(x_n + h v) - h v^T f_ext,
     x_{n+1} = x_n + h v_{n+1},
@@ -11,7 +11,7 @@ with Rayleigh damping C = alpha M + beta K(x_n) (K the SPD-projected stiffness a
 the step, so the damping term is a fixed quadratic and E stays a potential). Its gradient is
 M (v - v_n) + h C v - h f(x_n + h v) - h f_ext = 0, the backward Euler equations. BDF2 and
 Newmark change the prediction (x_b, v_hat) and the scale s (h -> 2h/3, h/2). The potential is a
-sum of terms (:mod:`warpfem.solvers.forms`) minimised by :func:`~warpfem.solvers.newton.newton_solve`.
+sum of terms (:mod:`warpfem.solvers.forms`) minimised by :func:`~warpfem.solvers.nonlinear.newton_solve`.
 The quasi-static solve minimises V(x) - x^T f_ext over the free components of x.
 """
 
@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 import warp as wp
@@ -29,11 +30,24 @@ from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
-from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
+from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.linear import make_linear_solver
 from warpfem.solvers.linear.auto import simulator_options
 from warpfem.solvers.state import SimulatorState, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern
+
+
+class QuadratureSet(NamedTuple):
+    """One set of quadrature points the element kernels run over (``Simulator._qp_sets``).
+
+    count: number of points (the launch dimension); args: the kernels' arguments after the
+    positions x, in order: rest positions X, connectivity, nodes per element k, point -> element,
+    point weight (Gauss weight x det J), dN/dX per point and node, material kind, kernel_mu,
+    kernel_lam; energy: per-point energy buffer (J). Unpacks as ``count, args, energy``."""
+
+    count: int
+    args: list
+    energy: object
 
 
 class Simulator(SimulatorState):
@@ -88,7 +102,7 @@ class Simulator(SimulatorState):
         self._k = qd.nodes_per_element
         self._x_rest = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev)
         self._qp_args = [self._x_rest, self._elements, self._k, self._qp_element, self._qp_weight, self._qp_dNdX,
-                         int(mat.kind), self._s(mat.mu), self._s(mat.lam)]
+                         int(mat.kind), self._s(mat.kernel_mu), self._s(mat.kernel_lam)]
         self._pattern = BlockPattern(qd.elements, qd.nodes_per_element, n, device=dev, block_type=self._mat)
         self._mass_values = self._pattern.values_from_scalar_matrix(model.mass)
         self._hess_values = self._pattern.new_values()
@@ -102,18 +116,18 @@ class Simulator(SimulatorState):
         # rule, the volumetric part on the 1-point rule; energy, force and Hessian are sums over the
         # sets (the Hessian of each part SPD-projected on its own). stresses() evaluates the full
         # material at the main (full-rule) points.
-        self._qp_sets = [(self._qp_count, self._qp_args, self._energy_q)]
+        self._qp_sets = [QuadratureSet(self._qp_count, self._qp_args, self._energy_q)]
         if getattr(qd, "volumetric", None) is not None:
             vq = qd.volumetric
-            split = getattr(model, "volumetric_parameters", None) or ((mat.mu, 0.0), (0.0, mat.lam))
+            split = getattr(model, "volumetric_parameters", None) or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
             (mu_f, lam_f), (mu_v, lam_v) = split
             vargs = [self._x_rest, self._elements, self._k, wp.array(vq.qp_element, dtype=wp.int32, device=dev),
                      wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),
                      wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev),
                      int(mat.kind), self._s(mu_v), self._s(lam_v)]
             main = self._qp_args[:7] + [self._s(mu_f), self._s(lam_f)]
-            self._qp_sets = [(self._qp_count, main, self._energy_q),
-                             (vq.num_points, vargs, wp.zeros(vq.num_points, dtype=self._s, device=dev))]
+            self._qp_sets = [QuadratureSet(self._qp_count, main, self._energy_q),
+                             QuadratureSet(vq.num_points, vargs, wp.zeros(vq.num_points, dtype=self._s, device=dev))]
 
         def vec_array(a=None):
             return wp.zeros(n, dtype=self._vec, device=dev) if a is None else wp.array(np.asarray(a, dtype=self._np), dtype=self._vec, device=dev)
@@ -178,6 +192,38 @@ class Simulator(SimulatorState):
         for count, args, _ in self._qp_sets:
             launch(FK.qp_hessian_kernel, count, [x, *args, self._s(scale), int(self.options.project_hessian),
                                                  self._pattern.block_index, values], self.device)
+
+    # -- public hooks for benchmarks and tools (device arrays, no copies) ----------------------------
+    @property
+    def pattern(self):
+        """The block-sparse pattern of the Hessian (:class:`warpfem.solvers.sparse.BlockPattern`)."""
+        return self._pattern
+
+    @property
+    def linear_solver(self):
+        """The linear solver of the Newton systems (``warpfem.solvers.linear``)."""
+        return self._pcg
+
+    @property
+    def num_points(self) -> int:
+        """Quadrature points of the main (full-rule) set."""
+        return self._qp_count
+
+    def new_vector(self, a=None):
+        """A device array of vec3 in the simulator's precision: zeros, or a copy of ``a`` (n, 3)."""
+        return self._vec_array(a)
+
+    def new_matrix_values(self):
+        """Zeroed block values (3x3 per block) in the Hessian's pattern."""
+        return self._pattern.new_values()
+
+    def assemble_stiffness(self, x=None, values=None, *, scale=1.0):
+        """Add ``scale`` x the elastic Hessian at ``x`` (device vec3 array, default the current
+        positions; SPD-projected if the options say so) into ``values`` (default new zeroed values
+        in :attr:`pattern`), in place; returns ``values``."""
+        values = self.new_matrix_values() if values is None else values
+        self._assemble_stiffness(self.x if x is None else x, scale, values)
+        return values
 
     def elastic_forces(self, x=None) -> np.ndarray:
         """Internal elastic forces -dV/dx (N) at x (default: current positions), (n, 3)."""

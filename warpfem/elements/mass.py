@@ -6,11 +6,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from .library import check_element_type, gauss_rule, shape_functions
+from warpfem.mesh.element_types import ELEMENTS, get_element
 
 __all__ = ["element_mass_matrices", "consistent_mass_matrix", "lumped_mass_vector", "mass_matrices"]
 
-#: lumping scheme used per element type
-LUMPING = {"tet4": "row-sum", "hex8": "row-sum", "tet10": "hrz", "hex27": "hrz"}
+#: lumping scheme used per element type (each element type object says its own)
+LUMPING = {n: e.lumping for n, e in ELEMENTS.items()}
 
 
 def _density(density, m):
@@ -51,7 +52,7 @@ def _assemble(elements, Me, n):
 
 
 def _lump(Me, element_type):
-    if LUMPING[element_type] == "row-sum":
+    if get_element(element_type).lumping == "row-sum":
         return Me.sum(axis=2)
     # HRZ (Hinton, Rock & Zienkiewicz 1976): diagonal scaled to the element mass, always > 0
     d = np.einsum("maa->ma", Me)
@@ -81,10 +82,18 @@ def lumped_mass_vector(mesh, density) -> np.ndarray:
 def mass_matrices(model, density):
     """(lumped (n,), mass matrix (n, n) CSR) for a :class:`warpfem.Model`: the second item is the
     consistent matrix when ``model.mass_matrix_kind == "consistent"``, else diag(lumped).
-    Lumping: row-sum for Tet4/Hex8, HRZ for Tet10/Hex27 (see :func:`lumped_mass_vector`)."""
+    Lumping: the element type's (row-sum for Tet4/Hex8, HRZ for Tet10/Hex27, see
+    :func:`lumped_mass_vector`). Tet4 uses the closed forms of :mod:`warpfem.mesh.mass`."""
     mesh = model.mesh
+    etype = mesh.element_type
+    if etype == "tet4":  # closed form: rho V / 20 (1 + delta_ij) per tet, lumped = rho V / 4 per corner
+        from warpfem.mesh import consistent_mass, lumped_mass
+
+        lumped = lumped_mass(mesh, density)
+        consistent = getattr(model, "mass_matrix_kind", "lumped") == "consistent"
+        M = consistent_mass(mesh, density) if consistent else sp.diags(lumped)
+        return lumped, sp.csr_matrix(M)
     el = np.asarray(mesh.elements, dtype=np.int64)
-    etype = getattr(mesh, "element_type", "tet4")
     Me = element_mass_matrices(model.rest_positions, el, etype, density)
     n = model.num_vertices
     lumped = np.bincount(el.ravel(), weights=_lump(Me, etype).ravel(), minlength=n)

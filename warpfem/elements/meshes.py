@@ -11,17 +11,15 @@ import os
 import numpy as np
 
 from warpfem.mesh import MeshError, TetMesh
-from warpfem.mesh.box import HEX_TO_TETS
 
 from .library import (ELEMENT_TYPES, MESHIO_CELL_TYPE, NODES_PER_ELEMENT, REFERENCE_NODES, TET10_EDGES,
                       check_element_type, shape_functions, shape_gradients)
+from warpfem.mesh.element_types import get_element
 
 __all__ = ["ElementMesh", "box_hex_mesh", "tet10_from_tet4", "load_element_mesh", "save_element_mesh",
            "embed_points_in_elements"]
 
-_TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)  # outward
-# hex faces: (axis, sign) -> in-plane axes (u, v) with e_u x e_v = sign e_axis (outward normal)
-_HEX_FACES = [(0, -1, 2, 1), (0, 1, 1, 2), (1, -1, 0, 2), (1, 1, 2, 0), (2, -1, 1, 0), (2, 1, 0, 1)]
+from warpfem.mesh.element_types.base import HEX_FACES as _HEX_FACES, TET_FACES as _TET_FACES  # noqa: E402
 
 
 def _hex_face_tables(element_type):
@@ -108,6 +106,11 @@ class ElementMesh:
         return f"{self.name}: {text}" if self.name else text
 
     @property
+    def element(self):
+        """The element type object (:class:`warpfem.mesh.element_types.ElementType`)."""
+        return get_element(self.element_type)
+
+    @property
     def vertices(self):
         """(n, 3) float64 node positions, m (read-only)."""
         return self._vertices
@@ -157,10 +160,8 @@ class ElementMesh:
 
     def corner_tets(self):
         """(m * s, 4) straight-sided tets over the element corners (s = 1 for tets, 6 for hexes,
-        split around the diagonal 0-6); tet i belongs to element i // s."""
-        if self.element_type in ("tet4", "tet10"):
-            return np.ascontiguousarray(self._elements[:, :4])
-        return self._elements[:, :8][:, HEX_TO_TETS].reshape(-1, 4)
+        split around the diagonal 0-6: ``element.corner_tets``); tet i belongs to element i // s."""
+        return np.ascontiguousarray(self._elements[:, self.element.corner_tets].reshape(-1, 4))
 
     def boundary_faces(self):
         """Boundary surface as outward triangles (t, 3) over the mesh nodes. Faces used by one
@@ -287,7 +288,7 @@ def save_element_mesh(mesh, path, **kw):
     import meshio
 
     path = os.fspath(path)
-    etype = getattr(mesh, "element_type", "tet4")
+    etype = mesh.element_type
     cells = [(MESHIO_CELL_TYPE[etype], np.asarray(mesh.elements, dtype=np.int64))]
     if path.endswith(".msh"):  # Gmsh (meshio would otherwise pick ANSYS, which has no quadratic cells)
         kw.setdefault("file_format", "gmsh")
@@ -301,14 +302,14 @@ def embed_points_in_elements(points, mesh, *, max_newton_iters: int = 30, corner
 
     Returns ``(ids (p, k) int64, weights (p, k) float64, element (p,) int64)``: the element's
     nodes and its shape functions at the point's reference coordinates (rows sum to 1). The
-    element is found on the corner tets (:func:`warpfem.skinning.embed_points`, nearest for
+    element is found on the corner tets (:func:`warpfem.mesh.locate.embed_points`, nearest for
     outside points); reference coordinates: barycentric for tets, refined for every type by Newton
     on the isoparametric map X(xi) = sum_a N_a(xi) X_a (the inverse map of hexes and curved Tet10).
     A point outside the mesh keeps extrapolated coordinates (weights may be negative).
     ``corner_embedding``: the result of ``embed_points(points, mesh.vertices, mesh.corner_tets())``
     when the caller already has it (the search is then not repeated).
     """
-    from warpfem.skinning import embed_points
+    from warpfem.mesh.locate import embed_points
 
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
@@ -316,18 +317,16 @@ def embed_points_in_elements(points, mesh, *, max_newton_iters: int = 30, corner
     if not np.all(np.isfinite(points)):
         i = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
         raise ValueError(f"point {i} has a non-finite coordinate: {points[i].tolist()}")
-    etype = getattr(mesh, "element_type", "tet4")
+    etype = mesh.element_type
+    element = get_element(etype)
     elements = np.asarray(mesh.elements, dtype=np.int64)
     X = np.asarray(mesh.vertices, dtype=np.float64)
-    corner = mesh.corner_tets() if hasattr(mesh, "corner_tets") else elements[:, :4]
+    corner = elements[:, element.corner_tets].reshape(-1, 4)
     emb = corner_embedding if corner_embedding is not None else embed_points(points, X, corner)
     s = len(corner) // len(elements)
     elem = emb.tet_index // s
     # initial reference coordinates: barycentric interpolation of the corner tet's reference nodes
-    if s == 1:
-        ref_tet = np.broadcast_to(REFERENCE_NODES["tet4"], (len(points), 4, 3))
-    else:
-        ref_tet = REFERENCE_NODES["hex8"][HEX_TO_TETS[emb.tet_index % s]]
+    ref_tet = element.reference_nodes[element.corner_tets[emb.tet_index % s]]  # (p, 4, 3)
     xi = np.einsum("pa,pai->pi", emb.weights, ref_tet)
     if etype != "tet4":
         Xe = X[elements[elem]]  # (p, k, 3)

@@ -56,7 +56,8 @@ def tet4_shape_gradients(vertices: np.ndarray, tets: np.ndarray):
     """Rest volumes (m,) and shape-function gradients (m, 4, 3) of linear tets.
 
     Dm = [X1 - X0, X2 - X0, X3 - X0]; F = Ds Dm^-1 = sum_a x_a g_a^T with g_a = Dm^-T e_a
-    (a = 1..3) and g_0 = -(g_1 + g_2 + g_3) (seed 004, barycentric shape functions).
+    (a = 1..3) and g_0 = -(g_1 + g_2 + g_3) (barycentric shape functions; Sifakis & Barbič,
+    "FEM simulation of 3D deformable solids", SIGGRAPH 2012 course notes).
     """
     X = vertices[tets]  # (m, 4, 3)
     Dm = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)  # columns

@@ -4,7 +4,7 @@ One kernel per quantity serves every element type and every material: the elemen
 its flat connectivity with stride ``k`` and per-point shape-function gradients, the material by an
 int ``kind`` (see ``warpfem.materials``). Kernels are generic over float32/float64.
 
-F = I + sum_a (x_a - X_a) (dN_a/dX)^T         (for Tet4: F = Ds Dm^-1, seed 004)
+F = I + sum_a (x_a - X_a) (dN_a/dX)^T         (for Tet4: F = Ds Dm^-1, Sifakis & Barbič 2012 course notes)
 f_a -= w P(F) dN_a/dX                          (per-element force -vol P Dm^-T, scattered with atomics)
 K_ab += w sum_m lambda_m (Q_m dN_a/dX)(Q_m dN_b/dX)^T   (Hessian from the material eigen-system,
                                                         per-point work hoisted out of the block loop)
@@ -160,7 +160,7 @@ def qp_hessian_kernel(
         H = hessian_point_matrix(U0, V0, A0, tw, fl, project)
         for a in range(k):
             T0, T1, T2 = hessian_matrix_rows(H, qp_dNdX[q * k + a])
-            for b in range(a, k):  # symmetric: compute a <= b, add the transpose (seed 001)
+            for b in range(a, k):  # symmetric: compute a <= b, add the transpose (as OpenTissue's assembly)
                 gb = qp_dNdX[q * k + b]
                 blk = c * wp.matrix_from_rows(T0 * gb, T1 * gb, T2 * gb)
                 wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)

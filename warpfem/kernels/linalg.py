@@ -2,7 +2,7 @@
 
 Fixed degrees of freedom are a per-vertex mask (vec3, 1 = free, 0 = fixed). Matrices are assembled
 as if nothing were fixed; the masked product skips fixed rows and columns and acts as the identity
-on fixed components (OpenTissue's "skip the fixed columns", seed 001), so vertices can be fixed and
+on fixed components (OpenTissue's "skip the fixed columns"), so vertices can be fixed and
 released between solves without touching the sparsity pattern.
 """
 

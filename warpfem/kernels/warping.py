@@ -1,6 +1,6 @@
 """Stiffness-warping (corotational linear FEM) kernels for Tet4, generic over float32/float64.
 
-Seed 001 (OpenTissue ``fem_stiffness_assembly``): each tet keeps its rest 12x12 linear stiffness
+As in OpenTissue's ``fem_stiffness_assembly`` (Müller et al. 2002, "Stable real-time deformations"): each tet keeps its rest 12x12 linear stiffness
 as 4x4 blocks K_e,ij (3x3). Every step the element rotation R_e is estimated from the deformation
 gradient F = Ds Dm^-1 and
 
@@ -92,7 +92,7 @@ def warped_assembly_kernel(
     f0: wp.array(dtype=Any),
     f_el: wp.array(dtype=Any),
 ):
-    """Seed 001 assembly of one tet, scattered with atomics into a fixed block pattern.
+    """Warped-stiffness assembly of one tet, scattered with atomics into a fixed block pattern.
 
     values[block(e, i, j)] += R K_ij R^T for i <= j and its transpose at block(e, j, i) for j > i
     (when ``assemble_matrix``); f0[i] -= R sum_j K_ij X_j; f_el[i] -= force_scale R sum_j K_ij u_j

@@ -5,10 +5,13 @@ Lame parameters from Young's modulus E and Poisson ratio nu (small-strain moduli
     mu     = E / (2 (1 + nu))
     lambda = E nu / ((1 + nu) (1 - 2 nu))
 
-Each material stores the values its Warp functions expect in ``mu`` and ``lam`` (for the
-stable neo-Hookean materials these are reparametrised, see ``stable_neo_hookean.py`` and
-``stable_neo_hookean_log.py``); the plain
-Lame values are kept in ``mu_lame`` and ``lam_lame``.
+Each material stores the values its Warp functions expect in ``kernel_mu`` and ``kernel_lam``
+(for the stable neo-Hookean materials these are reparametrised, not Lame's: see
+``stable_neo_hookean.py`` and ``stable_neo_hookean_log.py``); the plain Lame values are kept in
+``mu_lame`` and ``lam_lame``. ``mu`` / ``lam`` are read-only aliases of the kernel values.
+
+Material kinds (the runtime ints of the kernels) are defined where each material registers itself
+(:mod:`.registry`).
 """
 
 from __future__ import annotations
@@ -18,23 +21,7 @@ import numbers
 
 import numpy as np
 
-__all__ = [
-    "Material",
-    "lame_parameters",
-    "validate_parameters",
-    "LINEAR",
-    "STVK",
-    "COROTATED",
-    "STABLE_NEO_HOOKEAN",
-    "STABLE_NEO_HOOKEAN_LOG",
-]
-
-# Material kinds: runtime ints switched on by the Warp dispatch functions (docs/design.md).
-LINEAR = 0
-STVK = 1
-COROTATED = 2
-STABLE_NEO_HOOKEAN = 3
-STABLE_NEO_HOOKEAN_LOG = 4
+__all__ = ["Material", "lame_parameters", "validate_parameters"]
 
 
 def _check_real(name: str, value) -> float:
@@ -72,9 +59,10 @@ class Material:
     """Isotropic hyperelastic material (abstract base).
 
     Keyword-only constructor ``(youngs_modulus=, poisson_ratio=, density=)``. Attributes:
-    ``kind`` (int passed to the Warp dispatch functions), ``name`` (scene name), ``mu``, ``lam``
-    (the values passed to kernels), ``mu_lame``, ``lam_lame`` (plain Lame values), ``density``,
-    ``youngs_modulus``, ``poisson_ratio``.
+    ``kind`` (int passed to the Warp dispatch functions) and ``name`` (scene name), both set by
+    :func:`~warpfem.materials.registry.register_material`; ``kernel_mu``, ``kernel_lam`` (the
+    values passed to kernels; ``mu`` / ``lam`` are aliases), ``mu_lame``, ``lam_lame`` (plain Lame
+    values), ``density``, ``youngs_modulus``, ``poisson_ratio``.
     """
 
     kind: int = -1
@@ -86,7 +74,17 @@ class Material:
         self.poisson_ratio = nu
         self.density = rho
         self.mu_lame, self.lam_lame = lame_parameters(E, nu)
-        self.mu, self.lam = self.kernel_parameters(self.mu_lame, self.lam_lame)
+        self.kernel_mu, self.kernel_lam = self.kernel_parameters(self.mu_lame, self.lam_lame)
+
+    @property
+    def mu(self) -> float:
+        """Alias of ``kernel_mu`` (the kernel's parameter; not Lame's mu for stable neo-Hookean)."""
+        return self.kernel_mu
+
+    @property
+    def lam(self) -> float:
+        """Alias of ``kernel_lam`` (the kernel's parameter; not Lame's lambda for stable neo-Hookean)."""
+        return self.kernel_lam
 
     @staticmethod
     def kernel_parameters(mu_lame: float, lam_lame: float) -> tuple[float, float]:
@@ -105,7 +103,7 @@ class Material:
         energy is mu psi_mu(F) + lam psi_lam(F): linear (lam/2 tr(eps)^2), StVK (lam/2 tr(E)^2),
         corotated (lam/2 (J - 1)^2).
         """
-        return (self.mu, 0.0), (0.0, self.lam)
+        return (self.kernel_mu, 0.0), (0.0, self.kernel_lam)
 
     def __repr__(self) -> str:
         return (
@@ -117,7 +115,7 @@ class Material:
     def _eval(self, F, **kw):
         from .evaluate import evaluate
 
-        return evaluate(self.kind, F, self.mu, self.lam, **kw)
+        return evaluate(self.kind, F, self.kernel_mu, self.kernel_lam, **kw)
 
     def psi(self, F) -> np.ndarray:
         """Energy density (J/m^3) for F of shape (N, 3, 3) (or (3, 3)); returns (N,)."""

@@ -28,7 +28,8 @@ from typing import Any
 
 import warp as wp
 
-from .base import COROTATED, Material
+from .base import Material
+from .registry import register_material
 from .eigensystem import cofactor, pair_axes, signed_svd
 
 __all__ = ["Corotated", "corotated_psi", "corotated_pk1", "corotated_eigen", "COROTATED_TWIST_EPS"]
@@ -79,8 +80,7 @@ def corotated_eigen(s: Any, mu: Any, lam: Any):
     return A, twist, flip
 
 
+@register_material("corotated", kind=2, psi=corotated_psi, pk1=corotated_pk1, eigen=corotated_eigen)
 class Corotated(Material):
     """Fixed corotated (Stomakhin et al. 2012): psi = mu ||F - R||^2 + lambda/2 (J - 1)^2."""
 
-    kind = COROTATED
-    name = "corotated"

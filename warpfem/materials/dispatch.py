@@ -7,8 +7,14 @@
 
 The eigensystem is that of Smith, de Goes, Kim 2019 (see ``eigensystem.py``): feed it to
 ``hessian_block(U, V, Q, d, twist, flip, ga, gb, project)``. For linear elasticity U = V = I.
-kind: LINEAR = 0, STVK = 1, COROTATED = 2, STABLE_NEO_HOOKEAN = 3, STABLE_NEO_HOOKEAN_LOG = 4. An unknown kind gives
-psi = 0, P = 0 and a zero Hessian (kernels never crash; Python validates kinds).
+
+The switch over ``kind`` is generated from the material registry (:mod:`.registry`) when this
+module is imported: a chain of Warp funcs, one link per registered material, each testing its kind
+and calling the material's function or the next link. So the kinds are defined once, where each
+material registers itself, and the kernels still compile one dispatch for all materials (one
+kernel module instead of one per material: compiling ``warpfem.kernels.fem`` takes tens of seconds
+on the CPU, while the run-time test of a few ints is not measurable in a step, docs/design.md).
+An unknown kind gives psi = 0, P = 0 and a zero Hessian (kernels never crash; Python validates kinds).
 All functions are generic over float32/float64; mu and lam must have F's scalar type.
 """
 
@@ -16,52 +22,117 @@ from typing import Any
 
 import warp as wp
 
-from .corotated import corotated_eigen, corotated_pk1, corotated_psi
+# The material modules: importing one registers it. A new material is a module plus its name here.
+# (The dispatch tests kinds in this order: the common ones first.)
+from . import stable_neo_hookean, stable_neo_hookean_log, corotated, stvk, linear  # noqa: F401, I001
 from .eigensystem import hessian_block, scaling_eigensystem, signed_svd
-from .linear import linear_eigen, linear_pk1, linear_psi
-from .stable_neo_hookean import snh_eigen, snh_pk1, snh_psi
-from .stable_neo_hookean_log import snh_log_eigen, snh_log_pk1, snh_log_psi
-from .stvk import stvk_eigen, stvk_pk1, stvk_psi
+from .registry import MATERIAL_TYPES
 
 __all__ = ["material_psi", "material_pk1", "material_eigensystem", "material_hessian_parts", "hessian_block"]
 
-_LINEAR = wp.constant(0)
-_STVK = wp.constant(1)
-_COROTATED = wp.constant(2)
-_STABLE_NEO_HOOKEAN = wp.constant(3)
-_STABLE_NEO_HOOKEAN_LOG = wp.constant(4)
+
+# -- the end of each chain: an unknown kind ------------------------------------------------------
+@wp.func
+def _no_psi(kind: int, F: Any, mu: Any, lam: Any):
+    return F.dtype(0.0)
+
+
+@wp.func
+def _no_pk1(kind: int, F: Any, mu: Any, lam: Any):
+    return type(F)()
+
+
+@wp.func
+def _no_eigen_s(kind: int, F: Any, s: Any, mu: Any, lam: Any):
+    return type(F)(), wp.vector(length=3, dtype=F.dtype), wp.vector(length=3, dtype=F.dtype)
+
+
+@wp.func
+def _no_eigen_f(kind: int, F: Any, mu: Any, lam: Any):
+    return 0, type(F)(), wp.vector(length=3, dtype=F.dtype), wp.vector(length=3, dtype=F.dtype)
+
+
+# -- one link per material -----------------------------------------------------------------------
+def _link_psi(kind, f, rest):
+    K = wp.constant(kind)
+
+    @wp.func
+    def psi_link(kind: int, F: Any, mu: Any, lam: Any):
+        if kind == K:
+            return f(F, mu, lam)
+        return rest(kind, F, mu, lam)
+
+    return psi_link
+
+
+def _link_pk1(kind, f, rest):
+    K = wp.constant(kind)
+
+    @wp.func
+    def pk1_link(kind: int, F: Any, mu: Any, lam: Any):
+        if kind == K:
+            return f(F, mu, lam)
+        return rest(kind, F, mu, lam)
+
+    return pk1_link
+
+
+def _link_eigen_s(kind, f, rest):
+    """Materials written in the signed singular values s: (A, twist, flip) = f(s, mu, lam)."""
+    K = wp.constant(kind)
+
+    @wp.func
+    def eigen_s_link(kind: int, F: Any, s: Any, mu: Any, lam: Any):
+        if kind == K:
+            A, tw, fl = f(s, mu, lam)
+            return A, tw, fl
+        A, tw, fl = rest(kind, F, s, mu, lam)
+        return A, tw, fl
+
+    return eigen_s_link
+
+
+def _link_eigen_f(kind, f, rest):
+    """Materials with U = V = I (no SVD): (A, twist, flip) = f(F, mu, lam); returns found = 1 first."""
+    K = wp.constant(kind)
+
+    @wp.func
+    def eigen_f_link(kind: int, F: Any, mu: Any, lam: Any):
+        if kind == K:
+            A, tw, fl = f(F, mu, lam)
+            return 1, A, tw, fl
+        found, A, tw, fl = rest(kind, F, mu, lam)
+        return found, A, tw, fl
+
+    return eigen_f_link
+
+
+def _build():
+    """The chains over the registered materials; the first registered is tested first."""
+    psi, pk1, eig_s, eig_f = _no_psi, _no_pk1, _no_eigen_s, _no_eigen_f
+    for t in reversed(list(MATERIAL_TYPES.values())):
+        psi = _link_psi(t.kind, t.psi, psi)
+        pk1 = _link_pk1(t.kind, t.pk1, pk1)
+        if t.svd:
+            eig_s = _link_eigen_s(t.kind, t.eigen, eig_s)
+        else:
+            eig_f = _link_eigen_f(t.kind, t.eigen, eig_f)
+    return psi, pk1, eig_s, eig_f
+
+
+_psi_chain, _pk1_chain, _eigen_s_chain, _eigen_f_chain = _build()
 
 
 @wp.func
 def material_psi(kind: int, F: Any, mu: Any, lam: Any):
     """Energy density psi(F) of material ``kind``."""
-    if kind == _STABLE_NEO_HOOKEAN:
-        return snh_psi(F, mu, lam)
-    if kind == _STABLE_NEO_HOOKEAN_LOG:
-        return snh_log_psi(F, mu, lam)
-    if kind == _COROTATED:
-        return corotated_psi(F, mu, lam)
-    if kind == _STVK:
-        return stvk_psi(F, mu, lam)
-    if kind == _LINEAR:
-        return linear_psi(F, mu, lam)
-    return F.dtype(0.0)
+    return _psi_chain(kind, F, mu, lam)
 
 
 @wp.func
 def material_pk1(kind: int, F: Any, mu: Any, lam: Any):
     """First Piola-Kirchhoff stress P(F) of material ``kind``."""
-    if kind == _STABLE_NEO_HOOKEAN:
-        return snh_pk1(F, mu, lam)
-    if kind == _STABLE_NEO_HOOKEAN_LOG:
-        return snh_log_pk1(F, mu, lam)
-    if kind == _COROTATED:
-        return corotated_pk1(F, mu, lam)
-    if kind == _STVK:
-        return stvk_pk1(F, mu, lam)
-    if kind == _LINEAR:
-        return linear_pk1(F, mu, lam)
-    return type(F)()
+    return _pk1_chain(kind, F, mu, lam)
 
 
 @wp.func
@@ -74,22 +145,12 @@ def material_hessian_parts(kind: int, F: Any, mu: Any, lam: Any):
     (``hessian_point_prepare`` / ``hessian_point_matrix``): A needs an eigen-solve only to be
     projected where it is indefinite.
     """
-    if kind == _LINEAR:
+    found, A0, tw0, fl0 = _eigen_f_chain(kind, F, mu, lam)
+    if found != 0:
         I = wp.identity(n=3, dtype=F.dtype)
-        A0, tw0, fl0 = linear_eigen(F, mu, lam)
         return I, I, A0, tw0, fl0
     U, s, V = signed_svd(F)
-    A = type(F)()
-    tw = wp.vector(length=3, dtype=F.dtype)
-    fl = wp.vector(length=3, dtype=F.dtype)
-    if kind == _STABLE_NEO_HOOKEAN:
-        A, tw, fl = snh_eigen(s, mu, lam)
-    elif kind == _STABLE_NEO_HOOKEAN_LOG:
-        A, tw, fl = snh_log_eigen(s, mu, lam)
-    elif kind == _COROTATED:
-        A, tw, fl = corotated_eigen(s, mu, lam)
-    elif kind == _STVK:
-        A, tw, fl = stvk_eigen(s, mu, lam)
+    A, tw, fl = _eigen_s_chain(kind, F, s, mu, lam)
     return U, V, A, tw, fl
 
 

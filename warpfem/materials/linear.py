@@ -16,7 +16,8 @@ from typing import Any
 
 import warp as wp
 
-from .base import LINEAR, Material
+from .base import Material
+from .registry import register_material
 
 __all__ = ["LinearElastic", "linear_psi", "linear_pk1", "linear_eigen"]
 
@@ -57,8 +58,7 @@ def linear_eigen(F: Any, mu: Any, lam: Any):
     return A, twist, flip
 
 
+@register_material("linear", kind=0, psi=linear_psi, pk1=linear_pk1, eigen=linear_eigen, svd=False)
 class LinearElastic(Material):
     """Linear (small-strain) elasticity: psi = mu eps:eps + lambda/2 tr(eps)^2, eps = sym(F - I)."""
 
-    kind = LINEAR
-    name = "linear"

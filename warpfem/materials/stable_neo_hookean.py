@@ -29,7 +29,8 @@ from typing import Any
 
 import warp as wp
 
-from .base import STABLE_NEO_HOOKEAN, Material
+from .base import Material
+from .registry import register_material
 from .eigensystem import cofactor, pair_axes
 
 __all__ = ["StableNeoHookean", "snh_psi", "snh_pk1", "snh_eigen"]
@@ -85,12 +86,11 @@ def snh_eigen(s: Any, mu: Any, lam: Any):
     return A, twist, flip
 
 
+@register_material("stable_neo_hookean", kind=3, psi=snh_psi, pk1=snh_pk1, eigen=snh_eigen)
 class StableNeoHookean(Material):
     """Stable neo-Hookean without log term (Smith et al. 2018, sec. 3.4), reparametrised:
     ``mu = mu_L``, ``lam = lambda_L + mu_L``."""
 
-    kind = STABLE_NEO_HOOKEAN
-    name = "stable_neo_hookean"
 
     @staticmethod
     def kernel_parameters(mu_lame: float, lam_lame: float) -> tuple[float, float]:
@@ -107,4 +107,4 @@ class StableNeoHookean(Material):
         so its SPD projection would change the small-strain stiffness; with this split both parts
         are positive semi-definite at rest and their sum is the linear-elastic SRI split.
         """
-        return (self.mu, self.mu), (0.0, self.lam - self.mu)
+        return (self.kernel_mu, self.kernel_mu), (0.0, self.kernel_lam - self.kernel_mu)

@@ -35,7 +35,8 @@ from typing import Any
 
 import warp as wp
 
-from .base import STABLE_NEO_HOOKEAN_LOG, Material
+from .base import Material
+from .registry import register_material
 from .eigensystem import cofactor, pair_axes
 
 __all__ = ["StableNeoHookeanLog", "snh_log_psi", "snh_log_pk1", "snh_log_eigen", "x_minus_log1p"]
@@ -131,13 +132,12 @@ def snh_log_eigen(s: Any, mu: Any, lam: Any):
     return A, twist, flip
 
 
+@register_material("stable_neo_hookean_log", kind=4, psi=snh_log_psi, pk1=snh_log_pk1, eigen=snh_log_eigen)
 class StableNeoHookeanLog(Material):
     """Stable neo-Hookean with the log term -mu/2 log(I_C + 1) (Smith et al. 2018), reparametrised:
     ``mu = 4/3 mu_L``, ``lam = lambda_L + 5/6 mu_L``. F = 0 is a saddle, not a minimum, so bodies
     squashed to a point (or line) recover; see ``docs/stability.md``."""
 
-    kind = STABLE_NEO_HOOKEAN_LOG
-    name = "stable_neo_hookean_log"
 
     @staticmethod
     def kernel_parameters(mu_lame: float, lam_lame: float) -> tuple[float, float]:
@@ -154,5 +154,5 @@ class StableNeoHookeanLog(Material):
         lambda_L/2 (J - 1)^2 (PSD at rest for lambda_L >= 0); both are stress-free at F = I and their sum is
         the linear-elastic SRI split, as for ``StableNeoHookean.volumetric_split``.
         """
-        lam_f = 0.625 * self.mu
-        return (self.mu, lam_f), (0.0, self.lam - lam_f)
+        lam_f = 0.625 * self.kernel_mu
+        return (self.kernel_mu, lam_f), (0.0, self.kernel_lam - lam_f)

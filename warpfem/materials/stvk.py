@@ -23,7 +23,8 @@ from typing import Any
 
 import warp as wp
 
-from .base import STVK, Material
+from .base import Material
+from .registry import register_material
 from .eigensystem import pair_axes
 
 __all__ = ["StVenantKirchhoff", "stvk_psi", "stvk_pk1", "stvk_eigen"]
@@ -64,8 +65,7 @@ def stvk_eigen(s: Any, mu: Any, lam: Any):
     return A, twist, flip
 
 
+@register_material("stvk", kind=1, psi=stvk_psi, pk1=stvk_pk1, eigen=stvk_eigen)
 class StVenantKirchhoff(Material):
     """Saint Venant-Kirchhoff: psi = mu E:E + lambda/2 tr(E)^2, E = (F^T F - I)/2."""
 
-    kind = STVK
-    name = "stvk"

@@ -6,6 +6,7 @@ import numbers
 
 import numpy as np
 
+from .element_types.base import HexElement
 from .tetmesh import MeshError, TetMesh
 
 __all__ = ["box_tet_mesh", "HEX_CORNERS", "HEX_TO_TETS"]
@@ -15,11 +16,9 @@ HEX_CORNERS = np.array(
     [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]],
     dtype=np.int64,
 )
-#: The 6 tets of a cell around the diagonal 0-6 (all positively oriented with HEX_CORNERS).
-HEX_TO_TETS = np.array(
-    [[0, 1, 2, 6], [0, 2, 3, 6], [0, 3, 7, 6], [0, 7, 4, 6], [0, 4, 5, 6], [0, 5, 1, 6]],
-    dtype=np.int64,
-)
+#: The 6 tets of a cell around the diagonal 0-6 (all positively oriented with HEX_CORNERS): the hex
+#: element types' corner sub-tets.
+HEX_TO_TETS = HexElement.corner_tets
 
 
 def box_tet_mesh(*, size=(1.0, 1.0, 1.0), cells=(1, 1, 1), origin=(0.0, 0.0, 0.0), name=None):

@@ -83,6 +83,13 @@ class TetMesh:
     element_type = "tet4"
     nodes_per_element = 4
 
+    @property
+    def element(self):
+        """The element type object (:class:`warpfem.mesh.element_types.ElementType`): Tet4."""
+        from .element_types import get_element
+
+        return get_element(self.element_type)
+
     def __init__(self, vertices, tets, *, reorient=True, remove_unreferenced=True, name=None):
         self.name = None if name is None else str(name)
         x = self._as_vertices(vertices)

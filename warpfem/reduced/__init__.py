@@ -1,4 +1,5 @@
-"""Reduced (subspace) simulation with optimized cubature (seed 000, Cubica).
+"""Reduced (subspace) simulation with optimized cubature (An, Kim & James 2008,
+"Optimizing cubature for efficient integration of subspace deformations"; the Cubica library).
 
     import warpfem as wf
     from warpfem.reduced import train_subspace, ReducedSimulator

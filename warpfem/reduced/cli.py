@@ -1,6 +1,6 @@
 """``warpfem train SCENE``: precompute and cache a scene's subspace (basis + cubature).
 
-Registered on the ``warpfem`` command line when :mod:`warpfem.cli` builds its parser (PLUGINS).
+Listed in the command table :data:`warpfem.cli.COMMANDS` (``register`` below).
 Exit codes as in :mod:`warpfem.cli`: 0 trained (or up to date), 1 training failed (e.g. the
 snapshot run diverged, a basis that cannot be built), 2 invalid scene or command line, 130
 interrupted.
@@ -13,17 +13,17 @@ from warpfem import cli as _cli
 
 def _cmd_train(args) -> int:
     from warpfem.scenes import SceneError
-    from warpfem.solvers.newton import SolveFailed
+    from warpfem.solvers.nonlinear import SolveFailed
 
-    if _cli._check_device(args) is not None:  # a bad --device: before the scene is read
+    if _cli.check_device(args) is not None:  # a bad --device: before the scene is read
         return _cli.EXIT_INVALID
     try:
-        scene = _cli._load(args.scene)
+        scene = _cli.load(args.scene)
     except SceneError as e:
-        _cli._err(str(e))
+        _cli.error(str(e))
         return _cli.EXIT_INVALID
     if scene.spec.subspace is None:
-        _cli._err(f"{args.scene}: no [subspace] section: nothing to train (add [subspace] with modes, "
+        _cli.error(f"{args.scene}: no [subspace] section: nothing to train (add [subspace] with modes, "
                   "cubature_tolerance, ... to make the run reduced)")
         return _cli.EXIT_INVALID
     from warpfem.reduced.scene import subspace_cache_path, train_scene
@@ -37,7 +37,7 @@ def _cmd_train(args) -> int:
         print(f"{scene.name}: training r = {s['modes']} subspace, cubature tolerance {s['cubature_tolerance']:g} "
               f"from {how} on {args.device} ({args.precision}) -> {subspace_cache_path(scene)}", flush=True)
 
-    init = getattr(_cli, "_init_warp", None)
+    init = _cli.init_warp
     if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
         init(args.device, args.verbose)
 
@@ -60,16 +60,16 @@ def _cmd_train(args) -> int:
             if bar is not None:
                 bar.close()
     except SceneError as e:
-        _cli._err(str(e))
+        _cli.error(str(e))
         return _cli.EXIT_INVALID
     except SolveFailed as e:
-        _cli._err(f"{args.scene}: the full training run failed: {e}")
+        _cli.error(f"{args.scene}: the full training run failed: {e}")
         return _cli.EXIT_FAILED
     except (ValueError, RuntimeError, OSError) as e:
-        _cli._err(f"{args.scene}: training failed: {e}")
+        _cli.error(f"{args.scene}: training failed: {e}")
         return _cli.EXIT_FAILED
     except KeyboardInterrupt:
-        _cli._err("interrupted; the cache was not written")
+        _cli.error("interrupted; the cache was not written")
         return _cli.EXIT_INTERRUPTED
     print(format_report(sub.report), flush=True)
     return _cli.EXIT_OK
@@ -87,4 +87,3 @@ def register(subparsers):
     p.set_defaults(func=_cmd_train)
 
 
-_cli.add_subcommand(register)

@@ -1,5 +1,5 @@
 """Optimized cubature for subspace forces (An, Kim & James 2008, "Optimizing cubature for efficient
-integration of subspace deformations"; seed 000).
+integration of subspace deformations").
 
 The reduced internal force f_r(q) = U^T f(X + U q) = sum_e g_e(q) (sum over all elements, g_e the
 element's reduced force, N*sqrt(kg)... i.e. U^T applied to the element's node forces) is

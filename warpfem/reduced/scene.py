@@ -1,6 +1,8 @@
 """Scenes with a ``[subspace]`` section: training the cache (``warpfem train``) and reduced runs.
 
-``Scene.build`` calls :func:`build_reduced_simulator` when the scene has ``[subspace]``; it loads
+This module registers :func:`build_reduced_simulator` in the scene integrator registry for the
+``[subspace]`` section (``warpfem.scenes.register_integrator``), so ``Scene.build`` calls it for a
+scene with ``[subspace]`` (``Scene.build(full=True)``, the training run, does not); it loads
 the cache written by :func:`train_scene` and returns a :class:`~warpfem.reduced.ReducedSimulator`
 (reduced backward Euler) that offers what :class:`warpfem.scenes.SceneRun` drives: ``positions()``,
 ``x``, ``set_targets``, ``sync_model``, ``step`` / ``dt`` / ``time`` and, for the render surface,
@@ -12,7 +14,6 @@ enters as a prescribed displacement field (``warpfem.reduced.lifting``).
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import os
 import time
@@ -23,18 +24,6 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["check_validation_error", "build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
            "scene_settings"]
-
-_FULL_RUN = [False]  # while True, build_reduced_simulator hands back the full simulator (training runs)
-
-
-@contextlib.contextmanager
-def _full_simulation():
-    _FULL_RUN[0] = True
-    try:
-        yield
-    finally:
-        _FULL_RUN[0] = False
-
 
 def subspace_cache_path(scene) -> str:
     """The cache file: ``[subspace].cache`` relative to the scene file, default ``<name>.subspace.npz``
@@ -138,13 +127,7 @@ def build_reduced_simulator(scene, model, *, device="cpu", precision="float64"):
     cache is missing, belongs to another mesh / material / fixed set / handle set, or was trained
     with other ``[subspace]`` settings.
     """
-    from warpfem.reduced.simulator import ReducedSimulator
-
     _check_integrator(scene)
-    if _FULL_RUN[0]:
-        from warpfem.scenes import INTEGRATORS
-
-        return INTEGRATORS["backward_euler"].build(scene, model, device=device, precision=precision)
     sub, path = _load_checked(scene, model)
     check_validation_error(scene, sub, path)
     return _reduced_simulator(scene, model, sub, device=device, precision=precision)
@@ -193,8 +176,7 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
     sp = scene.spec
     s = sp.subspace
     path = subspace_cache_path(scene)
-    with _full_simulation():
-        run = scene.build(device=device, precision=precision)
+    run = scene.build(device=device, precision=precision, full=True)  # the full-space training run
     model = run.model
     if not retrain and os.path.exists(path):
         try:
@@ -364,3 +346,15 @@ def describe_subspace(scene) -> str:
     except Exception as e:  # noqa: BLE001 - describe must not fail on a bad cache
         lines.append(f"  cache {path}: unreadable ({e}); retrain with `warpfem train {_where(scene)}`")
     return "\n".join(lines)
+
+
+def _register():
+    from warpfem.scenes import IntegratorType, register_integrator
+
+    register_integrator(IntegratorType(
+        "subspace", build_reduced_simulator, section="subspace", dynamic=True, describe=describe_subspace,
+        builds=("reduced basis U and cubature points (from the cache)", "reduced Hessian (dense r x r)")),
+        replace=True)
+
+
+_register()

@@ -1,4 +1,5 @@
-"""Reduced implicit time stepping on a subspace x = X + U q with cubature forces (seed 000).
+"""Reduced implicit time stepping on a subspace x = X + U q with cubature forces (An, Kim & James 2008,
+"Optimizing cubature for efficient integration of subspace deformations").
 
 Incremental potential over the reduced velocity v (r-vector); for backward Euler (s = h; BDF2 and
 Newmark change the prediction and s, see :mod:`warpfem.integrators`):
@@ -8,7 +9,7 @@ Newmark change the prediction and s, see :mod:`warpfem.integrators`):
 M_r = U^T M U (= I for a mass-orthonormal basis), C_r = alpha M_r + beta K_r(q_n) (projected),
 V_c the cubature energy. Newton with an Armijo backtracking line search and a dense r x r solve
 (numpy); the reduced force and stiffness come from the Warp cubature kernels
-(``warpfem.kernels.reduced``), touching only cubature elements.
+(``warpfem.kernels.subspace``), touching only cubature elements.
 """
 
 from __future__ import annotations
@@ -20,10 +21,10 @@ import numpy as np
 import warp as wp
 
 from warpfem.device import get_device as _get_device
-from warpfem.kernels import reduced as RK
+from warpfem.kernels import subspace as RK
 from warpfem.kernels.generic import launch
 from warpfem.integrators import make_integrator
-from warpfem.solvers.newton import NewtonOptions, SolveFailed, SolveStats, newton_solve
+from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.state import PRECISIONS, check_simulator_options
 
 
@@ -67,7 +68,7 @@ class CubatureForces:
         self.r = r = U.shape[1]
         self.c = c = len(elements)
         mat_ = model.material
-        self.kind, self.mu, self.lam = int(mat_.kind), self._s(mat_.mu), self._s(mat_.lam)
+        self.kind, self.mu, self.lam = int(mat_.kind), self._s(mat_.kernel_mu), self._s(mat_.kernel_lam)
         self.U = _basis_array(U, n, vec, npdt, dev)
         tets = qd.elements.reshape(-1, 4)[elements]
         self.elements = wp.array(tets.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev)
@@ -344,7 +345,7 @@ class ReducedSimulator:
 
     def step(self) -> SolveStats:
         """One reduced step of ``dt`` with the simulator's integrator (the same Newton loop as the
-        full-space simulators, :func:`~warpfem.solvers.newton.newton_solve`, with a dense r x r
+        full-space simulators, :func:`~warpfem.solvers.nonlinear.newton_solve`, with a dense r x r
         solve); raises SolveFailed on NaN (state untouched)."""
         t0 = time.perf_counter()
         r = self.r

@@ -19,7 +19,7 @@ from typing import Callable
 from .schema import ELEMENTS, INTEGRATOR_KEYS, SCHEMA, Key, SceneError, SceneSpec, parse_scene_dict, parse_scene_file
 
 __all__ = ["SceneError", "SceneSpec", "Key", "SCHEMA", "ELEMENTS", "INTEGRATOR_KEYS", "IntegratorType",
-           "INTEGRATORS", "register_integrator", "load_scene", "Scene", "SceneRun", "FrameStats",
+           "INTEGRATORS", "SECTION_INTEGRATORS", "INTEGRATOR_MODULES", "integrator_entry", "register_integrator", "load_scene", "Scene", "SceneRun", "FrameStats",
            "parse_scene_file", "parse_scene_dict", "traction_forces", "handle_targets", "estimate_device_memory"]
 
 
@@ -36,6 +36,10 @@ class IntegratorType:
     dynamic: True for time stepping (dt, substeps per frame); False for quasi-static frames.
     builds: short descriptions of what it allocates (shown by ``warpfem describe``).
     static_solve: ``static_solve(sim, integrator_options) -> SolveStats`` (quasi-static types).
+    section: when set, the entry is not an ``[integrator].type`` but builds the simulator of every
+        scene that has this section (e.g. ``"subspace"``: the reduced simulator), using the scene's
+        ``[integrator]`` settings; ``Scene.build(full=True)`` skips it.
+    describe: ``describe(scene) -> str``, extra lines for ``warpfem describe`` (section entries).
     """
 
     name: str
@@ -44,15 +48,59 @@ class IntegratorType:
     dynamic: bool = True
     builds: tuple = ()
     static_solve: Callable | None = None
+    section: str | None = None
+    describe: Callable | None = None
 
 
 INTEGRATORS: dict[str, IntegratorType] = {}
+SECTION_INTEGRATORS: dict[str, IntegratorType] = {}  # scene section -> the entry that builds its simulator
+
+# Modules (above this package in the layers) that register integrator types when imported; loaded
+# on first use by integrator_entry, so scenes never import them itself.
+INTEGRATOR_MODULES = ["warpfem.reduced.scene"]
+_loaded_modules: set = set()
+
+
+def _load_integrator_modules() -> None:
+    import importlib
+
+    for name in INTEGRATOR_MODULES:
+        if name in _loaded_modules:
+            continue
+        try:
+            importlib.import_module(name)
+        except ModuleNotFoundError as e:
+            if not (e.name and name.startswith(e.name)):  # a real missing dependency inside it: report
+                raise
+        _loaded_modules.add(name)
+
+
+def integrator_entry(scene, *, full: bool = False) -> IntegratorType:
+    """The registry entry that builds ``scene``'s simulator: the one registered for a section the
+    scene has (``[subspace]``), else (or with ``full=True``) its ``[integrator].type``."""
+    _load_integrator_modules()
+    if not full:
+        for section, entry in SECTION_INTEGRATORS.items():
+            if getattr(scene.spec, section, None) is not None:
+                return entry
+    return INTEGRATORS[scene.integrator_type]
+
+
+def section_entries(scene) -> list:
+    """The section entries that apply to ``scene`` (for describe / summary)."""
+    _load_integrator_modules()
+    return [e for s, e in SECTION_INTEGRATORS.items() if getattr(scene.spec, s, None) is not None]
 
 
 def register_integrator(entry: IntegratorType, *, replace: bool = False) -> IntegratorType:
     """Add an integrator type to the scene registry (``replace=True`` to override a name)."""
     if not isinstance(entry, IntegratorType):
         raise TypeError(f"expected an IntegratorType, got {type(entry).__name__}")
+    if entry.section is not None:
+        if entry.section in SECTION_INTEGRATORS and not replace:
+            raise ValueError(f"an integrator for [{entry.section}] is already registered (pass replace=True)")
+        SECTION_INTEGRATORS[entry.section] = entry
+        return entry
     if entry.name in INTEGRATORS and not replace:
         raise ValueError(f"integrator {entry.name!r} is already registered (pass replace=True)")
     if "type" in entry.keys:

@@ -4,16 +4,17 @@
 loads the mesh (numpy only, no kernels) and reports what will be built; ``Scene.build()`` builds
 only what the scene names (no surface embedding without ``[surface]``, ...) and returns a
 :class:`SceneRun`, whose :meth:`SceneRun.run` writes the USD / npz / JSON-lines outputs.
+
+Split by concern: the schema and validation are ``schema.py``, the integrator registry is the
+package ``__init__``, loads as nodal data (handles, tractions, render surface) are ``loads.py``,
+the describe-time estimates (points per element, device memory) are ``memory.py``, running a built
+scene frame by frame (``SceneRun``, ``FrameStats``) is ``run.py``.
 """
 
 from __future__ import annotations
 
-import json
 import logging
-import math
 import os
-import time
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -23,226 +24,12 @@ __all__ = ["Scene", "SceneRun", "FrameStats", "load_scene", "traction_forces", "
            "handle_targets", "estimate_device_memory", "boundary_surface", "quadrature_points_per_element"]
 
 
-# ----------------------------------------------------------------------------- helpers (numpy)
-def _rotation(axis, angle_rad):
-    a = np.asarray(axis, dtype=np.float64)
-    a = a / np.linalg.norm(a)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle_rad) * K + (1 - math.cos(angle_rad)) * (K @ K)
-
-
-def handle_targets(rest, handle: dict, fraction: float, center=None) -> np.ndarray:
-    """Positions (m) of handle vertices (rest (h, 3)) at ramp ``fraction`` in [0, 1].
-
-    x = c + R(fraction * angle) (X - c) + fraction * translation, c the rotation centre
-    (``handle["rotation_center"]`` or the centroid of ``rest``).
-    """
-    rest = np.asarray(rest, dtype=np.float64)
-    s = float(min(max(fraction, 0.0), 1.0))
-    x = rest.copy()
-    if handle.get("rotation_axis") is not None and handle.get("rotation_angle", 0.0) != 0.0:
-        c = np.asarray(handle.get("rotation_center") if handle.get("rotation_center") is not None
-                       else (rest.mean(axis=0) if center is None else center), dtype=np.float64)
-        R = _rotation(handle["rotation_axis"], math.radians(handle["rotation_angle"]) * s)
-        x = c + (rest - c) @ R.T
-    return x + s * np.asarray(handle.get("translation", (0.0, 0.0, 0.0)), dtype=np.float64)
-
-
-def traction_forces(vertices, faces, box_min, box_max, force_per_area):
-    """Consistent nodal forces (N) of a uniform traction (Pa) on the faces inside a box.
-
-    A face is loaded when its three vertices lie in the box. For a linear triangle of reference
-    area A the consistent load of a uniform traction t is t A / 3 on each of its vertices.
-    Returns ``(forces (n, 3), loaded face indices, total loaded area (m^2))``.
-    """
-    from warpfem.mesh import select_vertices_in_box
-
-    X = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64)
-    inside = np.zeros(len(X), dtype=bool)
-    inside[select_vertices_in_box(X, box_min, box_max)] = True
-    sel = np.flatnonzero(inside[faces].all(axis=1))
-    f = faces[sel]
-    area = 0.5 * np.linalg.norm(np.cross(X[f[:, 1]] - X[f[:, 0]], X[f[:, 2]] - X[f[:, 0]]), axis=1)
-    t = np.asarray(force_per_area, dtype=np.float64)
-    forces = np.zeros_like(X)
-    per_vertex = (area / 3.0)[:, None] * t[None, :]
-    for a in range(3):
-        np.add.at(forces, f[:, a], per_vertex)
-    return forces, sel, float(area.sum())
-
-
-# Strang & Fix 6-point rule on the reference triangle (s, t >= 0, s + t <= 1), degree 4; weights sum to 1/2.
-_TRI_A, _TRI_B = 0.445948490915965, 0.091576213509771
-_TRI_RULE = (np.array([[_TRI_A, _TRI_A], [1 - 2 * _TRI_A, _TRI_A], [_TRI_A, 1 - 2 * _TRI_A],
-                       [_TRI_B, _TRI_B], [1 - 2 * _TRI_B, _TRI_B], [_TRI_B, 1 - 2 * _TRI_B]]),
-             0.5 * np.array([0.223381589678011] * 3 + [0.109951743655322] * 3))
-
-
-def _element_faces(element_type):
-    """Per local face of an element: (face node ids, corner ids, reference origin (3,), tangents
-    (2, 3), rule points (g, 2), rule weights (g,)), with xi(s, t) = origin + s T0 + t T1 and
-    T0 x T1 pointing out of the element."""
-    from warpfem.elements.library import REFERENCE_NODES
-    from warpfem.elements.meshes import _HEX_FACES, _TET_FACES
-
-    nodes = REFERENCE_NODES[element_type]
-    out = []
-    if element_type in ("tet4", "tet10"):
-        P = REFERENCE_NODES["tet4"]
-        lam = np.concatenate([1.0 - nodes.sum(axis=1, keepdims=True), nodes], axis=1)  # barycentric of each node
-        for a, b, c in _TET_FACES:
-            d = ({0, 1, 2, 3} - {int(a), int(b), int(c)}).pop()
-            on = np.flatnonzero(np.abs(lam[:, d]) < 1e-12)
-            out.append((on, np.array([a, b, c]), P[a], np.stack([P[b] - P[a], P[c] - P[a]]), *_TRI_RULE))
-    else:
-        g = np.array([-math.sqrt(0.6), 0.0, math.sqrt(0.6)])
-        w = np.array([5.0, 8.0, 5.0]) / 9.0
-        pts = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
-        wts = np.outer(w, w).ravel()
-        for axis, sign, u, v in _HEX_FACES:
-            on = np.flatnonzero(np.abs(nodes[:, axis] - sign) < 1e-12)
-            corners = on[np.all(np.abs(np.abs(nodes[on]) - 1.0) < 1e-12, axis=1)]
-            origin = np.zeros(3)
-            origin[axis] = sign
-            T = np.zeros((2, 3))
-            T[0, u] = T[1, v] = 1.0
-            out.append((on, corners, origin, T, pts, wts))
-    return out
-
-
-def element_traction_forces(mesh, box_min, box_max, force_per_area):
-    """Consistent nodal forces (N) of a uniform traction t (Pa) on the boundary faces of an element
-    mesh (any element type) whose nodes all lie in the box: f_a = t int_face N_a dA, by Gauss
-    quadrature on each face (3x3 points on hex faces, 6 points on tet faces), dA from the
-    isoparametric map (exact on flat faces). For Tet10 faces the corner nodes get 0 and the
-    mid-edge nodes A/3 each; for flat Hex8 faces every corner gets A/4.
-    Returns ``(forces (n, 3), loaded boundary faces (element * faces_per_element + local face), area (m^2))``.
-    """
-    from warpfem.elements.library import shape_functions, shape_gradients
-    from warpfem.mesh import select_vertices_in_box
-
-    etype = getattr(mesh, "element_type", "tet4")
-    X = np.asarray(mesh.vertices, dtype=np.float64)
-    E = np.asarray(mesh.elements, dtype=np.int64)
-    faces = _element_faces(etype)
-    nf = len(faces)
-    keys = np.stack([np.sort(E[:, c], axis=1) for _, c, *_ in faces], axis=1)  # (m, nf, corners)
-    keys = keys.reshape(len(E) * nf, -1)
-    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    boundary = counts[inv.ravel()] == 1
-    inside = np.zeros(len(X), dtype=bool)
-    inside[select_vertices_in_box(X, box_min, box_max)] = True
-    t = np.asarray(force_per_area, dtype=np.float64)
-    forces = np.zeros_like(X)
-    loaded, area = [], 0.0
-    for f, (on, _, origin, T, pts, wts) in enumerate(faces):
-        el = np.flatnonzero(boundary.reshape(len(E), nf)[:, f])
-        el = el[inside[E[el][:, on]].all(axis=1)]
-        if el.size == 0:
-            continue
-        xi = origin[None, :] + pts @ T  # (g, 3)
-        N = shape_functions(etype, xi)  # (g, k)
-        dN = shape_gradients(etype, xi)  # (g, k, 3)
-        J = np.einsum("eai,gaj->egij", X[E[el]], dN)  # (e, g, 3, 3) dX/dxi
-        Ts, Tt = J @ T[0], J @ T[1]  # (e, g, 3)
-        dA = np.linalg.norm(np.cross(Ts, Tt), axis=2) * wts[None, :]  # (e, g)
-        nodal = dA @ N  # (e, k): int N_a dA
-        np.add.at(forces, E[el].ravel(), (nodal.ravel()[:, None] * t[None, :]))
-        loaded.append(el * nf + f)
-        area += float(dA.sum())
-    sel = np.sort(np.concatenate(loaded)) if loaded else np.zeros(0, np.int64)
-    return forces, sel, area
-
-
-def boundary_surface(mesh):
-    """Default render surface: ``(vertex ids (s,), triangles (f, 3) into them)`` of the mesh boundary
-    (tet faces; Tet10/Hex faces triangulated through their nodes, see ``ElementMesh.boundary_faces``)."""
-    if getattr(mesh, "element_type", "tet4") == "tet4":
-        from warpfem.skinning import mesh_boundary_surface
-
-        return mesh_boundary_surface(mesh.vertices, mesh.tets)
-    ids, tri = np.unique(np.asarray(mesh.boundary_faces(), dtype=np.int64).reshape(-1), return_inverse=True)
-    return ids.astype(np.int64), tri.reshape(-1, 3).astype(np.int64)
-
-
-def quadrature_points_per_element(element_type, volumetric_integration="full"):
-    """Quadrature points per element the simulator allocates (stiffness rule, + 1 with
-    selective reduced integration on hex8)."""
-    from warpfem.elements.library import gauss_rule
-
-    q = len(gauss_rule(element_type)[1])
-    return q + (1 if volumetric_integration == "reduced" else 0)
-
-
-def _volume_cell_types(path) -> dict:
-    """{meshio cell type: count} of a mesh file (all cell blocks)."""
-    import meshio
-
-    try:
-        mesh = meshio.read(path)
-    except Exception as e:  # meshio raises many types
-        from warpfem.mesh import MeshError
-
-        raise MeshError(f"{path}: meshio could not read the file: {type(e).__name__}: {e}") from e
-    out = {}
-    for c in mesh.cells:
-        if len(c.data):
-            out[c.type] = out.get(c.type, 0) + len(c.data)
-    return out
-
-
-def _block_nnz(elements, k, n):
-    e = np.asarray(elements, dtype=np.int64).reshape(-1, k)
-    pairs = (e[:, :, None] * n + e[:, None, :]).ravel()
-    return int(np.unique(pairs).size)
-
-
-def estimate_device_memory(*, num_vertices, num_elements, nodes_per_element, num_points, block_nnz,
-                           precision="float64", surface_points=0, stiffness_damping=False,
-                           weights_per_point=4) -> int:
-    """Estimated device bytes of a built scene (arrays the simulator and skinner allocate).
-
-    Counts: quadrature data, connectivity, ~16 vec3 work vectors (state, Newton, PCG), the mass and
-    Hessian block matrices (+1 for stiffness damping) with their index arrays, the block-Jacobi
-    inverse diagonal, and the skinning weights/ids/output. An estimate, not a measurement.
-    """
-    s = 4 if precision == "float32" else 8
-    n, m, k, q = num_vertices, num_elements, nodes_per_element, num_points
-    b = 0
-    b += m * k * 4 + q * (4 + s + k * 3 * s)           # connectivity, qp element/weight/dNdX
-    b += 16 * n * 3 * s                                # vectors
-    nmat = 3 if stiffness_damping else 2
-    b += nmat * block_nnz * 9 * s + block_nnz * 4 + (n + 1) * 4 + m * k * k * 4  # values, cols, offsets, block index
-    b += n * 9 * s + q * s                             # PCG diagonal, per-qp energy
-    b += surface_points * (weights_per_point * (4 + s) + 3 * s)  # skinning: ids, weights, output
-    return int(b)
-
-
-def _fmt_bytes(b):
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if b < 1024 or unit == "GiB":
-            return f"{b:.1f} {unit}" if unit != "B" else f"{b} B"
-        b /= 1024.0
-
-
-@dataclass
-class FrameStats:
-    """Statistics of one output frame (sums over its steps)."""
-
-    frame: int
-    time: float
-    steps: int
-    step_seconds: float
-    newton_iterations: int
-    cg_iterations: int
-    residual: float
-    energy: float
-    converged: bool
-    reason: str = ""
-
-    def as_dict(self):
-        return dict(self.__dict__)
+# loads (handles, tractions, render surface) and the describe-time estimates live in their own modules
+from .loads import (_element_faces, _rotation, boundary_surface, element_traction_forces,  # noqa: E402, F401
+                    handle_targets, traction_forces)
+from .memory import (_block_nnz, _fmt_bytes, _volume_cell_types, estimate_device_memory,  # noqa: E402, F401
+                     quadrature_points_per_element)
+from .run import FrameStats, SceneRun  # noqa: E402, F401 - running a built scene
 
 
 # ----------------------------------------------------------------------------- Scene
@@ -356,7 +143,7 @@ class Scene:
     def tractions(self):
         """[(forces (n, 3), loaded faces, area)] per ``[[traction]]`` entry (consistent loads)."""
         mesh = self.mesh()
-        tet4 = getattr(mesh, "element_type", "tet4") == "tet4"
+        tet4 = mesh.element_type == "tet4"
         faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
         out = []
         for i, t in enumerate(self.spec.traction):
@@ -418,9 +205,11 @@ class Scene:
         else:
             lines.append(f"integrator: {self.integrator_type}, {integ.get('load_steps', 1)} load step(s) per frame")
         lines.append(f"  builds: {', '.join(entry.builds)}")
-        if sp.subspace is not None:  # reduced run (warpfem.reduced)
-            from warpfem.reduced.scene import describe_subspace
-            lines.append(describe_subspace(self))
+        from . import section_entries
+
+        for extra in section_entries(self):  # e.g. [subspace]: the reduced run (warpfem.reduced.scene)
+            if extra.describe is not None:
+                lines.append(extra.describe(self))
         out = sp.output
         lines.append(f"frames: {out['frames']} at {out['fps']:g} fps ({out['frames'] / out['fps']:g} s)")
         if sp.surface is not None:
@@ -489,9 +278,10 @@ class Scene:
                   for prec in ("float32", "float64")}
         subspace = None
         if sp.subspace is not None:
-            from warpfem.reduced.scene import describe_subspace
+            from . import section_entries
 
-            subspace = {**{key: plain(val) for key, val in sp.subspace.items()}, "describe": describe_subspace(self)}
+            lines = [e.describe(self) for e in section_entries(self) if e.section == "subspace" and e.describe]
+            subspace = {**{key: plain(val) for key, val in sp.subspace.items()}, "describe": "\n".join(lines)}
         return {
             "scene": self.name, "path": self.path, "warpfem_version": warpfem_version(),
             "mesh": {"source": "box" if sp.mesh["generator"] else sp.mesh["path"],
@@ -524,12 +314,15 @@ class Scene:
         return None
 
     # -- build ------------------------------------------------------------------------------------
-    def build(self, *, device="cpu", precision="float64") -> "SceneRun":
-        """Build the model, the integrator and (only with ``[surface]``) the surface embedding."""
+    def build(self, *, device="cpu", precision="float64", full: bool = False) -> "SceneRun":
+        """Build the model, the integrator and (only with ``[surface]``) the surface embedding.
+
+        ``full=True``: the full-space simulator even when a section (``[subspace]``) would replace
+        it (the training run of a reduced scene)."""
         from warpfem.materials import make_material
         from warpfem.model import Model
 
-        from . import INTEGRATORS
+        from . import integrator_entry
 
         if precision not in ("float32", "float64"):
             raise ValueError(f"precision must be 'float32' or 'float64', got {precision!r}")
@@ -558,14 +351,11 @@ class Scene:
             model.forces += f
         for e, ids in zip(sp.handle, sel["handle"]):
             model.fix(ids, e["components"])
-        entry = INTEGRATORS[self.integrator_type]
+        # the [integrator].type's entry, or one registered for a section the scene has ([subspace]:
+        # the reduced simulator, warpfem.reduced.scene); full=True: always the full-space simulator
+        entry = integrator_entry(self, full=full)
         try:
-            if sp.subspace is not None:  # reduced run: x = X + U q (basis + cubature from the cache)
-                from warpfem.reduced.scene import build_reduced_simulator
-
-                sim = build_reduced_simulator(self, model, device=device, precision=precision)
-            else:
-                sim = entry.build(self, model, device=device, precision=precision)
+            sim = entry.build(self, model, device=device, precision=precision)
         except SceneError:
             raise
         except ValueError as e:
@@ -580,204 +370,3 @@ class Scene:
 def load_scene(path) -> Scene:
     """Read and validate a TOML scene file; raises :class:`SceneError` before any work on failure."""
     return Scene(parse_scene_file(path))
-
-
-# ----------------------------------------------------------------------------- running
-class SceneRun:
-    """A built scene: ``model``, ``sim`` (the integrator), ``skinner`` (None without [surface])."""
-
-    def __init__(self, scene: Scene, model, sim, handle_ids, *, device, precision):
-        self.scene, self.model, self.sim = scene, model, sim
-        self.device, self.precision = device, precision
-        sp = scene.spec
-        self.fps = float(sp.output["fps"])
-        self.frames = int(sp.output["frames"])
-        self.frame = 0
-        self._handles = [(h, ids, model.rest_positions[ids].copy()) for h, ids in zip(sp.handle, handle_ids)]
-        self._gravity = model.gravity.copy()
-        self._forces = model.forces.copy()
-        mesh = scene.mesh()
-        # a simulator may map an embedding to surface points itself (e.g. a reduced one, O(r) per point)
-        self._sim_surface_points = getattr(sim, "surface_points", None)
-        if sp.surface is not None:
-            from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
-
-            pts, tris = load_surface(sp.surface["path"])
-            self.embedding = embed_points_in_mesh(pts, mesh)  # k weights per point (k = nodes per element)
-            self.skinner = None
-            if self._sim_surface_points is None:
-                self.skinner = SurfaceSkinner(self.embedding, mesh, device=device, precision=precision)
-            self.surface_faces = tris
-            self.surface_vertex_ids = None
-            self.surface_name = sp.surface["name"]
-        else:
-            self.embedding = None
-            self.skinner = None
-            self.surface_vertex_ids, self.surface_faces = boundary_surface(mesh)
-            self.surface_name = "boundary"
-
-    @property
-    def num_surface_points(self) -> int:
-        if self.embedding is not None:
-            return self.embedding.num_points
-        return int(self.surface_vertex_ids.size)
-
-    def duration(self, frames=None) -> float:
-        """Length of the run (s) over which handles ramp by default."""
-        return (self.frames if frames is None else frames) / self.fps
-
-    def surface_points(self) -> np.ndarray:
-        """Current render-surface points (p, 3): x_surface = W x on the device (the skinner), or the
-        simulator's own ``surface_points(embedding)`` when it has one; without ``[surface]`` the
-        boundary vertices' positions."""
-        if self.embedding is not None:
-            if self._sim_surface_points is not None:
-                return np.asarray(self._sim_surface_points(self.embedding), dtype=np.float64)
-            return self.skinner.apply(self.sim.x).numpy().astype(np.float64)
-        return self.sim.positions()[self.surface_vertex_ids]
-
-    def _set_handles(self, fraction_of):
-        for h, ids, rest in self._handles:
-            self.sim.set_targets(ids, handle_targets(rest, h, fraction_of(h)))
-
-    def step_frame(self, *, total_frames=None) -> FrameStats:
-        """Advance one output frame (1/fps of simulated time, or one static load frame)."""
-        from . import INTEGRATORS
-
-        total = self.frames if total_frames is None else int(total_frames)
-        sim = self.sim
-        integ = self.scene.spec.integrator
-        entry = INTEGRATORS[self.scene.integrator_type]
-        t0 = time.perf_counter()
-        newton = cg = 0
-        residual = energy = 0.0
-        converged, reasons = True, []
-        self.frame += 1
-        if entry.dynamic:
-            steps = integ["substeps"]
-            T = self.duration(total)
-            for _ in range(steps):
-                t_next = sim.time + sim.dt
-                self._set_handles(lambda h: t_next / (h["ramp_time"] or T))
-                st = sim.step()
-                newton += st.newton_iterations
-                cg += st.cg_iterations
-                residual, energy = st.residual, st.energy
-                if not st.converged:
-                    converged = False
-                    reasons.append(st.reason)
-            t = sim.time
-        else:
-            steps = 1
-            frac = self.frame / total
-            if hasattr(sim, "load_scale"):  # a control of the solver: the model is not rescaled
-                sim.load_scale = frac
-            else:
-                self.model.gravity = self._gravity * frac
-                self.model.forces = self._forces * frac
-                sim.sync_model()
-            self._set_handles(lambda h: frac)
-            st = entry.static_solve(sim, integ)
-            newton, cg, residual, energy = st.newton_iterations, st.cg_iterations, st.residual, st.energy
-            converged = st.converged
-            reasons = [st.reason] if not st.converged else []
-            t = self.frame / self.fps
-        return FrameStats(frame=self.frame, time=t, steps=steps, step_seconds=time.perf_counter() - t0,
-                          newton_iterations=newton, cg_iterations=cg, residual=float(residual),
-                          energy=float(energy), converged=converged, reason="; ".join(reasons))
-
-    def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None, vtu=None):
-        """Run ``frames`` output frames (default: the scene's) writing the outputs.
-
-        Frame 0 is the rest state; frames 1..N follow every 1/fps s (static: load fraction k/N).
-        ``usd``/``states``/``stats`` default to the scene's [output] (paths relative to the
-        current directory). ``vtu``: a ParaView collection (.pvd) of the volume mesh, written frame
-        by frame (:class:`warpfem.io.VtuSeriesWriter`); default the scene's [output].vtu. Every
-        stats record carries ``warpfem_version``. ``progress(FrameStats)`` is called after each frame. On
-        :class:`warpfem.SolveFailed` (or Ctrl-C) the USD is closed marked incomplete with the
-        frames done so far, the npz/stats hold them too, and the exception propagates.
-        Returns the list of :class:`FrameStats`.
-        """
-        from warpfem.io import StatesWriter, UsdMeshWriter
-
-        out = self.scene.spec.output
-        total = self.frames if frames is None else int(frames)
-        if total < 1:
-            raise ValueError(f"frames must be >= 1, got {total}")
-        usd = out["usd"] if usd is None else usd
-        states = out["states"] if states is None else states
-        stats = Scene.stats_path(usd, out["stats"] if stats is None else stats)
-        vtu = out.get("vtu") if vtu is None else vtu
-        writer = log = volume = None
-        from warpfem.io.vtu import VtuSeriesWriter, warpfem_version
-
-        version = warpfem_version()
-        history = []
-        positions = None  # frames stream to disk (StatesWriter): memory does not grow with the run
-        if states:
-            positions = StatesWriter(states, rest=self.model.rest_positions, max_frames=total + 1, fps=self.fps)
-            positions.write_frame(self.sim.positions(), self._time())
-        try:
-            if usd:
-                writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
-                writer.add_mesh(self.surface_name, self.surface_faces, self.num_surface_points)
-                from warpfem.contact.scene import collider_prims
-
-                colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
-                for name, faces, pts in colliders:
-                    writer.add_mesh(name, faces, len(pts()))
-                writer.write_frame(self.frame, {self.surface_name: self.surface_points(),
-                                                **{name: pts() for name, _, pts in colliders}})
-            if vtu:
-                qd = self.model.quadrature
-                volume = VtuSeriesWriter(vtu, cells=qd.elements, element_type=qd.element_type)
-                volume.write_state(self._time(), self.sim, self.model)
-            if stats:
-                os.makedirs(os.path.dirname(os.path.abspath(stats)), exist_ok=True)
-                log = open(stats, "w")
-            for _ in range(total):
-                try:
-                    fs = self.step_frame(total_frames=total)
-                except Exception as e:
-                    if log is not None:
-                        failed = getattr(e, "stats", None)
-                        log.write(json.dumps({"frame": self.frame, "converged": False, "error": str(e),
-                                              "newton_iterations": getattr(failed, "newton_iterations", None),
-                                              "warpfem_version": version}) + "\n")
-                    raise
-                history.append(fs)
-                if log is not None:
-                    log.write(json.dumps({**fs.as_dict(), "warpfem_version": version}) + "\n")
-                    log.flush()
-                if positions is not None:
-                    positions.write_frame(self.sim.positions(), fs.time)
-                if writer is not None:
-                    writer.write_frame(self.frame, {self.surface_name: self.surface_points(),
-                                                    **{name: pts() for name, _, pts in colliders}})
-                if volume is not None:
-                    volume.write_state(fs.time, self.sim, self.model)
-                if progress is not None:
-                    progress(fs)
-        except BaseException as e:
-            if writer is not None:
-                writer.close(complete=False, reason=f"{type(e).__name__}: {e}")
-            if volume is not None:
-                volume.close(complete=False, reason=f"{type(e).__name__}: {e}")
-            raise
-        else:
-            if writer is not None:
-                writer.close(complete=True)
-            if volume is not None:
-                volume.close(complete=True)
-        finally:
-            if log is not None:
-                log.close()
-            if positions is not None:
-                positions.close()
-        return history
-
-    def _time(self):
-        """Simulated time of the current state (s): the integrator's clock, or frame / fps (static)."""
-        if self.scene.dynamic and hasattr(self.sim, "time"):
-            return float(self.sim.time)
-        return self.frame / self.fps

@@ -14,7 +14,7 @@ over the per-vertex vec3 unknowns y (the end-of-step velocity for dynamics), wit
 Each term adds its energy to float64 accumulators on the device, its gradient to g and its Hessian
 into the blocks of the fixed pattern, and reports the magnitude of its terms (the scale of their
 round-off). :class:`FullSpacePotential` sums them with one host read-back per energy and one per
-gradient, and is the ``problem`` that :func:`warpfem.solvers.newton.newton_solve` minimises.
+gradient, and is the ``problem`` that :func:`warpfem.solvers.nonlinear.newton_solve` minimises.
 """
 
 from __future__ import annotations
@@ -140,7 +140,7 @@ class LoadForm:
 class FullSpacePotential:
     """E(y) = sum of forms over the mesh's vertices, x = x_b + s y (``xb=None``: x = y).
 
-    The ``problem`` of :func:`~warpfem.solvers.newton.newton_solve`: device vectors, a masked
+    The ``problem`` of :func:`~warpfem.solvers.nonlinear.newton_solve`: device vectors, a masked
     block-sparse Newton system solved by the simulator's linear solver."""
 
     def __init__(self, sim, *, xb, s, quadratic=(), elastic=None, load=None, contact=None):

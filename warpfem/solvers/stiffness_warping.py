@@ -1,4 +1,5 @@
-"""Stiffness warping: corotational linear FEM with linearly implicit backward Euler (seed 001).
+"""Stiffness warping: corotational linear FEM with linearly implicit backward Euler (Müller, Dorsey,
+McMillan, Jagnow & Cutler 2002, "Stable real-time deformations"; OpenTissue's FEM module).
 
 The fast, robust integrator of game and surgical-simulation engines (OpenTissue; Mueller, Dorsey,
 McMillan, Jagnow, Cutler 2002, "Stable real-time deformations"). Each tet keeps its rest linear
@@ -45,7 +46,7 @@ from warpfem.kernels import linalg as LK
 from warpfem.kernels import warping as WK
 from warpfem.kernels.generic import launch
 from warpfem.integrators import make_integrator
-from warpfem.solvers.newton import SolveFailed, SolveStats
+from warpfem.solvers.nonlinear import SolveFailed, SolveStats
 from warpfem.solvers.linear import make_linear_solver
 from warpfem.solvers.linear.auto import simulator_options
 from warpfem.solvers.state import SimulatorState, check_simulator_options
@@ -209,7 +210,7 @@ class StiffnessWarpingSimulator(SimulatorState):
         return self._fel.numpy().astype(np.float64)
 
     def force_offset(self, x=None) -> np.ndarray:
-        """f0' = -sum_e R_e K_e X (N) with the rotations at x, (n, 3) (seed 001's force offset)."""
+        """f0' = -sum_e R_e K_e X (N) with the rotations at x, (n, 3) (the force offset of "Stable real-time deformations")."""
         self._assemble(self.x if x is None else self._vec_array(x), matrix=False)
         return self._f0.numpy().astype(np.float64)
 

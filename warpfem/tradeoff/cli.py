@@ -1,5 +1,5 @@
 """``warpfem tradeoff SCENE``: run a scene over a grid of solver configurations, print the table,
-write JSON / a Pareto plot. Registered with :func:`warpfem.cli.add_subcommand` on import."""
+write JSON / a Pareto plot; ``warpfem tune SCENE``. Listed in the command table :data:`warpfem.cli.COMMANDS` (``register``, ``register_tune``)."""
 
 from __future__ import annotations
 
@@ -29,7 +29,7 @@ def _cmd_tradeoff(args) -> int:
     if args.plot is not None and not args.plot.lower().endswith(".png"):
         _err(f"--plot must end in .png, got {args.plot!r}")
         return EXIT_INVALID
-    if _cli._check_device(args, _err) is not None:  # a bad --device: before the scene is read
+    if _cli.check_device(args, _err) is not None:  # a bad --device: before the scene is read
         return EXIT_INVALID
     try:
         load_scene(args.scene)
@@ -60,7 +60,7 @@ def _cmd_tradeoff(args) -> int:
             return EXIT_FAILED
 
     from warpfem.progress import Progress
-    from warpfem.solvers.newton import SolveFailed
+    from warpfem.solvers.nonlinear import SolveFailed
 
     from .cluster import executor_from_args
 
@@ -73,7 +73,7 @@ def _cmd_tradeoff(args) -> int:
     if not args.quiet:
         print(f"{args.scene}: {len(grid.configs)} configurations ({grid.name} grid) + reference runs on {args.device}",
               flush=True)
-    init = getattr(_cli, "_init_warp", None)
+    init = _cli.init_warp
     if init is not None:  # Warp's banner / "no CUDA driver" note only with --verbose (as `warpfem run`)
         init(args.device, args.verbose)
     from .study import planned_runs
@@ -162,7 +162,6 @@ def register(subparsers):
     p.set_defaults(func=_cmd_tradeoff)
 
 
-_cli.add_subcommand(register)
 
 
 # ----------------------------------------------------------------------------- warpfem tune
@@ -172,7 +171,7 @@ def _tune_err(msg):
 
 def _cmd_tune(args) -> int:
     from warpfem.scenes import SceneError, load_scene
-    from warpfem.solvers.newton import SolveFailed
+    from warpfem.solvers.nonlinear import SolveFailed
 
     from .cluster import executor_from_args
     from .study import GridError, TruthSpec
@@ -188,7 +187,7 @@ def _cmd_tune(args) -> int:
         if val is not None and not val.lower().endswith(ext):
             _tune_err(f"{opt} must end in {ext}, got {val!r}")
             return EXIT_INVALID
-    if _cli._check_device(args, _tune_err) is not None:
+    if _cli.check_device(args, _tune_err) is not None:
         return EXIT_INVALID
     try:
         scene = load_scene(args.scene)
@@ -208,7 +207,7 @@ def _cmd_tune(args) -> int:
     stem = os.path.splitext(os.path.basename(args.scene))[0]
     out = args.out or os.path.join("out", "tune", f"{stem}.tuned.toml")
     report = args.report or os.path.splitext(out)[0] + ".json"
-    init = getattr(_cli, "_init_warp", None)
+    init = _cli.init_warp
     if init is not None:
         init(args.device, args.verbose)
     executor, code = executor_from_args(args, _tune_err)
@@ -271,4 +270,3 @@ def register_tune(subparsers):
     p.set_defaults(func=_cmd_tune)
 
 
-_cli.add_subcommand(register_tune)

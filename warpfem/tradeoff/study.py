@@ -596,7 +596,7 @@ def _sampler(run, ref_rest, points_rest=None):
 
 def _run_one(doc, scene_path, cfg, *, device, frames, ref_info, cache_dir, tip_point=None, progress=None):
     """Run ``cfg``; returns (ConfigResult, _Trajectory or None)."""
-    from warpfem.solvers.newton import SolveFailed
+    from warpfem.solvers.nonlinear import SolveFailed
 
     res = ConfigResult(config=cfg.as_dict(), status="skipped")
     try:
@@ -1014,7 +1014,7 @@ def finish_reference(plan, outs, *, tip_point=None, frames) -> Reference:
     ladder = [outs[i] for i in ids["ladder"]]
     ref_res, ref_traj = ladder[0]
     if ref_res.status != "ok":
-        from warpfem.solvers.newton import SolveFailed
+        from warpfem.solvers.nonlinear import SolveFailed
 
         raise SolveFailed(f"the reference run ({plan['ladder'][0].as_dict()}) did not complete: {ref_res.note}")
     # the reference trajectory: Richardson extrapolation of the two finest steps when both ran

@@ -5,8 +5,8 @@ The potential is E(y) over unknowns y (per-vertex vec3 device arrays with some c
 a mask, or a reduced coordinate vector), given as a ``problem`` (``warpfem.solvers.forms``
 for the full space, ``warpfem.reduced.simulator`` for subspaces) that also solves its Newton
 systems H d = -g (sparse on the device, or dense). The loop runs *while* the gradient norm is above
-the tolerance, and a step length a is accepted when E(y + a d) <= E(y) + c a d^T g (seed 004, with
-its slips corrected).
+the tolerance, and a step length a is accepted when E(y + a d) <= E(y) + c a d^T g (Nocedal & Wright,
+"Numerical Optimization", ch. 3, backtracking with the Armijo condition).
 """
 
 from __future__ import annotations

@@ -1,4 +1,5 @@
-"""Reduced-space (subspace) kernels: cubature force/stiffness and reconstruction (seed 000, Cubica).
+"""Reduced-space (subspace) kernels: cubature force/stiffness and reconstruction (An, Kim & James 2008,
+"Optimizing cubature for efficient integration of subspace deformations").
 
 The basis U (3n x r) is stored as a 2-d array of vec3, ``U[v, j]`` = the displacement of vertex v
 in column j, so x = X + U q is ``x[v] = X[v] + sum_j U[v, j] q[j]``.

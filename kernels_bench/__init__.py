@@ -1,0 +1,1 @@
+"""Benchmarks and studies (run as scripts); ``stability_cases`` is also imported by the tests."""

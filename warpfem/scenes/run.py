@@ -1,0 +1,236 @@
+"""Running a built scene frame by frame (:class:`SceneRun`) and the per-frame record
+(:class:`FrameStats`); ``Scene.build`` (``scene.py``) returns a ``SceneRun``."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from .loads import boundary_surface, handle_targets
+
+__all__ = ["SceneRun", "FrameStats"]
+
+
+@dataclass
+class FrameStats:
+    """Statistics of one output frame (sums over its steps)."""
+
+    frame: int
+    time: float
+    steps: int
+    step_seconds: float
+    newton_iterations: int
+    cg_iterations: int
+    residual: float
+    energy: float
+    converged: bool
+    reason: str = ""
+
+    def as_dict(self):
+        return dict(self.__dict__)
+
+
+class SceneRun:
+    """A built scene: ``model``, ``sim`` (the integrator), ``skinner`` (None without [surface])."""
+
+    def __init__(self, scene: "Scene", model, sim, handle_ids, *, device, precision):
+        self.scene, self.model, self.sim = scene, model, sim
+        self.device, self.precision = device, precision
+        sp = scene.spec
+        self.fps = float(sp.output["fps"])
+        self.frames = int(sp.output["frames"])
+        self.frame = 0
+        self._handles = [(h, ids, model.rest_positions[ids].copy()) for h, ids in zip(sp.handle, handle_ids)]
+        self._gravity = model.gravity.copy()
+        self._forces = model.forces.copy()
+        mesh = scene.mesh()
+        # a simulator may map an embedding to surface points itself (e.g. a reduced one, O(r) per point)
+        self._sim_surface_points = getattr(sim, "surface_points", None)
+        if sp.surface is not None:
+            from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
+
+            pts, tris = load_surface(sp.surface["path"])
+            self.embedding = embed_points_in_mesh(pts, mesh)  # k weights per point (k = nodes per element)
+            self.skinner = None
+            if self._sim_surface_points is None:
+                self.skinner = SurfaceSkinner(self.embedding, mesh, device=device, precision=precision)
+            self.surface_faces = tris
+            self.surface_vertex_ids = None
+            self.surface_name = sp.surface["name"]
+        else:
+            self.embedding = None
+            self.skinner = None
+            self.surface_vertex_ids, self.surface_faces = boundary_surface(mesh)
+            self.surface_name = "boundary"
+
+    @property
+    def num_surface_points(self) -> int:
+        if self.embedding is not None:
+            return self.embedding.num_points
+        return int(self.surface_vertex_ids.size)
+
+    def duration(self, frames=None) -> float:
+        """Length of the run (s) over which handles ramp by default."""
+        return (self.frames if frames is None else frames) / self.fps
+
+    def surface_points(self) -> np.ndarray:
+        """Current render-surface points (p, 3): x_surface = W x on the device (the skinner), or the
+        simulator's own ``surface_points(embedding)`` when it has one; without ``[surface]`` the
+        boundary vertices' positions."""
+        if self.embedding is not None:
+            if self._sim_surface_points is not None:
+                return np.asarray(self._sim_surface_points(self.embedding), dtype=np.float64)
+            return self.skinner.apply(self.sim.x).numpy().astype(np.float64)
+        return self.sim.positions()[self.surface_vertex_ids]
+
+    def _set_handles(self, fraction_of):
+        for h, ids, rest in self._handles:
+            self.sim.set_targets(ids, handle_targets(rest, h, fraction_of(h)))
+
+    def step_frame(self, *, total_frames=None) -> FrameStats:
+        """Advance one output frame (1/fps of simulated time, or one static load frame)."""
+        from . import INTEGRATORS
+
+        total = self.frames if total_frames is None else int(total_frames)
+        sim = self.sim
+        integ = self.scene.spec.integrator
+        entry = INTEGRATORS[self.scene.integrator_type]
+        t0 = time.perf_counter()
+        newton = cg = 0
+        residual = energy = 0.0
+        converged, reasons = True, []
+        self.frame += 1
+        if entry.dynamic:
+            steps = integ["substeps"]
+            T = self.duration(total)
+            for _ in range(steps):
+                t_next = sim.time + sim.dt
+                self._set_handles(lambda h: t_next / (h["ramp_time"] or T))
+                st = sim.step()
+                newton += st.newton_iterations
+                cg += st.cg_iterations
+                residual, energy = st.residual, st.energy
+                if not st.converged:
+                    converged = False
+                    reasons.append(st.reason)
+            t = sim.time
+        else:
+            steps = 1
+            frac = self.frame / total
+            if hasattr(sim, "load_scale"):  # a control of the solver: the model is not rescaled
+                sim.load_scale = frac
+            else:
+                self.model.gravity = self._gravity * frac
+                self.model.forces = self._forces * frac
+                sim.sync_model()
+            self._set_handles(lambda h: frac)
+            st = entry.static_solve(sim, integ)
+            newton, cg, residual, energy = st.newton_iterations, st.cg_iterations, st.residual, st.energy
+            converged = st.converged
+            reasons = [st.reason] if not st.converged else []
+            t = self.frame / self.fps
+        return FrameStats(frame=self.frame, time=t, steps=steps, step_seconds=time.perf_counter() - t0,
+                          newton_iterations=newton, cg_iterations=cg, residual=float(residual),
+                          energy=float(energy), converged=converged, reason="; ".join(reasons))
+
+    def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None, vtu=None):
+        """Run ``frames`` output frames (default: the scene's) writing the outputs.
+
+        Frame 0 is the rest state; frames 1..N follow every 1/fps s (static: load fraction k/N).
+        ``usd``/``states``/``stats`` default to the scene's [output] (paths relative to the
+        current directory). ``vtu``: a ParaView collection (.pvd) of the volume mesh, written frame
+        by frame (:class:`warpfem.io.VtuSeriesWriter`); default the scene's [output].vtu. Every
+        stats record carries ``warpfem_version``. ``progress(FrameStats)`` is called after each frame. On
+        :class:`warpfem.SolveFailed` (or Ctrl-C) the USD is closed marked incomplete with the
+        frames done so far, the npz/stats hold them too, and the exception propagates.
+        Returns the list of :class:`FrameStats`.
+        """
+        from warpfem.io import StatesWriter, UsdMeshWriter
+
+        out = self.scene.spec.output
+        total = self.frames if frames is None else int(frames)
+        if total < 1:
+            raise ValueError(f"frames must be >= 1, got {total}")
+        usd = out["usd"] if usd is None else usd
+        states = out["states"] if states is None else states
+        from .scene import Scene
+
+        stats = Scene.stats_path(usd, out["stats"] if stats is None else stats)
+        vtu = out.get("vtu") if vtu is None else vtu
+        writer = log = volume = None
+        from warpfem.io.vtu import VtuSeriesWriter, warpfem_version
+
+        version = warpfem_version()
+        history = []
+        positions = None  # frames stream to disk (StatesWriter): memory does not grow with the run
+        if states:
+            positions = StatesWriter(states, rest=self.model.rest_positions, max_frames=total + 1, fps=self.fps)
+            positions.write_frame(self.sim.positions(), self._time())
+        try:
+            if usd:
+                writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
+                writer.add_mesh(self.surface_name, self.surface_faces, self.num_surface_points)
+                from warpfem.contact.scene import collider_prims
+
+                colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
+                for name, faces, pts in colliders:
+                    writer.add_mesh(name, faces, len(pts()))
+                writer.write_frame(self.frame, {self.surface_name: self.surface_points(),
+                                                **{name: pts() for name, _, pts in colliders}})
+            if vtu:
+                qd = self.model.quadrature
+                volume = VtuSeriesWriter(vtu, cells=qd.elements, element_type=qd.element_type)
+                volume.write_state(self._time(), self.sim, self.model)
+            if stats:
+                os.makedirs(os.path.dirname(os.path.abspath(stats)), exist_ok=True)
+                log = open(stats, "w")
+            for _ in range(total):
+                try:
+                    fs = self.step_frame(total_frames=total)
+                except Exception as e:
+                    if log is not None:
+                        failed = getattr(e, "stats", None)
+                        log.write(json.dumps({"frame": self.frame, "converged": False, "error": str(e),
+                                              "newton_iterations": getattr(failed, "newton_iterations", None),
+                                              "warpfem_version": version}) + "\n")
+                    raise
+                history.append(fs)
+                if log is not None:
+                    log.write(json.dumps({**fs.as_dict(), "warpfem_version": version}) + "\n")
+                    log.flush()
+                if positions is not None:
+                    positions.write_frame(self.sim.positions(), fs.time)
+                if writer is not None:
+                    writer.write_frame(self.frame, {self.surface_name: self.surface_points(),
+                                                    **{name: pts() for name, _, pts in colliders}})
+                if volume is not None:
+                    volume.write_state(fs.time, self.sim, self.model)
+                if progress is not None:
+                    progress(fs)
+        except BaseException as e:
+            if writer is not None:
+                writer.close(complete=False, reason=f"{type(e).__name__}: {e}")
+            if volume is not None:
+                volume.close(complete=False, reason=f"{type(e).__name__}: {e}")
+            raise
+        else:
+            if writer is not None:
+                writer.close(complete=True)
+            if volume is not None:
+                volume.close(complete=True)
+        finally:
+            if log is not None:
+                log.close()
+            if positions is not None:
+                positions.close()
+        return history
+
+    def _time(self):
+        """Simulated time of the current state (s): the integrator's clock, or frame / fps (static)."""
+        if self.scene.dynamic and hasattr(self.sim, "time"):
+            return float(self.sim.time)
+        return self.frame / self.fps
