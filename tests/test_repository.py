@@ -5,7 +5,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SCANNED = ("*.py", "*.toml", "Makefile", "*.cfg", "*.sh")
-# `../shared` (a sibling folder a user does not have) and absolute home/work paths of one machine.
+# a sibling data folder a user does not have, and absolute home/work paths of one machine.
 FORBIDDEN = re.compile(r"(\.\./)+shared/|[\"'](/work|/root|/home|/Users)/")
 
 

@@ -9,29 +9,9 @@ import pytest
 from warpfem.tradeoff import (GridError, StudyResult, TradeoffConfig, TradeoffGrid, builtin_grid, format_table,
                               load_grid, load_study, pareto_front, run_study)
 
-BEAM = """
-name = "tiny_beam"
-gravity = [0.0, -9.81, 0.0]
-[mesh]
-generator = "box"
-size = [1.0, 0.2, 0.2]
-cells = [6, 1, 1]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 2.0e5
-poisson_ratio = 0.3
-density = 1000.0
-[[fixed]]
-box_min = [-1.0, -1.0, -1.0]
-box_max = [0.0, 1.0, 1.0]
-[integrator]
-type = "backward_euler"
-tol = 1e-6
-cg_tol = 1e-4
-[output]
-fps = 24
-frames = 3
-"""
+from tiny_scenes import tiny_beam_toml  # noqa: E402
+
+BEAM = tiny_beam_toml("tiny_beam", cells=6, frames=3)
 
 
 @pytest.fixture(scope="module")

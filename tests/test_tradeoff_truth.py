@@ -9,29 +9,9 @@ import pytest
 from warpfem.tradeoff import GridError, TradeoffConfig, TradeoffGrid, TruthSpec, load_grid, run_study
 from warpfem.tradeoff.study import format_table
 
-BEAM = """
-name = "thin_beam"
-gravity = [0.0, -9.81, 0.0]
-[mesh]
-generator = "box"
-size = [1.0, 0.2, 0.2]
-cells = [4, 1, 1]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 2.0e5
-poisson_ratio = 0.3
-density = 1000.0
-[[fixed]]
-box_min = [-1.0, -1.0, -1.0]
-box_max = [0.0, 1.0, 1.0]
-[integrator]
-type = "backward_euler"
-tol = 1e-6
-cg_tol = 1e-4
-[output]
-fps = 24
-frames = 2
-"""
+from tiny_scenes import tiny_beam_toml  # noqa: E402
+
+BEAM = tiny_beam_toml("thin_beam", cells=4, frames=2)
 
 REF = TradeoffConfig(name="reference", tol=1e-9, cg_tol=1e-9, max_iters=100, max_cg_iters=20000, substeps=2)
 

@@ -10,6 +10,8 @@ import pytest
 
 from warpfem.io import UsdMeshWriter, UsdWriterError, read_usd_mesh_frames, usd_validation_errors
 
+ROOT_PRIM = "/" + "Root"  # the writer's default root prim (root_name), a USD path
+
 FPS = 30
 FACES = np.array([[0, 1, 2], [0, 2, 3], [1, 4, 2]])
 REST = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 1.0, 0.0], [2.0, 0.5, 0.3]])
@@ -51,7 +53,7 @@ def test_write_five_frames(tmp_path, ext):
 
     path = tmp_path / f"anim{ext}"
     with UsdMeshWriter(path, fps=FPS, up_axis="Z", meters_per_unit=0.01, save_every=2) as w:
-        assert w.add_mesh("surface", FACES, len(REST)) == "/Root/surface"
+        assert w.add_mesh("surface", FACES, len(REST)) == ROOT_PRIM + "/surface"
         for f in range(5):
             w.write_frame(f, {"surface": frame_points(f)})
         assert w.frames_written == 5 and w.last_frame == 4
@@ -69,7 +71,7 @@ def test_write_five_frames(tmp_path, ext):
     info = warpfem_info(stage)
     assert info["complete"] is True and info["framesWritten"] == 5 and info["lastFrame"] == 4
 
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/surface"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(ROOT_PRIM + "/surface"))
     assert list(mesh.GetFaceVertexCountsAttr().Get()) == [3, 3, 3]
     assert list(mesh.GetFaceVertexIndicesAttr().Get()) == FACES.reshape(-1).tolist()
     assert not mesh.GetFaceVertexIndicesAttr().ValueMightBeTimeVarying()
@@ -207,7 +209,7 @@ def test_vertex_normals(tmp_path):
         for f in range(2):
             w.write_frame(f, {"surface": frame_points(f)}, normals={"surface": n * (1 - 2 * f)})
     stage = open_stage(path)
-    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/Root/surface"))
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath(ROOT_PRIM + "/surface"))
     assert mesh.GetNormalsInterpolation() == UsdGeom.Tokens.vertex
     assert mesh.GetNormalsAttr().GetTimeSamples() == [0.0, 1.0]
     np.testing.assert_array_equal(np.array(mesh.GetNormalsAttr().Get(1)), -n)
