@@ -8,11 +8,14 @@ import pytest
 import scipy.sparse.linalg as spla
 
 import warpfem as wf
-from warpfem.elements import (ELEMENT_TYPES, ElementError, ElementMesh, box_hex_mesh, consistent_mass_matrix,
-                              embed_points_in_elements, gauss_rule, load_element_mesh, lumped_mass_vector,
-                              precompute_quadrature, save_element_mesh, shape_functions, shape_gradients,
-                              tet10_from_tet4)
-from warpfem.elements.library import REFERENCE_NODES, RULE_DEGREE
+from warpfem.elements import ElementError, precompute_quadrature
+from warpfem.mesh import ElementMesh, box_hex_mesh, embed_points_in_elements, load_element_mesh, save_element_mesh, tet10_from_tet4
+from warpfem.mesh import consistent_mass as consistent_mass_matrix, lumped_mass as lumped_mass_vector
+from warpfem.mesh.element_types import ELEMENTS, gauss_rule, shape_functions, shape_gradients
+
+ELEMENT_TYPES = tuple(ELEMENTS)
+REFERENCE_NODES = {n: e.reference_nodes for n, e in ELEMENTS.items()}
+RULE_DEGREE = {(n, purpose): d for n, e in ELEMENTS.items() for purpose, d in e.rule_degree.items()}
 
 TIMOSHENKO = 1.512
 
@@ -444,8 +447,7 @@ def test_sri_finite_strain_patch_test(cls):
     assert interior.sum() == 8
     # sharpness: on these non-parallelepiped hexes the centroid gradients would leave interior forces
     # (sum_e w_c dN_a/dX(centre) != 0); the volume-averaged gradients of the 1-point set do not
-    from warpfem.elements.library import gauss_rule
-    from warpfem.elements.quadrature import element_point_data
+    from warpfem.mesh.element_types import element_point_data, gauss_rule
 
     def interior_nodal_sum(w, g):  # max_a |sum_e w_e g_ea| over interior nodes, relative
         nodal = np.zeros_like(X)

@@ -82,7 +82,7 @@ def test_every_element_type_object_is_consistent():
     positive volume, outward faces whose nodes lie on them."""
     import numpy as np
 
-    from warpfem.elements import ELEMENTS
+    from warpfem.mesh.element_types import ELEMENTS
 
     rng = np.random.default_rng(3)
     assert set(ELEMENTS) >= {"tet4", "tet10", "hex8", "hex27"}

@@ -16,7 +16,7 @@ report says so) the reference is the grid's tight run on the scene's mesh: solve
 Common ground for comparisons: fixed material points, the **scene mesh's simulation vertices**
 (rest positions; without a truth spec, the reference's). A run on that mesh is sampled there
 directly; a run with another vertex set (another element type, a refined mesh) is sampled by
-embedding those points in its elements (:func:`warpfem.elements.meshes.embed_points_in_elements`,
+embedding those points in its elements (:func:`warpfem.mesh.locate.embed_points_in_elements`,
 its own shape functions). Every run is an independent job (:func:`run_job`), executed serially or
 on a Dask cluster (:mod:`warpfem.tradeoff.cluster`).
 
@@ -587,7 +587,7 @@ def _sampler(run, ref_rest, points_rest=None):
     X = np.asarray(mesh.vertices, dtype=np.float64)
     if points_rest is None and X.shape == ref_rest.shape and np.array_equal(X, ref_rest):
         return lambda x: x
-    from warpfem.elements.meshes import embed_points_in_elements
+    from warpfem.mesh.locate import embed_points_in_elements
 
     pts = ref_rest if points_rest is None else points_rest
     ids, w, _ = embed_points_in_elements(pts, mesh)
@@ -674,9 +674,6 @@ def _run_one(doc, scene_path, cfg, *, device, frames, ref_info, cache_dir, tip_p
     return res, traj
 
 
-_QUADRATURE_POINTS = {"tet4": 1, "tet10": 4, "hex8": 8, "hex27": 27}
-
-
 def work_proxy(res: ConfigResult, run) -> float:
     """A deterministic, load-independent cost of a run (arbitrary units, comparable across
     configurations): every Newton iteration assembles forces and Hessian over the quadrature points,
@@ -685,9 +682,8 @@ def work_proxy(res: ConfigResult, run) -> float:
     elements and solves an r x r system per Newton iteration (c q n^2 + r^3) and reconstructs the
     full positions once per step (N r, N vertices)."""
     mesh = run.scene.mesh()
-    etype = getattr(mesh, "element_type", "tet4")
     n = int(np.asarray(mesh.elements).shape[1])
-    q = _QUADRATURE_POINTS.get(etype, 1)
+    q = mesh.element.points_per_element
     E = mesh.num_elements
     sim = run.sim
     r = getattr(sim, "r", None)
