@@ -294,7 +294,9 @@ class VolumeMesh:
             tables = self.element.face_triangles()
             e = self._elements
             nf = len(tables)
-            keys = np.stack([np.sort(e[:, c], axis=1) for c, _ in tables], axis=1).reshape(len(e) * nf, -1)
+            width = max(len(c) for c, _ in tables)  # faces may differ in corner count (a prism: 3 and 4)
+            keys = np.stack([np.pad(np.sort(e[:, c], axis=1), ((0, 0), (0, width - len(c))), constant_values=-1)
+                             for c, _ in tables], axis=1).reshape(len(e) * nf, -1)
             _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
             once = np.flatnonzero(counts[inv.ravel()] == 1)  # (element * nf + face), ascending
             tris, order = [], []

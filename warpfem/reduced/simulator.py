@@ -46,7 +46,9 @@ class CubatureForces:
 
     def __init__(self, model, U, elements, weights, *, device="cpu", precision="float64"):
         qd = model.quadrature
-        if qd.element_type != "tet4":
+        from warpfem.mesh.element_types import get_element
+
+        if not get_element(qd.element_type).is_linear_tet:
             raise ValueError(f"reduced simulation supports tet4 meshes only, got {qd.element_type!r}")
         U = np.asarray(U, dtype=np.float64)
         n = model.num_vertices

@@ -77,16 +77,18 @@ def _components(v):
     return None if ok else "must be a non-empty subset of 'xyz' without repeats, e.g. \"xyz\", \"z\", \"xz\""
 
 
-# Elements a scene may name ([mesh].element) -> what it is (warpfem.elements; see docs/elements.md).
+# Elements a scene may name ([mesh].element) -> what it is (see docs/elements.md); Scene._make_mesh builds them.
 # With generator = "box": tet4 / tet10 split each cell into 6 tets (tet10 adds shared edge
 # mid-nodes), hex8 / hex27 use one hexahedron per cell. With path = "file": tet4 / tet10 read
 # tetra cells (tet10 also tetra10 cells), hex8 / hex27 read hexahedron / hexahedron27 cells.
-ELEMENTS: dict[str, str] = {
-    "tet4": "linear tetrahedron, 4 nodes, 1 quadrature point",
-    "tet10": "quadratic tetrahedron, 10 nodes, 4 quadrature points",
-    "hex8": "trilinear hexahedron, 8 nodes, 2x2x2 quadrature points",
-    "hex27": "triquadratic hexahedron, 27 nodes, 3x3x3 quadrature points",
-}
+# The descriptions are the element type objects' own (warpfem.mesh.element_types).
+def _scene_elements(names):
+    from warpfem.mesh.element_types import get_element
+
+    return {n: get_element(n).description for n in names}
+
+
+ELEMENTS: dict[str, str] = _scene_elements(("tet4", "tet10", "hex8", "hex27"))
 
 # Integrators that work with some element types only (others: every element type). An
 # IntegratorType may also carry its own ``elements`` tuple, which takes precedence.

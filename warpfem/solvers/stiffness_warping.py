@@ -116,7 +116,9 @@ class StiffnessWarpingSimulator(SimulatorState):
         if int(max_cg_iters) != max_cg_iters or max_cg_iters < 1:
             raise ValueError(f"max_cg_iters must be a positive integer, got {max_cg_iters!r}")
         qd = model.quadrature
-        if qd.element_type != "tet4":
+        from warpfem.mesh.element_types import get_element
+
+        if not get_element(qd.element_type).is_linear_tet:  # one point per element, gradients from Dm^-1
             raise ValueError(f"StiffnessWarpingSimulator supports tet4 meshes only; the model's mesh has "
                              f"element_type {qd.element_type!r} (use warpfem.Simulator for other elements)")
         mat = model.material
