@@ -125,7 +125,9 @@ class ElementType:
         if purpose not in ("stiffness", "mass", "volumetric"):
             raise ValueError(f"purpose must be 'stiffness', 'mass' or 'volumetric', got {purpose!r}")
         if (purpose) not in self.rule_degree:
-            raise ValueError(f"the 1-point volumetric rule is only provided for hex8, not {self.name!r}")
+            with_rule = [n for n, e in ELEMENTS.items() if purpose in e.rule_degree]
+            raise ValueError(f"the {purpose!r} rule is only provided for {', '.join(with_rule) or 'no element type'}, "
+                             f"not {self.name!r}")
         return self._rule(purpose)
 
     def _rule(self, purpose: str):
