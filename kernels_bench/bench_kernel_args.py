@@ -62,12 +62,53 @@ def measure(steps: int, device: str) -> dict:
         wp.Launch.set_param_at_index, wp.Launch.launch, wp.launch = set_param, replay, launch
     wp.synchronize_device(device)
     t0 = time.perf_counter()
+    newton, fastest = 0, float("inf")
     for _ in range(steps):
-        sim.step()
-    wp.synchronize_device(device)
+        t1 = time.perf_counter()
+        newton += sim.step().newton_iterations
+        wp.synchronize_device(device)
+        fastest = min(fastest, time.perf_counter() - t1)
     ms = 1e3 * (time.perf_counter() - t0) / steps
     return {"warpfem": os.path.dirname(warpfem.__file__), "device": str(wp.get_device(device)), "ms_per_step": ms,
-            "launches_per_step": counts["launches"] / 3, "repacks_per_step": counts["repacks"] / 3}
+            "fastest_step_ms": 1e3 * fastest, "newton_per_step": newton / steps,
+            "launches_per_step": counts["launches"] / 3, "repacks_per_step": counts["repacks"] / 3,
+            "repack_us": repack_cost(), **kernel_times(sim)}
+
+
+def kernel_times(sim, calls: int = 200) -> dict:
+    """Fastest of ``calls`` timed calls (microseconds; the minimum resists machine load) of the Hessian
+    assembly (``assemble_stiffness``: one launch) and of the elastic forces (``elastic_forces``: one
+    launch plus a read-back)."""
+    import warp as wp
+
+    vals = sim.new_matrix_values()
+    out = {}
+    for name, fn in (("hessian_us", lambda: sim.assemble_stiffness(sim.x, vals)), ("force_us", sim.elastic_forces)):
+        best = float("inf")
+        for _ in range(calls):
+            t0 = time.perf_counter()
+            fn()
+            wp.synchronize_device(sim.device)
+            best = min(best, time.perf_counter() - t0)
+        out[name] = 1e6 * best
+    return out
+
+
+def repack_cost(calls: int = 20000) -> float:
+    """Mean microseconds of one re-pack of a non-array argument (a Warp scalar or a struct) of the
+    recorded launch of the elastic force kernel."""
+    import warp as wp
+    from warpfem.kernels import generic
+
+    for (kernel, *_), (cmd, _m, _k, last) in generic._LAUNCH_CACHE.items():
+        if kernel.key.startswith("qp_force_and_abs_kernel"):
+            idx = [i for i, v in enumerate(last) if not isinstance(v, wp.array) and type(v) not in (int, float, bool)]
+            t0 = time.perf_counter()
+            for _ in range(calls // len(idx)):
+                for i in idx:
+                    cmd.set_param_at_index(i, last[i])
+            return 1e6 * (time.perf_counter() - t0) / (calls // len(idx) * len(idx))
+    return float("nan")
 
 
 def child(pythonpath: str, cwd: str, steps: int, device: str) -> dict:
@@ -79,7 +120,7 @@ def child(pythonpath: str, cwd: str, steps: int, device: str) -> dict:
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    src = ap.add_mutually_exclusive_group(required=True)
+    src = ap.add_mutually_exclusive_group()
     src.add_argument("--baseline", help="git revision to compare against")
     src.add_argument("--baseline-dir", help="a directory holding the baseline's warpfem package")
     ap.add_argument("--rounds", type=int, default=3)
@@ -90,6 +131,8 @@ def main(argv=None):
     if args.child:
         print(json.dumps(measure(args.steps, args.device)))
         return 0
+    if not (args.baseline or args.baseline_dir):
+        ap.error("give --baseline REV or --baseline-dir DIR")
     with tempfile.TemporaryDirectory() as tmp:
         if args.baseline:
             archive = subprocess.run(["git", "-C", ROOT, "archive", args.baseline, "warpfem"], check=True,
@@ -100,21 +143,30 @@ def main(argv=None):
             base_dir = os.path.abspath(args.baseline_dir)
         load0 = os.getloadavg()[0]
         runs = {"baseline": [], "this": []}
-        for _ in range(args.rounds):
-            runs["baseline"].append(child(base_dir, base_dir, args.steps, args.device))
-            runs["this"].append(child(ROOT, ROOT, args.steps, args.device))
+        for k in range(args.rounds):  # alternating, and which goes first alternates too
+            order = (("baseline", base_dir), ("this", ROOT))
+            for name, where in order if k % 2 == 0 else order[::-1]:
+                runs[name].append(child(where, where, args.steps, args.device))
         load1 = os.getloadavg()[0]
     r0, r1 = runs["baseline"][0], runs["this"][0]
     b = statistics.median(r["ms_per_step"] for r in runs["baseline"])
     t = statistics.median(r["ms_per_step"] for r in runs["this"])
     print(f"480-tet cantilever, backward Euler, float64, {r1['device']} ({platform.processor() or platform.machine()}, "
           f"{os.cpu_count()} cores, load {load0:.1f} -> {load1:.1f}); {args.rounds} alternating rounds of {args.steps} steps")
-    print(f"{'':10s} {'ms/step (median)':>16s} {'all rounds':>28s} {'launches/step':>14s} {'re-packs/step':>14s}")
+    print(f"{'':10s} {'ms/step median':>14s} {'min':>6s} {'fastest step':>12s} {'newton/step':>11s} "
+          f"{'all rounds':>40s} {'launches/step':>14s} "
+          f"{'re-packs/step':>14s} {'us/re-pack':>10s} {'us hessian':>10s} {'us force':>9s}")
     for name, med, rs in (("baseline", b, runs["baseline"]), ("this", t, runs["this"])):
         each = " ".join("%.2f" % r["ms_per_step"] for r in rs)
-        print(f"{name:10s} {med:16.2f} {each:>28s} "
-              f"{rs[0]['launches_per_step']:14.1f} {rs[0]['repacks_per_step']:14.1f}")
-    print(f"this / baseline: {t / b:.3f} (ms per step); warpfem: {r0['warpfem']} vs {r1['warpfem']}")
+        print(f"{name:10s} {med:14.2f} {min(r['ms_per_step'] for r in rs):6.2f} "
+              f"{min(r['fastest_step_ms'] for r in rs):12.2f} {rs[0]['newton_per_step']:11.2f} {each:>40s} "
+              f"{rs[0]['launches_per_step']:14.1f} {rs[0]['repacks_per_step']:14.1f} "
+              f"{statistics.median(r['repack_us'] for r in rs):10.2f} {min(r['hessian_us'] for r in rs):10.1f} "
+              f"{min(r['force_us'] for r in rs):9.1f}")
+    fast = (min(r["fastest_step_ms"] for r in runs["this"])
+            / min(r["fastest_step_ms"] for r in runs["baseline"]))
+    print(f"this / baseline: {t / b:.3f} (median of the rounds' ms per step), {fast:.3f} (fastest single step); "
+          f"warpfem: {r0['warpfem']} vs {r1['warpfem']}")
     return 0
 
 
