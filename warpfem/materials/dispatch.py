@@ -18,6 +18,7 @@ An unknown kind gives psi = 0, P = 0 and a zero Hessian (kernels never crash; Py
 All functions are generic over float32/float64; mu and lam must have F's scalar type.
 """
 
+import re
 from typing import Any
 
 import warp as wp
@@ -60,7 +61,7 @@ def _no_eigen_f(kind: int, F: Any, mu: Any, lam: Any):
 # ``materials.evaluate``) changes with the registry: a kernel cache (~/.cache/warp) compiled for
 # other materials, kinds or order is never reused (tests/test_registries.py checks it).
 def _named(fn, what, t):
-    name = f"{what}__{t.name}_k{t.kind}"
+    name = f"{what}__{re.sub(r'[^0-9A-Za-z_]', '_', t.name)}_k{t.kind}"  # a C identifier
     fn.__name__ = fn.__qualname__ = name
     return wp.func(fn)
 
