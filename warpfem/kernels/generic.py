@@ -19,7 +19,7 @@ def both_precisions(**roles):
     """Kernel decorator: ``roles`` maps each generic argument to "s" (scalar value), "s[]", "v[]",
     "m[]" (1-d arrays of scalar, vec3, mat33), "s[,]" or "v[,]" (2-d scalar / vec3 arrays), or a
     struct of :mod:`warpfem.kernels.structs`: "qp" (``QuadraturePoints32/64``), "mat"
-    (``MaterialParams32/64``)."""
+    (``MaterialParams32/64``), "tets" (``WarpedTets32/64``)."""
 
     def decorate(kernel):
         for types in PRECISION_TYPES:
@@ -28,7 +28,7 @@ def both_precisions(**roles):
                 role = roles.get(arg.label)
                 if role is None:
                     arg_types[arg.label] = arg.type
-                elif role in ("s", "qp", "mat"):
+                elif role in ("s", "qp", "mat", "tets"):
                     arg_types[arg.label] = types[role]
                 elif role in ("s[,]", "v[,]"):
                     arg_types[arg.label] = wp.array2d(dtype=types[role[0]])

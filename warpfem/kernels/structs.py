@@ -7,10 +7,14 @@ passes its ``Arg`` structs), so a kernel reads ``qp_energy_kernel(x, points, mat
   represents, m^3) and shape-function gradients ``dNdX[q * k + a]`` (docs/design.md).
 - ``MaterialParams``: the material ``kind`` (int, see ``warpfem.materials``) and the two kernel
   parameters ``mu``, ``lam`` (``Material.kernel_mu`` / ``kernel_lam``, Pa).
+- ``WarpedTets``: the fixed data of the stiffness-warping kernels (``kernels.warping``): rest
+  positions ``X``, Tet4 connectivity ``elements`` (4 per tet), ``dNdX[e * 4 + a]`` and the rest
+  stiffness blocks ``Ke[(e * 4 + a) * 4 + b]`` (N/m).
 
 Warp structs are not generic, so each exists once per precision (``QuadraturePoints32`` /
-``QuadraturePoints64``, ``MaterialParams32`` / ``MaterialParams64``), made by :func:`_make_struct`;
-generic kernels declare them with the roles "qp" and "mat" of
+``QuadraturePoints64``, ``MaterialParams32`` / ``MaterialParams64``, ``WarpedTets32`` /
+``WarpedTets64``), made by :func:`_make_struct`; generic kernels declare them with the roles "qp",
+"mat" and "tets" of
 :func:`warpfem.kernels.generic.both_precisions`. Build instances with :func:`quadrature_points` and
 :func:`material_params`, which pick the type from the scalar type.
 
@@ -24,8 +28,8 @@ from __future__ import annotations
 import warp as wp
 
 __all__ = [
-    "QuadraturePoints32", "QuadraturePoints64", "MaterialParams32", "MaterialParams64",
-    "quadrature_points", "material_params", "STRUCT_TYPES",
+    "QuadraturePoints32", "QuadraturePoints64", "MaterialParams32", "MaterialParams64", "WarpedTets32",
+    "WarpedTets64", "quadrature_points", "material_params", "warped_tets", "STRUCT_TYPES",
 ]
 
 
@@ -51,15 +55,22 @@ def _material_params(name, s):
     return _make_struct(name, {"kind": int, "mu": s, "lam": s})
 
 
+def _warped_tets(name, v, m):
+    return _make_struct(name, {"X": wp.array(dtype=v), "elements": wp.array(dtype=wp.int32),
+                               "dNdX": wp.array(dtype=v), "Ke": wp.array(dtype=m)})
+
+
 QuadraturePoints32 = _quadrature_points("QuadraturePoints32", wp.float32, wp.vec3)
 QuadraturePoints64 = _quadrature_points("QuadraturePoints64", wp.float64, wp.vec3d)
 MaterialParams32 = _material_params("MaterialParams32", wp.float32)
 MaterialParams64 = _material_params("MaterialParams64", wp.float64)
+WarpedTets32 = _warped_tets("WarpedTets32", wp.vec3, wp.mat33)
+WarpedTets64 = _warped_tets("WarpedTets64", wp.vec3d, wp.mat33d)
 
-#: scalar type -> {"qp": points struct, "mat": material struct}
+#: scalar type -> {"qp": points struct, "mat": material struct, "tets": stiffness-warping struct}
 STRUCT_TYPES = {
-    wp.float32: {"qp": QuadraturePoints32, "mat": MaterialParams32},
-    wp.float64: {"qp": QuadraturePoints64, "mat": MaterialParams64},
+    wp.float32: {"qp": QuadraturePoints32, "mat": MaterialParams32, "tets": WarpedTets32},
+    wp.float64: {"qp": QuadraturePoints64, "mat": MaterialParams64, "tets": WarpedTets64},
 }
 
 
@@ -82,3 +93,10 @@ def material_params(scalar, kind: int, mu: float, lam: float):
     m = _types(scalar)["mat"]()
     m.kind, m.mu, m.lam = int(kind), scalar(mu), scalar(lam)
     return m
+
+
+def warped_tets(scalar, X, elements, dNdX, Ke):
+    """A ``WarpedTets32/64`` (by ``scalar``) over device arrays already in that precision."""
+    t = _types(scalar)["tets"]()
+    t.X, t.elements, t.dNdX, t.Ke = X, elements, dNdX, Ke
+    return t
