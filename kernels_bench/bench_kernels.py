@@ -160,7 +160,7 @@ def bench_force_hessian(mesh, mat, sim, x_np, args, s):
 
     def warp_forces():
         f.zero_()
-        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, *sim._qp_args, sim._s(1.0), f], device=dev)
+        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, sim._points, sim._material, sim._s(1.0), f], device=dev)
 
     def warp_hessian():
         vals.zero_()
@@ -289,11 +289,10 @@ def bench_cubature(mesh, model, x_np, args, precision, device, s):
 
     def warp_cubature():
         wp.launch(RK.cubature_element_kernel, dim=cf.c,
-                  inputs=[cf.U, cf._q, cf.elements, cf.cub_element, cf.cub_weight, cf.dNdX, cf.kind, cf.mu, cf.lam, 0, 1,
-                          cf._energy, cf._f, cf._H], device=cf.device)
+                  inputs=[cf.U, cf._q, cf.points, cf.material, 0, 1, cf._energy, cf._f, cf._H], device=cf.device)
         cf._force.zero_()
         wp.launch(RK.cubature_project_kernel, dim=(cf.c, cf.r),
-                  inputs=[cf.U, cf.elements, cf.cub_element, cf._f, cf._H, 0, cf._force, cf._K], device=cf.device)
+                  inputs=[cf.U, cf.points, cf._f, cf._H, 0, cf._force, cf._K], device=cf.device)
 
     # numpy baseline: the same sum over all elements with weight 1 (= the exact reduced force)
     dt = np.float32 if s == 4 else np.float64

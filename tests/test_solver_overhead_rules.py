@@ -88,3 +88,39 @@ def test_cached_launch_repacks_changed_arguments():
         launch(LK.lincomb_kernel, n, [wp.float64(a), xs[xi], wp.float64(b), xs[yi], out], "cpu")
         expect.append(a * xs[xi].numpy() + b * xs[yi].numpy())
         np.testing.assert_allclose(out.numpy(), expect[-1], rtol=1e-14, atol=1e-14)
+
+
+def test_cached_launch_with_kernel_structs(monkeypatch):
+    """The quadrature-point kernels take ``QuadraturePoints`` / ``MaterialParams`` structs. The launch
+    cache does not re-pack a struct passed again (its packed parameter is the instance's own C buffer),
+    yet a field assigned in place and a new instance are both what the next launch computes with."""
+    from warpfem.kernels import fem as FK
+    from warpfem.kernels.structs import MaterialParams64, material_params
+
+    sim = wf.Simulator(_beam(), precision="float64")
+    x = sim.new_vector(sim.positions() * np.array([1.1, 0.95, 1.0]))
+    P = wp.zeros(sim.num_points, dtype=wp.mat33d)
+    mat = material_params(wp.float64, sim.model.material.kind, sim.model.material.kernel_mu,
+                          sim.model.material.kernel_lam)
+    assert isinstance(mat, MaterialParams64.instance_type)
+
+    def stress(material):
+        launch(FK.qp_stress_kernel, sim.num_points, [x, sim._points, material, P], "cpu")
+        return P.numpy().copy()
+
+    reference = sim.stresses(sim.positions() * np.array([1.1, 0.95, 1.0]))  # the simulator's own structs
+    base = stress(mat)
+    np.testing.assert_allclose(base, reference, rtol=1e-13, atol=0.0)
+    repacked = []
+    original = wp.Launch.set_param_at_index
+    monkeypatch.setattr(wp.Launch, "set_param_at_index",
+                        lambda self, i, v, *a, **k: (repacked.append(i), original(self, i, v, *a, **k))[1])
+    np.testing.assert_array_equal(stress(mat), base)
+    assert repacked == []  # nothing changed: nothing re-packed
+    mat.mu = 2.0 * sim.model.material.kernel_mu  # in place: seen without a re-pack
+    doubled = stress(mat)
+    assert repacked == [] and np.abs(doubled - base).max() > 0.1 * np.abs(base).max()
+    other = material_params(wp.float64, sim.model.material.kind, 2.0 * sim.model.material.kernel_mu,
+                            sim.model.material.kernel_lam)
+    np.testing.assert_allclose(stress(other), doubled, rtol=1e-14, atol=0.0)  # a new instance: re-packed
+    assert repacked == [2]
