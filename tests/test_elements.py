@@ -80,7 +80,7 @@ def test_inverted_element_is_rejected_by_name():
     el[1] = el[1][[4, 5, 6, 7, 0, 1, 2, 3]]  # mirrored: det J < 0
     with pytest.raises(ElementError, match=r"hex8 .*first: \[1\]"):
         precompute_quadrature(mesh.vertices, el, "hex8")
-    with pytest.raises(wf.MeshError, match="element 0 references a vertex out of range"):
+    with pytest.raises(wf.MeshError, match=r"element 0 references vertex index \d+ out of range \[0, "):
         ElementMesh(mesh.vertices, el + 100, "hex8")
     with pytest.raises(ValueError, match="only available for hex8"):
         wf.Model(_box("tet10", (1, 1, 1)), wf.LinearElastic(youngs_modulus=1.0, poisson_ratio=0.3, density=1.0),

@@ -114,8 +114,8 @@ class VolumeMesh:
             e = rows[0]
             idx = int(t[e][oob[e]][0])
             raise MeshError(self._msg(
-                f"element {e} references a vertex out of range [0, {n}): {noun} {e} references vertex index "
-                f"{idx} out of range ({noun} = {t[e].tolist()}); {rows.size} {noun}s with bad indices: "
+                f"{noun} {e} references vertex index {idx} out of range [0, {n}) ({noun} = {t[e].tolist()}); "
+                f"{rows.size} {noun}s with bad indices: "
                 f"{_fmt_list(rows)}"))
 
         # Repeated vertex within an element.
