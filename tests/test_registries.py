@@ -65,6 +65,30 @@ def test_material_kinds_are_defined_once_in_the_registry():
     assert "other" not in MATERIAL_TYPES
 
 
+def test_scene_material_models_come_from_the_registry(tmp_path):
+    """The schema's [material].model choices are the registered materials: each one loads; an
+    unknown name is refused with the valid ones listed."""
+    from warpfem.materials.registry import MATERIAL_TYPES
+    from warpfem.scenes import SceneError
+    from warpfem.scenes.schema import SCHEMA
+
+    assert tuple(SCHEMA["material"]["model"].choices) == tuple(MATERIAL_TYPES)
+    assert len(MATERIAL_TYPES) >= 5
+    for name in MATERIAL_TYPES:
+        p = tmp_path / f"{name}.toml"
+        p.write_text(textwrap.dedent(SCENE.format(integrator="backward_euler", extra="")).replace('"linear"', f'"{name}"'))
+        scene = load_scene(str(p))
+        assert scene.spec.material["model"] == name
+    p = tmp_path / "unknown.toml"
+    p.write_text(textwrap.dedent(SCENE.format(integrator="backward_euler", extra="")).replace('"linear"', '"neo_hooke"'))
+    with pytest.raises(SceneError) as e:
+        load_scene(str(p))
+    msg = str(e.value)
+    assert "[material].model" in msg and "'neo_hooke'" in msg
+    for name in MATERIAL_TYPES:
+        assert repr(name) in msg
+
+
 def test_kernel_parameters_are_named_apart_from_lame():
     """Stable neo-Hookean passes reparametrised (mu, lambda) to the kernels (Smith, de Goes & Kim
     2018, "Stable neo-Hookean flesh simulation": mu' = mu, lambda' = lambda + mu)."""
