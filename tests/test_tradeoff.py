@@ -98,6 +98,8 @@ def test_json_round_trip(study, tmp_path):
             "energy_drift", "status", "config"} <= set(data["results"][0])
     back = load_study(p)
     assert back.to_dict() == study.to_dict()
+    # no path of this machine: the scene (in the temporary folder here) is recorded by its file name
+    assert data["scene"] == "<tmp>/beam.toml" and str(tmp_path.parent.parent) not in p.read_text()
     assert [r.name for r in back.results] == [r.name for r in study.results]
     data["schema"] = "something else"
     with pytest.raises(ValueError, match="schema"):
