@@ -82,3 +82,20 @@ def test_scene_meshes_resolve_inside_the_repository():
             target = (scene.parent / path).resolve()
             assert target.is_file(), f"{scene.name}: [{section}] path {path!r} does not exist"
             assert ROOT in target.parents, f"{scene.name}: [{section}] path {path!r} leaves the repository"
+
+
+def test_portable_paths_name_no_folder_of_this_machine(tmp_path):
+    """What results record for a path (warpfem.paths): repository-relative inside the checkout,
+    <tmp>/<name> in the temporary folder, else the file name."""
+    import os
+
+    from warpfem.paths import portable_message, portable_path, repository_root
+
+    assert Path(repository_root()) == ROOT
+    scene = ROOT / "examples" / "scenes" / "cantilever.toml"
+    assert portable_path(scene) == "examples/scenes/cantilever.toml"
+    assert portable_path(os.path.relpath(scene)) == "examples/scenes/cantilever.toml"  # relative to the cwd
+    assert portable_path(tmp_path / "deep" / "beam.toml") == "<tmp>/beam.toml"
+    assert portable_path(Path(os.sep) / "opt" / "data" / "bunny.msh") == "bunny.msh"
+    msg = portable_message(f"{tmp_path / 'a' / 'beam.toml'}: [mesh].path: no file '{ROOT / 'examples' / 'x.msh'}'")
+    assert msg == "<tmp>/beam.toml: [mesh].path: no file 'examples/x.msh'"
