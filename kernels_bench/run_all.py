@@ -36,7 +36,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))  # this checkout's warpfem (for warpfem.paths only)
-from warpfem.paths import portable_path  # noqa: E402
+from warpfem.paths import portable_message, portable_path  # noqa: E402
 
 
 def shown_command(cmd) -> str:
@@ -148,6 +148,7 @@ def main(argv=None):
             stdout = exc.stdout.decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
             stderr = exc.stderr.decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
         secs = time.perf_counter() - t0
+        stdout, stderr = portable_message(stdout), portable_message(stderr)  # e.g. Warp's kernel cache: ~/.cache/...
         if "SKIP:" in stdout:
             status = "skipped: " + stdout.split("SKIP:", 1)[1].strip().splitlines()[0]
         log.write_text(stdout + ("\n--- stderr ---\n" + stderr if stderr.strip() else ""))

@@ -99,3 +99,7 @@ def test_portable_paths_name_no_folder_of_this_machine(tmp_path):
     assert portable_path(Path(os.sep) / "opt" / "data" / "bunny.msh") == "bunny.msh"
     msg = portable_message(f"{tmp_path / 'a' / 'beam.toml'}: [mesh].path: no file '{ROOT / 'examples' / 'x.msh'}'")
     assert msg == "<tmp>/beam.toml: [mesh].path: no file 'examples/x.msh'"
+    home = os.path.expanduser("~")
+    if os.path.dirname(home) != home and not str(ROOT).startswith(home + os.sep):
+        assert portable_message(f"Kernel cache: {os.path.join(home, '.cache', 'warp')}") == \
+            f"Kernel cache: {os.path.join('~', '.cache', 'warp')}"

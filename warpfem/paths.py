@@ -50,8 +50,9 @@ def portable_path(path, *, root: str | None = None) -> str:
 
 
 def portable_message(message: str) -> str:
-    """An error message as a result records it: absolute paths inside the repository written
-    relative to it, paths in the temporary directory as ``<tmp>/<file name>``."""
+    """A message (or a log) as a result records it: absolute paths inside the repository written
+    relative to it, paths in the temporary directory as ``<tmp>/<file name>``, the rest of the home
+    folder as ``~/...`` (e.g. Warp's kernel cache)."""
     message = str(message)
     root = repository_root()
     for folder in ({os.path.abspath(root), os.path.realpath(root)} if root else set()):
@@ -59,4 +60,8 @@ def portable_message(message: str) -> str:
     tmp = tempfile.gettempdir()
     for folder in {os.path.abspath(tmp), os.path.realpath(tmp)}:
         message = re.sub(re.escape(folder + os.sep) + r"(?:[^\s'\"`:,;()]*[/\\])?", "<tmp>/", message)
+    home = os.path.expanduser("~")
+    if home and os.path.dirname(home) != home:  # not "/" (or "~" unresolved)
+        for folder in {os.path.abspath(home), os.path.realpath(home)}:
+            message = message.replace(folder + os.sep, "~" + os.sep)
     return message
