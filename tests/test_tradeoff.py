@@ -197,3 +197,12 @@ def test_set_quantity_recomputes_the_frontier(study, tmp_path):
     assert sum(r.on_frontier for r in s.results) == len(idx)
     with pytest.raises(GridError):
         set_quantity(s, "colour")
+
+
+def test_recorded_settings_hold_no_machine_path(tmp_path):
+    """A reduced variant's subspace cache lives in a temporary folder: the result records it portably."""
+    from warpfem.tradeoff.runner import _recorded_subspace
+
+    rec = _recorded_subspace({"modes": 20, "cache": str(tmp_path / "run" / "subspace_modes20.npz")})
+    assert rec == {"modes": 20, "cache": "<tmp>/subspace_modes20.npz"}
+    assert _recorded_subspace(None) is None

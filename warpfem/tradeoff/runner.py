@@ -15,7 +15,7 @@ import warnings
 
 import numpy as np
 
-from warpfem.paths import portable_message
+from warpfem.paths import portable_message, portable_path
 from warpfem.scenes.schema import read_toml
 
 from .grid import TradeoffConfig
@@ -179,6 +179,13 @@ def _sampler(run, ref_rest, points_rest=None):
     return lambda x: np.einsum("pk,pki->pi", w, x[ids])
 
 
+def _recorded_subspace(sub):
+    """The [subspace] settings as a result records them (the cache file written portably)."""
+    if sub is None:
+        return None
+    return {k: (portable_path(v) if k == "cache" and isinstance(v, str) else v) for k, v in sub.items()}
+
+
 def _run_one(doc, scene_path, cfg, *, device, frames, ref_info, cache_dir, tip_point=None, progress=None):
     """Run ``cfg``; returns (ConfigResult, _Trajectory or None)."""
     from warpfem.solvers.nonlinear import SolveFailed
@@ -192,7 +199,7 @@ def _run_one(doc, scene_path, cfg, *, device, frames, ref_info, cache_dir, tip_p
         return res, None
     sp = scene.spec
     res.settings = {"integrator": {k: v for k, v in sp.integrator.items() if not k.startswith("require")},
-                    "element": sp.mesh["element"], "subspace": sp.subspace,
+                    "element": sp.mesh["element"], "subspace": _recorded_subspace(sp.subspace),
                     "vertices": scene.mesh().num_vertices, "elements": scene.mesh().num_elements}
     _warm_up(device)
     _warm_up_signature(doc, scene_path, cfg, device=device, frames=frames, cache_dir=cache_dir)
