@@ -172,11 +172,11 @@ def bench_force_hessian(mesh, mat, sim, x_np, args, s):
     g = sim.model.quadrature.qp_dNdX.reshape(m, 4, 3)
     dt = np.float32 if s == 4 else np.float64
     Xd, xd, Dmi, vold, gd = (a.astype(dt) for a in (X, x_np, Dm_inv, vol, g))
-    t_wf, t_nf = paired_time(warp_forces, lambda: numpy_snh_forces(Xd, tets, xd, mat.mu, mat.lam, Dmi, vold), dev,
+    t_wf, t_nf = paired_time(warp_forces, lambda: numpy_snh_forces(Xd, tets, xd, mat.kernel_mu, mat.kernel_lam, Dmi, vold), dev,
                              warp_repeats=args.repeats, numpy_repeats=1)
-    t_wh, t_nh = paired_time(warp_hessian, lambda: numpy_linear_hessian_blocks(gd, vold, mat.mu, mat.lam), dev,
+    t_wh, t_nh = paired_time(warp_hessian, lambda: numpy_linear_hessian_blocks(gd, vold, mat.kernel_mu, mat.kernel_lam), dev,
                              warp_repeats=max(2, args.repeats // 5), numpy_repeats=1)
-    ref = numpy_snh_forces(X, tets, x_np, mat.mu, mat.lam, Dm_inv, vol)
+    ref = numpy_snh_forces(X, tets, x_np, mat.kernel_mu, mat.kernel_lam, Dm_inv, vol)
     err = float(np.abs(sim.elastic_forces() - ref).max() / np.abs(ref).max())
     # compulsory bytes: x, X (n vec3), elements (4m), qp_element (m), dNdX (4m vec3), weight (m), f RMW
     b_in = 2 * n * 3 * s + 5 * m * I32 + 4 * m * 3 * s + m * s
@@ -305,7 +305,7 @@ def bench_cubature(mesh, model, x_np, args, precision, device, s):
 
     def numpy_cubature():
         x = Xd + U3 @ qd
-        f = numpy_snh_forces(Xd, tets, x, mat.mu, mat.lam, Dmi, vold)
+        f = numpy_snh_forces(Xd, tets, x, mat.kernel_mu, mat.kernel_lam, Dmi, vold)
         return np.einsum("nkr,nk->r", U3, f)
 
     t_w, t_n = paired_time(warp_cubature, numpy_cubature, cf.device, warp_repeats=max(2, args.repeats // 2),

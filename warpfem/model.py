@@ -43,7 +43,7 @@ class Model:
                  volumetric_integration: str = "full"):
         if mass_matrix not in MASS_MATRIX_KINDS:
             raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
-        for attr in ("kind", "mu", "lam", "density"):
+        for attr in ("kind", "kernel_mu", "kernel_lam", "density"):
             if not hasattr(material, attr):
                 raise TypeError(f"material must be a warpfem material (missing {attr!r}), got {type(material).__name__}")
         g = np.asarray(gravity, dtype=np.float64)

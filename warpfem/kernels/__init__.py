@@ -5,12 +5,3 @@
 
 Vocabulary: "subspace" is model reduction (x = X + U q); "selective reduced integration" (SRI) is
 the Hex8 quadrature with a separate one-point volumetric set (``QuadratureData.volumetric``)."""
-
-
-def __getattr__(name):
-    # Transitional alias for code written before the rename (``from warpfem.kernels import reduced``).
-    if name == "reduced":
-        from . import subspace
-
-        return subspace
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

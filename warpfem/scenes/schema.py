@@ -23,6 +23,8 @@ try:  # Python 3.11+
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
+from warpfem.materials import MATERIAL_TYPES  # importing the package registers every material
+
 __all__ = ["SceneError", "Key", "SCHEMA", "SceneSpec", "parse_scene_file", "parse_scene_dict",
            "INTEGRATOR_KEYS", "ELEMENTS", "INTEGRATOR_ELEMENTS"]
 
@@ -124,7 +126,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
                       doc="surface files: 'tetgen' (warpfem[mesh]), 'tetwild' (warpfem[tetwild]); default auto"),
     },
     "material": {
-        "model": Key("choice", required=True, choices=("linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log")),
+        "model": Key("choice", required=True, choices=tuple(MATERIAL_TYPES),
+                     doc="material model (the material registry): " + ", ".join(MATERIAL_TYPES)),
         "youngs_modulus": Key("float", required=True, check=_positive, doc="E (Pa)"),
         "poisson_ratio": Key("float", required=True, check=_poisson, doc="nu"),
         "density": Key("float", default=1000.0, check=_positive, doc="kg/m^3"),
