@@ -119,7 +119,7 @@ def test_a_registered_element_type_works_everywhere(wedge):
     x = Xr + Xr @ A.T
     eps = 0.5 * (A + A.T)
     mat = model.material
-    psi = mat.mu * np.sum(eps * eps) + 0.5 * mat.lam * np.trace(eps) ** 2
+    psi = mat.mu_lame * np.sum(eps * eps) + 0.5 * mat.lam_lame * np.trace(eps) ** 2
     assert sim.elastic_energy(x) == pytest.approx(psi * V, rel=1e-10)
     interior = np.all((Xr > 1e-9) & (Xr < np.array([2.0, 1.0, 1.5]) - 1e-9), axis=1)
     f = sim.elastic_forces(x)
