@@ -16,6 +16,12 @@ Per cubature element c (element e, weight w_c; ``cub_weight[c] = w_c * vol_e``):
 Only cubature elements are touched. Two launches: one per element (material evaluation, dim =
 number of cubature points), one per (element, column) pair for the projections (dim = (c, r)), so
 the GPU sees c * r threads.
+
+The reduced simulator's hot path uses :func:`cubature_point_kernel` instead: F is affine in the
+reduced coordinates, F_c = I + G_c z with G_c = dF/dz (9 x r, constant), so the host forms F for
+every cubature point with one matrix-vector product and the kernel only evaluates the material
+per point: w psi, w P and (when asked) the 9 x 9 w dP/dF. The reductions f_r = -sum_c G_c^T vec(w P)
+and K_r = sum_c G_c^T (w dP/dF) G_c are dense products on the host (``warpfem.reduced.simulator``).
 """
 
 from __future__ import annotations
@@ -125,6 +131,47 @@ def cubature_project_kernel(
         for l in range(U.shape[1]):
             val = wp.dot(y0, U[n0, l]) + wp.dot(y1, U[n1, l]) + wp.dot(y2, U[n2, l]) + wp.dot(y3, U[n3, l])
             wp.atomic_add(K, j, l, val)
+
+
+@_both(F="m[]", cub_weight="s[]", mu="s", lam="s", psi_out="s[]", P_out="m[]", D_out="s[]")
+@wp.kernel
+def cubature_point_kernel(
+    F: wp.array(dtype=Any),
+    cub_weight: wp.array(dtype=Any),
+    kind: int,
+    mu: Any,
+    lam: Any,
+    want_hessian: int,
+    project: int,
+    psi_out: wp.array(dtype=Any),
+    P_out: wp.array(dtype=Any),
+    D_out: wp.array(dtype=Any),
+):
+    """Per cubature point c at the given deformation gradient F[c]: psi_out[c] = w psi (J),
+    P_out[c] = w P (N m), and with ``want_hessian`` D_out[81 c + 9 (3i+j) + 3k+l] = w dP_ij/dF_kl
+    (row-major vec of F; SPD-projected per point when ``project != 0``). w = cub_weight[c]."""
+    c = wp.tid()
+    Fc = F[c]
+    w = cub_weight[c]
+    psi_out[c] = w * material_psi(kind, Fc, mu, lam)
+    P_out[c] = w * material_pk1(kind, Fc, mu, lam)
+    if want_hessian != 0:
+        # block (j, l) of dP/dF: B[i, k] = dP_ij/dF_kl, the element-block contraction
+        # (hessian_point_block) with the unit gradients e_j, e_l (rotated: columns of V^T); 6 blocks
+        # j <= l, the others by the symmetry of dP/dF. (Cheaper than the explicit 9 x 9 product.)
+        U0, V0, A0, tw, fl = material_hessian_parts(kind, Fc, mu, lam)
+        Uh, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
+        b = c * 81
+        for j in range(3):
+            ej = type(Fc[0])(Vt[0, j], Vt[1, j], Vt[2, j])
+            for l in range(j, 3):
+                el = type(Fc[0])(Vt[0, l], Vt[1, l], Vt[2, l])
+                blk = w * hessian_point_block(Uh, A, cp, cm, ej, el)
+                for i in range(3):
+                    for k in range(3):
+                        D_out[b + (3 * i + j) * 9 + 3 * k + l] = blk[i, k]
+                        if l != j:
+                            D_out[b + (3 * k + l) * 9 + 3 * i + j] = blk[i, k]
 
 
 @_both(X="v[]", U="v[,]", q="s[]", x_out="v[]")
