@@ -41,17 +41,25 @@ def _chunk_points(c: int, k: int) -> int:
     below OpenBLAS's multithreading thresholds (m n k < 262144 for a matrix product, m n < 9216
     for a matrix-vector product): on a small loaded machine a threaded call of these sizes cost
     10-100x a single-threaded one (measured: 26 x 1548 x 26, 0.15 ms on one thread, 0.6-15 ms on two)."""
-    return int(max(1, min(c, 9216 // (9 * k) - 1, 262144 // (9 * k * k) - 1)))
+    return int(max(1, min(c, 9216 // (9 * (k + 1)) - 1, 262144 // (9 * k * k) - 1)))
 
 
 class _Columns:
     """dF/dz of the cubature points for a subset of the basis columns, laid out for the host
     products: ``G`` (cp, 9, k) (zero rows for the padding points), ``G3`` / ``G3T`` its chunks
-    (nch, 9 m, k) / (nch, k, 9 m), and a work array ``T`` (cp, 9, k) for dP/dF G."""
+    (nch, 9 m, k) / (nch, k, 9 m), and a work array ``T`` (cp, 9, k) for dP/dF G. ``Gb3`` is
+    [G | base] in chunks: F = base + G (scale z) is one product with [scale z; 1]."""
 
-    def __init__(self, G, m):
+    def __init__(self, G, m, I9):
         cp, _, k = G.shape
         self.k, self.nch = k, cp // m
+        Gb = np.zeros((cp * 9, k + 1))
+        Gb[:, :k] = G.reshape(-1, k)
+        Gb[:, k] = I9
+        self.Gb3 = Gb.reshape(self.nch, 9 * m, k + 1)
+        self.base = None  # the base in the last column (None: the identity)
+        self.zb = np.zeros(k + 1)
+        self.zb[k] = 1.0
         self.G = np.ascontiguousarray(G)
         self.G3 = self.G.reshape(self.nch, 9 * m, k)
         self.Gflat = self.G.reshape(-1, k)
@@ -124,8 +132,8 @@ class CubatureForces:
         G = np.zeros((cp, 9, r))
         G[:c] = np.einsum("caik,caj->cijk", U.reshape(n, 3, r)[tets], dN, optimize=True).reshape(c, 9, r)
         self.G = G
-        self._all = _Columns(G, mpts)
         self._I9 = np.tile(np.eye(3).reshape(9), cp)
+        self._all = _Columns(G, mpts, self._I9)
         self._Fd = wp.zeros(cp, dtype=mat, device=dev)
         self._psi_d = wp.zeros(cp, dtype=self._s, device=dev)
         self._P_d = wp.zeros(cp, dtype=mat, device=dev)
@@ -142,7 +150,7 @@ class CubatureForces:
     def columns(self, cols) -> _Columns:
         """The point Jacobians of a slice of the basis columns (e.g. the elastic columns without the
         handle lifting), laid out for :meth:`force` / :meth:`stiffness`."""
-        return _Columns(self.G[:, :, cols], self._m)
+        return _Columns(self.G[:, :, cols], self._m, self._I9)
 
     # -- the point path ---------------------------------------------------------------------------
     def _pull(self, hessian):
@@ -162,11 +170,13 @@ class CubatureForces:
         """Point deformation gradients F = base + scale G z (base: the identity by default, else a
         (9 cp,) float64 array from :meth:`deformation`), written where the kernel reads them."""
         cols = self._all if cols is None else cols
+        if base is not cols.base:
+            cols.Gb3[:, :, -1] = (self._I9 if base is None else base).reshape(cols.nch, -1)
+            cols.base = base
+        zb = cols.zb
+        np.multiply(z, scale, out=zb[:-1])
         out = self._Fw
-        np.matmul(cols.G3, z, out=out.reshape(cols.nch, -1))
-        if scale != 1.0:
-            out *= scale
-        out += self._I9 if base is None else base
+        np.matmul(cols.Gb3, zb, out=out.reshape(cols.nch, -1))
         if out is not self._Fh:
             self._Fh[...] = out  # to the working precision
         if not self._zero_copy:
@@ -244,6 +254,11 @@ class ReducedSimulator:
 
     Fixed vertices stay where the basis puts them (at rest: fixed rows of U are zero). State: the
     reduced coordinates ``q`` and velocities ``qdot`` (numpy float64, r).
+
+    Newton matrix: the r x r matrix is kept across Newton iterations and steps (BFGS-updated,
+    evaluated again when it stops contracting; see ``_ReducedPotential``); set
+    ``reuse_newton_matrix = False`` for plain Newton (the exact Hessian at every iterate). Both
+    converge to the same solution; ``SolveStats.hessian_evaluations`` counts the evaluations.
     """
 
     def __init__(self, model, subspace, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
@@ -276,6 +291,8 @@ class ReducedSimulator:
         self._ucols = self.forces.columns(slice(0, self.r)) if self.p else self.forces.columns(slice(None))
         self._work = (np.zeros(self.r), np.zeros(self.r), np.zeros(self.r))  # Newton's g, d, y_try
         self._newton_matrix = None  # the kept r x r Newton matrix (see _ReducedPotential)
+        self._A_cache = None  # (s, alpha, M_r + s alpha M_r) without stiffness damping
+        self.reuse_newton_matrix = True  # False: the exact Hessian at every Newton iterate (plain Newton)
         self._kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
         self.mass_r = self._reduced_mass(U)
         self.mass_ul = U.T @ (self._mass3() @ lifting.L) if lifting is not None else np.zeros((self.r, 0))
@@ -541,11 +558,18 @@ class _ReducedPotential:
         self.cf, self.cols = sim.forces, sim._ucols
         C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
         self.C = C
-        self.A = sim.mass_r + s * C
+        if sim.damping_stiffness > 0:  # C changes every step
+            self.A = sim.mass_r + s * C
+        else:  # the same A (the same object) for every step with this s: the kept factor stays valid
+            cache = sim._A_cache
+            if cache is None or cache[0] != s or cache[1] != sim.damping_mass:
+                sim._A_cache = cache = (s, sim.damping_mass, sim.mass_r + s * C)
+            self.A = cache[2]
         self.lin = sim.mass_ul @ (adot - adot_hat) + s * (C_ul @ adot) if sim.p else np.zeros(r)  # constant part of the gradient
         self.eps = float(np.finfo(sim._np).eps)
         self.opts = sim.options
         self.F0 = self.cf.deformation(zb + np.concatenate([np.zeros(r), s * adot]))  # I + G (z_b + s [0; adot])
+        self._zmax_b = float(np.abs(zb[:r]).max())
         self._zmax_a = float(np.abs(zb[r:] + s * adot).max()) if sim.p else 0.0
         self._g, self._d, self._y = sim._work
         self._at = np.full(r, np.nan)  # the point of the cached evaluation
@@ -553,6 +577,7 @@ class _ReducedPotential:
         self._E = 0.0
         self._f = np.zeros(r)
         self._valid = False  # _E, _f, _Mdv, _Cv are those of the loaded point
+        self._vprev = self._gprev = self._pair = None
         self._sfext = s * sim.fext_r
         self._sfext_norm = math.sqrt(self._sfext @ self._sfext)
         if sim._kept_matrix_poor > 0:
@@ -629,6 +654,9 @@ class _ReducedPotential:
         gn = math.sqrt(g @ g)
         if g is self._g:  # the loop's gradient at an accepted iterate (not a side test)
             self._gn.append(gn)
+            if self._vprev is not None:  # the secant pair of the last step, for the BFGS update
+                self._pair = (v - self._vprev, g - self._gprev)
+            self._vprev, self._gprev = v.copy(), g.copy()
         mag = math.sqrt(t0 @ t0) + math.sqrt(t1 @ t1) + math.sqrt(t2 @ t2) + self._sfext_norm
         return mag, gn
 
@@ -663,14 +691,19 @@ class _ReducedPotential:
 
     def solve_newton_system(self, v, g, d, opts):
         nm = self.sim._newton_matrix
-        if nm is None or (self._matrix_iterate != len(self._gn) - 1 and self._want_refresh()):
+        if nm is None or (self._matrix_iterate != len(self._gn) - 1
+                          and (not self.sim.reuse_newton_matrix or self._want_refresh())):
             nm = self._refresh(v, opts)
-        elif nm["A"] is not self.A or nm["s"] != self.s:  # kept from an earlier step: this step's A and s
-            chol, H = self._factor(nm["K"])
-            if chol is None:
-                nm = self._refresh(v, opts)
-            else:
-                nm.update(A=self.A, s=self.s, chol=chol, H=H)
+        else:
+            if nm["A"] is not self.A or nm["s"] != self.s:  # kept from an earlier step: this step's A and s
+                chol, H = self._factor(nm["K"])
+                if chol is None:
+                    nm = self._refresh(v, opts)
+                else:
+                    nm.update(A=self.A, s=self.s, chol=chol, H=H)
+            if self._pair is not None and self._matrix_iterate != len(self._gn) - 1:
+                self._bfgs(nm)
+        self._pair = None
         self._alpha = 1.0
         if nm["chol"] is not None:
             x, _ = _potrs(nm["chol"], g, lower=1)
@@ -681,6 +714,26 @@ class _ReducedPotential:
         except np.linalg.LinAlgError:
             d[:] = -g
         return 0
+
+    def _bfgs(self, nm):
+        """BFGS update of the kept matrix with the last step's secant pair (sk, yk = g_k+1 - g_k):
+        H+ = H - H sk sk^T H / (sk^T H sk) + yk yk^T / (yk^T sk) (Nocedal & Wright, "Numerical
+        Optimization", ch. 6). It follows the change of the Hessian between evaluations (a rotating
+        thin beam's stiff directions) at O(r^2); skipped unless yk^T sk > 0, so H stays SPD."""
+        sk, yk = self._pair
+        sy = float(sk @ yk)
+        if not (sy > 1e-12 * math.sqrt(float(sk @ sk) * float(yk @ yk))) or nm["chol"] is None:
+            return
+        Hs = nm["H"] @ sk
+        sHs = float(sk @ Hs)
+        if not sHs > 0.0:
+            return
+        H = nm["H"] - np.outer(Hs, Hs / sHs) + np.outer(yk, yk / sy)
+        if not np.all(np.isfinite(H)):
+            return
+        c, info = _potrf(H, lower=1, clean=1)
+        if info == 0:
+            nm.update(H=H, chol=c, K=(H - self.A) / (self.s * self.s))
 
     def refresh_direction(self) -> bool:
         """After a failed line search: True (try again) when the direction came from a kept matrix
@@ -695,6 +748,8 @@ class _ReducedPotential:
         d[:] = -g
 
     def direction_check(self, v, g, d):
-        zmax = max(float(np.abs(self.zb[:self.sim.r] + self.s * v).max()), self._zmax_a)
-        scale = np.abs(v).max() + zmax / abs(self.s)
-        return float(g @ d), bool(np.abs(d).max() <= 8.0 * self.eps * scale)
+        # max |z_b + s [v; adot]| bounded by max |z_b| + |s| max |v| (and the handles' part)
+        vmax = float(np.abs(v).max())
+        zmax = max(self._zmax_b + abs(self.s) * vmax, self._zmax_a)
+        scale = vmax + zmax / abs(self.s)
+        return float(g @ d), bool(float(np.abs(d).max()) <= 8.0 * self.eps * scale)
