@@ -68,6 +68,26 @@ def test_point_path_matches_per_element_path_and_finite_differences(beam_subspac
     assert np.abs(K32 - K).max() <= 1e-4 * np.abs(K).max()
 
 
+def test_copy_path_of_a_gpu_equals_the_zero_copy_path(beam_subspace, monkeypatch):
+    """On a GPU the point arrays are copied to and from the device; the same code on the CPU."""
+    import warpfem.reduced.simulator as S
+
+    _, model, sub = beam_subspace
+    q = 0.3 * np.random.default_rng(1).standard_normal(sub.U.shape[1]) / np.abs(sub.U).max()
+    direct = CubatureForces(model, sub.U, sub.cubature.elements, sub.cubature.weights)
+    monkeypatch.setattr(S, "_COPY_ARRAYS", True)
+    copied = CubatureForces(model, sub.U, sub.cubature.elements, sub.cubature.weights)
+    assert not copied._zero_copy
+    for hessian in (False, True):
+        a, b = direct.evaluate(q, hessian=hessian), copied.evaluate(q, hessian=hessian)
+        assert a[0] == b[0] and np.array_equal(a[1], b[1])
+        assert (a[2] is None and b[2] is None) or np.array_equal(a[2], b[2])
+    rs = ReducedSimulator(model, sub, dt=1 / 30)
+    for _ in range(3):
+        assert rs.step().converged
+    assert np.abs(rs.q).max() > 0
+
+
 def _run(model, sub, steps, **kw):
     rs = ReducedSimulator(model, sub, dt=1 / 30, damping_mass=0.5, tol=1e-10, **{k: v for k, v in kw.items() if k != "reuse"})
     rs.reuse_newton_matrix = kw.get("reuse", True)

@@ -7,9 +7,12 @@ Newmark change the prediction and s, see :mod:`warpfem.integrators`):
     E(v) = 1/2 (v - v_n)^T M_r (v - v_n) + h/2 v^T C_r v + V_c(q_n + h v) - h v^T U^T f_ext,
 
 M_r = U^T M U (= I for a mass-orthonormal basis), C_r = alpha M_r + beta K_r(q_n) (projected),
-V_c the cubature energy. Newton with an Armijo backtracking line search and a dense r x r solve
-(numpy); the reduced force and stiffness come from the Warp cubature kernels
-(``warpfem.kernels.subspace``), touching only cubature elements.
+V_c the cubature energy. Newton with an Armijo backtracking line search and a dense r x r
+Cholesky solve (LAPACK); the material is evaluated at the cubature points only, by one Warp
+kernel launch per evaluation (``warpfem.kernels.subspace.cubature_point_kernel``), with the
+deformation gradients F = I + G z formed and the reduced force and stiffness reduced on the host
+(dense products). The r x r Newton matrix is kept across iterations and steps (BFGS-updated,
+evaluated again when it stops contracting). See docs/reduced.md, "Cost of a reduced step".
 """
 
 from __future__ import annotations
@@ -34,6 +37,9 @@ from warpfem.solvers.state import PRECISIONS, check_simulator_options
 def _basis_array(U, n, vec, npdt, device):
     r = U.shape[1]
     return wp.array(np.ascontiguousarray(U.reshape(n, 3, r).transpose(0, 2, 1)).astype(npdt), dtype=vec, device=device)
+
+
+_COPY_ARRAYS = False  # tests: exercise the GPU path (explicit copies to and from the device) on the CPU
 
 
 def _chunk_points(c: int, k: int) -> int:
@@ -138,7 +144,7 @@ class CubatureForces:
         self._psi_d = wp.zeros(cp, dtype=self._s, device=dev)
         self._P_d = wp.zeros(cp, dtype=mat, device=dev)
         self._D_d = wp.zeros(81 * cp, dtype=self._s, device=dev)
-        self._zero_copy = dev.is_cpu  # host views of the device arrays: no copies at all
+        self._zero_copy = dev.is_cpu and not _COPY_ARRAYS  # host views of the device arrays: no copies at all
         self._Fh = self._Fd.numpy().reshape(-1) if self._zero_copy else np.zeros(9 * cp, dtype=npdt)
         self._Fw = self._Fh if (self._zero_copy and npdt == np.float64) else np.zeros(9 * cp)
         self._pull(hessian=True)
@@ -291,7 +297,8 @@ class ReducedSimulator:
         self._ucols = self.forces.columns(slice(0, self.r)) if self.p else self.forces.columns(slice(None))
         self._work = (np.zeros(self.r), np.zeros(self.r), np.zeros(self.r))  # Newton's g, d, y_try
         self._newton_matrix = None  # the kept r x r Newton matrix (see _ReducedPotential)
-        self._A_cache = None  # (s, alpha, M_r + s alpha M_r) without stiffness damping
+        self._A_cache = None  # (s, alpha, M_r, C, C_ul, A, s C) without stiffness damping
+        self._zeros_r = np.zeros(self.r)
         self.reuse_newton_matrix = True  # False: the exact Hessian at every Newton iterate (plain Newton)
         self._kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
         self.mass_r = self._reduced_mass(U)
@@ -539,11 +546,14 @@ class _ReducedPotential:
     per point), E = sum w psi and f_u = -G_u^T vec(w P) on the host. The energy and the gradient at
     a point come from the same launch: the line search's accepted trial point is not evaluated again.
 
-    Newton matrix (modified Newton, Shamanskii): H is factored (Cholesky) at some iterate and kept,
-    across iterations and across steps, while it keeps contracting: it is evaluated again at the
-    current iterate when the last iteration reduced the gradient norm by less than
-    ``refresh_ratio``, when the last line search had to shorten the step, or when the kept matrix is
-    not positive definite with this step's A and s. The exact Hessian (dP/dF unprojected) is tried
+    Newton matrix (modified Newton, Shamanskii, with BFGS updates): H is factored (Cholesky) at
+    some iterate and kept, across iterations and across steps, updated after every step by BFGS
+    with the secant pair (v_k+1 - v_k, g_k+1 - g_k) (free: both gradients are computed anyway),
+    while it keeps contracting: it is evaluated again at the current iterate when the last
+    iteration reduced the gradient norm by less than ``refresh_ratio``, when the last line search
+    had to shorten the step, when the kept matrix is not positive definite with this step's A and
+    s, and for 8 steps at their start after a kept matrix contracted badly on a step's first
+    iteration (a thin beam's stiff directions rotate from step to step). The exact Hessian (dP/dF unprojected) is tried
     first, which gives Newton's quadratic convergence; with ``project_hessian`` (default) an
     indefinite exact H falls back to the per-point SPD-projected dP/dF (descent guaranteed). The
     converged solution is the same (the stopping test is on the true gradient); only the path to
@@ -556,16 +566,19 @@ class _ReducedPotential:
         self.sim, self.zb, self.v_hat, self.adot, self.s = sim, zb, v_hat, adot, float(s)
         r = sim.r
         self.cf, self.cols = sim.forces, sim._ucols
-        C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
-        self.C = C
-        if sim.damping_stiffness > 0:  # C changes every step
+        if sim.damping_stiffness > 0:  # C = alpha M_r + beta K_r(z_n) changes every step
+            C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
             self.A = sim.mass_r + s * C
-        else:  # the same A (the same object) for every step with this s: the kept factor stays valid
+        else:  # C = alpha M_r: the same C and A (the same objects) for every step with this s and alpha,
+            # so a kept Newton factor stays valid from step to step
             cache = sim._A_cache
-            if cache is None or cache[0] != s or cache[1] != sim.damping_mass:
-                sim._A_cache = cache = (s, sim.damping_mass, sim.mass_r + s * C)
-            self.A = cache[2]
-        self.lin = sim.mass_ul @ (adot - adot_hat) + s * (C_ul @ adot) if sim.p else np.zeros(r)  # constant part of the gradient
+            if cache is None or cache[0] != s or cache[1] != sim.damping_mass or cache[2] is not sim.mass_r:
+                C, C_ul = sim._damping(None)
+                sim._A_cache = cache = (s, sim.damping_mass, sim.mass_r, C, C_ul, sim.mass_r + s * C, s * C)
+            C, C_ul, self.A = cache[3], cache[4], cache[5]
+        self.C = C
+        self._M, self._sC = sim.mass_r, (cache[6] if sim.damping_stiffness <= 0 else s * C)
+        self.lin = (sim.mass_ul @ (adot - adot_hat) + s * (C_ul @ adot)) if sim.p else sim._zeros_r  # constant part of the gradient
         self.eps = float(np.finfo(sim._np).eps)
         self.opts = sim.options
         self.F0 = self.cf.deformation(zb + np.concatenate([np.zeros(r), s * adot]))  # I + G (z_b + s [0; adot])
@@ -574,9 +587,7 @@ class _ReducedPotential:
         self._g, self._d, self._y = sim._work
         self._at = np.full(r, np.nan)  # the point of the cached evaluation
         self._version = -1
-        self._E = 0.0
-        self._f = np.zeros(r)
-        self._valid = False  # _E, _f, _Mdv, _Cv are those of the loaded point
+        self._valid = False  # the cached energy / gradient are those of the loaded point
         self._vprev = self._gprev = self._pair = None
         self._sfext = s * sim.fext_r
         self._sfext_norm = math.sqrt(self._sfext @ self._sfext)
@@ -599,13 +610,24 @@ class _ReducedPotential:
         return True
 
     def _evaluate(self, v):
+        """Energy, gradient and the sizes of their terms at v, from one launch (cached for v)."""
         if self._load(v) or not self._valid:
             cf = self.cf
             cf.run()
-            self._E, self._f = cf.energy(), cf.force(self.cols)
-            sim = self.sim
-            self._Mdv = sim.mass_r @ (v - self.v_hat)
-            self._Cv = self.C @ v
+            E = cf.energy()
+            t2 = self.s * cf.force(self.cols)  # s f_u
+            dv = v - self.v_hat
+            Mdv = self._M @ dv
+            t1 = self._sC @ v  # s C v
+            t0 = Mdv + self.lin
+            g = t0 + t1
+            g -= t2
+            g -= self._sfext
+            quad = 0.5 * (dv @ Mdv) + 0.5 * (v @ t1) + v @ self.lin
+            work = v @ self._sfext
+            self._energy = (quad + E - work, abs(quad) + abs(E) + abs(work))
+            self._gvec = g
+            self._gmag = math.sqrt(t0 @ t0) + math.sqrt(t1 @ t1) + math.sqrt(t2 @ t2) + self._sfext_norm
             self._valid = True
 
     def _hessian(self, v, project):
@@ -635,30 +657,19 @@ class _ReducedPotential:
         dst[:] = src
 
     def energy(self, v):
-        s = self.s
         self._evaluate(v)
-        E = self._E
-        quad = 0.5 * ((v - self.v_hat) @ self._Mdv) + 0.5 * s * (v @ self._Cv) + v @ self.lin
-        work = s * (v @ self.sim.fext_r)
-        return quad + E - work, abs(quad) + abs(E) + abs(work)
+        return self._energy
 
     def gradient(self, v, g):
-        s = self.s
         self._evaluate(v)
-        t0 = self._Mdv + self.lin
-        t1 = s * self._Cv
-        t2 = s * self._f
-        np.subtract(t0, t2, out=g)
-        g += t1
-        g -= self._sfext
+        g[:] = self._gvec
         gn = math.sqrt(g @ g)
         if g is self._g:  # the loop's gradient at an accepted iterate (not a side test)
             self._gn.append(gn)
             if self._vprev is not None:  # the secant pair of the last step, for the BFGS update
                 self._pair = (v - self._vprev, g - self._gprev)
             self._vprev, self._gprev = v.copy(), g.copy()
-        mag = math.sqrt(t0 @ t0) + math.sqrt(t1 @ t1) + math.sqrt(t2 @ t2) + self._sfext_norm
-        return mag, gn
+        return self._gmag, gn
 
     # -- Newton matrix ----------------------------------------------------------------------------
     def _factor(self, K):
@@ -681,7 +692,7 @@ class _ReducedPotential:
 
     def _want_refresh(self):
         gn = self._gn
-        if len(gn) == 1:  # the first iteration of a step: a kept matrix that served badly last step is not tried
+        if len(gn) == 1:  # the first iteration of a step: a kept matrix that served badly lately is not tried
             return self.sim._kept_matrix_poor > 0
         if self._matrix_iterate < 0 and len(gn) == 2:  # how the kept matrix did on this step's first iteration
             self.sim._kept_matrix_poor = 8 if gn[1] > self.refresh_ratio * gn[0] else 0
@@ -696,6 +707,8 @@ class _ReducedPotential:
             nm = self._refresh(v, opts)
         else:
             if nm["A"] is not self.A or nm["s"] != self.s:  # kept from an earlier step: this step's A and s
+                if nm["K"] is None:
+                    nm["K"] = (nm["H"] - nm["A"]) / (nm["s"] * nm["s"])
                 chol, H = self._factor(nm["K"])
                 if chol is None:
                     nm = self._refresh(v, opts)
@@ -729,11 +742,9 @@ class _ReducedPotential:
         if not sHs > 0.0:
             return
         H = nm["H"] - np.outer(Hs, Hs / sHs) + np.outer(yk, yk / sy)
-        if not np.all(np.isfinite(H)):
-            return
         c, info = _potrf(H, lower=1, clean=1)
         if info == 0:
-            nm.update(H=H, chol=c, K=(H - self.A) / (self.s * self.s))
+            nm.update(H=H, chol=c, K=None)  # K = (H - A) / s^2 when a later step needs it
 
     def refresh_direction(self) -> bool:
         """After a failed line search: True (try again) when the direction came from a kept matrix
