@@ -32,7 +32,7 @@ import warp as wp
 
 from warpfem.kernels.generic import both_precisions
 from warpfem.materials.dispatch import material_hessian_parts, material_pk1, material_psi
-from warpfem.materials.eigensystem import hessian_point_block, hessian_point_prepare
+from warpfem.materials.eigensystem import cofactor, hessian_point_block, hessian_point_prepare
 
 wp.set_module_options({"enable_backward": False})
 
@@ -143,19 +143,43 @@ def cubature_point_kernel(
     lam: Any,
     want_hessian: int,
     project: int,
+    snh_closed_form: int,
     psi_out: wp.array(dtype=Any),
     P_out: wp.array(dtype=Any),
     D_out: wp.array(dtype=Any),
 ):
     """Per cubature point c at the given deformation gradient F[c]: psi_out[c] = w psi (J),
     P_out[c] = w P (N m), and with ``want_hessian`` D_out[81 c + 9 (3i+j) + 3k+l] = w dP_ij/dF_kl
-    (row-major vec of F; SPD-projected per point when ``project != 0``). w = cub_weight[c]."""
+    (row-major vec of F; SPD-projected per point when ``project != 0``). w = cub_weight[c].
+
+    ``snh_closed_form`` (the material is stable neo-Hookean, P = mu (F - cof F) + lam (J - 1) cof F)
+    with ``project == 0``: the exact dP/dF in closed form, no SVD (about 5x cheaper):
+    mu I + lam vec(cof F) vec(cof F)^T + (lam (J - 1) - mu) d cof(F)/dF, with
+    d cof(F)_ij / dF_kl = e_ikm e_jln F_mn (e: the permutation symbol)."""
     c = wp.tid()
     Fc = F[c]
     w = cub_weight[c]
     psi_out[c] = w * material_psi(kind, Fc, mu, lam)
     P_out[c] = w * material_pk1(kind, Fc, mu, lam)
-    if want_hessian != 0:
+    if want_hessian != 0 and snh_closed_form != 0 and project == 0:
+        Cf = cofactor(Fc)
+        coef = lam * (wp.determinant(Fc) - type(w)(1.0)) - mu
+        b = c * 81
+        for i in range(3):
+            for j in range(3):
+                row = b + (3 * i + j) * 9
+                for k in range(3):
+                    for l in range(3):
+                        val = lam * Cf[i, j] * Cf[k, l]
+                        if i == k and j == l:
+                            val = val + mu
+                        if i != k and j != l:
+                            t = coef * Fc[3 - i - k, 3 - j - l]
+                            if ((k - i + 3) % 3 == 1) != ((l - j + 3) % 3 == 1):
+                                t = -t
+                            val = val + t
+                        D_out[row + 3 * k + l] = w * val
+    elif want_hessian != 0:
         # block (j, l) of dP/dF: B[i, k] = dP_ij/dF_kl, the element-block contraction
         # (hessian_point_block) with the unit gradients e_j, e_l (rotated: columns of V^T); 6 blocks
         # j <= l, the others by the symmetry of dP/dF. (Cheaper than the explicit 9 x 9 product.)

@@ -149,8 +149,13 @@ class CubatureForces:
         self._Fw = self._Fh if (self._zero_copy and npdt == np.float64) else np.zeros(9 * cp)
         self._pull(hessian=True)
         self.version = 0  # bumped whenever the point deformation gradients change
+        from warpfem.materials.stable_neo_hookean import StableNeoHookean
+
+        # the exact dP/dF in closed form (no SVD); float64 only: in float32 its sums of O(lambda)
+        # terms lose ~1e-3 of K (measured), the eigen form keeps ~1e-6
+        snh = int(type(mat_) is StableNeoHookean and npdt == np.float64)
         self._launch = {(h, pr): RecordedLaunch(RK.cubature_point_kernel, c, [
-            self._Fd, self.cub_weight, self.kind, self.mu, self.lam, h, pr, self._psi_d, self._P_d, self._D_d], dev)
+            self._Fd, self.cub_weight, self.kind, self.mu, self.lam, h, pr, snh, self._psi_d, self._P_d, self._D_d], dev)
             for h in (0, 1) for pr in (0, 1)}
 
     def columns(self, cols) -> _Columns:
