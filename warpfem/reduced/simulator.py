@@ -53,7 +53,8 @@ def _chunk_points(c: int, k: int) -> int:
 class _Columns:
     """dF/dz of the cubature points for a subset of the basis columns, laid out for the host
     products: ``G`` (cp, 9, k) (zero rows for the padding points), ``G3`` / ``G3T`` its chunks
-    (nch, 9 m, k) / (nch, k, 9 m), and a work array ``T`` (cp, 9, k) for dP/dF G. ``Gb3`` is
+    (nch, 9 m, k) / (nch, k, 9 m), and a work array ``T`` (cp, 9, k) for dP/dF G (these two made
+    with the first stiffness). ``Gb3`` is
     [G | base] in chunks: F = base + G (scale z) is one product with [scale z; 1]."""
 
     def __init__(self, G, m, I9):
@@ -69,9 +70,14 @@ class _Columns:
         self.G = np.ascontiguousarray(G)
         self.G3 = self.G.reshape(self.nch, 9 * m, k)
         self.Gflat = self.G.reshape(-1, k)
-        self.G3T = np.ascontiguousarray(self.G3.transpose(0, 2, 1))
-        self.T = np.zeros_like(self.G)
-        self.T3 = self.T.reshape(self.nch, 9 * m, k)
+        self._m = m
+        self.G3T = self.T = self.T3 = None  # allocated with the first stiffness
+
+    def stiffness_buffers(self):
+        if self.T is None:
+            self.G3T = np.ascontiguousarray(self.G3.transpose(0, 2, 1))
+            self.T = np.zeros_like(self.G)
+            self.T3 = self.T.reshape(self.nch, 9 * self._m, self.k)
 
 
 class CubatureForces:
@@ -215,6 +221,7 @@ class CubatureForces:
     def stiffness(self, cols: _Columns | None = None) -> np.ndarray:
         """sum_c G_c^T (w dP/dF)_c G_c over ``cols`` (needs :meth:`run` with ``hessian=True``)."""
         cols = self._all if cols is None else cols
+        cols.stiffness_buffers()
         np.matmul(self._D, cols.G, out=cols.T)
         K = np.matmul(cols.G3T, cols.T3).sum(axis=0) if cols.nch > 1 else cols.G3T[0] @ cols.T3[0]
         return 0.5 * (K + K.T)
