@@ -94,7 +94,9 @@ def worker(args):
         for _ in range(frames - 1):
             run.step_frame(total_frames=total)
             xs.append(sim.positions())
-    out = dict(warpfem=os.path.dirname(warpfem.__file__), steps=len(stats),
+    here = os.path.realpath(os.path.join(HERE, os.pardir, "warpfem"))
+    checkout = "this checkout" if os.path.realpath(os.path.dirname(warpfem.__file__)) == here else "baseline checkout"
+    out = dict(warpfem=checkout, steps=len(stats),  # which code ran, never a machine's path
                ms_per_step=1e3 * float(np.mean([s.seconds for s in stats])),
                newton_iterations=float(np.mean([s.newton_iterations for s in stats])),
                line_search_steps=float(np.mean([s.line_search_steps for s in stats])),
