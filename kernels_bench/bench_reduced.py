@@ -203,10 +203,7 @@ SCENES = {  # name: (scene file, reference frames N, training frames T)
 
 
 def _scene_full_run(scene, frames, total):
-    from warpfem.reduced.scene import _full_simulation
-
-    with _full_simulation():
-        run = scene.build()
+    run = scene.build(full=True)
     xs, steps, t = [run.model.rest_positions.copy()], 0, 0.0
     for _ in range(frames):
         fs = run.step_frame(total_frames=total)
@@ -214,6 +211,26 @@ def _scene_full_run(scene, frames, total):
         t += fs.step_seconds
         xs.append(run.sim.positions())
     return run, np.array(xs), steps, t
+
+
+def _runs_cache_file(args, key, integ, N, T, k):
+    return os.path.join(args.cache_runs, f"{key}_{integ}_N{N}_T{T}_k{k}.npz")
+
+
+def _load_cached_runs(args, key, integ, N, T, k):
+    if not args.cache_runs:
+        return None
+    path = _runs_cache_file(args, key, integ, N, T, k)
+    if not os.path.exists(path):
+        return None
+    print(f"# {key}: reference and training runs from {os.path.basename(path)} (--cache-runs)", flush=True)
+    with np.load(path) as z:
+        return {name: z[name] for name in z.files}
+
+
+def _save_cached_runs(args, key, integ, N, T, k, **arrays):
+    os.makedirs(args.cache_runs, exist_ok=True)
+    np.savez(_runs_cache_file(args, key, integ, N, T, k), **arrays)
 
 
 def run_scene(key, args):
@@ -233,22 +250,34 @@ def run_scene(key, args):
     N = args.scene_frames or N
     T = args.scene_training_frames or T
     scene.spec.surface = None  # the render surface is not what is measured
+    if args.integrator:  # the same integrator for the full reference, the training run and the reduced runs
+        scene.spec.integrator["type"] = args.integrator
+    integ_name = scene.integrator_type
     spec_frames = int(scene.spec.output["frames"])
-    print(f"# {key}: full reference run ({N} frames, ramps over {spec_frames}) ...", flush=True)
-    run, xs, full_steps, t_ref = _scene_full_run(scene, N, spec_frames)
+    k = args.training_dt_scale
+    cached = _load_cached_runs(args, key, integ_name, N, T, k)
+    if cached is None:
+        print(f"# {key}: full reference run ({N} frames of {integ_name}, ramps over {spec_frames}) ...", flush=True)
+        run, xs, full_steps, t_ref = _scene_full_run(scene, N, spec_frames)
+    else:  # exploration only (--cache-runs): the reference and training runs of an earlier invocation
+        run = scene.build(full=True)
+        xs, full_steps, t_ref = cached["xs"], int(cached["full_steps"]), float(cached["t_ref"])
     t_full = t_ref / full_steps
     print(f"# {key}: full step {t_full:.3f} s; training run ({T} frames, ramps over {T}) ...", flush=True)
-    k = args.training_dt_scale
-    if scene.spec.handle or T > N or k > 1:
-        from warpfem.reduced.scene import _drive, _full_simulation
+    if cached is not None:
+        snaps, train_steps, t_train_run = list(cached["snaps"]), int(cached["train_steps"]), float(cached["t_train_run"])
+    elif scene.spec.handle or T > N or k > 1:
+        from warpfem.reduced.scene import _drive
 
         scene.spec.subspace = dict(scene.spec.subspace or {}, training_frames=T, training_dt_scale=k)
-        with _full_simulation():
-            trun = scene.build()
+        trun = scene.build(full=True)
         snaps, train_steps, t_train_run = _drive(scene, trun, T)
     else:  # same loads, no ramp: the training run is the reference's first T frames (timed as such)
         snaps, train_steps = xs[:T + 1], T * int(scene.spec.integrator["substeps"])
         t_train_run = train_steps * t_full
+    if cached is None and args.cache_runs:
+        _save_cached_runs(args, key, integ_name, N, T, k, xs=xs, full_steps=full_steps, t_ref=t_ref,
+                          snaps=np.array(snaps), train_steps=train_steps, t_train_run=t_train_run)
     model = run.model
     X = model.rest_positions
     size = float(np.linalg.norm(X.max(0) - X.min(0)))
@@ -268,11 +297,17 @@ def run_scene(key, args):
     rows = []
     for mix in args.mixes.split(","):
         modes, pod = (int(v) for v in mix.split(":"))
-        for tol in (float(v) for v in args.scene_tols.split(",")):
+        for tol_s in args.scene_tols.split(","):
+            exact = tol_s == "exact"  # every tet at weight 1: the Galerkin reduced model without cubature error
+            tol = 0.5 if exact else float(tol_s)
             sub = train_subspace(model, modes=modes, modal_derivatives=True, cubature_tolerance=tol,
                                  max_cubature_points=args.scene_max_points, seed=0, snapshots=list(snaps),
                                  pose_source="random+snapshots", handles=sel,
                                  handle_targets_at=targets_at if sel else None, load_response=True, pod_modes=pod)
+            if exact:
+                sub = Subspace(sub.basis, Cubature.full(model.quadrature.num_elements), sub.mesh_hash, sub.material,
+                               sub.settings, sub.report, sub.lifting)
+                tol = "exact"
             rep = sub.report
             t_train = t_train_run + rep["basis_seconds"] + rep["cubature_seconds"]
             D = snapshot_displacements(model, xs, sub.lifting)
@@ -321,7 +356,8 @@ def _scene_report(key, scene, args, rows, *, N, T, peak, size, t_full, train_ste
     integ = scene.spec.integrator
     m = scene.mesh()
     head = (f"### {key} (examples/scenes/{SCENES[key][0]}): {m.num_elements} tets, {m.num_vertices} vertices\n\n"
-            f"{N} frames ({N * int(integ['substeps'])} backward Euler steps of {integ['dt']:.4g} s) of the scene; "
+            f"{N} frames ({N * int(integ['substeps'])} {scene.integrator_type} steps of {integ['dt']:.4g} s, the same integrator "
+            "and step for the full reference, the training run and the reduced runs) of the scene; "
             f"training run: {T} frames ({train_steps} full steps of {args.training_dt_scale} x dt, {t_train_run:.1f} s, "
             f"handles ramped over those {T} frames). Tip: vertex {tipv} (the free vertex that moved most), peak displacement {peak:.4g} m; size "
             f"(bbox diagonal) {size:.4g} m. Device: {device}. Full step {1e3 * t_full:.0f} ms. Errors are maxima over "
@@ -339,7 +375,7 @@ def _scene_report(key, scene, args, rows, *, N, T, peak, size, t_full, train_ste
     if args.out:
         os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
         with open(f"{args.out}_scene_{key}.json", "w") as f:
-            json.dump(dict(scene=key, frames=N, training_frames=T, device=device, peak_tip_displacement=peak, size=size,
+            json.dump(dict(scene=key, integrator=scene.integrator_type, frames=N, training_frames=T, device=device, peak_tip_displacement=peak, size=size,
                            full_step_ms=1e3 * t_full, training_run_s=t_train_run, rows=rows), f, indent=1)
         with open(f"{args.out}_scene_{key}.md", "w") as f:
             f.write(md)
@@ -359,6 +395,12 @@ def main():
     ap.add_argument("--scene-training-frames", type=int, default=None, help="override the training frames T")
     ap.add_argument("--training-dt-scale", type=int, default=1,
                     help="the training run steps k x dt over its T frames ([subspace] training_dt_scale)")
+    ap.add_argument("--integrator", default=None, choices=("backward_euler", "bdf2", "newmark"),
+                    help="scene rows: run the full reference, the training run and the reduced runs with this "
+                         "integrator (default: the scene's)")
+    ap.add_argument("--cache-runs", default=None,
+                    help="exploration only: store / reuse the reference and training runs in this folder "
+                         "(final rows run the reference in the same process: leave it off)")
     ap.add_argument("--beam-steps", type=int, default=30)
     ap.add_argument("--bunny-steps", type=int, default=12)
     ap.add_argument("--device", default="cpu")
