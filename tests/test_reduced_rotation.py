@@ -168,6 +168,7 @@ def test_ninety_degree_twist_needs_the_rotation_aware_lifting(tmp_path, monkeypa
     print("twist 90 degrees, tip error / peak (linear, rotation-aware):", errs)
     assert errs[0] > 0.3
     assert errs[7] < 0.06
+    assert "rotation-aware handle lifting (order 7)" in load_scene(path).describe()
     text = open(path).read()
     open(path, "w").write(text.replace("rotation_lifting = 7", "rotation_lifting = 5"))
     with pytest.raises(SceneError, match=r"rotation_lifting: cache 7 vs scene 5"):

@@ -318,7 +318,8 @@ def describe_subspace(scene) -> str:
     lines = [f"reduced: [subspace] r = {s['modes']}{f' + {pod} POD' if pod else ''} "
              f"(modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
              f"cubature tolerance {s['cubature_tolerance']:g}, at most {s['max_cubature_points']} points, "
-             f"training {s['training']}"]
+             f"training {s['training']}"
+             + (f", rotation-aware handle lifting (order {s['rotation_lifting']})" if s.get("rotation_lifting") else "")]
     if scene.integrator_type not in ("backward_euler", "bdf2", "newmark"):
         lines.append(f"  error: [subspace] needs [integrator] type = \"backward_euler\", \"bdf2\" or \"newmark\", "
                      f"got {scene.integrator_type!r}")
