@@ -198,6 +198,7 @@ def _report(key, obj, args, rows, *, steps, peak, size, t_full, t_snap, partial)
 SCENES = {  # name: (scene file, reference frames N, training frames T)
     "thin_cantilever": ("thin_cantilever.toml", 48, 48),
     "octopus_reduced": ("octopus_reduced.toml", 48, 48),
+    "thin_cantilever_fine": ("thin_cantilever_fine.toml", 48, 48),
     "octopus": ("octopus.toml", 96, 48),
     "bunny": ("bunny.toml", 8, 4),
 }
