@@ -78,7 +78,7 @@ def main(argv=None):
 
     def warp_forces():
         f.zero_()
-        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, *sim._qp_args, sim._s(1.0), f], device=dev)
+        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, sim._points, sim._material, sim._s(1.0), f], device=dev)
         wp.synchronize_device(dev)
 
     def warp_hessian():
@@ -95,12 +95,12 @@ def main(argv=None):
 
     t_wf = timeit(warp_forces, args.repeats)
     t_wh = timeit(warp_hessian, max(3, args.repeats // 4))
-    t_nf = timeit(lambda: numpy_snh_forces(Xd, tets, xd, mat.mu, mat.lam, Dmi, vold), 3)
-    t_nh = timeit(lambda: numpy_linear_hessian_blocks(gd, vold, mat.mu, mat.lam), 3)
+    t_nf = timeit(lambda: numpy_snh_forces(Xd, tets, xd, mat.kernel_mu, mat.kernel_lam, Dmi, vold), 3)
+    t_nh = timeit(lambda: numpy_linear_hessian_blocks(gd, vold, mat.kernel_mu, mat.kernel_lam), 3)
 
     # correctness guard: Warp and numpy forces agree (stable neo-Hookean only)
     if args.material == "stable_neo_hookean":
-        ref = numpy_snh_forces(X, tets, x_np, mat.mu, mat.lam, Dm_inv, vol)
+        ref = numpy_snh_forces(X, tets, x_np, mat.kernel_mu, mat.kernel_lam, Dm_inv, vol)
         err = np.abs(sim.elastic_forces() - ref).max() / np.abs(ref).max()
         assert err < (1e-3 if args.precision == "float32" else 1e-9), err
 

@@ -160,7 +160,7 @@ def bench_force_hessian(mesh, mat, sim, x_np, args, s):
 
     def warp_forces():
         f.zero_()
-        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, *sim._qp_args, sim._s(1.0), f], device=dev)
+        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, sim._points, sim._material, sim._s(1.0), f], device=dev)
 
     def warp_hessian():
         vals.zero_()
@@ -172,11 +172,11 @@ def bench_force_hessian(mesh, mat, sim, x_np, args, s):
     g = sim.model.quadrature.qp_dNdX.reshape(m, 4, 3)
     dt = np.float32 if s == 4 else np.float64
     Xd, xd, Dmi, vold, gd = (a.astype(dt) for a in (X, x_np, Dm_inv, vol, g))
-    t_wf, t_nf = paired_time(warp_forces, lambda: numpy_snh_forces(Xd, tets, xd, mat.mu, mat.lam, Dmi, vold), dev,
+    t_wf, t_nf = paired_time(warp_forces, lambda: numpy_snh_forces(Xd, tets, xd, mat.kernel_mu, mat.kernel_lam, Dmi, vold), dev,
                              warp_repeats=args.repeats, numpy_repeats=1)
-    t_wh, t_nh = paired_time(warp_hessian, lambda: numpy_linear_hessian_blocks(gd, vold, mat.mu, mat.lam), dev,
+    t_wh, t_nh = paired_time(warp_hessian, lambda: numpy_linear_hessian_blocks(gd, vold, mat.kernel_mu, mat.kernel_lam), dev,
                              warp_repeats=max(2, args.repeats // 5), numpy_repeats=1)
-    ref = numpy_snh_forces(X, tets, x_np, mat.mu, mat.lam, Dm_inv, vol)
+    ref = numpy_snh_forces(X, tets, x_np, mat.kernel_mu, mat.kernel_lam, Dm_inv, vol)
     err = float(np.abs(sim.elastic_forces() - ref).max() / np.abs(ref).max())
     # compulsory bytes: x, X (n vec3), elements (4m), qp_element (m), dNdX (4m vec3), weight (m), f RMW
     b_in = 2 * n * 3 * s + 5 * m * I32 + 4 * m * 3 * s + m * s
@@ -289,11 +289,10 @@ def bench_cubature(mesh, model, x_np, args, precision, device, s):
 
     def warp_cubature():
         wp.launch(RK.cubature_element_kernel, dim=cf.c,
-                  inputs=[cf.U, cf._q, cf.elements, cf.cub_element, cf.cub_weight, cf.dNdX, cf.kind, cf.mu, cf.lam, 0, 1,
-                          cf._energy, cf._f, cf._H], device=cf.device)
+                  inputs=[cf.U, cf._q, cf.points, cf.material, 0, 1, cf._energy, cf._f, cf._H], device=cf.device)
         cf._force.zero_()
         wp.launch(RK.cubature_project_kernel, dim=(cf.c, cf.r),
-                  inputs=[cf.U, cf.elements, cf.cub_element, cf._f, cf._H, 0, cf._force, cf._K], device=cf.device)
+                  inputs=[cf.U, cf.points, cf._f, cf._H, 0, cf._force, cf._K], device=cf.device)
 
     # numpy baseline: the same sum over all elements with weight 1 (= the exact reduced force)
     dt = np.float32 if s == 4 else np.float64
@@ -306,7 +305,7 @@ def bench_cubature(mesh, model, x_np, args, precision, device, s):
 
     def numpy_cubature():
         x = Xd + U3 @ qd
-        f = numpy_snh_forces(Xd, tets, x, mat.mu, mat.lam, Dmi, vold)
+        f = numpy_snh_forces(Xd, tets, x, mat.kernel_mu, mat.kernel_lam, Dmi, vold)
         return np.einsum("nkr,nk->r", U3, f)
 
     t_w, t_n = paired_time(warp_cubature, numpy_cubature, cf.device, warp_repeats=max(2, args.repeats // 2),

@@ -139,6 +139,11 @@ def main(argv=None):
         base = None
     sys.path.insert(0, ROOT)
     new = measure(args.steps, ["backward_euler", "bdf2", "newmark"], args.device)
+    from warpfem.paths import portable_path  # this checkout's (the baseline's warpfem may predate it)
+
+    for d in (base, new):  # where each warpfem was, as results record paths (no absolute path of this machine)
+        if d:
+            d["warpfem"] = portable_path(d["warpfem"])
     print(f"480-tet cantilever, {new['device']} ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"load {os.getloadavg()[0]:.1f}); baseline {args.baseline}")
     print(f"{'':28s} {'ms/step':>8s} {'newton':>7s} {'cg/newton':>9s} {'launch/step':>11s} {'read/step':>9s} "

@@ -35,6 +35,13 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))  # this checkout's warpfem (for warpfem.paths only)
+from warpfem.paths import portable_message, portable_path  # noqa: E402
+
+
+def shown_command(cmd) -> str:
+    """The command as the summary records it: no absolute path of this machine (see warpfem.paths)."""
+    return " ".join(portable_path(a) if os.path.isabs(a) else a for a in cmd[1:])
 
 
 def flags(script: str, candidates):
@@ -129,7 +136,7 @@ def main(argv=None):
     for name, cmd, jpath, mpath in plan(args, out):
         if (only and name not in only) or name in skip:
             continue
-        print(f"[run_all] {name}: {' '.join(os.path.relpath(a, HERE.parent) if a.startswith(str(HERE.parent)) else a for a in cmd[1:])}", flush=True)
+        print(f"[run_all] {name}: {shown_command(cmd)}", flush=True)
         log = out / f"{name}.log"
         t0 = time.perf_counter()
         try:
@@ -141,11 +148,11 @@ def main(argv=None):
             stdout = exc.stdout.decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
             stderr = exc.stderr.decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
         secs = time.perf_counter() - t0
+        stdout, stderr = portable_message(stdout), portable_message(stderr)  # e.g. Warp's kernel cache: ~/.cache/...
         if "SKIP:" in stdout:
             status = "skipped: " + stdout.split("SKIP:", 1)[1].strip().splitlines()[0]
         log.write_text(stdout + ("\n--- stderr ---\n" + stderr if stderr.strip() else ""))
-        shown = " ".join(os.path.relpath(a, HERE.parent) if a.startswith(str(HERE.parent)) else a for a in cmd[1:])
-        entry = dict(name=name, command=shown, status=status, seconds=round(secs, 1), log=str(log),
+        entry = dict(name=name, command=shown_command(cmd), status=status, seconds=round(secs, 1), log=portable_path(log),
                      run_started=summary["started"])
         if jpath is not None and Path(jpath).exists() and Path(jpath).stat().st_mtime >= time.time() - secs - 1:
             try:

@@ -159,7 +159,7 @@ def test_hex8_scene_end_to_end_writes_valid_clipped_usd(tmp_path):
     assert sorted(os.listdir(tmp_path / "hex.clips")) == ["clip_000000.usdc", "clip_000001.usdc", "manifest.usda"]
     st = np.load(states)
     assert st["positions"].shape == (4, 20, 3)  # 5 x 2 x 2 hex nodes
-    from warpfem.elements import box_hex_mesh
+    from warpfem.mesh import box_hex_mesh
     from warpfem.skinning import embed_points_in_mesh, load_surface
 
     emb = embed_points_in_mesh(load_surface(tmp_path / "s.obj")[0], box_hex_mesh(size=(1, .2, .2), cells=(4, 1, 1)))

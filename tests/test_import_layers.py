@@ -20,6 +20,7 @@ ROOT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
 LAYERS = {
     "warpfem.device": 0,
     "warpfem.progress": 0,
+    "warpfem.paths": 0,
     "warpfem.mesh": 1,
     "warpfem.materials": 1,
     "warpfem.integrators": 1,

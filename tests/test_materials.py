@@ -88,7 +88,7 @@ def test_hessian_matches_fd_of_pk1(name):
 def test_projection_is_numerical_eigen_clamp(name):
     m = mat(name)
     F = np.concatenate([sample_F(), 0.4 * sample_F()[:3]])  # compressed ones have negative modes
-    r = evaluate(m.kind, F, m.mu, m.lam, outputs=("hessian", "hessian_projected"))
+    r = evaluate(m.kind, F, m.kernel_mu, m.kernel_lam, outputs=("hessian", "hessian_projected"))
     H, Hp = r["hessian"], r["hessian_projected"]
     clamped = 0
     for n in range(len(F)):
@@ -106,11 +106,11 @@ def test_stable_neo_hookean_hessian_at_identity():
     m = mat("stable_neo_hookean")
     mu_L, lam_L = 1.0, 10.0
     assert np.isclose(m.mu_lame, mu_L) and np.isclose(m.lam_lame, lam_L)
-    assert np.isclose(m.mu, mu_L) and np.isclose(m.lam, lam_L + mu_L)
+    assert np.isclose(m.kernel_mu, mu_L) and np.isclose(m.kernel_lam, lam_L + mu_L)
     w = np.sort(np.linalg.eigvalsh(m.hessian(np.eye(3))))
-    expected = np.sort([0.0] * 3 + [2 * m.mu] * 5 + [3 * m.lam - m.mu])
+    expected = np.sort([0.0] * 3 + [2 * m.kernel_mu] * 5 + [3 * m.kernel_lam - m.kernel_mu])
     assert np.allclose(w, expected, rtol=0, atol=1e-12)
-    assert np.isclose(3 * m.lam - m.mu, 3 * lam_L + 2 * mu_L)
+    assert np.isclose(3 * m.kernel_lam - m.kernel_mu, 3 * lam_L + 2 * mu_L)
     assert np.allclose(m.pk1(np.eye(3)), 0.0, atol=1e-14)
 
 
@@ -153,7 +153,7 @@ def test_rigid_rotation():
 )
 def test_stable_neo_hookean_uniaxial_reference(a, b_tab, P11_tab):
     m = mat("stable_neo_hookean")
-    mu, lam = m.mu, m.lam
+    mu, lam = m.kernel_mu, m.kernel_lam
     alpha = 1 + mu / lam
     b = np.sqrt((alpha * lam * a - mu) / (lam * a * a))
     assert abs(b - b_tab) < 6e-7
@@ -203,8 +203,8 @@ def test_float32_agrees_with_float64():
     F = sample_F()
     for name in NAMES:
         m = mat(name)
-        r64 = evaluate(m.kind, F, m.mu, m.lam, dtype=np.float64)
-        r32 = evaluate(m.kind, F, m.mu, m.lam, dtype=np.float32)
+        r64 = evaluate(m.kind, F, m.kernel_mu, m.kernel_lam, dtype=np.float64)
+        r32 = evaluate(m.kind, F, m.kernel_mu, m.kernel_lam, dtype=np.float32)
         for key in ("psi", "pk1", "hessian", "hessian_projected"):
             assert r32[key].dtype == np.float32 and r64[key].dtype == np.float64
             for n in range(len(F)):
@@ -266,7 +266,7 @@ def test_degenerate_F_stays_finite():
     F = np.array([np.zeros((3, 3)), np.diag([1.0, 1.0, 0.0]), np.diag([1.0, 1.0, -1.0]), 2.0 * np.eye(3), -np.eye(3)])
     for name in NAMES:
         m = mat(name)
-        r = evaluate(m.kind, F, m.mu, m.lam)
+        r = evaluate(m.kind, F, m.kernel_mu, m.kernel_lam)
         for key, v in r.items():
             assert np.all(np.isfinite(v)), (name, key)
         for n in range(len(F)):
@@ -303,10 +303,10 @@ def test_stable_neo_hookean_log_parameters_and_hessian_at_identity():
     m = mat("stable_neo_hookean_log")
     mu_L, lam_L = 1.0, 10.0
     assert np.isclose(m.mu_lame, mu_L) and np.isclose(m.lam_lame, lam_L)
-    assert np.isclose(m.mu, 4 / 3 * mu_L) and np.isclose(m.lam, lam_L + 5 / 6 * mu_L)
+    assert np.isclose(m.kernel_mu, 4 / 3 * mu_L) and np.isclose(m.kernel_lam, lam_L + 5 / 6 * mu_L)
     # paper's alpha = 1 + mu/lambda - mu/(4 lambda) makes P(I) = 0 exactly
-    alpha = 1 + m.mu / m.lam - m.mu / (4 * m.lam)
-    assert np.isclose(m.mu - m.mu / 4 + m.lam * (1 - alpha), 0.0, atol=1e-14)
+    alpha = 1 + m.kernel_mu / m.kernel_lam - m.kernel_mu / (4 * m.kernel_lam)
+    assert np.isclose(m.kernel_mu - m.kernel_mu / 4 + m.kernel_lam * (1 - alpha), 0.0, atol=1e-14)
     w = np.sort(np.linalg.eigvalsh(m.hessian(np.eye(3))))
     expected = np.sort([0.0] * 3 + [2 * mu_L] * 5 + [3 * lam_L + 2 * mu_L])
     assert np.allclose(w, expected, rtol=0, atol=1e-12)
@@ -318,7 +318,7 @@ def test_stable_neo_hookean_log_matches_textbook_formulas():
     F = np.concatenate([sample_F(), [2.5 * np.eye(3), 0.2 * np.eye(3), np.diag([3.0, 0.1, -0.5])]])
     psi, P = m.psi(F), m.pk1(F)
     for n, Fn in enumerate(F):
-        psi_ref, P_ref = snh_log_reference(Fn, m.mu, m.lam)
+        psi_ref, P_ref = snh_log_reference(Fn, m.kernel_mu, m.kernel_lam)
         assert abs(psi[n] - psi_ref) < 1e-12 * max(1.0, abs(psi_ref)), n
         assert np.allclose(P[n], P_ref, rtol=0, atol=1e-12 * max(1.0, np.abs(P_ref).max())), n
 
@@ -330,11 +330,11 @@ def test_stable_neo_hookean_log_origin_is_a_saddle_not_a_minimum():
     log, plain = mat("stable_neo_hookean_log"), mat("stable_neo_hookean")
     Z = np.zeros((3, 3))
     assert np.all(log.pk1(Z) == 0.0) and np.all(log.hessian(Z) == 0.0)
-    alpha = 1 + 0.75 * log.mu / log.lam
+    alpha = 1 + 0.75 * log.kernel_mu / log.kernel_lam
     for eps in (1e-3, 1e-2, 0.1):
         d_log = log.psi(eps * np.eye(3)) - log.psi(Z)
         assert d_log < 0.0
-        assert abs(d_log / (-log.lam * alpha * eps ** 3) - 1.0) < 10 * eps, eps
+        assert abs(d_log / (-log.kernel_lam * alpha * eps ** 3) - 1.0) < 10 * eps, eps
         assert plain.psi(eps * np.eye(3)) - plain.psi(Z) > 0.0
 
 
@@ -363,7 +363,7 @@ def test_stable_neo_hookean_log_finite_uniaxial(a):
     from scipy.optimize import brentq
 
     m = mat("stable_neo_hookean_log")
-    mu, lam = m.mu, m.lam
+    mu, lam = m.kernel_mu, m.kernel_lam
     alpha = 1 + 0.75 * mu / lam
 
     def p22(b):
@@ -385,12 +385,12 @@ def test_stable_neo_hookean_log_float32_energy_is_accurate_at_small_strain():
     rng = np.random.default_rng(7)
     F = np.array([np.eye(3) + s * rng.normal(size=(3, 3)) for s in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6)])
     F = F.astype(np.float32).astype(np.float64)
-    p64 = evaluate(m.kind, F, m.mu, m.lam, outputs=("psi",))["psi"]
-    p32 = evaluate(m.kind, F, m.mu, m.lam, dtype=np.float32, outputs=("psi",))["psi"]
+    p64 = evaluate(m.kind, F, m.kernel_mu, m.kernel_lam, outputs=("psi",))["psi"]
+    p32 = evaluate(m.kind, F, m.kernel_mu, m.kernel_lam, dtype=np.float32, outputs=("psi",))["psi"]
     assert np.all(p64 > 0)
     assert np.max(np.abs(p32 - p64) / p64) < 2e-6
     # and float64 agrees with the textbook formula where that is still accurate (strain 1e-2)
-    assert abs(p64[0] - snh_log_reference(F[0], m.mu, m.lam)[0]) < 1e-9 * p64[0]
+    assert abs(p64[0] - snh_log_reference(F[0], m.kernel_mu, m.kernel_lam)[0]) < 1e-9 * p64[0]
 
 
 def test_stable_neo_hookean_log_volumetric_split_is_exact_and_psd_at_rest():
@@ -400,7 +400,7 @@ def test_stable_neo_hookean_log_volumetric_split_is_exact_and_psd_at_rest():
     F = np.concatenate([sample_F(), [0.3 * np.eye(3)]])
     full = evaluate(m.kind, F, mu_f, lam_f)
     vol = evaluate(m.kind, F, mu_v, lam_v)
-    whole = evaluate(m.kind, F, m.mu, m.lam)
+    whole = evaluate(m.kind, F, m.kernel_mu, m.kernel_lam)
     for key in ("psi", "pk1", "hessian"):
         assert np.allclose(full[key] + vol[key], whole[key], rtol=0, atol=1e-12 * np.abs(whole[key]).max()), key
     J = np.linalg.det(F)

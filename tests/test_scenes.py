@@ -244,7 +244,7 @@ def test_integrator_registry_is_extensible(tmp_path):
     ("hex27", 4, 9 * 3 * 3, 27, 27),
 ])
 def test_element_types_build_and_describe(tmp_path, element, elements, vertices, k, q):
-    from warpfem.elements import tet10_from_tet4
+    from warpfem.mesh import tet10_from_tet4
     from warpfem.mesh import box_tet_mesh
 
     if element == "tet10":  # vertices = corners + one mid-node per unique edge of the 24 tets

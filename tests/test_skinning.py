@@ -219,7 +219,7 @@ def test_skinner_rejects_wrong_input():
 # ----------------------------------------------------------------------------- every element type
 def _element_mesh(etype):
     """A small mesh of each element type; hexes with a moved interior node (non-affine elements)."""
-    from warpfem.elements import ElementMesh, box_hex_mesh, tet10_from_tet4
+    from warpfem.mesh import ElementMesh, box_hex_mesh, tet10_from_tet4
     from warpfem.mesh import box_tet_mesh
 
     if etype in ("tet4", "tet10"):
@@ -276,7 +276,7 @@ def test_hex27_skinning_follows_quadratic_motion():
     """Beyond affine: a Hex27 embedding reproduces a quadratic displacement field exactly."""
     from warpfem.skinning import embed_points_in_mesh
 
-    from warpfem.elements import box_hex_mesh
+    from warpfem.mesh import box_hex_mesh
 
     # on an undistorted grid the map from reference coordinates is affine, so a field quadratic in X
     # is quadratic in the reference coordinates: exactly representable by the 27 shape functions

@@ -36,9 +36,26 @@ def test_auto_rule_direct_for_small_cpu_systems_only():
     assert pinned._pcg.active == "pcg"
 
 
+def test_auto_that_stays_direct_allocates_no_pcg_workspace():
+    """A small CPU system starts direct; the PCG workspace (vectors, block-Jacobi diagonal) is only
+    made when PCG is first used, and the steps agree with the direct solver's."""
+    sims = {name: wf.Simulator(_beam(), linear_solver=name, dt=0.01) for name in ("auto", "direct")}
+    solver = sims["auto"]._pcg
+    assert solver.active == "direct" and solver.pcg is None and solver._inv_diag is None
+    for _ in range(3):
+        for sim in sims.values():
+            assert sim.step().converged
+    assert solver.active == "direct" and solver.pcg is None and solver._inv_diag is None
+    assert solver.direct.prepare_count >= 3
+    x_auto, x_direct = sims["auto"].positions(), sims["direct"].positions()
+    assert np.abs(x_auto - sims["auto"].model.rest_positions).max() > 1e-4  # it moved
+    np.testing.assert_array_equal(x_auto, x_direct)
+
+
 def test_auto_hands_an_indefinite_system_to_pcg_for_good():
     sim = wf.Simulator(_beam(), linear_solver="auto", dt=0.01)
     solver = sim._pcg
+    assert solver.active == "direct" and solver.pcg is None  # small CPU system: no PCG workspace yet
     vals = sim._pattern.new_values()
     sim._assemble_stiffness(sim.x, 1e-4, vals)
     wp.launch(LK.add_scaled_kernel, dim=sim._pattern.nnz, inputs=[sim._mass_values, sim._s(1.0), vals])
@@ -47,7 +64,7 @@ def test_auto_hands_an_indefinite_system_to_pcg_for_good():
     b = sim._vec_array(np.random.default_rng(1).standard_normal((sim.num_vertices, 3)) * (~sim.model.fixed))
     x = sim._vec_array()
     res = solver.solve(neg, sim._mask, b, x, tol=1e-8, maxiter=200)
-    assert solver.active == "pcg" and not solver._may_switch
+    assert solver.active == "pcg" and not solver._may_switch and solver.pcg is not None  # made on first use
     assert res.failed == ""  # PCG ran (it reports negative curvature, not a failed factorisation)
     res = solver.solve(vals, sim._mask, b, x, tol=1e-10, maxiter=2000)  # an SPD system later: still PCG
     assert solver.active == "pcg" and res.converged and res.iterations > 1
@@ -88,3 +105,39 @@ def test_cached_launch_repacks_changed_arguments():
         launch(LK.lincomb_kernel, n, [wp.float64(a), xs[xi], wp.float64(b), xs[yi], out], "cpu")
         expect.append(a * xs[xi].numpy() + b * xs[yi].numpy())
         np.testing.assert_allclose(out.numpy(), expect[-1], rtol=1e-14, atol=1e-14)
+
+
+def test_cached_launch_with_kernel_structs(monkeypatch):
+    """The quadrature-point kernels take ``QuadraturePoints`` / ``MaterialParams`` structs. The launch
+    cache does not re-pack a struct passed again (its packed parameter is the instance's own C buffer),
+    yet a field assigned in place and a new instance are both what the next launch computes with."""
+    from warpfem.kernels import fem as FK
+    from warpfem.kernels.structs import MaterialParams64, material_params
+
+    sim = wf.Simulator(_beam(), precision="float64")
+    x = sim.new_vector(sim.positions() * np.array([1.1, 0.95, 1.0]))
+    P = wp.zeros(sim.num_points, dtype=wp.mat33d)
+    mat = material_params(wp.float64, sim.model.material.kind, sim.model.material.kernel_mu,
+                          sim.model.material.kernel_lam)
+    assert isinstance(mat, MaterialParams64.instance_type)
+
+    def stress(material):
+        launch(FK.qp_stress_kernel, sim.num_points, [x, sim._points, material, P], "cpu")
+        return P.numpy().copy()
+
+    reference = sim.stresses(sim.positions() * np.array([1.1, 0.95, 1.0]))  # the simulator's own structs
+    base = stress(mat)
+    np.testing.assert_allclose(base, reference, rtol=1e-13, atol=0.0)
+    repacked = []
+    original = wp.Launch.set_param_at_index
+    monkeypatch.setattr(wp.Launch, "set_param_at_index",
+                        lambda self, i, v, *a, **k: (repacked.append(i), original(self, i, v, *a, **k))[1])
+    np.testing.assert_array_equal(stress(mat), base)
+    assert repacked == []  # nothing changed: nothing re-packed
+    mat.mu = 2.0 * sim.model.material.kernel_mu  # in place: seen without a re-pack
+    doubled = stress(mat)
+    assert repacked == [] and np.abs(doubled - base).max() > 0.1 * np.abs(base).max()
+    other = material_params(wp.float64, sim.model.material.kind, 2.0 * sim.model.material.kernel_mu,
+                            sim.model.material.kernel_lam)
+    np.testing.assert_allclose(stress(other), doubled, rtol=1e-14, atol=0.0)  # a new instance: re-packed
+    assert repacked == [2]

@@ -11,7 +11,7 @@ import pytest
 from warpfem.mesh import MeshError, MesherNotInstalled, check_surface, load_mesh, tet_volumes, tetrahedralize
 import warpfem.mesh.tetrahedralization as T
 from warpfem.mesh import tetrahedralize_file
-from warpfem.mesh.tetmesh import boundary_faces
+from warpfem.mesh import boundary_faces
 
 CUBE_V = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
                    [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], dtype=np.float64)

@@ -98,6 +98,8 @@ def test_json_round_trip(study, tmp_path):
             "energy_drift", "status", "config"} <= set(data["results"][0])
     back = load_study(p)
     assert back.to_dict() == study.to_dict()
+    # no path of this machine: the scene (in the temporary folder here) is recorded by its file name
+    assert data["scene"] == "<tmp>/beam.toml" and str(tmp_path.parent.parent) not in p.read_text()
     assert [r.name for r in back.results] == [r.name for r in study.results]
     data["schema"] = "something else"
     with pytest.raises(ValueError, match="schema"):
@@ -195,3 +197,12 @@ def test_set_quantity_recomputes_the_frontier(study, tmp_path):
     assert sum(r.on_frontier for r in s.results) == len(idx)
     with pytest.raises(GridError):
         set_quantity(s, "colour")
+
+
+def test_recorded_settings_hold_no_machine_path(tmp_path):
+    """A reduced variant's subspace cache lives in a temporary folder: the result records it portably."""
+    from warpfem.tradeoff.runner import _recorded_subspace
+
+    rec = _recorded_subspace({"modes": 20, "cache": str(tmp_path / "run" / "subspace_modes20.npz")})
+    assert rec == {"modes": 20, "cache": "<tmp>/subspace_modes20.npz"}
+    assert _recorded_subspace(None) is None

@@ -12,7 +12,8 @@ except ModuleNotFoundError:  # Python 3.10
 import pytest
 
 from warpfem.tradeoff import TradeoffConfig, TruthSpec, scene_document
-from warpfem.tradeoff.study import _cfg, _REFERENCE, finish_reference, make_job, plan_reference, run_job
+from warpfem.tradeoff.grid import _cfg, _REFERENCE
+from warpfem.tradeoff.study import finish_reference, make_job, plan_reference, run_job
 from warpfem.tradeoff.tune import rerun_error, search_space, toml_dumps, tune, write_scene
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -80,6 +81,24 @@ def test_looser_budget_is_not_costlier(results):
                 assert x["work"] >= r.winner["work"]
         # no whole grid: fewer run-frames than every candidate over every frame
         assert r.search["frame_runs"] < r.search["whole_grid_frame_runs"]
+
+
+def test_recorded_paths_are_repository_relative(results, tmp_path):
+    """A TuneResult's JSON names the scene relative to the repository (no path of this machine), and
+    one read back from that JSON still finds the scene file to write the winner."""
+    import json
+
+    from warpfem.tradeoff.tune import TuneResult
+
+    r = results[0.25]
+    assert r.scene == "examples/scenes/cantilever.toml" and r.scene_file() == CANTILEVER
+    assert ROOT not in json.dumps(r.to_dict())
+    back = TuneResult(**json.loads(json.dumps(r.to_dict())))
+    assert back.scene_file() == CANTILEVER
+    write_scene(back, tmp_path / "again.toml")
+    assert back.scene_out == "<tmp>/again.toml"
+    with open(tmp_path / "again.toml", "rb") as f:
+        assert tomllib.load(f)["mesh"]["element"] == (back.winner_config().element or "tet4")
 
 
 def test_search_space_follows_the_registries(monkeypatch):

@@ -20,9 +20,9 @@ from warpfem.materials import (
     StVenantKirchhoff,
     make_material,
 )
-from warpfem.mesh import MeshError, TetMesh, box_tet_mesh, load_mesh, save_mesh, select_vertices_in_box
-from warpfem.elements import (ElementMesh, box_hex_mesh, embed_points_in_elements, load_element_mesh,
-                              save_element_mesh, tet10_from_tet4)
+from warpfem.mesh import (ElementMesh, MeshError, TetMesh, VolumeMesh, box_hex_mesh, box_tet_mesh,
+                          embed_points_in_elements, load_element_mesh, load_mesh, save_element_mesh, save_mesh,
+                          select_vertices_in_box, tet10_from_tet4)
 from warpfem.model import Model
 from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
 from warpfem.simulator import Simulator
@@ -56,6 +56,7 @@ __all__ = [
     "StableNeoHookeanLog",
     "StiffnessWarpingSimulator",
     "TetMesh",
+    "VolumeMesh",
     "box_tet_mesh",
     "load_mesh",
     "make_material",

@@ -6,6 +6,7 @@ import numpy as np
 import scipy.sparse
 
 from warpfem.elements import precompute_quadrature
+from warpfem.mesh.mass import MASS_MATRIX_KINDS, mass_matrices
 
 _COMPONENTS = {"x": 0, "y": 1, "z": 2}
 
@@ -22,13 +23,14 @@ class Model:
     """A deformable body ready to simulate: mesh + material + fixed DOFs + loads.
 
     Args:
-        mesh: a volume mesh (``TetMesh`` or any mesh with ``vertices``, ``elements`` and
-            ``element_type``), positions in m.
+        mesh: a volume mesh (``warpfem.mesh.VolumeMesh`` of any element type, or any object with
+            ``vertices``, ``elements`` and ``element_type``), positions in m.
         material: a material from ``warpfem.materials`` (carries the density, kg/m^3).
         gravity: acceleration (m/s^2), applied as lumped-mass body force (the total equals
             rho g V exactly for either mass matrix).
-        mass_matrix: "lumped" (diagonal, row sums) or "consistent" (the linear-tet consistent mass,
-            rho V / 20 (1 + delta_ij) per tet; Zienkiewicz & Taylor, "The Finite Element Method").
+        mass_matrix: "lumped" (diagonal: the element type's lumping) or "consistent" (rho int N_a N_b dV;
+            Tet4: rho V / 20 (1 + delta_ij) per tet; Zienkiewicz & Taylor, "The Finite Element
+            Method"); ``warpfem.mesh.mass``.
         volumetric_integration: "full" or "reduced" (Hex8 meshes only, any material with
             ``volumetric_split()``, 0 <= nu < 0.5): selective reduced integration, the energy split
             exactly into a lambda-scaled volumetric part on 1 point per element and the rest on
@@ -39,9 +41,9 @@ class Model:
 
     def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped",
                  volumetric_integration: str = "full"):
-        if mass_matrix not in ("lumped", "consistent"):
+        if mass_matrix not in MASS_MATRIX_KINDS:
             raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
-        for attr in ("kind", "mu", "lam", "density"):
+        for attr in ("kind", "kernel_mu", "kernel_lam", "density"):
             if not hasattr(material, attr):
                 raise TypeError(f"material must be a warpfem material (missing {attr!r}), got {type(material).__name__}")
         g = np.asarray(gravity, dtype=np.float64)
@@ -69,7 +71,7 @@ class Model:
         self.volumetric_integration = volumetric_integration
         self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, mesh.element_type,
                                                 volumetric_integration=volumetric_integration)
-        self.lumped_mass, self.mass = self._mass_matrices()
+        self.lumped_mass, self.mass = mass_matrices(mesh, material.density, mass_matrix)
         # gravity is M (1 x g) with the chosen mass matrix, so free fall is exact with either; this is
         # lumped_mass except for Tet10/Hex27 with the consistent mass (rho g int N_a dV there).
         self.gravity_mass = np.asarray(self.mass.sum(axis=1), dtype=np.float64).ravel()
@@ -77,11 +79,6 @@ class Model:
         self.forces = np.zeros((self.num_vertices, 3))
 
     # -- rest state -----------------------------------------------------------------------------
-    def _mass_matrices(self):
-        from warpfem.elements import mass_matrices  # every element type (Tet4: closed form)
-
-        return mass_matrices(self, self.material.density)
-
     @property
     def total_mass(self) -> float:
         """kg."""

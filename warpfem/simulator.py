@@ -29,6 +29,7 @@ from warpfem.kernels import fem as FK
 from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
+from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.linear import make_linear_solver
@@ -40,13 +41,16 @@ from warpfem.solvers.sparse import BlockPattern
 class QuadratureSet(NamedTuple):
     """One set of quadrature points the element kernels run over (``Simulator._qp_sets``).
 
-    count: number of points (the launch dimension); args: the kernels' arguments after the
-    positions x, in order: rest positions X, connectivity, nodes per element k, point -> element,
-    point weight (Gauss weight x det J), dN/dX per point and node, material kind, kernel_mu,
-    kernel_lam; energy: per-point energy buffer (J). Unpacks as ``count, args, energy``."""
+    count: number of points (the launch dimension); points: its ``QuadraturePoints32/64`` struct
+    (rest positions, connectivity, nodes per element k, point -> element, weights, dN/dX);
+    material: its ``MaterialParams32/64`` struct (kind, kernel mu, kernel lam; for selective
+    reduced integration the split parameters of the set); energy: per-point energy buffer (J).
+    The structs (``warpfem.kernels.structs``) are built once here and never changed, so the
+    recorded launches of ``kernels.generic.launch`` reuse them without re-packing."""
 
     count: int
-    args: list
+    points: object
+    material: object
     energy: object
 
 
@@ -101,8 +105,11 @@ class Simulator(SimulatorState):
         self._qp_dNdX = wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev)
         self._k = qd.nodes_per_element
         self._x_rest = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev)
-        self._qp_args = [self._x_rest, self._elements, self._k, self._qp_element, self._qp_weight, self._qp_dNdX,
-                         int(mat.kind), self._s(mat.kernel_mu), self._s(mat.kernel_lam)]
+        # the kernels' shared arguments as structs (warpfem.kernels.structs): the main point set and
+        # the full material (stresses() and, without selective reduced integration, everything)
+        self._points = quadrature_points(self._s, self._x_rest, self._elements, self._k, self._qp_element,
+                                         self._qp_weight, self._qp_dNdX)
+        self._material = material_params(self._s, mat.kind, mat.kernel_mu, mat.kernel_lam)
         self._pattern = BlockPattern(qd.elements, qd.nodes_per_element, n, device=dev, block_type=self._mat)
         self._mass_values = self._pattern.values_from_scalar_matrix(model.mass)
         self._hess_values = self._pattern.new_values()
@@ -110,24 +117,25 @@ class Simulator(SimulatorState):
         self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
                                        positions=model.rest_positions, **simulator_options(linear_solver, linear_solver_options))
         self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
-        # quadrature-point sets the kernels run over: (count, args, energy buffer). Selective reduced
+        # quadrature-point sets the kernels run over: (count, points, material, energy buffer). Selective reduced
         # integration (qd.volumetric) runs the same material kernels with the split parameters of
         # model.volumetric_parameters (Material.volumetric_split): the remaining part on the full
         # rule, the volumetric part on the 1-point rule; energy, force and Hessian are sums over the
         # sets (the Hessian of each part SPD-projected on its own). stresses() evaluates the full
         # material at the main (full-rule) points.
-        self._qp_sets = [QuadratureSet(self._qp_count, self._qp_args, self._energy_q)]
+        self._qp_sets = [QuadratureSet(self._qp_count, self._points, self._material, self._energy_q)]
         if getattr(qd, "volumetric", None) is not None:
             vq = qd.volumetric
             split = getattr(model, "volumetric_parameters", None) or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
             (mu_f, lam_f), (mu_v, lam_v) = split
-            vargs = [self._x_rest, self._elements, self._k, wp.array(vq.qp_element, dtype=wp.int32, device=dev),
-                     wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),
-                     wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev),
-                     int(mat.kind), self._s(mu_v), self._s(lam_v)]
-            main = self._qp_args[:7] + [self._s(mu_f), self._s(lam_f)]
-            self._qp_sets = [QuadratureSet(self._qp_count, main, self._energy_q),
-                             QuadratureSet(vq.num_points, vargs, wp.zeros(vq.num_points, dtype=self._s, device=dev))]
+            vpoints = quadrature_points(self._s, self._x_rest, self._elements, self._k,
+                                        wp.array(vq.qp_element, dtype=wp.int32, device=dev),
+                                        wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),
+                                        wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev))
+            self._qp_sets = [QuadratureSet(self._qp_count, self._points, material_params(self._s, mat.kind, mu_f, lam_f),
+                                           self._energy_q),
+                             QuadratureSet(vq.num_points, vpoints, material_params(self._s, mat.kind, mu_v, lam_v),
+                                           wp.zeros(vq.num_points, dtype=self._s, device=dev))]
 
         def vec_array(a=None):
             return wp.zeros(n, dtype=self._vec, device=dev) if a is None else wp.array(np.asarray(a, dtype=self._np), dtype=self._vec, device=dev)
@@ -182,16 +190,17 @@ class Simulator(SimulatorState):
 
     def _elastic_energy(self, x):
         parts = []
-        for count, args, buf in self._qp_sets:
-            launch(FK.qp_energy_kernel, dim=count, inputs=[x, *args, buf], device=self.device)
+        for count, points, material, buf in self._qp_sets:
+            launch(FK.qp_energy_kernel, dim=count, inputs=[x, points, material, buf], device=self.device)
             parts.append(buf.numpy().astype(np.float64))
         e = np.concatenate(parts)
         return float(e.sum()), float(np.abs(e).sum())
 
     def _assemble_stiffness(self, x, scale, values):
-        for count, args, _ in self._qp_sets:
-            launch(FK.qp_hessian_kernel, count, [x, *args, self._s(scale), int(self.options.project_hessian),
-                                                 self._pattern.block_index, values], self.device)
+        for qs in self._qp_sets:
+            launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self._s(scale),
+                                                    int(self.options.project_hessian), self._pattern.block_index, values],
+                   self.device)
 
     # -- public hooks for benchmarks and tools (device arrays, no copies) ----------------------------
     @property
@@ -229,16 +238,15 @@ class Simulator(SimulatorState):
         """Internal elastic forces -dV/dx (N) at x (default: current positions), (n, 3)."""
         xa = self.x if x is None else self._vec_array(x)
         f = self._vec_array()
-        for count, args, _ in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=count, inputs=[xa, *args, self._s(1.0), f], device=self.device)
+        for qs in self._qp_sets:
+            launch(FK.qp_force_kernel, dim=qs.count, inputs=[xa, qs.points, qs.material, self._s(1.0), f], device=self.device)
         return f.numpy().astype(np.float64)
 
     def stresses(self, x=None) -> np.ndarray:
         """First Piola-Kirchhoff stress (Pa) at every quadrature point, (Q, 3, 3)."""
         xa = self.x if x is None else self._vec_array(x)
         P = wp.zeros(self._qp_count, dtype=self._mat, device=self.device)
-        a = self._qp_args
-        launch(FK.qp_stress_kernel, dim=self._qp_count, inputs=[xa, a[0], a[1], a[2], a[3], a[5], a[6], a[7], a[8], P], device=self.device)
+        launch(FK.qp_stress_kernel, dim=self._qp_count, inputs=[xa, self._points, self._material, P], device=self.device)
         return P.numpy().astype(np.float64)
 
     def elastic_energy(self, x=None) -> float:
@@ -315,8 +323,9 @@ class Simulator(SimulatorState):
         Rayleigh damping alpha M + beta K(x): the acceleration of the current state (Newmark's a_0)."""
         n = self.num_vertices
         rhs = self._vec_array()
-        for count, args, _ in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=count, inputs=[self.x, *args, self._s(1.0), rhs], device=self.device)
+        for qs in self._qp_sets:
+            launch(FK.qp_force_kernel, dim=qs.count, inputs=[self.x, qs.points, qs.material, self._s(1.0), rhs],
+                   device=self.device)
         launch(LK.axpy_kernel, dim=n, inputs=[self._s(self.load_scale), self._fext, rhs], device=self.device)
         if self.damping_mass != 0.0:
             self._bsr_mv(self._mass_values, self.v, -self.damping_mass, rhs)

@@ -10,7 +10,7 @@ Each ``.vtu`` (written with meshio, binary, zlib-compressed) holds the **current
 as its points (so ParaView shows the deformed body as it plays the collection), the elements as
 VTK cells (``tet4`` -> VTK_TETRA, ``tet10`` -> VTK_QUADRATIC_TETRA, ``hex8`` -> VTK_HEXAHEDRON,
 ``hex27`` -> VTK_TRIQUADRATIC_HEXAHEDRON; warpfem's node order is VTK's, see
-``warpfem.elements.library``), and
+``warpfem.mesh.element_types``), and
 
 * point data ``displacement`` (x - X, m) and ``velocity`` (m/s);
 * cell data ``J`` (det F, rest-volume weighted mean over the element's quadrature points, i.e.
@@ -153,21 +153,22 @@ class VtuSeriesWriter:
     """
 
     def __init__(self, path, *, cells, element_type: str, compression: str | None = "zlib"):
-        from warpfem.elements.library import MESHIO_CELL_TYPE, NODES_PER_ELEMENT
+        from warpfem.mesh.element_types import ELEMENTS
 
         path = os.fspath(path)
         if not path.lower().endswith(".pvd"):
             raise VtuWriterError(f"{path}: a ParaView collection must end in .pvd")
-        if element_type not in MESHIO_CELL_TYPE:
-            raise VtuWriterError(f"element_type must be one of {sorted(MESHIO_CELL_TYPE)}, got {element_type!r}")
-        k = NODES_PER_ELEMENT[element_type]
+        if element_type not in ELEMENTS:
+            raise VtuWriterError(f"element_type must be one of {sorted(ELEMENTS)}, got {element_type!r}")
+        element = ELEMENTS[element_type]
+        k = element.nodes_per_element
         cells = np.asarray(cells, dtype=np.int64)
         if cells.ndim == 1 and cells.size % k == 0:
             cells = cells.reshape(-1, k)
         if cells.ndim != 2 or cells.shape[1] != k or len(cells) == 0:
             raise VtuWriterError(f"cells must have shape (m, {k}) for {element_type}, got {cells.shape}")
         self.path = path
-        self.cell_type = MESHIO_CELL_TYPE[element_type]
+        self.cell_type = element.meshio_cell
         self.cells = cells
         self.num_points = int(cells.max()) + 1
         self.compression = compression

@@ -1,15 +1,7 @@
 """Warp kernels. ``fem``: per-quadrature-point energy, force and Hessian assembly;
 ``linalg``: vector and block-sparse operations used by the solvers; ``warping``: stiffness warping;
-``subspace``: cubature forces and reconstruction of subspace (model-reduced) simulation.
+``subspace``: cubature forces and reconstruction of subspace (model-reduced) simulation;
+``structs``: the Warp structs that bundle the arguments the quadrature-point (and warping) kernels share.
 
 Vocabulary: "subspace" is model reduction (x = X + U q); "selective reduced integration" (SRI) is
 the Hex8 quadrature with a separate one-point volumetric set (``QuadratureData.volumetric``)."""
-
-
-def __getattr__(name):
-    # Transitional alias for code written before the rename (``from warpfem.kernels import reduced``).
-    if name == "reduced":
-        from . import subspace
-
-        return subspace
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

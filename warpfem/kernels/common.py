@@ -8,6 +8,8 @@ deformation gradient from displacements,
 with the flat connectivity ``elements`` of stride ``k`` (nodes per element) and the per-point
 shape-function gradients ``qp_dNdX[q * k + a]`` (docs/design.md). For Tet4 (k = 4, one point per
 element, q = e) this is F = Ds Dm^-1 exactly. Generic over float32/float64.
+``point_deformation_gradient(x, points, q)`` is the same for a ``QuadraturePoints`` struct
+(``warpfem.kernels.structs``), the form the kernels of ``fem.py`` use.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ from typing import Any
 
 import warp as wp
 
-__all__ = ["qp_deformation_gradient"]
+__all__ = ["qp_deformation_gradient", "point_deformation_gradient"]
 
 
 @wp.func
@@ -41,3 +43,10 @@ def qp_deformation_gradient(
         F += wp.outer(x[n] - X[n], qp_dNdX[q * k + a])
     one = type(g0[0])(1.0)
     return F + wp.diag(type(g0)(one, one, one))
+
+
+@wp.func
+def point_deformation_gradient(x: wp.array(dtype=Any), points: Any, q: int):
+    """F at point q of a ``QuadraturePoints32/64`` set (``warpfem.kernels.structs``): the prologue
+    of the quadrature-point kernels, ``qp_deformation_gradient`` with the set's arrays."""
+    return qp_deformation_gradient(x, points.X, points.elements, points.k, points.element[q], q, points.dNdX)

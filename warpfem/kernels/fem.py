@@ -2,7 +2,11 @@
 
 One kernel per quantity serves every element type and every material: the element is described by
 its flat connectivity with stride ``k`` and per-point shape-function gradients, the material by an
-int ``kind`` (see ``warpfem.materials``). Kernels are generic over float32/float64.
+int ``kind`` (see ``warpfem.materials``). Kernels are generic over float32/float64. Every kernel
+takes the positions ``x``, the point set ``points`` (a ``QuadraturePoints32/64`` struct: rest
+positions, connectivity, k, point -> element, weights, dN/dX) and, where it evaluates the
+material, ``material`` (a ``MaterialParams32/64``: kind, mu, lam), both from
+``warpfem.kernels.structs``; then its own scale, flags and outputs.
 
 F = I + sum_a (x_a - X_a) (dN_a/dX)^T         (for Tet4: F = Ds Dm^-1, Sifakis & Barbič 2012 course notes)
 f_a -= w P(F) dN_a/dX                          (per-element force -vol P Dm^-T, scattered with atomics)
@@ -16,7 +20,7 @@ from typing import Any
 
 import warp as wp
 
-from warpfem.kernels.common import qp_deformation_gradient
+from warpfem.kernels.common import point_deformation_gradient, qp_deformation_gradient
 from warpfem.kernels.generic import both_precisions
 from warpfem.materials.dispatch import material_hessian_parts, material_pk1, material_psi
 from warpfem.materials.eigensystem import (hessian_matrix_rows, hessian_point_block, hessian_point_matrix,
@@ -36,101 +40,51 @@ __all__ = [
 wp.set_module_options({"enable_backward": False})
 
 
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", F_out="m[]")
+@both_precisions(x="v[]", points="qp", F_out="m[]")
 @wp.kernel
-def qp_deformation_gradient_kernel(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_dNdX: wp.array(dtype=Any),
-    F_out: wp.array(dtype=Any),
-):
+def qp_deformation_gradient_kernel(x: wp.array(dtype=Any), points: Any, F_out: wp.array(dtype=Any)):
     q = wp.tid()
-    F_out[q] = qp_deformation_gradient(x, X, elements, k, qp_element[q], q, qp_dNdX)
+    F_out[q] = point_deformation_gradient(x, points, q)
 
 
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s", energy_out="s[]")
+@both_precisions(x="v[]", points="qp", material="mat", energy_out="s[]")
 @wp.kernel
-def qp_energy_kernel(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_weight: wp.array(dtype=Any),
-    qp_dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
-    energy_out: wp.array(dtype=Any),
-):
+def qp_energy_kernel(x: wp.array(dtype=Any), points: Any, material: Any, energy_out: wp.array(dtype=Any)):
     """energy_out[q] = w_q psi(F_q) (J)."""
     q = wp.tid()
-    F = qp_deformation_gradient(x, X, elements, k, qp_element[q], q, qp_dNdX)
-    energy_out[q] = qp_weight[q] * material_psi(kind, F, mu, lam)
+    F = point_deformation_gradient(x, points, q)
+    energy_out[q] = points.weight[q] * material_psi(material.kind, F, material.mu, material.lam)
 
 
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s", scale="s", f="v[]")
+@both_precisions(x="v[]", points="qp", material="mat", scale="s", f="v[]")
 @wp.kernel
-def qp_force_kernel(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_weight: wp.array(dtype=Any),
-    qp_dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
-    scale: Any,
-    f: wp.array(dtype=Any),
-):
+def qp_force_kernel(x: wp.array(dtype=Any), points: Any, material: Any, scale: Any, f: wp.array(dtype=Any)):
     """f[node] += -scale * w P dN/dX (N): elastic force, scattered with atomics."""
     q = wp.tid()
-    e = qp_element[q]
-    F = qp_deformation_gradient(x, X, elements, k, e, q, qp_dNdX)
-    P = material_pk1(kind, F, mu, lam)
-    c = -scale * qp_weight[q]
+    k = points.k
+    e = points.element[q]
+    F = point_deformation_gradient(x, points, q)
+    P = material_pk1(material.kind, F, material.mu, material.lam)
+    c = -scale * points.weight[q]
     for a in range(k):
-        wp.atomic_add(f, elements[e * k + a], c * (P * qp_dNdX[q * k + a]))
+        wp.atomic_add(f, points.elements[e * k + a], c * (P * points.dNdX[q * k + a]))
 
 
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", mu="s", lam="s", P_out="m[]")
+@both_precisions(x="v[]", points="qp", material="mat", P_out="m[]")
 @wp.kernel
-def qp_stress_kernel(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
-    P_out: wp.array(dtype=Any),
-):
+def qp_stress_kernel(x: wp.array(dtype=Any), points: Any, material: Any, P_out: wp.array(dtype=Any)):
     """P_out[q] = first Piola-Kirchhoff stress at point q (Pa)."""
     q = wp.tid()
-    F = qp_deformation_gradient(x, X, elements, k, qp_element[q], q, qp_dNdX)
-    P_out[q] = material_pk1(kind, F, mu, lam)
+    F = point_deformation_gradient(x, points, q)
+    P_out[q] = material_pk1(material.kind, F, material.mu, material.lam)
 
 
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s", scale="s", values="m[]")
+@both_precisions(x="v[]", points="qp", material="mat", scale="s", values="m[]")
 @wp.kernel
 def qp_hessian_kernel(
     x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_weight: wp.array(dtype=Any),
-    qp_dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
+    points: Any,
+    material: Any,
     scale: Any,
     project: int,
     block_index: wp.array(dtype=wp.int32),
@@ -152,16 +106,17 @@ def qp_hessian_kernel(
     (``hessian_point_prepare`` / ``hessian_point_block``, gradients rotated into the singular frame).
     """
     q = wp.tid()
-    e = qp_element[q]
-    F = qp_deformation_gradient(x, X, elements, k, e, q, qp_dNdX)
-    U0, V0, A0, tw, fl = material_hessian_parts(kind, F, mu, lam)
-    c = scale * qp_weight[q]
+    k = points.k
+    e = points.element[q]
+    F = point_deformation_gradient(x, points, q)
+    U0, V0, A0, tw, fl = material_hessian_parts(material.kind, F, material.mu, material.lam)
+    c = scale * points.weight[q]
     if k > 4:
         H = hessian_point_matrix(U0, V0, A0, tw, fl, project)
         for a in range(k):
-            T0, T1, T2 = hessian_matrix_rows(H, qp_dNdX[q * k + a])
+            T0, T1, T2 = hessian_matrix_rows(H, points.dNdX[q * k + a])
             for b in range(a, k):  # symmetric: compute a <= b, add the transpose (as OpenTissue's assembly)
-                gb = qp_dNdX[q * k + b]
+                gb = points.dNdX[q * k + b]
                 blk = c * wp.matrix_from_rows(T0 * gb, T1 * gb, T2 * gb)
                 wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)
                 if b != a:
@@ -169,52 +124,38 @@ def qp_hessian_kernel(
     else:
         U, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
         for a in range(k):
-            ra = Vt * qp_dNdX[q * k + a]
+            ra = Vt * points.dNdX[q * k + a]
             for b in range(a, k):
-                blk = c * hessian_point_block(U, A, cp, cm, ra, Vt * qp_dNdX[q * k + b])
+                blk = c * hessian_point_block(U, A, cp, cm, ra, Vt * points.dNdX[q * k + b])
                 wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)
                 if b != a:
                     wp.atomic_add(values, block_index[(e * k + b) * k + a], wp.transpose(blk))
 
 
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s")
+@both_precisions(x="v[]", points="qp", material="mat")
 @wp.kernel
 def qp_energy_sum_kernel(
     x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_weight: wp.array(dtype=Any),
-    qp_dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
+    points: Any,
+    material: Any,
     acc: wp.array(dtype=wp.float64),
     slot: int,
 ):
     """acc[slot] += sum_q w_q psi(F_q), acc[slot + 1] += sum_q |w_q psi(F_q)| (J, float64 sums):
     the energy and the scale of its round-off, with no per-point array read back."""
     q = wp.tid()
-    F = qp_deformation_gradient(x, X, elements, k, qp_element[q], q, qp_dNdX)
-    e = wp.float64(qp_weight[q] * material_psi(kind, F, mu, lam))
+    F = point_deformation_gradient(x, points, q)
+    e = wp.float64(points.weight[q] * material_psi(material.kind, F, material.mu, material.lam))
     wp.atomic_add(acc, slot, e)
     wp.atomic_add(acc, slot + 1, wp.abs(e))
 
 
-@both_precisions(x="v[]", X="v[]", qp_dNdX="v[]", qp_weight="s[]", mu="s", lam="s", scale="s", f="v[]", f_abs="v[]")
+@both_precisions(x="v[]", points="qp", material="mat", scale="s", f="v[]", f_abs="v[]")
 @wp.kernel
 def qp_force_and_abs_kernel(
     x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    k: int,
-    qp_element: wp.array(dtype=wp.int32),
-    qp_weight: wp.array(dtype=Any),
-    qp_dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
+    points: Any,
+    material: Any,
     scale: Any,
     f: wp.array(dtype=Any),
     f_abs: wp.array(dtype=Any),
@@ -223,12 +164,13 @@ def qp_force_and_abs_kernel(
     force (the scale of its round-off), in one pass (F and P evaluated once):
     f[node] += -scale w P dN/dX, f_abs[node] += |scale w P dN/dX| component-wise."""
     q = wp.tid()
-    e = qp_element[q]
-    F = qp_deformation_gradient(x, X, elements, k, e, q, qp_dNdX)
-    P = material_pk1(kind, F, mu, lam)
-    c = scale * qp_weight[q]
+    k = points.k
+    e = points.element[q]
+    F = point_deformation_gradient(x, points, q)
+    P = material_pk1(material.kind, F, material.mu, material.lam)
+    c = scale * points.weight[q]
     for a in range(k):
-        v = c * (P * qp_dNdX[q * k + a])
-        node = elements[e * k + a]
+        v = c * (P * points.dNdX[q * k + a])
+        node = points.elements[e * k + a]
         wp.atomic_add(f, node, -v)
         wp.atomic_add(f_abs, node, type(v)(wp.abs(v[0]), wp.abs(v[1]), wp.abs(v[2])))

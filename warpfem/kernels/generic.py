@@ -9,15 +9,17 @@ from __future__ import annotations
 
 import warp as wp
 
-PRECISION_TYPES = (
-    {"s": wp.float32, "v": wp.vec3, "m": wp.mat33},
-    {"s": wp.float64, "v": wp.vec3d, "m": wp.mat33d},
-)
+from warpfem.kernels.structs import STRUCT_TYPES
+
+PRECISION_TYPES = tuple({"s": s, "v": v, "m": m, **STRUCT_TYPES[s]}
+                        for s, v, m in ((wp.float32, wp.vec3, wp.mat33), (wp.float64, wp.vec3d, wp.mat33d)))
 
 
 def both_precisions(**roles):
     """Kernel decorator: ``roles`` maps each generic argument to "s" (scalar value), "s[]", "v[]",
-    "m[]" (1-d arrays of scalar, vec3, mat33), "s[,]" or "v[,]" (2-d scalar / vec3 arrays)."""
+    "m[]" (1-d arrays of scalar, vec3, mat33), "s[,]" or "v[,]" (2-d scalar / vec3 arrays), or a
+    struct of :mod:`warpfem.kernels.structs`: "qp" (``QuadraturePoints32/64``), "mat"
+    (``MaterialParams32/64``), "tets" (``WarpedTets32/64``)."""
 
     def decorate(kernel):
         for types in PRECISION_TYPES:
@@ -26,8 +28,8 @@ def both_precisions(**roles):
                 role = roles.get(arg.label)
                 if role is None:
                     arg_types[arg.label] = arg.type
-                elif role == "s":
-                    arg_types[arg.label] = types["s"]
+                elif role in ("s", "qp", "mat", "tets"):
+                    arg_types[arg.label] = types[role]
                 elif role in ("s[,]", "v[,]"):
                     arg_types[arg.label] = wp.array2d(dtype=types[role[0]])
                 else:
@@ -60,7 +62,8 @@ def launch(kernel, dim, inputs, device):
     infers it on every launch of a generic kernel, about 4x the rest of the launch on the CPU), and
     the launch itself is a recorded :class:`warp.Launch` per (overload, dim, device) whose
     parameters are replaced (about half the cost of a fresh launch), only those that are not the
-    same objects as in the previous launch of that entry. Measured in
+    same objects as in the previous launch of that entry (kernel structs, ``kernels.structs``,
+    included: the same instance is not re-packed). Measured in
     kernels_bench/bench_solver_overhead.py."""
     if kernel.is_generic:
         key = (kernel, *map(_type_key, inputs))
@@ -79,13 +82,18 @@ def launch(kernel, dim, inputs, device):
         # valid while the module was not modified (new overloads) or reloaded since it was recorded
         if module.hashers and module.execs.get(exec_key) is cmd.module_exec:
             # re-pack only the arguments that are not the very objects of the last launch: arrays
-            # (the recorded launch holds them alive; what is packed is their pointer and shape) and
-            # immutable Python scalars. Anything else (e.g. a struct instance, which may have been
-            # changed in place) is always re-packed.
+            # (the recorded launch holds them alive; what is packed is their pointer and shape),
+            # immutable Python scalars, and struct instances whose packed parameter is their own
+            # C buffer (Warp packs a struct as ``instance._ctype``, the buffer its field setters
+            # write, so a field assigned in place is already what the launch reads). Anything else
+            # (a Warp scalar, an unknown object) is re-packed.
+            params = cmd.params
             for i, v in enumerate(inputs):
-                if v is not last[i] or not (isinstance(v, wp.array) or type(v) in _IMMUTABLE):
-                    cmd.set_param_at_index(i, v)
-                    last[i] = v
+                if v is last[i] and (isinstance(v, wp.array) or type(v) in _IMMUTABLE
+                                     or getattr(v, "_ctype", None) is params[i + 1]):
+                    continue
+                cmd.set_param_at_index(i, v)
+                last[i] = v
             cmd.launch()
             return
     cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=device, record_cmd=True)

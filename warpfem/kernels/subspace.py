@@ -13,6 +13,8 @@ Per cubature element c (element e, weight w_c; ``cub_weight[c] = w_c * vol_e``):
     f_r[j]    += sum_a U[n_a, j] . f_a                  (r-vector, atomics)
     K_r[j, l] += sum_ab U[n_a, j]^T H_ab U[n_b, l]      (r x r, atomics)
 
+The cubature points come as a ``QuadraturePoints32/64`` struct and the material as a
+``MaterialParams32/64`` (``warpfem.kernels.structs``, as the kernels of ``fem.py``).
 Only cubature elements are touched. Two launches: one per element (material evaluation, dim =
 number of cubature points), one per (element, column) pair for the projections (dim = (c, r)), so
 the GPU sees c * r threads.
@@ -42,18 +44,13 @@ def _gather(U: wp.array2d(dtype=Any), q: wp.array(dtype=Any), node: int):
     return u
 
 
-@_both(U="v[,]", q="s[]", cub_weight="s[]", dNdX="v[]", mu="s", lam="s", energy_out="s[]", f_out="v[]", H_out="m[]")
+@_both(U="v[,]", q="s[]", points="qp", material="mat", energy_out="s[]", f_out="v[]", H_out="m[]")
 @wp.kernel
 def cubature_element_kernel(
     U: wp.array2d(dtype=Any),
     q: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    cub_element: wp.array(dtype=wp.int32),
-    cub_weight: wp.array(dtype=Any),
-    dNdX: wp.array(dtype=Any),
-    kind: int,
-    mu: Any,
-    lam: Any,
+    points: Any,
+    material: Any,
     want_hessian: int,
     project: int,
     energy_out: wp.array(dtype=Any),
@@ -62,41 +59,43 @@ def cubature_element_kernel(
 ):
     """Per cubature point: energy w psi (J), node forces f_a (N), stiffness blocks H_ab (N/m).
 
-    Tet4 only (4 nodes, one point per element, so the point index is the element index).
+    ``points``: the cubature points as a ``QuadraturePoints32/64`` (``warpfem.kernels.structs``)
+    over the cubature tets only: Tet4 (k = 4), one point per tet (``element[c] = c``), weight =
+    cubature weight x volume; its rest positions are not used (F comes from the displacement U q).
     """
     c = wp.tid()
-    e = cub_element[c]
-    g0 = dNdX[e * 4]
-    F = wp.outer(_gather(U, q, elements[e * 4]), g0)
+    e = points.element[c]
+    g0 = points.dNdX[c * 4]
+    F = wp.outer(_gather(U, q, points.elements[e * 4]), g0)
     for a in range(1, 4):
-        F += wp.outer(_gather(U, q, elements[e * 4 + a]), dNdX[e * 4 + a])
+        F += wp.outer(_gather(U, q, points.elements[e * 4 + a]), points.dNdX[c * 4 + a])
     one = type(g0[0])(1.0)
     F = F + wp.diag(type(g0)(one, one, one))
-    w = cub_weight[c]
+    w = points.weight[c]
+    kind, mu, lam = material.kind, material.mu, material.lam
     energy_out[c] = w * material_psi(kind, F, mu, lam)
     P = material_pk1(kind, F, mu, lam)
     for a in range(4):
-        f_out[c * 4 + a] = -w * (P * dNdX[e * 4 + a])
+        f_out[c * 4 + a] = -w * (P * points.dNdX[c * 4 + a])
     if want_hessian != 0:
         # dP/dF once per point (shared with the full assembly, warpfem.kernels.fem), then the
         # 10 blocks a <= b from gradients rotated into the singular frame; H_ba = H_ab^T.
         U0, V0, A0, tw, fl = material_hessian_parts(kind, F, mu, lam)
         Uh, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
         for a in range(4):
-            ra = Vt * dNdX[e * 4 + a]
+            ra = Vt * points.dNdX[c * 4 + a]
             for b in range(a, 4):
-                blk = w * hessian_point_block(Uh, A, cp, cm, ra, Vt * dNdX[e * 4 + b])
+                blk = w * hessian_point_block(Uh, A, cp, cm, ra, Vt * points.dNdX[c * 4 + b])
                 H_out[c * 16 + a * 4 + b] = blk
                 if b != a:
                     H_out[c * 16 + b * 4 + a] = wp.transpose(blk)
 
 
-@_both(U="v[,]", f_in="v[]", H_in="m[]", force="s[]", K="s[,]")
+@_both(U="v[,]", points="qp", f_in="v[]", H_in="m[]", force="s[]", K="s[,]")
 @wp.kernel
 def cubature_project_kernel(
     U: wp.array2d(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    cub_element: wp.array(dtype=wp.int32),
+    points: Any,
     f_in: wp.array(dtype=Any),
     H_in: wp.array(dtype=Any),
     want_hessian: int,
@@ -105,11 +104,11 @@ def cubature_project_kernel(
 ):
     """force[j] += sum_a U[n_a, j] . f_a ;  K[j, l] += sum_b y_b . U[n_b, l], y_b = sum_a H_ab^T U[n_a, j]."""
     c, j = wp.tid()
-    e = cub_element[c]
-    n0 = elements[e * 4]
-    n1 = elements[e * 4 + 1]
-    n2 = elements[e * 4 + 2]
-    n3 = elements[e * 4 + 3]
+    e = points.element[c]
+    n0 = points.elements[e * 4]
+    n1 = points.elements[e * 4 + 1]
+    n2 = points.elements[e * 4 + 2]
+    n3 = points.elements[e * 4 + 3]
     u0 = U[n0, j]
     u1 = U[n1, j]
     u2 = U[n2, j]

@@ -12,6 +12,9 @@ so that the warped elastic force is f = -(K' x + f0') = -sum_e R_e K_e (R_e^T x 
 Rotation kinds (runtime int, one kernel): 0 identity (plain linear FEM), 1 polar (R = U V^T from
 the signed SVD, det U = det V = +1, so R is a proper rotation even for inverted elements),
 2 "qr" (Gram-Schmidt on the columns of F, third column = c0 x c1, as OpenTissue did).
+
+The fixed per-tet data (rest positions, connectivity, dN/dX, the blocks K_e) come as one
+``WarpedTets32/64`` struct (``warpfem.kernels.structs``); the rotations R are passed on their own.
 """
 
 from __future__ import annotations
@@ -55,19 +58,12 @@ def gram_schmidt_rotation(F: Any):
     return R
 
 
-@both_precisions(x="v[]", X="v[]", dNdX="v[]", R_out="m[]")
+@both_precisions(x="v[]", tets="tets", R_out="m[]")
 @wp.kernel
-def element_rotation_kernel(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    dNdX: wp.array(dtype=Any),
-    rotation: int,
-    R_out: wp.array(dtype=Any),
-):
+def element_rotation_kernel(x: wp.array(dtype=Any), tets: Any, rotation: int, R_out: wp.array(dtype=Any)):
     """R_out[e] = rotation of tet e (kind ``rotation``: 0 identity, 1 polar, 2 Gram-Schmidt)."""
     e = wp.tid()
-    F = qp_deformation_gradient(x, X, elements, 4, e, e, dNdX)  # Tet4: one point per element
+    F = qp_deformation_gradient(x, tets.X, tets.elements, 4, e, e, tets.dNdX)  # Tet4: one point per element
     R = wp.identity(n=3, dtype=F.dtype)
     if rotation == 1:
         U, s, V = signed_svd(F)
@@ -77,14 +73,12 @@ def element_rotation_kernel(
     R_out[e] = R
 
 
-@both_precisions(x="v[]", X="v[]", R="m[]", Ke="m[]", force_scale="s", values="m[]", f0="v[]", f_el="v[]")
+@both_precisions(x="v[]", tets="tets", R="m[]", force_scale="s", values="m[]", f0="v[]", f_el="v[]")
 @wp.kernel
 def warped_assembly_kernel(
     x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
+    tets: Any,
     R: wp.array(dtype=Any),
-    Ke: wp.array(dtype=Any),
     force_scale: Any,
     assemble_matrix: int,
     block_index: wp.array(dtype=wp.int32),
@@ -100,6 +94,7 @@ def warped_assembly_kernel(
     cancellation between K' x and f0' (sum_j K_ij = 0 removes the reference node's offset).
     """
     e = wp.tid()
+    X, elements, Ke = tets.X, tets.elements, tets.Ke
     Re = R[e]
     RT = wp.transpose(Re)
     n0 = elements[e * 4]
@@ -122,18 +117,12 @@ def warped_assembly_kernel(
         wp.atomic_sub(f_el, ni, force_scale * (Re * Ku))
 
 
-@both_precisions(x="v[]", X="v[]", R="m[]", Ke="m[]", energy_out="s[]")
+@both_precisions(x="v[]", tets="tets", R="m[]", energy_out="s[]")
 @wp.kernel
-def warped_energy_kernel(
-    x: wp.array(dtype=Any),
-    X: wp.array(dtype=Any),
-    elements: wp.array(dtype=wp.int32),
-    R: wp.array(dtype=Any),
-    Ke: wp.array(dtype=Any),
-    energy_out: wp.array(dtype=Any),
-):
+def warped_energy_kernel(x: wp.array(dtype=Any), tets: Any, R: wp.array(dtype=Any), energy_out: wp.array(dtype=Any)):
     """energy_out[e] = 1/2 u^T K_e u with u_j = R^T (x_j - x_0) - (X_j - X_0) (J)."""
     e = wp.tid()
+    X, elements, Ke = tets.X, tets.elements, tets.Ke
     RT = wp.transpose(R[e])
     n0 = elements[e * 4]
     acc = RT[0, 0] - RT[0, 0]

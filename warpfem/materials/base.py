@@ -8,7 +8,8 @@ Lame parameters from Young's modulus E and Poisson ratio nu (small-strain moduli
 Each material stores the values its Warp functions expect in ``kernel_mu`` and ``kernel_lam``
 (for the stable neo-Hookean materials these are reparametrised, not Lame's: see
 ``stable_neo_hookean.py`` and ``stable_neo_hookean_log.py``); the plain Lame values are kept in
-``mu_lame`` and ``lam_lame``. ``mu`` / ``lam`` are read-only aliases of the kernel values.
+``mu_lame`` and ``lam_lame``. There is deliberately no plain ``mu`` / ``lam``: every use names
+which of the two it means.
 
 Material kinds (the runtime ints of the kernels) are defined where each material registers itself
 (:mod:`.registry`).
@@ -61,7 +62,7 @@ class Material:
     Keyword-only constructor ``(youngs_modulus=, poisson_ratio=, density=)``. Attributes:
     ``kind`` (int passed to the Warp dispatch functions) and ``name`` (scene name), both set by
     :func:`~warpfem.materials.registry.register_material`; ``kernel_mu``, ``kernel_lam`` (the
-    values passed to kernels; ``mu`` / ``lam`` are aliases), ``mu_lame``, ``lam_lame`` (plain Lame
+    values passed to kernels), ``mu_lame``, ``lam_lame`` (plain Lame
     values), ``density``, ``youngs_modulus``, ``poisson_ratio``.
     """
 
@@ -75,16 +76,6 @@ class Material:
         self.density = rho
         self.mu_lame, self.lam_lame = lame_parameters(E, nu)
         self.kernel_mu, self.kernel_lam = self.kernel_parameters(self.mu_lame, self.lam_lame)
-
-    @property
-    def mu(self) -> float:
-        """Alias of ``kernel_mu`` (the kernel's parameter; not Lame's mu for stable neo-Hookean)."""
-        return self.kernel_mu
-
-    @property
-    def lam(self) -> float:
-        """Alias of ``kernel_lam`` (the kernel's parameter; not Lame's lambda for stable neo-Hookean)."""
-        return self.kernel_lam
 
     @staticmethod
     def kernel_parameters(mu_lame: float, lam_lame: float) -> tuple[float, float]:

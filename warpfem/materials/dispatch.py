@@ -18,6 +18,7 @@ An unknown kind gives psi = 0, P = 0 and a zero Hessian (kernels never crash; Py
 All functions are generic over float32/float64; mu and lam must have F's scalar type.
 """
 
+import re
 from typing import Any
 
 import warp as wp
@@ -53,35 +54,44 @@ def _no_eigen_f(kind: int, F: Any, mu: Any, lam: Any):
 
 
 # -- one link per material -----------------------------------------------------------------------
-def _link_psi(kind, f, rest):
-    K = wp.constant(kind)
+# Each link is a Warp func named after its material and kind (``material_psi__linear_k0``): Warp's
+# module hash covers a func's name, its source, the constants it captures (the kind K) and,
+# recursively, the funcs it calls (the material's function f and the rest of the chain), so the
+# hash of every module that uses the dispatch (``kernels.fem``, ``kernels.subspace``,
+# ``materials.evaluate``) changes with the registry: a kernel cache (~/.cache/warp) compiled for
+# other materials, kinds or order is never reused (tests/test_registries.py checks it).
+def _named(fn, what, t):
+    name = f"{what}__{re.sub(r'[^0-9A-Za-z_]', '_', t.name)}_k{t.kind}"  # a C identifier
+    fn.__name__ = fn.__qualname__ = name
+    return wp.func(fn)
 
-    @wp.func
+
+def _link_psi(t, rest):
+    K, f = wp.constant(t.kind), t.psi
+
     def psi_link(kind: int, F: Any, mu: Any, lam: Any):
         if kind == K:
             return f(F, mu, lam)
         return rest(kind, F, mu, lam)
 
-    return psi_link
+    return _named(psi_link, "material_psi", t)
 
 
-def _link_pk1(kind, f, rest):
-    K = wp.constant(kind)
+def _link_pk1(t, rest):
+    K, f = wp.constant(t.kind), t.pk1
 
-    @wp.func
     def pk1_link(kind: int, F: Any, mu: Any, lam: Any):
         if kind == K:
             return f(F, mu, lam)
         return rest(kind, F, mu, lam)
 
-    return pk1_link
+    return _named(pk1_link, "material_pk1", t)
 
 
-def _link_eigen_s(kind, f, rest):
+def _link_eigen_s(t, rest):
     """Materials written in the signed singular values s: (A, twist, flip) = f(s, mu, lam)."""
-    K = wp.constant(kind)
+    K, f = wp.constant(t.kind), t.eigen
 
-    @wp.func
     def eigen_s_link(kind: int, F: Any, s: Any, mu: Any, lam: Any):
         if kind == K:
             A, tw, fl = f(s, mu, lam)
@@ -89,14 +99,13 @@ def _link_eigen_s(kind, f, rest):
         A, tw, fl = rest(kind, F, s, mu, lam)
         return A, tw, fl
 
-    return eigen_s_link
+    return _named(eigen_s_link, "material_eigen_s", t)
 
 
-def _link_eigen_f(kind, f, rest):
+def _link_eigen_f(t, rest):
     """Materials with U = V = I (no SVD): (A, twist, flip) = f(F, mu, lam); returns found = 1 first."""
-    K = wp.constant(kind)
+    K, f = wp.constant(t.kind), t.eigen
 
-    @wp.func
     def eigen_f_link(kind: int, F: Any, mu: Any, lam: Any):
         if kind == K:
             A, tw, fl = f(F, mu, lam)
@@ -104,19 +113,19 @@ def _link_eigen_f(kind, f, rest):
         found, A, tw, fl = rest(kind, F, mu, lam)
         return found, A, tw, fl
 
-    return eigen_f_link
+    return _named(eigen_f_link, "material_eigen_f", t)
 
 
 def _build():
     """The chains over the registered materials; the first registered is tested first."""
     psi, pk1, eig_s, eig_f = _no_psi, _no_pk1, _no_eigen_s, _no_eigen_f
     for t in reversed(list(MATERIAL_TYPES.values())):
-        psi = _link_psi(t.kind, t.psi, psi)
-        pk1 = _link_pk1(t.kind, t.pk1, pk1)
+        psi = _link_psi(t, psi)
+        pk1 = _link_pk1(t, pk1)
         if t.svd:
-            eig_s = _link_eigen_s(t.kind, t.eigen, eig_s)
+            eig_s = _link_eigen_s(t, eig_s)
         else:
-            eig_f = _link_eigen_f(t.kind, t.eigen, eig_f)
+            eig_f = _link_eigen_f(t, eig_f)
     return psi, pk1, eig_s, eig_f
 
 

@@ -1,5 +1,8 @@
-"""Reading and writing tet meshes through meshio (.mesh, .msh, .vtu, .vtk, ...); surface files
-(.obj, .off, .ply, .stl) are tetrahedralised on load (see ``tetrahedralization.py``)."""
+"""Reading and writing volume meshes through meshio (.mesh, .msh, .vtu, .vtk, ...).
+
+``load_mesh`` / ``save_mesh``: Tet4 (``tetra`` cells); surface files (.obj, .off, .ply, .stl) are
+tetrahedralised on load (see ``tetrahedralization.py``). ``load_element_mesh`` /
+``save_element_mesh``: any registered element type (its ``meshio_cell``)."""
 
 from __future__ import annotations
 
@@ -7,14 +10,15 @@ import os
 
 import numpy as np
 
-from .tetmesh import MeshError, TetMesh
+from .element_types import ELEMENTS, get_element
+from .volume_mesh import MeshError, VolumeMesh
 
-__all__ = ["load_mesh", "save_mesh"]
+__all__ = ["load_mesh", "save_mesh", "load_element_mesh", "save_element_mesh"]
 
 
 def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
               cache=None, **kw):
-    """Load the ``tetra`` cells of any meshio-readable file as a ``TetMesh``.
+    """Load the ``tetra`` cells of any meshio-readable file as a Tet4 ``VolumeMesh``.
 
     A surface file (.obj, .off, .ply, .stl: chosen by the extension) is checked and
     tetrahedralised instead, through a cache (``warpfem.mesh.tetrahedralize_file``,
@@ -24,7 +28,7 @@ def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_ed
     Other cell types (surface triangles, lines, ...) are ignored, except with
     ``inside_surface=True``: then only the tets inside the closed surface formed by the file's
     triangle cells are kept (for convex-hull tetrahedralisations such as libigl's bunny.mesh);
-    ``vertex_map`` still maps file vertex indices to mesh indices. ``kw`` goes to ``TetMesh``
+    ``vertex_map`` still maps file vertex indices to mesh indices. ``kw`` goes to ``VolumeMesh``
     (``reorient``, ``remove_unreferenced``). Errors and warnings name the file.
     """
     import meshio
@@ -67,7 +71,7 @@ def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_ed
         raise MeshError(f"{path}: points are 2D, a tet mesh needs 3D points")
     kw.setdefault("name", path)
     if not inside_surface:
-        return TetMesh(points.astype(np.float64), tets, **kw)
+        return VolumeMesh(points.astype(np.float64), tets, **kw)
 
     from .region import tets_inside_surface
 
@@ -75,7 +79,7 @@ def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_ed
     if not tris:
         raise MeshError(f"{path}: inside_surface=True but the file has no triangle cells")
     kw["remove_unreferenced"] = False
-    full = TetMesh(points.astype(np.float64), tets, **kw)
+    full = VolumeMesh(points.astype(np.float64), tets, **kw)
     mask = tets_inside_surface(full, np.concatenate(tris, axis=0))
     if not mask.any():
         raise MeshError(f"{path}: no tets inside the triangle surface")
@@ -96,4 +100,55 @@ def save_mesh(mesh, path, **kw):
     if path.endswith(".msh"):
         kw.setdefault("binary", False)
     meshio.write(path, out, **kw)
+    return path
+
+
+def load_element_mesh(path, *, element_type=None):
+    """Read a meshio file with the volume cells of one registered element type (``tetra``,
+    ``tetra10``, ``hexahedron``, ``hexahedron27``, ...: each type's ``meshio_cell``).
+
+    With ``element_type=None`` the file must hold volume cells of exactly one of these types
+    (other cells, e.g. surface triangles, are ignored). Unreferenced points are kept. Errors name
+    the file and the cell types found.
+    """
+    import meshio
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        m = meshio.read(path)
+    except Exception as exc:
+        raise MeshError(f"{path}: meshio could not read the file: {type(exc).__name__}: {exc}") from exc
+    to_type = {e.meshio_cell: name for name, e in ELEMENTS.items()}
+    found = {to_type[c.type] for c in m.cells if c.type in to_type and len(c.data)}
+    if element_type is not None:
+        found &= {get_element(element_type).name}
+    if len(found) != 1:
+        types = sorted({f"{c.type} ({len(c.data)})" for c in m.cells}) or ["none"]
+        what = "no supported volume cells" if not found else f"several volume cell types {sorted(found)} (pass element_type=)"
+        raise MeshError(f"{path}: {what}; cell types in file: {', '.join(types)}")
+    element = get_element(found.pop())
+    data = np.concatenate([c.data for c in m.cells if c.type == element.meshio_cell and len(c.data)])
+    points = np.asarray(m.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise MeshError(f"{path}: points must be 3D, got shape {points.shape}")
+    import warnings
+
+    with warnings.catch_warnings():  # kept unreferenced points (e.g. Gmsh geometry points) are expected here
+        warnings.filterwarnings("ignore", message=".*unreferenced vertices kept")
+        return VolumeMesh(points, data.astype(np.int64), element, remove_unreferenced=False, name=path)
+
+
+def save_element_mesh(mesh, path, **kw):
+    """Write a mesh of any element type (nodes + its cells) with meshio; the format comes from the
+    extension (".msh" writes Gmsh 4.1 ASCII). ``kw`` goes to ``meshio.write``."""
+    import meshio
+
+    path = os.fspath(path)
+    cells = [(get_element(mesh.element_type).meshio_cell, np.asarray(mesh.elements, dtype=np.int64))]
+    if path.endswith(".msh"):  # Gmsh (meshio would otherwise pick ANSYS, which has no quadratic cells)
+        kw.setdefault("file_format", "gmsh")
+        kw.setdefault("binary", False)
+    meshio.write(path, meshio.Mesh(np.asarray(mesh.vertices, dtype=np.float64), cells), **kw)
     return path

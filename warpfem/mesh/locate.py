@@ -1,7 +1,8 @@
 """Point location in a tetrahedral mesh: which tet holds a point, and its barycentric coordinates.
 
 Used to embed render-surface points in the simulation mesh (:mod:`warpfem.skinning`) and, on the
-corner sub-tets of higher-order elements, to find a point's element (:mod:`warpfem.elements`).
+corner sub-tets of higher-order elements, to find a point's element (:func:`embed_points_in_elements`:
+then Newton on the isoparametric map for the reference coordinates).
 
 Each point X is attached to one tet t = (v0, v1, v2, v3) with barycentric coordinates
 (w0, w1, w2, w3), sum w = 1, X = sum_a w_a X_{v_a}. The deformed point is x = sum_a w_a x_{v_a},
@@ -25,7 +26,8 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial import cKDTree
 
-__all__ = ["Embedding", "embed_points", "barycentric_coordinates", "point_tet_distance", "INSIDE_TOL"]
+__all__ = ["Embedding", "embed_points", "embed_points_in_elements", "barycentric_coordinates", "point_tet_distance",
+           "INSIDE_TOL"]
 
 # A point is inside a tet when its smallest barycentric coordinate is >= -INSIDE_TOL
 # (barycentric coordinates are scale free, so the tolerance is relative).
@@ -282,7 +284,7 @@ class _TetSearch:
 
 
 def embed_points(points, vertices, tets=None, *, k_nearest: int = 12) -> Embedding:
-    """Embed points (p,3) into the tet mesh (vertices (n,3), tets (m,4)), or a TetMesh as
+    """Embed points (p,3) into the tet mesh (vertices (n,3), tets (m,4)), or a Tet4 mesh as
     ``embed_points(points, mesh)``.
 
     Each point gets the tet containing it (if several contain it, the one where it is most
@@ -374,3 +376,57 @@ def embed_points(points, vertices, tets=None, *, k_nearest: int = 12) -> Embeddi
         outside=~inside,
         num_vertices=n,
     )
+
+
+def embed_points_in_elements(points, mesh, *, max_newton_iters: int = 30, corner_embedding=None):
+    """Embed points (p, 3) in a mesh of any element type: x(point) = sum_a w_a x_{ids_a}.
+
+    Returns ``(ids (p, k) int64, weights (p, k) float64, element (p,) int64)``: the element's
+    nodes and its shape functions at the point's reference coordinates (rows sum to 1). The
+    element is found on the corner tets (:func:`embed_points`, nearest for outside points);
+    reference coordinates: barycentric on the corner tet, then (unless the element is a linear tet,
+    ``element.is_linear_tet``) refined by Newton on the isoparametric map X(xi) = sum_a N_a(xi) X_a
+    (the inverse map of hexes and curved Tet10). A point outside the mesh keeps extrapolated
+    coordinates (weights may be negative).
+    ``corner_embedding``: the result of ``embed_points(points, mesh.vertices, mesh.corner_tets())``
+    when the caller already has it (the search is then not repeated).
+    """
+    from .element_types import get_element
+
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (p, 3), got {points.shape}")
+    if not np.all(np.isfinite(points)):
+        i = int(np.flatnonzero(~np.isfinite(points).all(axis=1))[0])
+        raise ValueError(f"point {i} has a non-finite coordinate: {points[i].tolist()}")
+    element = get_element(mesh.element_type)
+    elements = np.asarray(mesh.elements, dtype=np.int64)
+    X = np.asarray(mesh.vertices, dtype=np.float64)
+    corner = elements[:, element.corner_tets].reshape(-1, 4)
+    emb = corner_embedding if corner_embedding is not None else embed_points(points, X, corner)
+    s = len(corner) // len(elements)
+    elem = emb.tet_index // s
+    # initial reference coordinates: barycentric interpolation of the corner tet's reference nodes
+    ref_tet = element.reference_nodes[element.corner_tets[emb.tet_index % s]]  # (p, 4, 3)
+    xi = np.einsum("pa,pai->pi", emb.weights, ref_tet)
+    if not element.is_linear_tet:
+        Xe = X[elements[elem]]  # (p, k, 3)
+        scale = np.linalg.norm(Xe.max(axis=1) - Xe.min(axis=1), axis=1)
+        for _ in range(int(max_newton_iters)):
+            N, dN = element.shape(xi)
+            r = points - np.einsum("pa,pai->pi", N, Xe)
+            if np.all(np.linalg.norm(r, axis=1) <= 1e-13 * scale):
+                break
+            J = np.einsum("pai,paj->pij", Xe, dN)
+            xi = xi + np.linalg.solve(J, r[:, :, None])[:, :, 0]
+        else:
+            r = points - np.einsum("pa,pai->pi", element.shape_functions(xi), Xe)
+            bad = np.flatnonzero(np.linalg.norm(r, axis=1) > 1e-8 * scale)
+            if bad.size:
+                import warnings
+
+                warnings.warn(f"inverse isoparametric map did not converge for {bad.size} point(s) (first: point "
+                              f"{int(bad[0])} in element {int(elem[bad[0]])}); their weights are approximate",
+                              RuntimeWarning, stacklevel=2)
+    weights = element.shape_functions(xi)
+    return elements[elem], weights, elem

@@ -7,7 +7,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .tetmesh import TET_FACES
+from .volume_mesh import TET_FACES
 
 __all__ = ["winding_number", "tet_components", "tets_inside_surface"]
 

@@ -1,4 +1,4 @@
-"""Tetrahedralising a closed triangle surface (OBJ, STL, PLY, OFF) into a ``TetMesh``.
+"""Tetrahedralising a closed triangle surface (OBJ, STL, PLY, OFF) into a Tet4 ``VolumeMesh``.
 
 The mesher is optional (``pip install warpfem[mesh]``):
 
@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .tetmesh import MeshError, TetMesh, _fmt_list
+from .volume_mesh import MeshError, VolumeMesh, _fmt_list
 
 __all__ = ["tetrahedralize", "tetrahedralize_file", "check_surface", "read_surface", "cache_dir",
            "Tetrahedralization", "MesherNotInstalled", "SURFACE_EXTENSIONS", "MESHERS", "DEFAULTS"]
@@ -68,7 +68,7 @@ class MesherNotInstalled(MeshError, ImportError):
 
 @dataclass
 class Tetrahedralization:
-    """How a mesh was made from a surface (``TetMesh.tetrahedralization`` of the result)."""
+    """How a mesh was made from a surface (``VolumeMesh.tetrahedralization`` of the result)."""
 
     mesher: str
     version: str
@@ -431,7 +431,7 @@ def _run_tetwild(V, F, opts, diag):
 
 def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
                    name=None, check=True):
-    """Fill a closed triangle surface with tets; returns a ``TetMesh``.
+    """Fill a closed triangle surface with tets; returns a Tet4 ``VolumeMesh``.
 
     Parameters
     ----------
@@ -479,7 +479,7 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
     seconds = time.perf_counter() - t0
     if len(tets) == 0:
         raise MeshError(f"{name + ': ' if name else ''}{opts['mesher']} produced no tets (does the surface enclose a volume?)")
-    mesh = TetMesh(nodes, tets, name=name)
+    mesh = VolumeMesh(nodes, tets, name=name)
     module = MESHERS[opts["mesher"]][0]
     mesh.tetrahedralization = Tetrahedralization(
         mesher=opts["mesher"], version=_version(module), options=opts, num_tets=mesh.num_elements,
@@ -562,7 +562,7 @@ def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=Non
         hit = _read_cache(entry)
         if hit is not None:
             V, T, meta = hit
-            mesh = TetMesh(V, T, name=path)
+            mesh = VolumeMesh(V, T, name=path)
             mesh.tetrahedralization = Tetrahedralization(
                 mesher=meta["mesher"], version=meta["version"], options=meta["options"], num_tets=mesh.num_elements,
                 num_vertices=mesh.num_vertices, surface_vertices=meta["surface_vertices"],

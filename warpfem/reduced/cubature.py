@@ -183,7 +183,9 @@ def train_cubature(model, U, *, tolerance: float = 0.05, max_points: int = 200, 
         raise ValueError(f"cubature tolerance must be in (0, 1), got {tolerance!r}")
     if int(max_points) != max_points or max_points < 1:
         raise ValueError(f"max_cubature_points must be a positive integer, got {max_points!r}")
-    if model.quadrature.element_type != "tet4":
+    from warpfem.mesh.element_types import get_element
+
+    if not get_element(model.quadrature.element_type).is_linear_tet:
         raise ValueError(f"cubature training supports tet4 meshes only, got {model.quadrature.element_type!r}")
     if pose_source is None:
         pose_source = "random" if snapshots is None else "random+snapshots"

@@ -23,6 +23,7 @@ import warp as wp
 from warpfem.device import get_device as _get_device
 from warpfem.kernels import subspace as RK
 from warpfem.kernels.generic import launch
+from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.state import PRECISIONS, check_simulator_options
@@ -46,7 +47,9 @@ class CubatureForces:
 
     def __init__(self, model, U, elements, weights, *, device="cpu", precision="float64"):
         qd = model.quadrature
-        if qd.element_type != "tet4":
+        from warpfem.mesh.element_types import get_element
+
+        if not get_element(qd.element_type).is_linear_tet:
             raise ValueError(f"reduced simulation supports tet4 meshes only, got {qd.element_type!r}")
         U = np.asarray(U, dtype=np.float64)
         n = model.num_vertices
@@ -68,13 +71,16 @@ class CubatureForces:
         self.r = r = U.shape[1]
         self.c = c = len(elements)
         mat_ = model.material
-        self.kind, self.mu, self.lam = int(mat_.kind), self._s(mat_.kernel_mu), self._s(mat_.kernel_lam)
+        self.material = material_params(self._s, mat_.kind, mat_.kernel_mu, mat_.kernel_lam)
         self.U = _basis_array(U, n, vec, npdt, dev)
         tets = qd.elements.reshape(-1, 4)[elements]
-        self.elements = wp.array(tets.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev)
-        self.cub_element = wp.array(np.arange(c, dtype=np.int32), dtype=wp.int32, device=dev)
-        self.cub_weight = wp.array((weights * qd.qp_weight[elements]).astype(npdt), dtype=self._s, device=dev)
-        self.dNdX = wp.array(qd.qp_dNdX.reshape(-1, 4, 3)[elements].reshape(-1, 3).astype(npdt), dtype=vec, device=dev)
+        # the cubature points (kernels.structs.QuadraturePoints): the cubature tets only, one point
+        # each, weight = cubature weight x volume; no rest positions (F comes from U q)
+        self.points = quadrature_points(
+            self._s, None, wp.array(tets.reshape(-1).astype(np.int32), dtype=wp.int32, device=dev), 4,
+            wp.array(np.arange(c, dtype=np.int32), dtype=wp.int32, device=dev),
+            wp.array((weights * qd.qp_weight[elements]).astype(npdt), dtype=self._s, device=dev),
+            wp.array(qd.qp_dNdX.reshape(-1, 4, 3)[elements].reshape(-1, 3).astype(npdt), dtype=vec, device=dev))
         self._q = wp.zeros(r, dtype=self._s, device=dev)
         self._energy = wp.zeros(c, dtype=self._s, device=dev)
         self._f = wp.zeros(4 * c, dtype=vec, device=dev)
@@ -88,13 +94,13 @@ class CubatureForces:
         self._q.assign(np.asarray(q, dtype=self._npdt))
         wh = int(bool(hessian))
         launch(RK.cubature_element_kernel, dim=self.c,
-                  inputs=[self.U, self._q, self.elements, self.cub_element, self.cub_weight, self.dNdX, self.kind,
-                          self.mu, self.lam, wh, int(bool(project)), self._energy, self._f, self._H], device=self.device)
+                  inputs=[self.U, self._q, self.points, self.material, wh, int(bool(project)), self._energy, self._f,
+                          self._H], device=self.device)
         self._force.zero_()
         if hessian:
             self._K.zero_()
         launch(RK.cubature_project_kernel, dim=(self.c, self.r),
-                  inputs=[self.U, self.elements, self.cub_element, self._f, self._H, wh, self._force, self._K],
+                  inputs=[self.U, self.points, self._f, self._H, wh, self._force, self._K],
                   device=self.device)
         E = float(self._energy.numpy().astype(np.float64).sum())
         f = self._force.numpy().astype(np.float64)

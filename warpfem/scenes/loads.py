@@ -74,7 +74,7 @@ def element_traction_forces(mesh, box_min, box_max, force_per_area):
     mid-edge nodes A/3 each; for flat Hex8 faces every corner gets A/4.
     Returns ``(forces (n, 3), loaded boundary faces (element * faces_per_element + local face), area (m^2))``.
     """
-    from warpfem.elements.library import shape_functions, shape_gradients
+    from warpfem.mesh.element_types import shape_functions, shape_gradients
     from warpfem.mesh import select_vertices_in_box
 
     etype = mesh.element_type
@@ -112,8 +112,8 @@ def element_traction_forces(mesh, box_min, box_max, force_per_area):
 
 def boundary_surface(mesh):
     """Default render surface: ``(vertex ids (s,), triangles (f, 3) into them)`` of the mesh boundary
-    (tet faces; Tet10/Hex faces triangulated through their nodes, see ``ElementMesh.boundary_faces``)."""
-    if mesh.element_type == "tet4":
+    (tet faces; Tet10/Hex faces triangulated through their nodes, see ``VolumeMesh.boundary_faces``)."""
+    if mesh.element.is_linear_tet:
         from warpfem.skinning import mesh_boundary_surface
 
         return mesh_boundary_surface(mesh.vertices, mesh.tets)

@@ -11,7 +11,7 @@ __all__ = ["quadrature_points_per_element", "estimate_device_memory"]
 def quadrature_points_per_element(element_type, volumetric_integration="full"):
     """Quadrature points per element the simulator allocates (stiffness rule, + 1 with
     selective reduced integration on hex8)."""
-    from warpfem.elements.library import gauss_rule
+    from warpfem.mesh.element_types import gauss_rule
 
     q = len(gauss_rule(element_type)[1])
     return q + (1 if volumetric_integration == "reduced" else 0)

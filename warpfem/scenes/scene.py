@@ -63,8 +63,8 @@ class Scene:
 
     # -- mesh and selections (numpy) --------------------------------------------------------------
     def mesh(self):
-        """The simulation mesh (loaded / generated once): a ``TetMesh`` for tet4, an
-        ``ElementMesh`` of the scene's element type otherwise."""
+        """The simulation mesh (loaded / generated once): a ``warpfem.mesh.VolumeMesh`` of the scene's
+        element type."""
         if self._mesh is None:
             import warnings
 
@@ -84,8 +84,8 @@ class Scene:
         return self._mesh
 
     def _make_mesh(self):
-        from warpfem.elements import box_hex_mesh, load_element_mesh, tet10_from_tet4
-        from warpfem.mesh import MeshError, box_tet_mesh, load_mesh
+        from warpfem.mesh import MeshError, box_hex_mesh, box_tet_mesh, load_element_mesh, load_mesh, tet10_from_tet4
+        from warpfem.mesh.element_types import get_element
 
         m = self.spec.mesh
         element = m["element"]
@@ -96,7 +96,7 @@ class Scene:
             mesh = box_tet_mesh(size=m["size"], cells=m["cells"], origin=m["origin"])
             return tet10_from_tet4(mesh) if element == "tet10" else mesh
         path = m["path"]
-        wanted = {"tet10": "tetra10", "hex8": "hexahedron", "hex27": "hexahedron27"}.get(element)
+        wanted = get_element(element).meshio_cell
         if element in ("tet4", "tet10"):
             try:  # a surface file is tetrahedralised (warpfem.mesh.tetrahedralize; cached)
                 tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher") if m.get(k) is not None}
@@ -143,7 +143,7 @@ class Scene:
     def tractions(self):
         """[(forces (n, 3), loaded faces, area)] per ``[[traction]]`` entry (consistent loads)."""
         mesh = self.mesh()
-        tet4 = mesh.element_type == "tet4"
+        tet4 = mesh.element.is_linear_tet  # plain triangles; other types integrate N_a on their faces
         faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
         out = []
         for i, t in enumerate(self.spec.traction):
@@ -217,7 +217,7 @@ class Scene:
 
             sv, st = load_surface(sp.surface["path"])
             p = len(sv)
-            how = "barycentric" if etype == "tet4" else f"{k} shape functions"
+            how = "barycentric" if mesh.element.is_linear_tet else f"{k} shape functions"
             lines.append(f"render surface: {sp.surface['path']} ({p} vertices, {len(st)} triangles), embedded in the "
                          f"{etype} elements ({how} per vertex)")
         else:

@@ -23,6 +23,8 @@ try:  # Python 3.11+
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
+from warpfem.materials import MATERIAL_TYPES  # importing the package registers every material
+
 __all__ = ["SceneError", "Key", "SCHEMA", "SceneSpec", "parse_scene_file", "parse_scene_dict",
            "INTEGRATOR_KEYS", "ELEMENTS", "INTEGRATOR_ELEMENTS"]
 
@@ -77,16 +79,18 @@ def _components(v):
     return None if ok else "must be a non-empty subset of 'xyz' without repeats, e.g. \"xyz\", \"z\", \"xz\""
 
 
-# Elements a scene may name ([mesh].element) -> what it is (warpfem.elements; see docs/elements.md).
+# Elements a scene may name ([mesh].element) -> what it is (see docs/elements.md); Scene._make_mesh builds them.
 # With generator = "box": tet4 / tet10 split each cell into 6 tets (tet10 adds shared edge
 # mid-nodes), hex8 / hex27 use one hexahedron per cell. With path = "file": tet4 / tet10 read
 # tetra cells (tet10 also tetra10 cells), hex8 / hex27 read hexahedron / hexahedron27 cells.
-ELEMENTS: dict[str, str] = {
-    "tet4": "linear tetrahedron, 4 nodes, 1 quadrature point",
-    "tet10": "quadratic tetrahedron, 10 nodes, 4 quadrature points",
-    "hex8": "trilinear hexahedron, 8 nodes, 2x2x2 quadrature points",
-    "hex27": "triquadratic hexahedron, 27 nodes, 3x3x3 quadrature points",
-}
+# The descriptions are the element type objects' own (warpfem.mesh.element_types).
+def _scene_elements(names):
+    from warpfem.mesh.element_types import get_element
+
+    return {n: get_element(n).description for n in names}
+
+
+ELEMENTS: dict[str, str] = _scene_elements(("tet4", "tet10", "hex8", "hex27"))
 
 # Integrators that work with some element types only (others: every element type). An
 # IntegratorType may also carry its own ``elements`` tuple, which takes precedence.
@@ -122,7 +126,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
                       doc="surface files: 'tetgen' (warpfem[mesh]), 'tetwild' (warpfem[tetwild]); default auto"),
     },
     "material": {
-        "model": Key("choice", required=True, choices=("linear", "stvk", "corotated", "stable_neo_hookean", "stable_neo_hookean_log")),
+        "model": Key("choice", required=True, choices=tuple(MATERIAL_TYPES),
+                     doc="material model (the material registry): " + ", ".join(MATERIAL_TYPES)),
         "youngs_modulus": Key("float", required=True, check=_positive, doc="E (Pa)"),
         "poisson_ratio": Key("float", required=True, check=_poisson, doc="nu"),
         "density": Key("float", default=1000.0, check=_positive, doc="kg/m^3"),

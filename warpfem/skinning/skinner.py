@@ -38,13 +38,13 @@ class SurfaceSkinner:
     embedding : the embedding of the surface points into the mesh (:func:`embed_points` or
         :func:`embed_points_in_mesh`; k weights per point, k = 4, 10, 8 or 27).
     tets : (m, k) element connectivity the embedding was computed with (its ``tet_index`` refers
-        to it), or the mesh object itself (``TetMesh`` or ``ElementMesh``).
+        to it), or the mesh object itself (``warpfem.mesh.VolumeMesh``).
     device : Warp device ("cpu", "cuda:0", ...); None means the default device.
     precision : "float32" or "float64"; positions are arrays of wp.vec3 / wp.vec3d.
     """
 
     def __init__(self, embedding: Embedding, tets, *, device=None, precision="float32"):
-        if hasattr(tets, "elements"):  # a mesh object (TetMesh or ElementMesh)
+        if hasattr(tets, "elements"):  # a mesh object (VolumeMesh)
             tets = tets.elements
         elif hasattr(tets, "tets"):
             tets = tets.tets

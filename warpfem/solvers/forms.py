@@ -105,15 +105,15 @@ class ElasticForm:
 
     def energy(self, y, x, acc):
         sim = self.sim
-        for count, args, _ in sim._qp_sets:
-            launch(FK.qp_energy_sum_kernel, count, [x, *args, acc, _E_ELASTIC], sim.device)
+        for qs in sim._qp_sets:
+            launch(FK.qp_energy_sum_kernel, qs.count, [x, qs.points, qs.material, acc, _E_ELASTIC], sim.device)
 
     def gradient(self, y, x, g, acc):
         sim = self.sim
         fa = sim._work.fa
         fa.zero_()
-        for count, args, _ in sim._qp_sets:
-            launch(FK.qp_force_and_abs_kernel, count, [x, *args, sim._s(-self.s), g, fa], sim.device)
+        for qs in sim._qp_sets:
+            launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, sim._s(-self.s), g, fa], sim.device)
         launch(LK.dot_slot_kernel, sim.num_vertices, [fa, fa, _F64_ONE, acc, _G_FORCE_ABS], sim.device)
 
     def hessian(self, y, x, values):

@@ -45,6 +45,7 @@ from warpfem.device import get_device as _get_device
 from warpfem.kernels import linalg as LK
 from warpfem.kernels import warping as WK
 from warpfem.kernels.generic import launch
+from warpfem.kernels.structs import warped_tets
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import SolveFailed, SolveStats
 from warpfem.solvers.linear import make_linear_solver
@@ -116,7 +117,9 @@ class StiffnessWarpingSimulator(SimulatorState):
         if int(max_cg_iters) != max_cg_iters or max_cg_iters < 1:
             raise ValueError(f"max_cg_iters must be a positive integer, got {max_cg_iters!r}")
         qd = model.quadrature
-        if qd.element_type != "tet4":
+        from warpfem.mesh.element_types import get_element
+
+        if not get_element(qd.element_type).is_linear_tet:  # one point per element, gradients from Dm^-1
             raise ValueError(f"StiffnessWarpingSimulator supports tet4 meshes only; the model's mesh has "
                              f"element_type {qd.element_type!r} (use warpfem.Simulator for other elements)")
         mat = model.material
@@ -142,10 +145,11 @@ class StiffnessWarpingSimulator(SimulatorState):
 
         dev = self.device
         Ke = tet_linear_stiffness_blocks(qd.qp_dNdX, qd.qp_weight, mat.mu_lame, mat.lam_lame)
-        self._Ke = wp.array(Ke.reshape(-1, 3, 3).astype(self._np), dtype=self._mat, device=dev)
-        self._elements = wp.array(qd.elements, dtype=wp.int32, device=dev)
-        self._dNdX = wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev)
-        self._x_rest = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev)
+        # the kernels' fixed data as one struct (kernels.structs.WarpedTets), built once
+        self._tets = warped_tets(self._s, wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev),
+                                 wp.array(qd.elements, dtype=wp.int32, device=dev),
+                                 wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev),
+                                 wp.array(Ke.reshape(-1, 3, 3).astype(self._np), dtype=self._mat, device=dev))
         self._R = wp.zeros(m, dtype=self._mat, device=dev)
         self._energy_e = wp.zeros(m, dtype=self._s, device=dev)
 
@@ -181,7 +185,7 @@ class StiffnessWarpingSimulator(SimulatorState):
 
     def _rotations(self, x):
         self._launch(WK.element_rotation_kernel, self.num_elements,
-                     [x, self._x_rest, self._elements, self._dNdX, ROTATIONS[self.rotation], self._R])
+                     [x, self._tets, ROTATIONS[self.rotation], self._R])
 
     def _assemble(self, x, *, matrix: bool, force_scale: float = 1.0):
         """R_e at x, then K' (if ``matrix``), f0' and the elastic force force_scale * f_el."""
@@ -191,8 +195,8 @@ class StiffnessWarpingSimulator(SimulatorState):
         self._f0.zero_()
         self._fel.zero_()
         self._launch(WK.warped_assembly_kernel, self.num_elements,
-                     [x, self._x_rest, self._elements, self._R, self._Ke, self._s(force_scale), int(matrix),
-                      self._pattern.block_index, self._k_values, self._f0, self._fel])
+                     [x, self._tets, self._R, self._s(force_scale), int(matrix), self._pattern.block_index,
+                      self._k_values, self._f0, self._fel])
 
     def _bsr_mv(self, values, x, alpha, y):
         pt = self._pattern
@@ -229,7 +233,7 @@ class StiffnessWarpingSimulator(SimulatorState):
         Zero for any rigid motion; the warped force is not exactly its gradient (dR/dx is ignored)."""
         xa = self.x if x is None else self._vec_array(x)
         self._rotations(xa)
-        self._launch(WK.warped_energy_kernel, self.num_elements, [xa, self._x_rest, self._elements, self._R, self._Ke, self._energy_e])
+        self._launch(WK.warped_energy_kernel, self.num_elements, [xa, self._tets, self._R, self._energy_e])
         return float(self._energy_e.numpy().astype(np.float64).sum())
 
     def kinetic_energy(self) -> float:

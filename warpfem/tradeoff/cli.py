@@ -18,7 +18,9 @@ def _err(msg):
 def _cmd_tradeoff(args) -> int:
     from warpfem.scenes import SceneError, load_scene
 
-    from .study import GridError, builtin_grid, format_markdown, format_table, load_grid, plot_pareto, run_study
+    from .grid import GridError, builtin_grid, load_grid
+    from .report import format_markdown, format_table, plot_pareto
+    from .study import run_study
 
     if args.frames is not None and args.frames < 1:
         _err(f"--frames must be >= 1, got {args.frames}")
@@ -134,7 +136,7 @@ def _cmd_tradeoff(args) -> int:
 
 
 def register(subparsers):
-    from .study import QUANTITIES
+    from .grid import QUANTITIES
 
     p = subparsers.add_parser("tradeoff", help="speed/accuracy study of a scene over solver configurations")
     p.add_argument("scene", help="TOML scene file")
@@ -174,7 +176,7 @@ def _cmd_tune(args) -> int:
     from warpfem.solvers.nonlinear import SolveFailed
 
     from .cluster import executor_from_args
-    from .study import GridError, TruthSpec
+    from .grid import GridError, TruthSpec
     from .tune import format_tune, load_space, tune, write_scene
 
     if not args.max_error > 0:

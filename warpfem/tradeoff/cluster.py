@@ -2,7 +2,7 @@
 embedded local cluster of N worker processes bound to 127.0.0.1, ``--scheduler ADDRESS`` uses a
 cluster that is already running.
 
-Every run is one task (:func:`warpfem.tradeoff.study.run_job`): it builds the variant, warms the
+Every run is one task (:func:`warpfem.tradeoff.runner.run_job`): it builds the variant, warms the
 worker's kernels for its signature (one untimed frame), then runs and times it on that worker, so
 wall times are the worker's own. A task whose worker dies (or that raises) is submitted again, up
 to ``retries`` times; the retry is written into that run's note, and a run that still fails comes

@@ -17,7 +17,7 @@ go on. The ``keep`` cheapest survivors of the last prefix then run the whole sce
 within budget is the winner (the others are the runners-up); if none is, the next ones are tried.
 
 Cost: ``time`` (wall seconds per simulated second, measured on the machine / worker that ran it;
-noisy on a shared machine) or ``work`` (:func:`warpfem.tradeoff.study.work_proxy`: Newton and CG
+noisy on a shared machine) or ``work`` (:func:`warpfem.tradeoff.metrics.work_proxy`: Newton and CG
 iterations times element work, deterministic).
 """
 
@@ -32,9 +32,14 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 
-from .study import (GridError, SerialExecutor, TradeoffConfig, TruthSpec, Unavailable, _job_outcome, _json_value,
-                    _REFERENCE, _cfg, _fmt, finish_reference, make_job, plan_reference, run_job, scene_document,
-                    variant_document, variant_scene)
+from warpfem.paths import portable_path, repository_root
+
+from .grid import _REFERENCE, GridError, TradeoffConfig, TruthSpec, _cfg
+from .reference import finish_reference, plan_reference
+from .report import _fmt
+from .results import _json_value
+from .runner import (SerialExecutor, Unavailable, _job_outcome, make_job, run_job, scene_document, variant_document,
+                     variant_scene)
 
 __all__ = ["tune", "format_tune", "search_space", "TuneResult", "DEFAULT_AXES", "write_scene", "toml_dumps", "load_space",
            "rerun_error"]
@@ -125,7 +130,7 @@ def _add(out, seen, dropped, doc, scene_path, kw):
 class TuneResult:
     """What ``tune`` found (JSON with :meth:`to_json`)."""
 
-    scene: str
+    scene: str  # the scene file, relative to the repository root (warpfem.paths.portable_path); see scene_file()
     max_error: float
     quantity: str
     cost: str
@@ -152,6 +157,15 @@ class TuneResult:
         with open(path, "w") as f:
             json.dump(self.to_dict(), f, indent=1, allow_nan=False)
         return path
+
+    def scene_file(self) -> str:
+        """The scene file on this machine: the one the search read, else ``scene`` (recorded
+        relative to the repository root) resolved there."""
+        own = getattr(self, "_scene_file", None)
+        if own:
+            return own
+        root = repository_root()
+        return os.path.join(root, self.scene) if root and not os.path.isabs(self.scene) else self.scene
 
     def winner_config(self) -> TradeoffConfig | None:
         return None if self.winner is None else TradeoffConfig.from_dict(self.winner["config"])
@@ -182,7 +196,7 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
 
     ``axes``: overrides of the search space (:func:`search_space`), or ``candidates``: an explicit
     list of :class:`TradeoffConfig`. ``truth``: the converged reference (None: the tight run on the
-    scene's own mesh, solver/step error only). ``reference``: a :class:`warpfem.tradeoff.study.Reference`
+    scene's own mesh, solver/step error only). ``reference``: a :class:`warpfem.tradeoff.reference.Reference`
     computed before (for these frames), reused instead of running it again. ``cost``: "time" or
     "work". ``executor``: serial (default) or :class:`warpfem.tradeoff.cluster.DaskExecutor`."""
     from warpfem.scenes import load_scene
@@ -307,18 +321,20 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
         notes.append(f"no candidate meets {quantity} error <= {max_error:g}")
     search = {"candidates_run": runs, "frame_runs": frame_runs, "whole_grid_frame_runs": len(candidates) * frames,
               "prefixes": prefixes, "eta": eta, "keep": keep, "seconds": time.perf_counter() - t_start}
-    return TuneResult(scene=os.path.abspath(scene_path), max_error=float(max_error), quantity=quantity, cost=cost,
+    result = TuneResult(scene=portable_path(scene_path), max_error=float(max_error), quantity=quantity, cost=cost,
                       frames=frames, winner=None if winner is None else _row(winner, quantity, cost),
                       runners_up=[_row(r, quantity, cost) for r in full_sorted if r is not winner],
                       rungs=rungs, pruned=pruned, candidates=len(candidates), dropped=[list(d) for d in dropped],
                       reference=reference.info, search=search, device=str(device), executor=executor.description,
                       notes=notes)
+    result._scene_file = os.path.abspath(scene_path)
+    return result
 
 
 def _pretrain(doc, scene_path, cfgs, cache_dir, device, log):
     """Train every reduced candidate's subspace once, into the shared cache (offline cost, not in
     the candidates' cost). Candidates on a cluster without this filesystem train their own."""
-    from .study import Unavailable, _build
+    from .runner import Unavailable, _build
 
     done = set()
     for c in cfgs:
@@ -375,9 +391,10 @@ def write_scene(result: TuneResult, path) -> str:
     cfg = result.winner_config()
     if cfg is None:
         raise ValueError("no winner to write")
-    src_dir = os.path.dirname(result.scene)
+    scene_file = result.scene_file()
+    src_dir = os.path.dirname(scene_file)
     out_dir = os.path.dirname(os.path.abspath(path))
-    d = variant_document(scene_document(result.scene), dataclasses.replace(cfg, name=""), for_study=False)
+    d = variant_document(scene_document(scene_file), dataclasses.replace(cfg, name=""), for_study=False)
     if d.get("subspace") is not None:
         d["subspace"].pop("cache", None)
     d["integrator"] = {"type": d["integrator"]["type"], **d["integrator"]}  # type first
@@ -388,7 +405,7 @@ def write_scene(result: TuneResult, path) -> str:
                 if isinstance(item.get(k), str) and not os.path.isabs(item[k]):
                     item[k] = os.path.relpath(os.path.join(src_dir, item[k]), out_dir)
     w = result.winner
-    head = [f"# Tuned by `warpfem tune` from {os.path.relpath(result.scene, out_dir)}: the cheapest configuration found",
+    head = [f"# Tuned by `warpfem tune` from {os.path.relpath(scene_file, out_dir)}: the cheapest configuration found",
             f"# with {result.quantity} error <= {result.max_error:g} against the converged reference "
             f"({result.frames} frames).",
             f"# Measured: {result.quantity} error {w['error']:.3g} (discretisation {_fmt(w['discretisation_error'], '.3g')}, "
@@ -398,7 +415,7 @@ def write_scene(result: TuneResult, path) -> str:
     os.makedirs(out_dir, exist_ok=True)
     with open(path, "w") as f:
         f.write("\n".join(head) + "\n" + toml_dumps(d))
-    result.scene_out = os.path.abspath(path)
+    result.scene_out = portable_path(path)
     return path
 
 

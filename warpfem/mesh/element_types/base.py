@@ -4,8 +4,13 @@ An element type is one object (a subclass of :class:`ElementType`, one module pe
 package) that knows everything the rest of the code asks about an element: its nodes (reference
 coordinates, in meshio / VTK order), shape functions and their reference gradients, quadrature
 rules per purpose, boundary faces (with a face quadrature rule, for tractions), how its mass is
-lumped and how it splits into corner sub-tets (for point location and embedding). Adding an
-element (say Tet20 or a prism) means one new module here that registers its object.
+lumped and how it splits into corner sub-tets (for point location and embedding), and the
+geometry every mesh of it needs: the isoparametric map at reference points (det J, dN/dX), signed
+volumes for validation, the mirror image used to reorient inverted elements, element mass
+matrices and their lumping, and the triangles of its faces. ``warpfem.mesh.VolumeMesh``, the mass
+module (``warpfem.mesh.mass``), the quadrature precompute (``warpfem.elements``) and the model ask the
+element object and never switch on its name. Adding an element (say Tet20 or a prism) means one new
+module here that registers its object, plus its name in the import line of ``__init__.py``.
 """
 
 from __future__ import annotations
@@ -14,8 +19,14 @@ import math
 
 import numpy as np
 
-__all__ = ["ElementType", "ELEMENTS", "register_element", "get_element", "hex_gauss_rule", "tet_conical_rule",
-           "TET_FACES", "HEX_FACES", "TRI_RULE"]
+__all__ = ["ElementType", "ElementError", "ELEMENTS", "register_element", "get_element", "hex_gauss_rule",
+           "tet_conical_rule", "TET_FACES", "HEX_FACES", "TRI_RULE", "shape_functions", "shape_gradients", "gauss_rule",
+           "element_point_data"]
+
+
+class ElementError(ValueError):
+    """An element whose rest configuration cannot be integrated (det J <= 0 at a point)."""
+
 
 # tet faces, outward (a, b, c) of the corner nodes
 TET_FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]], dtype=np.int64)
@@ -85,6 +96,12 @@ class ElementType:
     lumping: str = "row-sum"
     rule_degree: dict = {}
     description: str = ""
+    #: what messages call one element ("tet" for Tet4: "tet 3 repeats a vertex")
+    noun: str = ""
+
+    def __init__(self):
+        if not self.noun:
+            self.noun = f"{self.name} element"
 
     def __repr__(self) -> str:
         return f"<element type {self.name}>"
@@ -108,7 +125,9 @@ class ElementType:
         if purpose not in ("stiffness", "mass", "volumetric"):
             raise ValueError(f"purpose must be 'stiffness', 'mass' or 'volumetric', got {purpose!r}")
         if (purpose) not in self.rule_degree:
-            raise ValueError(f"the 1-point volumetric rule is only provided for hex8, not {self.name!r}")
+            with_rule = [n for n, e in ELEMENTS.items() if purpose in e.rule_degree]
+            raise ValueError(f"the {purpose!r} rule is only provided for {', '.join(with_rule) or 'no element type'}, "
+                             f"not {self.name!r}")
         return self._rule(purpose)
 
     def _rule(self, purpose: str):
@@ -118,12 +137,102 @@ class ElementType:
     def points_per_element(self) -> int:
         return len(self.rule("stiffness")[1])
 
+    @property
+    def is_linear_tet(self) -> bool:
+        """True when the element is its own single corner tet (4 nodes, shape functions = barycentric
+        coordinates): point location and surface loads then take the plain tet paths."""
+        return self.nodes_per_element == 4 and len(self.corner_tets) == 1
+
     # -- faces -------------------------------------------------------------------------------------
     def faces(self) -> list:
         """Per local face: (face node ids, corner ids, reference origin (3,), tangents (2, 3), rule
         points (g, 2), rule weights (g,)), with xi(s, t) = origin + s T0 + t T1 and T0 x T1 pointing
         out of the element."""
         raise NotImplementedError
+
+    def face_triangles(self) -> list:
+        """Per local face: (corner node ids (c,), outward triangles (t, 3) over local node ids) that
+        cover the face through all its nodes (a boundary surface that follows every node)."""
+        raise NotImplementedError
+
+    # -- orientation -------------------------------------------------------------------------------
+    def reflect(self, xi) -> np.ndarray:
+        """A mirror map of the reference element onto itself (reverses orientation)."""
+        raise NotImplementedError
+
+    @property
+    def mirror_permutation(self) -> np.ndarray:
+        """(k,) local node order of the mirror image: ``elements[:, perm]`` turns an element with
+        det J < 0 everywhere into one with det J > 0 (the same nodes, reoriented)."""
+        nodes = self.reference_nodes
+        image = self.reflect(nodes)
+        d = np.linalg.norm(image[:, None, :] - nodes[None, :, :], axis=2)
+        perm = d.argmin(axis=1)
+        if not np.allclose(d[np.arange(len(nodes)), perm], 0.0) or len(set(perm.tolist())) != len(nodes):
+            raise ValueError(f"{self.name}: reflect() does not map the reference nodes onto each other")
+        return perm
+
+    # -- geometry of a mesh of this element ----------------------------------------------------------
+    def point_data_at(self, vertices, elements, points):
+        """Isoparametric map at reference points for every element: det J (m, q) and material
+        gradients dN/dX (m, q, k, 3), where J = dX/dxi = sum_a X_a (dN_a/dxi)^T and dN/dX = J^-T dN/dxi.
+        Raises :class:`ElementError` naming the elements whose det J is not positive at some point."""
+        dNdxi = self.shape_gradients(points)  # (q, k, 3)
+        X = np.asarray(vertices, dtype=np.float64)[np.asarray(elements, dtype=np.int64)]  # (m, k, 3)
+        J = np.einsum("mai,qaj->mqij", X, dNdxi)  # (m, q, 3, 3)
+        det = np.linalg.det(J)
+        bad = np.flatnonzero(~(det > 0.0).all(axis=1))
+        if bad.size:
+            raise ElementError(
+                f"{bad.size} {self.name} element(s) have det J <= 0 at a quadrature point (inverted or "
+                f"degenerate rest shape, or wrong node order); first: {bad[:10].tolist()}, "
+                f"min det J {float(det[bad[0]].min()):.3g} in element {int(bad[0])}")
+        Jinv = np.linalg.inv(J)
+        dNdX = np.einsum("qaj,mqji->mqai", dNdxi, Jinv)  # dN/dX_i = sum_j dN/dxi_j dxi_j/dX_i
+        return det, dNdX
+
+    def point_data(self, vertices, elements, purpose: str = "stiffness"):
+        """(weights (m, q) = Gauss weight x det J, the volume each point represents; dN/dX (m, q, k, 3))
+        with the rule of ``purpose``; :class:`ElementError` for det J <= 0."""
+        pts, w = self.rule(purpose)
+        det, dNdX = self.point_data_at(vertices, elements, pts)
+        return det * w[None, :], dNdX
+
+    def signed_point_volumes(self, vertices, elements) -> np.ndarray:
+        """(m, q) det J x reference volume at the stiffness points (the volume the element would have
+        with that Jacobian everywhere; equal to its volume for affine elements), any sign: for validation."""
+        pts, _ = self.rule("stiffness")
+        X = np.asarray(vertices, dtype=np.float64)[np.asarray(elements, dtype=np.int64)]
+        J = np.einsum("mai,qaj->mqij", X, self.shape_gradients(pts))
+        return np.linalg.det(J) * self.reference_volume
+
+    def rest_volumes(self, vertices, elements) -> np.ndarray:
+        """(m,) element volumes sum_q w_q det J_q (exact for affine elements)."""
+        w, _ = self.point_data(vertices, elements, "stiffness")
+        return w.sum(axis=1)
+
+    # -- mass ----------------------------------------------------------------------------------------
+    def element_mass(self, vertices, elements, rho) -> np.ndarray:
+        """Consistent element mass matrices (m, k, k), kg: rho_e sum_q w_q det J_q N_a N_b with the
+        "mass" rule (exact for affine elements); ``rho`` (m,) per element."""
+        pts, w = self.rule("mass")
+        det, _ = self.point_data_at(vertices, elements, pts)
+        N = self.shape_functions(pts)  # (q, k)
+        return np.einsum("m,mq,qa,qb->mab", rho, det * w[None, :], N, N)
+
+    def lump(self, Me) -> np.ndarray:
+        """Diagonal (lumped) masses (m, k) from element matrices (m, k, k) by the type's ``lumping``:
+        "row-sum", or "hrz" (Hinton, Rock & Zienkiewicz 1976, "A note on mass lumping and related
+        processes in the finite element method": the diagonal scaled to the element mass, always > 0)."""
+        if self.lumping == "row-sum":
+            return Me.sum(axis=2)
+        d = np.einsum("maa->ma", Me)
+        return d * (Me.sum(axis=(1, 2)) / d.sum(axis=1))[:, None]
+
+    def lumped_element_mass(self, vertices, elements, rho, Me=None) -> np.ndarray:
+        """(m, k) lumped nodal masses of each element, kg (``Me``: the element matrices, when the
+        caller has them already)."""
+        return self.lump(self.element_mass(vertices, elements, rho) if Me is None else Me)
 
 
 class SimplexElement(ElementType):
@@ -132,6 +241,14 @@ class SimplexElement(ElementType):
     reference_volume = 1.0 / 6.0
     corner_nodes = np.arange(4, dtype=np.int64)
     corner_tets = np.array([[0, 1, 2, 3]], dtype=np.int64)
+
+    def reflect(self, xi):
+        """Swap eta and zeta (corners 2 and 3)."""
+        return as_points(xi)[:, [0, 2, 1]]
+
+    def face_triangles(self) -> list:
+        """Straight faces: each face is its corner triangle (quadratic tets override this)."""
+        return [(np.asarray(f), np.asarray(f)[None, :]) for f in TET_FACES]
 
     def faces(self) -> list:
         nodes = self.reference_nodes
@@ -147,6 +264,33 @@ class SimplexElement(ElementType):
 
 class HexElement(ElementType):
     """Hexahedra on the reference cube [-1, 1]^3."""
+
+    def reflect(self, xi):
+        """zeta -> -zeta (bottom and top faces swap)."""
+        return as_points(xi) * np.array([1.0, 1.0, -1.0])
+
+    def face_triangles(self) -> list:
+        """Each face's grid of nodes (2 x 2 for Hex8, 3 x 3 for Hex27, read off the reference nodes)
+        split into outward triangles."""
+        nodes = self.reference_nodes
+        lookup = {tuple(np.rint(4 * p).astype(int)): i for i, p in enumerate(nodes)}
+        levels = np.unique(nodes[:, 0])
+        out = []
+        for axis, sign, u, v in HEX_FACES:
+            def node(a, b):
+                c = np.zeros(3)
+                c[axis], c[u], c[v] = sign, a, b
+                return lookup[tuple(np.rint(4 * c).astype(int))]
+
+            corners = [node(-1, -1), node(1, -1), node(1, 1), node(-1, 1)]
+            tris = []
+            for i in range(len(levels) - 1):
+                for j in range(len(levels) - 1):
+                    a, b = node(levels[i], levels[j]), node(levels[i + 1], levels[j])
+                    c, d = node(levels[i + 1], levels[j + 1]), node(levels[i], levels[j + 1])
+                    tris += [(a, b, c), (a, c, d)]
+            out.append((np.array(corners), np.array(tris)))
+        return out
 
     reference_volume = 8.0
     corner_nodes = np.arange(8, dtype=np.int64)
@@ -192,3 +336,24 @@ def get_element(element_type) -> ElementType:
         return ELEMENTS[element_type]
     except (KeyError, TypeError):
         raise ValueError(f"unknown element type {element_type!r}; supported: {', '.join(ELEMENTS)}") from None
+
+
+# -- name-based conveniences (for callers holding a name; each asks the element object) ---------------
+def shape_functions(element_type, xi) -> np.ndarray:
+    """Shape functions N_a(xi) at reference points xi (p, 3) -> (p, k)."""
+    return get_element(element_type).shape(xi)[0]
+
+
+def shape_gradients(element_type, xi) -> np.ndarray:
+    """Reference gradients dN_a/dxi at reference points xi (p, 3) -> (p, k, 3)."""
+    return get_element(element_type).shape(xi)[1]
+
+
+def gauss_rule(element_type, purpose: str = "stiffness"):
+    """Reference points (q, 3) and weights (q,) of the element type's rule for ``purpose``."""
+    return get_element(element_type).rule(purpose)
+
+
+def element_point_data(vertices, elements, element_type, points):
+    """det J (m, q) and dN/dX (m, q, k, 3) at reference points (:meth:`ElementType.point_data_at`)."""
+    return get_element(element_type).point_data_at(vertices, elements, points)

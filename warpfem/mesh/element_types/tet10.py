@@ -5,7 +5,7 @@ by HRZ (row sums of a quadratic element are negative at the corners)."""
 
 import numpy as np
 
-from .base import SimplexElement, as_points, register_element, tet_conical_rule
+from .base import TET_FACES, SimplexElement, as_points, register_element, tet_conical_rule
 from .tet4 import TET4_NODES, barycentric
 
 TET10_EDGES = np.array([[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]], dtype=np.int64)
@@ -41,3 +41,14 @@ class Tet10(SimplexElement):
             pts = np.array([[b, b, b], [a, b, b], [b, a, b], [b, b, a]])
             return pts, np.full(4, 1.0 / 24.0)
         return tet_conical_rule(3)
+
+    def face_triangles(self):
+        """Each face split into 4 triangles through its edge mid-nodes."""
+        edge = {}
+        for i, (a, b) in enumerate(TET10_EDGES):
+            edge[(a, b)] = edge[(b, a)] = 4 + i
+        out = []
+        for a, b, c in TET_FACES:
+            ab, bc, ca = edge[(a, b)], edge[(b, c)], edge[(c, a)]
+            out.append((np.array([a, b, c]), np.array([(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)])))
+        return out

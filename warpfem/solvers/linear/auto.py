@@ -81,6 +81,8 @@ class AutoSolver(LinearSolver):
 
     name = "auto"
     eager_inv_diag = False  # the inner solvers keep their own (``self.pcg.inv_diag``, ``self.direct.inv_diag``)
+    # ``self.pcg`` (the PCG workspace: six vectors and the block-Jacobi diagonal) exists only once PCG is
+    # used: a small CPU system that stays direct never allocates it
 
     def __init__(self, pattern, *, vec_type, scalar, switch_iterations: int = SWITCH_ITERATIONS,
                  check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto", positions=None,
@@ -96,9 +98,7 @@ class AutoSolver(LinearSolver):
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     def _analyse(self, pattern):
-        from warpfem.solvers.linear.pcg import DevicePCG
-
-        self.pcg = DevicePCG(pattern, vec_type=self.vec_type, scalar=self.scalar, **self._pcg_options)
+        self.pcg = None
         self.direct = None
         self.active = "pcg"
         self._may_switch = direct_allowed(pattern)
@@ -106,6 +106,13 @@ class AutoSolver(LinearSolver):
             self.active = "direct"
             log.debug("linear solver auto: %d unknowns on the CPU; direct from the first solve", 3 * pattern.num_rows)
             self._make_direct()  # its symbolic set-up now, with the simulator's, not inside the first timed step
+        else:
+            self._make_pcg()  # likewise
+
+    def _make_pcg(self):
+        from warpfem.solvers.linear.pcg import DevicePCG
+
+        self.pcg = DevicePCG(self.pattern, vec_type=self.vec_type, scalar=self.scalar, **self._pcg_options)
 
     def _make_direct(self):
         from warpfem.solvers.linear.direct import DirectSolver
@@ -124,6 +131,8 @@ class AutoSolver(LinearSolver):
                 log.info("linear solver auto: %s; PCG from now on", self.direct._failure)
                 self.active, self._may_switch = "pcg", False
         if self.active == "pcg":
+            if self.pcg is None:  # started direct, and the direct solver gave up on this system
+                self._make_pcg()
             self.pcg.prepare(values, mask)
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:

@@ -79,7 +79,9 @@ class LinearSolver:
         self.device = pattern.device
         n = pattern.num_rows
         self.num_rows = n
-        self.inv_diag = wp.zeros(n, dtype=pattern.block_type, device=self.device)
+        self._inv_diag = None  # allocated here when eager, else on first use (see ``inv_diag``)
+        if self.eager_inv_diag:
+            self._inv_diag = wp.zeros(n, dtype=pattern.block_type, device=self.device)
         self._dot = wp.zeros(1, dtype=wp.float64, device=self.device)
         self.host_syncs = 0  # read-backs by this object (solves and dots), cumulative
         self.analyse_count = 0
@@ -121,6 +123,13 @@ class LinearSolver:
         return res
 
     # -- shared helpers ---------------------------------------------------------------------------
+    @property
+    def inv_diag(self):
+        """The block-Jacobi inverse diagonal workspace (allocated on first use unless ``eager_inv_diag``)."""
+        if self._inv_diag is None:
+            self._inv_diag = wp.zeros(self.num_rows, dtype=self.pattern.block_type, device=self.device)
+        return self._inv_diag
+
     def _setup_inv_diag(self, values, mask):
         pt = self.pattern
         launch(K.block_jacobi_setup_kernel, pt.num_rows, [pt.offsets, pt.columns, values, mask, self.inv_diag], self.device)
