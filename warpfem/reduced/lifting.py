@@ -195,7 +195,9 @@ def harmonic_weights(model, ones, zeros) -> np.ndarray:
     import scipy.sparse
 
     qd = model.quadrature
-    if qd.element_type != "tet4":
+    from warpfem.mesh.element_types import get_element
+
+    if not get_element(qd.element_type).is_linear_tet:
         raise ValueError(f"rotation-aware lifting supports tet4 meshes only, got {qd.element_type!r}")
     n = model.num_vertices
     zeros = np.setdiff1d(np.asarray(zeros, dtype=np.int64), ones)
