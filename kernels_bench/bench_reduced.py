@@ -304,7 +304,7 @@ def run_scene(key, args):
             tol = 0.5 if exact else float(tol_s)
             sub = train_subspace(model, modes=modes, modal_derivatives=True, cubature_tolerance=tol,
                                  max_cubature_points=args.scene_max_points, seed=0, snapshots=list(snaps),
-                                 pose_source="random+snapshots", handles=sel,
+                                 pose_source=args.scene_poses, handles=sel,
                                  handle_targets_at=targets_at if sel else None, load_response=True, pod_modes=pod)
             if exact:
                 sub = Subspace(sub.basis, Cubature.full(model.quadrature.num_elements), sub.mesh_hash, sub.material,
@@ -393,6 +393,8 @@ def main():
                     help="scene rows: comma list of modes:pod_modes (r = modes + pod_modes)")
     ap.add_argument("--scene-tols", default="0.01")
     ap.add_argument("--scene-max-points", type=int, default=300)
+    ap.add_argument("--scene-poses", default="random+snapshots", choices=("random+snapshots", "snapshots"),
+                    help="scene rows: cubature training poses (the scenes' training = \"mixed\" or \"snapshots\")")
     ap.add_argument("--scene-frames", type=int, default=None, help="override the reference frames N")
     ap.add_argument("--scene-training-frames", type=int, default=None, help="override the training frames T")
     ap.add_argument("--training-dt-scale", type=int, default=1,
