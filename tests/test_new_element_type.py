@@ -119,7 +119,7 @@ def test_a_registered_element_type_works_everywhere(wedge):
     x = Xr + Xr @ A.T
     eps = 0.5 * (A + A.T)
     mat = model.material
-    psi = mat.mu * np.sum(eps * eps) + 0.5 * mat.lam * np.trace(eps) ** 2
+    psi = mat.mu_lame * np.sum(eps * eps) + 0.5 * mat.lam_lame * np.trace(eps) ** 2
     assert sim.elastic_energy(x) == pytest.approx(psi * V, rel=1e-10)
     interior = np.all((Xr > 1e-9) & (Xr < np.array([2.0, 1.0, 1.5]) - 1e-9), axis=1)
     f = sim.elastic_forces(x)
@@ -163,8 +163,9 @@ def test_a_registered_element_type_gets_the_common_validation(wedge):
 
 
 # -- nothing outside element_types switches on the type name -------------------------------------------
-CORE = ("mesh", "elements", "model.py", "kernels", "io", "skinning", "simulator.py", "solvers", "contact", "reduced")
-FRONT_ENDS = ("reduced/scene.py", "reduced/cli.py")  # scene front ends validate [mesh].element by name
+CORE = ("mesh", "elements", "model.py", "kernels", "io", "skinning", "simulator.py", "solvers", "contact", "reduced",
+        "scenes", "tradeoff", "cli.py")
+FRONT_ENDS = ()  # the scene front ends ask the element objects too (box_mesh, from_tet4, is_linear_tet)
 
 
 def _core_files():
@@ -198,3 +199,41 @@ def test_core_modules_do_not_switch_on_element_names():
                 if isinstance(c, ast.Constant) and c.value in names:
                     found.append(f"{os.path.relpath(path, ROOT)}:{node.lineno}: {c.value!r}")
     assert not found, "element-name switches outside element_types:\n" + "\n".join(found)
+
+
+def test_scene_elements_come_from_the_element_objects(tmp_path):
+    """[mesh].element lists every registered type, and what a scene can build with each comes from
+    the object: a box for types with ``box_mesh``, a tet file or surface for types with ``from_tet4``."""
+    from warpfem.scenes import SceneError, load_scene
+    from warpfem.scenes.schema import ELEMENTS as SCENE_ELEMENTS, ELEMENTS_FROM_TETS, ELEMENTS_WITH_BOX
+
+    builtin = ("tet4", "tet10", "hex8", "hex27")
+    assert all(n in SCENE_ELEMENTS and SCENE_ELEMENTS[n] == ELEMENTS[n].description for n in builtin)
+    assert ELEMENTS_WITH_BOX[:4] == builtin and ELEMENTS_FROM_TETS[:2] == ("tet4", "tet10")
+    scene = """
+[mesh]
+generator = "box"
+size = [1.0, 0.25, 0.25]
+cells = [2, 1, 1]
+element = "{el}"
+[material]
+model = "linear"
+youngs_modulus = 1.0e5
+poisson_ratio = 0.3
+density = 1000.0
+"""
+    counts = {}
+    for el in builtin:
+        p = tmp_path / f"{el}.toml"
+        p.write_text(scene.format(el=el))
+        mesh = load_scene(str(p)).mesh()
+        assert mesh.element is ELEMENTS[el]
+        counts[el] = (mesh.num_vertices, mesh.num_elements)
+    # 2x1x1 cells: tets 6 per cell on a 3x2x2 grid (+ 1 mid-node per unique edge), hexes 1 per cell
+    assert counts == {"tet4": (12, 12), "tet10": (12 + 33, 12), "hex8": (12, 2), "hex27": (45, 2)}
+    surface = tmp_path / "tri.off"
+    surface.write_text("OFF\n4 4 0\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n")
+    p = tmp_path / "hex_surface.toml"
+    p.write_text(scene.replace('generator = "box"\nsize = [1.0, 0.25, 0.25]\ncells = [2, 1, 1]', 'path = "tri.off"').format(el="hex8"))
+    with pytest.raises(SceneError, match=r'\[mesh\]\.element.*"tet4" or "tet10", not \'hex8\''):
+        load_scene(str(p))

@@ -18,6 +18,12 @@ The cubature points come as a ``QuadraturePoints32/64`` struct and the material 
 Only cubature elements are touched. Two launches: one per element (material evaluation, dim =
 number of cubature points), one per (element, column) pair for the projections (dim = (c, r)), so
 the GPU sees c * r threads.
+
+The reduced simulator's hot path uses :func:`cubature_point_kernel` instead: F is affine in the
+reduced coordinates, F_c = I + G_c z with G_c = dF/dz (9 x r, constant), so the host forms F for
+every cubature point with one matrix-vector product and the kernel only evaluates the material
+per point: w psi, w P and (when asked) the 9 x 9 w dP/dF. The reductions f_r = -sum_c G_c^T vec(w P)
+and K_r = sum_c G_c^T (w dP/dF) G_c are dense products on the host (``warpfem.reduced.simulator``).
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ import warp as wp
 
 from warpfem.kernels.generic import both_precisions
 from warpfem.materials.dispatch import material_hessian_parts, material_pk1, material_psi
-from warpfem.materials.eigensystem import hessian_point_block, hessian_point_prepare
+from warpfem.materials.eigensystem import cofactor, hessian_point_block, hessian_point_prepare
 
 wp.set_module_options({"enable_backward": False})
 
@@ -124,6 +130,71 @@ def cubature_project_kernel(
         for l in range(U.shape[1]):
             val = wp.dot(y0, U[n0, l]) + wp.dot(y1, U[n1, l]) + wp.dot(y2, U[n2, l]) + wp.dot(y3, U[n3, l])
             wp.atomic_add(K, j, l, val)
+
+
+@_both(F="m[]", points="qp", material="mat", psi_out="s[]", P_out="m[]", D_out="s[]")
+@wp.kernel
+def cubature_point_kernel(
+    F: wp.array(dtype=Any),
+    points: Any,
+    material: Any,
+    want_hessian: int,
+    project: int,
+    snh_closed_form: int,
+    psi_out: wp.array(dtype=Any),
+    P_out: wp.array(dtype=Any),
+    D_out: wp.array(dtype=Any),
+):
+    """Per cubature point c at the given deformation gradient F[c]: psi_out[c] = w psi (J),
+    P_out[c] = w P (N m), and with ``want_hessian`` D_out[81 c + 9 (3i+j) + 3k+l] = w dP_ij/dF_kl
+    (row-major vec of F; SPD-projected per point when ``project != 0``). w = points.weight[c] (the
+    cubature points, one per cubature tet); ``material``: kind and kernel parameters.
+
+    ``snh_closed_form`` (the material is stable neo-Hookean, P = mu (F - cof F) + lam (J - 1) cof F)
+    with ``project == 0``: the exact dP/dF in closed form, no SVD (about 5x cheaper):
+    mu I + lam vec(cof F) vec(cof F)^T + (lam (J - 1) - mu) d cof(F)/dF, with
+    d cof(F)_ij / dF_kl = e_ikm e_jln F_mn (e: the permutation symbol)."""
+    c = wp.tid()
+    Fc = F[c]
+    w = points.weight[c]
+    kind, mu, lam = material.kind, material.mu, material.lam
+    psi_out[c] = w * material_psi(kind, Fc, mu, lam)
+    P_out[c] = w * material_pk1(kind, Fc, mu, lam)
+    if want_hessian != 0 and snh_closed_form != 0 and project == 0:
+        Cf = cofactor(Fc)
+        coef = lam * (wp.determinant(Fc) - type(w)(1.0)) - mu
+        b = c * 81
+        for i in range(3):
+            for j in range(3):
+                row = b + (3 * i + j) * 9
+                for k in range(3):
+                    for l in range(3):
+                        val = lam * Cf[i, j] * Cf[k, l]
+                        if i == k and j == l:
+                            val = val + mu
+                        if i != k and j != l:
+                            t = coef * Fc[3 - i - k, 3 - j - l]
+                            if ((k - i + 3) % 3 == 1) != ((l - j + 3) % 3 == 1):
+                                t = -t
+                            val = val + t
+                        D_out[row + 3 * k + l] = w * val
+    elif want_hessian != 0:
+        # block (j, l) of dP/dF: B[i, k] = dP_ij/dF_kl, the element-block contraction
+        # (hessian_point_block) with the unit gradients e_j, e_l (rotated: columns of V^T); 6 blocks
+        # j <= l, the others by the symmetry of dP/dF. (Cheaper than the explicit 9 x 9 product.)
+        U0, V0, A0, tw, fl = material_hessian_parts(kind, Fc, mu, lam)
+        Uh, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
+        b = c * 81
+        for j in range(3):
+            ej = type(Fc[0])(Vt[0, j], Vt[1, j], Vt[2, j])
+            for l in range(j, 3):
+                el = type(Fc[0])(Vt[0, l], Vt[1, l], Vt[2, l])
+                blk = w * hessian_point_block(Uh, A, cp, cm, ej, el)
+                for i in range(3):
+                    for k in range(3):
+                        D_out[b + (3 * i + j) * 9 + 3 * k + l] = blk[i, k]
+                        if l != j:
+                            D_out[b + (3 * k + l) * 9 + 3 * i + j] = blk[i, k]
 
 
 @_both(X="v[]", U="v[,]", q="s[]", x_out="v[]")

@@ -63,8 +63,10 @@ def _scene_error(scene, where, msg):
 
 
 def _check_integrator(scene):
+    from warpfem.mesh.element_types import get_element
+
     el = scene.spec.mesh.get("element", "tet4")
-    if el != "tet4":
+    if not get_element(el).is_linear_tet:
         raise _scene_error(scene, "[subspace]", f"reduced simulation supports [mesh] element = \"tet4\" only, got {el!r}")
     t = scene.integrator_type
     if t not in ("backward_euler", "bdf2", "newmark"):

@@ -7,22 +7,27 @@ Newmark change the prediction and s, see :mod:`warpfem.integrators`):
     E(v) = 1/2 (v - v_n)^T M_r (v - v_n) + h/2 v^T C_r v + V_c(q_n + h v) - h v^T U^T f_ext,
 
 M_r = U^T M U (= I for a mass-orthonormal basis), C_r = alpha M_r + beta K_r(q_n) (projected),
-V_c the cubature energy. Newton with an Armijo backtracking line search and a dense r x r solve
-(numpy); the reduced force and stiffness come from the Warp cubature kernels
-(``warpfem.kernels.subspace``), touching only cubature elements.
+V_c the cubature energy. Newton with an Armijo backtracking line search and a dense r x r
+Cholesky solve (LAPACK); the material is evaluated at the cubature points only, by one Warp
+kernel launch per evaluation (``warpfem.kernels.subspace.cubature_point_kernel``), with the
+deformation gradients F = I + G z formed and the reduced force and stiffness reduced on the host
+(dense products). The r x r Newton matrix is kept across iterations and steps (BFGS-updated,
+evaluated again when it stops contracting). See docs/reduced.md, "Cost of a reduced step".
 """
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _potrf, dpotrs as _potrs
 import warp as wp
 
 from warpfem.device import get_device as _get_device
 from warpfem.kernels import subspace as RK
-from warpfem.kernels.generic import launch
+from warpfem.kernels.generic import RecordedLaunch, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
@@ -35,6 +40,47 @@ def _basis_array(U, n, vec, npdt, device):
     return wp.array(np.ascontiguousarray(U.reshape(n, 3, r).transpose(0, 2, 1)).astype(npdt), dtype=vec, device=device)
 
 
+_COPY_ARRAYS = False  # tests: exercise the GPU path (explicit copies to and from the device) on the CPU
+
+
+def _chunk_points(c: int, k: int) -> int:
+    """Cubature points per chunk of the host products over k columns, so that every BLAS call stays
+    below OpenBLAS's multithreading thresholds (m n k < 262144 for a matrix product, m n < 9216
+    for a matrix-vector product): on a small loaded machine a threaded call of these sizes cost
+    10-100x a single-threaded one (measured: 26 x 1548 x 26, 0.15 ms on one thread, 0.6-15 ms on two)."""
+    return int(max(1, min(c, 9216 // (9 * (k + 1)) - 1, 262144 // (9 * k * k) - 1)))
+
+
+class _Columns:
+    """dF/dz of the cubature points for a subset of the basis columns, laid out for the host
+    products: ``G`` (cp, 9, k) (zero rows for the padding points), ``G3`` / ``G3T`` its chunks
+    (nch, 9 m, k) / (nch, k, 9 m), and a work array ``T`` (cp, 9, k) for dP/dF G (these two made
+    with the first stiffness). ``Gb3`` is
+    [G | base] in chunks: F = base + G (scale z) is one product with [scale z; 1]."""
+
+    def __init__(self, G, m, I9):
+        cp, _, k = G.shape
+        self.k, self.nch = k, cp // m
+        Gb = np.zeros((cp * 9, k + 1))
+        Gb[:, :k] = G.reshape(-1, k)
+        Gb[:, k] = I9
+        self.Gb3 = Gb.reshape(self.nch, 9 * m, k + 1)
+        self.base = None  # the base in the last column (None: the identity)
+        self.zb = np.zeros(k + 1)
+        self.zb[k] = 1.0
+        self.G = np.ascontiguousarray(G)
+        self.G3 = self.G.reshape(self.nch, 9 * m, k)
+        self.Gflat = self.G.reshape(-1, k)
+        self._m = m
+        self.G3T = self.T = self.T3 = None  # allocated with the first stiffness
+
+    def stiffness_buffers(self):
+        if self.T is None:
+            self.G3T = np.ascontiguousarray(self.G3.transpose(0, 2, 1))
+            self.T = np.zeros_like(self.G)
+            self.T3 = self.T.reshape(self.nch, 9 * self._m, self.k)
+
+
 class CubatureForces:
     """Reduced energy (J), force U^T f (r,) and stiffness U^T K U (r, r) by cubature on a device.
 
@@ -43,6 +89,15 @@ class CubatureForces:
         U: (3n, r) basis.
         elements, weights: cubature elements and dimensionless weights (weight 1 for every element
             gives the exact reduced quantities).
+
+    The deformation gradient of a cubature tet is affine in the reduced coordinates, F_c = I + G_c z
+    with G_c = dF/dz (9 x r) fixed by the basis, so an evaluation is: F for every point by one
+    matrix-vector product on the host, one launch of ``cubature_point_kernel`` (w psi, w P and, when
+    asked, the 9 x 9 w dP/dF per point), then f = -sum_c G_c^T vec(w P) and
+    K = sum_c G_c^T (w dP/dF) G_c as dense products on the host, read from the kernel's output
+    arrays in place on the CPU (one copy each on a GPU). ``evaluate_per_element`` is the earlier
+    two-kernel path (per-element forces and stiffness blocks projected with atomics), kept as a
+    reference.
     """
 
     def __init__(self, model, U, elements, weights, *, device="cpu", precision="float64"):
@@ -81,6 +136,7 @@ class CubatureForces:
             wp.array(np.arange(c, dtype=np.int32), dtype=wp.int32, device=dev),
             wp.array((weights * qd.qp_weight[elements]).astype(npdt), dtype=self._s, device=dev),
             wp.array(qd.qp_dNdX.reshape(-1, 4, 3)[elements].reshape(-1, 3).astype(npdt), dtype=vec, device=dev))
+        dN = qd.qp_dNdX.reshape(-1, 4, 3)[elements]
         self._q = wp.zeros(r, dtype=self._s, device=dev)
         self._energy = wp.zeros(c, dtype=self._s, device=dev)
         self._f = wp.zeros(4 * c, dtype=vec, device=dev)
@@ -88,9 +144,106 @@ class CubatureForces:
         self._force = wp.zeros(r, dtype=self._s, device=dev)
         self._K = wp.zeros((r, r), dtype=self._s, device=dev)
         self._npdt = npdt
+        # -- the point path: F_c = I + G_c z, G[c, 3i+j, l] = sum_a U[3 n_a + i, l] dN_a/dX_j --------
+        self._m = mpts = _chunk_points(c, r)
+        cp = -(-c // mpts) * mpts  # padded to whole chunks with zero points (never launched)
+        G = np.zeros((cp, 9, r))
+        G[:c] = np.einsum("caik,caj->cijk", U.reshape(n, 3, r)[tets], dN, optimize=True).reshape(c, 9, r)
+        self.G = G
+        self._I9 = np.tile(np.eye(3).reshape(9), cp)
+        self._all = _Columns(G, mpts, self._I9)
+        self._Fd = wp.zeros(cp, dtype=mat, device=dev)
+        self._psi_d = wp.zeros(cp, dtype=self._s, device=dev)
+        self._P_d = wp.zeros(cp, dtype=mat, device=dev)
+        self._D_d = wp.zeros(81 * cp, dtype=self._s, device=dev)
+        self._zero_copy = dev.is_cpu and not _COPY_ARRAYS  # host views of the device arrays: no copies at all
+        self._Fh = self._Fd.numpy().reshape(-1) if self._zero_copy else np.zeros(9 * cp, dtype=npdt)
+        self._Fw = self._Fh if (self._zero_copy and npdt == np.float64) else np.zeros(9 * cp)
+        self._pull(hessian=True)
+        self.version = 0  # bumped whenever the point deformation gradients change
+        from warpfem.materials.stable_neo_hookean import StableNeoHookean
+
+        # the exact dP/dF in closed form (no SVD); float64 only: in float32 its sums of O(lambda)
+        # terms lose ~1e-3 of K (measured), the eigen form keeps ~1e-6
+        snh = int(type(mat_) is StableNeoHookean and npdt == np.float64)
+        self._launch = {(h, pr): RecordedLaunch(RK.cubature_point_kernel, c, [
+            self._Fd, self.points, self.material, h, pr, snh, self._psi_d, self._P_d, self._D_d], dev)
+            for h in (0, 1) for pr in (0, 1)}
+
+    def columns(self, cols) -> _Columns:
+        """The point Jacobians of a slice of the basis columns (e.g. the elastic columns without the
+        handle lifting), laid out for :meth:`force` / :meth:`stiffness`."""
+        return _Columns(self.G[:, :, cols], self._m, self._I9)
+
+    # -- the point path ---------------------------------------------------------------------------
+    def _pull(self, hessian):
+        cp = self.G.shape[0]
+        if self._zero_copy:
+            if not hasattr(self, "_psi"):
+                self._psi, self._P, self._D = (self._psi_d.numpy(), self._P_d.numpy().reshape(-1),
+                                               self._D_d.numpy().reshape(cp, 9, 9))
+            return
+        self._psi, self._P = self._psi_d.numpy(), self._P_d.numpy().reshape(-1)
+        if hessian:
+            self._D = self._D_d.numpy().reshape(cp, 9, 9)
+        elif not hasattr(self, "_D"):
+            self._D = np.zeros((cp, 9, 9), dtype=self._npdt)
+
+    def set_coordinates(self, z, cols: _Columns | None = None, *, scale: float = 1.0, base=None):
+        """Point deformation gradients F = base + scale G z (base: the identity by default, else a
+        (9 cp,) float64 array from :meth:`deformation`), written where the kernel reads them."""
+        cols = self._all if cols is None else cols
+        if base is not cols.base:
+            cols.Gb3[:, :, -1] = (self._I9 if base is None else base).reshape(cols.nch, -1)
+            cols.base = base
+        zb = cols.zb
+        np.multiply(z, scale, out=zb[:-1])
+        out = self._Fw
+        np.matmul(cols.Gb3, zb, out=out.reshape(cols.nch, -1))
+        if out is not self._Fh:
+            self._Fh[...] = out  # to the working precision
+        if not self._zero_copy:
+            self._Fd.assign(self._Fh.reshape(-1, 3, 3))
+        self.version += 1
+
+    def deformation(self, z) -> np.ndarray:
+        """I + G z for the whole basis, (9 cp,) float64 (a new array)."""
+        z = np.asarray(z, dtype=np.float64)
+        return self._I9 + (self._all.G3 @ z).reshape(-1)
+
+    def run(self, *, hessian: bool = False, project: bool = True):
+        """Evaluate the material at the current point deformation gradients (one launch)."""
+        self._launch[int(bool(hessian)), int(bool(project) and bool(hessian))]()
+        self._pull(hessian)
+
+    def energy(self) -> float:
+        return float(self._psi.sum(dtype=np.float64))
+
+    def force(self, cols: _Columns | None = None) -> np.ndarray:
+        """-sum_c G_c^T vec(w P_c) over the columns ``cols`` (default: all)."""
+        cols = self._all if cols is None else cols
+        return -(self._P @ cols.Gflat)
+
+    def stiffness(self, cols: _Columns | None = None) -> np.ndarray:
+        """sum_c G_c^T (w dP/dF)_c G_c over ``cols`` (needs :meth:`run` with ``hessian=True``)."""
+        cols = self._all if cols is None else cols
+        cols.stiffness_buffers()
+        np.matmul(self._D, cols.G, out=cols.T)
+        K = np.matmul(cols.G3T, cols.T3).sum(axis=0) if cols.nch > 1 else cols.G3T[0] @ cols.T3[0]
+        return 0.5 * (K + K.T)
 
     def evaluate(self, q, *, hessian: bool = False, project: bool = True):
         """(energy J, force (r,), stiffness (r, r) or None) at q, float64 numpy."""
+        q = np.asarray(q, dtype=np.float64)
+        if q.shape != (self.r,):
+            raise ValueError(f"reduced coordinates must have shape ({self.r},), got {q.shape}")
+        self.set_coordinates(q)
+        self.run(hessian=hessian, project=project)
+        return self.energy(), self.force(), (self.stiffness() if hessian else None)
+
+    def evaluate_per_element(self, q, *, hessian: bool = False, project: bool = True):
+        """:meth:`evaluate` by the earlier path: per-element node forces and 4 x 4 stiffness blocks
+        (``cubature_element_kernel``), projected on the basis with atomics (``cubature_project_kernel``)."""
         self._q.assign(np.asarray(q, dtype=self._npdt))
         wh = int(bool(hessian))
         launch(RK.cubature_element_kernel, dim=self.c,
@@ -125,6 +278,11 @@ class ReducedSimulator:
 
     Fixed vertices stay where the basis puts them (at rest: fixed rows of U are zero). State: the
     reduced coordinates ``q`` and velocities ``qdot`` (numpy float64, r).
+
+    Newton matrix: the r x r matrix is kept across Newton iterations and steps (BFGS-updated,
+    evaluated again when it stops contracting; see ``_ReducedPotential``); set
+    ``reuse_newton_matrix = False`` for plain Newton (the exact Hessian at every iterate). Both
+    converge to the same solution; ``SolveStats.hessian_evaluations`` counts the evaluations.
     """
 
     def __init__(self, model, subspace, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
@@ -154,6 +312,13 @@ class ReducedSimulator:
         if lifting is not None:
             lifting.bind(model.rest_positions)
         self.forces = CubatureForces(model, self._B, cub.elements, cub.weights, device=device, precision=precision)
+        self._ucols = self.forces.columns(slice(0, self.r)) if self.p else self.forces.columns(slice(None))
+        self._work = (np.zeros(self.r), np.zeros(self.r), np.zeros(self.r))  # Newton's g, d, y_try
+        self._newton_matrix = None  # the kept r x r Newton matrix (see _ReducedPotential)
+        self._A_cache = None  # (s, alpha, M_r, C, C_ul, A, s C) without stiffness damping
+        self._zeros_r = np.zeros(self.r)
+        self.reuse_newton_matrix = True  # False: the exact Hessian at every Newton iterate (plain Newton)
+        self._kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
         self.mass_r = self._reduced_mass(U)
         self.mass_ul = U.T @ (self._mass3() @ lifting.L) if lifting is not None else np.zeros((self.r, 0))
         self.a = np.zeros(self.p)      # handle coordinates (prescribed)
@@ -359,14 +524,16 @@ class ReducedSimulator:
         zb, zhat, s = prediction
         # handles: a_{n+1} prescribed, so their end-of-step velocity is (a_{n+1} - a_b) / s; the
         # kinetic and damping energies of V = U v + L adot couple through M_ul = U^T M L (and beta K_ul)
-        a_next = self._next_handle_coords()
+        a_next = self._next_handle_coords() if self.p else self.a
         adot = (a_next - zb[r:]) / s
         pot = _ReducedPotential(self, zb=zb, v_hat=zhat[:r], adot_hat=zhat[r:], adot=adot, s=s)
         v = self.qdot.copy()
         st = newton_solve(pot, v, self.options)
+        st.hessian_evaluations = pot.hessians
         st.seconds = time.perf_counter() - t0
         what = f"reduced step {self.step_count}"
         if not st.converged:
+            self._newton_matrix = None  # computed along a failed solve: not reused
             if "non-finite" in st.reason or not np.isfinite(st.energy) or not np.all(np.isfinite(v)):
                 raise SolveFailed(f"{what} diverged ({st.reason}); state left unchanged", st)
             if self.require_convergence:
@@ -389,19 +556,105 @@ class _ReducedPotential:
         elastic    V_c(z_b + s [v; adot])                 (cubature)
         loads      -s v^T U^T f_ext
 
-    over the reduced velocity v (r numbers); the Newton system is dense (r x r, numpy)."""
+    over the reduced velocity v (r numbers). Gradient g = A v - b - s f_u(v), A = M_r + s C_r,
+    Newton matrix H = A + s^2 K_uu(v).
+
+    Cost per evaluation: F_c = F0_c + s G_u,c v for every cubature point (F0 = I + G (z_b + s [0; adot])
+    once per step: the handle terms are constant over the step), one kernel launch (w psi, w P
+    per point), E = sum w psi and f_u = -G_u^T vec(w P) on the host. The energy and the gradient at
+    a point come from the same launch: the line search's accepted trial point is not evaluated again.
+
+    Newton matrix (modified Newton, Shamanskii, with BFGS updates): H is factored (Cholesky) at
+    some iterate and kept, across iterations and across steps, updated after every step by BFGS
+    with the secant pair (v_k+1 - v_k, g_k+1 - g_k) (free: both gradients are computed anyway),
+    while it keeps contracting: it is evaluated again at the current iterate when the last
+    iteration reduced the gradient norm by less than ``refresh_ratio``, when the last line search
+    had to shorten the step, when the kept matrix is not positive definite with this step's A and
+    s, and for 8 steps at their start after a kept matrix contracted badly on a step's first
+    iteration (a thin beam's stiff directions rotate from step to step). The exact Hessian (dP/dF unprojected) is tried
+    first, which gives Newton's quadratic convergence; with ``project_hessian`` (default) an
+    indefinite exact H falls back to the per-point SPD-projected dP/dF (descent guaranteed). The
+    converged solution is the same (the stopping test is on the true gradient); only the path to
+    it changes."""
 
     gradient_test_below = 1e-9  # float64 dense sums of cubature terms resolve no finer energy change
+    refresh_ratio = 0.1  # a kept Newton matrix is evaluated again when ||g_k+1|| > ratio ||g_k||
 
     def __init__(self, sim, *, zb, v_hat, adot_hat, adot, s):
         self.sim, self.zb, self.v_hat, self.adot, self.s = sim, zb, v_hat, adot, float(s)
-        C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
+        r = sim.r
+        self.cf, self.cols = sim.forces, sim._ucols
+        if sim.damping_stiffness > 0:  # C = alpha M_r + beta K_r(z_n) changes every step
+            C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
+            self.A = sim.mass_r + s * C
+        else:  # C = alpha M_r: the same C and A (the same objects) for every step with this s and alpha,
+            # so a kept Newton factor stays valid from step to step
+            cache = sim._A_cache
+            if cache is None or cache[0] != s or cache[1] != sim.damping_mass or cache[2] is not sim.mass_r:
+                C, C_ul = sim._damping(None)
+                sim._A_cache = cache = (s, sim.damping_mass, sim.mass_r, C, C_ul, sim.mass_r + s * C, s * C)
+            C, C_ul, self.A = cache[3], cache[4], cache[5]
         self.C = C
-        self.A = sim.mass_r + s * C
-        self.lin = sim.mass_ul @ (adot - adot_hat) + s * (C_ul @ adot)  # constant part of the gradient
+        self._M, self._sC = sim.mass_r, (cache[6] if sim.damping_stiffness <= 0 else s * C)
+        self.lin = (sim.mass_ul @ (adot - adot_hat) + s * (C_ul @ adot)) if sim.p else sim._zeros_r  # constant part of the gradient
         self.eps = float(np.finfo(sim._np).eps)
         self.opts = sim.options
-        self._K, self._K_at = None, None
+        self.F0 = self.cf.deformation(zb + np.concatenate([np.zeros(r), s * adot]))  # I + G (z_b + s [0; adot])
+        self._zmax_b = float(np.abs(zb[:r]).max())
+        self._zmax_a = float(np.abs(zb[r:] + s * adot).max()) if sim.p else 0.0
+        self._g, self._d, self._y = sim._work
+        self._at = np.full(r, np.nan)  # the point of the cached evaluation
+        self._version = -1
+        self._valid = False  # the cached energy / gradient are those of the loaded point
+        self._vprev = self._gprev = self._pair = None
+        self._sfext = s * sim.fext_r
+        self._sfext_norm = math.sqrt(self._sfext @ self._sfext)
+        if sim._kept_matrix_poor > 0:
+            sim._kept_matrix_poor -= 1  # try the kept matrix again after a few steps
+        self._gn = []  # gradient norms at the accepted iterates of this solve
+        self._alpha = 1.0  # last step length tried by the line search
+        self._matrix_iterate = -1  # the iterate (index into _gn) where the kept matrix was evaluated in this solve
+        self.hessians = 0
+
+    # -- evaluation -------------------------------------------------------------------------------
+    def _load(self, v):
+        """Point deformation gradients at v (skipped when they are already loaded)."""
+        cf = self.cf
+        if self._version == cf.version and (v == self._at).all():
+            return False
+        cf.set_coordinates(v, self.cols, scale=self.s, base=self.F0)
+        self._at[:] = v
+        self._version = cf.version
+        return True
+
+    def _evaluate(self, v):
+        """Energy, gradient and the sizes of their terms at v, from one launch (cached for v)."""
+        if self._load(v) or not self._valid:
+            cf = self.cf
+            cf.run()
+            E = cf.energy()
+            t2 = self.s * cf.force(self.cols)  # s f_u
+            dv = v - self.v_hat
+            Mdv = self._M @ dv
+            t1 = self._sC @ v  # s C v
+            t0 = Mdv + self.lin
+            g = t0 + t1
+            g -= t2
+            g -= self._sfext
+            quad = 0.5 * (dv @ Mdv) + 0.5 * (v @ t1) + v @ self.lin
+            work = v @ self._sfext
+            self._energy = (quad + E - work, abs(quad) + abs(E) + abs(work))
+            self._gvec = g
+            self._gmag = math.sqrt(t0 @ t0) + math.sqrt(t1 @ t1) + math.sqrt(t2 @ t2) + self._sfext_norm
+            self._valid = True
+
+    def _hessian(self, v, project):
+        self._load(v)
+        self._valid = False
+        cf = self.cf
+        cf.run(hessian=True, project=project)
+        self.hessians += 1
+        return cf.stiffness(self.cols)
 
     def coords(self, v):
         return self.zb + self.s * np.concatenate([v, self.adot])
@@ -409,44 +662,123 @@ class _ReducedPotential:
     def new_vector(self):
         return np.zeros(self.sim.r)
 
-    @staticmethod
-    def trial(y, alpha, d, out):
-        out[:] = y + alpha * d
+    def vectors(self):
+        return self._g, self._d, self._y
+
+    def trial(self, y, alpha, d, out):
+        np.multiply(d, alpha, out=out)
+        out += y
+        self._alpha = alpha
 
     @staticmethod
     def assign(dst, src):
         dst[:] = src
 
     def energy(self, v):
-        sim, s = self.sim, self.s
-        E, _, _ = sim.forces.evaluate(self.coords(v))
-        dv = v - self.v_hat
-        quad = 0.5 * dv @ (sim.mass_r @ dv) + 0.5 * s * v @ (self.C @ v) + v @ self.lin
-        work = s * v @ sim.fext_r
-        return quad + E - work, abs(quad) + abs(E) + abs(work)
+        self._evaluate(v)
+        return self._energy
 
     def gradient(self, v, g):
-        sim, s, r = self.sim, self.s, self.sim.r
-        _, f, K = sim.forces.evaluate(self.coords(v), hessian=True, project=self.opts.project_hessian)
-        terms = (sim.mass_r @ (v - self.v_hat) + self.lin, s * (self.C @ v), s * f[:r], s * sim.fext_r)
-        g[:] = terms[0] + terms[1] - terms[2] - terms[3]
-        self._K, self._K_at = K[:r, :r], v.copy()
-        return float(sum(np.linalg.norm(t) for t in terms)), float(np.linalg.norm(g))
+        self._evaluate(v)
+        g[:] = self._gvec
+        gn = math.sqrt(g @ g)
+        if g is self._g:  # the loop's gradient at an accepted iterate (not a side test)
+            self._gn.append(gn)
+            if self._vprev is not None:  # the secant pair of the last step, for the BFGS update
+                self._pair = (v - self._vprev, g - self._gprev)
+            self._vprev, self._gprev = v.copy(), g.copy()
+        return self._gmag, gn
+
+    # -- Newton matrix ----------------------------------------------------------------------------
+    def _factor(self, K):
+        """Cholesky factor of A + s^2 K (None when not positive definite or not finite), and the matrix."""
+        H = self.A + (self.s * self.s) * K
+        if not np.all(np.isfinite(H)):
+            return None, H
+        c, info = _potrf(H, lower=1, clean=1)
+        return (c if info == 0 else None), H
+
+    def _refresh(self, v, opts):
+        K = self._hessian(v, project=False)
+        chol, H = self._factor(K)
+        if chol is None and opts.project_hessian:
+            K = self._hessian(v, project=True)
+            chol, H = self._factor(K)
+        self.sim._newton_matrix = nm = dict(K=K, A=self.A, s=self.s, chol=chol, H=H)
+        self._matrix_iterate = len(self._gn) - 1
+        return nm
+
+    def _want_refresh(self):
+        gn = self._gn
+        if len(gn) == 1:  # the first iteration of a step: a kept matrix that served badly lately is not tried
+            return self.sim._kept_matrix_poor > 0
+        if self._matrix_iterate < 0 and len(gn) == 2:  # how the kept matrix did on this step's first iteration
+            self.sim._kept_matrix_poor = 8 if gn[1] > self.refresh_ratio * gn[0] else 0
+        if self._alpha < 1.0:
+            return True  # the line search had to shorten the last step
+        return gn[-1] > self.refresh_ratio * gn[-2]
 
     def solve_newton_system(self, v, g, d, opts):
-        if self._K_at is None or not np.array_equal(self._K_at, v):
-            self.gradient(v, self.new_vector())
-        H = self.A + self.s * self.s * self._K
-        try:
-            d[:] = np.linalg.solve(H, -g)
+        nm = self.sim._newton_matrix
+        if nm is None or (self._matrix_iterate != len(self._gn) - 1
+                          and (not self.sim.reuse_newton_matrix or self._want_refresh())):
+            nm = self._refresh(v, opts)
+        else:
+            if nm["A"] is not self.A or nm["s"] != self.s:  # kept from an earlier step: this step's A and s
+                if nm["K"] is None:
+                    nm["K"] = (nm["H"] - nm["A"]) / (nm["s"] * nm["s"])
+                chol, H = self._factor(nm["K"])
+                if chol is None:
+                    nm = self._refresh(v, opts)
+                else:
+                    nm.update(A=self.A, s=self.s, chol=chol, H=H)
+            if self._pair is not None and self._matrix_iterate != len(self._gn) - 1:
+                self._bfgs(nm)
+        self._pair = None
+        self._alpha = 1.0
+        if nm["chol"] is not None:
+            x, _ = _potrs(nm["chol"], g, lower=1)
+            np.negative(x, out=d)
+            return 0
+        try:  # not positive definite (exact Hessian requested): a plain solve, as the full simulators do
+            d[:] = np.linalg.solve(nm["H"], -g)
         except np.linalg.LinAlgError:
             d[:] = -g
         return 0
+
+    def _bfgs(self, nm):
+        """BFGS update of the kept matrix with the last step's secant pair (sk, yk = g_k+1 - g_k):
+        H+ = H - H sk sk^T H / (sk^T H sk) + yk yk^T / (yk^T sk) (Nocedal & Wright, "Numerical
+        Optimization", ch. 6). It follows the change of the Hessian between evaluations (a rotating
+        thin beam's stiff directions) at O(r^2); skipped unless yk^T sk > 0, so H stays SPD."""
+        sk, yk = self._pair
+        sy = float(sk @ yk)
+        if not (sy > 1e-12 * math.sqrt(float(sk @ sk) * float(yk @ yk))) or nm["chol"] is None:
+            return
+        Hs = nm["H"] @ sk
+        sHs = float(sk @ Hs)
+        if not sHs > 0.0:
+            return
+        H = nm["H"] - np.outer(Hs, Hs / sHs) + np.outer(yk, yk / sy)
+        c, info = _potrf(H, lower=1, clean=1)
+        if info == 0:
+            nm.update(H=H, chol=c, K=None)  # K = (H - A) / s^2 when a later step needs it
+
+    def refresh_direction(self) -> bool:
+        """After a failed line search: True (try again) when the direction came from a kept matrix
+        not evaluated at this iterate; the next solve evaluates it here."""
+        if self._matrix_iterate == len(self._gn) - 1:
+            return False
+        self._alpha = 0.0
+        return True
 
     @staticmethod
     def fallback_direction(g, d):
         d[:] = -g
 
     def direction_check(self, v, g, d):
-        scale = np.abs(v).max() + np.abs(self.coords(v)).max() / abs(self.s)
-        return float(g @ d), bool(np.abs(d).max() <= 8.0 * self.eps * scale)
+        # max |z_b + s [v; adot]| bounded by max |z_b| + |s| max |v| (and the handles' part)
+        vmax = float(np.abs(v).max())
+        zmax = max(self._zmax_b + abs(self.s) * vmax, self._zmax_a)
+        scale = vmax + zmax / abs(self.s)
+        return float(g @ d), bool(float(np.abs(d).max()) <= 8.0 * self.eps * scale)

@@ -18,7 +18,7 @@ import os
 
 import numpy as np
 
-from .schema import ELEMENTS, SceneError, SceneSpec, parse_scene_file
+from .schema import ELEMENTS, ELEMENTS_FROM_TETS, ELEMENTS_WITH_BOX, SceneError, SceneSpec, parse_scene_file
 
 __all__ = ["Scene", "SceneRun", "FrameStats", "load_scene", "traction_forces", "element_traction_forces",
            "handle_targets", "estimate_device_memory", "boundary_surface", "quadrature_points_per_element"]
@@ -84,20 +84,17 @@ class Scene:
         return self._mesh
 
     def _make_mesh(self):
-        from warpfem.mesh import MeshError, box_hex_mesh, box_tet_mesh, load_element_mesh, load_mesh, tet10_from_tet4
+        from warpfem.mesh import MeshError, load_element_mesh, load_mesh
         from warpfem.mesh.element_types import get_element
 
         m = self.spec.mesh
         element = m["element"]
-        if m["generator"] == "box":
-            if element in ("hex8", "hex27"):
-                return box_hex_mesh(size=m["size"], cells=m["cells"], origin=m["origin"],
-                                    order=1 if element == "hex8" else 2)
-            mesh = box_tet_mesh(size=m["size"], cells=m["cells"], origin=m["origin"])
-            return tet10_from_tet4(mesh) if element == "tet10" else mesh
+        etype = get_element(element)
+        if m["generator"] == "box":  # the schema checked that this type has a box generator
+            return etype.box_mesh(size=m["size"], cells=m["cells"], origin=m["origin"])
         path = m["path"]
-        wanted = get_element(element).meshio_cell
-        if element in ("tet4", "tet10"):
+        wanted = etype.meshio_cell
+        if element in ELEMENTS_FROM_TETS:
             try:  # a surface file is tetrahedralised (warpfem.mesh.tetrahedralize; cached)
                 tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher") if m.get(k) is not None}
                 mesh = load_mesh(path, inside_surface=m["inside_surface"], **tetra)
@@ -107,7 +104,7 @@ class Scene:
                 if "tetra" in cells or not (wanted in cells):
                     raise
             else:
-                return tet10_from_tet4(mesh, name=path) if element == "tet10" else mesh
+                return etype.from_tet4(mesh, name=path)
         cells = _volume_cell_types(path)  # only tetra10 / hex files get here (read twice: small files)
         if wanted in cells:
             if m["inside_surface"]:
@@ -115,8 +112,10 @@ class Scene:
             return load_element_mesh(path, element_type=element)
         found = ", ".join(f"{k} ({v})" for k, v in sorted(cells.items())) or "none"
         if "tetra" in cells:
-            hint = (f"a tet mesh cannot be turned into {element} elements; use element = \"tet4\" or \"tet10\" with "
-                    f"this file, generator = \"box\" for a hex grid, or a file with {wanted} cells")
+            tets = " or ".join(f"\"{n}\"" for n in ELEMENTS_FROM_TETS)
+            boxes = ", ".join(ELEMENTS_WITH_BOX)
+            hint = (f"a tet mesh cannot be turned into {element} elements; use element = {tets} with "
+                    f"this file, generator = \"box\" ({boxes}), or a file with {wanted} cells")
         else:
             hint = f"element {element!r} needs {wanted} cells"
         self._fail("[mesh].element", f"{path} holds cells {found}: {hint}")

@@ -79,22 +79,27 @@ def _components(v):
     return None if ok else "must be a non-empty subset of 'xyz' without repeats, e.g. \"xyz\", \"z\", \"xz\""
 
 
-# Elements a scene may name ([mesh].element) -> what it is (see docs/elements.md); Scene._make_mesh builds them.
-# With generator = "box": tet4 / tet10 split each cell into 6 tets (tet10 adds shared edge
-# mid-nodes), hex8 / hex27 use one hexahedron per cell. With path = "file": tet4 / tet10 read
-# tetra cells (tet10 also tetra10 cells), hex8 / hex27 read hexahedron / hexahedron27 cells.
-# The descriptions are the element type objects' own (warpfem.mesh.element_types).
-def _scene_elements(names):
-    from warpfem.mesh.element_types import get_element
+# Elements a scene may name ([mesh].element) -> what it is: every registered element type
+# (warpfem.mesh.element_types; see docs/elements.md), with the type object's own description.
+# Scene._make_mesh asks the type object: generator = "box" -> ``box_mesh`` (tet4 / tet10 split each
+# cell into 6 tets, tet10 adding shared edge mid-nodes; hex8 / hex27 one hexahedron per cell); a
+# tet file or a tetrahedralised surface -> ``from_tet4`` (tet4, tet10); otherwise a file with the
+# type's own cells (meshio cell type ``meshio_cell``).
+from warpfem.mesh.element_types import ELEMENTS as _ELEMENT_TYPES  # noqa: E402
 
-    return {n: get_element(n).description for n in names}
+ELEMENTS: dict[str, str] = {n: e.description for n, e in _ELEMENT_TYPES.items()}
+ELEMENTS_WITH_BOX: tuple = tuple(n for n, e in _ELEMENT_TYPES.items() if e.has_box_mesh)
+ELEMENTS_FROM_TETS: tuple = tuple(n for n, e in _ELEMENT_TYPES.items() if e.has_from_tet4)
+ELEMENTS_LINEAR_TET: tuple = tuple(n for n, e in _ELEMENT_TYPES.items() if e.is_linear_tet)
+ELEMENTS_REDUCED_VOLUMETRIC: tuple = tuple(n for n, e in _ELEMENT_TYPES.items() if e.has_reduced_volumetric_rule)
 
 
-ELEMENTS: dict[str, str] = _scene_elements(("tet4", "tet10", "hex8", "hex27"))
+def _tet_types() -> str:
+    return " or ".join(f'"{n}"' for n in ELEMENTS_FROM_TETS)
 
 # Integrators that work with some element types only (others: every element type). An
 # IntegratorType may also carry its own ``elements`` tuple, which takes precedence.
-INTEGRATOR_ELEMENTS: dict[str, tuple] = {"stiffness_warping": ("tet4",)}
+INTEGRATOR_ELEMENTS: dict[str, tuple] = {"stiffness_warping": ELEMENTS_LINEAR_TET}
 
 _SELECTION = {
     "box_min": Key("vec3", doc="lower corner of the selection box (m)"),
@@ -451,6 +456,9 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
         for k in ("size", "cells"):
             if mesh[k] is None:
                 ctx.fail(f"[mesh].{k}", "required with generator = \"box\"")
+        if mesh["element"] not in ELEMENTS_WITH_BOX:
+            ctx.fail("[mesh].element", f"generator = \"box\" makes {', '.join(ELEMENTS_WITH_BOX)} meshes, not "
+                     f"{mesh['element']!r} (read it from a file: path = \"...\")")
     elif any(data["mesh"].get(k) is not None for k in ("size", "cells", "origin")):
         ctx.fail("[mesh].path", "size/cells/origin only apply to generator = \"box\"")
     element = mesh["element"]
@@ -458,17 +466,18 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
     if mesh["generator"] == "box" and tetra_keys:
         ctx.fail(f"[mesh].{tetra_keys[0]}", "only applies to path = \"surface.obj/.off/.ply/.stl\" (tetrahedralised on load)")
     if mesh["path"] and os.path.splitext(mesh["path"])[1].lower() in (".obj", ".off", ".ply", ".stl"):
-        if element not in ("tet4", "tet10"):
-            ctx.fail("[mesh].element", f"a surface file is tetrahedralised: use element = \"tet4\" or \"tet10\", not {element!r}")
+        if element not in ELEMENTS_FROM_TETS:
+            ctx.fail("[mesh].element", f"a surface file is tetrahedralised: use element = {_tet_types()}, not {element!r}")
         if mesh["inside_surface"]:
             ctx.fail("[mesh].inside_surface", "only applies to tet files; a surface file is tetrahedralised as a whole")
-    if mesh["inside_surface"] and element in ("hex8", "hex27"):
-        ctx.fail("[mesh].inside_surface", f"only applies to tetra meshes (element = \"tet4\" or \"tet10\"), not {element!r}")
+    if mesh["inside_surface"] and element not in ELEMENTS_FROM_TETS:
+        ctx.fail("[mesh].inside_surface", f"only applies to tetra meshes (element = {_tet_types()}), not {element!r}")
     material = _check_table(ctx, "material", data["material"], SCHEMA["material"])
     if material["volumetric_integration"] == "reduced":
-        if element != "hex8":
+        if element not in ELEMENTS_REDUCED_VOLUMETRIC:
+            with_rule = " / ".join(f'"{n}"' for n in ELEMENTS_REDUCED_VOLUMETRIC)
             ctx.fail("[material].volumetric_integration", "'reduced' (selective reduced integration of the volumetric "
-                     f"energy) is only available for element = \"hex8\"; this scene uses {element!r} (use \"full\", or "
+                     f"energy) is only available for element = {with_rule}; this scene uses {element!r} (use \"full\", or "
                      "element = \"tet10\" / \"hex27\", which do not lock)")
         if material["poisson_ratio"] < 0.0:
             ctx.fail("[material].volumetric_integration", "'reduced' needs poisson_ratio >= 0 (the one-point "
@@ -499,8 +508,9 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
     output = _check_table(ctx, "output", data.get("output", {}), SCHEMA["output"])
     surface = _check_table(ctx, "surface", data["surface"], SCHEMA["surface"]) if "surface" in data else None
     subspace = _check_table(ctx, "subspace", data["subspace"], SCHEMA["subspace"]) if "subspace" in data else None
-    if subspace is not None and element != "tet4":
-        ctx.fail("[subspace]", f"reduced simulation supports element = \"tet4\" only; the mesh uses {element!r}")
+    if subspace is not None and element not in ELEMENTS_LINEAR_TET:
+        only = " / ".join(f'"{n}"' for n in ELEMENTS_LINEAR_TET)
+        ctx.fail("[subspace]", f"reduced simulation supports element = {only} only; the mesh uses {element!r}")
     if subspace is not None and subspace["pod_modes"] and subspace["training"] == "random":
         ctx.fail("[subspace].pod_modes", "POD columns come from the full training run: set training = \"mixed\" or "
                  "\"snapshots\", or pod_modes = 0")

@@ -76,6 +76,7 @@ class SolveStats:
     seconds: float = 0.0
     linear_iterations: int = 0  # iterations of the linear solver (CG iterations; 1 per direct solve)
     host_syncs: int = 0  # host read-backs made inside the linear solves (see warpfem.solvers.linear)
+    hessian_evaluations: int = 0  # Newton matrices evaluated (counted by the reduced simulator, which keeps its matrix)
     history: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -111,6 +112,9 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
       of the unknowns (and positions) in the working precision;
     * ``new_vector()`` (optionally ``vectors()``: three work vectors g, d, y_try it keeps, distinct
       from y), ``trial(y, alpha, d, out)`` (out = y + alpha d), ``assign(dst, src)``;
+    * optionally ``refresh_direction() -> bool``: after a failed line search, True when the problem
+      can offer a better direction from the same point (the reduced simulator's kept Newton matrix:
+      the next ``solve_newton_system`` evaluates it afresh), and the loop tries again;
     * optionally ``max_step(y, d) -> alpha_max``: the line search starts at min(1, alpha_max)
       (contact's continuous-collision bound: no step crosses a collider);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
@@ -174,6 +178,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             alpha *= 0.5
             st.line_search_steps += 1
         if not accepted:
+            if getattr(problem, "refresh_direction", None) is not None and problem.refresh_direction():
+                continue  # the direction came from a kept (older) Newton matrix: try again with a fresh one
             if gnorm <= 1e3 * floor_factor * gmag:
                 st.converged, st.reason = True, "at the precision limit (energy differences below round-off)"
             else:

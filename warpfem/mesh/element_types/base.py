@@ -138,6 +138,30 @@ class ElementType:
         return len(self.rule("stiffness")[1])
 
     @property
+    def has_reduced_volumetric_rule(self) -> bool:
+        """True when the type provides the 1-point "volumetric" rule of selective reduced integration."""
+        return "volumetric" in self.rule_degree
+
+    # -- meshes a scene can ask for (None: this type has no such mesh) --------------------------
+    def box_mesh(self, *, size, cells, origin, name=None):
+        """A mesh of this type filling ``origin + [0, size]`` with ``cells`` grid cells, or None
+        where the type has no box generator (``[mesh] generator = "box"`` then names the types that do)."""
+        return None
+
+    def from_tet4(self, mesh, *, name=None):
+        """This type made from a Tet4 mesh (a tet file, a tetrahedralised surface), or None where a
+        tet mesh cannot become this type (a file with this type's own cells is then needed)."""
+        return None
+
+    @property
+    def has_box_mesh(self) -> bool:
+        return type(self).box_mesh is not ElementType.box_mesh
+
+    @property
+    def has_from_tet4(self) -> bool:
+        return type(self).from_tet4 is not ElementType.from_tet4
+
+    @property
     def is_linear_tet(self) -> bool:
         """True when the element is its own single corner tet (4 nodes, shape functions = barycentric
         coordinates): point location and surface loads then take the plain tet paths."""

@@ -34,6 +34,11 @@ class Hex27(HexElement):
     rule_degree = {"stiffness": 5, "mass": 5}
     description = "triquadratic hexahedron, 27 nodes, 3x3x3 quadrature points"
 
+    def box_mesh(self, *, size, cells, origin, name=None):
+        from warpfem.mesh.box import box_hex_mesh  # mesh/ builds on element types: import at use
+
+        return box_hex_mesh(size=size, cells=cells, origin=origin, order=2, name=name)
+
     def shape(self, xi):
         xi = as_points(xi)
         col = (self.reference_nodes + 1).astype(np.int64)  # (27, 3) in {0, 1, 2}

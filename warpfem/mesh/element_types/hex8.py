@@ -21,6 +21,11 @@ class Hex8(HexElement):
     rule_degree = {"stiffness": 3, "volumetric": 1, "mass": 3}
     description = "trilinear hexahedron, 8 nodes, 2x2x2 quadrature points"
 
+    def box_mesh(self, *, size, cells, origin, name=None):
+        from warpfem.mesh.box import box_hex_mesh  # mesh/ builds on element types: import at use
+
+        return box_hex_mesh(size=size, cells=cells, origin=origin, order=1, name=name)
+
     def shape(self, xi):
         xi = as_points(xi)
         p = len(xi)

@@ -35,6 +35,16 @@ class Tet10(SimplexElement):
         dN[:, 4:] = 4.0 * (L[:, a, None] * dL[None, b] + L[:, b, None] * dL[None, a])
         return N, dN
 
+    def box_mesh(self, *, size, cells, origin, name=None):
+        from warpfem.mesh.box import box_tet_mesh, tet10_from_tet4  # mesh/ builds on element types
+
+        return tet10_from_tet4(box_tet_mesh(size=size, cells=cells, origin=origin), name=name)
+
+    def from_tet4(self, mesh, *, name=None):
+        from warpfem.mesh.box import tet10_from_tet4
+
+        return tet10_from_tet4(mesh, name=name)
+
     def _rule(self, purpose):
         if purpose == "stiffness":
             a, b = 0.5854101966249685, 0.1381966011250105

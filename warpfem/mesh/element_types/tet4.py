@@ -68,6 +68,14 @@ class Tet4(SimplexElement):
         L, dL = barycentric(xi)
         return L, np.broadcast_to(dL, (len(xi), 4, 3)).copy()
 
+    def box_mesh(self, *, size, cells, origin, name=None):
+        from warpfem.mesh.box import box_tet_mesh  # mesh/ builds on element types: import at use
+
+        return box_tet_mesh(size=size, cells=cells, origin=origin, name=name)
+
+    def from_tet4(self, mesh, *, name=None):
+        return mesh
+
     def _rule(self, purpose):
         if purpose == "stiffness":
             return np.full((1, 3), 0.25), np.array([1.0 / 6.0])
