@@ -45,7 +45,8 @@ def scene_settings(scene) -> dict:
     return {"modes": int(s["modes"]), "modal_derivatives": bool(s["modal_derivatives"]),
             "cubature_tolerance": float(s["cubature_tolerance"]), "max_cubature_points": int(s["max_cubature_points"]),
             "seed": int(s["seed"]), "pose_source": _POSE_SOURCE[s["training"]],
-            "load_response": bool(s.get("load_response", False)), "pod_modes": int(s.get("pod_modes") or 0)}
+            "load_response": bool(s.get("load_response", False)), "pod_modes": int(s.get("pod_modes") or 0),
+            "rotation_lifting": int(s.get("rotation_lifting") or 0)}
 
 
 _POSE_SOURCE = {"mixed": "random+snapshots", "snapshots": "snapshots", "random": "random"}
@@ -78,7 +79,7 @@ def _stale(scene, sub) -> list:
     have = sub.settings
     out = []
     for k, v in want.items():
-        got = have.get(k, {"pose_source": "random", "load_response": False, "pod_modes": 0}.get(k))
+        got = have.get(k, {"pose_source": "random", "load_response": False, "pod_modes": 0, "rotation_lifting": 0}.get(k))
         if got != v:
             out.append(f"{k}: cache {got!r} vs scene {v!r}")
     if want["pose_source"] != "random":
@@ -211,7 +212,8 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
                          num_validation_poses=s["validation_poses"], snapshots=snapshots,
                          pose_source=_POSE_SOURCE[s["training"]],
                          handles=sel, handle_targets_at=targets_at if sel else None,
-                         load_response=bool(s.get("load_response", False)), pod_modes=int(s.get("pod_modes") or 0))
+                         load_response=bool(s.get("load_response", False)), pod_modes=int(s.get("pod_modes") or 0),
+                         rotation_lifting=int(s.get("rotation_lifting") or 0))
     rep = sub.report
     if snapshots is not None:
         rep["snapshot_seconds"] = t_snap
@@ -318,7 +320,8 @@ def describe_subspace(scene) -> str:
     lines = [f"reduced: [subspace] r = {s['modes']}{f' + {pod} POD' if pod else ''} "
              f"(modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
              f"cubature tolerance {s['cubature_tolerance']:g}, at most {s['max_cubature_points']} points, "
-             f"training {s['training']}"]
+             f"training {s['training']}"
+             + (f", rotation-aware handle lifting (order {s['rotation_lifting']})" if s.get("rotation_lifting") else "")]
     if scene.integrator_type not in ("backward_euler", "bdf2", "newmark"):
         lines.append(f"  error: [subspace] needs [integrator] type = \"backward_euler\", \"bdf2\" or \"newmark\", "
                      f"got {scene.integrator_type!r}")

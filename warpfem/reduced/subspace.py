@@ -93,8 +93,11 @@ class Subspace:
         meta = {"format": FORMAT_VERSION, "mesh_hash": self.mesh_hash, "material": self.material,
                 "settings": self.settings, "report": self.report, "num_rigid": b.num_rigid,
                 "handles": [] if self.lifting is None else
-                [{"ids": g[0].tolist(), "components": g[1], "first": int(g[3]), "num_functions": int(g[2].shape[1])}
-                 for g in self.lifting.groups],
+                [{"ids": g[0].tolist(), "components": g[1], "first": int(g[3]), "num_functions": int(g[2].shape[1]),
+                  **({"rotation_order": int(self.lifting.rotation[i][0]),
+                      "rotation_centre": [float(v) for v in self.lifting.rotation[i][1]]}
+                     if self.lifting._rotation_of(i) is not None else {})}
+                 for i, g in enumerate(self.lifting.groups)],
                 "modal_derivatives": b.modal_derivatives, "basis_info": b.info,
                 "cubature": {"training_error": c.training_error, "validation_error": c.validation_error,
                              "training_seconds": c.training_seconds, "tolerance": c.tolerance,
@@ -136,13 +139,15 @@ def load_subspace(path, model=None, *, handles=None) -> Subspace:
                    reached_tolerance=cm["reached_tolerance"], num_validation_poses=int(cm.get("num_validation_poses", 0)))
     lifting = None
     if meta.get("handles"):
-        groups, row = [], 0
+        groups, row, rotation = [], 0, []
         Qs = arrays["lifting_functions"]
         for h in meta["handles"]:
             ids = np.asarray(h["ids"], dtype=np.int64)
             groups.append((ids, h["components"], Qs[row:row + len(ids), :int(h["num_functions"])], int(h["first"])))
+            rotation.append((int(h["rotation_order"]), np.asarray(h["rotation_centre"], dtype=np.float64))
+                            if h.get("rotation_order") else None)
             row += len(ids)
-        lifting = Lifting(arrays["lifting"], groups)
+        lifting = Lifting(arrays["lifting"], groups, rotation if any(r is not None for r in rotation) else None)
     sub = Subspace(basis, cub, meta["mesh_hash"], meta["material"], meta.get("settings", {}), meta.get("report", {}),
                    lifting)
     if model is not None:
@@ -157,7 +162,7 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
                    num_training_poses: int = 100, num_validation_poses: int = 30, candidates: int = 256,
                    pose_amplitude: float = 0.1, snapshots=None, pose_source: str | None = None, handles=None,
                    handle_targets_at=None, load_response: bool = False, pod_modes: int = 0,
-                   verbose: bool = False) -> Subspace:
+                   rotation_lifting: int = 0, verbose: bool = False) -> Subspace:
     """Build the basis and train the cubature for ``model`` (the ``warpfem train`` entry point).
 
     Args:
@@ -178,6 +183,9 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
             :func:`warpfem.reduced.basis.pod_columns`): r = ``modes`` + k.
         handles: kinematic handles [(vertex ids, components), ...], fixed in ``model``: a lifting
             field (:mod:`warpfem.reduced.lifting`) is built so the reduced simulator can move them.
+        rotation_lifting: J >= 2 makes the lifting of handles with all three components
+            rotation-aware (:mod:`warpfem.reduced.lifting`: the rotation angle is interpolated into
+            the body instead of the displacement, series order J); 0 = the linear elastic extension.
         handle_targets_at: ``f(fraction in [0, 1]) -> [targets (h_g, 3) per handle]``, the handle
             motion random training poses sample (64 fractions); default: handles at rest.
         verbose: log the training report (:func:`format_report`) at INFO level on this module's logger.
@@ -198,6 +206,8 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
         if snapshots is None or len(snapshots) < 2:
             raise ValueError("pod_modes > 0 needs snapshots (full-mesh positions of a full run) to take the POD of")
         settings["pod_modes"] = int(pod_modes)
+    if rotation_lifting:
+        settings["rotation_lifting"] = int(rotation_lifting)
     why = "no cache given"
     if cache is not None and not retrain:
         if os.path.exists(cache):
@@ -221,7 +231,7 @@ def train_subspace(model, *, modes: int = 20, modal_derivatives: bool = True, cu
     t0 = time.perf_counter()
     lifting, handle_coords = None, None
     if handles:
-        lifting = build_lifting(model, handles, sim=sim)
+        lifting = build_lifting(model, handles, sim=sim, rotation_order=int(rotation_lifting))
         if handle_targets_at is not None:
             handle_coords = np.array([lifting.coords_from_targets(handle_targets_at(f)) for f in np.linspace(0, 1, 64)])
     D = snapshot_displacements(model, snapshots, lifting) if pod_modes else None

@@ -228,6 +228,10 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "training_dt_scale": Key("int", default=1, check=_positive,
                                  doc="the full training run steps dt x this (same simulated time, fewer full steps; "
                                      "snapshots per step)"),
+        "rotation_lifting": Key("int", default=0,
+                                check=lambda v: None if v == 0 or 2 <= v <= 15 else "must be 0 (linear lifting) or 2..15",
+                                doc="handles (all three components) move the interior by their rotation angle, not "
+                                    "linearly: series order J (7 is exact to 1e-4 at 90 degrees); 0 = linear lifting"),
         "max_validation_error": Key("float", default=None, check=_unit_interval,
                                     doc="`warpfem run` warns (log + stderr) when the cache's cubature validation "
                                         "error is above this"),
