@@ -237,6 +237,8 @@ def test_coarse_training_run(tmp_path, monkeypatch):
 
         meta = json.loads(str(z["meta"]))
     assert meta["report"]["full_steps"] == 4 and meta["report"]["snapshot_frames"] == 4
+    # the predicted speed-up compares steps of the scene's dt, not the coarse training steps
+    assert meta["report"]["timed_step_dt"] == pytest.approx(load_scene(path).spec.integrator["dt"], rel=1e-15)
     assert meta["settings"]["snapshots"] == 5 and meta["report"]["pod_modes"] == 3
     load_scene(path).build()  # up to date
     text = open(path).read()
