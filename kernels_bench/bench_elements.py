@@ -164,12 +164,12 @@ def assembly_rows(device, precision, repeats):
             def new():
                 sim.assemble_stiffness(xa, vals_new)
 
-            p, m = sim._points, sim._material  # the baseline takes the structs' fields positionally
-            legacy_args = [p.X, p.elements, p.k, p.element, p.weight, p.dNdX, m.kind, sim._s(m.mu), sim._s(m.lam)]
+            p, m = sim.quadrature_points, sim.material_params  # the baseline takes the structs' fields positionally
+            legacy_args = [p.X, p.elements, p.k, p.element, p.weight, p.dNdX, m.kind, sim.scalar_type(m.mu), sim.scalar_type(m.lam)]
 
             def old():
                 wp.launch(legacy_qp_hessian_kernel, dim=sim.num_points,
-                          inputs=[xa, *legacy_args, sim._s(1.0), 1, sim.pattern.block_index, vals_old], device=device)
+                          inputs=[xa, *legacy_args, sim.scalar_type(1.0), 1, sim.pattern.block_index, vals_old], device=device)
 
             new(), old()  # load the modules; then both must agree
             a, b = vals_new.numpy(), vals_old.numpy()

@@ -78,7 +78,7 @@ def main(argv=None):
 
     def warp_forces():
         f.zero_()
-        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, sim._points, sim._material, sim._s(1.0), f], device=dev)
+        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, sim.quadrature_points, sim.material_params, sim.scalar_type(1.0), f], device=dev)
         wp.synchronize_device(dev)
 
     def warp_hessian():

@@ -160,7 +160,7 @@ def bench_force_hessian(mesh, mat, sim, x_np, args, s):
 
     def warp_forces():
         f.zero_()
-        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, sim._points, sim._material, sim._s(1.0), f], device=dev)
+        wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, sim.quadrature_points, sim.material_params, sim.scalar_type(1.0), f], device=dev)
 
     def warp_hessian():
         vals.zero_()
@@ -201,15 +201,15 @@ def bench_pcg(mesh, sim, args, s):
     sim.assemble_stiffness(sim.x, vals)
     # a backward-Euler-like SPD system: M + h^2 K
     h2 = (1.0 / 60.0) ** 2
-    wp.launch(LK.scale_copy_kernel, dim=pt.nnz, inputs=[vals, sim._s(h2), vals], device=dev)
-    wp.launch(LK.add_scaled_kernel, dim=pt.nnz, inputs=[sim._mass_values, sim._s(1.0), vals], device=dev)
-    mask = sim._mask if hasattr(sim, "_mask") else None
+    wp.launch(LK.scale_copy_kernel, dim=pt.nnz, inputs=[vals, sim.scalar_type(h2), vals], device=dev)
+    wp.launch(LK.add_scaled_kernel, dim=pt.nnz, inputs=[sim.mass_values, sim.scalar_type(1.0), vals], device=dev)
+    mask = sim.free_mask
     if mask is None:
         free = np.repeat(~sim.model.fixed[:, None], 3, axis=1) if sim.model.fixed.ndim == 1 else ~sim.model.fixed
-        mask = wp.array(free.astype(sim._np), dtype=sim._vec, device=dev)
+        mask = wp.array(free.astype(sim.numpy_dtype), dtype=sim.vector_type, device=dev)
     rng = np.random.default_rng(1)
     b_np = rng.standard_normal((n, 3)) * mask.numpy()
-    b = wp.array(b_np.astype(sim._np), dtype=sim._vec, device=dev)
+    b = wp.array(b_np.astype(sim.numpy_dtype), dtype=sim.vector_type, device=dev)
     x = sim.new_vector()
     y = sim.new_vector()
     pcg = sim.linear_solver
@@ -224,9 +224,9 @@ def bench_pcg(mesh, sim, args, s):
     A = pt.to_scipy(vals).tobsr(blocksize=(3, 3))
     mk = mask.numpy().reshape(-1).astype(A.dtype)
     P = scipy.sparse.diags(mk)
-    Am = (P @ A @ P + scipy.sparse.diags(1.0 - mk)).tobsr(blocksize=(3, 3)).astype(sim._np)
-    bb = b_np.reshape(-1).astype(sim._np)
-    diag_blocks = np.zeros((n, 3, 3), dtype=sim._np)
+    Am = (P @ A @ P + scipy.sparse.diags(1.0 - mk)).tobsr(blocksize=(3, 3)).astype(sim.numpy_dtype)
+    bb = b_np.reshape(-1).astype(sim.numpy_dtype)
+    diag_blocks = np.zeros((n, 3, 3), dtype=sim.numpy_dtype)
     Acsr = Am.tocsr()
     for a in range(3):
         for c in range(3):

@@ -62,7 +62,7 @@ class _Legacy:
     def __init__(self, sim):
         from warpfem.solvers.pcg import BlockJacobiPCG
 
-        self.impl = BlockJacobiPCG(sim.pattern, vec_type=sim._vec, scalar=sim._s)
+        self.impl = BlockJacobiPCG(sim.pattern, vec_type=sim.vector_type, scalar=sim.scalar_type)
         self.device, self.scalar, self.inv_diag = self.impl.device, self.impl.scalar, self.impl.inv_diag
 
     def dot(self, a, b):
@@ -80,7 +80,7 @@ def run_case(label, make, steps):
     build_s = time.perf_counter() - t0
     sim = obj.sim if hasattr(obj, "sim") else obj
     if getattr(make, "legacy", False):
-        sim._pcg = _Legacy(sim)
+        sim.linear_solver = _Legacy(sim)
     records = []
     orig = sim.step
 

@@ -74,7 +74,7 @@ def measure(steps: int, integrators, device="cpu") -> dict:
             counts["readbacks_outside_linear_solve"] += depth[0] == 0
             return to_numpy(self)
 
-        pcg_type = type(sim._pcg)
+        pcg_type = type(sim.linear_solver)
         solve = pcg_type.solve
 
         def counted_solve(self, *a, **kw):

@@ -2,6 +2,7 @@
 direct solver's iterative refinement, and the launch cache that re-packs only changed arguments."""
 
 import numpy as np
+import pytest
 import warp as wp
 
 import warpfem as wf
@@ -141,3 +142,19 @@ def test_cached_launch_with_kernel_structs(monkeypatch):
                             sim.model.material.kernel_lam)
     np.testing.assert_allclose(stress(other), doubled, rtol=1e-14, atol=0.0)  # a new instance: re-packed
     assert repacked == [2]
+
+
+def test_public_simulator_hooks_give_the_kernel_inputs():
+    """What the benchmarks read from a simulator goes through public properties (no privates):
+    the quadrature points integrate the volume, the mass blocks the mass, the types the precision."""
+    model = _beam()
+    for precision, s, dt, v in (("float64", wp.float64, np.float64, wp.vec3d), ("float32", wp.float32, np.float32, wp.vec3)):
+        sim = wf.Simulator(model, precision=precision)
+        assert sim.scalar_type is s and sim.numpy_dtype == dt and sim.vector_type is v
+        assert sim.quadrature_points.weight.numpy().sum() == pytest.approx(0.0625, rel=1e-6)
+        assert int(sim.material_params.kind) == model.material.kind
+        m = sim.mass_values.numpy()
+        assert np.trace(m, axis1=1, axis2=2).sum() == pytest.approx(3 * 100.0 * 0.0625, rel=1e-6)
+        old = sim.linear_solver
+        sim.linear_solver = old  # assignable (benchmarks put a baseline solver in its place)
+        assert sim.linear_solver is old

@@ -210,8 +210,49 @@ class Simulator(SimulatorState):
 
     @property
     def linear_solver(self):
-        """The linear solver of the Newton systems (``warpfem.solvers.linear``)."""
+        """The linear solver of the Newton systems (``warpfem.solvers.linear``). Assignable: a
+        benchmark may put another object with the same analyse / prepare / solve methods in its place."""
         return self._pcg
+
+    @linear_solver.setter
+    def linear_solver(self, solver):
+        self._pcg = solver
+
+    @property
+    def quadrature_points(self):
+        """The main quadrature-point set as the kernels take it (``kernels.structs.QuadraturePoints``)."""
+        return self._points
+
+    @property
+    def material_params(self):
+        """The material as the kernels take it (``kernels.structs.MaterialParams``: kind, kernel mu, lam)."""
+        return self._material
+
+    @property
+    def scalar_type(self):
+        """The Warp scalar type of the simulator's precision (``wp.float32`` / ``wp.float64``)."""
+        return self._s
+
+    @property
+    def vector_type(self):
+        """The Warp vec3 type of the simulator's precision."""
+        return self._vec
+
+    @property
+    def numpy_dtype(self):
+        """The numpy dtype of the simulator's precision."""
+        return self._np
+
+    @property
+    def mass_values(self):
+        """The mass matrix in the Hessian's block pattern (device array of 3x3 blocks)."""
+        return self._mass_values
+
+    @property
+    def free_mask(self):
+        """Per vertex (1, 1, 1) where free and 0 where fixed (device vec3 array), or None before the
+        first step built it."""
+        return getattr(self, "_mask", None)
 
     @property
     def num_points(self) -> int:
