@@ -2,7 +2,6 @@
 large handle rotations in reduced runs."""
 
 import logging
-import textwrap
 import warnings
 
 import numpy as np
@@ -14,6 +13,8 @@ from warpfem.reduced import ReducedSimulator, train_subspace
 from warpfem.reduced.basis import _full_simulator, build_basis, pod_columns, projection_error, snapshot_displacements
 from warpfem.reduced.cubature import Cubature
 from warpfem.scenes import SceneError, load_scene
+
+from tiny_scenes import handle_toml, reduced_beam_toml
 
 
 def _beam_model(gravity=(0.0, 0.0, -9.81)):
@@ -98,45 +99,12 @@ def test_reduced_run_reaches_the_floor_when_the_trajectory_is_in_the_span(beam_r
     assert errs[0][1] > 1e-3  # while the modal basis' floor is not ~0
 
 
-SCENE = """
-name = "{name}"
-gravity = [0.0, 0.0, {g}]
-[mesh]
-generator = "box"
-size = [8.0, 1.0, 1.0]
-cells = [8, 1, 1]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e6
-poisson_ratio = 0.3
-density = 100.0
-[[fixed]]
-box_min = [-1.0, -1.0, -1.0]
-box_max = [1e-6, 2.0, 2.0]
-{handle}
-[integrator]
-type = "backward_euler"
-damping_mass = 2.0
-tol = 1e-8
-[output]
-fps = 30
-frames = {frames}
-states = "{name}.npz"
-{subspace}
-"""
-
-ROTATE = """
-[[handle]]
-box_min = [8.0, -1.0, -1.0]
-box_max = [9.0, 2.0, 2.0]
-rotation_axis = [0.0, 1.0, 0.0]
-rotation_angle = 90.0
-"""
+ROTATE = handle_toml((0.0, 1.0, 0.0), 90.0)
 
 
 def _write(tmp_path, name, *, g=-9.81, handle="", frames=12, subspace=""):
     p = tmp_path / f"{name}.toml"
-    p.write_text(textwrap.dedent(SCENE.format(name=name, g=g, handle=handle, frames=frames, subspace=subspace)))
+    p.write_text(reduced_beam_toml(name, g=g, handle=handle, frames=frames, states=True, subspace=subspace))
     return str(p)
 
 

@@ -1,7 +1,6 @@
 """Rotation-aware handle lifting (``[subspace] rotation_lifting``): the interior follows a handle's
 rigid motion with the rotation angle interpolated (no linear shear / candy wrapper at 90 degrees)."""
 
-import textwrap
 import warnings
 
 import numpy as np
@@ -14,6 +13,8 @@ from warpfem.reduced import train_subspace
 from warpfem.reduced.lifting import build_lifting, harmonic_weights, num_rotation_coords
 from warpfem.reduced.subspace import load_subspace
 from warpfem.scenes import SceneError, load_scene
+
+from tiny_scenes import handle_toml, reduced_beam_toml
 
 
 def _beam(clamped=True):
@@ -98,35 +99,6 @@ def test_rotation_lifting_is_saved_loaded_and_part_of_the_settings(tmp_path):
     assert np.allclose(back.lifting.group_coords(0, y), sub.lifting.group_coords(0, y), rtol=0, atol=1e-14)
 
 
-SCENE = """
-name = "{name}"
-gravity = [0.0, 0.0, 0.0]
-[mesh]
-generator = "box"
-size = [8.0, 1.0, 1.0]
-cells = [8, 1, 1]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e6
-poisson_ratio = 0.3
-density = 100.0
-[[fixed]]
-box_min = [-1.0, -1.0, -1.0]
-box_max = [1e-6, 2.0, 2.0]
-[[handle]]
-box_min = [8.0, -1.0, -1.0]
-box_max = [9.0, 2.0, 2.0]
-rotation_axis = [1.0, 0.0, 0.0]
-rotation_angle = 90.0
-[integrator]
-type = "newmark"
-damping_mass = 2.0
-tol = 1e-8
-[output]
-fps = 30
-frames = 12
-{subspace}
-"""
 
 
 def _run(path):
@@ -149,7 +121,7 @@ def test_ninety_degree_twist_needs_the_rotation_aware_lifting(tmp_path, monkeypa
 
     def write(name, sub=""):
         p = tmp_path / f"{name}.toml"
-        p.write_text(textwrap.dedent(SCENE.format(name=name, subspace=sub)))
+        p.write_text(reduced_beam_toml(name, handle=handle_toml((1.0, 0.0, 0.0), 90.0), integrator="newmark", subspace=sub))
         return str(p)
 
     xf = _run(write("full"))

@@ -1,4 +1,5 @@
-"""Small scene files shared by the trade-off tests (a 1 m clamped beam of a few Tet4 cells)."""
+"""Small scene files shared by the tests: a 1 m clamped beam of a few Tet4 cells (trade-off tests)
+and an 8 m clamped beam of 8 cells with an optional handle at its free end (reduced-run tests)."""
 
 
 def tiny_beam_toml(name: str = "tiny_beam", *, cells: int = 4, frames: int = 2) -> str:
@@ -25,4 +26,45 @@ cg_tol = 1e-4
 [output]
 fps = 24
 frames = {frames}
+"""
+
+
+def handle_toml(axis=None, angle: float = 90.0) -> str:
+    """A [[handle]] over the free end (x = 8 m) of :func:`reduced_beam_toml`'s beam, turning by
+    ``angle`` degrees about ``axis`` over the run (no rotation when ``axis`` is None)."""
+    text = "[[handle]]\nbox_min = [8.0, -1.0, -1.0]\nbox_max = [9.0, 2.0, 2.0]\n"
+    if axis is not None:
+        text += f"rotation_axis = [{axis[0]:.1f}, {axis[1]:.1f}, {axis[2]:.1f}]\nrotation_angle = {angle}\n"
+    return text
+
+
+def reduced_beam_toml(name: str, *, g: float = 0.0, handle: str = "", integrator: str = "backward_euler",
+                      frames: int = 12, states: bool = False, subspace: str = "") -> str:
+    """A clamped stable neo-Hookean beam, 8 m x 1 m x 1 m, 8 x 1 x 1 cells, gravity ``g`` along z,
+    30 fps, mass damping 2; ``handle``, ``subspace`` are TOML text appended in place."""
+    states_line = f'states = "{name}.npz"\n' if states else ""
+    return f"""
+name = "{name}"
+gravity = [0.0, 0.0, {g}]
+[mesh]
+generator = "box"
+size = [8.0, 1.0, 1.0]
+cells = [8, 1, 1]
+[material]
+model = "stable_neo_hookean"
+youngs_modulus = 1e6
+poisson_ratio = 0.3
+density = 100.0
+[[fixed]]
+box_min = [-1.0, -1.0, -1.0]
+box_max = [1e-6, 2.0, 2.0]
+{handle}
+[integrator]
+type = "{integrator}"
+damping_mass = 2.0
+tol = 1e-8
+[output]
+fps = 30
+frames = {frames}
+{states_line}{subspace}
 """
