@@ -44,6 +44,10 @@ ROOT = os.path.dirname(HERE)
 # coarse training run at 2 dt -> r = 26, 172 points; thin cantilever 20 + 10, tol 0.002 -> r = 29, 56 points)
 SCENES = {
     "thin_cantilever": dict(modes=20, pod_modes=10, training_frames=12, cubature_tolerance=0.002),
+    # the thin cantilever with Newmark and r = 10 + 10 POD columns over the whole swing (the
+    # settings of the reduced-accuracy study): the same scene file, another [integrator] / [subspace]
+    "thin_cantilever_newmark": dict(modes=10, pod_modes=10, training_frames=48, training_dt_scale=2,
+                                    _file="thin_cantilever", _integrator=dict(type="newmark")),
     "octopus": dict(modes=10, pod_modes=30, training_frames=48, training_dt_scale=2, cubature_tolerance=0.01,
                     max_cubature_points=400),
 }
@@ -55,9 +59,11 @@ def _scene(name, cache_dir):
     from warpfem.scenes import Scene
     from warpfem.scenes.schema import SceneError, parse_scene_dict, read_toml
 
-    path = os.path.join(ROOT, "examples", "scenes", f"{name}.toml")
+    settings = dict(SCENES[name])
+    path = os.path.join(ROOT, "examples", "scenes", f"{settings.pop('_file', name)}.toml")
     data = read_toml(path, SceneError, what="scene file")
-    data["subspace"] = dict(data.get("subspace", {}), **SCENES[name],
+    data["integrator"] = dict(data.get("integrator", {}), **settings.pop("_integrator", {}))
+    data["subspace"] = dict(data.get("subspace", {}), **settings,
                             cache=os.path.join(cache_dir, f"{name}.subspace.npz"))
     data.pop("surface", None)  # the render surface is not what is measured
     return Scene(parse_scene_dict(data, path=path))

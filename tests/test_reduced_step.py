@@ -132,3 +132,59 @@ def test_failed_step_leaves_state_and_drops_the_kept_matrix(beam_subspace):
     rs.options.max_iters = 30
     st = rs.step()
     assert st.converged and np.all(np.isfinite(rs.q))
+
+
+@pytest.mark.parametrize("integrator,beta", [("backward_euler", 0.0), ("bdf2", 0.0), ("newmark", 0.0), ("backward_euler", 0.01)])
+def test_fast_newton_loop_equals_the_generic_loop(beam_subspace, integrator, beta):
+    """The reduced simulator's own Newton loop (trial points written into the evaluation's input)
+    against warpfem.solvers.nonlinear.newton_solve on the same potential: the same iterates."""
+    _, model, sub = beam_subspace
+    runs = []
+    for fast in (True, False):
+        rs = ReducedSimulator(model, sub, dt=1 / 30, damping_mass=0.5, damping_stiffness=beta, tol=1e-10,
+                              integrator=integrator)
+        rs.fast_newton = fast
+        qs, stats = [], []
+        for _ in range(8):
+            stats.append(rs.step())
+            qs.append(np.concatenate([rs.q, rs.qdot]))
+        runs.append((np.array(qs), stats))
+    (qf, sf), (qg, sg) = runs
+    assert np.abs(qf[:, :sub.U.shape[1]]).max() > 1e-3  # it moves
+    assert np.abs(qf - qg).max() <= 1e-10 * np.abs(qg).max()
+    for a, b in zip(sf, sg):
+        assert a.converged and b.converged
+        assert (a.newton_iterations, a.line_search_steps, a.hessian_evaluations, a.reason) == (
+            b.newton_iterations, b.line_search_steps, b.hessian_evaluations, b.reason)
+        assert a.residual == pytest.approx(b.residual, rel=1e-6, abs=1e-14)
+        assert len(a.history) == len(b.history) == a.newton_iterations
+
+
+def test_step_potential_energy_and_gradient_match_the_cubature_forces(beam_subspace):
+    """The fused evaluation of a step's potential E(v) = 1/2 |v - v_hat|_M^2 + s/2 v^T C v + V(z_b + s v)
+    - s v^T f_ext and its gradient against the same terms from CubatureForces.evaluate, and the
+    gradient against central differences of the energy."""
+    _, model, sub = beam_subspace
+    rs = ReducedSimulator(model, sub, dt=1 / 30, damping_mass=0.5, integrator="newmark")
+    for _ in range(3):
+        rs.step()
+    zb, zhat, s = rs.integrator.predict(rs)
+    pot = rs._pot.begin(zb=zb, v_hat=zhat, adot_hat=zhat[:0], adot=zhat[:0], s=s)
+    rng = np.random.default_rng(3)
+    v = rs.qdot + 0.3 * np.abs(rs.qdot).max() * rng.standard_normal(rs.r)
+    E, _ = pot.energy(v)
+    g = np.zeros(rs.r)
+    pot.gradient(v, g)
+    V, f, _ = rs.forces.evaluate(zb + s * v)
+    M, C = rs.mass_r, rs.damping_mass * rs.mass_r
+    dv = v - zhat
+    E_ref = 0.5 * dv @ M @ dv + 0.5 * s * v @ C @ v + V - s * v @ rs.fext_r
+    g_ref = M @ dv + s * C @ v - s * f - s * rs.fext_r
+    assert E == pytest.approx(E_ref, rel=1e-12)
+    assert np.abs(g - g_ref).max() <= 1e-11 * np.abs(g_ref).max()
+    h = 1e-6 * np.abs(v).max()
+    for j in range(0, rs.r, 3):
+        e = np.zeros(rs.r)
+        e[j] = h
+        fd = (pot.energy(v + e)[0] - pot.energy(v - e)[0]) / (2 * h)
+        assert fd == pytest.approx(g_ref[j], abs=1e-6 * np.abs(g_ref).max())

@@ -40,6 +40,8 @@ def _basis_array(U, n, vec, npdt, device):
     return wp.array(np.ascontiguousarray(U.reshape(n, 3, r).transpose(0, 2, 1)).astype(npdt), dtype=vec, device=device)
 
 
+_amax, _asum = np.maximum.reduce, np.add.reduce  # the ufunc reductions without ndarray.max/sum's wrappers
+
 _COPY_ARRAYS = False  # tests: exercise the GPU path (explicit copies to and from the device) on the CPU
 
 
@@ -145,7 +147,8 @@ class CubatureForces:
         self._K = wp.zeros((r, r), dtype=self._s, device=dev)
         self._npdt = npdt
         # -- the point path: F_c = I + G_c z, G[c, 3i+j, l] = sum_a U[3 n_a + i, l] dN_a/dX_j --------
-        self._m = mpts = _chunk_points(c, r)
+        mpts = _chunk_points(c, r)
+        self._m = mpts = -(-c // -(-c // mpts))  # the same number of chunks, balanced: little padding
         cp = -(-c // mpts) * mpts  # padded to whole chunks with zero points (never launched)
         G = np.zeros((cp, 9, r))
         G[:c] = np.einsum("caik,caj->cijk", U.reshape(n, 3, r)[tets], dN, optimize=True).reshape(c, 9, r)
@@ -159,6 +162,7 @@ class CubatureForces:
         self._zero_copy = dev.is_cpu and not _COPY_ARRAYS  # host views of the device arrays: no copies at all
         self._Fh = self._Fd.numpy().reshape(-1) if self._zero_copy else np.zeros(9 * cp, dtype=npdt)
         self._Fw = self._Fh if (self._zero_copy and npdt == np.float64) else np.zeros(9 * cp)
+        self._Fw3 = self._Fw.reshape(cp // mpts, -1)
         self._pull(hessian=True)
         self.version = 0  # bumped whenever the point deformation gradients change
         from warpfem.materials.stable_neo_hookean import StableNeoHookean
@@ -182,8 +186,10 @@ class CubatureForces:
             if not hasattr(self, "_psi"):
                 self._psi, self._P, self._D = (self._psi_d.numpy(), self._P_d.numpy().reshape(-1),
                                                self._D_d.numpy().reshape(cp, 9, 9))
+                self._P3 = self._P.reshape(cp // self._m, 1, -1)
             return
         self._psi, self._P = self._psi_d.numpy(), self._P_d.numpy().reshape(-1)
+        self._P3 = self._P.reshape(cp // self._m, 1, -1)
         if hessian:
             self._D = self._D_d.numpy().reshape(cp, 9, 9)
         elif not hasattr(self, "_D"):
@@ -206,6 +212,16 @@ class CubatureForces:
             self._Fd.assign(self._Fh.reshape(-1, 3, 3))
         self.version += 1
 
+    def set_product(self, Gb3, zb):
+        """Point deformation gradients F = Gb3 zb for chunks ``Gb3`` laid out like
+        ``_Columns.Gb3`` (e.g. [s G_u | F0] with zb = [v; 1]), written where the kernel reads them."""
+        np.matmul(Gb3, zb, out=self._Fw3)
+        if self._Fw is not self._Fh:
+            self._Fh[...] = self._Fw  # to the working precision
+        if not self._zero_copy:
+            self._Fd.assign(self._Fh.reshape(-1, 3, 3))
+        self.version += 1
+
     def deformation(self, z) -> np.ndarray:
         """I + G z for the whole basis, (9 cp,) float64 (a new array)."""
         z = np.asarray(z, dtype=np.float64)
@@ -217,7 +233,7 @@ class CubatureForces:
         self._pull(hessian)
 
     def energy(self) -> float:
-        return float(self._psi.sum(dtype=np.float64))
+        return float(_asum(self._psi, dtype=np.float64))
 
     def force(self, cols: _Columns | None = None) -> np.ndarray:
         """-sum_c G_c^T vec(w P_c) over the columns ``cols`` (default: all)."""
@@ -318,6 +334,8 @@ class ReducedSimulator:
         self._A_cache = None  # (s, alpha, M_r, C, C_ul, A, s C) without stiffness damping
         self._zeros_r = np.zeros(self.r)
         self.reuse_newton_matrix = True  # False: the exact Hessian at every Newton iterate (plain Newton)
+        self.fast_newton = True  # False: the generic loop (warpfem.solvers.nonlinear.newton_solve), the reference
+        self._pot = None  # the step's potential (work arrays kept across steps)
         self._kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
         self.mass_r = self._reduced_mass(U)
         self.mass_ul = U.T @ (self._mass3() @ lifting.L) if lifting is not None else np.zeros((self.r, 0))
@@ -526,9 +544,11 @@ class ReducedSimulator:
         # kinetic and damping energies of V = U v + L adot couple through M_ul = U^T M L (and beta K_ul)
         a_next = self._next_handle_coords() if self.p else self.a
         adot = (a_next - zb[r:]) / s
-        pot = _ReducedPotential(self, zb=zb, v_hat=zhat[:r], adot_hat=zhat[r:], adot=adot, s=s)
+        if self._pot is None:
+            self._pot = _ReducedPotential(self)
+        pot = self._pot.begin(zb=zb, v_hat=zhat[:r], adot_hat=zhat[r:], adot=adot, s=s)
         v = self.qdot.copy()
-        st = newton_solve(pot, v, self.options)
+        st = pot.solve(v, self.options) if self.fast_newton else newton_solve(pot, v, self.options)
         st.hessian_evaluations = pot.hessians
         st.seconds = time.perf_counter() - t0
         what = f"reduced step {self.step_count}"
@@ -580,76 +600,157 @@ class _ReducedPotential:
     gradient_test_below = 1e-9  # float64 dense sums of cubature terms resolve no finer energy change
     refresh_ratio = 0.1  # a kept Newton matrix is evaluated again when ||g_k+1|| > ratio ||g_k||
 
-    def __init__(self, sim, *, zb, v_hat, adot_hat, adot, s):
-        self.sim, self.zb, self.v_hat, self.adot, self.s = sim, zb, v_hat, adot, float(s)
-        r = sim.r
+    def __init__(self, sim):
+        """Work arrays for every step of ``sim`` (one potential per simulator, :meth:`begin` per step)."""
+        self.sim = sim
+        self.r = r = sim.r
         self.cf, self.cols = sim.forces, sim._ucols
+        self.eps = float(np.finfo(sim._np).eps)
+        self.opts = sim.options
+        self._g, self._d, self._y = sim._work
+        # w = [dv; v; 1]: the point being evaluated (v), its distance to v_hat, and the constant 1 of
+        # the product F = [s G_u | F0] [v; 1] (so the line search writes its trial point into w)
+        self._w = np.zeros(2 * r + 1)
+        self._w[-1] = 1.0
+        self._wdv, self._wv, self._wzb, self._w2 = self._w[:r], self._w[r:2 * r], self._w[r:], self._w[:2 * r]
+        # the gradient's terms at the evaluated point: M dv + lin, s C v, -s f_u, -s f_ext
+        self._Z = np.zeros((4, r))
+        self._Z01 = self._Z[:2].reshape(-1)
+        self._Z3a, self._Z3b = self._Z[:3, None, :], self._Z[:3, :, None]
+        self._gt = np.zeros(r)  # the gradient at the evaluated point
+        self._ones4 = np.ones(4)
+        cf = self.cf
+        self._run0 = cf._launch[(0, 0)] if cf._zero_copy else None
+        nch = self.cols.nch
+        self._fch = np.zeros((nch, r)) if nch > 1 else None  # per-chunk force sums
+        self._fch3 = self._fch[:, None, :] if nch > 1 else None
+        self._zfull = np.zeros(r + sim.p + 1)  # [z_b + s [0; adot]; 1] for F0
+        self._zfull[-1] = 1.0
+        self._F0 = np.zeros(self.cf._all.Gb3.shape[:2])
+        self._by_s = {}  # s -> (s G_u flat for the force, [s G_u | F0] chunks for F)
+        self._blk_key = None
+        self._MsC = np.zeros((2 * r, 2 * r))  # blockdiag(M_r, s C_r)
+        self._at = np.full(r, np.nan)  # the point of the loaded deformation gradients
+        self._bW = np.zeros((2, r))  # [H s_k; y_k] of a BFGS update (y_k stored there by _accepted)
+        self._bWT, self._bcW = self._bW.T, np.zeros((2, r))
+        self._bc = np.zeros(2)
+        self._bc2 = self._bc[:, None]
+        self._sk, self._yk = np.zeros(r), self._bW[1]
+        self._absbuf = np.zeros(r)
+        self._n2 = np.zeros((3, 1, 1))
+        self._vprev, self._gprev = np.zeros(r), np.zeros(r)
+
+    def begin(self, *, zb, v_hat, adot_hat, adot, s):
+        """Set up the potential of the coming step (prediction z_b, v_hat, the handles' velocity, s)."""
+        sim, r = self.sim, self.r
+        self.zb, self.v_hat, self.adot, self.s = zb, v_hat, adot, s = zb, v_hat, adot, float(s)
         if sim.damping_stiffness > 0:  # C = alpha M_r + beta K_r(z_n) changes every step
             C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
             self.A = sim.mass_r + s * C
+            sC = s * C
         else:  # C = alpha M_r: the same C and A (the same objects) for every step with this s and alpha,
             # so a kept Newton factor stays valid from step to step
             cache = sim._A_cache
             if cache is None or cache[0] != s or cache[1] != sim.damping_mass or cache[2] is not sim.mass_r:
                 C, C_ul = sim._damping(None)
                 sim._A_cache = cache = (s, sim.damping_mass, sim.mass_r, C, C_ul, sim.mass_r + s * C, s * C)
-            C, C_ul, self.A = cache[3], cache[4], cache[5]
+            C, C_ul, self.A, sC = cache[3], cache[4], cache[5], cache[6]
         self.C = C
-        self._M, self._sC = sim.mass_r, (cache[6] if sim.damping_stiffness <= 0 else s * C)
-        self.lin = (sim.mass_ul @ (adot - adot_hat) + s * (C_ul @ adot)) if sim.p else sim._zeros_r  # constant part of the gradient
-        self.eps = float(np.finfo(sim._np).eps)
-        self.opts = sim.options
-        self.F0 = self.cf.deformation(zb + np.concatenate([np.zeros(r), s * adot]))  # I + G (z_b + s [0; adot])
+        if self._blk_key is not sC or self._blk_M is not sim.mass_r:
+            self._MsC[:r, :r] = sim.mass_r
+            self._MsC[r:, r:] = sC
+            self._blk_key, self._blk_M = sC, sim.mass_r
+        self.lin = (sim.mass_ul @ (adot - adot_hat) + s * (C_ul @ adot)) if sim.p else None  # constant part of the gradient
+        # F0 = I + G (z_b + s [0; adot]) for every point (the handle terms are constant over the step)
+        zf = self._zfull
+        zf[:r] = zb[:r]
+        if sim.p:
+            np.multiply(adot, s, out=zf[r:-1])
+            zf[r:-1] += zb[r:]
+        cols = self.cols
+        np.matmul(self.cf._all.Gb3, zf, out=self._F0)
+        sc = self._by_s.get(s)
+        if sc is None:
+            if len(self._by_s) > 4:
+                self._by_s.clear()
+            Gb3s = cols.Gb3.copy()
+            Gb3s[:, :, :-1] *= s
+            self._by_s[s] = sc = (np.ascontiguousarray(s * cols.Gflat), Gb3s)
+        self._sG, self._Gb3s = sc
+        self._sG3 = self._sG.reshape(cols.nch, -1, r)
+        self._Gb3s[:, :, -1] = self._F0
         self._zmax_b = float(np.abs(zb[:r]).max())
-        self._zmax_a = float(np.abs(zb[r:] + s * adot).max()) if sim.p else 0.0
-        self._g, self._d, self._y = sim._work
-        self._at = np.full(r, np.nan)  # the point of the cached evaluation
+        self._zmax_a = float(np.abs(zf[r:-1]).max()) if sim.p else 0.0
+        self._sfext = sfe = s * sim.fext_r
+        np.negative(sfe, out=self._Z[3])
+        self._sfext_norm = math.sqrt(sfe @ sfe)
+        self._fl = np.stack([sfe, self.lin]) if sim.p else sfe  # v . s f_ext (and v . lin) in one product
         self._version = -1
         self._valid = False  # the cached energy / gradient are those of the loaded point
-        self._vprev = self._gprev = self._pair = None
-        self._sfext = s * sim.fext_r
-        self._sfext_norm = math.sqrt(self._sfext @ self._sfext)
+        self._has_prev = False
+        self._pair = False
         if sim._kept_matrix_poor > 0:
             sim._kept_matrix_poor -= 1  # try the kept matrix again after a few steps
         self._gn = []  # gradient norms at the accepted iterates of this solve
         self._alpha = 1.0  # last step length tried by the line search
         self._matrix_iterate = -1  # the iterate (index into _gn) where the kept matrix was evaluated in this solve
         self.hessians = 0
+        return self
 
     # -- evaluation -------------------------------------------------------------------------------
-    def _load(self, v):
-        """Point deformation gradients at v (skipped when they are already loaded)."""
+    def _load_w(self):
+        """Point deformation gradients at the v held in w: F = [s G_u | F0] [v; 1]."""
         cf = self.cf
-        if self._version == cf.version and (v == self._at).all():
-            return False
-        cf.set_coordinates(v, self.cols, scale=self.s, base=self.F0)
-        self._at[:] = v
+        cf.set_product(self._Gb3s, self._wzb)
+        self._at[:] = self._wv
         self._version = cf.version
-        return True
+
+    def _eval_w(self):
+        """Energy, its magnitude, the gradient (into ``_gt``), its magnitude and norm at the v held
+        in w, from one launch: g = M (v - v_hat) + lin + s C v - s f_u(v) - s f_ext."""
+        cf, Z = self.cf, self._Z
+        np.subtract(self._wv, self.v_hat, out=self._wdv)
+        self._load_w()
+        if self._run0 is not None:
+            self._run0()  # zero-copy: the kernel's outputs are read in place
+        else:
+            cf.run()
+        E = float(_asum(cf._psi, dtype=np.float64))
+        np.matmul(self._MsC, self._w2, out=self._Z01)  # [M dv; s C v]
+        quad2 = self._w2 @ self._Z01  # dv . M dv + v . s C v
+        # s G_u^T vec(w P) = -s f_u, by chunks of points (single-threaded BLAS, see _chunk_points)
+        if self._fch is None:
+            np.matmul(cf._P, self._sG, out=Z[2])
+        else:
+            np.matmul(cf._P3, self._sG3, out=self._fch3)
+            _asum(self._fch, axis=0, out=Z[2])
+        if self.lin is not None:
+            Z[0] += self.lin
+            vw = self._fl @ self._wv
+            work, vlin = float(vw[0]), float(vw[1])
+        else:
+            work, vlin = float(self._sfext @ self._wv), 0.0
+        gt = self._gt
+        np.matmul(self._ones4, Z, out=gt)  # t0 + t1 - t2 - s f_ext
+        n2 = np.matmul(self._Z3a, self._Z3b, out=self._n2).reshape(3)  # |t0|^2, |t1|^2, |t2|^2
+        quad = 0.5 * float(quad2) + vlin
+        self._valid = True
+        self._E = (quad + E - work, abs(quad) + abs(E) + abs(work))
+        self._gmag = math.sqrt(n2[0]) + math.sqrt(n2[1]) + math.sqrt(n2[2]) + self._sfext_norm
+        self._gnt = math.sqrt(gt @ gt)
+        return self._E
 
     def _evaluate(self, v):
-        """Energy, gradient and the sizes of their terms at v, from one launch (cached for v)."""
-        if self._load(v) or not self._valid:
-            cf = self.cf
-            cf.run()
-            E = cf.energy()
-            t2 = self.s * cf.force(self.cols)  # s f_u
-            dv = v - self.v_hat
-            Mdv = self._M @ dv
-            t1 = self._sC @ v  # s C v
-            t0 = Mdv + self.lin
-            g = t0 + t1
-            g -= t2
-            g -= self._sfext
-            quad = 0.5 * (dv @ Mdv) + 0.5 * (v @ t1) + v @ self.lin
-            work = v @ self._sfext
-            self._energy = (quad + E - work, abs(quad) + abs(E) + abs(work))
-            self._gvec = g
-            self._gmag = math.sqrt(t0 @ t0) + math.sqrt(t1 @ t1) + math.sqrt(t2 @ t2) + self._sfext_norm
-            self._valid = True
+        """:meth:`_eval_w` at v (skipped when v is the point already evaluated)."""
+        if self._valid and self._version == self.cf.version and (v == self._at).all():
+            return
+        self._wv[:] = v
+        self._eval_w()
 
     def _hessian(self, v, project):
-        self._load(v)
+        if self._version != self.cf.version or not (v == self._at).all():
+            self._wv[:] = v
+            self._load_w()
         self._valid = False
         cf = self.cf
         cf.run(hessian=True, project=project)
@@ -659,8 +760,9 @@ class _ReducedPotential:
     def coords(self, v):
         return self.zb + self.s * np.concatenate([v, self.adot])
 
+    # -- the problem interface of warpfem.solvers.nonlinear.newton_solve (the reference loop) ------
     def new_vector(self):
-        return np.zeros(self.sim.r)
+        return np.zeros(self.r)
 
     def vectors(self):
         return self._g, self._d, self._y
@@ -676,24 +778,32 @@ class _ReducedPotential:
 
     def energy(self, v):
         self._evaluate(v)
-        return self._energy
+        return self._E
 
     def gradient(self, v, g):
         self._evaluate(v)
-        g[:] = self._gvec
-        gn = math.sqrt(g @ g)
+        g[:] = self._gt
+        gn = self._gnt
         if g is self._g:  # the loop's gradient at an accepted iterate (not a side test)
-            self._gn.append(gn)
-            if self._vprev is not None:  # the secant pair of the last step, for the BFGS update
-                self._pair = (v - self._vprev, g - self._gprev)
-            self._vprev, self._gprev = v.copy(), g.copy()
+            self._accepted(v, g, gn)
         return self._gmag, gn
+
+    def _accepted(self, v, g, gn):
+        """Record an accepted iterate: its gradient norm, and the secant pair of the last step."""
+        self._gn.append(gn)
+        if self._has_prev:  # the secant pair of the last step, for the BFGS update
+            np.subtract(v, self._vprev, out=self._sk)
+            np.subtract(g, self._gprev, out=self._yk)
+            self._pair = True
+        self._vprev[:] = v
+        self._gprev[:] = g
+        self._has_prev = True
 
     # -- Newton matrix ----------------------------------------------------------------------------
     def _factor(self, K):
         """Cholesky factor of A + s^2 K (None when not positive definite or not finite), and the matrix."""
         H = self.A + (self.s * self.s) * K
-        if not np.all(np.isfinite(H)):
+        if not math.isfinite(_asum(H, axis=None)):  # a sum is finite only when every term is
             return None, H
         c, info = _potrf(H, lower=1, clean=1)
         return (c if info == 0 else None), H
@@ -732,9 +842,9 @@ class _ReducedPotential:
                     nm = self._refresh(v, opts)
                 else:
                     nm.update(A=self.A, s=self.s, chol=chol, H=H)
-            if self._pair is not None and self._matrix_iterate != len(self._gn) - 1:
+            if self._pair and self._matrix_iterate != len(self._gn) - 1:
                 self._bfgs(nm)
-        self._pair = None
+        self._pair = False
         self._alpha = 1.0
         if nm["chol"] is not None:
             x, _ = _potrs(nm["chol"], g, lower=1)
@@ -751,15 +861,18 @@ class _ReducedPotential:
         H+ = H - H sk sk^T H / (sk^T H sk) + yk yk^T / (yk^T sk) (Nocedal & Wright, "Numerical
         Optimization", ch. 6). It follows the change of the Hessian between evaluations (a rotating
         thin beam's stiff directions) at O(r^2); skipped unless yk^T sk > 0, so H stays SPD."""
-        sk, yk = self._pair
+        sk, yk = self._sk, self._yk
         sy = float(sk @ yk)
         if not (sy > 1e-12 * math.sqrt(float(sk @ sk) * float(yk @ yk))) or nm["chol"] is None:
             return
-        Hs = nm["H"] @ sk
+        W, cw = self._bW, self._bc  # W = [H sk; yk] (rows), H+ = H + W^T diag(-1/sHs, 1/sy) W
+        Hs = np.matmul(nm["H"], sk, out=W[0])
         sHs = float(sk @ Hs)
         if not sHs > 0.0:
             return
-        H = nm["H"] - np.outer(Hs, Hs / sHs) + np.outer(yk, yk / sy)
+        cw[0], cw[1] = -1.0 / sHs, 1.0 / sy
+        H = np.matmul(self._bWT, np.multiply(W, self._bc2, out=self._bcW))
+        H += nm["H"]
         c, info = _potrf(H, lower=1, clean=1)
         if info == 0:
             nm.update(H=H, chol=c, K=None)  # K = (H - A) / s^2 when a later step needs it
@@ -778,7 +891,99 @@ class _ReducedPotential:
 
     def direction_check(self, v, g, d):
         # max |z_b + s [v; adot]| bounded by max |z_b| + |s| max |v| (and the handles' part)
-        vmax = float(np.abs(v).max())
+        buf = self._absbuf
+        vmax = float(_amax(np.abs(v, out=buf)))
         zmax = max(self._zmax_b + abs(self.s) * vmax, self._zmax_a)
         scale = vmax + zmax / abs(self.s)
-        return float(g @ d), bool(float(np.abs(d).max()) <= 8.0 * self.eps * scale)
+        return float(g @ d), bool(float(_amax(np.abs(d, out=buf))) <= 8.0 * self.eps * scale)
+
+    # -- the fast loop ------------------------------------------------------------------------------
+    def solve(self, y, opts) -> SolveStats:
+        """:func:`~warpfem.solvers.nonlinear.newton_solve` on this potential, written out for numpy
+        vectors of r numbers: the same iterations, line search, stopping tests and statistics
+        (tested equal to the generic loop), without its per-call indirections (trial points are
+        written straight into the evaluation's input; each point is evaluated once)."""
+        st = SolveStats()
+        g, d = self._g, self._d
+        wv = self._wv
+        eps_mach = self.eps
+        wv[:] = y
+        E, mag = self._eval_w()
+        g[:] = self._gt
+        gmag, gnorm0 = self._gmag, self._gnt
+        self._accepted(y, g, gnorm0)
+        floor_factor = 64.0 * eps_mach
+        st.energy, st.gradient_norm = E, gnorm0
+        if not (math.isfinite(E) and math.isfinite(gnorm0)):
+            st.reason = "non-finite energy or gradient at the start"
+            return st
+        if gnorm0 <= opts.atol or gnorm0 <= floor_factor * gmag:
+            st.converged, st.reason = True, "already at equilibrium"
+            return st
+        gnorm = gnorm0
+        armijo, max_ls = opts.armijo, opts.max_line_search
+        test_below = self.gradient_test_below
+        history = st.history
+        iters = 0
+        for _ in range(opts.max_iters):
+            self.solve_newton_system(y, g, d, opts)
+            gd, negligible = self.direction_check(y, g, d)
+            if not (gd < 0.0):  # not a descent direction (indefinite Hessian)
+                d[:] = -g
+                gd, negligible = self.direction_check(y, g, d)
+                if not (gd < 0.0):
+                    st.reason = "no descent direction"
+                    break
+            if negligible:
+                st.converged = True
+                st.reason = "at the precision limit (Newton step below the resolution of the positions)"
+                break
+            alpha, accepted = 1.0, False
+            noise = 16.0 * eps_mach * mag
+            for _ls in range(max_ls):
+                self._alpha = alpha
+                if alpha == 1.0:
+                    np.add(y, d, out=wv)
+                else:
+                    np.multiply(d, alpha, out=wv)
+                    wv += y
+                E_try, mag_try = self._eval_w()
+                finite = math.isfinite(E_try)
+                if finite and E_try <= E + armijo * alpha * gd + noise:
+                    accepted = True
+                    break
+                if _ls == 0 and test_below > 0.0 and finite and abs(E_try - E) <= test_below * mag:
+                    if self._gnt <= 0.5 * gnorm:
+                        accepted = True
+                        break
+                alpha *= 0.5
+                st.line_search_steps += 1
+            if not accepted:
+                if self.refresh_direction():
+                    continue
+                if gnorm <= 1e3 * floor_factor * gmag:
+                    st.converged, st.reason = True, "at the precision limit (energy differences below round-off)"
+                else:
+                    st.reason = "line search could not decrease the energy"
+                break
+            y[:] = wv
+            E, mag = E_try, mag_try
+            g[:] = self._gt
+            gmag, gnorm = self._gmag, self._gnt
+            self._accepted(y, g, gnorm)
+            iters += 1
+            history.append((E, gnorm, alpha, 0))
+            if not math.isfinite(gnorm):
+                st.reason = "non-finite gradient"
+                break
+            if gnorm <= opts.tol * gnorm0 or gnorm <= opts.atol:
+                st.converged, st.reason = True, "gradient below tolerance"
+                break
+            if gnorm <= floor_factor * gmag:
+                st.converged, st.reason = True, "gradient at the round-off floor of its terms"
+                break
+        else:
+            st.reason = f"reached max_iters={opts.max_iters}"
+        st.newton_iterations = iters
+        st.energy, st.gradient_norm, st.residual = E, gnorm, gnorm / gnorm0
+        return st
