@@ -533,9 +533,10 @@ class ReducedSimulator:
         raise ValueError("a reduced simulator (x = X + U q) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
 
     def step(self) -> SolveStats:
-        """One reduced step of ``dt`` with the simulator's integrator (the same Newton loop as the
-        full-space simulators, :func:`~warpfem.solvers.nonlinear.newton_solve`, with a dense r x r
-        solve); raises SolveFailed on NaN (state untouched)."""
+        """One reduced step of ``dt`` with the simulator's integrator (Newton with an Armijo line
+        search and a dense r x r solve: :meth:`_ReducedPotential.solve`, the same iterates as the
+        full-space simulators' :func:`~warpfem.solvers.nonlinear.newton_solve`, which
+        ``fast_newton = False`` runs instead); raises SolveFailed on NaN (state untouched)."""
         t0 = time.perf_counter()
         r = self.r
         prediction = self.integrator.predict(self)
@@ -551,8 +552,8 @@ class ReducedSimulator:
         st = pot.solve(v, self.options) if self.fast_newton else newton_solve(pot, v, self.options)
         st.hessian_evaluations = pot.hessians
         st.seconds = time.perf_counter() - t0
-        what = f"reduced step {self.step_count}"
         if not st.converged:
+            what = f"reduced step {self.step_count}"
             self._newton_matrix = None  # computed along a failed solve: not reused
             if "non-finite" in st.reason or not np.isfinite(st.energy) or not np.all(np.isfinite(v)):
                 raise SolveFailed(f"{what} diverged ({st.reason}); state left unchanged", st)
