@@ -1,8 +1,8 @@
 """Cost of one reduced time step against the full step of the same scene, and against an older
 checkout of warpfem (the "before" of a change), all in one run.
 
-For each scene (default: the thin cantilever and the octopus, with the subspace settings of the
-rows quoted in docs/reduced.md), the subspace is trained once (``warpfem train``'s code; cached in
+For each scene (default: the thin cantilever, the thin cantilever with Newmark and r = 10 + 10,
+and the octopus, with the subspace settings of the rows quoted in docs/reduced.md), the subspace is trained once (``warpfem train``'s code; cached in
 ``--cache-dir``, reused when up to date) and then, each in a fresh process:
 
 * the **full** step: the scene's full simulator with its current default solver settings
@@ -22,7 +22,7 @@ difference between this checkout's and the baseline's reduced positions (both co
 the solver tolerance, so they agree to about that). The load of the machine (``os.getloadavg``)
 is recorded before and after.
 
-    .venv/bin/python kernels_bench/bench_reduced_step.py [--scenes thin_cantilever,octopus] [--frames 48]
+    .venv/bin/python kernels_bench/bench_reduced_step.py [--scenes thin_cantilever,thin_cantilever_newmark,octopus] [--frames 48]
         [--full-frames 48] [--repeats 2] [--baseline /path/to/other/checkout] [--cache-dir ~/.cache/warpfem/bench_reduced_step]
         [--out kernels_bench/results/reduced_step]
 """
@@ -122,7 +122,9 @@ def _spawn(kind, scene, args, root, positions):
     res = subprocess.run(cmd, cwd=root, env=env, capture_output=True, text=True)
     for line in res.stdout.splitlines():
         if line.startswith("RESULT "):
-            return json.loads(line[7:])
+            out = json.loads(line[7:])
+            out["warpfem"] = "this checkout" if os.path.abspath(root) == ROOT else "baseline"  # no absolute paths
+            return out
     raise RuntimeError(f"{kind} worker ({root}) failed:\n{res.stdout[-2000:]}\n{res.stderr[-4000:]}")
 
 
@@ -138,7 +140,7 @@ def train(name, args):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", default="thin_cantilever,octopus")
+    ap.add_argument("--scenes", default="thin_cantilever,thin_cantilever_newmark,octopus")
     ap.add_argument("--frames", type=int, default=48, help="frames measured (the first one is a warm-up, not counted)")
     ap.add_argument("--full-frames", type=int, default=0, help="frames of full steps measured (default: --frames)")
     ap.add_argument("--repeats", type=int, default=2, help="runs of each (interleaved); the fastest counts")
@@ -189,6 +191,12 @@ def main():
         rows.append(row)
         print(json.dumps(row), flush=True)
     device = f"cpu ({platform.processor() or platform.machine()}, {os.cpu_count()} logical cores visible), {args.machine}"
+
+    def commit(root):
+        r = subprocess.run(["git", "-C", root, "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+        return r.stdout.strip() or "unknown"
+
+    commits = dict(this_checkout=commit(ROOT), **({"baseline": commit(args.baseline)} if args.baseline else {}))
     head = (f"Reduced step vs full step (bench_reduced_step.py, {args.frames} frames reduced, {args.full_frames} full, "
             f"the first frame a warm-up; fastest of {args.repeats} interleaved runs; full step: the scene's full simulator with its "
             f"default solver settings). Device: {device}.\n\n")
@@ -207,7 +215,7 @@ def main():
     print(md)
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out + ".json", "w") as f:
-        json.dump(dict(device=device, frames=args.frames, full_frames=args.full_frames, rows=rows), f, indent=1)
+        json.dump(dict(device=device, commits=commits, frames=args.frames, full_frames=args.full_frames, rows=rows), f, indent=1)
     with open(args.out + ".md", "w") as f:
         f.write(md)
 

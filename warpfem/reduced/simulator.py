@@ -891,12 +891,20 @@ class _ReducedPotential:
         d[:] = -g
 
     def direction_check(self, v, g, d):
-        # max |z_b + s [v; adot]| bounded by max |z_b| + |s| max |v| (and the handles' part)
+        # max |z_b + s [v; adot]| bounded by max |z_b| + |s| max |v| (and the handles' part);
+        # negligible when max |d| <= 8 eps (max |v| + max|z| / |s|). The 2-norms bound the maxima
+        # (max |v| <= |v|, max |d| >= |d| / sqrt(r)), which settles the test without them unless d is tiny.
+        s = abs(self.s)
+        gd = float(g @ d)
+        vn = math.sqrt(v @ v)
+        bound = 8.0 * self.eps * (vn + max(self._zmax_b + s * vn, self._zmax_a) / s)
+        if float(d @ d) > self.r * bound * bound:
+            return gd, False
         buf = self._absbuf
         vmax = float(_amax(np.abs(v, out=buf)))
-        zmax = max(self._zmax_b + abs(self.s) * vmax, self._zmax_a)
-        scale = vmax + zmax / abs(self.s)
-        return float(g @ d), bool(float(_amax(np.abs(d, out=buf))) <= 8.0 * self.eps * scale)
+        zmax = max(self._zmax_b + s * vmax, self._zmax_a)
+        scale = vmax + zmax / s
+        return gd, bool(float(_amax(np.abs(d, out=buf))) <= 8.0 * self.eps * scale)
 
     # -- the fast loop ------------------------------------------------------------------------------
     def solve(self, y, opts) -> SolveStats:
