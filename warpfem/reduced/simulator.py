@@ -622,13 +622,12 @@ class _ReducedPotential:
         self._ones4 = np.ones(4)
         cf = self.cf
         self._run0 = cf._launch[(0, 0)] if cf._zero_copy else None
-        nch = self.cols.nch
-        self._fch = np.zeros((nch, r)) if nch > 1 else None  # per-chunk force sums
-        self._fch3 = self._fch[:, None, :] if nch > 1 else None
+        self._fch = np.zeros((self.cols.nch, r + 1))  # per-chunk force sums (and P : F0)
+        self._fch3, self._fchu = self._fch[:, None, :], self._fch[:, :r]
         self._zfull = np.zeros(r + sim.p + 1)  # [z_b + s [0; adot]; 1] for F0
         self._zfull[-1] = 1.0
         self._F0 = np.zeros(self.cf._all.Gb3.shape[:2])
-        self._by_s = {}  # s -> (s G_u flat for the force, [s G_u | F0] chunks for F)
+        self._by_s = {}  # s -> [s G_u | F0] in chunks (F = [s G_u | F0] [v; 1], s f_u = -[s G_u]^T vec(w P))
         self._blk_key = None
         self._MsC = np.zeros((2 * r, 2 * r))  # blockdiag(M_r, s C_r)
         self._at = np.full(r, np.nan)  # the point of the loaded deformation gradients
@@ -676,9 +675,8 @@ class _ReducedPotential:
                 self._by_s.clear()
             Gb3s = cols.Gb3.copy()
             Gb3s[:, :, :-1] *= s
-            self._by_s[s] = sc = (np.ascontiguousarray(s * cols.Gflat), Gb3s)
-        self._sG, self._Gb3s = sc
-        self._sG3 = self._sG.reshape(cols.nch, -1, r)
+            self._by_s[s] = sc = Gb3s
+        self._Gb3s = sc
         self._Gb3s[:, :, -1] = self._F0
         self._zmax_b = float(np.abs(zb[:r]).max())
         self._zmax_a = float(np.abs(zf[r:-1]).max()) if sim.p else 0.0
@@ -719,12 +717,11 @@ class _ReducedPotential:
         E = float(_asum(cf._psi, dtype=np.float64))
         np.matmul(self._MsC, self._w2, out=self._Z01)  # [M dv; s C v]
         quad2 = self._w2 @ self._Z01  # dv . M dv + v . s C v
-        # s G_u^T vec(w P) = -s f_u, by chunks of points (single-threaded BLAS, see _chunk_points)
-        if self._fch is None:
-            np.matmul(cf._P, self._sG, out=Z[2])
-        else:
-            np.matmul(cf._P3, self._sG3, out=self._fch3)
-            _asum(self._fch, axis=0, out=Z[2])
+        # s G_u^T vec(w P) = -s f_u by chunks of points (single-threaded BLAS, see _chunk_points),
+        # from the same matrix [s G_u | F0] as F (read once from memory per evaluation; the last
+        # column's P : F0 is not used)
+        np.matmul(cf._P3, self._Gb3s, out=self._fch3)
+        _asum(self._fchu, axis=0, out=Z[2])
         if self.lin is not None:
             Z[0] += self.lin
             vw = self._fl @ self._wv
