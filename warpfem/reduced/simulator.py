@@ -607,7 +607,6 @@ class _ReducedPotential:
         self.r = r = sim.r
         self.cf, self.cols = sim.forces, sim._ucols
         self.eps = float(np.finfo(sim._np).eps)
-        self.opts = sim.options
         self._g, self._d, self._y = sim._work
         # w = [dv; v; 1]: the point being evaluated (v), its distance to v_hat, and the constant 1 of
         # the product F = [s G_u | F0] [v; 1] (so the line search writes its trial point into w)
@@ -624,9 +623,10 @@ class _ReducedPotential:
         self._run0 = cf._launch[(0, 0)] if cf._zero_copy else None
         self._fch = np.zeros((self.cols.nch, r + 1))  # per-chunk force sums (and P : F0)
         self._fch3, self._fchu = self._fch[:, None, :], self._fch[:, :r]
-        self._zfull = np.zeros(r + sim.p + 1)  # [z_b + s [0; adot]; 1] for F0
+        self._zfull = np.zeros(r + sim.p + 1)  # [z_b + s [0; adot]] for F0 (and a spare 1)
         self._zfull[-1] = 1.0
         self._F0 = np.zeros(self.cf._all.Gb3.shape[:2])
+        self._I9 = self.cf._I9.reshape(self._F0.shape)
         self._by_s = {}  # s -> [s G_u | F0] in chunks (F = [s G_u | F0] [v; 1], s f_u = -[s G_u]^T vec(w P))
         self._blk_key = None
         self._MsC = np.zeros((2 * r, 2 * r))  # blockdiag(M_r, s C_r)
@@ -643,6 +643,7 @@ class _ReducedPotential:
     def begin(self, *, zb, v_hat, adot_hat, adot, s):
         """Set up the potential of the coming step (prediction z_b, v_hat, the handles' velocity, s)."""
         sim, r = self.sim, self.r
+        self.opts = sim.options
         self.zb, self.v_hat, self.adot, self.s = zb, v_hat, adot, s = zb, v_hat, adot, float(s)
         if sim.damping_stiffness > 0:  # C = alpha M_r + beta K_r(z_n) changes every step
             C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
@@ -668,7 +669,8 @@ class _ReducedPotential:
             np.multiply(adot, s, out=zf[r:-1])
             zf[r:-1] += zb[r:]
         cols = self.cols
-        np.matmul(self.cf._all.Gb3, zf, out=self._F0)
+        np.matmul(self.cf._all.G3, zf[:-1], out=self._F0)
+        self._F0 += self._I9
         sc = self._by_s.get(s)
         if sc is None:
             if len(self._by_s) > 4:
