@@ -299,6 +299,10 @@ class ReducedSimulator:
     evaluated again when it stops contracting; see ``_ReducedPotential``); set
     ``reuse_newton_matrix = False`` for plain Newton (the exact Hessian at every iterate). Both
     converge to the same solution; ``SolveStats.hessian_evaluations`` counts the evaluations.
+
+    Newton loop: the simulator's own (``_ReducedPotential.solve``, no per-call indirection, trial
+    points written straight into the evaluation's input); ``fast_newton = False`` runs the generic
+    :func:`~warpfem.solvers.nonlinear.newton_solve` on the same potential instead (the same iterates).
     """
 
     def __init__(self, model, subspace, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
