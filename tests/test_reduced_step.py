@@ -134,32 +134,6 @@ def test_failed_step_leaves_state_and_drops_the_kept_matrix(beam_subspace):
     assert st.converged and np.all(np.isfinite(rs.q))
 
 
-@pytest.mark.parametrize("integrator,beta", [("backward_euler", 0.0), ("bdf2", 0.0), ("newmark", 0.0), ("backward_euler", 0.01)])
-def test_fast_newton_loop_equals_the_generic_loop(beam_subspace, integrator, beta):
-    """The reduced simulator's own Newton loop (trial points written into the evaluation's input)
-    against warpfem.solvers.nonlinear.newton_solve on the same potential: the same iterates."""
-    _, model, sub = beam_subspace
-    runs = []
-    for fast in (True, False):
-        rs = ReducedSimulator(model, sub, dt=1 / 30, damping_mass=0.5, damping_stiffness=beta, tol=1e-10,
-                              integrator=integrator)
-        rs.fast_newton = fast
-        qs, stats = [], []
-        for _ in range(8):
-            stats.append(rs.step())
-            qs.append(np.concatenate([rs.q, rs.qdot]))
-        runs.append((np.array(qs), stats))
-    (qf, sf), (qg, sg) = runs
-    assert np.abs(qf[:, :sub.U.shape[1]]).max() > 1e-3  # it moves
-    assert np.abs(qf - qg).max() <= 1e-10 * np.abs(qg).max()
-    for a, b in zip(sf, sg):
-        assert a.converged and b.converged
-        assert (a.newton_iterations, a.line_search_steps, a.hessian_evaluations, a.reason) == (
-            b.newton_iterations, b.line_search_steps, b.hessian_evaluations, b.reason)
-        assert a.residual == pytest.approx(b.residual, rel=1e-6, abs=1e-14)
-        assert len(a.history) == len(b.history) == a.newton_iterations
-
-
 def test_step_potential_energy_and_gradient_match_the_cubature_forces(beam_subspace):
     """The fused evaluation of a step's potential E(v) = 1/2 |v - v_hat|_M^2 + s/2 v^T C v + V(z_b + s v)
     - s v^T f_ext and its gradient against the same terms from CubatureForces.evaluate, and the
