@@ -175,3 +175,26 @@ def test_float32_reduced_steps_track_float64(beam_subspace):
         qs.append(rs.q.copy())
     assert np.abs(qs[0]).max() > 1e-3
     assert np.abs(qs[1] - qs[0]).max() <= 2e-5 * np.abs(qs[0]).max()  # measured 9e-7
+
+
+def test_direct_cpu_launch_equals_warps_own_launch(beam_subspace, monkeypatch):
+    """RecordedLaunch calls the CPU entry point directly on the Warp versions it was checked
+    against; the results equal Warp's own (public) launch bit for bit."""
+    import warp as wp
+
+    import warpfem.kernels.generic as G
+
+    _, model, sub = beam_subspace
+    q = 0.3 * np.random.default_rng(2).standard_normal(sub.U.shape[1]) / np.abs(sub.U).max()
+    fast = CubatureForces(model, sub.U, sub.cubature.elements, sub.cubature.weights)
+    a = [fast.evaluate(q, hessian=h) for h in (False, True)]
+    checked = tuple(int(v) for v in wp.config.version.split(".")[:2]) in G._DIRECT_CPU_CALL_WARP
+    used = [rl for rl in fast._launch.values() if rl._cmd]
+    assert used and all((rl._direct is not None) == checked for rl in used)
+    monkeypatch.setattr(G, "_DIRECT_CPU_CALL_WARP", set())
+    public = CubatureForces(model, sub.U, sub.cubature.elements, sub.cubature.weights)
+    b = [public.evaluate(q, hessian=h) for h in (False, True)]
+    assert all(rl._direct is None for rl in public._launch.values())
+    for (Ea, fa, Ka), (Eb, fb, Kb) in zip(a, b):
+        assert Ea == Eb and np.array_equal(fa, fb)
+        assert (Ka is None and Kb is None) or np.array_equal(Ka, Kb)

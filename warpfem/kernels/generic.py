@@ -110,6 +110,12 @@ def launch(kernel, dim, inputs, device):
     cmd.launch()
 
 
+# Warp versions whose CPU kernel entry point (forward(bounds*, args*)) and launch internals the
+# direct call of RecordedLaunch was checked against (tests/test_reduced_step.py compares it with
+# Warp's own launch); any other version replays through Warp's public Launch.launch().
+_DIRECT_CPU_CALL_WARP = {(1, 19)}
+
+
 class RecordedLaunch:
     """One launch whose arguments never change, recorded once and replayed (``Launch.launch()``:
     about 4 us per call on the CPU against 10-20 us for :func:`launch`, which looks its entry up
@@ -145,6 +151,8 @@ class RecordedLaunch:
         ~1.5 us); None elsewhere, or when this Warp's internals differ (then ``cmd.launch()``)."""
         import ctypes
 
+        if tuple(int(v) for v in wp.config.version.split(".")[:2]) not in _DIRECT_CPU_CALL_WARP:
+            return None  # the entry point's C signature is Warp's internal: only versions checked here
         try:
             if not cmd.device.is_cpu or cmd.adjoint or getattr(cmd, "block_dim", 1) > 1:
                 return None
