@@ -14,7 +14,7 @@ from warpfem.reduced.basis import _full_simulator, build_basis, pod_columns, pro
 from warpfem.reduced.cubature import Cubature
 from warpfem.scenes import SceneError, load_scene
 
-from tiny_scenes import handle_toml, reduced_beam_toml
+from tiny_scenes import handle_toml, reduced_beam_toml, scene_positions
 
 
 def _beam_model(gravity=(0.0, 0.0, -9.81)):
@@ -156,15 +156,7 @@ def test_schema_checks_pod_and_threshold(tmp_path):
         train_subspace(_beam_model(), modes=4, pod_modes=2)
 
 
-def _positions(path):
-    run = load_scene(path).build()
-    xs = [run.sim.positions()]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        for _ in range(run.frames):
-            run.step_frame()
-            xs.append(run.sim.positions())
-    return run, np.array(xs)
+_positions = scene_positions
 
 
 def test_ninety_degree_handle_rotation(tmp_path, monkeypatch):

@@ -1,7 +1,6 @@
 """Rotation-aware handle lifting (``[subspace] rotation_lifting``): the interior follows a handle's
 rigid motion with the rotation angle interpolated (no linear shear / candy wrapper at 90 degrees)."""
 
-import warnings
 
 import numpy as np
 import pytest
@@ -14,7 +13,7 @@ from warpfem.reduced.lifting import build_lifting, harmonic_weights, num_rotatio
 from warpfem.reduced.subspace import load_subspace
 from warpfem.scenes import SceneError, load_scene
 
-from tiny_scenes import handle_toml, reduced_beam_toml
+from tiny_scenes import handle_toml, reduced_beam_toml, scene_positions
 
 
 def _beam(clamped=True):
@@ -102,14 +101,7 @@ def test_rotation_lifting_is_saved_loaded_and_part_of_the_settings(tmp_path):
 
 
 def _run(path):
-    run = load_scene(path).build()
-    xs = [run.sim.positions()]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        for _ in range(run.frames):
-            run.step_frame()
-            xs.append(run.sim.positions())
-    return np.array(xs)
+    return scene_positions(path)[1]
 
 
 def test_ninety_degree_twist_needs_the_rotation_aware_lifting(tmp_path, monkeypatch):

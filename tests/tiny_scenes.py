@@ -68,3 +68,22 @@ fps = 30
 frames = {frames}
 {states_line}{subspace}
 """
+
+
+def scene_positions(path):
+    """Build the scene at ``path`` and run all its frames: (the run, positions (frames + 1, n, 3),
+    the rest pose first). Non-converged steps only warn (the tests check the numbers)."""
+    import warnings
+
+    import numpy as np
+
+    from warpfem.scenes import load_scene
+
+    run = load_scene(path).build()
+    xs = [run.sim.positions()]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for _ in range(run.frames):
+            run.step_frame()
+            xs.append(run.sim.positions())
+    return run, np.array(xs)
