@@ -290,8 +290,11 @@ def format_report(report: dict) -> str:
              + (f", full-simulation snapshots {report['snapshot_seconds']:.2f} s" if "snapshot_seconds" in report else ""),
              f"cache: {report.get('cache')}"]
     if "training_seconds" in report:
-        lines.append(f"training cost: {report['training_seconds']:.1f} s including {report.get('full_steps', 0)} full "
-                     f"step(s) ({report.get('full_step_seconds', float('nan')):.3g} s each)")
+        steps = report.get("full_steps", 0)
+        each = (report["snapshot_seconds"] / max(steps, 1) if "snapshot_seconds" in report
+                else report.get("full_step_seconds", float("nan")))  # the training run's own steps
+        lines.append(f"training cost: {report['training_seconds']:.1f} s including {steps} full "
+                     f"step(s) ({each:.3g} s each)")
     if "replay_tip_error" in report:
         lines.append(f"reduced replay of the training run: tip error {report['replay_tip_error']:.3g} of its peak, "
                      f"RMS error {report['replay_rms_error']:.3g} of the size (in-sample: the basis saw this run)")
