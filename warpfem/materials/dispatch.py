@@ -66,26 +66,16 @@ def _named(fn, what, t):
     return wp.func(fn)
 
 
-def _link_psi(t, rest):
-    K, f = wp.constant(t.kind), t.psi
+def _link_value(t, f, rest, what):
+    """One link of a chain returning one value (psi or P): ``f`` of material ``t`` when kind == t.kind."""
+    K = wp.constant(t.kind)
 
-    def psi_link(kind: int, F: Any, mu: Any, lam: Any):
+    def value_link(kind: int, F: Any, mu: Any, lam: Any):
         if kind == K:
             return f(F, mu, lam)
         return rest(kind, F, mu, lam)
 
-    return _named(psi_link, "material_psi", t)
-
-
-def _link_pk1(t, rest):
-    K, f = wp.constant(t.kind), t.pk1
-
-    def pk1_link(kind: int, F: Any, mu: Any, lam: Any):
-        if kind == K:
-            return f(F, mu, lam)
-        return rest(kind, F, mu, lam)
-
-    return _named(pk1_link, "material_pk1", t)
+    return _named(value_link, what, t)
 
 
 def _link_eigen_s(t, rest):
@@ -120,8 +110,8 @@ def _build():
     """The chains over the registered materials; the first registered is tested first."""
     psi, pk1, eig_s, eig_f = _no_psi, _no_pk1, _no_eigen_s, _no_eigen_f
     for t in reversed(list(MATERIAL_TYPES.values())):
-        psi = _link_psi(t, psi)
-        pk1 = _link_pk1(t, pk1)
+        psi = _link_value(t, t.psi, psi, "material_psi")
+        pk1 = _link_value(t, t.pk1, pk1, "material_pk1")
         if t.svd:
             eig_s = _link_eigen_s(t, eig_s)
         else:
