@@ -2,7 +2,6 @@
 large handle rotations in reduced runs."""
 
 import logging
-import warnings
 
 import numpy as np
 import pytest
@@ -14,26 +13,17 @@ from warpfem.reduced.basis import _full_simulator, build_basis, pod_columns, pro
 from warpfem.reduced.cubature import Cubature
 from warpfem.scenes import SceneError, load_scene
 
-from tiny_scenes import handle_toml, reduced_beam_toml, scene_positions
+from tiny_scenes import handle_toml, reduced_beam_toml, reduced_beam_model, scene_positions, step_positions
 
 
-def _beam_model(gravity=(0.0, 0.0, -9.81)):
-    mesh = wf.box_tet_mesh(size=(8.0, 1.0, 1.0), cells=(8, 1, 1))
-    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e6, poisson_ratio=0.3, density=100.0), gravity=gravity)
-    model.fix(wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1e-6, 2, 2)))
-    return model
 
 
 @pytest.fixture(scope="module")
 def beam_run():
     """A soft 8x1x1 beam sagging under gravity: 10 full backward Euler steps (tight Newton tolerance)."""
-    model = _beam_model()
+    model = reduced_beam_model()
     sim = wf.Simulator(model, dt=1 / 30, damping_mass=1.0, tol=1e-11, cg_tol=1e-12)
-    xs = [model.rest_positions.copy()]
-    for _ in range(10):
-        sim.step()
-        xs.append(sim.positions())
-    return model, np.array(xs)
+    return model, step_positions(sim, 10)
 
 
 def test_pod_columns_are_mass_orthonormal_with_the_modal_basis(beam_run):
@@ -84,13 +74,7 @@ def test_reduced_run_reaches_the_floor_when_the_trajectory_is_in_the_span(beam_r
         # floor: mass-weighted RMS (m) of the best fit's residual, relative to the peak tip displacement
         floor = projection_error(sub.U, M, snapshot_displacements(model, xs)).max() / np.sqrt(M.sum() / 3) / peak
         rs = ReducedSimulator(model, sub, dt=1 / 30, damping_mass=1.0, tol=1e-11)
-        ys = [X.copy()]
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            for _ in range(10):
-                rs.step()
-                ys.append(rs.positions())
-        ys = np.array(ys)
+        ys = step_positions(rs, 10)  # from rest: ys[0] = X
         errs[pod] = (np.linalg.norm(ys[:, tip].mean(1) - xs[:, tip].mean(1), axis=1).max() / peak, floor)
     print("tip error / peak, floor (RMS-like):", errs)
     assert errs[0][0] > 0.02  # 6 modal columns alone miss the sag
@@ -153,7 +137,7 @@ def test_schema_checks_pod_and_threshold(tmp_path):
     with pytest.raises(SceneError, match="pod_modes"):
         load_scene(bad)
     with pytest.raises(ValueError, match="pod_modes > 0 needs snapshots"):
-        train_subspace(_beam_model(), modes=4, pod_modes=2)
+        train_subspace(reduced_beam_model(), modes=4, pod_modes=2)
 
 
 _positions = scene_positions

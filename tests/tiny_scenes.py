@@ -1,5 +1,6 @@
 """Small scene files shared by the tests: a 1 m clamped beam of a few Tet4 cells (trade-off tests)
-and an 8 m clamped beam of 8 cells with an optional handle at its free end (reduced-run tests)."""
+and an 8 m clamped beam of 8 cells with an optional handle at its free end (reduced-run tests: as a
+scene file, as a Python model, and the runners that step them)."""
 
 
 def tiny_beam_toml(name: str = "tiny_beam", *, cells: int = 4, frames: int = 2) -> str:
@@ -87,3 +88,29 @@ def scene_positions(path):
             run.step_frame()
             xs.append(run.sim.positions())
     return run, np.array(xs)
+
+
+def step_positions(sim, steps: int):
+    """Positions of ``sim`` now and after each of ``steps`` steps, (steps + 1, n, 3); non-converged
+    steps only warn (the tests check the numbers)."""
+    import warnings
+
+    import numpy as np
+
+    xs = [sim.positions()]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for _ in range(steps):
+            sim.step()
+            xs.append(sim.positions())
+    return np.array(xs)
+
+
+def reduced_beam_model(gravity=(0.0, 0.0, -9.81)):
+    """The beam of :func:`reduced_beam_toml` built in Python: a ``warpfem.Model``, clamped at x = 0."""
+    import warpfem as wf
+
+    mesh = wf.box_tet_mesh(size=(8.0, 1.0, 1.0), cells=(8, 1, 1))
+    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e6, poisson_ratio=0.3, density=100.0), gravity=gravity)
+    model.fix(wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1e-6, 2, 2)))
+    return model
