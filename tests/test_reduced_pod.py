@@ -16,8 +16,6 @@ from warpfem.scenes import SceneError, load_scene
 from tiny_scenes import handle_toml, reduced_beam_toml, reduced_beam_model, scene_positions, step_positions
 
 
-
-
 @pytest.fixture(scope="module")
 def beam_run():
     """A soft 8x1x1 beam sagging under gravity: 10 full backward Euler steps (tight Newton tolerance)."""
