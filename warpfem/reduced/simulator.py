@@ -336,7 +336,6 @@ class ReducedSimulator:
         self._work = (np.zeros(self.r), np.zeros(self.r), np.zeros(self.r))  # Newton's g, d, y_try
         self._newton_matrix = None  # the kept r x r Newton matrix (see _ReducedPotential)
         self._A_cache = None  # (s, alpha, M_r, C, C_ul, A, s C) without stiffness damping
-        self._zeros_r = np.zeros(self.r)
         self.reuse_newton_matrix = True  # False: the exact Hessian at every Newton iterate (plain Newton)
         self._pot = None  # the step's potential (work arrays kept across steps)
         self._kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
