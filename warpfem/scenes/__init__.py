@@ -16,6 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
+from warpfem.model import static_supports_error
+
 from .schema import ELEMENTS, INTEGRATOR_KEYS, SCHEMA, Key, SceneError, SceneSpec, parse_scene_dict, parse_scene_file
 
 __all__ = ["SceneError", "SceneSpec", "Key", "SCHEMA", "ELEMENTS", "INTEGRATOR_KEYS", "IntegratorType",
@@ -132,10 +134,9 @@ def _build_backward_euler(scene, model, *, device, precision):
 
 
 def _build_static(scene, model, *, device, precision):
-    fixed_any = model.fixed.any(axis=0)
-    if not fixed_any.all():
-        raise ValueError("a static solve needs [[fixed]] or [[handle]] components in x, y and z to remove rigid "
-                         f"motions; free axes: {[a for a, f in zip('xyz', fixed_any) if not f]}")
+    problem = static_supports_error(model, "[[fixed]] or [[handle]]")
+    if problem:
+        raise ValueError(problem)
     return _simulator(model, scene.spec.integrator, device=device, precision=precision, dt=1.0, dynamic=False)
 
 

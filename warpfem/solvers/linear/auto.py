@@ -8,9 +8,10 @@ Rule (measurements in docs/linear_solvers.md):
 * CPU, small systems (at most SMALL_DIRECT_DOFS_CPU unknowns): ``direct`` from the first solve,
   when the solver is built by a simulator (``initial="size"``, the simulators' default): one
   factorisation costs less than the launches of even a few dozen PCG iterations (measured with
-  kernels_bench/bench_auto_crossover.py). If a factorisation finds the matrix not positive
-  definite (an unprojected Hessian, a singular static system), that system and all later ones go
-  to PCG.
+  kernels_bench/bench_auto_crossover.py). A factorisation that meets a non-positive pivot is
+  retried with a small diagonal shift by the direct solver itself (a semi-definite projected
+  Hessian); only a matrix that no shift makes positive definite (an unprojected Hessian far from
+  convex) sends that system and all later ones to PCG.
 * CPU, larger systems: start with ``pcg``; when a solve needs more than ``switch_iterations`` (250) iterations,
   every later ``prepare`` uses ``direct`` instead (its symbolic analysis is done at that moment,
   once), provided the system has at most DIRECT_MAX_DOFS_CPU unknowns (PARDISO installed) or
@@ -124,11 +125,11 @@ class AutoSolver(LinearSolver):
             self._make_direct()
         if self.active == "direct":
             self.direct.prepare(values, mask)
-            if self.direct._failure:
+            if self.direct.failure:
                 # not positive definite (an unprojected Hessian, a singular static system): PCG
                 # handles these (it stops at negative curvature with a descent direction), so this
                 # and every later system go to PCG; no switching back
-                log.info("linear solver auto: %s; PCG from now on", self.direct._failure)
+                log.info("linear solver auto: %s; PCG from now on", self.direct.failure)
                 self.active, self._may_switch = "pcg", False
         if self.active == "pcg":
             if self.pcg is None:  # started direct, and the direct solver gave up on this system
