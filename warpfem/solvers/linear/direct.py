@@ -57,8 +57,9 @@ SHIFTED_REFINEMENTS = 20
 #: eigenvalues at most this x the largest free diagonal entry count as zero (a condition number of 1e10,
 #: beyond what a float64 factorisation resolves)
 NULL_TOLERANCE = 1e-10
-#: vectors of the block inverse iteration that finds the near-null space
-NULL_PROBES = 6
+#: vectors of the block inverse iteration that finds the near-null space: the six rigid motions of a
+#: free body and three more, whose smallest Ritz value estimates the smallest positive curvature
+NULL_PROBES = 9
 
 
 class _NotPositiveDefinite(RuntimeError):
