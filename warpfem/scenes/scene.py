@@ -96,7 +96,8 @@ class Scene:
         wanted = etype.meshio_cell
         if element in ELEMENTS_FROM_TETS:
             try:  # a surface file is tetrahedralised (warpfem.mesh.tetrahedralize; cached)
-                tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher") if m.get(k) is not None}
+                tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher", "target_tets")
+                         if m.get(k) is not None}
                 mesh = load_mesh(path, inside_surface=m["inside_surface"], **tetra)
                 self._tetrahedralization = getattr(mesh, "tetrahedralization", None)
             except MeshError:
@@ -217,8 +218,9 @@ class Scene:
             sv, st = load_surface(sp.surface["path"])
             p = len(sv)
             how = "barycentric" if mesh.element.is_linear_tet else f"{k} shape functions"
-            lines.append(f"render surface: {sp.surface['path']} ({p} vertices, {len(st)} triangles), embedded in the "
-                         f"{etype} elements ({how} per vertex)")
+            own = " (the [mesh] surface at full resolution)" if sp.surface.get("from_mesh") else ""
+            lines.append(f"render surface: {sp.surface['path']}{own} ({p} vertices, {len(st)} triangles), embedded in "
+                         f"the {etype} elements ({how} per vertex); physics mesh: {m} elements, {n} vertices")
         else:
             ids, tri = boundary_surface(mesh)
             p = 0
