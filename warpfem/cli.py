@@ -75,50 +75,19 @@ def check_device(args, err=None):
 
 
 def _configure_warp(verbose: bool) -> None:
-    """Warp's start-up banner and module-load lines only with ``--verbose`` (warnings always).
+    """Warp's start-up banner and module-load lines only with ``--verbose`` (warnings always);
+    must run before Warp initialises (``warpfem.device.configure_warp``)."""
+    from warpfem.device import configure_warp
 
-    Must run before Warp initialises (``wp.init()``, first array or launch); importing warpfem
-    does not initialise it. Warp 1.19 reads ``wp.config.log_level``; older versions ``quiet``."""
-    import warp as wp
-
-    wp.config.quiet = not verbose
-    if hasattr(wp, "LOG_INFO"):
-        wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
-
-
-_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+    configure_warp(verbose or None)  # --verbose, or WARPFEM_VERBOSE in the environment
 
 
 def init_warp(device: str, verbose: bool) -> None:
-    """Initialise Warp now. Without ``--verbose`` on a CPU device, the native library's note that no
-    CUDA driver was found (printed by C code straight to file descriptor 2, not through Warp's log
-    level) is dropped; anything else it prints is passed on to stderr."""
-    import warp as wp
+    """Initialise Warp now; on a CPU device without ``--verbose`` the native note that no CUDA
+    driver was found is dropped (``warpfem.device.init_warp``)."""
+    from warpfem.device import init_warp as _init
 
-    if verbose or str(device).startswith("cuda"):  # a CUDA device asked for: the note matters
-        wp.init()
-        return
-    import os
-    import tempfile
-
-    sys.stderr.flush()
-    try:
-        saved = os.dup(2)
-    except OSError:  # no usable fd 2: nothing to filter
-        wp.init()
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            wp.init()
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-        tmp.seek(0)
-        text = tmp.read().decode("utf-8", errors="replace")
-    rest = [line for line in text.splitlines() if _NO_DRIVER not in line]
-    if rest:
-        print("\n".join(rest), file=sys.stderr)
+    _init(device, verbose or None)
 
 
 def load(path):
