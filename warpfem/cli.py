@@ -10,7 +10,8 @@ Subcommand modules use the public helpers here: :func:`error`, :func:`check_devi
 :func:`init_warp`, :func:`load` and the exit codes.
 
 Exit codes: 0 success, 1 a step diverged / failed to converge (with ``require_convergence``) or
-another runtime error, 2 invalid command line or scene, 130 interrupted.
+another runtime error, 2 invalid command line, scene or output path, 130 interrupted (Ctrl-C), 143
+terminated (SIGTERM; ``run`` records it in the USD as it does Ctrl-C).
 """
 
 from __future__ import annotations
@@ -20,9 +21,39 @@ import logging
 import sys
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_subcommand", "error", "check_device", "init_warp", "load",
-           "EXIT_OK", "EXIT_FAILED", "EXIT_INVALID", "EXIT_INTERRUPTED"]
+           "EXIT_OK", "EXIT_FAILED", "EXIT_INVALID", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "Terminated",
+           "terminate_on_sigterm"]
 
-EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received: raised in the main thread so that outputs are closed marked incomplete
+    with the reason, as on Ctrl-C (a KeyboardInterrupt, so code that cleans up on Ctrl-C does)."""
+
+
+class terminate_on_sigterm:
+    """Context manager: SIGTERM raises :class:`Terminated` inside it (main thread only; the previous
+    handler is restored on exit)."""
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        self._previous = None
+        if threading.current_thread() is threading.main_thread() and hasattr(signal, "SIGTERM"):
+            def _raise(signum, frame):
+                raise Terminated("SIGTERM")
+
+            self._previous = signal.signal(signal.SIGTERM, _raise)
+        return self
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, self._previous)
+        return False
 
 
 def _version():
@@ -150,6 +181,18 @@ def _cmd_run(args) -> int:
     except SceneError as e:
         error(str(e))
         return EXIT_INVALID
+    out = scene.spec.output
+    usd = args.out if args.out is not None else out["usd"]
+    stats = scene.stats_path(usd, None if args.out is not None else out["stats"])
+    from warpfem.io.outputs import OutputPathError, check_output_paths
+
+    try:  # every output path before any work (a file named as a folder, a folder not writable)
+        check_output_paths({"--out" if args.out is not None else "[output] usd": usd, "statistics log": stats,
+                            "[output] states": out["states"], "[output] vtu": out.get("vtu"),
+                            "--preview": getattr(args, "preview", None)})
+    except OutputPathError as e:
+        error(f"{args.scene}: {e}")
+        return EXIT_INVALID
 
     from warpfem.solvers.nonlinear import SolveFailed
 
@@ -163,8 +206,6 @@ def _cmd_run(args) -> int:
         error(f"{args.scene}: cannot build the scene: {e}")
         return EXIT_FAILED
     frames = args.frames if args.frames is not None else run.frames
-    usd = args.out if args.out is not None else scene.spec.output["usd"]
-    stats = scene.stats_path(usd, None if args.out is not None else scene.spec.output["stats"])
     if not args.quiet:
         print(f"{scene.name}: {scene.mesh().num_elements} elements, {scene.mesh().num_vertices} vertices, "
               f"{frames} frames on {args.device} ({args.precision})", flush=True)
@@ -193,14 +234,15 @@ def _cmd_run(args) -> int:
             _report(fs)
 
     try:
-        with bar:
+        with bar, terminate_on_sigterm():
             run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
     except SolveFailed as e:
         error(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
         return EXIT_FAILED
-    except KeyboardInterrupt:
-        error(f"interrupted at frame {run.frame}" + (f"; {usd} holds the frames done (marked incomplete)" if usd else ""))
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as e:
+        how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        error(f"{how} at frame {run.frame}" + (f"; {usd} holds the frames done (marked incomplete)" if usd else ""))
+        return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
     if recorder is not None:
         from warpfem.io.preview import render_preview
 
