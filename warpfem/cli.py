@@ -81,13 +81,30 @@ class _LogHandler(logging.Handler):
             self.handleError(record)
 
 
-def _configure_logging(verbose: bool) -> None:
-    """The ``warpfem`` loggers: INFO and up on stderr, DEBUG too with ``--verbose``."""
+def _configure_logging(verbose: bool, quiet: bool = False) -> None:
+    """The ``warpfem`` loggers: INFO and up on stderr, DEBUG too with ``--verbose``, only warnings
+    and errors with ``--quiet`` (no "tetrahedralisation cache hit" line)."""
     log = logging.getLogger("warpfem")
     for h in [h for h in log.handlers if isinstance(h, _LogHandler)]:
         log.removeHandler(h)
     log.addHandler(_LogHandler())
-    log.setLevel(logging.DEBUG if verbose else logging.INFO)
+    log.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+
+
+class _only_warnings:
+    """Inside it, the ``warpfem`` loggers pass warnings and errors only (``describe`` prints the
+    mesh's notes in its own text; the INFO lines would repeat them)."""
+
+    def __enter__(self):
+        self._log = logging.getLogger("warpfem")
+        self._level = self._log.level
+        if self._log.getEffectiveLevel() < logging.WARNING:
+            self._log.setLevel(logging.WARNING)
+        return self
+
+    def __exit__(self, *exc):
+        self._log.setLevel(self._level)
+        return False
 
 
 def check_device(args, err=None):
@@ -132,13 +149,16 @@ def _cmd_describe(args) -> int:
     from warpfem.scenes import SceneError
 
     try:
-        scene = load(args.scene)
+        with _only_warnings():  # the tetrahedralisation line is part of the description: once
+            scene = load(args.scene)
+            text = None if getattr(args, "json", False) else scene.describe(precision=args.precision)
+            summary = scene.summary() if text is None else None
         if getattr(args, "json", False):
             import json
 
-            print(json.dumps(scene.summary(), indent=2))
+            print(json.dumps(summary, indent=2))
         else:
-            print(scene.describe(precision=args.precision))
+            print(text)
     except SceneError as e:
         error(str(e))
         return EXIT_INVALID
@@ -194,6 +214,28 @@ def _cmd_run(args) -> int:
         error(f"{args.scene}: {e}")
         return EXIT_INVALID
 
+    from warpfem.progress import COMPILING_NOTICE, CompileWatch
+
+    shown = {"bar": None}  # the progress display once it exists
+
+    def compiling():  # a kernel-cache miss ahead (Warp compiles on first use; ~15 s on a CPU)
+        if args.quiet:
+            return
+        if shown["bar"] is not None:
+            shown["bar"].note(COMPILING_NOTICE)
+        else:
+            print(COMPILING_NOTICE, flush=True)
+
+    def compiled(seconds):  # compile time is not frame time: out of the ETA
+        if shown["bar"] is not None:
+            shown["bar"].exclude(seconds)
+
+    with CompileWatch(on_start=compiling, on_compiled=compiled) as watch:
+        return _run_scene(args, scene, usd, stats, watch, shown)
+
+
+def _run_scene(args, scene, usd, stats, watch, shown) -> int:
+    from warpfem.scenes import SceneError
     from warpfem.solvers.nonlinear import SolveFailed
 
     try:
@@ -213,6 +255,7 @@ def _cmd_run(args) -> int:
     from warpfem.progress import Progress
 
     bar = Progress(frames, unit="frame", enabled=not args.quiet)
+    shown["bar"] = bar
 
     def progress(fs):
         flag = "" if fs.converged else "  NOT CONVERGED"
@@ -251,7 +294,8 @@ def _cmd_run(args) -> int:
     if not args.quiet:
         outs = [p for p in (usd, stats, scene.spec.output["states"], scene.spec.output.get("vtu"),
                             getattr(args, "preview", None)) if p]
-        print(f"done: {frames} frames" + (f"; wrote {', '.join(outs)}" if outs else ""), flush=True)
+        built = f"; kernels compiled in {watch.seconds:.1f} s (cached for later runs)" if watch.modules else ""
+        print(f"done: {frames} frames" + (f"; wrote {', '.join(outs)}" if outs else "") + built, flush=True)
     return EXIT_OK
 
 
@@ -324,7 +368,7 @@ def main(argv=None) -> int:
     _configure_warp("--verbose" in argv)
     parser = build_parser()
     args = parser.parse_args(argv)
-    _configure_logging(getattr(args, "verbose", False))
+    _configure_logging(getattr(args, "verbose", False), quiet=getattr(args, "quiet", False))
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return EXIT_INVALID
