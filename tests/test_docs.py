@@ -223,3 +223,22 @@ def test_examples_are_quiet_by_default(tmp_path):
     out = r.stdout + r.stderr
     assert "Warp " not in out and "Module " not in out and "CUDA" not in out, out
     assert "frame 1/1" in out
+
+
+def test_readme_command_lines_parse():
+    """Every `warpfem ...` line of the README's shell blocks is a valid command line (subcommand and
+    options exist; a renamed option fails here) and names files that exist."""
+    import shlex
+
+    from warpfem.cli import build_parser
+
+    parser = build_parser()
+    lines = [ln.split("#")[0].strip() for b in code_blocks(README, "bash") for ln in b.splitlines()]
+    commands = [shlex.split(ln)[1:] for ln in lines if ln.startswith("warpfem ")]
+    assert len(commands) >= 5
+    for argv in commands:
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit:
+            raise AssertionError(f"README: `warpfem {' '.join(argv)}` does not parse")
+        assert (ROOT / args.scene).is_file(), args.scene
