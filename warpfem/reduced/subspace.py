@@ -320,6 +320,7 @@ def format_report(report: dict) -> str:
         lines.append(f"predicted: reduced step {1e3 * report['reduced_step_seconds']:.3g} ms vs full "
                      f"{1e3 * report['full_step_seconds']:.4g} ms, {report['predicted_speedup']:.0f}x faster per step; "
                      + (f"training + reduced run is cheaper than a full run for scenes longer than {be} frames "
-                        "(training cost without the kernel loading, over the time saved per frame)"
+                        f"({report.get('break_even_seconds', report.get('training_seconds', 0.0)):.1f} s of training "
+                        "beyond what a full run also pays (set-up, kernel loading), over the time saved per frame)"
                         if be is not None else "no break-even (the reduced step is not faster here)"))
     return "\n".join(lines)
