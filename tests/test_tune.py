@@ -201,3 +201,21 @@ def test_run_count_up_front_and_progress_per_stage(tmp_path):
     from warpfem.cli import main
 
     assert main(["tune", CANTILEVER, "--max-error", "0.1", "--space", "fulll"]) == 2  # neither a space nor a .toml
+
+
+def test_stage_eta_weighs_the_runs_left(monkeypatch):
+    """The reference stage starts with its costliest run: the ETA scales the time per unit of
+    estimated cost (steps x element nodes x refine^3), not per run."""
+    import warpfem.tradeoff.tune as tune_mod
+
+    clock = iter([100.0, 108.0, 110.0])
+    monkeypatch.setattr(tune_mod.time, "perf_counter", lambda: next(clock))
+    ref = _cfg(element="tet10", refine=2, substeps=8)
+    assert tune_mod._run_weight(ref, {"mesh": {"element": "tet4"}}) == 8 * 10 * 8
+    lines = []
+    stage = tune_mod._Stage(lines.append, "reference", [8.0, 4.0, 2.0, 2.0])
+    stage.done(0, "finest")  # 8 s for 8 of 16 units: 8 s left
+    stage.done(1, "next")  # 10 s for 12 units: 3.33 s left
+    assert lines[0] == "reference: 4 run(s)"
+    assert lines[1].endswith("1/4: finest  elapsed 0:00:08  ETA 0:00:08")
+    assert lines[2].endswith("2/4: next  elapsed 0:00:10  ETA 0:00:03")

@@ -281,10 +281,10 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
             ref_cfg = reference_config or _cfg(**_REFERENCE, substeps=4)
             plan = plan_reference(doc, scene_path, base, ref_cfg, truth, candidates)
             log(format_plan(plan_runs(len(candidates), frames, eta=eta, keep=keep, reference_runs=len(plan["jobs"]))))
-            stage = _Stage(log, f"reference ({frames} frames)", len(plan["jobs"]))
+            stage = _Stage(log, f"reference ({frames} frames)", [_run_weight(c, doc) for c in plan["jobs"]])
             outs = executor.map(run_job, [make_job(doc, scene_path, c, device=device, frames=frames, plan=plan,
                                                    tip_point=tip_point) for c in plan["jobs"]],
-                                on_done=lambda i, o: stage.done(_job_outcome(o, plan["jobs"][i], None)[0].name))
+                                on_done=lambda i, o: stage.done(i, _job_outcome(o, plan["jobs"][i], None)[0].name))
             outs = [_job_outcome(o, plan["jobs"][i], getattr(executor, "retried", {}).get(i)) for i, o in enumerate(outs)]
             reference = finish_reference(plan, outs, tip_point=tip_point, frames=frames)
             runs["reference"] = len(plan["jobs"])
@@ -313,8 +313,8 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
         def run_all(cfgs, n, label):
             jobs = [make_job(doc, scene_path, c, device=device, frames=n, plan=reference.plan, tip_point=tip_point,
                              cache_dir=cache_dir) for c in cfgs]
-            stage = _Stage(log, label, len(jobs))
-            outs = executor.map(run_job, jobs, on_done=lambda i, o: stage.done(cfgs[i].name))
+            stage = _Stage(log, label, [_run_weight(c, doc) for c in cfgs])
+            outs = executor.map(run_job, jobs, on_done=lambda i, o: stage.done(i, cfgs[i].name))
             res = []
             for i, o in enumerate(outs):
                 r, traj = _job_outcome(o, cfgs[i], getattr(executor, "retried", {}).get(i))
@@ -416,18 +416,36 @@ def format_plan(plan: dict) -> str:
 
 
 class _Stage:
-    """Progress of one search stage: a line per finished run with elapsed time and ETA."""
+    """Progress of one search stage: a line per finished run with elapsed time and ETA. The ETA
+    weighs the runs left by a relative cost estimate (:func:`_run_weight`: steps x element nodes
+    x refinement cubed), so a stage that starts with its most expensive run (the reference on the
+    refined mesh at the finest step) does not predict every run to cost as much."""
 
-    def __init__(self, log, label, total):
-        self.log, self.label, self.total, self.count = log, label, int(total), 0
+    def __init__(self, log, label, weights):
+        self.log, self.label = log, label
+        self.weights = [float(w) for w in weights]
+        self.total, self.count, self.done_weight = len(self.weights), 0, 0.0
         self.t0 = time.perf_counter()
-        log(f"{label}: {total} run(s)")
+        log(f"{label}: {self.total} run(s)")
 
-    def done(self, name):
+    def done(self, i, name):
         self.count += 1
+        self.done_weight += self.weights[i]
         el = time.perf_counter() - self.t0
-        eta = el / self.count * (self.total - self.count)
+        left = sum(self.weights) - self.done_weight
+        eta = el / max(self.done_weight, 1e-300) * left
         self.log(f"  {self.label} {self.count}/{self.total}: {name}  elapsed {_clock(el)}  ETA {_clock(eta)}")
+
+
+def _run_weight(cfg, doc) -> float:
+    """Relative cost of a run (for ETAs only): substeps x nodes per element x refine^3."""
+    from warpfem.mesh.element_types import ELEMENTS
+
+    mesh = (doc or {}).get("mesh") or {}
+    el = cfg.element or mesh.get("element", "tet4")
+    k = ELEMENTS[el].nodes_per_element if el in ELEMENTS else 4
+    sub = cfg.substeps or ((doc or {}).get("integrator") or {}).get("substeps") or 1
+    return float(sub) * k * float(cfg.refine or 1) ** 3
 
 
 def _clock(seconds) -> str:
