@@ -66,6 +66,11 @@ def test_default_budget_adds_pod_columns_and_the_report_adds_up(tmp_path, capsys
     # the cache records the scene's settings: a second train reuses it and `run` accepts it
     assert main(["train", path, "--quiet"]) == 0 and "up to date" in capsys.readouterr().out
     assert main(["train", path, "--quiet", "--retrain"]) == 0 and "trained (--retrain requested)" in capsys.readouterr().out
+    assert main(["describe", path]) == 0
+    desc = capsys.readouterr().out
+    assert "error budget: train adds POD columns (up to 32) until its replay of the training run is within 0.02" in desc
+    assert (f"cache {tmp_path / 'budget.subspace.npz'}: r = {last['r']}," in desc
+            and f"replay RMS error {last['rms_error']:.3g} with {last['pod_modes']} POD columns chosen" in desc)
     assert main(["run", path, "--quiet"]) == 0
     # the reduced run is the replay train measured: the same RMS error against the full training run
     from warpfem.reduced.scene import trajectory_errors

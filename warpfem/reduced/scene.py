@@ -470,7 +470,11 @@ def describe_subspace(scene) -> str:
              f"(modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
              f"cubature tolerance {s['cubature_tolerance']:g}, at most {s['max_cubature_points']} points, "
              f"training {s['training']}"
-             + (f", rotation-aware handle lifting (order {s['rotation_lifting']})" if s.get("rotation_lifting") else "")]
+             + (f", rotation-aware handle lifting (order {s['rotation_lifting']})" if s.get("rotation_lifting") else "")
+             + (f"; error budget: train adds POD columns (up to {s.get('max_pod_modes')}) until its replay of the "
+                f"training run is within {float(s['max_error']):g} RMS" if s.get("max_error") and s["training"] != "random"
+                else "; error budget: none (training \"random\" has no run to replay)" if s.get("max_error")
+                else "; error budget: off (max_error = 0)")]
     if scene.integrator_type not in ("backward_euler", "bdf2", "newmark"):
         lines.append(f"  error: [subspace] needs [integrator] type = \"backward_euler\", \"bdf2\" or \"newmark\", "
                      f"got {scene.integrator_type!r}")
@@ -489,6 +493,9 @@ def describe_subspace(scene) -> str:
                      f"training error {rep.get('training_error', float('nan')):.3g}, validation error "
                      f"{rep.get('validation_error', float('nan')):.3g}"
                      + (f", {rep['handles']} handle(s)" if rep.get("handles") else "")
+                     + (f", replay RMS error {rep['replay_rms_error']:.3g}" if "replay_rms_error" in rep else "")
+                     + (f" with {rep['pod_modes']} POD columns chosen by the budget"
+                        if len((rep.get("budget") or {}).get("attempts") or []) > 1 else "")
                      + (f"; predicted {rep['predicted_speedup']:.0f}x faster per step, cheaper than a full run "
                         f"beyond {rep['break_even_frames']} frames" if rep.get("break_even_frames") else ""))
         limit = s.get("max_validation_error")
