@@ -325,7 +325,7 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
         items["timing full steps at the scene's dt"] = t_extra
     if earlier:
         items[f"{len(attempts) - 1} earlier budget attempt(s)"] = earlier
-    items["other (stiffness for the basis, lifting, saving)"] = max(0.0, total - sum(items.values()))
+    items["other (stiffness for the basis, lifting)"] = max(0.0, total - sum(items.values()))
     rep["training_items"] = items
     rep["training_seconds"] = float(sum(items.values()))
     rep["kernel_load_seconds"] = full_load + rep.get("replay_load_seconds", 0.0)
