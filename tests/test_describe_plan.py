@@ -84,3 +84,15 @@ def test_describe_lists_colliders_with_the_parameters_the_run_uses(tmp_path, cap
         assert c["stiffness"] == pytest.approx(kappa, rel=1e-9)
         assert c["friction_velocity"] == pytest.approx(epsv, rel=1e-12)
         assert c["friction"] == pytest.approx(col.friction)
+
+
+def test_describe_reduced_scene_says_the_reduced_solve_and_the_training_run(tmp_path, capsys):
+    path = _scene(tmp_path, "[subspace]\nmodes = 4\n")
+    assert main(["describe", path]) == 0
+    text = capsys.readouterr().out
+    assert "builds: reduced basis U and cubature points (from the cache), reduced Hessian (dense r x r)" in text
+    assert "linear solver: dense r x r (the reduced system); `warpfem train`'s full training run: auto" in text
+    assert "cpu: direct (sparse Cholesky" in text
+    assert main(["describe", path, "--json"]) == 0
+    plan = json.loads(capsys.readouterr().out)["integrator"]["linear_solver_plan"]
+    assert plan["name"] == "dense (reduced r x r)" and plan["training_run"]["unknowns"] == 60

@@ -203,17 +203,22 @@ class Scene:
             lines.append(f"integrator: {self.integrator_type}, dt = {integ['dt']:g} s, {integ['substeps']} step(s) per frame")
         else:
             lines.append(f"integrator: {self.integrator_type}, {integ.get('load_steps', 1)} load step(s) per frame")
-        lines.append(f"  builds: {', '.join(entry.builds)}")
+        from . import section_entries
+
+        reduced = [e for e in section_entries(self) if e.section == "subspace" and e.builds]
+        lines.append(f"  builds: {', '.join(reduced[0].builds if reduced else entry.builds)}")
         ls = self.linear_solver_plan()
         if ls is not None:
-            lines.append(f"  linear solver: {ls['name']}" + (f" (picks by size and device, docs/linear_solvers.md)"
-                                                             if ls["name"] == "auto" else "") + ":")
+            head = "  linear solver: "
+            if reduced:
+                head += "dense r x r (the reduced system); `warpfem train`'s full training run: "
+                ls = ls["training_run"]
+            lines.append(head + ls["name"] + (" (picks by size and device, docs/linear_solvers.md)"
+                                              if ls["name"] == "auto" else "") + ":")
             lines.append(f"    cpu: {ls['cpu']}")
             lines.append(f"    cuda: {ls['cuda']}")
         for i, c in enumerate(self.collider_plan()):
             lines.append(f"collider #{i + 1}: {c['text']}")
-        from . import section_entries
-
         for extra in section_entries(self):  # e.g. [subspace]: the reduced run (warpfem.reduced.scene)
             if extra.describe is not None:
                 lines.append(extra.describe(self))
@@ -252,8 +257,6 @@ class Scene:
         its r x r systems densely)."""
         from . import INTEGRATORS, section_entries
 
-        if any(e.section == "subspace" for e in section_entries(self)):
-            return None
         entry = INTEGRATORS[self.integrator_type]
         if "linear_solver" not in entry.keys:
             return None
@@ -262,14 +265,18 @@ class Scene:
         if name == "auto":
             from warpfem.solvers.linear.auto import describe_choice
 
-            return {"name": name, "unknowns": dofs, **describe_choice(dofs)}
-        import importlib
+            plan = {"name": name, "unknowns": dofs, **describe_choice(dofs)}
+        else:
+            import importlib
 
-        from warpfem.solvers.linear.base import _REGISTRY
+            from warpfem.solvers.linear.base import _REGISTRY
 
-        mod, cls = _REGISTRY[name].split(":")
-        doc = (getattr(importlib.import_module(mod), cls).__doc__ or name).strip().split("\n")[0].rstrip(".")
-        return {"name": name, "unknowns": dofs, "cpu": doc, "cuda": doc}
+            mod, cls = _REGISTRY[name].split(":")
+            doc = (getattr(importlib.import_module(mod), cls).__doc__ or name).strip().split("\n")[0].rstrip(".")
+            plan = {"name": name, "unknowns": dofs, "cpu": doc, "cuda": doc}
+        if any(e.section == "subspace" for e in section_entries(self)):  # reduced: dense r x r; training: full
+            return {"name": "dense (reduced r x r)", "training_run": plan}
+        return plan
 
     def collider_plan(self) -> list:
         """The ``[[collider]]`` entries as they will run: type, name, geometry, motion, friction and
