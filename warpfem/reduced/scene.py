@@ -300,7 +300,7 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
                      "met": (None if not (budget and snapshots is not None) else bool(attempts[-1]["rms_error"] <= budget)),
                      "attempts": attempts, "max_pod_modes": int(s.get("max_pod_modes") or 0)}
     if rep["budget"]["met"] is False:
-        best = min(attempts, key=lambda a: a["rms_error"])
+        best = min(attempts, key=lambda a: (not np.isfinite(a["rms_error"]), a["rms_error"]))  # a diverged replay: NaN
         raise BudgetNotMet(
             f"{_where(scene)}: [subspace] max_error = {budget:g} not met: the reduced replay of the training run is "
             f"{best['rms_error']:.3g} RMS error at best (r = {best['r']}: {s['modes']} modes + {best['pod_modes']} POD "
