@@ -194,7 +194,7 @@ def test_run_count_up_front_and_progress_per_stage(tmp_path):
     assert plan_line < first_run
     planned = int(lines[plan_line].split("at most ")[1].split(" runs")[0])
     done = res.search["candidates_run"]
-    assert done["reference"] + done["prefix"] + done["full"] <= planned
+    assert done["reference"] + done["prefix"] + done["full"] <= planned == res.search["planned"]["runs"]
     progress = [ln for ln in lines if "ETA" in ln]
     assert len(progress) == done["reference"] + done["prefix"] + done["full"]
     assert any(ln.strip().startswith("prefix of 1 frame(s) 2/2:") for ln in progress)

@@ -280,7 +280,8 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
         if reference is None:
             ref_cfg = reference_config or _cfg(**_REFERENCE, substeps=4)
             plan = plan_reference(doc, scene_path, base, ref_cfg, truth, candidates)
-            log(format_plan(plan_runs(len(candidates), frames, eta=eta, keep=keep, reference_runs=len(plan["jobs"]))))
+            planned = plan_runs(len(candidates), frames, eta=eta, keep=keep, reference_runs=len(plan["jobs"]))
+            log(format_plan(planned))
             stage = _Stage(log, f"reference ({frames} frames)", [_run_weight(c, doc) for c in plan["jobs"]])
             outs = executor.map(run_job, [make_job(doc, scene_path, c, device=device, frames=frames, plan=plan,
                                                    tip_point=tip_point) for c in plan["jobs"]],
@@ -291,7 +292,8 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
         elif reference.frames != frames:
             raise GridError(f"the given reference covers {reference.frames} frames, the search {frames}")
         else:
-            log(format_plan(plan_runs(len(candidates), frames, eta=eta, keep=keep, reference_runs=0)))
+            planned = plan_runs(len(candidates), frames, eta=eta, keep=keep, reference_runs=0)
+            log(format_plan(planned))
         est = (reference.info.get("time") or {}).get(f"estimated_error_{quantity}")
         if est is not None and est > max_error / 3:
             notes.append(f"the reference's own estimated {quantity} error ({est:.2e}) is not small against the budget "
@@ -370,7 +372,7 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
                                                   _cost(r, cost) if r.status == "ok" else math.inf))
     if winner is None:
         notes.append(f"no candidate meets {quantity} error <= {max_error:g}")
-    search = {"candidates_run": runs, "frame_runs": frame_runs, "whole_grid_frame_runs": len(candidates) * frames,
+    search = {"candidates_run": runs, "planned": planned, "frame_runs": frame_runs, "whole_grid_frame_runs": len(candidates) * frames,
               "prefixes": prefixes, "eta": eta, "keep": keep, "seconds": time.perf_counter() - t_start}
     result = TuneResult(scene=portable_path(scene_path), max_error=float(max_error), quantity=quantity, cost=cost,
                       frames=frames, winner=None if winner is None else _row(winner, quantity, cost),
