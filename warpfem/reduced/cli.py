@@ -53,9 +53,19 @@ def _cmd_train(args) -> int:
             bar = Progress(total, unit="training frame", enabled=not args.quiet, started=started)
         bar.update(k)
 
+    def log(line):  # one line per error-budget attempt (after the training run's bar)
+        nonlocal bar
+        if args.quiet:
+            return
+        if bar is not None:
+            bar.close()
+            bar = None
+        print(line, flush=True)
+
     try:
         try:
-            sub = train_scene(scene, device=args.device, precision=args.precision, retrain=args.retrain, progress=progress)
+            sub = train_scene(scene, device=args.device, precision=args.precision, retrain=args.retrain, progress=progress,
+                              log=log)
         finally:
             if bar is not None:
                 bar.close()

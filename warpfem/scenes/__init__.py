@@ -149,16 +149,16 @@ _STATIC_KEYS = {k: v for k, v in INTEGRATOR_KEYS.items() if k not in ("dt", "dam
 
 register_integrator(IntegratorType(
     "backward_euler", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
-    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities")))
+    builds=("mass matrix", "Hessian (Newton; linear solver below)", "positions/velocities")))
 register_integrator(IntegratorType(
     "bdf2", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
-    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities + previous step's")))
+    builds=("mass matrix", "Hessian (Newton; linear solver below)", "positions/velocities + previous step's")))
 register_integrator(IntegratorType(
     "newmark", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
-    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities/accelerations")))
+    builds=("mass matrix", "Hessian (Newton; linear solver below)", "positions/velocities/accelerations")))
 register_integrator(IntegratorType(
     "static", _build_static, keys=_STATIC_KEYS, dynamic=False, static_solve=_static_solve,
-    builds=("Hessian (Newton + block-Jacobi PCG)", "positions")))
+    builds=("Hessian (Newton; linear solver below)", "positions")))
 
 
 
@@ -183,7 +183,7 @@ _WARPING_KEYS["scheme"] = Key("choice", default="backward_euler", choices=("back
                               doc="time scheme of the one linear solve per step (docs/integrators.md)")
 register_integrator(IntegratorType(
     "stiffness_warping", _build_stiffness_warping, keys=_WARPING_KEYS, dynamic=True,
-    builds=("mass matrix", "warped stiffness K' (one block-Jacobi PCG solve per step)", "per-tet 12x12 K_e",
+    builds=("mass matrix", "warped stiffness K' (one linear solve per step; linear solver below)", "per-tet 12x12 K_e",
             "positions/velocities")))
 
 from .scene import FrameStats, Scene, SceneRun, estimate_device_memory, handle_targets, load_scene, traction_forces  # noqa: E402

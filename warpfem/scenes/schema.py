@@ -245,6 +245,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
                                 check=lambda v: None if v == 0 or 2 <= v <= 15 else "must be 0 (linear lifting) or 2..15",
                                 doc="handles (all three components) move the interior by their rotation angle, not "
                                     "linearly: series order J (7 is exact to 1e-4 at 90 degrees); 0 = linear lifting"),
+        "max_error": Key("float", default=0.02, check=lambda v: None if 0 <= v < 1 else "must be in [0, 1) (0 = no budget)",
+                         doc="error budget of `warpfem train`: while the reduced replay of the training run is above "
+                             "this RMS trajectory error (max over frames of the RMS vertex error / bounding-box "
+                             "diagonal), POD columns of the training run are added (pod_modes, then 4, 8, 16, ... up "
+                             "to max_pod_modes); train fails, writing no cache, when that is not enough. 0 = no "
+                             "budget (train the given sizes only); not checked with training = 'random'"),
+        "max_pod_modes": Key("int", default=32, check=_non_negative,
+                             doc="cap on the POD columns train may use to meet max_error"),
         "max_validation_error": Key("float", default=None, check=_unit_interval,
                                     doc="`warpfem run` warns (log + stderr) when the cache's cubature validation "
                                         "error is above this"),

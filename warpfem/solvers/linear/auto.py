@@ -45,6 +45,26 @@ def starts_direct(pattern) -> bool:
     return (not pattern.device.is_cuda) and 3 * pattern.num_rows <= SMALL_DIRECT_DOFS_CPU
 
 
+def describe_choice(num_dofs: int) -> dict:
+    """What ``auto`` (as the simulators build it) will run for a system of ``num_dofs`` unknowns,
+    by device (``warpfem describe``): {"cpu": text, "cuda": text}, from the same rule and limits
+    as :func:`starts_direct` and :func:`direct_allowed`."""
+    from warpfem.solvers.linear.direct import available_backends
+
+    backend = available_backends()[0]
+    limit = DIRECT_MAX_DOFS_CPU if backend == "pardiso" else SUPERLU_MAX_DOFS_CPU
+    if num_dofs <= SMALL_DIRECT_DOFS_CPU:
+        cpu = (f"direct (sparse Cholesky, {backend}) from the first solve: {num_dofs:,} unknowns <= "
+               f"{SMALL_DIRECT_DOFS_CPU:,}; block-Jacobi PCG if a factorisation finds the matrix not positive definite")
+    elif num_dofs <= limit:
+        cpu = (f"block-Jacobi PCG, switching to direct (sparse Cholesky, {backend}) for good after a solve that "
+               f"needs more than {SWITCH_ITERATIONS} iterations ({num_dofs:,} unknowns: above {SMALL_DIRECT_DOFS_CPU:,}, "
+               f"within the direct limit {limit:,})")
+    else:
+        cpu = (f"block-Jacobi PCG only ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})")
+    return {"cpu": cpu, "cuda": "block-Jacobi PCG (the data stay on the device)"}
+
+
 def simulator_options(name: str, options: dict | None) -> dict:
     """The options a simulator passes to ``make_linear_solver``: for ``auto``, the small-system
     rule (``initial="size"``) unless the caller chose ``initial`` itself."""
