@@ -95,7 +95,7 @@ def test_scene_with_a_surface_file_embeds_it_and_describes_both_sizes(tetgen, me
 
     knight = (meshes_dir / "decimated-knight.off").as_posix()
     scene = load_scene(_scene(tmp_path, f'path = "{knight}"'))
-    assert scene.spec.mesh["target_tets"] == 25000  # the default for surface files
+    assert scene.spec.mesh["target_tets"] == 20000  # the default for surface files
     assert scene.spec.surface["path"].endswith("decimated-knight.off") and scene.spec.surface["from_mesh"]
     text = scene.describe()
     mesh = scene.mesh()

@@ -52,7 +52,7 @@ class Key:
 
 #: ``[mesh] target_tets`` of a surface file when neither it nor max_edge_length is given (measured
 #: error against cost: docs/meshing.md, kernels_bench/bench_target_tets.py)
-TARGET_TETS_DEFAULT = 25_000
+TARGET_TETS_DEFAULT = 20_000
 
 
 def _positive(v):
