@@ -250,3 +250,33 @@ def test_grid_files_suggest_the_key_meant(tmp_path):
         p.write_text(text)
         with pytest.raises(GridError, match=hint):
             load_grid(p)
+
+
+@pytest.mark.parametrize("argv", [
+    ["tradeoff", "{scene}", "--grid", "quick", "--json", "a_file/t.json"],
+    ["tradeoff", "{scene}", "--grid", "quick", "--markdown", "a_file/t.md"],
+    ["tradeoff", "{scene}", "--grid", "quick", "--plot", "a_file/t.png"],
+    ["tune", "{scene}", "--max-error", "0.05", "--out", "a_file/x.toml"],
+    ["tune", "{scene}", "--max-error", "0.05", "--report", "a_file/x.json"],
+    ["train", "{reduced}"],
+])
+def test_studies_and_training_refuse_an_uncreatable_output_before_any_run(tmp_path, capsys, monkeypatch, argv):
+    """tradeoff / tune / train write their results after minutes of runs: a path under a file is
+    refused first, one line, exit 2, nothing run or written."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "a_file").write_text("x")
+    scene = scene_file(tmp_path)
+    reduced = scene_file(tmp_path, extra='[subspace]\nmodes = 4\ncache = "a_file/s.npz"\n', name="r.toml")
+    import warpfem.tradeoff.study as study
+    import warpfem.tradeoff.tune as tune
+
+    def boom(*a, **k):
+        raise AssertionError("no run may start")
+
+    monkeypatch.setattr(study, "run_study", boom)
+    monkeypatch.setattr(tune, "tune", boom)
+    code = main([a.format(scene=scene, reduced=reduced) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2, err
+    assert len(err) == 1 and "a_file" in err[0] and "is a file, not a folder" in err[0], err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a_file", "r.toml", "s.toml"]

@@ -26,8 +26,15 @@ def _cmd_train(args) -> int:
         _cli.error(f"{args.scene}: no [subspace] section: nothing to train (add [subspace] with modes, "
                   "cubature_tolerance, ... to make the run reduced)")
         return _cli.EXIT_INVALID
+    from warpfem.io.outputs import OutputPathError, check_output_paths
     from warpfem.reduced.scene import subspace_cache_path, train_scene
     from warpfem.reduced.subspace import format_report
+
+    try:  # the cache file is written after the whole training: its folder is checked before it
+        check_output_paths({"[subspace] cache": subspace_cache_path(scene)})
+    except OutputPathError as e:
+        _cli.error(f"{args.scene}: {e}")
+        return _cli.EXIT_INVALID
 
     s = scene.spec.subspace
     if not args.quiet:

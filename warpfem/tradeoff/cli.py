@@ -15,6 +15,18 @@ def _err(msg):
     print(f"warpfem tradeoff: error: {msg}", file=sys.stderr)
 
 
+def _outputs_unwritable(named, err) -> bool:
+    """Report the first output path that cannot be written (one line) and return True."""
+    from warpfem.io.outputs import OutputPathError, check_output_paths
+
+    try:
+        check_output_paths(named)
+    except OutputPathError as e:
+        err(str(e))
+        return True
+    return False
+
+
 def _cmd_tradeoff(args) -> int:
     from warpfem.scenes import SceneError, load_scene
 
@@ -32,6 +44,8 @@ def _cmd_tradeoff(args) -> int:
         _err(f"--plot must end in .png, got {args.plot!r}")
         return EXIT_INVALID
     if _cli.check_device(args, _err) is not None:  # a bad --device: before the scene is read
+        return EXIT_INVALID
+    if _outputs_unwritable({"--json": args.json, "--markdown": args.markdown, "--plot": args.plot}, _err):
         return EXIT_INVALID
     try:
         load_scene(args.scene)
@@ -213,6 +227,8 @@ def _cmd_tune(args) -> int:
     stem = os.path.splitext(os.path.basename(args.scene))[0]
     out = args.out or os.path.join("out", "tune", f"{stem}.tuned.toml")
     report = args.report or os.path.splitext(out)[0] + ".json"
+    if _outputs_unwritable({"--out": out, "--report": report}, _tune_err):  # before minutes of runs
+        return EXIT_INVALID
     init = _cli.init_warp
     if init is not None:
         init(args.device, args.verbose)
