@@ -142,7 +142,7 @@ def test_step_potential_energy_and_gradient_match_the_cubature_forces(beam_subsp
     rs = ReducedSimulator(model, sub, dt=1 / 30, damping_mass=0.5, integrator="newmark")
     for _ in range(3):
         rs.step()
-    zb, zhat, s = rs.integrator.predict(rs)
+    zb, zhat, s = rs.predict()
     pot = rs._pot.begin(zb=zb, v_hat=zhat, adot_hat=zhat[:0], adot=zhat[:0], s=s)
     rng = np.random.default_rng(3)
     v = rs.qdot + 0.3 * np.abs(rs.qdot).max() * rng.standard_normal(rs.r)

@@ -98,6 +98,11 @@ class AutoSolver(LinearSolver):
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     def _analyse(self, pattern):
+        if self.analyse_count > 1:  # a grown pattern: the solvers built so far analyse it
+            for s in (self.pcg, self.direct):
+                if s is not None:
+                    s.analyse(pattern)
+            return
         self.pcg = None
         self.direct = None
         self.active = "pcg"
@@ -124,11 +129,11 @@ class AutoSolver(LinearSolver):
             self._make_direct()
         if self.active == "direct":
             self.direct.prepare(values, mask)
-            if self.direct._failure:
+            if self.direct.failure:
                 # not positive definite (an unprojected Hessian, a singular static system): PCG
                 # handles these (it stops at negative curvature with a descent direction), so this
                 # and every later system go to PCG; no switching back
-                log.info("linear solver auto: %s; PCG from now on", self.direct._failure)
+                log.info("linear solver auto: %s; PCG from now on", self.direct.failure)
                 self.active, self._may_switch = "pcg", False
         if self.active == "pcg":
             if self.pcg is None:  # started direct, and the direct solver gave up on this system

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.generic import COUNTERS, both_precisions
 from warpfem.kernels.linalg import cw_mul
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
 
@@ -264,12 +264,15 @@ class DevicePCG(LinearSolver):
     def _launch_start(self):
         self._rz.zero_()
         self._rr.zero_()
-        for c in self._start_commands():
+        cmds = self._start_commands()
+        for c in cmds:
             c.launch()
+        COUNTERS["launches"] += len(cmds)
 
     def _run_chunk(self):
         dev = self.device
         cmds = self._chunk_commands()
+        COUNTERS["launches"] += len(cmds)  # a replayed graph counts as its launches
         if dev.is_cuda and self.use_cuda_graph:
             if self._graph is None:
                 if self._chunk_runs == 0:  # first run uncaptured: loads the modules
