@@ -257,6 +257,7 @@ class Simulator(SimulatorBase):
     @linear_solver.setter
     def linear_solver(self, solver):
         self._pcg = solver
+        self.system.solver = solver  # re-analyses a grown pattern
 
     @property
     def quadrature_points(self):

@@ -157,15 +157,21 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
         return finish()
     gnorm = gnorm0
     for _ in range(opts.max_iters):
-        lin = problem.solve_newton_system(y, g, d, opts)  # an iteration count or a LinearSolveResult
+        pre = None  # the fused first trial: (g.d, negligible, E, |E|, gradient magnitude, ||g_try||)
+        if fused and not problem.bounds_step():
+            if hasattr(problem, "newton_step"):  # solve + first trial, one read-back
+                lin, pre = problem.newton_step(y, g, d, y_try, g_try, opts)
+            else:
+                lin = problem.solve_newton_system(y, g, d, opts)
+                pre = problem.trial_step(y, g, d, 1.0, y_try, g_try)
+        else:
+            lin = problem.solve_newton_system(y, g, d, opts)  # an iteration count or a LinearSolveResult
         iterations = int(getattr(lin, "iterations", lin))
         st.cg_iterations += iterations
         st.linear_iterations += iterations
         st.host_syncs += int(getattr(lin, "host_syncs", 0))
         bounded = hasattr(problem, "max_step")
-        pre = None  # the fused first trial: (g.d, negligible, E, |E|, gradient magnitude, ||g_try||)
-        if fused and not problem.bounds_step():
-            pre = problem.trial_step(y, g, d, 1.0, y_try, g_try)
+        if pre is not None:
             gd, negligible = pre[0], pre[1]
         else:
             gd, negligible = problem.direction_check(y, g, d)

@@ -149,3 +149,23 @@ class AutoSolver(LinearSolver):
                      res.iterations, self.switch_iterations)
             self.active = "direct"
         return res
+
+    # -- deferred solves (PCG only): see DevicePCG.solve_deferred -----------------------------------
+    @property
+    def last_chunks(self) -> int:
+        return self.pcg.last_chunks if self.pcg is not None else 0
+
+    def can_defer(self) -> bool:
+        return self.active == "pcg" and self.pcg is not None and self.pcg.can_defer()
+
+    def solve_deferred(self, b, x, **kw):
+        self.pcg.solve_deferred(b, x, **kw)
+
+    def complete_deferred(self, report):
+        res, changed = self.pcg.complete_deferred(report)
+        self.host_syncs += res.host_syncs
+        if self._may_switch and res.iterations > self.switch_iterations:
+            log.info("linear solver auto: PCG needed %d iterations (> %d); switching to the direct solver",
+                     res.iterations, self.switch_iterations)
+            self.active = "direct"
+        return res, changed

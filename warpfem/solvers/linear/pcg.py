@@ -297,14 +297,19 @@ class DevicePCG(LinearSolver):
         self._tol2.fill_(float(tol) ** 2)
         self._maxiter.fill_(int(maxiter))
         self._launch_start()
-        syncs = 0
+        syncs = chunks = 0
         while True:
             self._run_chunk()
+            chunks += 1
             rep = self._report.numpy()  # the one host read-back of the chunk
             syncs += 1
             if int(rep[0]) != _RUNNING:
                 break
+        self.last_chunks = chunks
         wp.copy(x, self.x)
+        return self._result(rep, tol, syncs)
+
+    def _result(self, rep, tol, syncs) -> LinearSolveResult:
         status, it, rr, bb = int(rep[0]), int(rep[1]), float(rep[2]), float(rep[3])
         if bb == 0.0:
             return LinearSolveResult(0, 0.0, True, host_syncs=syncs)
@@ -312,3 +317,44 @@ class DevicePCG(LinearSolver):
         return LinearSolveResult(it, rel, bool(rel <= tol), host_syncs=syncs,
                                  negative_curvature=status == _NEGATIVE,
                                  failed="" if status != _NONFINITE else "non-finite residual")
+
+    # -- a solve whose read-back is the caller's (the Newton loop reads it with its own numbers) --------
+    last_chunks = 0  # chunks of check_every iterations the last solve ran
+
+    def can_defer(self) -> bool:
+        return self._values is not None
+
+    def solve_deferred(self, b, x, *, tol, maxiter, chunks, report_out, report_offset):
+        """Start a solve of (prepared matrix) x = b and run ``chunks`` chunks without reading back;
+        x and the 4-number report (status, iterations, r.r, b.b) are copied on the device into
+        ``x`` and ``report_out[report_offset:report_offset + 4]``. The caller reads the report
+        (with whatever else it reads) and finishes with :meth:`complete_deferred`."""
+        if maxiter < 1:
+            raise ValueError(f"maxiter must be >= 1, got {maxiter}")
+        wp.copy(self.b, b)
+        self._tol2.fill_(float(tol) ** 2)
+        self._maxiter.fill_(int(maxiter))
+        self._launch_start()
+        for _ in range(max(1, int(chunks))):
+            self._run_chunk()
+        wp.copy(x, self.x)
+        wp.copy(report_out, self._report, dest_offset=int(report_offset), count=4)
+        self._deferred = (x, float(tol), max(1, int(chunks)))
+
+    def complete_deferred(self, report):
+        """(result, x changed): the solve started by :meth:`solve_deferred`, from the report the
+        caller read; a solve still running is continued here (one read-back per further chunk) and
+        then ``x`` has changed since the caller's launches used it."""
+        x, tol, chunks = self._deferred
+        self._deferred = None
+        rep, syncs = np.asarray(report, dtype=np.float64), 0
+        while int(rep[0]) == _RUNNING:
+            self._run_chunk()
+            chunks += 1
+            rep = self._report.numpy()
+            syncs += 1
+        if syncs:
+            wp.copy(x, self.x)
+        self.last_chunks = chunks
+        self.host_syncs += syncs
+        return self._result(rep, tol, syncs), syncs > 0
