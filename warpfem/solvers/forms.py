@@ -402,7 +402,7 @@ class IncrementalPotential:
         values = self.assemble_hessian(y, self.system.hessian_values)
         rhs = self.work.rhs
         launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
-        chunks = getattr(solver, "last_chunks", 0)
+        chunks = getattr(solver, "deferred_chunks", 0)
         if not (hasattr(solver, "solve_deferred") and chunks > 0):
             lin = self.linear_solve(values, rhs, d, opts)
             return lin, self.trial_step(y, g, d, 1.0, y_try, g_try)

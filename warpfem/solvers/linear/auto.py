@@ -50,6 +50,8 @@ def simulator_options(name: str, options: dict | None) -> dict:
     options = dict(options or {})
     if name == "auto":
         options.setdefault("initial", "size")
+    if name in ("auto", "pcg"):  # the whole PCG solve as one launch on the CPU (DevicePCG.cpu_serial)
+        options.setdefault("cpu_serial", True)
     return options
 
 
@@ -86,14 +88,14 @@ class AutoSolver(LinearSolver):
 
     def __init__(self, pattern, *, vec_type, scalar, switch_iterations: int = SWITCH_ITERATIONS,
                  check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto", positions=None,
-                 initial: str = "pcg"):
+                 initial: str = "pcg", cpu_serial: bool = False):
         if initial not in INITIAL_CHOICES:
             raise ValueError(f"initial must be one of {INITIAL_CHOICES}, got {initial!r}")
         self._initial = initial
         if int(switch_iterations) != switch_iterations or switch_iterations < 1:
             raise ValueError(f"switch_iterations must be a positive integer, got {switch_iterations!r}")
         self.switch_iterations = int(switch_iterations)
-        self._pcg_options = dict(check_every=check_every, use_cuda_graph=use_cuda_graph)
+        self._pcg_options = dict(check_every=check_every, use_cuda_graph=use_cuda_graph, cpu_serial=cpu_serial)
         self._backend = backend
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
@@ -152,8 +154,8 @@ class AutoSolver(LinearSolver):
 
     # -- deferred solves (PCG only): see DevicePCG.solve_deferred -----------------------------------
     @property
-    def last_chunks(self) -> int:
-        return self.pcg.last_chunks if self.pcg is not None else 0
+    def deferred_chunks(self) -> int:
+        return self.pcg.deferred_chunks if self.pcg is not None else 0
 
     def can_defer(self) -> bool:
         return self.active == "pcg" and self.pcg is not None and self.pcg.can_defer()
