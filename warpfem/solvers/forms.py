@@ -235,11 +235,13 @@ class IncrementalPotential:
         forms = [f for f in forms if f.joint] + [f for f in forms if not f.joint]
         self.forms = forms
         size = _HEAD + ROW * len(forms)
-        # three sections (energy, gradient, direction) and the linear solver's report, read at once
-        self.acc = wp.zeros(3 * size + 4, dtype=wp.float64, device=self.ops.device)
+        # five sections (energy, gradient, direction of the trial; energy, gradient of the start)
+        # and the linear solver's report (4), all read at once by newton_step (views made once)
+        self.acc = wp.zeros(5 * size + 4, dtype=wp.float64, device=self.ops.device)
         self._size = size
-        # three sections read together by trial_step: energy, gradient, direction (views made once)
-        self._acc_e, self._acc_g, self._acc_d = (self.acc[k * size:(k + 1) * size] for k in range(3))
+        self._acc_e, self._acc_g, self._acc_d, self._acc_e0, self._acc_g0 = (
+            self.acc[k * size:(k + 1) * size] for k in range(5))
+        self._report_at = 5 * size
         for i, f in enumerate(forms):
             f.bind(self.acc, _HEAD + ROW * i)
         self.host_syncs = 0
@@ -377,8 +379,8 @@ class IncrementalPotential:
         """(E, |E|, gradient magnitude, ||P g||) with g = P grad E(y): one host read-back."""
         self._launch_energy(y, self._acc_e)
         self._launch_gradient(y, g, self._acc_g)
-        a = self._read(self.acc)
         s = self._size
+        a = self._read(self.acc[:2 * s])
         return self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
 
     def trial_step(self, y, g, d, alpha, y_try, g_try):
@@ -388,40 +390,50 @@ class IncrementalPotential:
         self.trial(y, alpha, d, y_try)
         self._launch_energy(y_try, self._acc_e)
         self._launch_gradient(y_try, g_try, self._acc_g)
-        a = self._read(self.acc)
+        a = self._read(self.acc[:3 * self._size])
         s = self._size
         return self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
 
-    def newton_step(self, y, g, d, y_try, g_try, opts):
+    def newton_step(self, y, g, d, y_try, g_try, opts, start=False):
         """A Newton iteration's device work with one read-back: the Newton system's solve (a linear
         solver that can defer its read-back runs as many chunks as its last solve needed), the
         direction check of d and the energy and gradient of the full step y_try = y + d (into
         g_try). Returns (linear solve result, the :meth:`trial_step` tuple). Solvers that cannot
-        defer (direct, AMG) solve first and the rest is read once after."""
+        defer (direct, AMG) solve first and the rest is read once after. ``start``: first
+        evaluate the energy and gradient (into g) at y, and return their :meth:`evaluate` tuple
+        third (the first iteration of a solve then costs one read-back too)."""
+        if start:
+            self._launch_energy(y, self._acc_e0)
+            self._launch_gradient(y, g, self._acc_g0)
         solver = self.system.solver
         values = self.assemble_hessian(y, self.system.hessian_values)
         rhs = self.work.rhs
         launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
         chunks = getattr(solver, "deferred_chunks", 0)
-        if not (hasattr(solver, "solve_deferred") and chunks > 0):
+        s, r = self._size, self._report_at
+        deferred = hasattr(solver, "solve_deferred") and chunks > 0
+        if deferred:
+            solver.prepare(values, self.mask)
+            deferred = solver.can_defer()
+            if not deferred:
+                lin = solver.solve(rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
+        else:
             lin = self.linear_solve(values, rhs, d, opts)
-            return lin, self.trial_step(y, g, d, 1.0, y_try, g_try)
-        solver.prepare(values, self.mask)
-        if not solver.can_defer():
-            lin = solver.solve(rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
-            return lin, self.trial_step(y, g, d, 1.0, y_try, g_try)
-        s = self._size
-        solver.solve_deferred(rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters, chunks=chunks, report_out=self.acc,
-                              report_offset=3 * s)
+        if deferred:
+            solver.solve_deferred(rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters, chunks=chunks, report_out=self.acc,
+                                  report_offset=r)
         self._launch_direction(y, g, d, self._acc_d)
         self.trial(y, 1.0, d, y_try)
         self._launch_energy(y_try, self._acc_e)
         self._launch_gradient(y_try, g_try, self._acc_g)
         a = self._read(self.acc)
-        lin, changed = solver.complete_deferred(a[3 * s:3 * s + 4])
-        if changed:  # the solve needed more chunks than guessed: d is new, evaluate its step again
-            return lin, self.trial_step(y, g, d, 1.0, y_try, g_try)
-        return lin, self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+        first = (self._energy_of(a[3 * s:4 * s]) + self._gradient_of(a[4 * s:5 * s])) if start else None
+        trial = self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+        if deferred:
+            lin, changed = solver.complete_deferred(a[r:r + 4])
+            if changed:  # the solve needed more chunks than guessed: d is new, evaluate its step again
+                trial = self.trial_step(y, g, d, 1.0, y_try, g_try)
+        return (lin, trial, first) if start else (lin, trial)
 
     def assemble_hessian(self, y, values):
         values.zero_()

@@ -135,7 +135,12 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     g_try = problem.work.g_try if fused else None
     eps_mach = problem.eps
 
-    if hasattr(problem, "evaluate"):  # energy and gradient with one read-back
+    # with newton_step, the start's energy and gradient are read with the first iteration's numbers
+    first = None
+    if fused and hasattr(problem, "newton_step") and not problem.bounds_step() and opts.max_iters > 0:
+        lin0, pre0, (E, mag, gmag, gnorm0) = problem.newton_step(y, g, d, y_try, g_try, opts, start=True)
+        first = (lin0, pre0)
+    elif hasattr(problem, "evaluate"):  # energy and gradient with one read-back
         E, mag, gmag, gnorm0 = problem.evaluate(y, g)
     else:
         E, mag = problem.energy(y)
@@ -158,7 +163,9 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     gnorm = gnorm0
     for _ in range(opts.max_iters):
         pre = None  # the fused first trial: (g.d, negligible, E, |E|, gradient magnitude, ||g_try||)
-        if fused and not problem.bounds_step():
+        if first is not None:  # done with the start's evaluation
+            (lin, pre), first = first, None
+        elif fused and not problem.bounds_step():
             if hasattr(problem, "newton_step"):  # solve + first trial, one read-back
                 lin, pre = problem.newton_step(y, g, d, y_try, g_try, opts)
             else:
