@@ -327,7 +327,7 @@ class SimulatorBase(SimulatorState):
     def step(self, state_in=None, state_out=None, control=None, dt=None):
         """Advance one step; returns its :class:`~warpfem.SolveStats`.
 
-        ``step()``: the simulator's own state by ``dt`` with its control (targets set by
+        ``step()``: the simulator's own state by ``dt`` (the simulator's, or the argument) with its control (targets set by
         :meth:`set_targets`, cleared after the step, and ``load_scale``). ``step(state_in,
         state_out, control=None, dt=None)``: a step from ``state_in`` written into ``state_out``
         (two distinct :class:`State`s, e.g. from :meth:`new_state`); ``state_in`` is never written.
@@ -339,7 +339,7 @@ class SimulatorBase(SimulatorState):
         if state_in is None:
             if state_out is not None:
                 raise TypeError("step(): give both state_in and state_out, or neither")
-            stats = self._step(self.state, self._spare, self.control, self.dt)
+            stats = self._step(self.state, self._spare, self.control, self.dt if dt is None else float(dt))
             self.state, self._spare = self._spare, self.state
             self.control.targets.clear()
             self.step_count += 1
