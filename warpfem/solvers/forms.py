@@ -225,6 +225,7 @@ class IncrementalPotential:
         self.eps = float(np.finfo(ops.np_dtype).eps)
         self.gradient_test_below = 0.0  # see newton_solve (the reduced problem uses it)
         self.forms = []
+        self.host_syncs = 0  # read-backs of this potential (cumulative)
         self.xb, self.s = None, 1.0
         self._x_of_y = None
         self.set_forms(forms)
@@ -244,7 +245,6 @@ class IncrementalPotential:
         self._report_at = 5 * size
         for i, f in enumerate(forms):
             f.bind(self.acc, _HEAD + ROW * i)
-        self.host_syncs = 0
 
     def add_form(self, form):
         self.set_forms(self.forms + [form])
