@@ -198,3 +198,17 @@ def test_direct_cpu_launch_equals_warps_own_launch(beam_subspace, monkeypatch):
     for (Ea, fa, Ka), (Eb, fb, Kb) in zip(a, b):
         assert Ea == Eb and np.array_equal(fa, fb)
         assert (Ka is None and Kb is None) or np.array_equal(Ka, Kb)
+
+
+def test_load_scale_is_a_control_of_the_reduced_step(beam_subspace):
+    """load_scale scales the external forces of the reduced step as it does in full space."""
+    _, model, sub = beam_subspace
+    qdots = []
+    for scale in (0.0, 0.5, 1.0):
+        rs = ReducedSimulator(model, sub, dt=1 / 60, tol=1e-12)
+        rs.load_scale = scale
+        rs.step()
+        qdots.append(rs.qdot.copy())
+    assert np.array_equal(qdots[0], np.zeros_like(qdots[0]))  # no load: the rest state stays
+    assert np.abs(qdots[2]).max() > 0.0
+    np.testing.assert_allclose(qdots[1], 0.5 * qdots[2], rtol=0, atol=1e-3 * np.abs(qdots[2]).max())

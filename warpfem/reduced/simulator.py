@@ -30,7 +30,7 @@ from warpfem.kernels.generic import RecordedLaunch, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.state import PRECISIONS, State, check_simulator_options, check_solve
+from warpfem.solvers.state import PRECISIONS, Control, ControlledSimulator, State, check_simulator_options, check_solve
 
 
 
@@ -303,7 +303,7 @@ class CubatureForces:
         return E, f, K
 
 
-class ReducedSimulator:
+class ReducedSimulator(ControlledSimulator):
     """Backward Euler in a subspace (see module docstring).
 
     Args:
@@ -367,6 +367,7 @@ class ReducedSimulator:
         self._pot = None  # the step's potential (work arrays kept across steps)
         self.kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
         self._history = {}  # the integrator's history (warpfem.integrators)
+        self.control = Control()  # load_scale (the handles' targets are set_targets')
         self._prediction_work = {}
         self._ops = _CoordinateVectors(self.r + self.p, self._equation_of_motion_acceleration)
         self.mass_r = self._reduced_mass(U)
@@ -564,7 +565,7 @@ class ReducedSimulator:
         z = state.x
         C, C_ul = self.damping_matrices(z)
         f = self.forces.evaluate(z)[1][:r]
-        rhs = f + self.fext_r - C @ self.qdot - C_ul @ self.adot
+        rhs = f + self.load_scale * self.fext_r - C @ self.qdot - C_ul @ self.adot
         out[:] = 0.0
         out[:r] = np.linalg.solve(self.mass_r, rhs)
         if not np.all(np.isfinite(out)):
@@ -726,7 +727,7 @@ class _ReducedPotential:
         self._Gb3s[:, :, -1] = self._F0
         self._zmax_b = float(np.abs(zb[:r]).max())
         self._zmax_a = float(np.abs(zf[r:-1]).max()) if sim.p else 0.0
-        self._sfext = sfe = s * sim.fext_r
+        self._sfext = sfe = (s * sim.load_scale) * sim.fext_r
         np.negative(sfe, out=self._Z[3])
         self._sfext_norm = math.sqrt(sfe @ sfe)
         self._fl = np.stack([sfe, self.lin]) if sim.p else sfe  # v . s f_ext (and v . lin) in one product

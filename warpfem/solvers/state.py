@@ -38,7 +38,7 @@ import warp as wp
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 
-__all__ = ["SimulatorBase", "SimulatorState", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
+__all__ = ["SimulatorBase", "SimulatorState", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
 
 #: precision name -> (scalar, vec3, mat33 Warp types, numpy dtype)
 PRECISIONS = {
@@ -117,7 +117,21 @@ class DeviceVectors:
         self._acceleration(state, out)
 
 
-class SimulatorState:
+class ControlledSimulator:
+    """``load_scale``: a view of ``self.control`` (a :class:`Control`), shared by every simulator
+    (the full-space ones through :class:`SimulatorState`, and the reduced one)."""
+
+    @property
+    def load_scale(self) -> float:
+        """The control's load scale (external forces act scaled by it; load ramps)."""
+        return self.control.load_scale
+
+    @load_scale.setter
+    def load_scale(self, value):
+        self.control.load_scale = float(value)
+
+
+class SimulatorState(ControlledSimulator):
     """positions / velocities / set_positions / set_velocities / fix / release / set_targets, on
     ``self.state`` (a :class:`State`) and ``self.control`` (a :class:`Control`)."""
 
@@ -148,15 +162,6 @@ class SimulatorState:
     @time.setter
     def time(self, value):
         self.state.time = float(value)
-
-    @property
-    def load_scale(self) -> float:
-        """The control's load scale (external forces act scaled by it; load ramps)."""
-        return self.control.load_scale
-
-    @load_scale.setter
-    def load_scale(self, value):
-        self.control.load_scale = float(value)
 
     @property
     def _targets(self):
