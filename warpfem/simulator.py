@@ -18,13 +18,11 @@ The quasi-static solve minimises V(x) - x^T f_ext over the free components of x.
 from __future__ import annotations
 
 import time
-import warnings
 from typing import NamedTuple
 
 import numpy as np
 import warp as wp
 
-from warpfem.device import get_device as _get_device
 from warpfem.kernels import fem as FK
 from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
@@ -180,7 +178,10 @@ class Simulator(SimulatorBase):
 
             self._contact_form = ContactForm(self.contact)
         forms = self._potential.forms
-        want = [f for f in forms if f.name != "contact"] + ([self._contact_form] if active else [])
+        want = [f for f in forms if f.name != "contact"]
+        if active:  # before the load: its gradient (a constant vector) is added last, as before the forms list
+            at = next((k for k, f in enumerate(want) if f.name == "load"), len(want))
+            want.insert(at, self._contact_form)
         if want != forms:
             self._potential.set_forms(want)
         return active

@@ -16,7 +16,6 @@ import warp as wp
 
 from warpfem.contact import kernels as CK
 from warpfem.contact.colliders import Collider
-from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import Form
 

@@ -163,6 +163,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     gnorm = gnorm0
     for _ in range(opts.max_iters):
         pre = None  # the fused first trial: (g.d, negligible, E, |E|, gradient magnitude, ||g_try||)
+        alpha_pre = 1.0  # the step length of that trial
         if first is not None:  # done with the start's evaluation
             (lin, pre), first = first, None
         elif fused and not problem.bounds_step():
@@ -171,6 +172,10 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             else:
                 lin = problem.solve_newton_system(y, g, d, opts)
                 pre = problem.trial_step(y, g, d, 1.0, y_try, g_try)
+        elif fused:  # a bounded step (contact): the bound first, then the trial at it, one read-back each
+            lin = problem.solve_newton_system(y, g, d, opts)
+            alpha_pre = min(1.0, problem.max_step(y, d))
+            pre = problem.trial_step(y, g, d, alpha_pre, y_try, g_try)
         else:
             lin = problem.solve_newton_system(y, g, d, opts)  # an iteration count or a LinearSolveResult
         iterations = int(getattr(lin, "iterations", lin))
@@ -196,7 +201,11 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             st.reason = "at the precision limit (Newton step below the resolution of the positions)"
             break
         # continuous-collision filter (contact): no step may carry the state across a collider
-        alpha, accepted = min(1.0, problem.max_step(y, d)) if bounded and pre is None else 1.0, False
+        if pre is not None:
+            alpha = alpha_pre
+        else:
+            alpha = min(1.0, problem.max_step(y, d)) if bounded else 1.0
+        accepted = False
         noise = 16.0 * eps_mach * mag
         g_new = None  # the gradient at the accepted point when the fused trial computed it
         for _ls in range(opts.max_line_search):
