@@ -147,7 +147,7 @@ class BDF2(Integrator):
 
     def predict(self, state, dt, ops, work):
         hist = state.history
-        if hist.get("h") != dt:  # first step, new state or new step size: backward Euler
+        if hist.get("h") != dt or "x_prev" not in hist:  # first step, new state or step size: backward Euler
             return Prediction(state.x, state.v, dt)
         # x_b = x_n + (x_n - x_{n-1}) / 3 (the difference first: keeps float32 round-off small)
         xb, vh = _buffer(work, "xb", ops), _buffer(work, "v_hat", ops)
