@@ -212,3 +212,23 @@ def test_load_scale_is_a_control_of_the_reduced_step(beam_subspace):
     assert np.array_equal(qdots[0], np.zeros_like(qdots[0]))  # no load: the rest state stays
     assert np.abs(qdots[2]).max() > 0.0
     np.testing.assert_allclose(qdots[1], 0.5 * qdots[2], rtol=0, atol=1e-3 * np.abs(qdots[2]).max())
+
+
+def test_reduced_step_of_states_reads_its_input_only(beam_subspace):
+    """The reduced simulator shares step(state_in, state_out, control, dt) (solvers.state.StepperBase):
+    the input state is not written and the convenience step from the same state gives the same result."""
+    _, model, sub = beam_subspace
+    rs = ReducedSimulator(model, sub, dt=1 / 60, integrator="bdf2", tol=1e-10)
+    rs.reuse_newton_matrix = False  # the plain Newton path: the same iterates whatever came before
+    for _ in range(2):
+        rs.step()
+    s_in, s_out = rs.new_state(), rs.new_state()
+    before = (s_in.x.copy(), s_in.v.copy(), s_in.history["x_prev"].copy(), s_in.time)
+    st = rs.step(s_in, s_out)
+    assert st.converged
+    assert np.array_equal(s_in.x, before[0]) and np.array_equal(s_in.v, before[1])
+    assert np.array_equal(s_in.history["x_prev"], before[2]) and s_in.time == before[3]
+    assert s_out.time == pytest.approx(before[3] + 1 / 60, abs=1e-15)
+    rs.step()
+    np.testing.assert_allclose(rs.q, s_out.x[:rs.r], rtol=0, atol=1e-12 * np.abs(rs.q).max())
+    np.testing.assert_allclose(rs.qdot, s_out.v[:rs.r], rtol=0, atol=1e-10 * np.abs(rs.qdot).max())

@@ -30,7 +30,7 @@ from warpfem.kernels.generic import RecordedLaunch, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.state import PRECISIONS, Control, ControlledSimulator, State, check_simulator_options, check_solve
+from warpfem.solvers.state import PRECISIONS, Control, State, StepperBase, check_simulator_options, check_solve
 
 
 
@@ -303,7 +303,7 @@ class CubatureForces:
         return E, f, K
 
 
-class ReducedSimulator(ControlledSimulator):
+class ReducedSimulator(StepperBase):
     """Backward Euler in a subspace (see module docstring).
 
     Args:
@@ -367,14 +367,13 @@ class ReducedSimulator(ControlledSimulator):
         self._pot = None  # the step's potential (work arrays kept across steps)
         self.kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
         self._history = {}  # the integrator's history (warpfem.integrators)
-        self.control = Control()  # load_scale (the handles' targets are set_targets')
+        self.control = self.control_of_step = Control()  # load_scale; targets: handle group -> coordinates for the end of the next step
         self._prediction_work = {}
         self._ops = _CoordinateVectors(self.r + self.p, self._equation_of_motion_acceleration)
         self.mass_r = self._reduced_mass(U)
         self.mass_ul = U.T @ (self._mass3() @ lifting.L) if lifting is not None else np.zeros((self.r, 0))
         self.a = np.zeros(self.p)      # handle coordinates (prescribed)
         self.adot = np.zeros(self.p)
-        self._a_target = {}            # handle group -> coordinates for the end of the next step
         self._X = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=self.device)
         self._x = wp.zeros(n, dtype=self._vec, device=self.device)
         self._qdev = wp.zeros(self.r + self.p, dtype=self._s, device=self.device)
@@ -452,15 +451,15 @@ class ReducedSimulator(ControlledSimulator):
             if not all(hit):
                 raise ValueError(f"set_targets must cover whole handles: handle #{g + 1} has {len(ids)} vertices, "
                                  f"{sum(hit)} were given")
-            self._a_target[g] = self.lifting.group_coords(g, pos[[lookup[i] for i in ids.tolist()]])
+            self.control.targets[g] = self.lifting.group_coords(g, pos[[lookup[i] for i in ids.tolist()]])
             covered.update(ids.tolist())
         stray = [i for i in lookup if i not in covered]
         if stray:
             raise ValueError(f"vertices {stray[:5]} are not handle vertices of this subspace")
 
-    def _next_handle_coords(self):
-        a = self.a.copy()
-        for g, val in self._a_target.items():
+    def _next_handle_coords(self, a, control):
+        a = np.array(a, dtype=np.float64)
+        for g, val in control.targets.items():
             a[self.lifting.group_slice(g)] = val
         return a
 
@@ -565,7 +564,8 @@ class ReducedSimulator(ControlledSimulator):
         z = state.x
         C, C_ul = self.damping_matrices(z)
         f = self.forces.evaluate(z)[1][:r]
-        rhs = f + self.load_scale * self.fext_r - C @ self.qdot - C_ul @ self.adot
+        zdot = state.v
+        rhs = f + self.control_of_step.load_scale * self.fext_r - C @ zdot[:r] - C_ul @ zdot[r:]
         out[:] = 0.0
         out[:r] = np.linalg.solve(self.mass_r, rhs)
         if not np.all(np.isfinite(out)):
@@ -577,39 +577,54 @@ class ReducedSimulator(ControlledSimulator):
         """Not supported: a reduced simulator (x = X + U q) does not handle contact; use :class:`warpfem.Simulator`."""
         raise ValueError("a reduced simulator (x = X + U q) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
 
-    def step(self) -> SolveStats:
-        """One reduced step of ``dt`` with the simulator's integrator (Newton with an Armijo line
-        search and a dense r x r solve: :func:`~warpfem.solvers.nonlinear.newton_solve`, as the
-        full-space simulators, on the step's :class:`_ReducedPotential`); raises SolveFailed on NaN
-        (state untouched)."""
+    def _own_states(self):
+        n = self.r + self.p
+        return self.state(), State(np.zeros(n), np.zeros(n), {})
+
+    def _commit(self, out):
+        r = self.r
+        self.q, self.a, self.qdot, self.adot = out.x[:r].copy(), out.x[r:].copy(), out.v[:r].copy(), out.v[r:].copy()
+        self._history = out.history
+        self.time = out.time
+
+    def new_state(self) -> State:
+        """A copy of the current state (z = [q; a], z' = [qdot; adot], history, time): an input or
+        output of ``step(state_in, state_out, control, dt)``."""
+        st = self.state()
+        return State(st.x.copy(), st.v.copy(), {k: (v.copy() if isinstance(v, np.ndarray) else v)
+                                                  for k, v in st.history.items()}, st.time)
+
+    def _step(self, state_in, state_out, control, dt) -> SolveStats:
+        """One reduced step of ``dt`` from ``state_in`` into ``state_out`` with the simulator's integrator
+        (Newton with an Armijo line search and a dense r x r solve: :func:`~warpfem.solvers.nonlinear.newton_solve`,
+        as the full-space simulators, on the step's :class:`_ReducedPotential`); raises SolveFailed on NaN
+        (nothing written). ``control.targets``: handle group -> coordinates at the end of the step
+        (:meth:`set_targets`); ``control.load_scale`` scales the external forces."""
         t0 = time.perf_counter()
         r = self.r
-        state = self.state()
-        prediction = self.integrator.predict(state, self.dt, self._ops, self._prediction_work)
+        self.control_of_step = control
+        prediction = self.integrator.predict(state_in, dt, self._ops, self._prediction_work)
         zb, zhat, s = prediction
         # handles: a_{n+1} prescribed, so their end-of-step velocity is (a_{n+1} - a_b) / s; the
         # kinetic and damping energies of V = U v + L adot couple through M_ul = U^T M L (and beta K_ul)
-        a_next = self._next_handle_coords() if self.p else self.a
+        a_in = state_in.x[r:]
+        a_next = self._next_handle_coords(a_in, control) if self.p else a_in
         adot = (a_next - zb[r:]) / s
         if self._pot is None:
             self._pot = _ReducedPotential(self)
-        pot = self._pot.begin(zb=zb, v_hat=zhat[:r], adot_hat=zhat[r:], adot=adot, s=s)
-        v = self.qdot.copy()
+        pot = self._pot.begin(zb=zb, v_hat=zhat[:r], adot_hat=zhat[r:], adot=adot, s=s, zn=state_in.x,
+                              load_scale=control.load_scale)
+        v = np.array(state_in.v[:r], dtype=np.float64)
         st = newton_solve(pot, v, self.options)
         st.hessian_evaluations = pot.hessians
         st.seconds = time.perf_counter() - t0
         if not st.converged:
             self.newton_matrix = None  # computed along a failed solve: not reused
         check_solve(st, f"reduced step {self.step_count}", require_convergence=self.require_convergence,
-                    finite=bool(np.all(np.isfinite(v))), stacklevel=3)
-        out = State(np.zeros(r + self.p), np.zeros(r + self.p), {})
-        self.integrator.advance(state, np.concatenate([v, adot]), prediction, self.dt, self._ops, out)
-        self.q, self.a, self.qdot, self.adot = out.x[:r].copy(), out.x[r:].copy(), out.v[:r].copy(), out.v[r:].copy()
-        self._history = out.history
-        self.a = a_next  # exactly the prescribed coordinates
-        self._a_target = {}
-        self.time += self.dt
-        self.step_count += 1
+                    finite=bool(np.all(np.isfinite(v))), stacklevel=4)
+        self.integrator.advance(state_in, np.concatenate([v, adot]), prediction, dt, self._ops, state_out)
+        state_out.x[r:] = a_next  # exactly the prescribed coordinates
+        state_out.time = state_in.time + dt
         return st
 
 
@@ -685,13 +700,15 @@ class _ReducedPotential:
         self._n2 = np.zeros((3, 1, 1))
         self._vprev, self._gprev = np.zeros(r), np.zeros(r)
 
-    def begin(self, *, zb, v_hat, adot_hat, adot, s):
-        """Set up the potential of the coming step (prediction z_b, v_hat, the handles' velocity, s)."""
+    def begin(self, *, zb, v_hat, adot_hat, adot, s, zn=None, load_scale=None):
+        """Set up the potential of the coming step (prediction z_b, v_hat, the handles' velocity, s;
+        z_n the coordinates at its start, default the simulator's; the load scale, default the
+        simulator's)."""
         sim, r = self.sim, self.r
         self.opts = sim.options
         self.zb, self.v_hat, self.adot, self.s = zb, v_hat, adot, s = zb, v_hat, adot, float(s)
         if sim.damping_stiffness > 0:  # C = alpha M_r + beta K_r(z_n) changes every step
-            C, C_ul = sim.damping_matrices(np.concatenate([sim.q, sim.a]))
+            C, C_ul = sim.damping_matrices(np.concatenate([sim.q, sim.a]) if zn is None else zn)
             self.A = sim.mass_r + s * C
             sC = s * C
         else:  # C = alpha M_r: the same C and A (the same objects) for every step with this s and alpha,
@@ -727,7 +744,7 @@ class _ReducedPotential:
         self._Gb3s[:, :, -1] = self._F0
         self._zmax_b = float(np.abs(zb[:r]).max())
         self._zmax_a = float(np.abs(zf[r:-1]).max()) if sim.p else 0.0
-        self._sfext = sfe = (s * sim.load_scale) * sim.fext_r
+        self._sfext = sfe = (s * (sim.load_scale if load_scale is None else float(load_scale))) * sim.fext_r
         np.negative(sfe, out=self._Z[3])
         self._sfext_norm = math.sqrt(sfe @ sfe)
         self._fl = np.stack([sfe, self.lin]) if sim.p else sfe  # v . s f_ext (and v . lin) in one product

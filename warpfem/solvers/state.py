@@ -38,7 +38,7 @@ import warp as wp
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 
-__all__ = ["SimulatorBase", "SimulatorState", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
+__all__ = ["SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
 
 #: precision name -> (scalar, vec3, mat33 Warp types, numpy dtype)
 PRECISIONS = {
@@ -250,7 +250,41 @@ def check_solve(stats, what: str, *, require_convergence: bool, finite: bool = T
                   stacklevel=stacklevel)
 
 
-class SimulatorBase(SimulatorState):
+class StepperBase(ControlledSimulator):
+    """The two forms of ``step``, written once for every simulator (full space, stiffness warping,
+    reduced). A subclass provides ``_step(state_in, state_out, control, dt) -> SolveStats`` (reads
+    ``state_in`` only, raises before writing ``state_out``), ``_own_states() -> (state, a state to
+    write)``, ``_commit(state_out)`` (make it the simulator's state), ``control``, ``dt`` and
+    ``step_count``."""
+
+    def step(self, state_in=None, state_out=None, control=None, dt=None):
+        """Advance one step; returns its :class:`~warpfem.SolveStats`.
+
+        ``step()``: the simulator's own state by ``dt`` (the simulator's, or the argument) with its control (targets set by
+        :meth:`set_targets`, cleared after the step, and ``load_scale``). ``step(state_in,
+        state_out, control=None, dt=None)``: a step from ``state_in`` written into ``state_out``
+        (two distinct :class:`State`s, e.g. from ``new_state()``); ``state_in`` is never written.
+
+        On NaN/inf (or non-convergence with ``require_convergence``) raises :class:`SolveFailed`;
+        the input state (and with ``step()`` the simulator's state, time and the integrator's
+        history) is as it was.
+        """
+        if state_in is None:
+            if state_out is not None:
+                raise TypeError("step(): give both state_in and state_out, or neither")
+            own_in, own_out = self._own_states()
+            stats = self._step(own_in, own_out, self.control, self.dt if dt is None else float(dt))
+            self._commit(own_out)
+            self.control.targets.clear()
+            self.step_count += 1
+            return stats
+        if state_out is None or state_out is state_in:
+            raise ValueError("step(state_in, state_out, ...) needs a distinct output state (see new_state())")
+        return self._step(state_in, state_out, Control() if control is None else control,
+                          self.dt if dt is None else float(dt))
+
+
+class SimulatorBase(SimulatorState, StepperBase):
     """What the full-space simulators (``Simulator``, ``StiffnessWarpingSimulator``) share: set-up of
     the model, device, precision and step options, the state / control pair, the vector algebra,
     energies (with the control's load scale), the prescribed velocities of fixed vertices, the
@@ -329,27 +363,10 @@ class SimulatorBase(SimulatorState):
         return self.integrator.predict(self.state if state is None else state, self.dt if dt is None else float(dt),
                                        self.ops, self._prediction_work)
 
-    def step(self, state_in=None, state_out=None, control=None, dt=None):
-        """Advance one step; returns its :class:`~warpfem.SolveStats`.
+    # -- the simulator's own state in step() (StepperBase) -----------------------------------------------
+    def _own_states(self):
+        return self.state, self._spare
 
-        ``step()``: the simulator's own state by ``dt`` (the simulator's, or the argument) with its control (targets set by
-        :meth:`set_targets`, cleared after the step, and ``load_scale``). ``step(state_in,
-        state_out, control=None, dt=None)``: a step from ``state_in`` written into ``state_out``
-        (two distinct :class:`State`s, e.g. from :meth:`new_state`); ``state_in`` is never written.
+    def _commit(self, state_out):
+        self.state, self._spare = state_out, self.state
 
-        On NaN/inf (or non-convergence with ``require_convergence``) raises :class:`SolveFailed`;
-        the input state (and with ``step()`` the simulator's state, time and the integrator's
-        history) is as it was.
-        """
-        if state_in is None:
-            if state_out is not None:
-                raise TypeError("step(): give both state_in and state_out, or neither")
-            stats = self._step(self.state, self._spare, self.control, self.dt if dt is None else float(dt))
-            self.state, self._spare = self._spare, self.state
-            self.control.targets.clear()
-            self.step_count += 1
-            return stats
-        if state_out is None or state_out is state_in:
-            raise ValueError("step(state_in, state_out, ...) needs a distinct output state (see new_state())")
-        return self._step(state_in, state_out, Control() if control is None else control,
-                          self.dt if dt is None else float(dt))
