@@ -12,7 +12,6 @@ from warpfem.materials import make_material
 from warpfem.mesh import TetMesh, box_tet_mesh
 from warpfem.model import Model
 from warpfem.simulator import Simulator
-from warpfem.solvers.forms import _E_CONTACT
 
 G = 9.81
 L = 0.1
@@ -118,14 +117,16 @@ def _contact_eval(sim, x_np):
     from warpfem.contact import ContactForm
 
     x = sim._vec_array(x_np)
-    form = ContactForm(sim.contact, 1.0, _E_CONTACT)
+    slot = 12
+    form = ContactForm(sim.contact)
+    form.bind(None, slot)
     acc = wp.zeros(16, dtype=wp.float64, device=sim.device)
     form.energy(None, x, acc)
     g = sim._vec_array()
-    form.gradient(None, x, g, acc)
+    form.gradient(None, x, 1.0, g, acc)
     vals = sim._pattern.new_values()
-    form.hessian(None, x, vals)
-    return float(acc.numpy()[_E_CONTACT]), g.numpy().astype(np.float64), sim._pattern.to_scipy(vals).toarray()
+    form.hessian(None, x, 1.0, vals)
+    return float(acc.numpy()[slot]), g.numpy().astype(np.float64), sim._pattern.to_scipy(vals).toarray()
 
 
 @pytest.mark.parametrize("kind", ["plane", "sphere", "box", "mesh"])

@@ -142,7 +142,7 @@ def test_step_potential_energy_and_gradient_match_the_cubature_forces(beam_subsp
     rs = ReducedSimulator(model, sub, dt=1 / 30, damping_mass=0.5, integrator="newmark")
     for _ in range(3):
         rs.step()
-    zb, zhat, s = rs.integrator.predict(rs)
+    zb, zhat, s = rs.predict()
     pot = rs._pot.begin(zb=zb, v_hat=zhat, adot_hat=zhat[:0], adot=zhat[:0], s=s)
     rng = np.random.default_rng(3)
     v = rs.qdot + 0.3 * np.abs(rs.qdot).max() * rng.standard_normal(rs.r)
@@ -198,3 +198,37 @@ def test_direct_cpu_launch_equals_warps_own_launch(beam_subspace, monkeypatch):
     for (Ea, fa, Ka), (Eb, fb, Kb) in zip(a, b):
         assert Ea == Eb and np.array_equal(fa, fb)
         assert (Ka is None and Kb is None) or np.array_equal(Ka, Kb)
+
+
+def test_load_scale_is_a_control_of_the_reduced_step(beam_subspace):
+    """load_scale scales the external forces of the reduced step as it does in full space."""
+    _, model, sub = beam_subspace
+    qdots = []
+    for scale in (0.0, 0.5, 1.0):
+        rs = ReducedSimulator(model, sub, dt=1 / 60, tol=1e-12)
+        rs.load_scale = scale
+        rs.step()
+        qdots.append(rs.qdot.copy())
+    assert np.array_equal(qdots[0], np.zeros_like(qdots[0]))  # no load: the rest state stays
+    assert np.abs(qdots[2]).max() > 0.0
+    np.testing.assert_allclose(qdots[1], 0.5 * qdots[2], rtol=0, atol=1e-3 * np.abs(qdots[2]).max())
+
+
+def test_reduced_step_of_states_reads_its_input_only(beam_subspace):
+    """The reduced simulator shares step(state_in, state_out, control, dt) (solvers.state.StepperBase):
+    the input state is not written and the convenience step from the same state gives the same result."""
+    _, model, sub = beam_subspace
+    rs = ReducedSimulator(model, sub, dt=1 / 60, integrator="bdf2", tol=1e-10)
+    rs.reuse_newton_matrix = False  # the plain Newton path: the same iterates whatever came before
+    for _ in range(2):
+        rs.step()
+    s_in, s_out = rs.new_state(), rs.new_state()
+    before = (s_in.x.copy(), s_in.v.copy(), s_in.history["x_prev"].copy(), s_in.time)
+    st = rs.step(s_in, s_out)
+    assert st.converged
+    assert np.array_equal(s_in.x, before[0]) and np.array_equal(s_in.v, before[1])
+    assert np.array_equal(s_in.history["x_prev"], before[2]) and s_in.time == before[3]
+    assert s_out.time == pytest.approx(before[3] + 1 / 60, abs=1e-15)
+    rs.step()
+    np.testing.assert_allclose(rs.q, s_out.x[:rs.r], rtol=0, atol=1e-12 * np.abs(rs.q).max())
+    np.testing.assert_allclose(rs.qdot, s_out.v[:rs.r], rtol=0, atol=1e-10 * np.abs(rs.qdot).max())

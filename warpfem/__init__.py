@@ -35,6 +35,8 @@ from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
 from warpfem.simulator import Simulator
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats
 from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
+from warpfem.solvers.state import Control, State
+from warpfem.solvers.forms import Form
 from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
 
 __version__ = "0.1.0"
@@ -56,6 +58,9 @@ __all__ = [
     "Model",
     "NewtonOptions",
     "Simulator",
+    "State",
+    "Control",
+    "Form",
     "SolveFailed",
     "SolveStats",
     "StVenantKirchhoff",

@@ -29,47 +29,93 @@ A-stable but not L-stable (stiff modes are not damped); BDF2 is L-stable and dam
 frequencies, less than backward Euler (Hairer & Wanner, "Solving Ordinary Differential Equations
 II"; Hughes, "The Finite Element Method", ch. 9).
 
-An integrator object keeps the history its scheme needs (x_{n-1}, v_{n-1} or a_n) on the device.
-The simulator asks it for ``predict(sim)`` -> (x_b, v_hat, s) before a step and calls
-``advance(sim, v)`` with the converged velocity after it; nothing is written before the solve
-succeeds, so a failed step leaves the state (and the history) as it was.
+An integrator object is stateless configuration: the history its scheme needs (x_{n-1}, v_{n-1} or
+a_n, and the step size it was taken with) lives in the step's state (``state.history``, a dict), so
+one step is a function ``(state_in, dt) -> state_out`` that never writes its input. The simulator
+asks ``predict(state, dt, ops, work)`` -> :class:`Prediction` (x_b, v_hat, s) before a step and
+calls ``advance(state_in, v, prediction, dt, ops, state_out)`` with the converged velocity after
+it; nothing is written before the solve succeeds, so a failed step leaves the state (and the
+history) as it was.
+
+``ops`` is the vector algebra of the simulator (:class:`VectorOps`): device vec3 arrays for the
+full-space simulators, numpy coordinate vectors for the reduced one. Buffers are taken from
+``work`` (the prediction's) and from ``state_out.history`` (the history), each made once with
+``ops.new_vector()`` on first use and reused by every later step (no allocation per step).
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
-__all__ = ["Integrator", "BackwardEuler", "BDF2", "Newmark", "Static", "INTEGRATOR_NAMES", "make_integrator"]
+__all__ = ["Integrator", "BackwardEuler", "BDF2", "Newmark", "Static", "INTEGRATOR_NAMES", "make_integrator",
+           "Prediction", "VectorOps"]
+
+
+class Prediction(NamedTuple):
+    """What a step's incremental potential needs from the integrator: x = x_b + s v, the
+    predicted velocity v_hat (inertia: 1/2 |v - v_hat|_M^2) and the scale s (the weight of the
+    damping and load terms and the chain factor of the terms in x)."""
+
+    xb: object
+    v_hat: object
+    s: float
+
+
+class VectorOps:
+    """The vector algebra an integrator uses (implemented by each simulator):
+    ``new_vector()`` (a zero vector, only called on first use of a buffer), ``lincomb(a, x, b, y,
+    out)`` (out = a x + b y; out may alias x or y), ``copy(dst, src)``, and for Newmark
+    ``acceleration(state, out)`` (M a = f + f_ext - C v on the free components)."""
+
+    def new_vector(self):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def lincomb(self, a, x, b, y, out):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def copy(self, dst, src):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def acceleration(self, state, out):  # pragma: no cover - interface
+        raise NotImplementedError
+
+
+def _buffer(store: dict, name: str, ops):
+    """store[name], made with ops.new_vector() on first use."""
+    b = store.get(name)
+    if b is None:
+        b = store[name] = ops.new_vector()
+    return b
 
 
 class Integrator:
     """Base class: an implicit one-step (or two-step) scheme as a velocity-form minimisation.
 
-    It talks to its simulator through a small interface, so the same objects drive the full-space
-    simulators (device vec3 arrays) and the reduced one (numpy coordinate vectors):
-    ``sim._istate() -> (x, v)``, ``sim._iset_state(x, v)``, ``sim._ivec()`` (a new zero vector),
-    ``sim._ilincomb(a, x, b, y, out)`` (out = a x + b y), ``sim.dt`` and, for Newmark,
-    ``sim._equation_of_motion_acceleration(out)``."""
+    Stateless: the history is in ``state.history`` (see the module docstring), so one instance
+    may drive any number of simulators."""
 
     name = "integrator"
     order = 1
     dynamic = True
 
-    def __init__(self):
-        self._h = None
-
     def reset(self):
-        """Forget the history (called when positions/velocities are set from outside)."""
-        self._h = None
+        """Kept for compatibility: the history lives in the state (clear ``state.history``)."""
 
-    def predict(self, sim):
-        """(x_b, v_hat, s) for the coming step of ``sim`` (read-only for the caller)."""
+    def predict(self, state, dt, ops, work) -> Prediction:
+        """(x_b, v_hat, s) for a step of ``dt`` from ``state`` (read-only for the caller)."""
         raise NotImplementedError
 
-    def advance(self, sim, v, prediction):
-        """Accept the converged end-of-step velocity ``v`` of the step ``prediction`` (what
-        :meth:`predict` returned): set the simulator's state and the history."""
+    def advance(self, state_in, v, prediction, dt, ops, state_out):
+        """Write the end-of-step state of the converged velocity ``v`` into ``state_out`` (its x,
+        v and history); ``state_in`` is only read."""
         raise NotImplementedError
+
+    def _end_state(self, v, prediction, ops, state_out):
+        xb, _, s = prediction
+        ops.lincomb(1.0, xb, s, v, state_out.x)
+        ops.copy(state_out.v, v)
 
     def __repr__(self):
         return f"{type(self).__name__}()"
@@ -82,15 +128,12 @@ class BackwardEuler(Integrator):
     name = "backward_euler"
     order = 1
 
-    def predict(self, sim):
-        x, v = sim._istate()
-        return x, v, sim.dt
+    def predict(self, state, dt, ops, work):
+        return Prediction(state.x, state.v, dt)
 
-    def advance(self, sim, v, prediction):
-        xb, _, s = prediction
-        x_new = sim._ivec()
-        sim._ilincomb(1.0, xb, s, v, x_new)
-        sim._iset_state(x_new, v)
+    def advance(self, state_in, v, prediction, dt, ops, state_out):
+        self._end_state(v, prediction, ops, state_out)
+        state_out.history.clear()
 
 
 class BDF2(Integrator):
@@ -102,27 +145,25 @@ class BDF2(Integrator):
     name = "bdf2"
     order = 2
 
-    def predict(self, sim):
-        x, v = sim._istate()
-        if self._h is None or self._h != sim.dt:  # first step, new state or new step size
-            self._h = None
-            return x, v, sim.dt
+    def predict(self, state, dt, ops, work):
+        hist = state.history
+        if hist.get("h") != dt or "x_prev" not in hist:  # first step, new state or step size: backward Euler
+            return Prediction(state.x, state.v, dt)
         # x_b = x_n + (x_n - x_{n-1}) / 3 (the difference first: keeps float32 round-off small)
-        xb, vh = sim._ivec(), sim._ivec()
-        sim._ilincomb(1.0, x, -1.0, self._x_prev, xb)
-        sim._ilincomb(1.0, x, 1.0 / 3.0, xb, xb)
-        sim._ilincomb(1.0, v, -1.0, self._v_prev, vh)
-        sim._ilincomb(1.0, v, 1.0 / 3.0, vh, vh)
-        return xb, vh, 2.0 * sim.dt / 3.0
+        xb, vh = _buffer(work, "xb", ops), _buffer(work, "v_hat", ops)
+        ops.lincomb(1.0, state.x, -1.0, hist["x_prev"], xb)
+        ops.lincomb(1.0, state.x, 1.0 / 3.0, xb, xb)
+        ops.lincomb(1.0, state.v, -1.0, hist["v_prev"], vh)
+        ops.lincomb(1.0, state.v, 1.0 / 3.0, vh, vh)
+        return Prediction(xb, vh, 2.0 * dt / 3.0)
 
-    def advance(self, sim, v, prediction):
-        xb, _, s = prediction
-        x_old, v_old = sim._istate()
-        x_new = sim._ivec()
-        sim._ilincomb(1.0, xb, s, v, x_new)
-        sim._iset_state(x_new, v)
-        self._x_prev, self._v_prev = x_old, v_old
-        self._h = sim.dt
+    def advance(self, state_in, v, prediction, dt, ops, state_out):
+        hist = state_out.history
+        xp, vp = _buffer(hist, "x_prev", ops), _buffer(hist, "v_prev", ops)
+        ops.copy(xp, state_in.x)
+        ops.copy(vp, state_in.v)
+        self._end_state(v, prediction, ops, state_out)
+        hist["h"] = dt
 
 
 class Newmark(Integrator):
@@ -132,26 +173,24 @@ class Newmark(Integrator):
     name = "newmark"
     order = 2
 
-    def predict(self, sim):
-        x, v = sim._istate()
-        if self._h is None:  # a_0 from the equations of motion
-            a = sim._ivec()
-            sim._equation_of_motion_acceleration(a)
-            self._a, self._h = a, sim.dt
-        h = sim.dt
-        xb, vh = sim._ivec(), sim._ivec()
-        sim._ilincomb(1.0, x, 0.5 * h, v, xb)
-        sim._ilincomb(1.0, v, 0.5 * h, self._a, vh)
-        return xb, vh, 0.5 * h
+    def predict(self, state, dt, ops, work):
+        hist = state.history
+        if "a" in hist:
+            a = hist["a"]
+        else:  # a_0 from the equations of motion (into the work buffer: the state is not written)
+            a = _buffer(work, "a0", ops)
+            ops.acceleration(state, a)
+        xb, vh = _buffer(work, "xb", ops), _buffer(work, "v_hat", ops)
+        ops.lincomb(1.0, state.x, 0.5 * dt, state.v, xb)
+        ops.lincomb(1.0, state.v, 0.5 * dt, a, vh)
+        return Prediction(xb, vh, 0.5 * dt)
 
-    def advance(self, sim, v, prediction):
-        xb, vh, s = prediction
-        x_new, a_new = sim._ivec(), sim._ivec()
-        sim._ilincomb(1.0, xb, s, v, x_new)
-        sim._ilincomb(1.0 / s, v, -1.0 / s, vh, a_new)  # a_{n+1} = (v - v_hat) / s
-        sim._iset_state(x_new, v)
-        self._a = a_new
-        self._h = sim.dt
+    def advance(self, state_in, v, prediction, dt, ops, state_out):
+        _, vh, s = prediction
+        a_new = _buffer(state_out.history, "a", ops)
+        ops.lincomb(1.0 / s, v, -1.0 / s, vh, a_new)  # a_{n+1} = (v - v_hat) / s
+        self._end_state(v, prediction, ops, state_out)
+        state_out.history["h"] = dt
 
 
 class Static(Integrator):

@@ -113,7 +113,9 @@ class Model:
         return self.gravity_mass[:, None] * self.gravity[None, :] + self.forces
 
     # -- boundary conditions and loads -----------------------------------------------------------
-    def _indices(self, indices) -> np.ndarray:
+    def indices(self, indices) -> np.ndarray:
+        """Vertex indices as a flat int64 array, checked (TypeError for non-integers, IndexError
+        naming the first index out of range)."""
         idx = np.atleast_1d(np.asarray(indices))
         if idx.size and (idx.dtype.kind not in "iu"):
             raise TypeError(f"vertex indices must be integers, got dtype {idx.dtype}")
@@ -125,11 +127,11 @@ class Model:
 
     def fix(self, indices, components: str = "xyz") -> None:
         """Fix the given displacement components of vertices (Dirichlet)."""
-        self.fixed[np.ix_(self._indices(indices), parse_components(components))] = True
+        self.fixed[np.ix_(self.indices(indices), parse_components(components))] = True
 
     def release(self, indices, components: str = "xyz") -> None:
         """Free previously fixed components."""
-        self.fixed[np.ix_(self._indices(indices), parse_components(components))] = False
+        self.fixed[np.ix_(self.indices(indices), parse_components(components))] = False
 
     def free_rigid_motions(self) -> list[str]:
         """The rigid motions the fixed components leave free, described in words ([] when none).
@@ -192,4 +194,4 @@ class Model:
         f = np.asarray(force, dtype=np.float64)
         if f.shape != (3,) or not np.all(np.isfinite(f)):
             raise ValueError(f"force must be 3 finite numbers, got {force!r}")
-        np.add.at(self.forces, self._indices(indices), f)
+        np.add.at(self.forces, self.indices(indices), f)

@@ -18,25 +18,23 @@ The quasi-static solve minimises V(x) - x^T f_ext over the free components of x.
 from __future__ import annotations
 
 import time
-import warnings
 from typing import NamedTuple
 
 import numpy as np
 import warp as wp
 
-from warpfem.device import get_device as _get_device
 from warpfem.kernels import fem as FK
 from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
-from warpfem.kernels.generic import launch
+from warpfem.kernels.generic import COUNTERS, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.model import static_supports_error
-from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
+from warpfem.solvers.forms import DampingForm, ElasticForm, IncrementalPotential, InertiaForm, LoadForm, Workspace
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.linear import make_linear_solver
 from warpfem.solvers.linear.auto import simulator_options
-from warpfem.solvers.state import SimulatorState, check_simulator_options
-from warpfem.solvers.sparse import BlockPattern
+from warpfem.solvers.state import SimulatorBase, check_simulator_options
+from warpfem.solvers.sparse import BlockPattern, HessianSystem, PatternView
 
 
 class QuadratureSet(NamedTuple):
@@ -55,7 +53,7 @@ class QuadratureSet(NamedTuple):
     energy: object
 
 
-class Simulator(SimulatorState):
+class Simulator(SimulatorBase):
     """Time stepping and static solves of a model on a Warp device.
 
     Args:
@@ -86,18 +84,8 @@ class Simulator(SimulatorState):
             raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
         self.options = NewtonOptions(**newton_options)
         self.options.validate()
-        self.model = model
-        self.device = _get_device(device)
-        self.precision = precision
-        self._s, self._vec, self._mat, self._np = types
-        self.dt = float(dt)
-        self.damping_mass = float(damping_mass)
-        self.damping_stiffness = float(damping_stiffness)
-        self.require_convergence = require_convergence
-        self.num_vertices = n = model.num_vertices
-        self.time = 0.0
-        self.step_count = 0
-
+        self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
+        n = self.num_vertices
         dev, qd, mat = self.device, model.quadrature, model.material
         self._qp_count = qd.num_points
         self._elements = wp.array(qd.elements, dtype=wp.int32, device=dev)
@@ -111,12 +99,14 @@ class Simulator(SimulatorState):
         self._points = quadrature_points(self._s, self._x_rest, self._elements, self._k, self._qp_element,
                                          self._qp_weight, self._qp_dNdX)
         self._material = material_params(self._s, mat.kind, mat.kernel_mu, mat.kernel_lam)
-        self._pattern = BlockPattern(qd.elements, qd.nodes_per_element, n, device=dev, block_type=self._mat)
-        self._mass_values = self._pattern.values_from_scalar_matrix(model.mass)
-        self._hess_values = self._pattern.new_values()
-        self._kn_values = self._pattern.new_values() if damping_stiffness > 0 else None
-        self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
+        self.system = HessianSystem(BlockPattern(qd.elements, qd.nodes_per_element, n, device=dev, block_type=self._mat))
+        self.system.values["mass"] = self.system.pattern.values_from_scalar_matrix(model.mass)
+        self.system.new_values("hessian")
+        if damping_stiffness > 0:
+            self.system.new_values("kn")
+        self._pcg = make_linear_solver(linear_solver, self.system.pattern, vec_type=self._vec, scalar=self._s,
                                        positions=model.rest_positions, **simulator_options(linear_solver, linear_solver_options))
+        self.system.solver = self._pcg
         self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
         # quadrature-point sets the kernels run over: (count, points, material, energy buffer). Selective reduced
         # integration (qd.volumetric) runs the same material kernels with the split parameters of
@@ -137,21 +127,27 @@ class Simulator(SimulatorState):
                                            self._energy_q),
                              QuadratureSet(vq.num_points, vpoints, material_params(self._s, mat.kind, mu_v, lam_v),
                                            wp.zeros(vq.num_points, dtype=self._s, device=dev))]
-
-        def vec_array(a=None):
-            return wp.zeros(n, dtype=self._vec, device=dev) if a is None else wp.array(np.asarray(a, dtype=self._np), dtype=self._vec, device=dev)
-
-        self._vec_array = vec_array
-        self.x = vec_array(model.rest_positions)
-        self.v = vec_array()
-        self._zero = vec_array()
-        self._work = Workspace(self)
-        self._targets = {}  # vertex -> target position for the next step (kinematic handles)
-        #: control: the external forces (gravity + applied) act scaled by this (load ramps); the
-        #: model itself is never rescaled
-        self.load_scale = 1.0
-        self.sync_model()
+        # the incremental potential: one list of weighted forms, built once (solvers/forms.py)
+        system, ops = self.system, self.ops
+        pattern = PatternView(system)  # forms follow the pattern when it grows
+        self._elastic = ElasticForm(ops, self._qp_sets, pattern, self.options)
+        self._inertia = InertiaForm(ops, pattern, lambda: system.values["mass"])
+        self._load = LoadForm(ops, self._fext, self._fext_norm)
+        forms = [self._inertia]
+        if self.damping_mass != 0.0 or self.damping_stiffness != 0.0:
+            forms.append(DampingForm(ops, pattern, lambda: system.values["mass"], self.damping_mass,
+                                     lambda: system.values["kn"], self.damping_stiffness))
+        forms += [self._elastic, self._load]
+        self._work = Workspace(ops)
+        self._y = ops.new_vector()  # the unknown of the step's Newton solve
+        self._fixed_v = ops.new_vector()
+        self._contact_start = ops.new_vector()
+        self._prediction_work = {}  # the integrator's prediction buffers (made on first use)
+        self._potential = IncrementalPotential(ops, forms, system=system, mask=self._mask,
+                                               linear_solve=lambda *a, **kw: self._linear_solve(*a, **kw), work=self._work)
+        self._static_potential = None
         self.contact = None  # warpfem.contact.ContactSet once a collider is added
+        self._contact_form = None
         for c in colliders or ():
             self.add_collider(c)
 
@@ -160,7 +156,7 @@ class Simulator(SimulatorState):
         ``MeshCollider``, or ``type="plane"`` and its keywords): barrier + friction contact with the
         body's surface vertices in every step (docs/contact.md). Raises
         :class:`warpfem.contact.CollisionError` naming it if it intersects the body now."""
-        from warpfem.contact import ContactSet, make_collider
+        from warpfem.contact import ContactForm, ContactSet, make_collider
 
         if collider is None:
             collider = make_collider(**kw)
@@ -168,18 +164,66 @@ class Simulator(SimulatorState):
             raise TypeError("add_collider takes a collider object or keywords, not both")
         if self.contact is None:
             self.contact = ContactSet(self)
+            self._contact_form = ContactForm(self.contact)
+        elif self._contact_form is None or self._contact_form.contact is not self.contact:
+            self._contact_form = ContactForm(self.contact)
         self.contact.add(collider)
         return collider
 
+    def _sync_contact_form(self):
+        """The contact form is in the potential exactly when colliders act (``contact`` may be
+        replaced or emptied from outside)."""
+        active = self.contact is not None and len(self.contact) > 0
+        if active and (self._contact_form is None or self._contact_form.contact is not self.contact):
+            from warpfem.contact import ContactForm
+
+            self._contact_form = ContactForm(self.contact)
+        forms = self._potential.forms
+        want = [f for f in forms if f.name != "contact"]
+        if active:  # before the load: its gradient (a constant vector) is added last, as before the forms list
+            at = next((k for k, f in enumerate(want) if f.name == "load"), len(want))
+            want.insert(at, self._contact_form)
+        if want != forms:
+            self._potential.set_forms(want)
+        return active
+
+    def add_form(self, form):
+        """Append a term (a :class:`warpfem.solvers.forms.Form`) to the incremental potential of every
+        later step (weight ``form.weight``; a form of x gets the chain factors s, s^2)."""
+        self._potential.add_form(form)
+        return form
+
     # -- model changes (no pattern rebuild) -----------------------------------------------------------
     def sync_model(self):
-        """Upload the model's fixed mask and external forces (call after changing them)."""
-        self._mask = self._vec_array((~self.model.fixed).astype(np.float64))
+        """Upload the model's fixed mask and external forces (call after changing them; in place)."""
+        mask = (~self.model.fixed).astype(self._np)
         fext = self.model.external_forces()
-        self._fext = self._vec_array(fext)
+        if getattr(self, "_mask", None) is None:
+            self._mask, self._fext = self._vec_array(mask), self._vec_array(fext)
+        else:
+            self._mask.assign(mask)
+            self._fext.assign(fext.astype(self._np))
         self._fext_norm = float(np.linalg.norm(fext))
+        if getattr(self, "_load", None) is not None:
+            self._load.norm = self._fext_norm
 
     # -- stages (each a function that can be timed) ------------------------------------------------
+    @property
+    def _pattern(self):
+        return self.system.pattern
+
+    @property
+    def _mass_values(self):
+        return self.system.values["mass"]
+
+    @property
+    def _hess_values(self):
+        return self.system.values["hessian"]
+
+    @property
+    def _kn_values(self):
+        return self.system.values.get("kn")
+
     def _bsr_mv(self, values, x, alpha, y):
         pt = self._pattern
         launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, x, self._s(alpha), y], self.device)
@@ -198,10 +242,7 @@ class Simulator(SimulatorState):
         return float(e.sum()), float(np.abs(e).sum())
 
     def _assemble_stiffness(self, x, scale, values):
-        for qs in self._qp_sets:
-            launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self._s(scale),
-                                                    int(self.options.project_hessian), self._pattern.block_index, values],
-                   self.device)
+        self._elastic.assemble(x, scale, values)
 
     # -- public hooks for benchmarks and tools (device arrays, no copies) ----------------------------
     @property
@@ -218,6 +259,7 @@ class Simulator(SimulatorState):
     @linear_solver.setter
     def linear_solver(self, solver):
         self._pcg = solver
+        self.system.solver = solver  # re-analyses a grown pattern
 
     @property
     def quadrature_points(self):
@@ -295,17 +337,6 @@ class Simulator(SimulatorState):
         """V(x) (J) at x (default: current positions)."""
         return self._elastic_energy(self.x if x is None else self._vec_array(x))[0]
 
-    def kinetic_energy(self) -> float:
-        """1/2 v^T M v (J)."""
-        q = self._vec_array()
-        self._bsr_mv(self._mass_values, self.v, 1.0, q)
-        return 0.5 * self._pcg.dot(self.v, q)
-
-    def total_energy(self) -> float:
-        """Kinetic + elastic - x^T f_ext (J, f_ext times ``load_scale``): conserved by the exact
-        dynamics without damping."""
-        return self.kinetic_energy() + self.elastic_energy() - self.load_scale * self._pcg.dot(self.x, self._fext)
-
     def stiffness_matrix(self, x=None, *, project=None):
         """The assembled stiffness d2V/dx2 at x as scipy CSR (3n x 3n), for analysis and tests."""
         vals = self._pattern.new_values()
@@ -334,117 +365,101 @@ class Simulator(SimulatorState):
                 val[i] = p
         return val
 
-    def _finish(self, stats, t0, what):
-        stats.seconds = time.perf_counter() - t0
-        if not stats.converged:
-            if "non-finite" in stats.reason or not np.isfinite(stats.energy):
-                raise SolveFailed(f"{what} diverged ({stats.reason}); state left unchanged", stats)
-            if self.require_convergence:
-                raise SolveFailed(f"{what} did not converge ({stats.reason}); state left unchanged", stats)
-            warnings.warn(f"{what} did not converge: {stats.reason} (relative gradient {stats.residual:.2e})", RuntimeWarning, stacklevel=3)
-
-    def _prescribed_velocity(self, xb, s):
-        """Device array: the end-of-step velocity that puts fixed components at their target (or
-        keeps them where they are), (p - x_b) / s; only its fixed components are used."""
-        out = self._vec_array()
-        if not self._targets:
-            if xb is not self.x:  # (x - x_b) first, then the scale: exact zero where x_b = x
-                launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0), self.x, self._s(-1.0), xb, out],
-                          device=self.device)
-                launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0 / s), out, self._s(0.0), out, out],
-                          device=self.device)
-            return out
-        p = self.positions()
-        for i, t in self._targets.items():
-            p[i] = t
-        out.assign(((p - xb.numpy().astype(np.float64)) / s).astype(self._np))
-        return out
-
-    def _equation_of_motion_acceleration(self, out):
+    def _equation_of_motion_acceleration(self, state, out):
         """out = a with M a = f(x) + f_ext - C v on the free components (0 on fixed ones), C the
-        Rayleigh damping alpha M + beta K(x): the acceleration of the current state (Newmark's a_0)."""
+        Rayleigh damping alpha M + beta K(x): the acceleration of ``state`` (Newmark's a_0)."""
         n = self.num_vertices
-        rhs = self._vec_array()
+        rhs = self._work.tmp
+        rhs.zero_()
         for qs in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=qs.count, inputs=[self.x, qs.points, qs.material, self._s(1.0), rhs],
+            launch(FK.qp_force_kernel, dim=qs.count, inputs=[state.x, qs.points, qs.material, self._s(1.0), rhs],
                    device=self.device)
-        launch(LK.axpy_kernel, dim=n, inputs=[self._s(self.load_scale), self._fext, rhs], device=self.device)
+        launch(LK.axpy_kernel, dim=n, inputs=[self._s(self._step_control.load_scale), self._fext, rhs], device=self.device)
         if self.damping_mass != 0.0:
-            self._bsr_mv(self._mass_values, self.v, -self.damping_mass, rhs)
-        if self.damping_stiffness != 0.0:
-            kn = self._pattern.new_values()
-            self._assemble_stiffness(self.x, 1.0, kn)
-            self._bsr_mv(kn, self.v, -self.damping_stiffness, rhs)
+            self._bsr_mv(self._mass_values, state.v, -self.damping_mass, rhs)
+        if self.damping_stiffness != 0.0:  # K(x_n), assembled at the start of the step
+            self._bsr_mv(self._kn_values, state.v, -self.damping_stiffness, rhs)
         launch(LK.mask_kernel, dim=n, inputs=[self._mask, rhs], device=self.device)
         res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.options.max_cg_iters, 100))
         if not np.isfinite(res.residual):
             raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
                               SolveStats(reason="non-finite initial acceleration"))
 
-    def step(self) -> SolveStats:
-        """Advance one step of ``dt`` with the simulator's integrator; returns its statistics.
+    def _weights(self, s, control):
+        """The forms' weights for a step of scale s (the one place the integrator's s enters the
+        weights; the chain factors of the forms of x are the potential's)."""
+        return {"inertia": 1.0, "damping": s, "elastic": 1.0, "load": s * control.load_scale, "contact": 1.0}
 
-        On NaN/inf (or non-convergence with ``require_convergence``) raises :class:`SolveFailed`
-        and leaves positions, velocities, time and the integrator's history as they were.
-        """
-        t0 = time.perf_counter()
-        n = self.num_vertices
+    def potential(self, state=None, control=None, dt=None):
+        """The incremental potential of a step of ``dt`` from ``state`` (default: the simulator's
+        own), as the Newton loop sees it (:class:`warpfem.solvers.forms.IncrementalPotential`),
+        with the prediction applied; for tests and tools."""
+        state = self.state if state is None else state
+        control = self.control if control is None else control
+        dt = self.dt if dt is None else float(dt)
+        self._step_control = control
         if self._kn_values is not None:
             self._kn_values.zero_()
-            self._assemble_stiffness(self.x, 1.0, self._kn_values)
-        prediction = self.integrator.predict(self)
-        xb, y0, s = prediction
-        fixed_v = self._prescribed_velocity(xb, s)
-        y = self._vec_array()
+            self._assemble_stiffness(state.x, 1.0, self._kn_values)
+        xb, vh, s = self.integrator.predict(state, dt, self.ops, self._prediction_work)
+        self._inertia.set_prediction(vh)
+        return self._potential.begin(xb, s, self._weights(s, control))
+
+    def _step(self, state_in, state_out, control, dt) -> SolveStats:
+        t0 = time.perf_counter()
+        n, ops = self.num_vertices, self.ops
+        self._step_control = control
+        syncs0, launches0 = self._potential.host_syncs, COUNTERS["launches"]
+        if self._kn_values is not None:
+            self._kn_values.zero_()
+            self._assemble_stiffness(state_in.x, 1.0, self._kn_values)
+        prediction = self.integrator.predict(state_in, dt, ops, self._prediction_work)
+        xb, vh, s = prediction
+        fixed_v = self._prescribed_velocity(state_in, xb, s, control, self._fixed_v)
+        y = self._y
         # initial guess: previous velocity on free components, prescribed on fixed ones
-        launch(LK.select_kernel, dim=n, inputs=[self._mask, self.v, fixed_v, y], device=self.device)
-        quadratic = [InertiaForm(self, y0)]
-        if self.damping_mass != 0.0 or self.damping_stiffness != 0.0:
-            quadratic.append(DampingForm(self, s * self.damping_mass, s * self.damping_stiffness))
-        contact = None
-        if self.contact is not None and len(self.contact):
-            contact = self._begin_contact_step(xb, s, fixed_v, y)
-        pot = FullSpacePotential(self, xb=xb, s=s, quadratic=quadratic, elastic=ElasticForm(self, s),
-                                 load=LoadForm(self, s * self.load_scale), contact=contact)
-        if contact is not None:  # start where no vertex is inside a collider (the previous velocity, cut)
+        launch(LK.select_kernel, dim=n, inputs=[self._mask, state_in.v, fixed_v, y], device=self.device)
+        self._inertia.set_prediction(vh)
+        contact = self._sync_contact_form()
+        pot = self._potential.begin(xb, s, self._weights(s, control))
+        if contact:
+            self._begin_contact_step(state_in, xb, s, fixed_v, y, dt)
+            # start where no vertex is inside a collider (the previous velocity, cut)
             alpha = min(1.0, pot.max_step(self._contact_start, y))
             launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self._contact_start, self._s(alpha), y, y],
                    device=self.device)
         stats = newton_solve(pot, y, self.options)
+        stats.newton_syncs = pot.host_syncs - syncs0
+        stats.launches = COUNTERS["launches"] - launches0
         self._finish(stats, t0, f"step {self.step_count}")
-        self.integrator.advance(self, y, prediction)
-        self._targets.clear()
-        self.time += self.dt
-        self.step_count += 1
+        self.integrator.advance(state_in, y, prediction, dt, ops, state_out)
+        state_out.time = state_in.time + dt
         return stats
 
-    def _begin_contact_step(self, xb, s, fixed_v, y):
+    def _begin_contact_step(self, state_in, xb, s, fixed_v, y, dt):
         """Contact data of the coming step; ``y`` becomes the direction from a feasible start."""
-        from warpfem.contact import ContactForm
         from warpfem.contact.contact import CollisionError
-        from warpfem.solvers.forms import _E_CONTACT
 
-        n = self.num_vertices
-        self.contact.begin_step(self.time, self.time + self.dt, self.dt)
+        ops, t = self.ops, state_in.time
+        self.contact.begin_step(t, t + dt, dt, x0=state_in.x)
         # the unknown that keeps every vertex where it is (fixed ones at their targets): feasible
         # unless a collider moved into the body
-        y0 = self._vec_array()
-        launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self.x, self._s(-1.0), xb, y0], device=self.device)
-        launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0 / s), y0, self._s(0.0), y0, y0], device=self.device)
-        launch(LK.select_kernel, dim=n, inputs=[self._mask, y0, fixed_v, y0], device=self.device)
-        x0 = self._vec_array()
-        launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), xb, self._s(s), y0, x0], device=self.device)
+        y0 = self._contact_start
+        ops.lincomb(1.0, state_in.x, -1.0, xb, y0)
+        ops.lincomb(1.0 / s, y0, 0.0, y0, y0)
+        launch(LK.select_kernel, dim=self.num_vertices, inputs=[self._mask, y0, fixed_v, y0], device=self.device)
+        x0 = self._work.x
+        ops.lincomb(1.0, xb, s, y0, x0)
         try:
-            self.contact.check(x0, self.time + self.dt, what="moved into the body within one step (reduce dt or "
+            self.contact.check(x0, t + dt, what="moved into the body within one step (reduce dt or "
                                "slow the collider)")
         except CollisionError as e:
             raise SolveFailed(f"step {self.step_count}: {e}; state left unchanged",
                               SolveStats(reason="collider intersects the body")) from e
-        self.contact.set_poses(self.time, self.time + self.dt)
-        # y := y - y0 (the direction from the feasible start), cut by the step bound in step()
-        launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), y, self._s(-1.0), y0, y], device=self.device)
-        self._contact_start = y0
-        return ContactForm(self.contact, s, _E_CONTACT, xb=xb)
+        self.contact.set_poses(t, t + dt)
+        self._contact_form.begin(xb, s)
+        # y := y - y0 (the direction from the feasible start), cut by the step bound in _step()
+        ops.lincomb(1.0, y, -1.0, y0, y)
 
     def solve_static(self, *, load_steps: int = 1) -> SolveStats:
         """Quasi-static equilibrium: minimise V(x) - x^T f_ext with the fixed components held.
@@ -466,17 +481,26 @@ class Simulator(SimulatorState):
         targets = {i: p.copy() for i, p in self._targets.items()}
         y = self._vec_array(x_start)
         total = SolveStats(converged=True)
+        if self._static_potential is None:
+            self._static_potential = IncrementalPotential(
+                self.ops, [ElasticForm(self.ops, self._qp_sets, PatternView(self.system), self.options),
+                           LoadForm(self.ops, self._fext, self._fext_norm)], system=self.system, mask=self._mask,
+                linear_solve=lambda *a, **kw: self._linear_solve(*a, **kw), work=self._work)
+        pot = self._static_potential
+        pot.form("load").norm = self._fext_norm
         for step in range(1, int(load_steps) + 1):
             frac = step / load_steps
             self._targets = {i: x_start[i] + frac * (p - x_start[i]) for i, p in targets.items()}
             fixed_x = self._vec_array(self._prescribed(self._vec_array(x_start), 0.0))
             launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
-            pot = FullSpacePotential(self, xb=None, s=1.0, elastic=ElasticForm(self, 1.0), load=LoadForm(self, frac * self.load_scale))
+            pot.begin(None, 1.0, {"elastic": 1.0, "load": frac * self.load_scale})
             st = newton_solve(pot, y, self.options)
             total.newton_iterations += st.newton_iterations
             total.cg_iterations += st.cg_iterations
             total.line_search_steps += st.line_search_steps
             total.singular_solves += st.singular_solves
+            total.host_syncs += st.host_syncs
+            total.newton_syncs += st.newton_syncs
             total.residual, total.gradient_norm, total.energy = st.residual, st.gradient_norm, st.energy
             total.reason = st.reason
             if not st.converged:
@@ -484,9 +508,9 @@ class Simulator(SimulatorState):
                 total.reason = f"load step {step}/{load_steps}: {st.reason}"
                 break
         self._targets = targets
-        self._finish(total, t0, "static solve")
-        self.x = y
-        self.v = self._vec_array()
-        self.integrator.reset()  # a new state: BDF2 / Newmark restart their history
+        self._finish(total, t0, "static solve", stacklevel=4)
+        wp.copy(self.state.x, y)
+        self.state.v.zero_()
+        self.state.history.clear()  # a new state: BDF2 / Newmark restart their history
         self._targets.clear()
         return total

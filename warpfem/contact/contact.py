@@ -16,8 +16,8 @@ import warp as wp
 
 from warpfem.contact import kernels as CK
 from warpfem.contact.colliders import Collider
-from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
+from warpfem.solvers.forms import Form
 
 log = logging.getLogger(__name__)
 
@@ -32,10 +32,16 @@ class CollisionError(ValueError):
 
 
 class ContactSet:
-    """The colliders of one simulator and their device data."""
+    """The colliders of one simulator and their device data.
+
+    Uses the simulator's public interface only: ``model``, ``device``, ``num_vertices``, ``x`` and
+    ``time`` (the current state), ``ops`` (its :class:`~warpfem.solvers.state.DeviceVectors`) and
+    ``system`` (its :class:`~warpfem.solvers.sparse.HessianSystem`: the Hessian's pattern and values)."""
 
     def __init__(self, sim):
         self.sim = sim
+        self.ops = ops = sim.ops
+        self.system = sim.system
         self.colliders: list[Collider] = []
         mesh = sim.model.mesh
         faces = np.asarray(mesh.boundary_faces())
@@ -47,8 +53,16 @@ class ContactSet:
         self.total_mass = float(sim.model.total_mass)
         dev = sim.device
         self._surf = wp.array(self.surface.astype(np.int32), dtype=wp.int32, device=dev)
-        self._diag = wp.array(np.asarray(sim._pattern.diag_index).astype(np.int32), dtype=wp.int32, device=dev)
+        self._diag = None
+        self._pattern_changed(self.system.pattern)
+        self.system.listeners.append(self._pattern_changed)
+        self._x0 = ops.new_vector()  # positions at the start of the step (friction's lag)
+        self._neg_x0 = ops.new_vector()
         self._ready = False
+
+    def _pattern_changed(self, pattern):
+        """The positions of the diagonal blocks (the Hessian's pattern grew)."""
+        self._diag = wp.array(np.asarray(pattern.diag_index).astype(np.int32), dtype=wp.int32, device=self.sim.device)
 
     def __len__(self):
         return len(self.colliders)
@@ -89,7 +103,7 @@ class ContactSet:
             raise
 
     def _upload(self):
-        sim, dev = self.sim, self.sim.device
+        ops, dev = self.ops, self.sim.device
         cs = self.colliders
         nc = len(cs)
         self.nc = nc
@@ -107,8 +121,8 @@ class ContactSet:
         self.dhat = np.array([x[0] for x in d])
         self.kappa = np.array([x[1] for x in d])
         self.epsv = np.array([x[2] for x in d])
-        S, V, M = sim._s, sim._vec, sim._mat
-        npt = sim._np
+        S, V, M = ops.scalar, ops.vec, ops.mat
+        npt = ops.np_dtype
         self._kinds = wp.array(np.array([c.kind for c in cs], dtype=np.int32), dtype=wp.int32, device=dev)
         self._pa = wp.array(np.array([p[0] for p in pars], dtype=npt).reshape(-1, 3), dtype=V, device=dev)
         self._pb = wp.array(np.array([p[1] for p in pars], dtype=npt).reshape(-1, 3), dtype=V, device=dev)
@@ -118,46 +132,52 @@ class ContactSet:
         self._kappa = wp.array(self.kappa.astype(npt), dtype=S, device=dev)
         self._dhat = wp.array(self.dhat.astype(npt), dtype=S, device=dev)
         self._mu = wp.array(np.array([c.friction for c in cs], dtype=npt), dtype=S, device=dev)
+        self._mu_zero = wp.zeros(nc, dtype=S, device=dev)
         self._epsf = wp.zeros(nc, dtype=S, device=dev)
         m = len(self.surface) * nc
         self._lam = wp.zeros(m, dtype=S, device=dev)
+        self._lam_zero = wp.zeros(m, dtype=S, device=dev)
         self._dist = wp.zeros(m, dtype=S, device=dev)
         self._nrm = wp.zeros(m, dtype=V, device=dev)
         self._w = wp.zeros(m, dtype=V, device=dev)
         self._acc = wp.zeros(4, dtype=wp.float64, device=dev)
-        self._x0 = sim.x
-        self._neg_x0 = sim._vec_array(-sim.positions())
-        self.set_poses(sim.time, sim.time)
+        self._R0, self._R1 = (wp.zeros(nc, dtype=M, device=dev) for _ in range(2))
+        self._t0, self._t1 = (wp.zeros(nc, dtype=V, device=dev) for _ in range(2))
+        wp.copy(self._x0, self.sim.x)
+        ops.lincomb(-1.0, self._x0, 0.0, self._x0, self._neg_x0)
+        self.set_poses(self.sim.time, self.sim.time)
         self._ready = True
 
     def set_poses(self, t0, t1):
-        """Poses of the colliders at the start (t0) and end (t1) of a step."""
-        sim, dev = self.sim, self.sim.device
+        """Poses of the colliders at the start (t0) and end (t1) of a step (written in place)."""
+        npt = self.ops.np_dtype
         p0 = [c.pose(t0) for c in self.colliders]
         p1 = [c.pose(t1) for c in self.colliders]
-        npt = sim._np
-        self._R0 = wp.array(np.array([p[0] for p in p0], dtype=npt).reshape(-1, 3, 3), dtype=sim._mat, device=dev)
-        self._t0 = wp.array(np.array([p[1] for p in p0], dtype=npt).reshape(-1, 3), dtype=sim._vec, device=dev)
-        self._R1 = wp.array(np.array([p[0] for p in p1], dtype=npt).reshape(-1, 3, 3), dtype=sim._mat, device=dev)
-        self._t1 = wp.array(np.array([p[1] for p in p1], dtype=npt).reshape(-1, 3), dtype=sim._vec, device=dev)
+        self._R0.assign(np.array([p[0] for p in p0], dtype=npt).reshape(-1, 3, 3))
+        self._t0.assign(np.array([p[1] for p in p0], dtype=npt).reshape(-1, 3))
+        self._R1.assign(np.array([p[0] for p in p1], dtype=npt).reshape(-1, 3, 3))
+        self._t1.assign(np.array([p[1] for p in p1], dtype=npt).reshape(-1, 3))
 
     # -- kernel launch --------------------------------------------------------------------------------
-    def _run(self, mode, x, *, scale=1.0, g=None, values=None, acc=None, slot=0, lam=None, y=None, sy=1.0, dbase=None):
-        """Launch the contact kernel; friction's step displacement is dbase + sy * y (default: x - x_n)."""
-        sim = self.sim
+    def run(self, mode, x, *, scale=1.0, g=None, values=None, acc=None, slot=0, lam=None, y=None, sy=1.0, dbase=None,
+            friction=True):
+        """Launch the contact kernel in ``mode`` (``kernels.MODE_*``) at positions x; friction's step
+        displacement is dbase + sy * y (default: x - x_n); ``friction=False`` evaluates the barrier alone."""
+        ops = self.ops
         if y is None:
             y, sy, dbase = x, 1.0, self._neg_x0
         launch(CK.contact_kernel, len(self.surface), [
             x, self._surf, self.nc, self._kinds, self._R1, self._t1, self._R0, self._t0, self._pa, self._pb,
-            self._tri_start, self._tri_count, self._tris, self._kappa, self._dhat, self._mu, self._epsf,
-            self._lam if lam is None else lam, self._nrm, self._w, dbase, y, sim._s(sy), sim._s(STEP_ETA), sim._s(scale), int(mode),
-            sim._zero if g is None else g, self._diag, sim._hess_values if values is None else values,
-            self._acc if acc is None else acc, int(slot)], sim.device)
+            self._tri_start, self._tri_count, self._tris, self._kappa, self._dhat, self._mu if friction else self._mu_zero,
+            self._epsf, self._lam if lam is None else lam, self._nrm, self._w, dbase, y, ops.scalar(sy),
+            ops.scalar(STEP_ETA), ops.scalar(scale), int(mode), ops.zero if g is None else g, self._diag,
+            self.system.hessian_values if values is None else values, self._acc if acc is None else acc, int(slot)],
+            self.sim.device)
 
     def distances(self, x=None) -> np.ndarray:
         """(surface vertices, colliders) distances (m) at x (default: the current positions), with
         the colliders at their current pose."""
-        self._run(CK.MODE_DISTANCE, self.sim.x if x is None else x, lam=self._dist)
+        self.run(CK.MODE_DISTANCE, self.sim.x if x is None else x, lam=self._dist)
         return self._dist.numpy().astype(np.float64).reshape(len(self.surface), self.nc)
 
     def check(self, x, t, *, what):
@@ -172,68 +192,80 @@ class ContactSet:
             raise CollisionError(f"collider {c.name!r} ({c.type_name}) {what}: {len(bad)} surface vertices inside it "
                                  f"(first: vertex {int(self.surface[v])}, distance {D[v, j]:.3g} m)")
 
-    def begin_step(self, t0, t1, dt):
-        """Poses for the step [t0, t1] and the friction data lagged from the current positions."""
-        sim = self.sim
+    def begin_step(self, t0, t1, dt, x0=None):
+        """Poses for the step [t0, t1] and the friction data lagged from the positions x0 at its
+        start (default: the current positions)."""
         self.set_poses(t0, t1)
-        self._epsf.assign((self.epsv * dt).astype(sim._np))
-        self._x0 = wp.clone(sim.x)
-        self._neg_x0 = sim._vec_array()
-        launch(LK.lincomb_kernel, sim.num_vertices, [sim._s(-1.0), self._x0, sim._s(0.0), self._x0, self._neg_x0],
-               sim.device)
-        self._run(CK.MODE_LAG, self._x0)
+        self._epsf.assign((self.epsv * dt).astype(self.ops.np_dtype))
+        wp.copy(self._x0, self.sim.x if x0 is None else x0)
+        self.ops.lincomb(-1.0, self._x0, 0.0, self._x0, self._neg_x0)
+        self.run(CK.MODE_LAG, self._x0)
+
+    @property
+    def step_start(self):
+        """The positions the friction of the current step is lagged from (device array)."""
+        return self._x0
 
     def barrier_energy(self, x=None) -> float:
         """Barrier energy (J) of x (default: current positions) with the colliders at their current
         poses (friction excluded)."""
-        mu = self._mu
-        self._mu = wp.zeros_like(mu)
-        lam = wp.zeros_like(self._lam)
         self._acc.zero_()
-        try:
-            self._run(CK.MODE_ENERGY, self.sim.x if x is None else x, lam=lam)
-        finally:
-            self._mu = mu
+        self.run(CK.MODE_ENERGY, self.sim.x if x is None else x, lam=self._lam_zero, friction=False)
         a = self._acc.numpy()
         return float("inf") if a[1] > 0 else float(a[0])
 
     def forces(self, x=None) -> np.ndarray:
         """Contact forces (N) on the vertices at x (barrier + lagged friction of the last step), (n, 3)."""
-        f = self.sim._vec_array()
+        f = self.ops.new_vector()
         self._acc.zero_()
-        self._run(CK.MODE_GRADIENT, self.sim.x if x is None else x, scale=-1.0, g=f)
+        self.run(CK.MODE_GRADIENT, self.sim.x if x is None else x, scale=-1.0, g=f)
         return f.numpy().astype(np.float64)
 
 
-class ContactForm:
-    """Barrier + lagged friction of a :class:`ContactSet`, as a term of the potential over y with
-    x = x_b + s y (static: x = y, s = 1): gradient s dE/dx, Hessian s^2 d2E/dx2 (vertex-diagonal)."""
+class ContactForm(Form):
+    """Barrier + lagged friction of a :class:`ContactSet`, as a form of the positions x = x_b + s y
+    (static: x = y, s = 1) in the potential (``warpfem.solvers.forms``): the potential applies the
+    chain factors (gradient s dE/dx, Hessian s^2 d2E/dx2, vertex-diagonal: colliders are kinematic)
+    and reads the line-search bound from :meth:`max_step`."""
 
-    def __init__(self, contact: ContactSet, s, slot, xb=None):
-        """``xb``: the step's x_b (x = x_b + s y); None: x is the unknown itself (y = x, s = 1)."""
-        self.contact, self.s, self.slot = contact, float(s), int(slot)
-        self._dbase = None
-        if xb is not None:  # x - x_n = (x_b - x_n) + s y
-            sim = contact.sim
-            self._dbase = sim._vec_array()
-            launch(LK.lincomb_kernel, sim.num_vertices, [sim._s(1.0), xb, sim._s(-1.0), contact._x0, self._dbase],
-                   sim.device)
+    name = "contact"
+    variable = "x"
+
+    def __init__(self, contact: ContactSet):
+        self.contact = contact
+        self.s = 1.0
+        self._dbase = contact.ops.new_vector()
+        self._use_dbase = False
+
+    def begin(self, xb, s):
+        """The step's x_b and s (x - x_n = (x_b - x_n) + s y); ``xb=None``: x is the unknown itself."""
+        self.s = float(s)
+        self._use_dbase = xb is not None
+        if xb is not None:
+            self.contact.ops.lincomb(1.0, xb, -1.0, self.contact.step_start, self._dbase)
 
     def _disp(self, y):
-        if self._dbase is None or y is None:
+        if not self._use_dbase or y is None:
             return {}
         return {"y": y, "sy": self.s, "dbase": self._dbase}
 
+    def read(self, row):
+        e = float(row[0])
+        return e, e, not (row[1] > 0)  # a vertex on or inside a collider: outside the barrier's domain
+
+    def gradient_magnitude(self, row, scale):
+        return float(np.sqrt(row[2]))
+
     def energy(self, y, x, acc):
-        self.contact._run(CK.MODE_ENERGY, x, acc=acc, slot=self.slot, **self._disp(y))
+        self.contact.run(CK.MODE_ENERGY, x, acc=acc, slot=self.acc_slot, **self._disp(y))
 
-    def gradient(self, y, x, g, acc):
-        self.contact._run(CK.MODE_GRADIENT, x, scale=self.s, g=g, acc=acc, slot=self.slot, **self._disp(y))
+    def gradient(self, y, x, scale, g, acc):
+        self.contact.run(CK.MODE_GRADIENT, x, scale=scale, g=g, acc=acc, slot=self.acc_slot, **self._disp(y))
 
-    def hessian(self, y, x, values):
-        self.contact._run(CK.MODE_HESSIAN, x, scale=self.s * self.s, values=values, **self._disp(y))
+    def hessian(self, y, x, scale, values):
+        self.contact.run(CK.MODE_HESSIAN, x, scale=scale, values=values, **self._disp(y))
 
-    def max_step(self, x, d, acc):
+    def max_step(self, x, d, s, acc):
         """Largest alpha <= 1 with no vertex crossing (or coming closer than STEP_ETA of its distance
         to) a collider along x + alpha s d (into acc[slot + 3], initialised by the caller)."""
-        self.contact._run(CK.MODE_MAX_STEP, x, scale=self.s, g=d, acc=acc, slot=self.slot)
+        self.contact.run(CK.MODE_MAX_STEP, x, scale=s, g=d, acc=acc, slot=self.acc_slot)

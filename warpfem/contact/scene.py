@@ -17,7 +17,7 @@ _COMMON = ("name", "friction", "dhat", "stiffness", "friction_velocity", "transl
 def add_scene_colliders(scene, sim, *, duration):
     """Add the scene's ``[[collider]]`` entries to ``sim`` (ramp_time default: ``duration``)."""
     if not hasattr(sim, "add_collider"):
-        scene._fail("[[collider]] #1", f"{type(sim).__name__} does not handle colliders")
+        scene.fail("[[collider]] #1", f"{type(sim).__name__} does not handle colliders")
     for i, c in enumerate(scene.spec.collider):
         kw = {k: c[k] for k in _GEOMETRY[c["type"]] + _COMMON if c.get(k) is not None}
         if c["type"] == "sphere":
@@ -29,7 +29,7 @@ def add_scene_colliders(scene, sim, *, duration):
             col = make_collider(c["type"], **kw)
             sim.add_collider(col)
         except (CollisionError, ValueError) as e:
-            scene._fail(f"[[collider]] #{i + 1}", str(e))
+            scene.fail(f"[[collider]] #{i + 1}", str(e))
 
 
 def collider_prims(sim, extent):

@@ -55,6 +55,11 @@ _IMMUTABLE = (int, float, bool)
 _LAUNCH_CACHE_SIZE = 256
 
 
+#: launches made through :func:`launch` (and counted by solvers that replay recorded launches):
+#: the simulators report the difference over a step as ``SolveStats.launches``
+COUNTERS = {"launches": 0}
+
+
 def launch(kernel, dim, inputs, device):
     """``wp.launch`` with less host overhead for the solver loops.
 
@@ -65,6 +70,7 @@ def launch(kernel, dim, inputs, device):
     same objects as in the previous launch of that entry (kernel structs, ``kernels.structs``,
     included: the same instance is not re-packed). Measured in
     kernels_bench/bench_solver_overhead.py."""
+    COUNTERS["launches"] += 1
     if kernel.is_generic:
         key = (kernel, *map(_type_key, inputs))
         ovl = _OVERLOAD_CACHE.get(key)

@@ -69,7 +69,8 @@ class Lifting:
     def size(self) -> int:
         return int(self.L.shape[1])
 
-    def _rotation_of(self, g):
+    def rotation_of(self, g):
+        """The rotation fitted for handle group g, or None."""
         return self.rotation[g] if self.rotation is not None and g < len(self.rotation) else None
 
     @property
@@ -83,7 +84,7 @@ class Lifting:
         ids, comps, Q, _ = self.groups[g]
         y = np.asarray(targets, dtype=np.float64).reshape(len(ids), 3)
         d = y - self._X[ids]
-        rot = self._rotation_of(g)
+        rot = self.rotation_of(g)
         if rot is None:
             return np.concatenate([Q.T @ d[:, "xyz".index(c)] for c in comps])
         Xh = self._X[ids]
@@ -107,7 +108,7 @@ class Lifting:
 
     def group_slice(self, g: int) -> slice:
         ids, comps, Q, first = self.groups[g]
-        rot = self._rotation_of(g)
+        rot = self.rotation_of(g)
         return slice(first, first + len(comps) * Q.shape[1] + (0 if rot is None else 9 + num_rotation_coords(rot[0])))
 
     def bind(self, rest_positions):

@@ -381,7 +381,7 @@ def _drive(scene, run, frames, progress=None, per_frame=None):
     duration = frames / float(sp.output["fps"])
     for k in range(count):
         t_next = sim.time + sim.dt
-        run._set_handles(lambda h, t=t_next: t / (h["ramp_time"] or duration))
+        run.set_handles(lambda h, t=t_next: t / (h["ramp_time"] or duration))
         t0 = time.perf_counter()
         sim.step()
         dt_wall = time.perf_counter() - t0

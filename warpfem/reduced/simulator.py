@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _potrf, dpotrs as _potrs
@@ -31,7 +30,7 @@ from warpfem.kernels.generic import RecordedLaunch, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.state import PRECISIONS, check_simulator_options
+from warpfem.solvers.state import PRECISIONS, Control, State, StepperBase, check_simulator_options, check_solve
 
 
 
@@ -174,6 +173,33 @@ class CubatureForces:
             self._Fd, self.points, self.material, h, pr, snh, self._psi_d, self._P_d, self._D_d], dev)
             for h in (0, 1) for pr in (0, 1)}
 
+    # -- public views of the fused evaluation's buffers (the reduced step potential reads them) ------
+    @property
+    def zero_copy(self) -> bool:
+        """Whether the kernel's outputs are read in place (CPU) rather than copied (GPU)."""
+        return self._zero_copy
+
+    @property
+    def launches(self):
+        """The recorded launches of the point kernel, by (chunk, hessian) key."""
+        return self._launch
+
+    @property
+    def P3(self):
+        return self._P3
+
+    @property
+    def I9(self):
+        return self._I9
+
+    @property
+    def all_columns(self):
+        return self._all
+
+    @property
+    def psi(self):
+        return self._psi
+
     def columns(self, cols) -> _Columns:
         """The point Jacobians of a slice of the basis columns (e.g. the elastic columns without the
         handle lifting), laid out for :meth:`force` / :meth:`stiffness`."""
@@ -277,7 +303,7 @@ class CubatureForces:
         return E, f, K
 
 
-class ReducedSimulator:
+class ReducedSimulator(StepperBase):
     """Backward Euler in a subspace (see module docstring).
 
     Args:
@@ -334,16 +360,20 @@ class ReducedSimulator:
         self.forces = CubatureForces(model, self._B, cub.elements, cub.weights, device=device, precision=precision)
         self._ucols = self.forces.columns(slice(0, self.r)) if self.p else self.forces.columns(slice(None))
         self._work = (np.zeros(self.r), np.zeros(self.r), np.zeros(self.r))  # Newton's g, d, y_try
-        self._newton_matrix = None  # the kept r x r Newton matrix (see _ReducedPotential)
-        self._A_cache = None  # (s, alpha, M_r, C, C_ul, A, s C) without stiffness damping
+        # step-to-step data of the step potential (_ReducedPotential), kept on the simulator:
+        self.newton_matrix = None  # the kept r x r Newton matrix
+        self.matrix_cache = None  # (s, alpha, M_r, C, C_ul, A, s C) without stiffness damping
         self.reuse_newton_matrix = True  # False: the exact Hessian at every Newton iterate (plain Newton)
         self._pot = None  # the step's potential (work arrays kept across steps)
-        self._kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
+        self.kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
+        self._history = {}  # the integrator's history (warpfem.integrators)
+        self.control = self.control_of_step = Control()  # load_scale; targets: handle group -> coordinates for the end of the next step
+        self._prediction_work = {}
+        self._ops = _CoordinateVectors(self.r + self.p, self._equation_of_motion_acceleration)
         self.mass_r = self._reduced_mass(U)
         self.mass_ul = U.T @ (self._mass3() @ lifting.L) if lifting is not None else np.zeros((self.r, 0))
         self.a = np.zeros(self.p)      # handle coordinates (prescribed)
         self.adot = np.zeros(self.p)
-        self._a_target = {}            # handle group -> coordinates for the end of the next step
         self._X = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=self.device)
         self._x = wp.zeros(n, dtype=self._vec, device=self.device)
         self._qdev = wp.zeros(self.r + self.p, dtype=self._s, device=self.device)
@@ -421,15 +451,15 @@ class ReducedSimulator:
             if not all(hit):
                 raise ValueError(f"set_targets must cover whole handles: handle #{g + 1} has {len(ids)} vertices, "
                                  f"{sum(hit)} were given")
-            self._a_target[g] = self.lifting.group_coords(g, pos[[lookup[i] for i in ids.tolist()]])
+            self.control.targets[g] = self.lifting.group_coords(g, pos[[lookup[i] for i in ids.tolist()]])
             covered.update(ids.tolist())
         stray = [i for i in lookup if i not in covered]
         if stray:
             raise ValueError(f"vertices {stray[:5]} are not handle vertices of this subspace")
 
-    def _next_handle_coords(self):
-        a = self.a.copy()
-        for g, val in self._a_target.items():
+    def _next_handle_coords(self, a, control):
+        a = np.array(a, dtype=np.float64)
+        for g, val in control.targets.items():
             a[self.lifting.group_slice(g)] = val
         return a
 
@@ -479,21 +509,33 @@ class ReducedSimulator:
     def elastic_energy(self) -> float:
         return self.forces.evaluate(self.z)[0]
 
-    # -- the interface time integrators use (warpfem.integrators): z = [q; a], z' = [qdot; adot] ----------
-    def _istate(self):
-        return np.concatenate([self.q, self.a]), np.concatenate([self.qdot, self.adot])
+    # -- public views the step potential (_ReducedPotential) uses ------------------------------------
+    @property
+    def ucols(self):
+        """The cubature's columns of the free coordinates q (the handle columns excluded)."""
+        return self._ucols
 
-    def _iset_state(self, z, zdot):
-        r = self.r
-        self.q, self.a = np.array(z[:r]), np.array(z[r:])
-        self.qdot, self.adot = np.array(zdot[:r]), np.array(zdot[r:])
+    @property
+    def newton_work(self):
+        """Newton's work vectors (g, d, y_try) for r coordinates, kept across steps."""
+        return self._work
 
-    def _ivec(self):
-        return np.zeros(self.r + self.p)
+    @property
+    def numpy_dtype(self):
+        return self._np
 
-    @staticmethod
-    def _ilincomb(a, x, b, y, out):
-        out[:] = a * x + b * y
+    @property
+    def _newton_matrix(self):  # the older name (tests)
+        return self.newton_matrix
+
+    # -- the state the integrators advance: z = [q; a], z' = [qdot; adot] ---------------------------------
+    def state(self) -> State:
+        """The current state as the integrators see it: x = z = [q; a], v = z' = [qdot; adot]."""
+        return State(self.z, np.concatenate([self.qdot, self.adot]), self._history, self.time)
+
+    def predict(self):
+        """The integrator's prediction (z_b, z'_hat, s) of the coming step."""
+        return self.integrator.predict(self.state(), self.dt, self._ops, self._prediction_work)
 
     def set_state(self, q=None, qdot=None):
         """Set reduced coordinates / velocities (r,); time integrators restart their history."""
@@ -503,9 +545,9 @@ class ReducedSimulator:
                 if a.shape != (self.r,) or not np.all(np.isfinite(a)):
                     raise ValueError(f"{name} must be {self.r} finite numbers, got shape {a.shape}")
                 setattr(self, name, a.copy())
-        self.integrator.reset()
+        self._history = {}
 
-    def _damping(self, z):
+    def damping_matrices(self, z):
         """Rows r of the reduced Rayleigh damping C = alpha B^T M B + beta B^T K(z) B: (C_rr, C_rl)."""
         r = self.r
         C = self.damping_mass * self.mass_r
@@ -516,13 +558,14 @@ class ReducedSimulator:
             C_ul = C_ul + self.damping_stiffness * Kn[:r, r:]
         return C, C_ul
 
-    def _equation_of_motion_acceleration(self, out):
+    def _equation_of_motion_acceleration(self, state, out):
         """out = [a_q; 0]: M_r a_q = U^T f(z) + U^T f_ext - (C z')_q (handles start unaccelerated)."""
         r = self.r
-        z, zdot = self._istate()
-        C, C_ul = self._damping(z)
+        z = state.x
+        C, C_ul = self.damping_matrices(z)
         f = self.forces.evaluate(z)[1][:r]
-        rhs = f + self.fext_r - C @ self.qdot - C_ul @ self.adot
+        zdot = state.v
+        rhs = f + self.control_of_step.load_scale * self.fext_r - C @ zdot[:r] - C_ul @ zdot[r:]
         out[:] = 0.0
         out[:r] = np.linalg.solve(self.mass_r, rhs)
         if not np.all(np.isfinite(out)):
@@ -534,39 +577,54 @@ class ReducedSimulator:
         """Not supported: a reduced simulator (x = X + U q) does not handle contact; use :class:`warpfem.Simulator`."""
         raise ValueError("a reduced simulator (x = X + U q) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
 
-    def step(self) -> SolveStats:
-        """One reduced step of ``dt`` with the simulator's integrator (Newton with an Armijo line
-        search and a dense r x r solve: :func:`~warpfem.solvers.nonlinear.newton_solve`, as the
-        full-space simulators, on the step's :class:`_ReducedPotential`); raises SolveFailed on NaN
-        (state untouched)."""
+    def _own_states(self):
+        n = self.r + self.p
+        return self.state(), State(np.zeros(n), np.zeros(n), {})
+
+    def _commit(self, out):
+        r = self.r
+        self.q, self.a, self.qdot, self.adot = out.x[:r].copy(), out.x[r:].copy(), out.v[:r].copy(), out.v[r:].copy()
+        self._history = out.history
+        self.time = out.time
+
+    def new_state(self) -> State:
+        """A copy of the current state (z = [q; a], z' = [qdot; adot], history, time): an input or
+        output of ``step(state_in, state_out, control, dt)``."""
+        st = self.state()
+        return State(st.x.copy(), st.v.copy(), {k: (v.copy() if isinstance(v, np.ndarray) else v)
+                                                  for k, v in st.history.items()}, st.time)
+
+    def _step(self, state_in, state_out, control, dt) -> SolveStats:
+        """One reduced step of ``dt`` from ``state_in`` into ``state_out`` with the simulator's integrator
+        (Newton with an Armijo line search and a dense r x r solve: :func:`~warpfem.solvers.nonlinear.newton_solve`,
+        as the full-space simulators, on the step's :class:`_ReducedPotential`); raises SolveFailed on NaN
+        (nothing written). ``control.targets``: handle group -> coordinates at the end of the step
+        (:meth:`set_targets`); ``control.load_scale`` scales the external forces."""
         t0 = time.perf_counter()
         r = self.r
-        prediction = self.integrator.predict(self)
+        self.control_of_step = control
+        prediction = self.integrator.predict(state_in, dt, self._ops, self._prediction_work)
         zb, zhat, s = prediction
         # handles: a_{n+1} prescribed, so their end-of-step velocity is (a_{n+1} - a_b) / s; the
         # kinetic and damping energies of V = U v + L adot couple through M_ul = U^T M L (and beta K_ul)
-        a_next = self._next_handle_coords() if self.p else self.a
+        a_in = state_in.x[r:]
+        a_next = self._next_handle_coords(a_in, control) if self.p else a_in
         adot = (a_next - zb[r:]) / s
         if self._pot is None:
             self._pot = _ReducedPotential(self)
-        pot = self._pot.begin(zb=zb, v_hat=zhat[:r], adot_hat=zhat[r:], adot=adot, s=s)
-        v = self.qdot.copy()
+        pot = self._pot.begin(zb=zb, v_hat=zhat[:r], adot_hat=zhat[r:], adot=adot, s=s, zn=state_in.x,
+                              load_scale=control.load_scale)
+        v = np.array(state_in.v[:r], dtype=np.float64)
         st = newton_solve(pot, v, self.options)
         st.hessian_evaluations = pot.hessians
         st.seconds = time.perf_counter() - t0
         if not st.converged:
-            what = f"reduced step {self.step_count}"
-            self._newton_matrix = None  # computed along a failed solve: not reused
-            if "non-finite" in st.reason or not np.isfinite(st.energy) or not np.all(np.isfinite(v)):
-                raise SolveFailed(f"{what} diverged ({st.reason}); state left unchanged", st)
-            if self.require_convergence:
-                raise SolveFailed(f"{what} did not converge ({st.reason}); state left unchanged", st)
-            warnings.warn(f"{what} did not converge: {st.reason} (relative gradient {st.residual:.2e})", RuntimeWarning, stacklevel=2)
-        self.integrator.advance(self, np.concatenate([v, adot]), prediction)
-        self.a = a_next  # exactly the prescribed coordinates
-        self._a_target = {}
-        self.time += self.dt
-        self.step_count += 1
+            self.newton_matrix = None  # computed along a failed solve: not reused
+        check_solve(st, f"reduced step {self.step_count}", require_convergence=self.require_convergence,
+                    finite=bool(np.all(np.isfinite(v))), stacklevel=4)
+        self.integrator.advance(state_in, np.concatenate([v, adot]), prediction, dt, self._ops, state_out)
+        state_out.x[r:] = a_next  # exactly the prescribed coordinates
+        state_out.time = state_in.time + dt
         return st
 
 
@@ -607,9 +665,9 @@ class _ReducedPotential:
         """Work arrays for every step of ``sim`` (one potential per simulator, :meth:`begin` per step)."""
         self.sim = sim
         self.r = r = sim.r
-        self.cf, self.cols = sim.forces, sim._ucols
-        self.eps = float(np.finfo(sim._np).eps)
-        self._g, self._d, self._y = sim._work
+        self.cf, self.cols = sim.forces, sim.ucols
+        self.eps = float(np.finfo(sim.numpy_dtype).eps)
+        self._g, self._d, self._y = sim.newton_work
         # w = [dv; v; 1]: the point being evaluated (v), its distance to v_hat, and the constant 1 of
         # the product F = [s G_u | F0] [v; 1] (so the line search writes its trial point into w)
         self._w = np.zeros(2 * r + 1)
@@ -622,13 +680,13 @@ class _ReducedPotential:
         self._gt = np.zeros(r)  # the gradient at the evaluated point
         self._ones4 = np.ones(4)
         cf = self.cf
-        self._run0 = cf._launch[(0, 0)] if cf._zero_copy else None
+        self._run0 = cf.launches[(0, 0)] if cf.zero_copy else None
         self._fch = np.zeros((self.cols.nch, r + 1))  # per-chunk force sums (and P : F0)
         self._fch3, self._fchu = self._fch[:, None, :], self._fch[:, :r]
         self._zfull = np.zeros(r + sim.p + 1)  # [z_b + s [0; adot]] for F0 (and a spare 1)
         self._zfull[-1] = 1.0
-        self._F0 = np.zeros(self.cf._all.Gb3.shape[:2])
-        self._I9 = self.cf._I9.reshape(self._F0.shape)
+        self._F0 = np.zeros(self.cf.all_columns.Gb3.shape[:2])
+        self._I9 = self.cf.I9.reshape(self._F0.shape)
         self._by_s = {}  # s -> [s G_u | F0] in chunks (F = [s G_u | F0] [v; 1], s f_u = -[s G_u]^T vec(w P))
         self._blk_key = None
         self._MsC = np.zeros((2 * r, 2 * r))  # blockdiag(M_r, s C_r)
@@ -642,21 +700,23 @@ class _ReducedPotential:
         self._n2 = np.zeros((3, 1, 1))
         self._vprev, self._gprev = np.zeros(r), np.zeros(r)
 
-    def begin(self, *, zb, v_hat, adot_hat, adot, s):
-        """Set up the potential of the coming step (prediction z_b, v_hat, the handles' velocity, s)."""
+    def begin(self, *, zb, v_hat, adot_hat, adot, s, zn=None, load_scale=None):
+        """Set up the potential of the coming step (prediction z_b, v_hat, the handles' velocity, s;
+        z_n the coordinates at its start, default the simulator's; the load scale, default the
+        simulator's)."""
         sim, r = self.sim, self.r
         self.opts = sim.options
         self.zb, self.v_hat, self.adot, self.s = zb, v_hat, adot, s = zb, v_hat, adot, float(s)
         if sim.damping_stiffness > 0:  # C = alpha M_r + beta K_r(z_n) changes every step
-            C, C_ul = sim._damping(np.concatenate([sim.q, sim.a]))
+            C, C_ul = sim.damping_matrices(np.concatenate([sim.q, sim.a]) if zn is None else zn)
             self.A = sim.mass_r + s * C
             sC = s * C
         else:  # C = alpha M_r: the same C and A (the same objects) for every step with this s and alpha,
             # so a kept Newton factor stays valid from step to step
-            cache = sim._A_cache
+            cache = sim.matrix_cache
             if cache is None or cache[0] != s or cache[1] != sim.damping_mass or cache[2] is not sim.mass_r:
-                C, C_ul = sim._damping(None)
-                sim._A_cache = cache = (s, sim.damping_mass, sim.mass_r, C, C_ul, sim.mass_r + s * C, s * C)
+                C, C_ul = sim.damping_matrices(None)
+                sim.matrix_cache = cache = (s, sim.damping_mass, sim.mass_r, C, C_ul, sim.mass_r + s * C, s * C)
             C, C_ul, self.A, sC = cache[3], cache[4], cache[5], cache[6]
         self.C = C
         if self._blk_key is not sC or self._blk_M is not sim.mass_r:
@@ -671,7 +731,7 @@ class _ReducedPotential:
             np.multiply(adot, s, out=zf[r:-1])
             zf[r:-1] += zb[r:]
         cols = self.cols
-        np.matmul(self.cf._all.G3, zf[:-1], out=self._F0)
+        np.matmul(self.cf.all_columns.G3, zf[:-1], out=self._F0)
         self._F0 += self._I9
         sc = self._by_s.get(s)
         if sc is None:
@@ -684,7 +744,7 @@ class _ReducedPotential:
         self._Gb3s[:, :, -1] = self._F0
         self._zmax_b = float(np.abs(zb[:r]).max())
         self._zmax_a = float(np.abs(zf[r:-1]).max()) if sim.p else 0.0
-        self._sfext = sfe = s * sim.fext_r
+        self._sfext = sfe = (s * (sim.load_scale if load_scale is None else float(load_scale))) * sim.fext_r
         np.negative(sfe, out=self._Z[3])
         self._sfext_norm = math.sqrt(sfe @ sfe)
         self._fl = np.stack([sfe, self.lin]) if sim.p else sfe  # v . s f_ext (and v . lin) in one product
@@ -692,8 +752,8 @@ class _ReducedPotential:
         self._valid = False  # the cached energy / gradient are those of the loaded point
         self._has_prev = False
         self._pair = False
-        if sim._kept_matrix_poor > 0:
-            sim._kept_matrix_poor -= 1  # try the kept matrix again after a few steps
+        if sim.kept_matrix_poor > 0:
+            sim.kept_matrix_poor -= 1  # try the kept matrix again after a few steps
         self._gn = []  # gradient norms at the accepted iterates of this solve
         self._alpha = 1.0  # last step length tried by the line search
         self._matrix_iterate = -1  # the iterate (index into _gn) where the kept matrix was evaluated in this solve
@@ -718,13 +778,13 @@ class _ReducedPotential:
             self._run0()  # zero-copy: the kernel's outputs are read in place
         else:
             cf.run()
-        E = float(_asum(cf._psi, dtype=np.float64))
+        E = float(_asum(cf.psi, dtype=np.float64))
         np.matmul(self._MsC, self._w2, out=self._Z01)  # [M dv; s C v]
         quad2 = self._w2 @ self._Z01  # dv . M dv + v . s C v
         # s G_u^T vec(w P) = -s f_u by chunks of points (single-threaded BLAS, see _chunk_points),
         # from the same matrix [s G_u | F0] as F (read once from memory per evaluation; the last
         # column's P : F0 is not used)
-        np.matmul(cf._P3, self._Gb3s, out=self._fch3)
+        np.matmul(cf.P3, self._Gb3s, out=self._fch3)
         _asum(self._fchu, axis=0, out=Z[2])
         if self.lin is not None:
             Z[0] += self.lin
@@ -816,22 +876,22 @@ class _ReducedPotential:
         if chol is None and opts.project_hessian:
             K = self._hessian(v, project=True)
             chol, H = self._factor(K)
-        self.sim._newton_matrix = nm = dict(K=K, A=self.A, s=self.s, chol=chol, H=H)
+        self.sim.newton_matrix = nm = dict(K=K, A=self.A, s=self.s, chol=chol, H=H)
         self._matrix_iterate = len(self._gn) - 1
         return nm
 
     def _want_refresh(self):
         gn = self._gn
         if len(gn) == 1:  # the first iteration of a step: a kept matrix that served badly lately is not tried
-            return self.sim._kept_matrix_poor > 0
+            return self.sim.kept_matrix_poor > 0
         if self._matrix_iterate < 0 and len(gn) == 2:  # how the kept matrix did on this step's first iteration
-            self.sim._kept_matrix_poor = 8 if gn[1] > self.refresh_ratio * gn[0] else 0
+            self.sim.kept_matrix_poor = 8 if gn[1] > self.refresh_ratio * gn[0] else 0
         if self._alpha < 1.0:
             return True  # the line search had to shorten the last step
         return gn[-1] > self.refresh_ratio * gn[-2]
 
     def solve_newton_system(self, v, g, d, opts):
-        nm = self.sim._newton_matrix
+        nm = self.sim.newton_matrix
         if nm is None or (self._matrix_iterate != len(self._gn) - 1
                           and (not self.sim.reuse_newton_matrix or self._want_refresh())):
             nm = self._refresh(v, opts)
@@ -906,3 +966,25 @@ class _ReducedPotential:
         zmax = max(self._zmax_b + s * vmax, self._zmax_a)
         scale = vmax + zmax / s
         return gd, bool(float(_amax(np.abs(d, out=buf))) <= 8.0 * self.eps * scale)
+
+
+class _CoordinateVectors:
+    """The integrators' vector algebra (``warpfem.integrators.VectorOps``) on numpy coordinate
+    vectors z = [q; a] of a reduced simulator."""
+
+    def __init__(self, size, acceleration):
+        self.size, self._acceleration = int(size), acceleration
+
+    def new_vector(self):
+        return np.zeros(self.size)
+
+    @staticmethod
+    def lincomb(a, x, b, y, out):
+        out[:] = a * x + b * y
+
+    @staticmethod
+    def copy(dst, src):
+        dst[:] = src
+
+    def acceleration(self, state, out):
+        self._acceleration(state, out)

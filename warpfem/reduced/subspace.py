@@ -96,7 +96,7 @@ class Subspace:
                 [{"ids": g[0].tolist(), "components": g[1], "first": int(g[3]), "num_functions": int(g[2].shape[1]),
                   **({"rotation_order": int(self.lifting.rotation[i][0]),
                       "rotation_centre": [float(v) for v in self.lifting.rotation[i][1]]}
-                     if self.lifting._rotation_of(i) is not None else {})}
+                     if self.lifting.rotation_of(i) is not None else {})}
                  for i, g in enumerate(self.lifting.groups)],
                 "modal_derivatives": b.modal_derivatives, "basis_info": b.info,
                 "cubature": {"training_error": c.training_error, "validation_error": c.validation_error,

@@ -97,7 +97,8 @@ class SceneRun:
             return self.skinner.apply(self.sim.x).numpy().astype(np.float64)
         return self.sim.positions()[self.surface_vertex_ids]
 
-    def _set_handles(self, fraction_of):
+    def set_handles(self, fraction_of):
+        """Targets of every handle for the coming step: ``fraction_of(handle)`` of its motion."""
         for h, ids, rest in self._handles:
             self.sim.set_targets(ids, handle_targets(rest, h, fraction_of(h)))
 
@@ -119,7 +120,7 @@ class SceneRun:
             T = self.duration(total)
             for _ in range(steps):
                 t_next = sim.time + sim.dt
-                self._set_handles(lambda h: t_next / (h["ramp_time"] or T))
+                self.set_handles(lambda h: t_next / (h["ramp_time"] or T))
                 st = sim.step()
                 newton += st.newton_iterations
                 cg += st.cg_iterations
@@ -137,7 +138,7 @@ class SceneRun:
                 self.model.gravity = self._gravity * frac
                 self.model.forces = self._forces * frac
                 sim.sync_model()
-            self._set_handles(lambda h: frac)
+            self.set_handles(lambda h: frac)
             st = entry.static_solve(sim, integ)
             newton, cg, residual, energy = st.newton_iterations, st.cg_iterations, st.residual, st.energy
             converged = st.converged

@@ -58,8 +58,11 @@ class Scene:
 
         return INTEGRATORS[self.integrator_type].dynamic
 
-    def _fail(self, where, msg):
+    def fail(self, where, msg):
+        """Raise a :class:`SceneError` naming the scene file and the section ``where``."""
         raise SceneError(f"{self.path or '<scene>'}: {where}: {msg}")
+
+    _fail = fail
 
     # -- mesh and selections (numpy) --------------------------------------------------------------
     def mesh(self):

@@ -1,20 +1,34 @@
-"""The incremental potential of one implicit step as a sum of terms ("forms", as in PolyFEM).
+"""The incremental potential of one implicit step as a weighted list of forms (as in PolyFEM).
 
 Every time integrator of :mod:`warpfem.integrators` and the quasi-static solve minimise
 
-    E(y) = sum_f E_f(y),   x(y) = x_b + s y   (static: x = y),
+    E(y) = sum_f w_f E_f(y),   x(y) = x_b + s y   (static: x = y, s = 1),
 
-over the per-vertex vec3 unknowns y (the end-of-step velocity for dynamics), with the terms
+over the per-vertex vec3 unknowns y (the end-of-step velocity for dynamics). A form is a function
+of y itself (``variable = "y"``) or of the positions x (``variable = "x"``); for the latter the
+chain rule's factors s (gradient) and s^2 (Hessian) are applied here, in
+:meth:`IncrementalPotential.scales`, the one place where s enters. The weights w_f are set per step
+from the integrator's prediction (:meth:`IncrementalPotential.begin`; the simulator's
+``_weights``: inertia 1, damping s, load s x load scale, elasticity and contact 1).
 
-* :class:`InertiaForm`      a/2 (y - y_hat)^T M (y - y_hat)
-* :class:`DampingForm`      1/2 y^T (c_m M + c_k K_n) y        (Rayleigh, K_n frozen at the step start)
-* :class:`ElasticForm`      V(x(y)) over the quadrature-point sets and the material
-* :class:`LoadForm`         -c y^T f_ext                         (gravity, applied forces, tractions)
+* :class:`InertiaForm`      1/2 (y - y_hat)^T M (y - y_hat)            (y)
+* :class:`DampingForm`      1/2 y^T (alpha M + beta K_n) y             (y; Rayleigh, K_n frozen at the step start)
+* :class:`LoadForm`         -y^T f_ext                                 (y; gravity, applied forces, tractions)
+* :class:`ElasticForm`      V(x) over the quadrature-point sets        (x)
+* ``warpfem.contact.ContactForm``  barrier + lagged friction           (x; bounds the line search)
 
-Each term adds its energy to float64 accumulators on the device, its gradient to g and its Hessian
-into the blocks of the fixed pattern, and reports the magnitude of its terms (the scale of their
-round-off). :class:`FullSpacePotential` sums them with one host read-back per energy and one per
-gradient, and is the ``problem`` that :func:`warpfem.solvers.nonlinear.newton_solve` minimises.
+A form provides ``energy(y, x, acc)`` (its unweighted value into its row of the potential's float64
+accumulator), ``gradient(y, x, scale, g, acc)`` (g += scale dE_f/d(variable)), ``hessian(y, x,
+scale, values)`` (blocks added in the pattern), optionally ``max_step(x, d, scale, acc)`` (the
+largest step along y + alpha d it allows), ``read(row) -> (E, |E|, feasible)`` and
+``gradient_magnitude(row, scale)`` (the size of its gradient terms: the scale of their round-off),
+and ``extra_blocks()`` (off-diagonal vertex pairs its Hessian adds beyond the mesh's pattern, or
+None). Forms whose gradient is summed into one magnitude (the quadratic ones: ``joint = True``) are
+evaluated first. To add a term: write a class with these methods and append it to the potential's
+list (``Simulator.add_form``); no slot, no constant to reserve.
+
+The potential reads its accumulator back once per evaluation; :meth:`IncrementalPotential.trial_step`
+evaluates the direction check, the energy and the gradient of a full Newton step with one read-back.
 """
 
 from __future__ import annotations
@@ -26,156 +40,260 @@ from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 
-__all__ = ["InertiaForm", "DampingForm", "ElasticForm", "LoadForm", "FullSpacePotential", "Workspace"]
+__all__ = ["Form", "InertiaForm", "DampingForm", "ElasticForm", "LoadForm", "IncrementalPotential",
+           "FullSpacePotential", "Workspace"]
 
-# float64 accumulator slots (one small array, read back once per evaluation)
-_E_QUAD, _E_ELASTIC, _E_ELASTIC_ABS, _E_WORK = 0, 1, 2, 3
-_G_QUAD, _G_FORCE_ABS, _G_NORM = 4, 5, 6
-_D_GD, _D_MAX, _Y_MAX, _X_MAX = 7, 8, 9, 10
-_E_CONTACT = 12  # contact: energy, pairs at distance <= 0, sum of squared gradient, step bound (12..15)
-_SLOTS = 16
-_F64_HALF, _F64_ONE = wp.float64(0.5), wp.float64(1.0)
+ROW = 4  # accumulator slots per form
+# the potential's own row: joint gradient magnitude^2, ||P g||^2, then the direction check (g.d, max|d|, max|y|, max|x|)
+_G_JOINT, _G_NORM, _D_GD = 0, 1, 2
+_HEAD = 8
+_F64_ONE = wp.float64(1.0)
 
 
 class Workspace:
-    """Device buffers a simulator reuses for every solve (no allocation per Newton iteration)."""
+    """Device vectors a simulator reuses for every solve (no allocation per Newton iteration)."""
 
-    def __init__(self, sim):
-        self.acc = wp.zeros(_SLOTS, dtype=wp.float64, device=sim.device)
-        self.g, self.d, self.rhs, self.y_try = (sim._vec_array() for _ in range(4))
-        self.x, self.tmp, self.tmp2, self.fa = (sim._vec_array() for _ in range(4))
+    def __init__(self, ops):
+        self.g, self.d, self.rhs, self.y_try, self.g_try = (ops.new_vector() for _ in range(5))
+        self.x, self.tmp, self.fa = (ops.new_vector() for _ in range(3))
         self.inv_diag = None  # block-Jacobi inverse for the fallback direction, allocated on first use
 
 
-class InertiaForm:
-    """a/2 (y - y_hat)^T M (y - y_hat): gradient a M (y - y_hat), Hessian a M."""
+class Form:
+    """Base class of a term of the incremental potential (see the module docstring)."""
 
-    def __init__(self, sim, y_hat, a=1.0):
-        self.sim, self.y_hat, self.a = sim, y_hat, float(a)
-
-    def _apply(self, y, g, acc, gradient, energy):
-        sim, pt = self.sim, self.sim._pattern
-        launch(LK.bsr_diff_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, sim._mass_values, y, self.y_hat,
-                                                    sim._s(self.a), g, acc, _E_QUAD, gradient, energy], sim.device)
+    name = "form"
+    variable = "y"  # "y": a function of the unknown; "x": of the positions x = x_b + s y
+    joint = False  # gradient measured jointly with the other joint forms (the quadratic terms)
+    weight = 1.0
 
     def energy(self, y, x, acc):
-        self._apply(y, self.sim._work.tmp, acc, 0, 1)
-
-    def gradient(self, y, x, g, acc):
-        self._apply(y, g, acc, 1, 0)
-
-    def hessian(self, y, x, values):
-        sim = self.sim
-        launch(LK.add_scaled_kernel, sim._pattern.nnz, [sim._mass_values, sim._s(self.a), values], sim.device)
-
-
-class DampingForm:
-    """1/2 y^T (c_m M + c_k K_n) y: Rayleigh damping C = alpha M + beta K_n scaled by the integrator's s."""
-
-    def __init__(self, sim, cm, ck):
-        self.sim, self.cm, self.ck = sim, float(cm), float(ck)
-
-    def _apply(self, y, g, acc, gradient, energy):
-        sim, pt = self.sim, self.sim._pattern
-        for values, c in ((sim._mass_values, self.cm), (sim._kn_values, self.ck)):
-            if c != 0.0:
-                launch(LK.bsr_diff_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, y, sim._zero, sim._s(c), g,
-                                                            acc, _E_QUAD, gradient, energy], sim.device)
-
-    def energy(self, y, x, acc):
-        self._apply(y, self.sim._work.tmp, acc, 0, 1)
-
-    def gradient(self, y, x, g, acc):
-        self._apply(y, g, acc, 1, 0)
-
-    def hessian(self, y, x, values):
-        sim = self.sim
-        if self.cm != 0.0:
-            launch(LK.add_scaled_kernel, sim._pattern.nnz, [sim._mass_values, sim._s(self.cm), values], sim.device)
-        if self.ck != 0.0:
-            launch(LK.add_scaled_kernel, sim._pattern.nnz, [sim._kn_values, sim._s(self.ck), values], sim.device)
-
-
-class ElasticForm:
-    """V(x) summed over the simulator's quadrature-point sets; dx/dy = s: gradient s dV/dx,
-    Hessian s^2 d2V/dx2 (SPD-projected per point if the options say so)."""
-
-    def __init__(self, sim, s):
-        self.sim, self.s = sim, float(s)
-
-    def energy(self, y, x, acc):
-        sim = self.sim
-        for qs in sim._qp_sets:
-            launch(FK.qp_energy_sum_kernel, qs.count, [x, qs.points, qs.material, acc, _E_ELASTIC], sim.device)
-
-    def gradient(self, y, x, g, acc):
-        sim = self.sim
-        fa = sim._work.fa
-        fa.zero_()
-        for qs in sim._qp_sets:
-            launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, sim._s(-self.s), g, fa], sim.device)
-        launch(LK.dot_slot_kernel, sim.num_vertices, [fa, fa, _F64_ONE, acc, _G_FORCE_ABS], sim.device)
-
-    def hessian(self, y, x, values):
-        self.sim._assemble_stiffness(x, self.s * self.s, values)
-
-
-class LoadForm:
-    """-c y^T f_ext (c = s times the load scale of the solve)."""
-
-    def __init__(self, sim, c):
-        self.sim, self.c = sim, float(c)
-
-    def energy(self, y, x, acc):
-        sim = self.sim
-        launch(LK.dot_slot_kernel, sim.num_vertices, [y, sim._fext, _F64_ONE, acc, _E_WORK], sim.device)
-
-    def gradient(self, y, x, g, acc):
-        pass  # -c f_ext is added by FullSpacePotential.gradient's last pass (with the mask and the norm)
-
-    def hessian(self, y, x, values):
         pass
 
+    def gradient(self, y, x, scale, g, acc):
+        pass
 
-class FullSpacePotential:
-    """E(y) = sum of forms over the mesh's vertices, x = x_b + s y (``xb=None``: x = y).
+    def hessian(self, y, x, scale, values):
+        pass
+
+    def read(self, row):
+        """(E, |E|, feasible) from this form's accumulator row (unweighted)."""
+        return float(row[0]), abs(float(row[0])), True
+
+    def gradient_magnitude(self, row, scale):
+        return 0.0
+
+    def extra_blocks(self):
+        """(k, 2) int array of vertex pairs (i != j) whose Hessian blocks this form adds beyond the
+        mesh's element pattern, or None."""
+        return None
+
+    def bind(self, acc, slot):
+        """The potential gives the form its accumulator and the first slot of its row."""
+        self.acc_slot = int(slot)
+
+
+class _QuadraticForm(Form):
+    """1/2 (y - y0)^T (sum_k c_k A_k) (y - y0) over matrices in the Hessian's pattern."""
+
+    joint = True
+
+    def __init__(self, ops, pattern, terms, y0):
+        self.ops, self.pattern, self.terms, self.y0 = ops, pattern, list(terms), y0
+        self._tmp = ops.new_vector()
+
+    def _apply(self, y, g, scale, acc, gradient, energy):
+        pt, S = self.pattern, self.ops.scalar
+        for values, c in self.terms:
+            if c != 0.0:
+                launch(LK.bsr_diff_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values(), y, self.y0, S(c * scale),
+                                                            g, acc, self.acc_slot, gradient, energy], self.ops.device)
+
+    def energy(self, y, x, acc):
+        self._apply(y, self._tmp, 1.0, acc, 0, 1)
+
+    def gradient(self, y, x, scale, g, acc):
+        self._apply(y, g, scale, acc, 1, 0)
+
+    def hessian(self, y, x, scale, values):
+        S = self.ops.scalar
+        for vals, c in self.terms:
+            if c != 0.0:
+                launch(LK.add_scaled_kernel, self.pattern.nnz, [vals(), S(c * scale), values], self.ops.device)
+
+
+class InertiaForm(_QuadraticForm):
+    """1/2 (y - y_hat)^T M (y - y_hat): gradient M (y - y_hat), Hessian M. ``mass`` returns the
+    mass matrix's block values (a callable: the values follow the pattern when it grows)."""
+
+    name = "inertia"
+
+    def __init__(self, ops, pattern, mass, y_hat=None):
+        super().__init__(ops, pattern, [(mass, 1.0)], y_hat)
+
+    def set_prediction(self, y_hat):
+        self.y0 = y_hat
+
+
+class DampingForm(_QuadraticForm):
+    """1/2 y^T (alpha M + beta K_n) y: Rayleigh damping (weight s from the integrator)."""
+
+    name = "damping"
+
+    def __init__(self, ops, pattern, mass, alpha, stiffness, beta):
+        super().__init__(ops, pattern, [(mass, float(alpha)), (stiffness, float(beta))], ops.zero)
+
+
+class LoadForm(Form):
+    """-y^T f_ext (weight s x load scale): gradient -f_ext. ``fext`` is the device array of the
+    external forces (updated in place by the simulator's ``sync_model``), ``norm`` its 2-norm."""
+
+    name = "load"
+
+    def __init__(self, ops, fext, norm=0.0):
+        self.ops, self.fext, self.norm = ops, fext, float(norm)
+
+    def energy(self, y, x, acc):
+        launch(LK.dot_slot_kernel, self.ops.n, [y, self.fext, wp.float64(-1.0), acc, self.acc_slot], self.ops.device)
+
+    def gradient(self, y, x, scale, g, acc):
+        launch(LK.axpy_kernel, self.ops.n, [self.ops.scalar(-scale), self.fext, g], self.ops.device)
+
+    def gradient_magnitude(self, row, scale):
+        return abs(scale) * self.norm
+
+
+class ElasticForm(Form):
+    """V(x) summed over quadrature-point sets (``QuadratureSet``s: count, points, material, energy
+    buffer); Hessian SPD-projected per point when ``options.project_hessian``."""
+
+    name = "elastic"
+    variable = "x"
+
+    def __init__(self, ops, qp_sets, pattern, options):
+        self.ops, self.qp_sets, self.pattern, self.options = ops, qp_sets, pattern, options
+        self._fa = ops.new_vector()
+
+    def energy(self, y, x, acc):
+        for qs in self.qp_sets:
+            launch(FK.qp_energy_sum_kernel, qs.count, [x, qs.points, qs.material, acc, self.acc_slot], self.ops.device)
+
+    def read(self, row):
+        return float(row[0]), float(row[1]), True
+
+    def gradient(self, y, x, scale, g, acc):
+        fa, dev = self._fa, self.ops.device
+        fa.zero_()
+        for qs in self.qp_sets:
+            launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(-scale), g, fa], dev)
+        launch(LK.dot_slot_kernel, self.ops.n, [fa, fa, _F64_ONE, acc, self.acc_slot + 2], dev)
+
+    def gradient_magnitude(self, row, scale):
+        return float(np.sqrt(row[2]))
+
+    def hessian(self, y, x, scale, values):
+        self.assemble(x, scale, values)
+
+    def assemble(self, x, scale, values, project=None):
+        """values += scale d2V/dx2 at x (SPD-projected per point if ``project``, default the options')."""
+        project = self.options.project_hessian if project is None else project
+        for qs in self.qp_sets:
+            launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(scale), int(project),
+                                                    self.pattern.block_index, values], self.ops.device)
+
+
+class IncrementalPotential:
+    """E(y) = sum_f w_f E_f(x(y)) over the mesh's vertices, x = x_b + s y (``xb=None``: x = y).
 
     The ``problem`` of :func:`~warpfem.solvers.nonlinear.newton_solve`: device vectors, a masked
-    block-sparse Newton system solved by the simulator's linear solver."""
+    block-sparse Newton system solved by ``linear_solver``. Built once per simulator; each step
+    calls :meth:`begin` with its prediction and the forms' weights.
 
-    def __init__(self, sim, *, xb, s, quadratic=(), elastic=None, load=None, contact=None):
-        self.sim, self.xb, self.s = sim, xb, float(s)
-        self.contact = contact  # a warpfem.contact.ContactForm (barrier + friction, bounds the step) or None
-        self.quadratic = tuple(quadratic)  # forms whose gradient norm forms the "quadratic" magnitude
-        self.elastic, self.load = elastic, load
-        self.mask, self.n = sim._mask, sim.num_vertices
-        self.eps = float(np.finfo(sim._np).eps)
+    Args:
+        ops: the simulator's :class:`~warpfem.solvers.state.DeviceVectors`.
+        forms: the forms (joint ones are moved first).
+        pattern: the Hessian's :class:`~warpfem.solvers.sparse.BlockPattern` holder (``system``: an
+            object with ``pattern``, ``hessian_values`` and ``ensure_blocks(pairs)``).
+        mask: the free-component mask (device vec3 array, updated in place).
+        linear_solve: ``(values, rhs, out, opts) -> LinearSolveResult``.
+        work: the :class:`Workspace`.
+    """
+
+    def __init__(self, ops, forms, *, system, mask, linear_solve, work):
+        self.ops, self.system, self.mask, self.linear_solve, self.work = ops, system, mask, linear_solve, work
+        self.n = ops.n
+        self.eps = float(np.finfo(ops.np_dtype).eps)
         self.gradient_test_below = 0.0  # see newton_solve (the reduced problem uses it)
+        self.forms = []
+        self.host_syncs = 0  # read-backs of this potential (cumulative)
+        self.xb, self.s = None, 1.0
         self._x_of_y = None
+        self.set_forms(forms)
+
+    # -- forms --------------------------------------------------------------------------------------
+    def set_forms(self, forms):
+        """Replace the list of forms (joint forms first); the accumulator grows to fit."""
+        forms = [f for f in forms if f.joint] + [f for f in forms if not f.joint]
+        self.forms = forms
+        size = _HEAD + ROW * len(forms)
+        # five sections (energy, gradient, direction of the trial; energy, gradient of the start)
+        # and the linear solver's report (4), all read at once by newton_step (views made once)
+        self.acc = wp.zeros(5 * size + 4, dtype=wp.float64, device=self.ops.device)
+        self._size = size
+        self._acc_e, self._acc_g, self._acc_d, self._acc_e0, self._acc_g0 = (
+            self.acc[k * size:(k + 1) * size] for k in range(5))
+        self._report_at = 5 * size
+        for i, f in enumerate(forms):
+            f.bind(self.acc, _HEAD + ROW * i)
+
+    def add_form(self, form):
+        self.set_forms(self.forms + [form])
+
+    def form(self, name):
+        return next((f for f in self.forms if f.name == name), None)
+
+    def begin(self, xb, s, weights=None):
+        """A new step (or static load step): x = x_b + s y (``xb=None``: x = y) and the forms'
+        weights (name -> w; forms not named keep theirs). Forms that add Hessian blocks outside
+        the pattern make it grow here (the linear solver re-analyses it)."""
+        self.xb, self.s = xb, float(s)
+        self._x_of_y = None
+        for f in self.forms:
+            if weights and f.name in weights:
+                f.weight = float(weights[f.name])
+        extra = [b for b in (f.extra_blocks() for f in self.forms) if b is not None and len(b)]
+        if extra:
+            self.system.ensure_blocks(np.concatenate(extra))
+        return self
+
+    def scales(self, form):
+        """(gradient scale, Hessian scale) of a form: its weight times the chain factors dx/dy."""
+        w = form.weight
+        if form.variable == "x":
+            return w * self.s, w * self.s * self.s
+        return w, w
 
     # -- vectors ----------------------------------------------------------------------------------
     def new_vector(self):
-        return self.sim._vec_array()
+        return self.ops.new_vector()
 
     def vectors(self):
-        """(g, d, y_try): the simulator's work vectors for the Newton loop."""
-        w = self.sim._work
+        """(g, d, y_try): the work vectors of the Newton loop."""
+        w = self.work
         return w.g, w.d, w.y_try
 
     def _x_of(self, y):
         if self.xb is None:
             return y
-        sim = self.sim
-        x = sim._work.x
+        x = self.work.x
         if self._x_of_y is y:  # x already holds x_b + s y (see assign)
             return x
-        launch(LK.lincomb_kernel, self.n, [sim._s(1.0), self.xb, sim._s(self.s), y, x], sim.device)
+        self.ops.lincomb(1.0, self.xb, self.s, y, x)
         self._x_of_y = y
         return x
 
     def trial(self, y, alpha, d, out):
-        sim = self.sim
-        launch(LK.lincomb_kernel, self.n, [sim._s(1.0), y, sim._s(alpha), d, out], sim.device)
+        self.ops.lincomb(1.0, y, alpha, d, out)
         if self._x_of_y is out:
             self._x_of_y = None
 
@@ -184,107 +302,188 @@ class FullSpacePotential:
         # x = x_b + s src is still in the work buffer: it is now x of dst
         self._x_of_y = dst if self._x_of_y is src else None
 
-    # -- value, gradient, Hessian -------------------------------------------------------------------
-    def energy(self, y):
-        """(E, the sum of the magnitudes of its terms): one host read-back."""
-        acc = self.sim._work.acc
+    # -- value, gradient, Hessian (launches only) -----------------------------------------------------
+    def _launch_energy(self, y, acc):
         acc.zero_()
         x = self._x_of(y)
-        for f in self.quadratic:
+        for f in self.forms:
             f.energy(y, x, acc)
-        if self.elastic is not None:
-            self.elastic.energy(y, x, acc)
-        if self.load is not None:
-            self.load.energy(y, x, acc)
-        if self.contact is not None:
-            self.contact.energy(y, x, acc)
-        a = acc.numpy()
-        quad, V, Vabs = float(a[_E_QUAD]), float(a[_E_ELASTIC]), float(a[_E_ELASTIC_ABS])
-        work = self.load.c * float(a[_E_WORK]) if self.load is not None else 0.0
-        if a[_E_CONTACT + 1] > 0:  # a vertex on or inside a collider: outside the barrier's domain
-            return float("inf"), float("inf")
-        Ec = float(a[_E_CONTACT])
-        return quad + V - work + Ec, abs(quad) + Vabs + abs(work) + Ec
 
-    def gradient(self, y, g):
-        """g = P grad E(y); returns (the sum of the norms of its terms, ||g||): one host read-back."""
-        sim = self.sim
-        acc = sim._work.acc
+    def _launch_gradient(self, y, g, acc):
         acc.zero_()
         g.zero_()
         x = self._x_of(y)
-        for f in self.quadratic:
-            f.gradient(y, x, g, acc)
-        if self.quadratic:
-            launch(LK.dot_slot_kernel, self.n, [g, g, _F64_ONE, acc, _G_QUAD], sim.device)
-        if self.elastic is not None:
-            self.elastic.gradient(y, x, g, acc)
-        if self.load is not None:
-            self.load.gradient(y, x, g, acc)
-        if self.contact is not None:
-            self.contact.gradient(y, x, g, acc)
-        c = self.load.c if self.load is not None else 0.0
-        launch(LK.gradient_finish_kernel, self.n, [g, sim._fext, sim._s(c), self.mask, acc, _G_NORM], sim.device)
-        a = acc.numpy()
-        mag = np.sqrt(a[_G_QUAD]) + np.sqrt(a[_G_FORCE_ABS])
-        if self.load is not None:
-            mag += abs(self.load.c) * sim._fext_norm
-        if self.contact is not None:
-            mag += np.sqrt(a[_E_CONTACT + 2])
-        return float(mag), float(np.sqrt(a[_G_NORM]))
+        joint = False
+        for f in self.forms:
+            if joint and not f.joint:
+                launch(LK.dot_slot_kernel, self.n, [g, g, _F64_ONE, acc, _G_JOINT], self.ops.device)
+                joint = False
+            f.gradient(y, x, self.scales(f)[0], g, acc)
+            joint = joint or f.joint
+        if joint:
+            launch(LK.dot_slot_kernel, self.n, [g, g, _F64_ONE, acc, _G_JOINT], self.ops.device)
+        launch(LK.gradient_finish_kernel, self.n, [g, self.ops.zero, self.ops.scalar(0.0), self.mask, acc, _G_NORM],
+               self.ops.device)
+
+    def _launch_direction(self, y, g, d, acc):
+        acc.zero_()
+        use_xb = self.xb is not None
+        launch(LK.newton_check_kernel, self.n, [g, d, y, self.xb if use_xb else y, self.ops.scalar(self.s), int(use_xb),
+                                                acc, _D_GD], self.ops.device)
+
+    # -- reading the accumulator ----------------------------------------------------------------------
+    def _read(self, a):
+        self.host_syncs += 1
+        return a.numpy()
+
+    def _energy_of(self, a):
+        E = jE = mag = 0.0
+        for i, f in enumerate(self.forms):
+            o = _HEAD + ROW * i
+            e, m, feasible = f.read(a[o:o + ROW])
+            if not feasible:  # outside the form's domain (a vertex on or inside a collider)
+                return float("inf"), float("inf")
+            w = f.weight
+            E += w * e
+            if f.joint:
+                jE += w * e
+            else:
+                mag += abs(w) * m
+        return E, abs(jE) + mag
+
+    def _gradient_of(self, a):
+        mag = float(np.sqrt(a[_G_JOINT]))
+        for i, f in enumerate(self.forms):
+            if not f.joint:
+                o = _HEAD + ROW * i
+                mag += f.gradient_magnitude(a[o:o + ROW], self.scales(f)[0])
+        return mag, float(np.sqrt(a[_G_NORM]))
+
+    def _direction_of(self, a):
+        scale = a[_D_GD + 2] + (a[_D_GD + 3] / abs(self.s) if self.s != 0.0 else 0.0)
+        negligible = bool(a[_D_GD + 1] <= 8.0 * self.eps * scale)
+        return float(a[_D_GD]), negligible
+
+    # -- the problem interface of newton_solve --------------------------------------------------------
+    def energy(self, y):
+        """(E, the sum of the magnitudes of its terms): one host read-back."""
+        self._launch_energy(y, self._acc_e)
+        return self._energy_of(self._read(self._acc_e))
+
+    def gradient(self, y, g):
+        """g = P grad E(y); returns (the sum of the norms of its terms, ||g||): one host read-back."""
+        self._launch_gradient(y, g, self._acc_g)
+        return self._gradient_of(self._read(self._acc_g))
+
+    def evaluate(self, y, g):
+        """(E, |E|, gradient magnitude, ||P g||) with g = P grad E(y): one host read-back."""
+        self._launch_energy(y, self._acc_e)
+        self._launch_gradient(y, g, self._acc_g)
+        s = self._size
+        a = self._read(self.acc[:2 * s])
+        return self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+
+    def trial_step(self, y, g, d, alpha, y_try, g_try):
+        """The direction check of d, then y_try = y + alpha d with its energy and gradient (into
+        g_try), all read back at once: (g.d, negligible, E, |E|, gradient magnitude, ||P g_try||)."""
+        self._launch_direction(y, g, d, self._acc_d)
+        self.trial(y, alpha, d, y_try)
+        self._launch_energy(y_try, self._acc_e)
+        self._launch_gradient(y_try, g_try, self._acc_g)
+        a = self._read(self.acc[:3 * self._size])
+        s = self._size
+        return self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+
+    def newton_step(self, y, g, d, y_try, g_try, opts, start=False):
+        """A Newton iteration's device work with one read-back: the Newton system's solve (a linear
+        solver that can defer its read-back runs as many chunks as its last solve needed), the
+        direction check of d and the energy and gradient of the full step y_try = y + d (into
+        g_try). Returns (linear solve result, the :meth:`trial_step` tuple). Solvers that cannot
+        defer (direct, AMG) solve first and the rest is read once after. ``start``: first
+        evaluate the energy and gradient (into g) at y, and return their :meth:`evaluate` tuple
+        third (the first iteration of a solve then costs one read-back too)."""
+        if start:
+            self._launch_energy(y, self._acc_e0)
+            self._launch_gradient(y, g, self._acc_g0)
+        solver = self.system.solver
+        values = self.assemble_hessian(y, self.system.hessian_values)
+        rhs = self.work.rhs
+        launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
+        chunks = getattr(solver, "deferred_chunks", 0)
+        s, r = self._size, self._report_at
+        deferred = hasattr(solver, "solve_deferred") and chunks > 0
+        if deferred:
+            solver.prepare(values, self.mask)
+            deferred = solver.can_defer()
+            if not deferred:
+                lin = solver.solve(rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
+        else:
+            lin = self.linear_solve(values, rhs, d, opts)
+        if deferred:
+            solver.solve_deferred(rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters, chunks=chunks, report_out=self.acc,
+                                  report_offset=r)
+        self._launch_direction(y, g, d, self._acc_d)
+        self.trial(y, 1.0, d, y_try)
+        self._launch_energy(y_try, self._acc_e)
+        self._launch_gradient(y_try, g_try, self._acc_g)
+        a = self._read(self.acc)
+        first = (self._energy_of(a[3 * s:4 * s]) + self._gradient_of(a[4 * s:5 * s])) if start else None
+        trial = self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+        if deferred:
+            lin, changed = solver.complete_deferred(a[r:r + 4])
+            if changed:  # the solve needed more chunks than guessed: d is new, evaluate its step again
+                trial = self.trial_step(y, g, d, 1.0, y_try, g_try)
+        return (lin, trial, first) if start else (lin, trial)
 
     def assemble_hessian(self, y, values):
         values.zero_()
         x = self._x_of(y)
-        for f in self.quadratic:
-            f.hessian(y, x, values)
-        if self.elastic is not None:
-            self.elastic.hessian(y, x, values)
-        if self.contact is not None:
-            self.contact.hessian(y, x, values)
+        for f in self.forms:
+            f.hessian(y, x, self.scales(f)[1], values)
         return values
 
+    def bounds_step(self) -> bool:
+        """Whether a form bounds the line search's step (then :meth:`max_step` reads it back)."""
+        return any(hasattr(f, "max_step") for f in self.forms)
+
     def max_step(self, y, d):
-        """The largest step length <= 1 along d that keeps every surface vertex outside the
-        colliders (continuous collision bound; 1 without contact): one read-back."""
-        if self.contact is None:
+        """The largest step length <= 1 along d that every form allows (contact's continuous
+        collision bound; 1 without such a form): one read-back when a form bounds it."""
+        bounded = [(i, f) for i, f in enumerate(self.forms) if hasattr(f, "max_step")]
+        if not bounded:
             return 1.0
-        acc = self.sim._work.acc
+        acc = self._acc_d
         acc.fill_(1.0)
-        self.contact.max_step(self._x_of(y), d, acc)
-        return float(acc.numpy()[_E_CONTACT + 3])
+        x = self._x_of(y)
+        for _, f in bounded:
+            f.max_step(x, d, self.s, acc)
+        a = self._read(acc)
+        return float(min(a[_HEAD + ROW * i + 3] for i, _ in bounded))
 
     # -- Newton system ------------------------------------------------------------------------------
     def solve_newton_system(self, y, g, d, opts):
         """d ~ -H(y)^-1 g on the free components (the simulator's linear solver); returns its result
         (``iterations``, ``host_syncs``, ...)."""
-        sim = self.sim
-        values = self.assemble_hessian(y, sim._hess_values)
-        rhs = sim._work.rhs
-        launch(LK.scale_copy_kernel, self.n, [g, sim._s(-1.0), rhs], sim.device)
-        return sim._linear_solve(values, rhs, d, opts)
+        values = self.assemble_hessian(y, self.system.hessian_values)
+        rhs = self.work.rhs
+        launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
+        return self.linear_solve(values, rhs, d, opts)
 
     def fallback_direction(self, g, d):
         """d = -B^-1 g, B the (masked) block diagonal of the last Newton system: a descent direction
         whatever linear solver produced the rejected one."""
-        sim = self.sim
-        pt, w = sim._pattern, sim._work
-        if w.inv_diag is None:
-            w.inv_diag = wp.zeros(self.n, dtype=sim._mat, device=sim.device)
-        launch(LK.block_jacobi_setup_kernel, self.n, [pt.offsets, pt.columns, sim._hess_values, self.mask, w.inv_diag],
-               sim.device)
-        launch(LK.scale_copy_kernel, self.n, [g, sim._s(-1.0), w.rhs], sim.device)
-        launch(LK.block_apply_kernel, self.n, [w.inv_diag, w.rhs, d], sim.device)
+        pt, w, dev = self.system.pattern, self.work, self.ops.device
+        if w.inv_diag is None or w.inv_diag.shape[0] != self.n:
+            w.inv_diag = wp.zeros(self.n, dtype=self.ops.mat, device=dev)
+        launch(LK.block_jacobi_setup_kernel, self.n, [pt.offsets, pt.columns, self.system.hessian_values, self.mask,
+                                                      w.inv_diag], dev)
+        launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), w.rhs], dev)
+        launch(LK.block_apply_kernel, self.n, [w.inv_diag, w.rhs, d], dev)
 
     def direction_check(self, y, g, d):
         """(g . d, whether the step d is below the resolution of y and of x = x_b + s y): one read-back."""
-        sim = self.sim
-        acc = sim._work.acc
-        acc.zero_()
-        use_xb = self.xb is not None
-        launch(LK.newton_check_kernel, self.n, [g, d, y, self.xb if use_xb else y, sim._s(self.s), int(use_xb), acc,
-                                                _D_GD], sim.device)
-        a = acc.numpy()
-        scale = a[_Y_MAX] + (a[_X_MAX] / abs(self.s) if self.s != 0.0 else 0.0)
-        negligible = bool(a[_D_MAX] <= 8.0 * self.eps * scale)
-        return float(a[_D_GD]), negligible
+        self._launch_direction(y, g, d, self._acc_d)
+        return self._direction_of(self._read(self._acc_d))
+
+
+FullSpacePotential = IncrementalPotential  # the older name

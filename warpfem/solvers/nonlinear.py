@@ -76,6 +76,8 @@ class SolveStats:
     seconds: float = 0.0
     linear_iterations: int = 0  # iterations of the linear solver (CG iterations; 1 per direct solve)
     host_syncs: int = 0  # host read-backs made inside the linear solves (see warpfem.solvers.linear)
+    newton_syncs: int = 0  # host read-backs of the Newton loop outside the linear solves (energies, gradients, checks)
+    launches: int = 0  # kernel launches of the step (kernels.generic.COUNTERS, recorded PCG launches included)
     hessian_evaluations: int = 0  # Newton matrices evaluated (counted by the reduced simulator, which keeps its matrix)
     singular_solves: int = 0  # Newton systems a direct solve found singular or indefinite (shifted and/or deflated)
     history: list = field(default_factory=list)
@@ -123,33 +125,72 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
       sum resolves), the step is accepted if it halves the gradient norm.
     """
     st = SolveStats()
+    syncs0 = getattr(problem, "host_syncs", None)
     if hasattr(problem, "vectors"):  # work vectors the problem keeps (no allocation per solve)
         g, d, y_try = problem.vectors()
     else:
         g, d, y_try = problem.new_vector(), problem.new_vector(), problem.new_vector()
+    # a problem with trial_step evaluates the direction check, the energy and the gradient of a
+    # full step with one read-back (into a second gradient vector, swapped with g on acceptance)
+    fused = hasattr(problem, "trial_step") and hasattr(problem, "work")
+    g_try = problem.work.g_try if fused else None
     eps_mach = problem.eps
 
-    E, mag = problem.energy(y)
-    gmag, gnorm0 = problem.gradient(y, g)
+    # with newton_step, the start's energy and gradient are read with the first iteration's numbers
+    first = None
+    if fused and hasattr(problem, "newton_step") and not problem.bounds_step() and opts.max_iters > 0:
+        lin0, pre0, (E, mag, gmag, gnorm0) = problem.newton_step(y, g, d, y_try, g_try, opts, start=True)
+        first = (lin0, pre0)
+    elif hasattr(problem, "evaluate"):  # energy and gradient with one read-back
+        E, mag, gmag, gnorm0 = problem.evaluate(y, g)
+    else:
+        E, mag = problem.energy(y)
+        gmag, gnorm0 = problem.gradient(y, g)
     # Below this the gradient is round-off of its own terms: no precision can reduce it further.
     floor_factor = 64.0 * eps_mach
     st.energy, st.gradient_norm = E, gnorm0
+
+    def finish():
+        if syncs0 is not None:
+            st.newton_syncs = problem.host_syncs - syncs0
+        return st
+
     if not (np.isfinite(E) and np.isfinite(gnorm0)):
         st.reason = "non-finite energy or gradient at the start"
-        return st
+        return finish()
     if gnorm0 <= opts.atol or gnorm0 <= floor_factor * gmag:
         st.converged, st.reason = True, "already at equilibrium"
-        return st
+        return finish()
     gnorm = gnorm0
     for _ in range(opts.max_iters):
-        lin = problem.solve_newton_system(y, g, d, opts)  # an iteration count or a LinearSolveResult
+        pre = None  # the fused first trial: (g.d, negligible, E, |E|, gradient magnitude, ||g_try||)
+        alpha_pre = 1.0  # the step length of that trial
+        if first is not None:  # done with the start's evaluation
+            (lin, pre), first = first, None
+        elif fused and not problem.bounds_step():
+            if hasattr(problem, "newton_step"):  # solve + first trial, one read-back
+                lin, pre = problem.newton_step(y, g, d, y_try, g_try, opts)
+            else:
+                lin = problem.solve_newton_system(y, g, d, opts)
+                pre = problem.trial_step(y, g, d, 1.0, y_try, g_try)
+        elif fused:  # a bounded step (contact): the bound first, then the trial at it, one read-back each
+            lin = problem.solve_newton_system(y, g, d, opts)
+            alpha_pre = min(1.0, problem.max_step(y, d))
+            pre = problem.trial_step(y, g, d, alpha_pre, y_try, g_try)
+        else:
+            lin = problem.solve_newton_system(y, g, d, opts)  # an iteration count or a LinearSolveResult
         iterations = int(getattr(lin, "iterations", lin))
         st.cg_iterations += iterations
         st.linear_iterations += iterations
         st.host_syncs += int(getattr(lin, "host_syncs", 0))
         st.singular_solves += int(getattr(lin, "shift", 0.0) > 0.0 or getattr(lin, "deflated", 0) > 0)
-        gd, negligible = problem.direction_check(y, g, d)
+        bounded = hasattr(problem, "max_step")
+        if pre is not None:
+            gd, negligible = pre[0], pre[1]
+        else:
+            gd, negligible = problem.direction_check(y, g, d)
         if not (gd < 0.0):  # not a descent direction (indefinite Hessian or CG breakdown)
+            pre = None
             problem.fallback_direction(g, d)
             gd, negligible = problem.direction_check(y, g, d)
             if not (gd < 0.0):
@@ -162,13 +203,23 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             st.reason = "at the precision limit (Newton step below the resolution of the positions)"
             break
         # continuous-collision filter (contact): no step may carry the state across a collider
-        alpha, accepted = min(1.0, problem.max_step(y, d)) if hasattr(problem, "max_step") else 1.0, False
+        if pre is not None:
+            alpha = alpha_pre
+        else:
+            alpha = min(1.0, problem.max_step(y, d)) if bounded else 1.0
+        accepted = False
         noise = 16.0 * eps_mach * mag
+        g_new = None  # the gradient at the accepted point when the fused trial computed it
         for _ls in range(opts.max_line_search):
-            problem.trial(y, alpha, d, y_try)
-            E_try, mag_try = problem.energy(y_try)
+            if pre is not None and _ls == 0:
+                E_try, mag_try = pre[2], pre[3]
+            else:
+                problem.trial(y, alpha, d, y_try)
+                E_try, mag_try = problem.energy(y_try)
             if np.isfinite(E_try) and E_try <= E + opts.armijo * alpha * gd + noise:
                 accepted = True
+                if pre is not None and _ls == 0:
+                    g_new = pre[4], pre[5]
                 break
             if (_ls == 0 and problem.gradient_test_below > 0.0 and np.isfinite(E_try)
                     and abs(E_try - E) <= problem.gradient_test_below * mag):
@@ -189,7 +240,11 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             break
         problem.assign(y, y_try)
         E, mag = E_try, mag_try
-        gmag, gnorm = problem.gradient(y, g)
+        if g_new is not None:  # the fused trial's gradient is the gradient at y: swap the buffers
+            g, g_try = g_try, g
+            gmag, gnorm = g_new
+        else:
+            gmag, gnorm = problem.gradient(y, g)
         st.newton_iterations += 1
         st.history.append((E, gnorm, alpha, iterations))
         if not np.isfinite(gnorm):
@@ -204,4 +259,4 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     else:
         st.reason = f"reached max_iters={opts.max_iters}"
     st.energy, st.gradient_norm, st.residual = E, gnorm, gnorm / gnorm0
-    return st
+    return finish()

@@ -1,9 +1,17 @@
-"""Block-sparse (3x3 blocks) matrices with a pattern built once per mesh.
+"""Block-sparse (3x3 blocks) matrices with a pattern built per mesh, which can grow.
 
 The pattern holds a block for every pair of vertices that share an element (and every diagonal
-block). It is stored in a ``warp.sparse`` BSR matrix; ``block_index`` maps (element, local a,
-local b) to the block's position so assembly kernels add element blocks in place with atomics and
-no triplet sort per Newton iteration.
+block), plus any extra vertex pairs (``extra_pairs``: blocks that a form such as contact between
+vertices of different elements adds). It is stored in a ``warp.sparse`` BSR matrix;
+``block_index`` maps (element, local a, local b) to the block's position so assembly kernels add
+element blocks in place with atomics and no triplet sort per Newton iteration, and
+``pair_index(pairs)`` gives the positions of extra blocks.
+
+:class:`HessianSystem` owns the current pattern, the block-value arrays that live in it (the
+Hessian, the mass matrix, ...) and the linear solver: ``ensure_blocks(pairs)`` grows the pattern
+when pairs are missing, moves every value array to the new pattern and makes the solver analyse
+it again (a direct solver's symbolic analysis then happens once more; nothing happens when the
+pattern already has the blocks).
 """
 
 from __future__ import annotations
@@ -25,14 +33,21 @@ class BlockPattern:
         diag_index: numpy int array (n,), position of each diagonal block.
     """
 
-    def __init__(self, elements_flat: np.ndarray, nodes_per_element: int, num_vertices: int, *, device, block_type):
+    def __init__(self, elements_flat: np.ndarray, nodes_per_element: int, num_vertices: int, *, device, block_type,
+                 extra_pairs=None):
         k = int(nodes_per_element)
         n = int(num_vertices)
+        self._elements_flat, self._k = np.asarray(elements_flat), k
         E = np.asarray(elements_flat, dtype=np.int64).reshape(-1, k)
         rows = np.repeat(E, k, axis=1).ravel()
         cols = np.tile(E, (1, k)).ravel()
         diag = np.arange(n, dtype=np.int64)
-        keys = np.concatenate([rows * n + cols, diag * n + diag])
+        extra = np.zeros((0, 2), dtype=np.int64) if extra_pairs is None else np.asarray(extra_pairs, dtype=np.int64).reshape(-1, 2)
+        if extra.size and (extra.min() < 0 or extra.max() >= n):
+            raise IndexError(f"extra block pair out of range [0, {n}): {extra[(extra < 0).any(1) | (extra >= n).any(1)][0]}")
+        extra = np.unique(np.concatenate([extra, extra[:, ::-1]]), axis=0)  # symmetric
+        self.extra_pairs = extra
+        keys = np.concatenate([rows * n + cols, diag * n + diag, extra[:, 0] * n + extra[:, 1]])
         uniq, inverse = np.unique(keys, return_inverse=True)
         r = (uniq // n).astype(np.int32)
         c = (uniq % n).astype(np.int32)
@@ -57,7 +72,39 @@ class BlockPattern:
         self.rows_np = r
         self.cols_np = c
         self.block_index = wp.array(inverse[: len(rows)].astype(np.int32), dtype=wp.int32, device=device)
-        self.diag_index = inverse[len(rows):]
+        self.diag_index = inverse[len(rows):len(rows) + n]
+        self._keys = uniq
+        self.version = 0  # how many times the pattern grew (0: the mesh's own)
+
+    def pair_index(self, pairs) -> np.ndarray:
+        """Positions of the blocks (i, j) of ``pairs`` ((k, 2) ints); -1 where the pattern has none."""
+        p = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        keys = p[:, 0] * self.num_rows + p[:, 1]
+        pos = np.searchsorted(self._keys, keys)
+        pos = np.minimum(pos, len(self._keys) - 1)
+        return np.where(self._keys[pos] == keys, pos, -1)
+
+    def contains(self, pairs) -> bool:
+        """Whether every block (i, j) and (j, i) of ``pairs`` is in the pattern."""
+        p = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        return bool(np.all(self.pair_index(p) >= 0) and np.all(self.pair_index(p[:, ::-1]) >= 0))
+
+    def grown(self, pairs) -> "BlockPattern":
+        """A new pattern: this one plus the blocks (i, j), (j, i) of ``pairs``."""
+        extra = np.concatenate([self.extra_pairs, np.asarray(pairs, dtype=np.int64).reshape(-1, 2)])
+        new = BlockPattern(self._elements_flat, self._k, self.num_rows, device=self.device, block_type=self.block_type,
+                           extra_pairs=extra)
+        new.version = self.version + 1
+        return new
+
+    def transfer(self, values, old: "BlockPattern"):
+        """Block values of the pattern ``old`` moved into this (larger) pattern, zeros elsewhere."""
+        pos = self.pair_index(np.stack([old.rows_np, old.cols_np], axis=1))
+        if np.any(pos < 0):
+            raise ValueError("the new pattern does not contain the old one")
+        out = np.zeros((self.nnz, 3, 3), dtype=values.numpy().dtype)
+        out[pos] = values.numpy()
+        return wp.array(out, dtype=self.block_type, device=self.device)
 
     def new_values(self):
         """A zeroed device array of blocks for this pattern."""
@@ -78,3 +125,53 @@ class BlockPattern:
         offsets = self.offsets.numpy()[: self.num_rows + 1]
         bsr = scipy.sparse.bsr_matrix((v, self.cols_np, offsets), shape=(3 * self.num_rows, 3 * self.num_rows))
         return bsr.tocsr()
+
+
+class HessianSystem:
+    """The pattern of a simulator's Newton matrices, the block values kept in it (``values[name]``:
+    "hessian", "mass", ...) and the linear solver bound to it; the pattern grows on demand."""
+
+    def __init__(self, pattern: BlockPattern, solver=None):
+        self.pattern = pattern
+        self.solver = solver
+        self.values = {}
+        self.listeners = []  # callables run after the pattern grew (e.g. contact's diagonal positions)
+        self.growths = 0
+
+    def new_values(self, name=None):
+        v = self.pattern.new_values()
+        if name is not None:
+            self.values[name] = v
+        return v
+
+    @property
+    def hessian_values(self):
+        return self.values["hessian"]
+
+    def ensure_blocks(self, pairs) -> bool:
+        """Grow the pattern to hold the blocks of ``pairs`` ((k, 2) vertex pairs); True if it grew."""
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+        if not len(pairs) or self.pattern.contains(pairs):
+            return False
+        old, new = self.pattern, self.pattern.grown(pairs)
+        for name, v in list(self.values.items()):
+            self.values[name] = new.transfer(v, old)
+        self.pattern = new
+        self.growths += 1
+        if self.solver is not None:
+            self.solver.analyse(new)
+        for f in self.listeners:
+            f(new)
+        return True
+
+
+class PatternView:
+    """Stands for the current pattern of a :class:`HessianSystem` (attribute access is forwarded),
+    so a form that keeps it follows the pattern when it grows."""
+
+    def __init__(self, system: HessianSystem):
+        self._system = system
+
+    def __getattr__(self, name):
+        return getattr(self._system.pattern, name)

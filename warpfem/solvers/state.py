@@ -1,17 +1,36 @@
-"""State API shared by the full-space simulators (``Simulator``, ``StiffnessWarpingSimulator``).
+"""State, control and the state API shared by the full-space simulators (``Simulator``,
+``StiffnessWarpingSimulator``).
+
+As in NVIDIA's ``newton``, what a step reads and writes is kept apart from the model:
+
+* the :class:`~warpfem.model.Model` (mesh, material, mass, fixed set, loads) does not change
+  during a step;
+* a :class:`State` is what a step advances: positions, velocities (device arrays), the
+  integrator's history (``history``: x_{n-1}, v_{n-1} or a_n and the step size they belong to)
+  and the time;
+* a :class:`Control` is what drives one step from outside: kinematic targets of fixed vertices and
+  the load scale.
+
+``sim.step(state_in, state_out, control, dt)`` reads ``state_in`` only and writes ``state_out``, so
+a failed step leaves every state as it was; ``sim.step()`` is the convenience that steps the
+simulator's own state (two states used in turn: no allocation per step).
+:class:`DeviceVectors` is the vector algebra of the device vec3 arrays (the
+:class:`warpfem.integrators.VectorOps` the integrators use).
 
 :class:`SimulatorState` is a mixin: positions and velocities as device arrays of vec3, Dirichlet
 components (``fix``/``release``, kept on the model) and kinematic targets for the next step.
 A class using it provides:
 
 * ``self.model`` (a :class:`~warpfem.model.Model`: ``fix``, ``release``, ``_indices``),
-* ``self.num_vertices``, ``self.x``, ``self.v`` (device arrays of vec3, n entries),
+* ``self.num_vertices``, ``self.state`` (a :class:`State`), ``self.control`` (a :class:`Control`),
 * ``self._vec_array(a=None)`` -> a device vec3 array of n entries (zeros, or from a float64 (n, 3)),
-* ``self._targets`` (dict vertex -> (3,) float64 target position), cleared by ``step``,
 * ``self.sync_model()`` (uploads the fixed mask / external forces after a model change).
 """
 
 from __future__ import annotations
+
+import time
+import warnings
 
 import numpy as np
 import warp as wp
@@ -19,7 +38,7 @@ import warp as wp
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 
-__all__ = ["SimulatorState", "PRECISIONS", "check_simulator_options"]
+__all__ = ["SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
 
 #: precision name -> (scalar, vec3, mat33 Warp types, numpy dtype)
 PRECISIONS = {
@@ -44,8 +63,124 @@ def check_simulator_options(precision, dt, damping_mass, damping_stiffness):
     return PRECISIONS[precision]
 
 
-class SimulatorState:
-    """positions / velocities / set_positions / set_velocities / fix / release / set_targets."""
+class State:
+    """What a time step advances: positions ``x`` and velocities ``v`` (vectors of the simulator:
+    device vec3 arrays, or numpy coordinates for the reduced simulator), the integrator's
+    ``history`` (dict; see :mod:`warpfem.integrators`) and the ``time`` (s)."""
+
+    def __init__(self, x, v, history=None, time=0.0):
+        self.x, self.v = x, v
+        self.history = {} if history is None else history
+        self.time = float(time)
+
+    def __repr__(self):
+        return f"State(t={self.time:g}, history={sorted(self.history)})"
+
+
+class Control:
+    """What drives a step from outside: ``targets`` (vertex -> (3,) end-of-step position of a fixed
+    vertex: kinematic handles) and ``load_scale`` (the external forces, gravity included, act
+    scaled by it; the model itself is never rescaled)."""
+
+    def __init__(self, targets=None, load_scale=1.0):
+        self.targets = {} if targets is None else dict(targets)
+        self.load_scale = float(load_scale)
+
+    def __repr__(self):
+        return f"Control(targets={len(self.targets)}, load_scale={self.load_scale:g})"
+
+
+class DeviceVectors:
+    """Vector algebra of n device vec3 arrays in one precision (the integrators' ``VectorOps``).
+
+    ``acceleration`` (Newmark's a_0) is the simulator's, given at construction."""
+
+    def __init__(self, n, device, types, acceleration=None):
+        self.n, self.device = int(n), device
+        self.scalar, self.vec, self.mat, self.np_dtype = types
+        self._acceleration = acceleration
+        self.zero = self.new_vector()  # read-only zeros
+
+    def new_vector(self, a=None):
+        if a is None:
+            return wp.zeros(self.n, dtype=self.vec, device=self.device)
+        return wp.array(np.asarray(a, dtype=self.np_dtype), dtype=self.vec, device=self.device)
+
+    def lincomb(self, a, x, b, y, out):
+        launch(LK.lincomb_kernel, self.n, [self.scalar(a), x, self.scalar(b), y, out], self.device)
+
+    def copy(self, dst, src):
+        if dst is not src:
+            wp.copy(dst, src)
+
+    def acceleration(self, state, out):
+        self._acceleration(state, out)
+
+
+class ControlledSimulator:
+    """``load_scale``: a view of ``self.control`` (a :class:`Control`), shared by every simulator
+    (the full-space ones through :class:`SimulatorState`, and the reduced one)."""
+
+    @property
+    def load_scale(self) -> float:
+        """The control's load scale (external forces act scaled by it; load ramps)."""
+        return self.control.load_scale
+
+    @load_scale.setter
+    def load_scale(self, value):
+        self.control.load_scale = float(value)
+
+
+class SimulatorState(ControlledSimulator):
+    """positions / velocities / set_positions / set_velocities / fix / release / set_targets, on
+    ``self.state`` (a :class:`State`) and ``self.control`` (a :class:`Control`)."""
+
+    # -- the current state and control ------------------------------------------------------------
+    @property
+    def x(self):
+        """Current positions (device vec3 array; the state's own buffer, rewritten by later steps)."""
+        return self.state.x
+
+    @x.setter
+    def x(self, value):
+        self.state.x = value
+
+    @property
+    def v(self):
+        """Current velocities (device vec3 array; the state's own buffer)."""
+        return self.state.v
+
+    @v.setter
+    def v(self, value):
+        self.state.v = value
+
+    @property
+    def time(self) -> float:
+        """Simulated time (s) of the current state."""
+        return self.state.time
+
+    @time.setter
+    def time(self, value):
+        self.state.time = float(value)
+
+    @property
+    def _targets(self):
+        return self.control.targets
+
+    @_targets.setter
+    def _targets(self, value):
+        self.control.targets = value
+
+    def _new_state(self):
+        """A state with zeroed buffers of this simulator's size (for ``step(state_in, state_out, ...)``)."""
+        return State(self._vec_array(), self._vec_array())
+
+    def new_state(self):
+        """A copy of the current state (its own buffers): an input or output of
+        ``step(state_in, state_out, control, dt)``."""
+        s = State(wp.clone(self.state.x), wp.clone(self.state.v), time=self.state.time)
+        s.history = {k: (wp.clone(v) if isinstance(v, wp.array) else v) for k, v in self.state.history.items()}
+        return s
 
     # -- boundary conditions (no re-assembly, no pattern rebuild) --------------------------------------
     def fix(self, indices, components="xyz"):
@@ -61,7 +196,7 @@ class SimulatorState:
     def set_targets(self, indices, positions):
         """Prescribe end-of-step positions (m) of fixed vertices for the next step or static solve
         (kinematic handles); ``positions`` has one row of 3 per index."""
-        idx = self.model._indices(indices)
+        idx = self.model.indices(indices)
         pos = np.asarray(positions, dtype=np.float64).reshape(len(idx), 3)
         if not np.all(np.isfinite(pos)):
             raise ValueError("target positions must be finite")
@@ -85,30 +220,153 @@ class SimulatorState:
 
     def set_positions(self, x):
         """Replace the positions (m), (n, 3); raises ValueError (state untouched) for a wrong shape or NaN/inf."""
-        self.x = self._vec_array(self._checked_state(x, "positions"))
+        self.state.x.assign(self._checked_state(x, "positions").astype(self._np))
         self._state_changed()
 
     def set_velocities(self, v):
         """Replace the velocities (m/s), (n, 3); raises ValueError (state untouched) for a wrong shape or NaN/inf."""
-        self.v = self._vec_array(self._checked_state(v, "velocities"))
+        self.state.v.assign(self._checked_state(v, "velocities").astype(self._np))
         self._state_changed()
-
-    # -- the interface time integrators use (warpfem.integrators) -----------------------------------
-    def _istate(self):
-        return self.x, self.v
-
-    def _iset_state(self, x, v):
-        self.x, self.v = x, v
-
-    def _ivec(self):
-        return self._vec_array()
-
-    def _ilincomb(self, a, x, b, y, out):
-        launch(LK.lincomb_kernel, self.num_vertices, [self._s(a), x, self._s(b), y, out], self.device)
 
     def _state_changed(self):
         """The state was set from outside: time integrators restart their history (BDF2 takes a
         backward Euler step, Newmark recomputes the acceleration)."""
-        integrator = getattr(self, "integrator", None)
-        if integrator is not None:
-            integrator.reset()
+        self.state.history.clear()
+
+
+def check_solve(stats, what: str, *, require_convergence: bool, finite: bool = True, stacklevel: int = 3):
+    """The failure handling of every simulator's step: raise :class:`SolveFailed` (the caller has
+    not written its state) on NaN/inf (``finite`` False, a non-finite energy or a "non-finite"
+    reason) or, with ``require_convergence``, on non-convergence; otherwise warn when not converged."""
+    from warpfem.solvers.nonlinear import SolveFailed
+
+    if stats.converged:
+        return
+    if not finite or "non-finite" in stats.reason or not np.isfinite(stats.energy):
+        raise SolveFailed(f"{what} diverged ({stats.reason}); state left unchanged", stats)
+    if require_convergence:
+        raise SolveFailed(f"{what} did not converge ({stats.reason}); state left unchanged", stats)
+    warnings.warn(f"{what} did not converge: {stats.reason} (relative gradient {stats.residual:.2e})", RuntimeWarning,
+                  stacklevel=stacklevel)
+
+
+class StepperBase(ControlledSimulator):
+    """The two forms of ``step``, written once for every simulator (full space, stiffness warping,
+    reduced). A subclass provides ``_step(state_in, state_out, control, dt) -> SolveStats`` (reads
+    ``state_in`` only, raises before writing ``state_out``), ``_own_states() -> (state, a state to
+    write)``, ``_commit(state_out)`` (make it the simulator's state), ``control``, ``dt`` and
+    ``step_count``."""
+
+    def step(self, state_in=None, state_out=None, control=None, dt=None):
+        """Advance one step; returns its :class:`~warpfem.SolveStats`.
+
+        ``step()``: the simulator's own state by ``dt`` (the simulator's, or the argument) with its control (targets set by
+        :meth:`set_targets`, cleared after the step, and ``load_scale``). ``step(state_in,
+        state_out, control=None, dt=None)``: a step from ``state_in`` written into ``state_out``
+        (two distinct :class:`State`s, e.g. from ``new_state()``); ``state_in`` is never written.
+
+        On NaN/inf (or non-convergence with ``require_convergence``) raises :class:`SolveFailed`;
+        the input state (and with ``step()`` the simulator's state, time and the integrator's
+        history) is as it was.
+        """
+        if state_in is None:
+            if state_out is not None:
+                raise TypeError("step(): give both state_in and state_out, or neither")
+            own_in, own_out = self._own_states()
+            stats = self._step(own_in, own_out, self.control, self.dt if dt is None else float(dt))
+            self._commit(own_out)
+            self.control.targets.clear()
+            self.step_count += 1
+            return stats
+        if state_out is None or state_out is state_in:
+            raise ValueError("step(state_in, state_out, ...) needs a distinct output state (see new_state())")
+        return self._step(state_in, state_out, Control() if control is None else control,
+                          self.dt if dt is None else float(dt))
+
+
+class SimulatorBase(SimulatorState, StepperBase):
+    """What the full-space simulators (``Simulator``, ``StiffnessWarpingSimulator``) share: set-up of
+    the model, device, precision and step options, the state / control pair, the vector algebra,
+    energies (with the control's load scale), the prescribed velocities of fixed vertices, the
+    failure handling and the two forms of ``step``. A subclass provides ``_step(state_in,
+    state_out, control, dt) -> SolveStats`` (reads ``state_in`` only), ``_mass_values``,
+    ``_bsr_mv``, ``elastic_energy`` and ``_equation_of_motion_acceleration(state, out)``."""
+
+    def _setup_base(self, model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence):
+        from warpfem.device import get_device
+
+        self.model = model
+        self.device = get_device(device)
+        self.precision = precision
+        self._s, self._vec, self._mat, self._np = types
+        self.dt = float(dt)
+        self.damping_mass = float(damping_mass)
+        self.damping_stiffness = float(damping_stiffness)
+        self.require_convergence = bool(require_convergence)
+        self.num_vertices = n = model.num_vertices
+        self.step_count = 0
+        self.ops = DeviceVectors(n, self.device, types, acceleration=self._equation_of_motion_acceleration)
+        self._vec_array = self.ops.new_vector
+        self._zero = self.ops.zero
+        self.state = State(self._vec_array(model.rest_positions), self._vec_array())
+        self._spare = self._new_state()  # the other state of step(): the two are used in turn
+        self.control = Control()
+        self._step_control = self.control
+        self._mask = None
+        self.sync_model()
+
+    # -- energies -----------------------------------------------------------------------------------
+    def _dot(self, a, b) -> float:
+        return self._pcg.dot(a, b)
+
+    def kinetic_energy(self) -> float:
+        """1/2 v^T M v (J)."""
+        q = self._work_vector()
+        q.zero_()
+        self._bsr_mv(self._mass_values, self.v, 1.0, q)
+        return 0.5 * self._dot(self.v, q)
+
+    def total_energy(self) -> float:
+        """Kinetic + elastic - x^T f_ext (J, f_ext times ``load_scale``): conserved by the exact
+        dynamics without damping."""
+        return self.kinetic_energy() + self.elastic_energy() - self.load_scale * self._dot(self.x, self._fext)
+
+    def _work_vector(self):
+        if getattr(self, "_energy_tmp", None) is None:
+            self._energy_tmp = self._vec_array()
+        return self._energy_tmp
+
+    # -- the step ---------------------------------------------------------------------------------------
+    def _prescribed_velocity(self, state, xb, s, control, out):
+        """``out`` := the end-of-step velocity that puts fixed components at their target (or keeps
+        them where they are), (p - x_b) / s; only its fixed components are used."""
+        if not control.targets:
+            if xb is state.x:
+                out.zero_()
+            else:  # (x - x_b) first, then the scale: exact zero where x_b = x
+                self.ops.lincomb(1.0, state.x, -1.0, xb, out)
+                self.ops.lincomb(1.0 / s, out, 0.0, out, out)
+            return out
+        p = state.x.numpy().astype(np.float64)
+        for i, t in control.targets.items():
+            p[i] = t
+        out.assign(((p - xb.numpy().astype(np.float64)) / s).astype(self._np))
+        return out
+
+    def _finish(self, stats, t0, what, stacklevel=5):
+        stats.seconds = time.perf_counter() - t0
+        check_solve(stats, what, require_convergence=self.require_convergence, stacklevel=stacklevel)
+
+    def predict(self, state=None, dt=None):
+        """The integrator's prediction (x_b, v_hat, s) for a step of ``dt`` from ``state``
+        (defaults: the simulator's); the vectors are work buffers, valid until the next step."""
+        return self.integrator.predict(self.state if state is None else state, self.dt if dt is None else float(dt),
+                                       self.ops, self._prediction_work)
+
+    # -- the simulator's own state in step() (StepperBase) -----------------------------------------------
+    def _own_states(self):
+        return self.state, self._spare
+
+    def _commit(self, state_out):
+        self.state, self._spare = state_out, self.state
+

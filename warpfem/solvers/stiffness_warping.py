@@ -36,21 +36,19 @@ large strain.
 from __future__ import annotations
 
 import time
-import warnings
 
 import numpy as np
 import warp as wp
 
-from warpfem.device import get_device as _get_device
 from warpfem.kernels import linalg as LK
 from warpfem.kernels import warping as WK
-from warpfem.kernels.generic import launch
+from warpfem.kernels.generic import COUNTERS, launch
 from warpfem.kernels.structs import warped_tets
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import SolveFailed, SolveStats
 from warpfem.solvers.linear import make_linear_solver
 from warpfem.solvers.linear.auto import simulator_options
-from warpfem.solvers.state import SimulatorState, check_simulator_options
+from warpfem.solvers.state import SimulatorBase, check_simulator_options, check_solve
 from warpfem.solvers.sparse import BlockPattern
 
 __all__ = ["StiffnessWarpingSimulator", "ROTATIONS", "tet_linear_stiffness_blocks"]
@@ -75,7 +73,7 @@ def tet_linear_stiffness_blocks(dNdX: np.ndarray, volumes: np.ndarray, mu: float
     return K * V[:, None, None, None, None]
 
 
-class StiffnessWarpingSimulator(SimulatorState):
+class StiffnessWarpingSimulator(SimulatorBase):
     """Corotational linear FEM (stiffness warping) with linearly implicit backward Euler.
 
     Same state API as :class:`warpfem.Simulator` (``step``, ``positions``, ``velocities``,
@@ -127,21 +125,12 @@ class StiffnessWarpingSimulator(SimulatorState):
             if not hasattr(mat, attr):
                 raise TypeError(f"model.material must be a warpfem material with {attr!r}, got {type(mat).__name__}")
 
-        self.model = model
-        self.device = _get_device(device)
-        self.precision = precision
-        self._s, self._vec, self._mat, self._np = types
-        self.dt = float(dt)
         self.rotation = rotation
         self.cg_tol = float(cg_tol)
         self.max_cg_iters = int(max_cg_iters)
-        self.damping_mass = float(damping_mass)
-        self.damping_stiffness = float(damping_stiffness)
-        self.require_convergence = bool(require_convergence)
-        self.num_vertices = n = model.num_vertices
+        self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
+        n = self.num_vertices
         self.num_elements = m = qd.num_elements
-        self.time = 0.0
-        self.step_count = 0
 
         dev = self.device
         Ke = tet_linear_stiffness_blocks(qd.qp_dNdX, qd.qp_weight, mat.mu_lame, mat.lam_lame)
@@ -160,24 +149,19 @@ class StiffnessWarpingSimulator(SimulatorState):
         self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
                                        positions=model.rest_positions, **simulator_options(linear_solver, linear_solver_options))
 
-        def vec_array(a=None):
-            if a is None:
-                return wp.zeros(n, dtype=self._vec, device=dev)
-            return wp.array(np.asarray(a, dtype=self._np), dtype=self._vec, device=dev)
-
-        self._vec_array = vec_array
-        self.x = vec_array(model.rest_positions)
-        self.v = vec_array()
-        self._zero = vec_array()
-        self._f0, self._fel, self._rhs, self._w, self._dv, self._tmp = (vec_array() for _ in range(6))
-        self._targets = {}
-        self.sync_model()
+        self._f0, self._fel, self._rhs, self._w, self._dv, self._tmp, self._vnext, self._pv = (
+            self._vec_array() for _ in range(8))
+        self._prediction_work = {}
 
     # -- model changes (no pattern rebuild) -----------------------------------------------------------
     def sync_model(self):
-        """Upload the model's fixed mask and external forces (call after changing them on the model)."""
-        self._mask = self._vec_array((~self.model.fixed).astype(np.float64))
-        self._fext = self._vec_array(self.model.external_forces())
+        """Upload the model's fixed mask and external forces (call after changing them on the model; in place)."""
+        mask, fext = (~self.model.fixed).astype(self._np), self.model.external_forces().astype(self._np)
+        if self._mask is None:
+            self._mask, self._fext = self._vec_array(mask), self._vec_array(fext)
+        else:
+            self._mask.assign(mask)
+            self._fext.assign(fext)
 
     # -- stages ------------------------------------------------------------------------------------
     def _launch(self, kernel, dim, inputs):
@@ -236,44 +220,19 @@ class StiffnessWarpingSimulator(SimulatorState):
         self._launch(WK.warped_energy_kernel, self.num_elements, [xa, self._tets, self._R, self._energy_e])
         return float(self._energy_e.numpy().astype(np.float64).sum())
 
-    def kinetic_energy(self) -> float:
-        """1/2 v^T M v (J)."""
-        self._tmp.zero_()
-        self._bsr_mv(self._mass_values, self.v, 1.0, self._tmp)
-        return 0.5 * self._pcg.dot(self.v, self._tmp)
-
-    def total_energy(self) -> float:
-        """Kinetic + corotational elastic - x^T f_ext (J)."""
-        return self.kinetic_energy() + self.elastic_energy() - self._pcg.dot(self.x, self._fext)
-
     # -- time stepping ------------------------------------------------------------------------------
-    def _prescribed_velocity(self, xb, c):
-        """Device array with the end-of-step velocity (p - x_b) / c that puts fixed components at
-        their target p (or keeps them at x_n); only fixed components are used."""
-        if not self._targets:
-            if xb is self.x:
-                return self._zero
-            out = self._vec_array()  # (x - x_b) first, then the scale
-            self._launch(LK.lincomb_kernel, self.num_vertices, [self._s(1.0), self.x, self._s(-1.0), xb, out])
-            self._launch(LK.lincomb_kernel, self.num_vertices, [self._s(1.0 / c), out, self._s(0.0), out, out])
-            return out
-        p = self.positions()
-        for i, t in self._targets.items():
-            p[i] = t
-        return self._vec_array((p - xb.numpy().astype(np.float64)) / c)
-
-    def _equation_of_motion_acceleration(self, out):
+    def _equation_of_motion_acceleration(self, state, out):
         """out = a with M a = f_w(x) + f_ext - C v on the free components (0 on fixed ones), f_w the
-        warped force and C = alpha M + beta K' at the current state (Newmark's a_0)."""
+        warped force and C = alpha M + beta K' at ``state`` (Newmark's a_0)."""
         n, s = self.num_vertices, self._s
         b = self.damping_stiffness
-        self._assemble(self.x, matrix=b != 0.0, force_scale=1.0)
-        rhs = self._vec_array()
-        launch(LK.lincomb_kernel, n, [s(1.0), self._fext, s(1.0), self._fel, rhs], self.device)
+        self._assemble(state.x, matrix=b != 0.0, force_scale=1.0)
+        rhs = self._tmp
+        launch(LK.lincomb_kernel, n, [s(self._step_control.load_scale), self._fext, s(1.0), self._fel, rhs], self.device)
         if self.damping_mass != 0.0:
-            self._bsr_mv(self._mass_values, self.v, -self.damping_mass, rhs)
+            self._bsr_mv(self._mass_values, state.v, -self.damping_mass, rhs)
         if b != 0.0:
-            self._bsr_mv(self._k_values, self.v, -b, rhs)
+            self._bsr_mv(self._k_values, state.v, -b, rhs)
         launch(LK.mask_kernel, n, [self._mask, rhs], self.device)
         res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.max_cg_iters, 100))
         if not np.isfinite(res.residual):
@@ -284,8 +243,8 @@ class StiffnessWarpingSimulator(SimulatorState):
         """Not supported: stiffness warping (a linearised step with no line search) does not handle contact; use :class:`warpfem.Simulator`."""
         raise ValueError("stiffness warping (a linearised step with no line search) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
 
-    def step(self) -> SolveStats:
-        """Advance one linearly implicit step of ``dt`` (one PCG solve) with the simulator's
+    def _step(self, state_in, state_out, control, dt) -> SolveStats:
+        """One linearly implicit step of ``dt`` (one PCG solve) with the simulator's
         integrator: one Newton iteration, from v_n, of the integrator's incremental potential with
         the warped linear model frozen at the start of the step.
 
@@ -294,11 +253,13 @@ class StiffnessWarpingSimulator(SimulatorState):
         ``require_convergence``) raises :class:`SolveFailed` and leaves the state as it was.
         """
         t0 = time.perf_counter()
-        h, a, b = self.dt, self.damping_mass, self.damping_stiffness
+        launches0 = COUNTERS["launches"]
+        self._step_control = control
+        a, b = self.damping_mass, self.damping_stiffness
         n, nnz = self.num_vertices, self._pattern.nnz
         s = self._s
-        x, v = self.x, self.v
-        prediction = self.integrator.predict(self)
+        x, v = state_in.x, state_in.v
+        prediction = self.integrator.predict(state_in, dt, self.ops, self._prediction_work)
         xb, vh, c = prediction
         # K', f0' and c * f_el = -c (K' x_n + f0') at the start of the step
         self._assemble(x, matrix=True, force_scale=c)
@@ -308,7 +269,7 @@ class StiffnessWarpingSimulator(SimulatorState):
         # rhs = -grad E(v_n) = c f_ext + c f_el(x_n) - c alpha M v_n - c (beta + c) K' v_n
         #       - c K' (x_b - x_n) + M (v_hat - v_n)
         rhs = self._rhs
-        self._launch(LK.lincomb_kernel, n, [s(c), self._fext, s(1.0), self._fel, rhs])
+        self._launch(LK.lincomb_kernel, n, [s(c * control.load_scale), self._fext, s(1.0), self._fel, rhs])
         if a != 0.0:
             self._bsr_mv(self._mass_values, v, -c * a, rhs)
         self._bsr_mv(self._k_values, v, -c * (b + c), rhs)
@@ -319,30 +280,26 @@ class StiffnessWarpingSimulator(SimulatorState):
             self._launch(LK.lincomb_kernel, n, [s(1.0), vh, s(-1.0), v, self._tmp])
             self._bsr_mv(self._mass_values, self._tmp, 1.0, rhs)
         # prescribed components: w = (I - P)(v_prescribed - v), moved to the right-hand side
-        self._launch(LK.lincomb_kernel, n, [s(1.0), self._prescribed_velocity(xb, c), s(-1.0), v, self._tmp])
+        pv = self._prescribed_velocity(state_in, xb, c, control, self._pv)
+        self._launch(LK.lincomb_kernel, n, [s(1.0), pv, s(-1.0), v, self._tmp])
         self._launch(LK.select_kernel, n, [self._mask, self._zero, self._tmp, self._w])
         self._bsr_mv(self._a_values, self._w, -1.0, rhs)
         self._launch(LK.mask_kernel, n, [self._mask, rhs])
         res = self._pcg.solve(self._a_values, self._mask, rhs, self._dv, tol=self.cg_tol, maxiter=self.max_cg_iters)
         # dv = free solution + prescribed part; v+ = v + dv; x+ = x_b + c v+ (the integrator)
         self._launch(LK.axpy_kernel, n, [s(1.0), self._w, self._dv])
-        v_next = self._vec_array()
+        v_next = self._vnext
         self._launch(LK.lincomb_kernel, n, [s(1.0), v, s(1.0), self._dv, v_next])
         vv = self._pcg.dot(v_next, v_next)
         stats = SolveStats(converged=bool(res.converged), newton_iterations=1, cg_iterations=res.iterations,
                            residual=res.residual, linear_iterations=res.iterations, host_syncs=res.host_syncs)
         stats.reason = "linear solve converged" if res.converged else f"PCG stopped at relative residual {res.residual:.2e}"
         stats.seconds = time.perf_counter() - t0
-        what = f"step {self.step_count}"
+        stats.launches = COUNTERS["launches"] - launches0
         if not np.isfinite(vv) or not np.isfinite(res.residual):
             stats.converged, stats.reason = False, "non-finite velocity"
-            raise SolveFailed(f"{what} diverged (non-finite velocity); state left unchanged", stats)
-        if not res.converged:
-            if self.require_convergence:
-                raise SolveFailed(f"{what} did not converge ({stats.reason}); state left unchanged", stats)
-            warnings.warn(f"{what}: {stats.reason} (cg_tol {self.cg_tol:g})", RuntimeWarning, stacklevel=2)
-        self.integrator.advance(self, v_next, prediction)
-        self._targets.clear()
-        self.time += h
-        self.step_count += 1
+        check_solve(stats, f"step {self.step_count}", require_convergence=self.require_convergence,
+                    finite=bool(np.isfinite(vv) and np.isfinite(res.residual)), stacklevel=4)
+        self.integrator.advance(state_in, v_next, prediction, dt, self.ops, state_out)
+        state_out.time = state_in.time + dt
         return stats

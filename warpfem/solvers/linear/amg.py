@@ -100,6 +100,10 @@ class AMGSolver(HostLinearSolver):
         self._stale = False
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
+    def _analyse(self, pattern):
+        super()._analyse(pattern)
+        self._stale = True  # a grown pattern: the hierarchy is rebuilt on the next prepare
+
     def _prepare(self, values, mask):
         import scipy.sparse
 

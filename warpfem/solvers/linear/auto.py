@@ -71,6 +71,8 @@ def simulator_options(name: str, options: dict | None) -> dict:
     options = dict(options or {})
     if name == "auto":
         options.setdefault("initial", "size")
+    if name in ("auto", "pcg"):  # the whole PCG solve as one launch on the CPU (DevicePCG.cpu_serial)
+        options.setdefault("cpu_serial", True)
     return options
 
 
@@ -107,18 +109,23 @@ class AutoSolver(LinearSolver):
 
     def __init__(self, pattern, *, vec_type, scalar, switch_iterations: int = SWITCH_ITERATIONS,
                  check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto", positions=None,
-                 initial: str = "pcg"):
+                 initial: str = "pcg", cpu_serial: bool = False):
         if initial not in INITIAL_CHOICES:
             raise ValueError(f"initial must be one of {INITIAL_CHOICES}, got {initial!r}")
         self._initial = initial
         if int(switch_iterations) != switch_iterations or switch_iterations < 1:
             raise ValueError(f"switch_iterations must be a positive integer, got {switch_iterations!r}")
         self.switch_iterations = int(switch_iterations)
-        self._pcg_options = dict(check_every=check_every, use_cuda_graph=use_cuda_graph)
+        self._pcg_options = dict(check_every=check_every, use_cuda_graph=use_cuda_graph, cpu_serial=cpu_serial)
         self._backend = backend
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     def _analyse(self, pattern):
+        if self.analyse_count > 1:  # a grown pattern: the solvers built so far analyse it
+            for s in (self.pcg, self.direct):
+                if s is not None:
+                    s.analyse(pattern)
+            return
         self.pcg = None
         self.direct = None
         self.active = "pcg"
@@ -165,3 +172,23 @@ class AutoSolver(LinearSolver):
                      res.iterations, self.switch_iterations)
             self.active = "direct"
         return res
+
+    # -- deferred solves (PCG only): see DevicePCG.solve_deferred -----------------------------------
+    @property
+    def deferred_chunks(self) -> int:
+        return self.pcg.deferred_chunks if self.pcg is not None else 0
+
+    def can_defer(self) -> bool:
+        return self.active == "pcg" and self.pcg is not None and self.pcg.can_defer()
+
+    def solve_deferred(self, b, x, **kw):
+        self.pcg.solve_deferred(b, x, **kw)
+
+    def complete_deferred(self, report):
+        res, changed = self.pcg.complete_deferred(report)
+        self.host_syncs += res.host_syncs
+        if self._may_switch and res.iterations > self.switch_iterations:
+            log.info("linear solver auto: PCG needed %d iterations (> %d); switching to the direct solver",
+                     res.iterations, self.switch_iterations)
+            self.active = "direct"
+        return res, changed

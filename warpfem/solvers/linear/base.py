@@ -4,8 +4,9 @@ Every Newton system is H d = -g over 3x3-block-sparse matrices of one fixed patt
 (:class:`~warpfem.solvers.sparse.BlockPattern`), with fixed degrees of freedom handled by a mask
 P (1 = free, 0 = fixed): the solved system is (P H P + I - P) x = P b. A solver goes through
 
-* ``analyse(pattern)``: once per pattern (the constructor calls it; the pattern never changes):
-  workspaces, orderings, symbolic factorisations;
+* ``analyse(pattern)``: once per pattern (the constructor calls it, and the simulator's
+  ``HessianSystem`` again when a form makes the pattern grow): workspaces, orderings, symbolic
+  factorisations;
 * ``prepare(values, mask)``: once per Newton iteration: the numeric factorisation or the
   preconditioner of the matrix with these block values;
 * ``solve(b, x, *, tol, maxiter) -> LinearSolveResult``: x from b (already masked); ``x`` is
@@ -98,9 +99,12 @@ class LinearSolver:
 
     # -- interface --------------------------------------------------------------------------------
     def analyse(self, pattern):
-        """Once per pattern: workspaces and any symbolic analysis."""
+        """Once per pattern: workspaces and any symbolic analysis. Called again with a grown
+        pattern of the same mesh (``HessianSystem.ensure_blocks``): the solver binds to it."""
         if pattern is not self.pattern and (pattern.num_rows != self.pattern.num_rows):
             raise ValueError("a linear solver is bound to one pattern; build a new solver for another mesh")
+        self.pattern = pattern
+        self._values = None
         self.analyse_count += 1
         self._analyse(pattern)
 

@@ -220,8 +220,14 @@ class DirectSolver(HostLinearSolver):
 
     @property
     def symbolic_count(self) -> int:
-        """How many symbolic analyses (orderings) the backend has done."""
-        return self.backend.symbolic_count
+        """How many symbolic analyses (orderings) the backend has done (over every pattern)."""
+        return self.backend.symbolic_count + getattr(self, "_symbolic_before", 0)
+
+    def _analyse(self, pattern):
+        super()._analyse(pattern)
+        if self.analyse_count > 1:  # a grown pattern: a fresh backend, analysed on its next factorisation
+            self._symbolic_before = self.symbolic_count
+            self.backend = _make_backend(self.backend_name)
 
     @property
     def failure(self) -> str:

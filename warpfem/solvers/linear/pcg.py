@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.generic import COUNTERS, both_precisions
 from warpfem.kernels.linalg import cw_mul
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
 
@@ -182,6 +182,85 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
         report[3] = bb[0]
 
 
+@both_precisions(values="m[]", mask="v[]", inv_diag="m[]", b="v[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]")
+@wp.kernel
+def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
+                       values: wp.array(dtype=Any), mask: wp.array(dtype=Any), inv_diag: wp.array(dtype=Any),
+                       b: wp.array(dtype=Any), x: wp.array(dtype=Any), r: wp.array(dtype=Any), z: wp.array(dtype=Any),
+                       p: wp.array(dtype=Any), Ap: wp.array(dtype=Any), tol2: wp.array(dtype=wp.float64),
+                       maxiter: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.float64)):
+    """The whole solve in one launch of one thread, for the CPU (where a launch's threads run one
+    after the other anyway, and launches, not arithmetic, cost the time on small meshes): the same
+    iteration, in the same order of operations, as the init / matvec / update / direction kernels."""
+    n = b.shape[0]
+    rz = wp.float64(0.0)
+    rr = wp.float64(0.0)
+    for i in range(n):
+        bi = b[i]
+        zi = inv_diag[i] * bi
+        x[i] = bi - bi
+        r[i] = bi
+        z[i] = zi
+        p[i] = zi
+        rz += wp.float64(wp.dot(bi, zi))
+        rr += wp.float64(wp.dot(bi, bi))
+    bb = rr
+    st = int(_RUNNING)
+    if not wp.isfinite(bb):
+        st = int(_NONFINITE)
+    elif bb <= wp.float64(0.0):
+        st = int(_CONVERGED)
+    it = int(0)
+    while st == int(_RUNNING):
+        pap = wp.float64(0.0)
+        for i in range(n):
+            pi = p[i]
+            acc = pi - pi
+            for q in range(offsets[i], offsets[i + 1]):
+                c = columns[q]
+                acc += values[q] * cw_mul(mask[c], p[c])
+            m = mask[i]
+            yv = cw_mul(m, acc) + pi - cw_mul(m, pi)
+            Ap[i] = yv
+            pap += wp.float64(wp.dot(pi, yv))
+        if not (pap > wp.float64(0.0)) or not wp.isfinite(pap):
+            if it == 0:
+                for i in range(n):
+                    x[i] = z[i]
+            st = int(_NEGATIVE)
+        else:
+            rz1 = wp.float64(0.0)
+            rr1 = wp.float64(0.0)
+            for i in range(n):
+                xi = x[i]
+                alpha = type(xi[0])(rz / pap)
+                x[i] = xi + alpha * p[i]
+                ri = r[i] - alpha * Ap[i]
+                r[i] = ri
+                zi = inv_diag[i] * ri
+                z[i] = zi
+                rz1 += wp.float64(wp.dot(ri, zi))
+                rr1 += wp.float64(wp.dot(ri, ri))
+            it = it + 1
+            rr = rr1
+            if not wp.isfinite(rr1):
+                st = int(_NONFINITE)
+            elif rr1 <= tol2[0] * bb:
+                st = int(_CONVERGED)
+            elif it >= maxiter[0]:
+                st = int(_MAXITER)
+            else:
+                for i in range(n):
+                    pv = p[i]
+                    beta = type(pv[0])(rz1 / rz)
+                    p[i] = z[i] + beta * pv
+            rz = rz1
+    report[0] = wp.float64(st)
+    report[1] = wp.float64(it)
+    report[2] = rr
+    report[3] = bb
+
+
 class DevicePCG(LinearSolver):
     """Block-Jacobi PCG with device-side scalars and a host check every ``check_every`` iterations.
 
@@ -191,15 +270,21 @@ class DevicePCG(LinearSolver):
             ceil(iterations / k) read-backs (at least one), and runs at most k - 1 no-op
             iterations past convergence.
         use_cuda_graph: on CUDA, capture a chunk of k iterations as a graph and replay it.
+        cpu_serial: on the CPU, run the whole solve as one launch of one thread
+            (``_pcg_serial_kernel``: the same iterations in the same order, one read-back per
+            solve, no no-op iterations past convergence; the simulators turn it on, see
+            ``linear.auto.simulator_options``). Ignored on CUDA.
     """
 
     name = "pcg"
 
-    def __init__(self, pattern, *, vec_type, scalar, check_every: int = 16, use_cuda_graph: bool = True):
+    def __init__(self, pattern, *, vec_type, scalar, check_every: int = 16, use_cuda_graph: bool = True,
+                 cpu_serial: bool = False):
         if int(check_every) != check_every or check_every < 1:
             raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
         self.check_every = int(check_every)
         self.use_cuda_graph = bool(use_cuda_graph)
+        self.cpu_serial = bool(cpu_serial) and not pattern.device.is_cuda
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     def _analyse(self, pattern):
@@ -221,6 +306,7 @@ class DevicePCG(LinearSolver):
         self._maxiter = wp.zeros(1, dtype=wp.int32, device=dev)
         self._report = wp.zeros(4, dtype=wp.float64, device=dev)
         self._graph = None
+        self._serial_cmd, self._serial_key = None, None
         self._start_cmds = None
         self._chunk_cmds, self._chunk_key = None, None
         self._chunk_runs = 0
@@ -261,15 +347,30 @@ class DevicePCG(LinearSolver):
             self._graph = None
         return self._chunk_cmds
 
+    def _run_serial(self):
+        """The whole solve (CPU): one recorded launch per (values, mask) arrays."""
+        key = (self._values.ptr, self._mask.ptr)
+        if self._serial_key != key:
+            pt = self.pattern
+            self._serial_cmd = self._record(_pcg_serial_kernel, 1, [
+                pt.offsets, pt.columns, self._values, self._mask, self.inv_diag, self.b, self.x, self.r, self.z, self.p,
+                self.Ap, self._tol2, self._maxiter, self._report])
+            self._serial_key = key
+        self._serial_cmd.launch()
+        COUNTERS["launches"] += 1
+
     def _launch_start(self):
         self._rz.zero_()
         self._rr.zero_()
-        for c in self._start_commands():
+        cmds = self._start_commands()
+        for c in cmds:
             c.launch()
+        COUNTERS["launches"] += len(cmds)
 
     def _run_chunk(self):
         dev = self.device
         cmds = self._chunk_commands()
+        COUNTERS["launches"] += len(cmds)  # a replayed graph counts as its launches
         if dev.is_cuda and self.use_cuda_graph:
             if self._graph is None:
                 if self._chunk_runs == 0:  # first run uncaptured: loads the modules
@@ -293,15 +394,25 @@ class DevicePCG(LinearSolver):
         wp.copy(self.b, b)
         self._tol2.fill_(float(tol) ** 2)
         self._maxiter.fill_(int(maxiter))
+        if self.cpu_serial:
+            self._run_serial()
+            rep = self._report.numpy()
+            wp.copy(x, self.x)
+            return self._result(rep, tol, 1)
         self._launch_start()
-        syncs = 0
+        syncs = chunks = 0
         while True:
             self._run_chunk()
+            chunks += 1
             rep = self._report.numpy()  # the one host read-back of the chunk
             syncs += 1
             if int(rep[0]) != _RUNNING:
                 break
+        self.last_chunks = chunks
         wp.copy(x, self.x)
+        return self._result(rep, tol, syncs)
+
+    def _result(self, rep, tol, syncs) -> LinearSolveResult:
         status, it, rr, bb = int(rep[0]), int(rep[1]), float(rep[2]), float(rep[3])
         if bb == 0.0:
             return LinearSolveResult(0, 0.0, True, host_syncs=syncs)
@@ -309,3 +420,52 @@ class DevicePCG(LinearSolver):
         return LinearSolveResult(it, rel, bool(rel <= tol), host_syncs=syncs,
                                  negative_curvature=status == _NEGATIVE,
                                  failed="" if status != _NONFINITE else "non-finite residual")
+
+    # -- a solve whose read-back is the caller's (the Newton loop reads it with its own numbers) --------
+    last_chunks = 0  # chunks of check_every iterations the last solve ran
+
+    def can_defer(self) -> bool:
+        return self._values is not None
+
+    @property
+    def deferred_chunks(self) -> int:
+        """Chunks a deferred solve should run before the caller's read-back (0: solve normally)."""
+        return 1 if self.cpu_serial else self.last_chunks
+
+    def solve_deferred(self, b, x, *, tol, maxiter, chunks, report_out, report_offset):
+        """Start a solve of (prepared matrix) x = b and run ``chunks`` chunks without reading back;
+        x and the 4-number report (status, iterations, r.r, b.b) are copied on the device into
+        ``x`` and ``report_out[report_offset:report_offset + 4]``. The caller reads the report
+        (with whatever else it reads) and finishes with :meth:`complete_deferred`."""
+        if maxiter < 1:
+            raise ValueError(f"maxiter must be >= 1, got {maxiter}")
+        wp.copy(self.b, b)
+        self._tol2.fill_(float(tol) ** 2)
+        self._maxiter.fill_(int(maxiter))
+        if self.cpu_serial:  # the solve is complete after its one launch
+            self._run_serial()
+        else:
+            self._launch_start()
+            for _ in range(max(1, int(chunks))):
+                self._run_chunk()
+        wp.copy(x, self.x)
+        wp.copy(report_out, self._report, dest_offset=int(report_offset), count=4)
+        self._deferred = (x, float(tol), max(1, int(chunks)))
+
+    def complete_deferred(self, report):
+        """(result, x changed): the solve started by :meth:`solve_deferred`, from the report the
+        caller read; a solve still running is continued here (one read-back per further chunk) and
+        then ``x`` has changed since the caller's launches used it."""
+        x, tol, chunks = self._deferred
+        self._deferred = None
+        rep, syncs = np.asarray(report, dtype=np.float64), 0
+        while int(rep[0]) == _RUNNING:
+            self._run_chunk()
+            chunks += 1
+            rep = self._report.numpy()
+            syncs += 1
+        if syncs:
+            wp.copy(x, self.x)
+        self.last_chunks = chunks
+        self.host_syncs += syncs
+        return self._result(rep, tol, syncs), syncs > 0
