@@ -202,30 +202,29 @@ class CompileWatch:
         if cls is None:
             return self
         compile_, load = cls.__dict__["_compile"], cls.__dict__["load"]
-        watch = self
 
         def _compile(module, *args, **kwargs):
-            if watch._will_compile(args, kwargs):
-                watch._notice_start()
+            if self._will_compile(args, kwargs):
+                self._notice_start()
             compiled = compile_(module, *args, **kwargs)
             if compiled:
-                watch._notice_start()
-                watch._compiled_in_load = True
+                self._notice_start()
+                self._compiled_in_load = True
             return compiled
 
         def _load(module, *args, **kwargs):
-            outer = watch._depth == 0
+            outer = self._depth == 0
             if outer:
-                watch._compiled_in_load = False
-            watch._depth += 1
+                self._compiled_in_load = False
+            self._depth += 1
             t0 = time.perf_counter()
             try:
                 return load(module, *args, **kwargs)
             finally:
-                watch._depth -= 1
-                if outer and watch._compiled_in_load:
-                    watch._compiled_in_load = False
-                    watch._finished(time.perf_counter() - t0)
+                self._depth -= 1
+                if outer and self._compiled_in_load:
+                    self._compiled_in_load = False
+                    self._finished(time.perf_counter() - t0)
 
         self._saved = [(cls, "_compile", compile_), (cls, "load", load)]
         cls._compile, cls.load = _compile, _load
