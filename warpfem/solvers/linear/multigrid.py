@@ -507,13 +507,31 @@ class MultigridPCG(LinearSolver):
 
     @staticmethod
     def _pinv(A) -> np.ndarray:
-        """Pseudo-inverse of the symmetric PSD coarsest matrix (eigenvalues below 1e-12 of the
-        largest dropped: coarse unknowns that no free DOF reaches, dependent coarse modes)."""
+        """Inverse of the symmetric PSD coarsest matrix: by Cholesky (rows and columns that no
+        free DOF reaches, exactly zero, are left out and get zero rows in the inverse); if that
+        fails (dependent coarse modes), the pseudo-inverse from the eigen-decomposition,
+        eigenvalues below 1e-12 of the largest dropped."""
+        import scipy.linalg
+
         A = 0.5 * (A + A.T)
+        d = np.diag(A)
+        live = d > 0.0
+        inv = np.zeros_like(A)
+        if not live.any():
+            return inv
+        Al = A[np.ix_(live, live)]
+        L, info = scipy.linalg.lapack.dpotrf(Al, lower=1)
+        if info == 0:
+            Li, info = scipy.linalg.lapack.dpotri(L, lower=1)
+            if info == 0:
+                Li = np.tril(Li) + np.tril(Li, -1).T
+                inv[np.ix_(live, live)] = Li
+                if np.all(np.isfinite(inv)):
+                    return inv
         w, V = np.linalg.eigh(A)
-        keep = w > 1e-12 * max(float(w.max()), 0.0) if w.size else w > 0
-        inv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
-        return (V * inv) @ V.T
+        keep = w > 1e-12 * max(float(w.max()), 0.0)
+        winv = np.where(keep, 1.0 / np.where(keep, w, 1.0), 0.0)
+        return (V * winv) @ V.T
 
     # -- interface ------------------------------------------------------------------------------------
     def _prepare(self, values, mask):
@@ -631,11 +649,21 @@ class MultigridPCG(LinearSolver):
         self._precondition()
         cmds["init_finish"]()
         syncs = 0
+        if self.check_every == 1:
+            stop = np.float64(float(tol) ** 2) * np.float64(self._bb.numpy()[0])
+            syncs += 1
         while True:
             cmds["carry"]()
             for matvec, update, finish, direction in cmds["iters"]:
                 matvec()
                 update()
+                if self.check_every == 1:
+                    # one read-back before the V-cycle: the last iteration's is skipped (the
+                    # direction kernel sees the same residual and stops without z)
+                    syncs += 1
+                    if self._rr.numpy()[1] <= stop:  # the direction kernel's own test, same float64 numbers
+                        direction()
+                        continue
                 self._precondition()
                 finish()
                 direction()
