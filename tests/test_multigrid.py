@@ -41,7 +41,7 @@ def test_multigrid_matches_spsolve_and_keeps_fixed_dofs_zero(precision):
 
 def test_coarse_operators_are_the_galerkin_products_of_the_masked_matrix():
     sim, model, vals, b, Am = _system(cells=(12, 3, 3), h2=1e-2)
-    solver = _make("multigrid", sim, model, max_coarse=30)
+    solver = _make("multigrid", sim, model, max_coarse=30, coarse_update="every")
     v = wp.clone(vals)
     for scale in (1.0, 3.0):  # re-formed on the device at every prepare, with the same prolongators
         wp.launch(LK.scale_copy_kernel, dim=len(v), inputs=[vals, sim._s(scale), v])
@@ -53,7 +53,29 @@ def test_coarse_operators_are_the_galerkin_products_of_the_masked_matrix():
             P = solver._dense(cur.P)
             A = P.T @ A @ P
             np.testing.assert_allclose(solver._dense(nxt.A), A, rtol=0, atol=1e-9 * np.abs(A).max())
-    assert solver.setup_count == 1 and solver.prepare_count == 2
+    assert solver.setup_count == 1 and solver.prepare_count == 2 and solver.galerkin_count == 2
+
+
+def test_lagged_coarse_operators_refresh_when_the_iterations_grow():
+    sim, model, vals, b, Am = _system(cells=(12, 3, 3), h2=1e-2)
+    solver = _make("multigrid", sim, model, max_coarse=30)  # coarse_update="lagged", the default
+    bd, xd = sim._vec_array(b), sim._vec_array()
+    v = wp.clone(vals)
+    its = []
+    for scale in (1.0, 1.1, 100.0, 100.0):  # a drifting matrix, then one the coarse operators no longer fit
+        wp.launch(LK.scale_copy_kernel, dim=len(v), inputs=[vals, sim._s(scale), v])
+        wp.launch(LK.add_scaled_kernel, dim=len(v), inputs=[sim._mass_values, sim._s(1.0 - scale), v])
+        res = solver.solve(v, sim._mask, bd, xd, tol=1e-8, maxiter=300)
+        assert res.converged  # valid (SPD) preconditioner with older coarse operators too
+        m = (~model.fixed).astype(np.float64).ravel()
+        A = sim._pattern.to_scipy(v)
+        A = (sp.diags(m) @ A @ sp.diags(m) + sp.diags(1.0 - m)).tocsc()
+        x = xd.numpy().ravel()
+        assert np.linalg.norm(A @ x - b.ravel()) <= 1e-7 * np.linalg.norm(b)
+        its.append(res.iterations)
+    # one re-formation while the iterations stay (1.0, 1.1), one after they grew (100)
+    assert solver.galerkin_count == 2, its
+    assert its[2] > 1.5 * its[0] + 2 and its[3] < its[2], its
 
 
 @pytest.mark.parametrize("nu", [0.3, 0.49])

@@ -311,6 +311,11 @@ class MultigridPCG(LinearSolver):
         lower: the Chebyshev interval is [lower, 1] of the l1-Jacobi preconditioned spectrum.
         check_every: CG iterations between host read-backs of the residual (default 1 on the CPU,
             where a read-back costs microseconds and an extra V-cycle does not; 4 on CUDA).
+        coarse_update: "every": the coarse operators are re-formed (Galerkin products) at every
+            prepare; "lagged": only the finest level follows each matrix, the coarse operators are
+            re-formed when a solve needs more than ``lag_factor`` times the iterations (+2) of the
+            first solve after the last re-formation (the V-cycle stays SPD with older coarse
+            operators, so CG stays valid; measured effect in docs/linear_solvers.md).
         rebuild_factor: rebuild the hierarchy (from the matrix of the next prepare) when a solve
             needs more than this times the iterations of the first solve after the last build (+5).
         strength, aggregate, smooth, improve_candidates: passed to pyamg's
@@ -321,7 +326,7 @@ class MultigridPCG(LinearSolver):
 
     def __init__(self, pattern, *, vec_type, scalar, positions=None, max_coarse: int = 300, max_levels: int = 10,
                  degree: int = 3, lower: float = 0.03, check_every: int | None = None, rebuild_factor: float = 3.0,
-                 strength="symmetric", aggregate="standard", smooth=("jacobi", {"omega": 4.0 / 3.0}),
+                 coarse_update: str = "lagged", lag_factor: float = 1.5, strength="symmetric", aggregate="standard", smooth=("jacobi", {"omega": 4.0 / 3.0}),
                  improve_candidates=None):
         self.pyamg = require("pyamg", "amg", "'multigrid' linear solver")
         if int(degree) != degree or degree < 1:
@@ -342,6 +347,11 @@ class MultigridPCG(LinearSolver):
         self.max_coarse, self.max_levels = int(max_coarse), int(max_levels)
         self.check_every = int(check_every)
         self.rebuild_factor = float(rebuild_factor)
+        if coarse_update not in ("every", "lagged"):
+            raise ValueError(f"coarse_update must be 'every' or 'lagged', got {coarse_update!r}")
+        if not (np.isfinite(lag_factor) and lag_factor >= 1.0):
+            raise ValueError(f"lag_factor must be >= 1, got {lag_factor!r}")
+        self.coarse_update, self.lag_factor = coarse_update, float(lag_factor)
         self.sa_options = dict(strength=strength, aggregate=aggregate, smooth=smooth,
                                improve_candidates=improve_candidates)
         n = pattern.num_rows
@@ -354,6 +364,8 @@ class MultigridPCG(LinearSolver):
             self._B0 = rigid_body_modes(X)
         self.levels = None
         self.setup_count = 0
+        self.galerkin_count = 0
+        self._refresh_coarse, self._galerkin_iters = False, None
         self._base_iters = None
         self._stale = False
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
@@ -470,21 +482,26 @@ class MultigridPCG(LinearSolver):
                                   prune_numerical_zeros=False)
         return out
 
-    def _galerkin(self, values, mask):
+    def _galerkin(self, values, mask, coarse: bool = True):
         """Every level's matrix from the Newton matrix (device), the smoothers' diagonals, and the
-        coarsest pseudo-inverse (host)."""
+        coarsest pseudo-inverse (host); with ``coarse`` False only the finest level's (the coarse
+        operators of an earlier matrix are kept)."""
         pt, dev = self.pattern, self.device
         A0 = self._A0
         wp.launch(_mask_values_kernel, dim=pt.nnz, inputs=[values, mask, self._rows, self._cols, A0.values], device=dev)
-        for cur, nxt in zip(self.levels[:-1], self.levels[1:]):
-            wsp.bsr_mm(cur.A, cur.P, cur.AP, topology="masked")
-            wsp.bsr_mm(cur.R, cur.AP, nxt.A, topology="masked")
+        if coarse:
+            for cur, nxt in zip(self.levels[:-1], self.levels[1:]):
+                wsp.bsr_mm(cur.A, cur.P, cur.AP, topology="masked")
+                wsp.bsr_mm(cur.R, cur.AP, nxt.A, topology="masked")
+            self.galerkin_count += 1
         wp.launch(_add_fixed_identity_kernel, dim=pt.num_rows, inputs=[mask, self._diag, A0.values], device=dev)
-        for lv in self.levels[:-1]:
+        for lv in self.levels[:-1] if coarse else self.levels[:1]:
             A = lv.A
             wp.launch(_block_l1_inverse_kernel, dim=A.nrow,
                       inputs=[A.offsets, A.columns, A.values, A.block_shape[0], self._tiny, lv.dinv], device=dev)
         last = self.levels[-1]
+        if not coarse and len(self.levels) > 1:
+            return
         Ac = self._dense(last.A)
         self.host_syncs += 1
         Minv = self._pinv(Ac)
@@ -535,9 +552,13 @@ class MultigridPCG(LinearSolver):
 
     # -- interface ------------------------------------------------------------------------------------
     def _prepare(self, values, mask):
-        if self.levels is None or self._stale:
+        built = self.levels is None or self._stale
+        if built:
             self._build(values, mask)
-        self._galerkin(values, mask)
+        coarse = built or self.coarse_update == "every" or self._refresh_coarse
+        self._galerkin(values, mask, coarse=coarse)
+        if coarse:
+            self._refresh_coarse, self._galerkin_iters = False, None
 
     def _commands(self):
         """The launches of a V-cycle and of a chunk of CG iterations, recorded once per (values,
@@ -677,6 +698,10 @@ class MultigridPCG(LinearSolver):
             self._base_iters = max(it, 1)
         elif it > self.rebuild_factor * self._base_iters + 5:
             self._stale = True
+        if self._galerkin_iters is None:
+            self._galerkin_iters = max(it, 1)
+        elif it > self.lag_factor * self._galerkin_iters + 2:
+            self._refresh_coarse = True  # the next prepare re-forms the coarse operators
         if bb == 0.0:
             return LinearSolveResult(0, 0.0, True, host_syncs=syncs)
         rel = float(np.sqrt(max(rr, 0.0) / bb)) if np.isfinite(rr) and np.isfinite(bb) else float("nan")
