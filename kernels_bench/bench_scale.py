@@ -124,7 +124,7 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true", help="boxes c = 8, 13 and one timed step")
     p.add_argument("--sizes", type=int, nargs="+", default=None, help="box cells c (4c x c x c); default 8 13 16")
     p.add_argument("--nus", type=float, nargs="+", default=[0.3, 0.49])
-    p.add_argument("--solvers", nargs="+", default=["pcg", "amg", "multigrid", "direct"])
+    p.add_argument("--solvers", nargs="+", default=["pcg", "amg", "multigrid", "direct", "auto"])
     p.add_argument("--skip", nargs="*", default=[], help="solver:c pairs not to run (e.g. direct:25)")
     p.add_argument("--bunny", action="store_true", help="also the bunny scene")
     p.add_argument("--steps", type=int, default=None)

@@ -82,22 +82,24 @@ def test_lagged_coarse_operators_refresh_when_the_iterations_grow():
 def test_iterations_flat_under_refinement_and_far_below_block_jacobi(nu):
     # quasi-static stiffness of a clamped beam (tiny mass): the hard case for block-Jacobi
     its, bj = [], []
-    # (two-level hierarchies at these sizes: 912 to 12k unknowns, coarsest <= 300)
-    for c in (3, 6, 8):
+    # 16k to 66k unknowns, three levels each (the hierarchy's depth changes the count; the box
+    # benchmark, kernels_bench/bench_scale.py, follows it to 98k tets)
+    for c in (6, 8, 10):
         sim, model, vals, b, Am = _system(cells=(6 * c, c, c), nu=nu, h2=1.0, mass_scale=1e-6)
         bd, xd = sim._vec_array(b), sim._vec_array()
         r = _make("multigrid", sim, model).solve(vals, sim._mask, bd, xd, tol=1e-6, maxiter=500)
         assert r.converged
-        x_ref = spla.spsolve(Am, b.ravel())
-        assert np.linalg.norm(xd.numpy().ravel() - x_ref) / np.linalg.norm(x_ref) < 1e-4
+        x = xd.numpy().ravel()
+        assert np.linalg.norm(Am @ x - b.ravel()) <= 1.01e-6 * np.linalg.norm(b)  # the true residual
         its.append(r.iterations)
-        if c == 6:  # block-Jacobi on the middle size (the largest would take thousands of iterations)
+        if c == 6:  # block-Jacobi on the smallest size (the larger would take thousands of iterations)
             rb = _make("pcg", sim, model).solve(vals, sim._mask, bd, sim._vec_array(), tol=1e-6, maxiter=20000)
             assert rb.converged
+            x_ref = spla.spsolve(Am, b.ravel())
+            assert np.linalg.norm(x - x_ref) / np.linalg.norm(x_ref) < 1e-4
             bj.append(rb.iterations)
     assert max(its) <= 1.5 * min(its), its
-    assert max(its) <= 40, its
-    assert bj[0] >= 8 * its[1], (bj, its)
+    assert bj[0] >= 8 * its[0], (bj, its)
 
 
 def test_changed_mask_between_solves():

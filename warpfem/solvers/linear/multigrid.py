@@ -305,7 +305,8 @@ class MultigridPCG(LinearSolver):
 
     Args:
         positions: (n, 3) rest positions for the rigid-body near-null space (default translations only).
-        max_coarse: unknowns of the coarsest level (dense pseudo-inverse on the host per prepare).
+        max_coarse: at most about this many unknowns on the coarsest level (its dense inverse is
+            formed on the host when the coarse operators are re-formed and applied on the device).
         max_levels: cap on the number of levels.
         degree: Chebyshev polynomial degree of each smoothing (matrix products per pre- or post-smoothing).
         lower: the Chebyshev interval is [lower, 1] of the l1-Jacobi preconditioned spectrum.
@@ -413,7 +414,7 @@ class MultigridPCG(LinearSolver):
         A, m = self._host_matrix(values, mask)
         ml = self.pyamg.smoothed_aggregation_solver(
             scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
-            max_coarse=self.max_coarse, max_levels=self.max_levels, keep=False, coarse_solver="pinv",
+            max_coarse=max(1, self.max_coarse // self._B0.shape[1]), max_levels=self.max_levels, keep=False, coarse_solver="pinv",
             **self.sa_options)
         dev, s = self.device, self.scalar
         levels = [_Level(self._A0, 3 * self.num_rows, s, dev)]
