@@ -102,8 +102,9 @@ def run_one(make, steps):
                              converged=bool(st.converged), warmup=k == 0))
     timed = [r for r in rows if not r["warmup"]]
     newton = float(np.sum([r["newton"] for r in timed]))
+    ls = sim.linear_solver
     return sim, tets, dict(
-        solver=sim.linear_solver.name, vertices=sim.num_vertices, tets=tets, build_seconds=build,
+        solver=ls.name, chose=getattr(ls, "active", None), auto_costs=getattr(ls, "costs", None), vertices=sim.num_vertices, tets=tets, build_seconds=build,
         warmup_seconds=float(sum(r["seconds"] for r in rows if r["warmup"])),
         step_seconds=float(np.mean([r["seconds"] for r in timed])),
         newton_per_step=newton / len(timed),
@@ -152,7 +153,7 @@ def main(argv=None):
             r.update(case=case, nu=nu, hessian_seconds=hess, step_per_hessian=r["step_seconds"] / hess,
                      load=os.getloadavg()[0])
             results.append(r)
-            print(f"{case:>6} nu={nu} {r['solver']:9s} tets {tets:7d}  {r['step_seconds']:7.2f} s/step "
+            print(f"{case:>6} nu={nu} {r['solver'] + (':' + r['chose'] if r.get('chose') else ''):9s} tets {tets:7d}  {r['step_seconds']:7.2f} s/step "
                   f"({r['step_per_hessian']:6.0f} Hessians)  Newton {r['newton_per_step']:4.1f}  "
                   f"CG/Newton {r['linear_per_newton']:6.1f}  converged {r['all_converged']}  load {r['load']:.1f}",
                   flush=True)
@@ -181,7 +182,8 @@ def main(argv=None):
              "", "| case | nu | tets | solver | s/step | step / Hessian assembly | Newton/step | CG it./Newton solve | converged |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in results:
-        lines.append(f"| {'box' if r['case'] != 'bunny' else 'bunny'} | {r['nu']} | {r['tets']} | {r['solver']} | "
+        name = r["solver"] + (f" ({r['chose']})" if r.get("chose") else "")
+        lines.append(f"| {'box' if r['case'] != 'bunny' else 'bunny'} | {r['nu']} | {r['tets']} | {name} | "
                      f"{r['step_seconds']:.2f} | {r['step_per_hessian']:.0f} | {r['newton_per_step']:.1f} | "
                      f"{r['linear_per_newton']:.1f} | {r['all_converged']} |")
     lines += ["", "| solver | slope of log(s/step) vs log(tets), boxes |", "|---|---|"]
