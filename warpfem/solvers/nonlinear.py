@@ -11,9 +11,11 @@ the tolerance, and a step length a is accepted when E(y + a d) <= E(y) + c a d^T
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+from warpfem.solvers.linear.forcing import FORCING, ForcingTerms
 
 
 @dataclass
@@ -31,6 +33,9 @@ class NewtonOptions:
         armijo: sufficient-decrease constant c.
         project_hessian: SPD-project each element's dP/dF (needed for non-convex materials far from
             rest; off gives the exact Hessian).
+        forcing: "fixed" (every linear solve to ``cg_tol``) or "eisenstat_walker" (adaptive
+            tolerances, loose far from the solution, never tighter than ``cg_tol``;
+            :mod:`warpfem.solvers.linear.forcing`, measured effect in docs/linear_solvers.md).
     """
 
     tol: float = 1e-6
@@ -41,6 +46,7 @@ class NewtonOptions:
     max_line_search: int = 30
     armijo: float = 1e-4
     project_hessian: bool = True
+    forcing: str = "fixed"
 
     def validate(self):
         for name in ("tol", "cg_tol"):
@@ -55,6 +61,8 @@ class NewtonOptions:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         if not 0.0 < self.armijo < 0.5:
             raise ValueError(f"armijo must be in (0, 0.5), got {self.armijo!r}")
+        if self.forcing not in FORCING:
+            raise ValueError(f"forcing must be one of {FORCING}, got {self.forcing!r}")
 
 
 @dataclass
@@ -140,8 +148,10 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
         st.converged, st.reason = True, "already at equilibrium"
         return st
     gnorm = gnorm0
+    forcing = None if opts.forcing == "fixed" else ForcingTerms(opts.forcing, opts.cg_tol, opts.tol)
     for _ in range(opts.max_iters):
-        lin = problem.solve_newton_system(y, g, d, opts)  # an iteration count or a LinearSolveResult
+        lin_opts = opts if forcing is None else replace(opts, cg_tol=forcing.next(gnorm))
+        lin = problem.solve_newton_system(y, g, d, lin_opts)  # an iteration count or a LinearSolveResult
         iterations = int(getattr(lin, "iterations", lin))
         st.cg_iterations += iterations
         st.linear_iterations += iterations

@@ -18,8 +18,9 @@ Rule (measurements in docs/linear_solvers.md):
   counted. The cheapest candidate whose solve converged, if it costs at most ``switch_margin``
   times the current solver (timing noise), becomes the solver of every later system, and its
   answer is returned for this one; otherwise the current solver stays.
-* After a choice, a system that costs more than ``recheck_factor`` times the cost the choice was
-  made at (the systems became harder) makes the candidates be measured again, at most
+* After a choice, when the moving average of the chosen solver's cost (weight 0.3 per system, at
+  least 5 systems after the choice) exceeds ``recheck_factor`` times the cost the choice was made
+  at (the systems became harder), the candidates are measured again, at most
   ``max_explorations`` measurements per run.
 * If a factorisation finds a matrix not positive definite (an unprojected Hessian, a singular
   static system), that system and all later ones go to PCG (which stops at negative curvature with
@@ -209,9 +210,15 @@ class AutoSolver(LinearSolver):
         cost = time.perf_counter() - self._t_prepare
         self.costs[self.active] = cost
         others = [c for c in self.candidates if c != self.active]
-        if (cost <= self.explore_seconds or not others or self.explorations >= self.max_explorations
-                or (self._chosen_cost is not None and cost <= self.recheck_factor * self._chosen_cost)):
+        if cost <= self.explore_seconds or not others or self.explorations >= self.max_explorations:
             return res
+        if self._chosen_cost is not None:
+            # after a choice: a moving average over the solves since (one expensive system, such
+            # as a multigrid's re-formed coarse operators, does not trigger a new measurement)
+            self._since_choice += 1
+            self._avg_cost = cost if self._avg_cost is None else 0.7 * self._avg_cost + 0.3 * cost
+            if self._since_choice < 5 or self._avg_cost <= self.recheck_factor * self._chosen_cost:
+                return res
         return self._explore(b, x, tol, maxiter, res, cost, others)
 
     def _explore(self, b, x, tol, maxiter, res, cost, others):
@@ -249,5 +256,6 @@ class AutoSolver(LinearSolver):
             log.info("linear solver auto: %s (%.3f s per Newton system) instead of %s (%.3f s)", best, best_cost,
                      start, cost)
         self.active, self._chosen_cost = best, best_cost
+        self._since_choice, self._avg_cost = 0, None
         best_res.host_syncs = syncs
         return best_res
