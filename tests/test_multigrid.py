@@ -158,3 +158,33 @@ def test_scene_key_and_bad_options(tmp_path):
     with pytest.raises(TypeError, match="unknown option"):
         _make("multigrid", sim, model, rebuild_every=2)
 
+
+
+def test_eisenstat_walker_forcing_saves_cg_iterations_and_keeps_the_result():
+    from warpfem.solvers.linear.forcing import ForcingTerms
+
+    ft = ForcingTerms("eisenstat_walker", cg_tol=1e-4, tol=1e-6)
+    etas = [ft.next(g) for g in (1.0, 0.5, 0.05, 1e-4, 1e-7)]
+    assert etas[0] == 0.1 and all(1e-4 <= e <= 0.1 for e in etas)
+    assert etas[2] < etas[1]  # tighter as the gradient falls fast
+    assert etas[-1] == min(0.1, 0.5 * 1e-6 * 1.0 / 1e-7)  # never tighter than the Newton tolerance needs
+    assert ForcingTerms("fixed", cg_tol=1e-4, tol=1e-6).next(1.0) == 1e-4
+    out, cg = {}, {}
+    for forcing in ("fixed", "eisenstat_walker"):
+        mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=(12, 3, 3))
+        mat = wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.45, density=1000.0)
+        model = wf.Model(mesh, mat, gravity=(0.0, -9.81, 0.0))
+        model.fix(np.nonzero(mesh.vertices[:, 0] < 1e-9)[0])
+        sim = wf.Simulator(model, dt=0.02, linear_solver="pcg", tol=1e-8, cg_tol=1e-6, forcing=forcing)
+        cg[forcing] = 0
+        for _ in range(3):
+            st = sim.step()
+            assert st.converged
+            cg[forcing] += st.linear_iterations
+        out[forcing] = sim.positions()
+    disp = np.abs(out["fixed"] - model.rest_positions).max()
+    assert disp > 1e-3
+    np.testing.assert_allclose(out["eisenstat_walker"], out["fixed"], rtol=0, atol=1e-6 * disp)
+    assert cg["eisenstat_walker"] < 0.8 * cg["fixed"], cg
+    with pytest.raises(ValueError, match="forcing"):
+        wf.Simulator(model, forcing="newton")
