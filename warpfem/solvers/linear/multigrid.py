@@ -1,5 +1,5 @@
 """Smoothed-aggregation multigrid as the preconditioner of the device PCG: the hierarchy is
-built once, every Newton iteration re-forms the coarse operators on the device.
+built once, the coarse operators are re-formed on the device as Galerkin products.
 
 Set-up (host, once per solver, at the first ``prepare``): pyamg's smoothed aggregation of the
 first masked matrix with the six rigid-body modes as near-null space ("Algebraic multigrid by
@@ -8,18 +8,22 @@ the prolongators P_l (3x6 blocks on the finest level, 6x6 below). They are uploa
 ``warp.sparse`` BSR matrices with their transposes R_l = P_l^T and never change.
 
 Per ``prepare`` (device, Warp's sparse routines): A_0 = P H P (the masked Hessian without the
-identity of the fixed DOFs), A_{l+1} = R_l (A_l P_l) by two ``bsr_mm`` products that reuse their
-topology, then the identity of the fixed DOFs goes into A_0's diagonal, the l1-Jacobi diagonal of
-every level is formed, and the coarsest matrix (a few hundred unknowns) is copied to the host and
-pseudo-inverted (the one host step; its inverse goes back to the device as a dense matrix).
+identity of the fixed DOFs), then the identity of the fixed DOFs goes into A_0's diagonal and its
+block l1-Jacobi diagonal is formed. The coarse operators A_{l+1} = R_l (A_l P_l) (two ``bsr_mm``
+products each, masked to block structures computed once at set-up), their l1 diagonals and the
+coarsest level's inverse (a few hundred unknowns, copied to the host and inverted by Cholesky: the
+one host step) are re-formed at every prepare with ``coarse_update="every"``, and with the default
+``"lagged"`` only when a solve needs clearly more iterations than the first one after the last
+re-formation (the V-cycle stays SPD with older coarse operators).
 
 Per CG iteration one V-cycle: on every level a Chebyshev polynomial smoother in the l1-Jacobi
-preconditioned operator D^-1 A, D_ii = sum_j |a_ij| ("Multigrid smoothers for ultraparallel
-computing", Baker, Falgout, Kolev, Yang: rho(D^-1 A) <= 1 for any SPD A, so the Chebyshev interval
-[lower * 1, 1] needs no eigenvalue estimate), restriction by R_l, the coarsest level by the
-dense pseudo-inverse, prolongation by P_l, the same smoother after. Chebyshev recurrence as in
-Saad, "Iterative Methods for Sparse Linear Systems", Algorithm 12.1. The V-cycle is symmetric and,
-the l1 smoother being convergent, positive definite, so CG stays valid.
+preconditioned operator D^-1 A, D the block diagonal plus the absolute off-diagonal row sums
+("Multigrid smoothers for ultraparallel computing", Baker, Falgout, Kolev, Yang: rho(D^-1 A) <= 1
+for any SPD A, so the Chebyshev interval [lower, 1] needs no eigenvalue estimate), restriction by
+R_l, the coarsest level by its dense inverse, prolongation by P_l, the same smoother after. Chebyshev recurrence as in
+Saad, "Iterative Methods for Sparse Linear Systems", Algorithm 12.1 (block l1 diagonals: 3x3 on
+the finest level, 6x6 below, inverted in the kernel). The V-cycle is symmetric and, the l1
+smoother being convergent, positive definite, so CG stays valid.
 
 Fixed DOFs: the prolongators are not masked; instead the coarse operators are the Galerkin
 products of the free-space matrix P H P and the preconditioned residual is z = P M r + (I - P) r.
@@ -295,8 +299,7 @@ class _Level:
         self.block = b
         self.dinv = wp.zeros(size // b, dtype=wp.types.matrix(shape=(b, b), dtype=scalar), device=device)
         self.P = self.R = None
-        self.AP = None
-        self.work_ap = self.work_rap = None
+        self.AP = None  # A P, in the structure computed at set-up
         self.Minv = None  # the coarsest level's dense pseudo-inverse
 
 
@@ -591,8 +594,7 @@ class MultigridPCG(LinearSolver):
                                              self._bb, self._tol2, self._maxiter, self._report, j])))
         c0, steps = self._cheb
         s = self.scalar
-        cyc = []
-        for lv in self.levels:
+        for l, lv in enumerate(self.levels):
             if lv.Minv is not None:
                 lv.cmd_coarse = R(_dense_mv_kernel, lv.size, [lv.Minv, lv.f, lv.x])
                 continue
@@ -606,10 +608,9 @@ class MultigridPCG(LinearSolver):
             lv.cmd_copy_r = R(_scale_kernel, lv.size, [lv.f, s(1.0), lv.r])
             lv.cmd_residual = self._mv(lv.A, lv.x, -1.0, lv.f, 1.0, lv.r)
             lv.cmd_Ad = self._mv(lv.A, lv.d, 1.0, lv.t, 0.0, lv.t)
-            nxt = self.levels[self.levels.index(lv) + 1]
+            nxt = self.levels[l + 1]
             lv.cmd_restrict = self._mv(lv.R, lv.r, 1.0, nxt.f, 0.0, nxt.f)
             lv.cmd_prolong = self._mv(lv.P, nxt.x, 1.0, lv.x, 1.0, lv.x)
-            cyc.append(lv)
         self._cmds = (key, cmds)
         return cmds
 
