@@ -104,7 +104,8 @@ def run_one(make, steps):
     newton = float(np.sum([r["newton"] for r in timed]))
     ls = sim.linear_solver
     return sim, tets, dict(
-        solver=ls.name, chose=getattr(ls, "active", None), auto_costs=getattr(ls, "costs", None), vertices=sim.num_vertices, tets=tets, build_seconds=build,
+        solver=ls.name, chose=getattr(ls, "active", None), auto_costs=getattr(ls, "costs", None),
+        auto_explorations=getattr(ls, "explorations", None), vertices=sim.num_vertices, tets=tets, build_seconds=build,
         warmup_seconds=float(sum(r["seconds"] for r in rows if r["warmup"])),
         step_seconds=float(np.mean([r["seconds"] for r in timed])),
         newton_per_step=newton / len(timed),
