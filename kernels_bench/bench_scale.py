@@ -3,7 +3,8 @@
 Cases: the clamped box 2 x 0.5 x 0.5 m of issue 22 (stable neo-Hookean, E 1e5, density 1000,
 gravity, backward Euler, dt 1/60, 4c x c x c hex cells of 6 tets: c = 8, 13, 16, 25 give 12k,
 53k, 98k, 375k tets), at poisson_ratio 0.3 and 0.49, and the bunny scene
-(examples/scenes/bunny.toml, 22.9k tets, its own nu 0.4 and dt 1/24). For every (case, solver):
+(examples/scenes/bunny.toml, 22.9k tets, its own nu 0.4 and dt 1/24) and the octopus scene
+(``--octopus``, examples/scenes/octopus.toml, 1.1k tets, nu 0.35). For every (case, solver):
 build the simulator, one warm-up step (kernel loads, the solver's set-up: a factorisation's
 symbolic analysis, the multigrid hierarchy), then ``--steps`` timed steps. Recorded per step: wall
 seconds, Newton iterations, linear iterations per Newton solve (CG iterations; 1 per direct solve),
@@ -15,7 +16,7 @@ The device and the load average at start and end are recorded: on a shared machi
 ratios, not absolutes.
 
     .venv/bin/python kernels_bench/bench_scale.py [--quick] [--sizes 8 13 16] [--nus 0.3 0.49]
-        [--solvers pcg amg multigrid direct] [--bunny] [--steps 2] [--device cpu] [--out PATH]
+        [--solvers pcg amg multigrid direct auto] [--bunny] [--octopus] [--steps 2] [--device cpu] [--out PATH]
 
 ``--quick``: boxes c = 8 and 13 only, one timed step.
 """
@@ -52,10 +53,10 @@ def box_sim(c, *, nu, solver, device, precision):
     return wf.Simulator(model, device=device, dt=1.0 / 60.0, linear_solver=solver, precision=precision), 6 * int(np.prod(cells))
 
 
-def bunny_sim(*, solver, device, precision):
+def scene_sim(name, *, solver, device, precision):
     from warpfem.scenes import load_scene
 
-    scene = load_scene(ROOT / "examples" / "scenes" / "bunny.toml")
+    scene = load_scene(ROOT / "examples" / "scenes" / f"{name}.toml")
     scene.spec.integrator["linear_solver"] = solver
     run = scene.build(device=device, precision=precision)
     return run, run.model.mesh.num_elements
@@ -124,17 +125,18 @@ def slope(points):
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true", help="boxes c = 8, 13 and one timed step")
-    p.add_argument("--sizes", type=int, nargs="+", default=None, help="box cells c (4c x c x c); default 8 13 16")
+    p.add_argument("--sizes", type=int, nargs="*", default=None, help="box cells c (4c x c x c); default 8 13 16; none: no boxes")
     p.add_argument("--nus", type=float, nargs="+", default=[0.3, 0.49])
     p.add_argument("--solvers", nargs="+", default=["pcg", "amg", "multigrid", "direct", "auto"])
     p.add_argument("--skip", nargs="*", default=[], help="solver:c pairs not to run (e.g. direct:25)")
     p.add_argument("--bunny", action="store_true", help="also the bunny scene")
+    p.add_argument("--octopus", action="store_true", help="also the octopus scene")
     p.add_argument("--steps", type=int, default=None)
     p.add_argument("--device", default="cpu")
     p.add_argument("--precision", default="float64")
     p.add_argument("--out", default=str(ROOT / "kernels_bench" / "results" / "scale"))
     args = p.parse_args(argv)
-    sizes = args.sizes or ([8, 13] if args.quick else [8, 13, 16])
+    sizes = args.sizes if args.sizes is not None else ([8, 13] if args.quick else [8, 13, 16])
     steps = args.steps or (1 if args.quick else 2)
     wp.config.quiet = True
     wp.init()
@@ -165,13 +167,15 @@ def main(argv=None):
             record(str(c), nu, lambda s, c=c, nu=nu: box_sim(c, nu=nu, solver=s, device=args.device,
                                                              precision=args.precision))
     if args.bunny:
-        record("bunny", 0.4, lambda s: bunny_sim(solver=s, device=args.device, precision=args.precision))
+        record("bunny", 0.4, lambda s: scene_sim("bunny", solver=s, device=args.device, precision=args.precision))
+    if args.octopus:
+        record("octopus", 0.35, lambda s: scene_sim("octopus", solver=s, device=args.device, precision=args.precision))
 
     slopes = {}
     for solver in args.solvers:
         for nu in args.nus:
             pts = [(r["tets"], r["step_seconds"]) for r in results
-                   if r["solver"] == solver and r["nu"] == nu and r["case"] != "bunny"]
+                   if r["solver"] == solver and r["nu"] == nu and r["case"] not in ("bunny", "octopus")]
             slopes[f"{solver} nu={nu}"] = slope(pts)
     meta = dict(device=device_name, warp=wp.__version__, precision=args.precision, steps=steps, sizes=sizes,
                 load_average_start=load_start, load_average_end=os.getloadavg(), cores=os.cpu_count())
@@ -184,7 +188,7 @@ def main(argv=None):
              "|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         name = r["solver"] + (f" ({r['chose']})" if r.get("chose") else "")
-        lines.append(f"| {'box' if r['case'] != 'bunny' else 'bunny'} | {r['nu']} | {r['tets']} | {name} | "
+        lines.append(f"| {r['case'] if r['case'] in ('bunny', 'octopus') else 'box'} | {r['nu']} | {r['tets']} | {name} | "
                      f"{r['step_seconds']:.2f} | {r['step_per_hessian']:.0f} | {r['newton_per_step']:.1f} | "
                      f"{r['linear_per_newton']:.1f} | {r['all_converged']} |")
     lines += ["", "| solver | slope of log(s/step) vs log(tets), boxes |", "|---|---|"]
