@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test docs bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,9 +14,15 @@ $(STAMP): pyproject.toml
 
 demo: $(STAMP)
 	$(PY) examples/cantilever.py --device cpu --num-frames 48 --stage-path out/cantilever.usda --headless
+	@echo "warpfem is installed in .venv: run 'source .venv/bin/activate' for the warpfem command (or call .venv/bin/warpfem)"
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests
+
+# The documentation site (docs/*.md + API reference from the docstrings) into out/site; `make test`
+# builds it too (tests/test_docs.py, warnings are errors). `.venv/bin/mkdocs serve` to browse.
+docs: $(STAMP)
+	$(PY) -m mkdocs build --strict
 
 # Whole benchmark suite -> kernels_bench/results/summary.{json,md}. QUICK=1: small sizes; SKIP=stability
 # (comma-separated names) to leave benchmarks out; DEVICE=cuda:0. The newton peer comparison runs when

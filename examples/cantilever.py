@@ -19,6 +19,7 @@ import warp as wp
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from warpfem.device import init_warp  # noqa: E402
 from warpfem.io import UsdMeshWriter  # noqa: E402
 from warpfem.scenes import load_scene  # noqa: E402
 
@@ -73,6 +74,7 @@ def main(argv=None):
         except DeviceError as e:
             parser.error(str(e))
 
+    init_warp(args.device or "cpu")  # quiet: no banner, no CUDA-driver note on a CPU (WARPFEM_VERBOSE=1 shows them)
     with wp.ScopedDevice(args.device):
         example = Example(stage_path=args.stage_path, num_frames=args.num_frames, precision=args.precision,
                           device=args.device, scene_path=args.scene)

@@ -27,6 +27,7 @@ import warp as wp
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import warpfem as wf  # noqa: E402
+from warpfem.device import init_warp  # noqa: E402
 from warpfem.io import UsdMeshWriter  # noqa: E402
 from warpfem.skinning import mesh_boundary_surface  # noqa: E402
 
@@ -98,6 +99,7 @@ def main(argv=None):
     parser.add_argument("--headless", action="store_true", help="Run without an interactive viewer (USD output only).")
     args = parser.parse_known_args(argv)[0]
 
+    init_warp(args.device or "cpu")  # quiet: no banner, no CUDA-driver note on a CPU (WARPFEM_VERBOSE=1 shows them)
     with wp.ScopedDevice(args.device):
         example = Example(stage_path=args.stage_path, cells=tuple(args.cells), rotation=args.rotation,
                           precision=args.precision, device=args.device)

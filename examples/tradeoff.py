@@ -24,6 +24,7 @@ import warp as wp
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from warpfem.device import init_warp  # noqa: E402
 from warpfem.tradeoff import (TradeoffConfig, TradeoffGrid, format_table, run_study, scene_document,  # noqa: E402
                               variant_scene)
 
@@ -112,6 +113,7 @@ def main(argv=None):
     parser.add_argument("--headless", action="store_true", help="Run without an interactive viewer (USD output only).")
     args = parser.parse_known_args(argv)[0]
 
+    init_warp(args.device or "cpu")  # quiet: no banner, no CUDA-driver note on a CPU (WARPFEM_VERBOSE=1 shows them)
     device = str(wp.get_device(args.device))
     with wp.ScopedDevice(device):
         example = Example(stage_path=args.stage_path, scene_path=args.scene, num_frames=args.num_frames, device=device,

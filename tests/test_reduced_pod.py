@@ -97,7 +97,7 @@ def test_train_reports_validation_cost_speedup_and_run_warns_above_threshold(tmp
     assert main(["train", path, "--quiet"]) == 0
     out = capsys.readouterr().out
     assert "4 POD columns from the training run" in out and "r = 10" in out
-    assert "training cost:" in out and "including 8 full step(s)" in out  # 8 frames x 1 step
+    assert "training cost:" in out and "(8 full step(s)" in out  # 8 frames x 1 step
     assert "predicted:" in out and "x faster per step" in out and "longer than" in out
     assert "validation error" in out and "reduced replay of the training run" in out
     with np.load(tmp_path / "w.subspace.npz") as z:

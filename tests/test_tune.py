@@ -106,7 +106,8 @@ def test_search_space_follows_the_registries(monkeypatch):
     from warpfem.scenes import INTEGRATORS, Key
 
     doc = scene_document(CANTILEVER)
-    cands, dropped = search_space(doc, CANTILEVER, {"substeps": [1], "tol": [1e-3], "cg_tol": [1e-2], "precision": ["float64"]})
+    cands, dropped = search_space(doc, CANTILEVER, {"substeps": [1], "tol": [1e-3], "cg_tol": [1e-2], "precision": ["float64"]},
+                                  space="full")
     integrators = {c.integrator for c in cands}
     assert integrators == {n for n, e in INTEGRATORS.items() if e.dynamic}
     # stiffness warping takes Tet4 only: its other elements are rejected by the scene layer
@@ -125,7 +126,7 @@ def test_search_space_follows_the_registries(monkeypatch):
         be = INTEGRATORS["backward_euler"]
         monkeypatch.setitem(be.keys, "linear_solver", schema.INTEGRATOR_KEYS["linear_solver"])
     cands2, _ = search_space(doc, CANTILEVER, {"substeps": [1], "tol": [1e-3], "cg_tol": [1e-2], "precision": ["float64"],
-                                               "element": ["tet4"]})
+                                               "element": ["tet4"]}, space="full")
     solvers = {c.linear_solver for c in cands2 if c.integrator == "backward_euler"}
     assert solvers == set(schema.INTEGRATOR_KEYS["linear_solver"].choices)
 
@@ -153,3 +154,68 @@ def test_bad_budget_and_cli_errors(tmp_path, capsys):
     assert "colour" in capsys.readouterr().err
     assert main(["tune", CANTILEVER, "--max-error", "0.1", "--out", "x.txt"]) == 2
     assert math.isfinite(0.1)
+
+
+def test_default_space_is_small_and_full_space_is_on_request():
+    """A plain `warpfem tune` searches the registered dynamic integrators on the scene's element and
+    its higher-order partner, 1/2/4 substeps, float64 (21 candidates on the cantilever: minutes);
+    `--space full` is the old space (1,600 candidates on the cantilever)."""
+    from warpfem.scenes import INTEGRATORS
+    from warpfem.tradeoff.tune import space_axes
+
+    doc = scene_document(CANTILEVER)
+    cands, _ = search_space(doc, CANTILEVER)
+    assert len(cands) == 21
+    assert {c.element for c in cands} == {"tet4", "tet10"} and {c.substeps for c in cands} == {1, 2, 4}
+    assert {c.precision for c in cands} == {"float64"} and {c.linear_solver for c in cands} == {None}
+    assert {c.integrator for c in cands} == {n for n, e in INTEGRATORS.items() if e.dynamic}
+    assert space_axes("default", {"mesh": {"element": "hex8"}})["element"] == ["hex8", "hex27"]
+    full, _ = search_space(doc, CANTILEVER, space="full")
+    assert len(full) >= 1600 and {c.element for c in full} == {"tet4", "tet10", "hex8", "hex27"}
+
+
+def test_run_count_up_front_and_progress_per_stage(tmp_path):
+    from tiny_scenes import tiny_beam_toml
+    from warpfem.tradeoff.tune import format_plan, plan_runs
+
+    # the cantilever's default search at 48 frames: 7 reference runs, 21 + 7 prefix runs, 3 full runs
+    plan = plan_runs(21, 48, reference_runs=7)
+    assert plan["stages"] == [("reference", 48, 7), ("prefix", 6, 21), ("prefix", 12, 7), ("full", 48, 3)]
+    assert plan["runs"] == 38 and plan["run_frames"] == 7 * 48 + 21 * 6 + 7 * 12 + 3 * 48
+    assert format_plan(plan).startswith("search plan: 21 candidates; at most 38 runs (690 run-frames): 7 reference")
+    # a real (tiny) search: the plan line comes before any run, every run logs its stage's progress
+    path = tmp_path / "tiny.toml"
+    path.write_text(tiny_beam_toml("tiny", cells=2, frames=2))
+    cands = [_cfg(integrator="backward_euler", substeps=s, tol=1e-3) for s in (1, 2)]
+    lines = []
+    res = tune(str(path), 0.5, candidates=cands, truth=None, keep=1, cost="work", log=lines.append)
+    first_run = next(i for i, ln in enumerate(lines) if "1/" in ln)
+    plan_line = next(i for i, ln in enumerate(lines) if ln.startswith("search plan: 2 candidates; at most"))
+    assert plan_line < first_run
+    planned = int(lines[plan_line].split("at most ")[1].split(" runs")[0])
+    done = res.search["candidates_run"]
+    assert done["reference"] + done["prefix"] + done["full"] <= planned == res.search["planned"]["runs"]
+    progress = [ln for ln in lines if "ETA" in ln]
+    assert len(progress) == done["reference"] + done["prefix"] + done["full"]
+    assert any(ln.strip().startswith("prefix of 1 frame(s) 2/2:") for ln in progress)
+    from warpfem.cli import main
+
+    assert main(["tune", CANTILEVER, "--max-error", "0.1", "--space", "fulll"]) == 2  # neither a space nor a .toml
+
+
+def test_stage_eta_weighs_the_runs_left(monkeypatch):
+    """The reference stage starts with its costliest run: the ETA scales the time per unit of
+    estimated cost (steps x element nodes x refine^3), not per run."""
+    import warpfem.tradeoff.tune as tune_mod
+
+    clock = iter([100.0, 108.0, 110.0])
+    monkeypatch.setattr(tune_mod.time, "perf_counter", lambda: next(clock))
+    ref = _cfg(element="tet10", refine=2, substeps=8)
+    assert tune_mod._run_weight(ref, {"mesh": {"element": "tet4"}}) == 8 * 10 * 8
+    lines = []
+    stage = tune_mod._Stage(lines.append, "reference", [8.0, 4.0, 2.0, 2.0])
+    stage.done(0, "finest")  # 8 s for 8 of 16 units: 8 s left
+    stage.done(1, "next")  # 10 s for 12 units: 3.33 s left
+    assert lines[0] == "reference: 4 run(s)"
+    assert lines[1].endswith("1/4: finest  elapsed 0:00:08  ETA 0:00:08")
+    assert lines[2].endswith("2/4: next  elapsed 0:00:10  ETA 0:00:03")

@@ -10,9 +10,16 @@ Public API (one import path per symbol)::
     sim = wf.Simulator(model, device="cpu", precision="float64", dt=1 / 60)
     stats = sim.step()
     sim.add_collider(wf.Plane(point=(0, -1, 0), normal=(0, 1, 0), friction=0.3))  # contact (docs/contact.md)
+
+Warp's start-up banner and ``Module ... load`` lines are off once warpfem is imported (warnings are
+not); ``WARPFEM_VERBOSE=1`` shows them (:mod:`warpfem.device`).
 """
 
-from warpfem.materials import (
+from warpfem.device import configure_warp as _configure_warp
+
+_configure_warp()  # quiet unless WARPFEM_VERBOSE; before any warpfem module can initialise Warp
+
+from warpfem.materials import (  # noqa: E402
     Corotated,
     LinearElastic,
     StableNeoHookean,

@@ -10,7 +10,8 @@ Subcommand modules use the public helpers here: :func:`error`, :func:`check_devi
 :func:`init_warp`, :func:`load` and the exit codes.
 
 Exit codes: 0 success, 1 a step diverged / failed to converge (with ``require_convergence``) or
-another runtime error, 2 invalid command line or scene, 130 interrupted.
+another runtime error, 2 invalid command line, scene or output path, 130 interrupted (Ctrl-C), 143
+terminated (SIGTERM; ``run`` records it in the USD as it does Ctrl-C).
 """
 
 from __future__ import annotations
@@ -20,9 +21,39 @@ import logging
 import sys
 
 __all__ = ["main", "build_parser", "COMMANDS", "add_subcommand", "error", "check_device", "init_warp", "load",
-           "EXIT_OK", "EXIT_FAILED", "EXIT_INVALID", "EXIT_INTERRUPTED"]
+           "EXIT_OK", "EXIT_FAILED", "EXIT_INVALID", "EXIT_INTERRUPTED", "EXIT_TERMINATED", "Terminated",
+           "terminate_on_sigterm"]
 
-EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_OK, EXIT_FAILED, EXIT_INVALID, EXIT_INTERRUPTED, EXIT_TERMINATED = 0, 1, 2, 130, 143
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM received: raised in the main thread so that outputs are closed marked incomplete
+    with the reason, as on Ctrl-C (a KeyboardInterrupt, so code that cleans up on Ctrl-C does)."""
+
+
+class terminate_on_sigterm:
+    """Context manager: SIGTERM raises :class:`Terminated` inside it (main thread only; the previous
+    handler is restored on exit)."""
+
+    def __enter__(self):
+        import signal
+        import threading
+
+        self._previous = None
+        if threading.current_thread() is threading.main_thread() and hasattr(signal, "SIGTERM"):
+            def _raise(signum, frame):
+                raise Terminated("SIGTERM")
+
+            self._previous = signal.signal(signal.SIGTERM, _raise)
+        return self
+
+    def __exit__(self, *exc):
+        if self._previous is not None:
+            import signal
+
+            signal.signal(signal.SIGTERM, self._previous)
+        return False
 
 
 def _version():
@@ -50,13 +81,30 @@ class _LogHandler(logging.Handler):
             self.handleError(record)
 
 
-def _configure_logging(verbose: bool) -> None:
-    """The ``warpfem`` loggers: INFO and up on stderr, DEBUG too with ``--verbose``."""
+def _configure_logging(verbose: bool, quiet: bool = False) -> None:
+    """The ``warpfem`` loggers: INFO and up on stderr, DEBUG too with ``--verbose``, only warnings
+    and errors with ``--quiet`` (no "tetrahedralisation cache hit" line)."""
     log = logging.getLogger("warpfem")
     for h in [h for h in log.handlers if isinstance(h, _LogHandler)]:
         log.removeHandler(h)
     log.addHandler(_LogHandler())
-    log.setLevel(logging.DEBUG if verbose else logging.INFO)
+    log.setLevel(logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO)
+
+
+class _only_warnings:
+    """Inside it, the ``warpfem`` loggers pass warnings and errors only (``describe`` prints the
+    mesh's notes in its own text; the INFO lines would repeat them)."""
+
+    def __enter__(self):
+        self._log = logging.getLogger("warpfem")
+        self._level = self._log.level
+        if self._log.getEffectiveLevel() < logging.WARNING:
+            self._log.setLevel(logging.WARNING)
+        return self
+
+    def __exit__(self, *exc):
+        self._log.setLevel(self._level)
+        return False
 
 
 def check_device(args, err=None):
@@ -75,50 +123,19 @@ def check_device(args, err=None):
 
 
 def _configure_warp(verbose: bool) -> None:
-    """Warp's start-up banner and module-load lines only with ``--verbose`` (warnings always).
+    """Warp's start-up banner and module-load lines only with ``--verbose`` (warnings always);
+    must run before Warp initialises (``warpfem.device.configure_warp``)."""
+    from warpfem.device import configure_warp
 
-    Must run before Warp initialises (``wp.init()``, first array or launch); importing warpfem
-    does not initialise it. Warp 1.19 reads ``wp.config.log_level``; older versions ``quiet``."""
-    import warp as wp
-
-    wp.config.quiet = not verbose
-    if hasattr(wp, "LOG_INFO"):
-        wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
-
-
-_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+    configure_warp(verbose or None)  # --verbose, or WARPFEM_VERBOSE in the environment
 
 
 def init_warp(device: str, verbose: bool) -> None:
-    """Initialise Warp now. Without ``--verbose`` on a CPU device, the native library's note that no
-    CUDA driver was found (printed by C code straight to file descriptor 2, not through Warp's log
-    level) is dropped; anything else it prints is passed on to stderr."""
-    import warp as wp
+    """Initialise Warp now; on a CPU device without ``--verbose`` the native note that no CUDA
+    driver was found is dropped (``warpfem.device.init_warp``)."""
+    from warpfem.device import init_warp as _init
 
-    if verbose or str(device).startswith("cuda"):  # a CUDA device asked for: the note matters
-        wp.init()
-        return
-    import os
-    import tempfile
-
-    sys.stderr.flush()
-    try:
-        saved = os.dup(2)
-    except OSError:  # no usable fd 2: nothing to filter
-        wp.init()
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            wp.init()
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-        tmp.seek(0)
-        text = tmp.read().decode("utf-8", errors="replace")
-    rest = [line for line in text.splitlines() if _NO_DRIVER not in line]
-    if rest:
-        print("\n".join(rest), file=sys.stderr)
+    _init(device, verbose or None)
 
 
 def load(path):
@@ -132,13 +149,16 @@ def _cmd_describe(args) -> int:
     from warpfem.scenes import SceneError
 
     try:
-        scene = load(args.scene)
+        with _only_warnings():  # the tetrahedralisation line is part of the description: once
+            scene = load(args.scene)
+            text = None if getattr(args, "json", False) else scene.describe(precision=args.precision)
+            summary = scene.summary() if text is None else None
         if getattr(args, "json", False):
             import json
 
-            print(json.dumps(scene.summary(), indent=2))
+            print(json.dumps(summary, indent=2))
         else:
-            print(scene.describe(precision=args.precision))
+            print(text)
     except SceneError as e:
         error(str(e))
         return EXIT_INVALID
@@ -181,7 +201,41 @@ def _cmd_run(args) -> int:
     except SceneError as e:
         error(str(e))
         return EXIT_INVALID
+    out = scene.spec.output
+    usd = args.out if args.out is not None else out["usd"]
+    stats = scene.stats_path(usd, None if args.out is not None else out["stats"])
+    from warpfem.io.outputs import OutputPathError, check_output_paths
 
+    try:  # every output path before any work (a file named as a folder, a folder not writable)
+        check_output_paths({"--out" if args.out is not None else "[output] usd": usd, "statistics log": stats,
+                            "[output] states": out["states"], "[output] vtu": out.get("vtu"),
+                            "--preview": getattr(args, "preview", None)})
+    except OutputPathError as e:
+        error(f"{args.scene}: {e}")
+        return EXIT_INVALID
+
+    from warpfem.progress import COMPILING_NOTICE, CompileWatch
+
+    shown = {"bar": None}  # the progress display once it exists
+
+    def compiling():  # a kernel-cache miss ahead (Warp compiles on first use; ~15 s on a CPU)
+        if args.quiet:
+            return
+        if shown["bar"] is not None:
+            shown["bar"].note(COMPILING_NOTICE)
+        else:
+            print(COMPILING_NOTICE, flush=True)
+
+    def compiled(seconds):  # compile time is not frame time: out of the ETA
+        if shown["bar"] is not None:
+            shown["bar"].exclude(seconds)
+
+    with CompileWatch(on_start=compiling, on_compiled=compiled) as watch:
+        return _run_scene(args, scene, usd, stats, watch, shown)
+
+
+def _run_scene(args, scene, usd, stats, watch, shown) -> int:
+    from warpfem.scenes import SceneError
     from warpfem.solvers.nonlinear import SolveFailed
 
     try:
@@ -194,8 +248,6 @@ def _cmd_run(args) -> int:
         error(f"{args.scene}: cannot build the scene: {e}")
         return EXIT_FAILED
     frames = args.frames if args.frames is not None else run.frames
-    usd = args.out if args.out is not None else scene.spec.output["usd"]
-    stats = scene.stats_path(usd, None if args.out is not None else scene.spec.output["stats"])
     if not args.quiet:
         print(f"{scene.name}: {scene.mesh().num_elements} elements, {scene.mesh().num_vertices} vertices, "
               f"{frames} frames on {args.device} ({args.precision})", flush=True)
@@ -203,6 +255,7 @@ def _cmd_run(args) -> int:
     from warpfem.progress import Progress
 
     bar = Progress(frames, unit="frame", enabled=not args.quiet)
+    shown["bar"] = bar
 
     def progress(fs):
         flag = "" if fs.converged else "  NOT CONVERGED"
@@ -224,14 +277,15 @@ def _cmd_run(args) -> int:
             _report(fs)
 
     try:
-        with bar:
+        with bar, terminate_on_sigterm():
             run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
     except SolveFailed as e:
         error(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
         return EXIT_FAILED
-    except KeyboardInterrupt:
-        error(f"interrupted at frame {run.frame}" + (f"; {usd} holds the frames done (marked incomplete)" if usd else ""))
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as e:
+        how = "terminated (SIGTERM)" if isinstance(e, Terminated) else "interrupted"
+        error(f"{how} at frame {run.frame}" + (f"; {usd} holds the frames done (marked incomplete)" if usd else ""))
+        return EXIT_TERMINATED if isinstance(e, Terminated) else EXIT_INTERRUPTED
     if recorder is not None:
         from warpfem.io.preview import render_preview
 
@@ -240,7 +294,8 @@ def _cmd_run(args) -> int:
     if not args.quiet:
         outs = [p for p in (usd, stats, scene.spec.output["states"], scene.spec.output.get("vtu"),
                             getattr(args, "preview", None)) if p]
-        print(f"done: {frames} frames" + (f"; wrote {', '.join(outs)}" if outs else ""), flush=True)
+        built = f"; kernels compiled in {watch.seconds:.1f} s (cached for later runs)" if watch.modules else ""
+        print(f"done: {frames} frames" + (f"; wrote {', '.join(outs)}" if outs else "") + built, flush=True)
     return EXIT_OK
 
 
@@ -313,7 +368,7 @@ def main(argv=None) -> int:
     _configure_warp("--verbose" in argv)
     parser = build_parser()
     args = parser.parse_args(argv)
-    _configure_logging(getattr(args, "verbose", False))
+    _configure_logging(getattr(args, "verbose", False), quiet=getattr(args, "quiet", False))
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
         return EXIT_INVALID

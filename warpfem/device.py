@@ -5,11 +5,84 @@
 alias of an existing Warp device, and raises :class:`DeviceError` naming the available devices
 otherwise. The simulators call :func:`get_device`, so ``Simulator(model, device="auto")`` works
 and ``device="gpu"`` fails at once with that list instead of deep inside Warp.
+
+Quiet by default: importing warpfem calls :func:`configure_warp`, so Warp's start-up banner and its
+``Module ... load`` lines are not printed (warnings still are), and :func:`init_warp` (run by
+:func:`get_device` when Warp is not initialised yet) drops the native library's note that no CUDA
+driver was found when the device is the CPU. ``WARPFEM_VERBOSE=1`` in the environment (or
+``configure_warp(verbose=True)`` before Warp initialises) shows them, as ``warpfem --verbose`` does.
 """
 
 from __future__ import annotations
 
-__all__ = ["DeviceError", "available_devices", "resolve_device", "get_device"]
+import os
+import sys
+
+__all__ = ["DeviceError", "available_devices", "resolve_device", "get_device", "configure_warp", "init_warp",
+           "warp_initialized"]
+
+_NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+
+
+def _env_verbose() -> bool:
+    return os.environ.get("WARPFEM_VERBOSE", "").strip().lower() not in ("", "0", "false", "no")
+
+
+def configure_warp(verbose: bool | None = None) -> None:
+    """Warp's banner and module-load lines only when ``verbose`` (default: ``WARPFEM_VERBOSE``);
+    warnings always. Takes effect for messages printed after it (the banner: before Warp
+    initialises). Warp 1.19 reads ``wp.config.log_level``; older versions ``quiet``."""
+    import warp as wp
+
+    verbose = _env_verbose() if verbose is None else bool(verbose)
+    wp.config.quiet = not verbose
+    if hasattr(wp, "LOG_INFO"):
+        wp.config.log_level = wp.LOG_INFO if verbose else wp.LOG_WARNING
+
+
+def warp_initialized() -> bool:
+    """True once Warp's runtime exists (``wp.init()`` ran, explicitly or by a first use)."""
+    try:
+        from warp._src import context
+    except ImportError:  # another Warp layout: assume it is (nothing is filtered then)
+        return True
+    return getattr(context, "runtime", True) is not None
+
+
+def init_warp(device="cpu", verbose: bool | None = None) -> None:
+    """Initialise Warp now (nothing when it already is). Unless ``verbose`` (default:
+    ``WARPFEM_VERBOSE``) or a CUDA device is asked for, the native library's note that no CUDA
+    driver was found (printed by C code straight to file descriptor 2, not through Warp's log
+    level) is dropped; anything else it prints is passed on to stderr."""
+    import warp as wp
+
+    if warp_initialized():
+        return
+    verbose = _env_verbose() if verbose is None else bool(verbose)
+    if verbose or str(device).strip().lower().startswith("cuda"):  # a CUDA device asked for: the note matters
+        wp.init()
+        return
+    import tempfile
+
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no usable fd 2: nothing to filter
+        wp.init()
+        return
+    with tempfile.TemporaryFile() as tmp:
+        os.dup2(tmp.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        tmp.seek(0)
+        text = tmp.read().decode("utf-8", errors="replace")
+    rest = [line for line in text.splitlines() if _NO_DRIVER not in line]
+    if rest:  # Warp's own output, passed on as it was (not a message of warpfem's: no logging)
+        sys.stderr.write("\n".join(rest) + "\n")
+        sys.stderr.flush()
 
 
 class DeviceError(ValueError):
@@ -59,7 +132,9 @@ def resolve_device(device="auto") -> str:
 
 
 def get_device(device="auto"):
-    """The Warp ``Device`` for ``device`` (checked by :func:`resolve_device`)."""
+    """The Warp ``Device`` for ``device`` (checked by :func:`resolve_device`); initialises Warp
+    quietly (:func:`init_warp`) when it is not yet."""
     import warp as wp
 
+    init_warp(device if isinstance(device, str) else "cpu")
     return wp.get_device(resolve_device(device))

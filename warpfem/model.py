@@ -19,6 +19,29 @@ def parse_components(components: str) -> list[int]:
     return sorted(_COMPONENTS[c] for c in components)
 
 
+def _direction(v) -> str:
+    """'the x axis' for a coordinate direction, else the unit vector."""
+    u = np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
+    for a, name in enumerate("xyz"):
+        if abs(abs(u[a]) - 1.0) < 1e-6:
+            return f"the {name} axis"
+    u = u * np.sign(u[np.argmax(np.abs(u))])
+    return f"({u[0]:.3g}, {u[1]:.3g}, {u[2]:.3g})"
+
+
+def static_supports_error(model, what: str) -> str:
+    """'' when the fixed components of ``model`` remove every rigid motion, else the error message
+    of a static solve (``what`` names how to fix components: "[[fixed]] or [[handle]]", ...)."""
+    free = model.free_rigid_motions()
+    if not free:
+        return ""
+    axes = [a for a, f in zip("xyz", model.fixed.any(axis=0)) if not f]
+    return ("a static solve needs fixed components that remove every rigid motion (without mass nothing "
+            f"holds them: the Newton systems are singular); still free: {'; '.join(free)}"
+            + (f" (free axes: {axes})" if axes else "")
+            + f". Fix more components ({what}) or use a time integrator")
+
+
 class Model:
     """A deformable body ready to simulate: mesh + material + fixed DOFs + loads.
 
@@ -107,6 +130,62 @@ class Model:
     def release(self, indices, components: str = "xyz") -> None:
         """Free previously fixed components."""
         self.fixed[np.ix_(self._indices(indices), parse_components(components))] = False
+
+    def free_rigid_motions(self) -> list[str]:
+        """The rigid motions the fixed components leave free, described in words ([] when none).
+
+        A rigid motion v(X) = t + w x (X - c) (c the centroid) is free when it moves no fixed
+        component: the null space of the 6 rigid modes restricted to the fixed rows. Pure
+        translations are named by their direction; every other free motion as a rotation about
+        an axis through a point (p = c + w x t / |w|^2), plus its slide along the axis if any.
+        A static solve of such a model is singular (no mass term holds the motion).
+        """
+        X = self.rest_positions
+        c = X.mean(axis=0)
+        L = float(np.linalg.norm(np.ptp(X, axis=0))) or 1.0
+        d = (X - c) / L  # rotation columns scaled to the size of the translation columns
+        n = len(X)
+        R = np.zeros((n, 3, 6))
+        for a in range(3):
+            R[:, a, a] = 1.0
+            w = np.zeros(3)
+            w[a] = 1.0
+            R[:, :, 3 + a] = np.cross(w, d)
+        rows = R[self.fixed]  # (number of fixed components, 6)
+        if rows.shape[0]:
+            _, sv, Vt = np.linalg.svd(rows, full_matrices=True)
+            rank = int(np.sum(sv > 1e-9 * sv[0])) if sv.size else 0
+            N = Vt[rank:].T  # (6, k) coefficients of the free motions
+        else:
+            N = np.eye(6)
+        if N.shape[1] == 0:
+            return []
+        out = []
+        # pure translations: the combinations of N with no rotation part
+        _, sr, Vr = np.linalg.svd(N[3:], full_matrices=True)
+        rr = int(np.sum(sr > 1e-9)) if sr.size else 0
+        T = np.linalg.qr((N @ Vr[rr:].T)[:3])[0][:, : N.shape[1] - rr]  # (3, kt) free translations
+        out += [f"translation along {_direction(b)}" for b in T.T]
+        Q = N @ Vr[:rr].T  # (6, kr) motions that rotate
+        if rr:
+            # rotation axes: the coordinate axes in the span of the free rotation parts first
+            Wb = np.linalg.qr(Q[3:])[0][:, :rr]
+            axes = [e for e in np.eye(3) if np.linalg.norm(e - Wb @ (Wb.T @ e)) < 1e-9]
+            for e in list(Wb.T):  # then the rest of the span, orthogonal to those
+                r = e - sum(((a @ e) * a for a in axes), np.zeros(3))
+                if len(axes) < rr and np.linalg.norm(r) > 1e-6:
+                    axes.append(r / np.linalg.norm(r))
+            for w in axes[:rr]:
+                coef = np.linalg.lstsq(Q[3:], w, rcond=None)[0]
+                t = Q[:3] @ coef
+                t = t - T @ (T.T @ t)  # the part no free translation explains
+                p = c + L * np.cross(w, t)
+                p[np.abs(p) < 1e-9 * L] = 0.0
+                text = f"rotation about {_direction(w)} through ({p[0]:.4g}, {p[1]:.4g}, {p[2]:.4g})"
+                if abs(float(t @ w)) > 1e-9:
+                    text += " (with a slide along it)"
+                out.append(text)
+        return out
 
     def add_force(self, indices, force) -> None:
         """Add a constant force (N) to each given vertex."""

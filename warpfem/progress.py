@@ -7,15 +7,20 @@ files) one plain line per unit is written (to stdout by default)::
     [######..................] frame 3/12  t = 0.1500 s  newton 3  cg 41  0.012 s  elapsed 0:00:01  ETA 0:00:03
 
 The ETA is (units left) x (mean time per unit after the first): the first unit usually includes
-Warp's kernel compilation and would inflate it.
+Warp's kernel compilation and would inflate it. Time spent compiling (:class:`CompileWatch`, given to
+:meth:`Progress.exclude`) is left out of the ETA too, so the estimate after the first unit is not
+inflated either.
 """
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 
-__all__ = ["Progress", "format_duration"]
+__all__ = ["Progress", "format_duration", "CompileWatch", "COMPILING_NOTICE"]
+
+COMPILING_NOTICE = "compiling kernels (first run only) ..."
 
 
 def format_duration(seconds) -> str:
@@ -51,6 +56,8 @@ class Progress:
         self._write = write or (lambda line: print(line, flush=True))
         self._t0 = clock() if started is None else started
         self._t_first = None  # time at which the first unit finished
+        self._excluded = 0.0  # seconds not spent on the units themselves (kernel compilation)
+        self._excluded_at_first = 0.0
         self._live = None
         if enabled and (sys.stderr.isatty() if bar is None else bar):
             self._live = self._start_bar()
@@ -71,12 +78,16 @@ class Progress:
             return 0.0
         now = self._clock()
         if done >= 2 and self._t_first is not None:
-            per = (now - self._t_first) / (done - 1)
+            per = (now - self._t_first - (self._excluded - self._excluded_at_first)) / (done - 1)
         elif done >= 1:
-            per = (now - self._t0) / done
+            per = (now - self._t0 - self._excluded) / done
         else:
             return float("inf")
-        return per * left
+        return max(per, 0.0) * left
+
+    def exclude(self, seconds) -> None:
+        """Leave ``seconds`` (already elapsed, e.g. compiling kernels) out of the ETA."""
+        self._excluded += max(float(seconds), 0.0)
 
     # -- output -------------------------------------------------------------------------------------
     def _start_bar(self):
@@ -105,6 +116,7 @@ class Progress:
     def update(self, done, detail="") -> None:
         if done >= 1 and self._t_first is None:
             self._t_first = self._clock()
+            self._excluded_at_first = self._excluded
         if not self.enabled:
             return
         if self._live is not None:
@@ -131,4 +143,96 @@ class Progress:
 
     def __exit__(self, *exc):
         self.close()
+        return False
+
+
+class CompileWatch:
+    """Context manager that notices Warp compiling a module (a kernel-cache miss) while it is active.
+
+    ``on_start()`` is called once, before the first compilation (say "compiling kernels (first run
+    only)"); ``on_compiled(seconds)`` after each module load that compiled, with the whole load's
+    time (code generation, compiler, hashing, loading the binary; e.g. :meth:`Progress.exclude`).
+    ``seconds`` and ``modules`` total them. It wraps Warp's ``Module.load`` and ``Module._compile``
+    for the duration (process-wide hooks, restored on exit); with a Warp that has no such methods it
+    notices nothing.
+    """
+
+    def __init__(self, on_start=None, on_compiled=None):
+        self.on_start, self.on_compiled = on_start, on_compiled
+        self.seconds = 0.0
+        self.modules = 0
+        self._started = False
+        self._saved = []  # (class, name, original function)
+        self._depth = 0
+        self._compiled_in_load = False
+
+    @staticmethod
+    def _module_class():
+        try:
+            from warp._src.context import Module
+        except ImportError:
+            return None
+        ok = all(callable(getattr(Module, name, None)) for name in ("_compile", "load"))
+        return Module if ok else None
+
+    @staticmethod
+    def _will_compile(args, kwargs) -> bool:
+        """A cache miss ahead: the binary ``output_dir/output_name`` the load asks for is absent
+        (False when the call does not say: the call's result decides then)."""
+        out_dir = kwargs.get("output_dir", args[1] if len(args) > 1 else None)
+        name = kwargs.get("output_name", args[2] if len(args) > 2 else None)
+        if out_dir is None or name is None:
+            return False
+        return not os.path.exists(os.path.join(os.fspath(out_dir), name))
+
+    def _notice_start(self):
+        if not self._started:
+            self._started = True
+            if self.on_start is not None:
+                self.on_start()
+
+    def _finished(self, seconds):
+        self.seconds += seconds
+        self.modules += 1
+        if self.on_compiled is not None:
+            self.on_compiled(seconds)
+
+    def __enter__(self):
+        cls = self._module_class()
+        if cls is None:
+            return self
+        compile_, load = cls.__dict__["_compile"], cls.__dict__["load"]
+        watch = self
+
+        def _compile(module, *args, **kwargs):
+            if watch._will_compile(args, kwargs):
+                watch._notice_start()
+            compiled = compile_(module, *args, **kwargs)
+            if compiled:
+                watch._notice_start()
+                watch._compiled_in_load = True
+            return compiled
+
+        def _load(module, *args, **kwargs):
+            outer = watch._depth == 0
+            if outer:
+                watch._compiled_in_load = False
+            watch._depth += 1
+            t0 = time.perf_counter()
+            try:
+                return load(module, *args, **kwargs)
+            finally:
+                watch._depth -= 1
+                if outer and watch._compiled_in_load:
+                    watch._compiled_in_load = False
+                    watch._finished(time.perf_counter() - t0)
+
+        self._saved = [(cls, "_compile", compile_), (cls, "load", load)]
+        cls._compile, cls.load = _compile, _load
+        return self
+
+    def __exit__(self, *exc):
+        for cls, name, fn in self._saved:
+            setattr(cls, name, fn)
+        self._saved = []
         return False

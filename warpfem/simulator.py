@@ -30,6 +30,7 @@ from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.kernels.structs import material_params, quadrature_points
+from warpfem.model import static_supports_error
 from warpfem.solvers.forms import DampingForm, ElasticForm, FullSpacePotential, InertiaForm, LoadForm, Workspace
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.linear import make_linear_solver
@@ -456,10 +457,9 @@ class Simulator(SimulatorState):
                              "use a damped time integration to reach rest on a collider")
         if int(load_steps) != load_steps or load_steps < 1:
             raise ValueError(f"load_steps must be a positive integer, got {load_steps!r}")
-        fixed_any = self.model.fixed.any(axis=0)
-        if not fixed_any.all():
-            raise ValueError("a static solve needs fixed components in x, y and z to remove rigid motions; "
-                             f"free axes: {[a for a, f in zip('xyz', fixed_any) if not f]}")
+        problem = static_supports_error(self.model, "model.fix(...)")
+        if problem:
+            raise ValueError(problem)
         t0 = time.perf_counter()
         n = self.num_vertices
         x_start = self.positions()
@@ -476,6 +476,7 @@ class Simulator(SimulatorState):
             total.newton_iterations += st.newton_iterations
             total.cg_iterations += st.cg_iterations
             total.line_search_steps += st.line_search_steps
+            total.singular_solves += st.singular_solves
             total.residual, total.gradient_norm, total.energy = st.residual, st.gradient_norm, st.energy
             total.reason = st.reason
             if not st.converged:

@@ -17,13 +17,14 @@ __all__ = ["load_mesh", "save_mesh", "load_element_mesh", "save_element_mesh"]
 
 
 def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
-              cache=None, **kw):
+              cache=None, target_tets=None, **kw):
     """Load the ``tetra`` cells of any meshio-readable file as a Tet4 ``VolumeMesh``.
 
     A surface file (.obj, .off, .ply, .stl: chosen by the extension) is checked and
     tetrahedralised instead, through a cache (``warpfem.mesh.tetrahedralize_file``,
     needs ``pip install warpfem[mesh]``); ``max_edge_length``, ``max_radius_edge_ratio``,
-    ``mesher`` and ``cache`` apply to such files only (``MeshError`` for a tet file).
+    ``mesher``, ``target_tets`` (an upper bound on the tets: a finer surface is meshed coarser) and
+    ``cache`` apply to such files only (``MeshError`` for a tet file).
 
     Other cell types (surface triangles, lines, ...) are ignored, except with
     ``inside_surface=True``: then only the tets inside the closed surface formed by the file's
@@ -39,7 +40,7 @@ def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_ed
     from .tetrahedralization import SURFACE_EXTENSIONS, tetrahedralize_file
 
     tetra_opts = {"max_edge_length": max_edge_length, "max_radius_edge_ratio": max_radius_edge_ratio,
-                  "mesher": mesher, "cache": cache}
+                  "mesher": mesher, "cache": cache, "target_tets": target_tets}
 
     def surface():
         if inside_surface:

@@ -30,6 +30,7 @@ import math
 import os
 import tempfile
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,7 +38,7 @@ import numpy as np
 from .volume_mesh import MeshError, VolumeMesh, _fmt_list
 
 __all__ = ["tetrahedralize", "tetrahedralize_file", "check_surface", "read_surface", "cache_dir",
-           "Tetrahedralization", "MesherNotInstalled", "SURFACE_EXTENSIONS", "MESHERS", "DEFAULTS"]
+           "Tetrahedralization", "MesherNotInstalled", "DirtySurface", "SURFACE_EXTENSIONS", "MESHERS", "DEFAULTS"]
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +52,16 @@ MESHERS = {
 }
 
 #: Option defaults (``None`` for max_edge_length: the surface's own resolution sets the size).
-DEFAULTS = {"max_edge_length": None, "max_radius_edge_ratio": 2.0, "mesher": "auto"}
+DEFAULTS = {"max_edge_length": None, "max_radius_edge_ratio": 2.0, "mesher": "auto", "target_tets": None}
+
+#: Tets per triangle of the input surface when a mesher keeps the surface's own resolution
+#: (measured with TetGen, quality 2.0: bunny.off 35,870 / 6,966 = 5.1, decimated-knight 3,424 / 1,000 = 3.4).
+OWN_RESOLUTION_TETS_PER_FACE = 5.0
+
+#: Tets per regular-tet volume of the edge bound, per mesher: TetGen's quality refinement fills the
+#: bound ~3x over (bunny.off decimated: 9,865 / 29,508 / 64,938 tets where volume / regular tet gives
+#: 3,000 / 10,000 / 25,000); TetWild's ideal edge length ~0.74x (two unit cubes, 3,191 for 4,324).
+FILL = {"tetgen": 3.0, "tetwild": 0.75}
 
 #: Refuse a max_edge_length that would give more tets than this (estimated from the volume).
 MAX_ESTIMATED_TETS = 20_000_000
@@ -64,6 +74,16 @@ _AREA_RTOL = 1e-14  # zero-area face: area <= _AREA_RTOL * bbox_diagonal**2
 
 class MesherNotInstalled(MeshError, ImportError):
     """The requested mesher's Python package is missing; the message names the pip extra."""
+
+
+class DirtySurface(MeshError):
+    """A surface that is readable but does not bound a volume cleanly (a face repeating a vertex,
+    zero-area or duplicated faces, holes, non-manifold edges, self-intersections): TetGen refuses
+    it, an envelope-based mesher (TetWild) meshes it. ``problem`` is the message without the name."""
+
+    def __init__(self, message, problem):
+        super().__init__(message)
+        self.problem = problem
 
 
 @dataclass
@@ -88,9 +108,17 @@ class Tetrahedralization:
                          for k, v in self.options.items() if k != "mesher" and v is not None)
         how = "cache hit" if self.cache_hit else f"meshed in {self.seconds:.2f} s"
         where = f", cache {self.cache_path}" if self.cache_path else ""
+        coarse = ""
+        if "edge_length" in self.extra:
+            simple = self.extra.get("simulation_surface_faces")
+            coarse = (f"; coarser than the surface for target_tets = {self.extra['target_tets']}: edge bound "
+                      f"{self.extra['edge_length']:.4g}" + (f", surface simplified to {simple} triangles" if simple else "")
+                      + (f", volume {100 * self.extra['volume_change']:+.1f} % of the surface's"
+                         if "volume_change" in self.extra else ""))
+        dirty = f"; the surface is not clean ({self.extra['dirty']}): TetWild" if "dirty" in self.extra else ""
         return (f"tetrahedralised from a {self.surface_vertices}-vertex, {self.surface_faces}-triangle surface by "
                 f"{self.mesher} ({MESHERS[self.mesher][0]} {self.version}): {self.num_tets} tets, "
-                f"{self.num_vertices} vertices ({opts}; {how}{where})")
+                f"{self.num_vertices} vertices ({opts}; {how}{where}{coarse}{dirty})")
 
 
 # ----------------------------------------------------------------------------- reading
@@ -129,15 +157,20 @@ def _surface_of(m, path):
 
 
 # ----------------------------------------------------------------------------- checking
+def _dirty(pre, problem):
+    return DirtySurface(f"{pre}{problem}", problem)
+
+
 def _edge(e):
     return f"({int(e[0])}, {int(e[1])})"
 
 
-def check_surface(vertices, faces, *, name=None, self_intersections=True):
+def check_surface(vertices, faces, *, name=None, self_intersections=True, clean=True):
     """Check that a triangle surface bounds a volume; raise ``MeshError`` naming the problem.
 
-    In order: shapes, fewer than 4 vertices, NaN/inf coordinates, face indices out of range,
-    faces repeating a vertex, zero-area faces (area <= 1e-14 * bbox diagonal^2), duplicated
+    In order: shapes, fewer than 4 vertices, NaN/inf coordinates, face indices out of range, all
+    vertices coinciding (always); then, with ``clean=True`` (what TetGen needs), each raising a
+    :class:`DirtySurface`: faces repeating a vertex, zero-area faces (area <= 1e-14 * bbox diagonal^2), duplicated
     faces, open boundary (edges in one face), non-manifold edges (in more than two faces), and
     (``self_intersections=True``) self-intersections. The self-intersection test is approximate:
     candidate face pairs come from a uniform grid over face bounding boxes; for pairs sharing no
@@ -171,30 +204,32 @@ def check_surface(vertices, faces, *, name=None, self_intersections=True):
         f = oob[0]
         raise MeshError(f"{pre}face {f} = {F[f].tolist()} references a vertex out of range [0, {n}); "
                         f"{oob.size} such faces: {_fmt_list(oob)}")
-    s = np.sort(F, axis=1)
-    rep = np.flatnonzero((s[:, 1:] == s[:, :-1]).any(axis=1))
-    if rep.size:
-        f = rep[0]
-        raise MeshError(f"{pre}degenerate face {f} = {F[f].tolist()} repeats a vertex; {rep.size} such faces: "
-                        f"{_fmt_list(rep)}")
     used = np.unique(F)
     lo, hi = V[used].min(axis=0), V[used].max(axis=0)
     diag = float(np.linalg.norm(hi - lo))
     if not diag > 0:
         raise MeshError(f"{pre}all vertices coincide at {lo.tolist()}")
+    if not clean:  # what an envelope-based mesher needs; the rest is what TetGen needs
+        return V, F
+    s = np.sort(F, axis=1)
+    rep = np.flatnonzero((s[:, 1:] == s[:, :-1]).any(axis=1))
+    if rep.size:
+        f = rep[0]
+        raise _dirty(pre, f"degenerate face {f} = {F[f].tolist()} repeats a vertex; {rep.size} such faces: "
+                        f"{_fmt_list(rep)}")
     a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     zero = np.flatnonzero(area <= _AREA_RTOL * diag * diag)
     if zero.size:
         f = zero[0]
-        raise MeshError(f"{pre}degenerate face {f} = {F[f].tolist()} has zero area ({area[f]:.3g}; its vertices are "
+        raise _dirty(pre, f"degenerate face {f} = {F[f].tolist()} has zero area ({area[f]:.3g}; its vertices are "
                         f"collinear or coincide); {zero.size} zero-area faces: {_fmt_list(zero)}")
     _, first, inv, cnt = np.unique(s, axis=0, return_index=True, return_inverse=True, return_counts=True)
     inv = inv.ravel()
     dup = np.flatnonzero(cnt[inv] > 1)
     if dup.size:
         f = dup[np.flatnonzero(dup != first[inv[dup]])[0]]
-        raise MeshError(f"{pre}face {f} = {F[f].tolist()} duplicates face {first[inv[f]]} (same three vertices); "
+        raise _dirty(pre, f"face {f} = {F[f].tolist()} duplicates face {first[inv[f]]} (same three vertices); "
                         f"{dup.size - int((cnt > 1).sum())} duplicated faces")
     # edges: 3 per face, undirected
     E = np.sort(np.stack([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]], axis=1).reshape(-1, 2), axis=1)
@@ -204,19 +239,19 @@ def check_surface(vertices, faces, *, name=None, self_intersections=True):
     if open_.size:
         e = open_[0]
         f = int(np.flatnonzero(einv == e)[0] // 3)
-        raise MeshError(f"{pre}the surface is open: {open_.size} boundary edges (in only one face), e.g. edge "
+        raise _dirty(pre, f"the surface is open: {open_.size} boundary edges (in only one face), e.g. edge "
                         f"{_edge(ue[e])} of face {f}; close the holes (the tetrahedraliser needs a closed surface)")
     nm = np.flatnonzero(ecnt > 2)
     if nm.size:
         e = nm[0]
         fs = np.flatnonzero(einv == e) // 3
-        raise MeshError(f"{pre}{nm.size} non-manifold edges (in more than two faces), e.g. edge {_edge(ue[e])} "
+        raise _dirty(pre, f"{nm.size} non-manifold edges (in more than two faces), e.g. edge {_edge(ue[e])} "
                         f"at {np.round(V[ue[e]], 6).tolist()} shared by faces {_fmt_list(fs)}")
     if self_intersections:
         pairs = _self_intersections(V, F, diag)
         if len(pairs):
             f, g = (int(i) for i in pairs[0])
-            raise MeshError(f"{pre}the surface intersects itself: faces {f} = {F[f].tolist()} and {g} = {F[g].tolist()} "
+            raise _dirty(pre, f"the surface intersects itself: faces {f} = {F[f].tolist()} and {g} = {F[g].tolist()} "
                             f"cross near {np.round(V[F[[f, g]]].reshape(-1, 3).mean(axis=0), 6).tolist()}; "
                             f"{len(pairs)} crossing face pairs found")
     return V, F
@@ -310,8 +345,12 @@ def _self_intersections(V, F, diag):
 
 
 # ----------------------------------------------------------------------------- meshing
-def _resolve_options(max_edge_length=None, max_radius_edge_ratio=None, mesher=None):
+def _resolve_options(max_edge_length=None, max_radius_edge_ratio=None, mesher=None, target_tets=None):
     opts = dict(DEFAULTS)
+    if target_tets is not None:
+        if isinstance(target_tets, bool) or not isinstance(target_tets, (int, np.integer)) or target_tets < 10:
+            raise MeshError(f"target_tets must be an integer >= 10, got {target_tets!r}")
+        opts["target_tets"] = int(target_tets)
     if max_edge_length is not None:
         opts["max_edge_length"] = max_edge_length
     if max_radius_edge_ratio is not None:
@@ -429,8 +468,48 @@ def _run_tetwild(V, F, opts, diag):
     return np.asarray(out[0], dtype=np.float64), np.asarray(out[1], dtype=np.int64)
 
 
+def _enclosed_volume_and_area(V, F):
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    vol = abs(float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0))
+    area = float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+    return vol, area
+
+
+def _regular_tet_volume(L):
+    return L ** 3 / (6.0 * math.sqrt(2.0))
+
+
+def _edge_for_tets(mesher, vol, tets):
+    """The edge bound that gives about ``tets`` tets in volume ``vol`` (FILL measured per mesher)."""
+    return (FILL[mesher] * vol * 6.0 * math.sqrt(2.0) / tets) ** (1.0 / 3.0)
+
+
+def _simplified(V, F, faces, name):
+    """The surface decimated to about ``faces`` triangles (quadric edge collapse, fast-simplification),
+    retried with more faces while the result is not clean; None when no decimation is clean."""
+    try:
+        import fast_simplification
+    except ImportError as exc:
+        raise MesherNotInstalled(
+            f"{name + ': ' if name else ''}a coarse simulation mesh of a {len(F)}-triangle surface (target_tets) needs the "
+            "Python package 'fast_simplification' (quadric surface decimation), which is not installed: pip install "
+            "'warpfem[mesh]' (or pip install fast-simplification), or set max_edge_length") from exc
+    for _ in range(4):
+        if faces >= 0.9 * len(F):
+            return None
+        Vd, Fd = fast_simplification.simplify(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32),
+                                              target_reduction=1.0 - faces / len(F))
+        Vd, Fd = np.asarray(Vd, dtype=np.float64), np.asarray(Fd, dtype=np.int64)
+        try:
+            return check_surface(Vd, Fd, name=name)
+        except MeshError as exc:
+            log.info("%s: decimation to %d triangles is not clean (%s); trying more", name, len(Fd), exc)
+            faces = int(faces * 1.6)
+    return None
+
+
 def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
-                   name=None, check=True):
+                   target_tets=None, name=None, check=True):
     """Fill a closed triangle surface with tets; returns a Tet4 ``VolumeMesh``.
 
     Parameters
@@ -444,15 +523,41 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
     max_radius_edge_ratio : float, default 2.0
         TetGen's quality bound (circumradius / shortest edge of every tet, -q): smaller is better
         shaped, more tets; >= 1.1. TetWild ignores it (it optimises its own AMIPS energy).
-    mesher : "auto" (default), "tetgen" or "tetwild".
+    mesher : "auto" (default), "tetgen" or "tetwild". With "auto", a surface that is readable but
+        not clean (holes, duplicated or degenerate faces, non-manifold edges, self-intersections)
+        goes to TetWild with a warning naming the defect when TetWild is installed; otherwise the
+        error says what is wrong and how to install it. A named mesher is used as asked.
+    target_tets : int, optional
+        Upper bound on the tet count when ``max_edge_length`` is not given: a surface whose own
+        resolution would give more (estimated as OWN_RESOLUTION_TETS_PER_FACE per triangle for
+        TetGen, from TetWild's default edge, the bbox diagonal / 20, for TetWild) is meshed coarser: TetGen meshes the surface decimated (quadric edge collapse) to the
+        triangle size of a tet edge that gives about ``target_tets`` tets (one re-mesh corrects
+        the count when it is off by more than 30 %); TetWild gets that edge length. The input
+        surface is not changed: embed it as the render surface (scenes do so by default).
     name : used as the prefix of error messages (a file name).
     check : run :func:`check_surface` first (default True).
 
     The result carries ``.tetrahedralization`` (a :class:`Tetrahedralization`).
     """
-    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher)
+    requested = mesher if mesher is not None else "auto"
+    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets)
+    pre = f"{name}: " if name else ""
+    dirty = ""
     if check:
-        V, F = check_surface(vertices, faces, name=name)
+        try:
+            V, F = check_surface(vertices, faces, name=name)
+        except DirtySurface as exc:
+            if requested != "auto":
+                raise
+            if not _installed(MESHERS["tetwild"][0]):
+                raise DirtySurface(f"{exc}. TetGen cannot mesh such a surface; TetWild (envelope-based) can: "
+                                   f"pip install 'warpfem[tetwild]', then load it again (or repair the surface)",
+                                   exc.problem) from exc
+            V, F = check_surface(vertices, faces, name=name, clean=False)
+            dirty = exc.problem
+            warnings.warn(f"{pre}{dirty}: meshed with TetWild (envelope-based, tolerates it) instead of TetGen",
+                          RuntimeWarning, stacklevel=2)
+            opts["mesher"] = "tetwild"
     else:
         V, F = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
     nsurf_v, nsurf_f = len(V), len(F)
@@ -460,32 +565,66 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
     if used.size < len(V):  # isolated vertices would become points of the tet mesh
         remap = np.full(len(V), -1, dtype=np.int64)
         remap[used] = np.arange(used.size)
-        log.info("%s%d surface vertices used by no face dropped", f"{name}: " if name else "", len(V) - used.size)
+        log.info("%s%d surface vertices used by no face dropped", pre, len(V) - used.size)
         V, F = V[used], remap[F]
     diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+    vol, area = _enclosed_volume_and_area(V, F)
+    extra = {}
     L = opts["max_edge_length"]
+    target = opts["target_tets"]
+    if opts["mesher"] == "tetgen":  # TetGen keeps the surface's triangles; TetWild's default edge is diag / 20
+        own = OWN_RESOLUTION_TETS_PER_FACE * len(F)
+    else:
+        own = FILL["tetwild"] * vol / _regular_tet_volume(diag / 20.0)
+    coarsen = L is None and target is not None and own > target
+    run_opts = dict(opts)
+    Vm, Fm = V, F
+    if coarsen:
+        L = _edge_for_tets(opts["mesher"], vol, target)
+        extra.update(target_tets=int(target))
+        if opts["mesher"] == "tetgen":
+            simple = _simplified(V, F, int(area / (math.sqrt(3.0) / 4.0 * L * L)), name)
+            if simple is not None:
+                Vm, Fm = simple
+            extra.update(simulation_surface_faces=int(len(Fm)))
+        run_opts["max_edge_length"] = L
     if L is not None:
-        a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
-        vol = abs(float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0))
-        est = vol / (L ** 3 / (6.0 * math.sqrt(2.0)))
+        est = vol / _regular_tet_volume(L)
         if est > MAX_ESTIMATED_TETS:
-            raise MeshError(f"{name + ': ' if name else ''}max_edge_length = {L:g} would give about {est:.3g} tets "
+            raise MeshError(f"{pre}max_edge_length = {L:g} would give about {est:.3g} tets "
                             f"(enclosed volume {vol:.4g}, limit {MAX_ESTIMATED_TETS:.0e}); use a larger max_edge_length")
     t0 = time.perf_counter()
-    if opts["mesher"] == "tetgen":
-        nodes, tets = _run_tetgen(V, F, opts)
-    else:
-        nodes, tets = _run_tetwild(V, F, opts, diag)
+    nodes, tets = _run(Vm, Fm, run_opts, diag)
+    if coarsen and opts["mesher"] == "tetgen" and not (0.7 * target <= len(tets) <= 1.3 * target):
+        L = L * (len(tets) / target) ** (1.0 / 3.0)  # the count goes as L^-3: one correction
+        run_opts["max_edge_length"] = L
+        simple = _simplified(V, F, int(area / (math.sqrt(3.0) / 4.0 * L * L)), name)
+        Vm, Fm = simple if simple is not None else (V, F)
+        extra.update(simulation_surface_faces=int(len(Fm)))
+        nodes, tets = _run(Vm, Fm, run_opts, diag)
     seconds = time.perf_counter() - t0
+    if coarsen:
+        extra.update(edge_length=float(L))
+    if dirty:
+        extra.update(dirty=dirty)
     if len(tets) == 0:
-        raise MeshError(f"{name + ': ' if name else ''}{opts['mesher']} produced no tets (does the surface enclose a volume?)")
+        raise MeshError(f"{pre}{opts['mesher']} produced no tets (does the surface enclose a volume?)")
     mesh = VolumeMesh(nodes, tets, name=name)
+    if coarsen and vol > 0.0:  # what decimation did to the volume (and so to the mass)
+        extra.update(volume_change=float(mesh.total_volume() / vol - 1.0))
     module = MESHERS[opts["mesher"]][0]
     mesh.tetrahedralization = Tetrahedralization(
         mesher=opts["mesher"], version=_version(module), options=opts, num_tets=mesh.num_elements,
-        num_vertices=mesh.num_vertices, surface_vertices=nsurf_v, surface_faces=nsurf_f, seconds=seconds, source=name)
+        num_vertices=mesh.num_vertices, surface_vertices=nsurf_v, surface_faces=nsurf_f, seconds=seconds, source=name,
+        extra=extra)
     log.info("%s", mesh.tetrahedralization.describe())
     return mesh
+
+
+def _run(V, F, opts, diag):
+    if opts["mesher"] == "tetgen":
+        return _run_tetgen(V, F, opts)
+    return _run_tetwild(V, F, opts, diag)
 
 
 # ----------------------------------------------------------------------------- file + cache
@@ -525,7 +664,8 @@ def _write_cache(path, mesh):
     """Write atomically (temporary file in the same folder, then rename); failures only warn."""
     info = mesh.tetrahedralization
     meta = {"mesher": info.mesher, "version": info.version, "options": info.options, "seconds": info.seconds,
-            "surface_vertices": info.surface_vertices, "surface_faces": info.surface_faces, "source": info.source}
+            "surface_vertices": info.surface_vertices, "surface_faces": info.surface_faces, "source": info.source,
+            "extra": info.extra}
     tmp = None
     try:
         os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -542,7 +682,7 @@ def _write_cache(path, mesh):
 
 
 def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None, cache=True,
-                        check=True):
+                        check=True, target_tets=None):
     """Read a surface file (.obj, .off, .ply, .stl, or any meshio file with triangles), check it and tetrahedralise it (see :func:`tetrahedralize`), through the cache.
 
     The cache key is a SHA-256 of the file bytes and the resolved options (mesher included), so
@@ -552,7 +692,7 @@ def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=Non
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"surface file not found: {path}")
-    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher)
+    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets)
     with open(path, "rb") as f:
         data = f.read()
     entry = None
@@ -567,11 +707,12 @@ def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=Non
                 mesher=meta["mesher"], version=meta["version"], options=meta["options"], num_tets=mesh.num_elements,
                 num_vertices=mesh.num_vertices, surface_vertices=meta["surface_vertices"],
                 surface_faces=meta["surface_faces"], seconds=meta["seconds"], source=path, cache_path=entry,
-                cache_hit=True)
+                cache_hit=True, extra=meta.get("extra", {}))
             log.info("%s: tetrahedralisation cache hit %s", path, entry)
             return mesh
     V, F = read_surface(path)
-    mesh = tetrahedralize(V, F, name=path, check=check, **opts)
+    mesh = tetrahedralize(V, F, name=path, check=check, max_edge_length=max_edge_length,
+                          max_radius_edge_ratio=max_radius_edge_ratio, mesher=mesher, target_tets=target_tets)
     if entry is not None:
         _write_cache(entry, mesh)
         mesh.tetrahedralization.cache_path = entry

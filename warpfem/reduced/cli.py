@@ -26,8 +26,15 @@ def _cmd_train(args) -> int:
         _cli.error(f"{args.scene}: no [subspace] section: nothing to train (add [subspace] with modes, "
                   "cubature_tolerance, ... to make the run reduced)")
         return _cli.EXIT_INVALID
+    from warpfem.io.outputs import OutputPathError, check_output_paths
     from warpfem.reduced.scene import subspace_cache_path, train_scene
     from warpfem.reduced.subspace import format_report
+
+    try:  # the cache file is written after the whole training: its folder is checked before it
+        check_output_paths({"[subspace] cache": subspace_cache_path(scene)})
+    except OutputPathError as e:
+        _cli.error(f"{args.scene}: {e}")
+        return _cli.EXIT_INVALID
 
     s = scene.spec.subspace
     if not args.quiet:
@@ -53,9 +60,19 @@ def _cmd_train(args) -> int:
             bar = Progress(total, unit="training frame", enabled=not args.quiet, started=started)
         bar.update(k)
 
+    def log(line):  # one line per error-budget attempt (after the training run's bar)
+        nonlocal bar
+        if args.quiet:
+            return
+        if bar is not None:
+            bar.close()
+            bar = None
+        print(line, flush=True)
+
     try:
         try:
-            sub = train_scene(scene, device=args.device, precision=args.precision, retrain=args.retrain, progress=progress)
+            sub = train_scene(scene, device=args.device, precision=args.precision, retrain=args.retrain, progress=progress,
+                              log=log)
         finally:
             if bar is not None:
                 bar.close()

@@ -22,7 +22,7 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["check_validation_error", "build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
+__all__ = ["BudgetNotMet", "check_validation_error", "build_reduced_simulator", "train_scene", "subspace_cache_path", "scene_handles", "describe_subspace",
            "scene_settings"]
 
 def subspace_cache_path(scene) -> str:
@@ -46,7 +46,8 @@ def scene_settings(scene) -> dict:
             "cubature_tolerance": float(s["cubature_tolerance"]), "max_cubature_points": int(s["max_cubature_points"]),
             "seed": int(s["seed"]), "pose_source": _POSE_SOURCE[s["training"]],
             "load_response": bool(s.get("load_response", False)), "pod_modes": int(s.get("pod_modes") or 0),
-            "rotation_lifting": int(s.get("rotation_lifting") or 0)}
+            "rotation_lifting": int(s.get("rotation_lifting") or 0),
+            "max_error": float(s.get("max_error") or 0.0), "max_pod_modes": int(s.get("max_pod_modes") or 0)}
 
 
 _POSE_SOURCE = {"mixed": "random+snapshots", "snapshots": "snapshots", "random": "random"}
@@ -79,7 +80,8 @@ def _stale(scene, sub) -> list:
     have = sub.settings
     out = []
     for k, v in want.items():
-        got = have.get(k, {"pose_source": "random", "load_response": False, "pod_modes": 0, "rotation_lifting": 0}.get(k))
+        got = have.get(k, {"pose_source": "random", "load_response": False, "pod_modes": 0, "rotation_lifting": 0,
+                           "max_error": 0.0, "max_pod_modes": 0}.get(k))
         if got != v:
             out.append(f"{k}: cache {got!r} vs scene {v!r}")
     if want["pose_source"] != "random":
@@ -162,15 +164,46 @@ def check_validation_error(scene, sub, path=None) -> str | None:
     return msg
 
 
-def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progress=None):
+class BudgetNotMet(ValueError):
+    """``warpfem train`` could not bring the replay of the training run within ``[subspace] max_error``
+    without going past the size caps (``max_pod_modes``); the cache is not written."""
+
+
+def _pod_schedule(first: int, cap: int, snapshots: int) -> list:
+    """POD column counts ``train`` tries for the error budget: the scene's own count first, then
+    doubling (4, 8, 16, ...) up to ``cap`` (``[subspace] max_pod_modes``) and the number of
+    training snapshots (POD cannot have more directions than snapshots)."""
+    top = min(int(cap), int(snapshots))
+    out, k = [int(first)], max(4, 2 * int(first))
+    while k < top:
+        out.append(k)
+        k *= 2
+    if top > out[-1]:
+        out.append(top)
+    return out
+
+
+def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progress=None, log=None):
     """Train (or, with ``retrain=False`` and an up-to-date cache, load) the scene's subspace.
 
     ``[subspace].training = "snapshots"`` (or ``"mixed"``, the default: snapshots + random poses): the full scene is simulated for ``training_frames``
     frames (handles and loads as in ``warpfem run``) and the per-frame positions, projected on the
     basis, are the cubature training poses (every 4th held out for validation). ``"random"``:
     random poses (amplitude ~ 1/frequency), handles at random ramp fractions.
-    ``progress(frame, total)`` is called after each training frame. Writes the cache and returns
-    the :class:`~warpfem.reduced.Subspace` (its ``report`` includes ``snapshot_seconds``).
+
+    Error budget (``[subspace] max_error``, default 0.02; 0 = off): after training, the reduced
+    run replays the training run; while its RMS trajectory error (max over frames of the RMS vertex
+    error over the bounding-box diagonal) is above the budget, POD columns of the training run are
+    added (the scene's ``pod_modes``, then 4, 8, 16, ... up to ``max_pod_modes``) and the basis and
+    cubature are trained again (the full training run is not repeated). Raises
+    :class:`BudgetNotMet` (the cache is not written) when even ``max_pod_modes`` columns miss it.
+    ``training = "random"`` has no training run to replay: the budget is not checked (the report
+    says so).
+
+    ``progress(frame, total)`` is called after each training frame; ``log(line)`` (optional) gets a
+    line per budget attempt. Writes the cache and returns the :class:`~warpfem.reduced.Subspace`
+    (its ``report`` includes the itemised training times, ``training_seconds`` = their sum, and
+    the budget attempts).
     """
     from warpfem.reduced.subspace import train_subspace
     from warpfem.scenes import handle_targets
@@ -179,66 +212,154 @@ def train_scene(scene, *, device="cpu", precision="float64", retrain=True, progr
     sp = scene.spec
     s = sp.subspace
     path = subspace_cache_path(scene)
+    t_start = time.perf_counter()
     run = scene.build(device=device, precision=precision, full=True)  # the full-space training run
     model = run.model
+    why = "--retrain requested" if retrain else "no cache yet"
     if not retrain and os.path.exists(path):
         try:
             sub, _ = _load_checked(scene, model)
             sub.report["cache"] = f"up to date: {path} (use --retrain to train again)"
             return sub
-        except ValueError:  # SceneError / SubspaceMismatch: stale or mismatched, train below
-            pass
+        except ValueError as e:  # SceneError / SubspaceMismatch: stale or mismatched, train below
+            import re
+
+            m = re.search(r"settings \((.*)\); run `warpfem train", str(e))
+            why = "the cache was stale: " + (m.group(1) if m else str(e).split("; run `warpfem train")[0])
+    t_setup = time.perf_counter() - t_start
     sel = scene_handles(scene)
     rest = [model.rest_positions[ids].copy() for ids, _ in sel]
 
     def targets_at(frac):
         return [handle_targets(r0, h, frac) for r0, h in zip(rest, sp.handle)]
 
-    snapshots, t_snap, full_steps = None, None, 0
+    snapshots, t_snap, full_steps, frame_times = None, None, 0, []
     if s["training"] in ("snapshots", "mixed"):
         frames = int(s["training_frames"] or sp.output["frames"])
         if frames < 4:
             raise _scene_error(scene, "[subspace].training_frames", f"snapshot training needs >= 4 frames, got {frames}")
         t0 = time.perf_counter()
-        snapshots, full_steps, _ = _drive(scene, run, frames, progress)
+        snapshots, full_steps, _ = _drive(scene, run, frames, progress, per_frame=frame_times)
         t_snap = time.perf_counter() - t0
-    else:  # no training run: time one full frame of the scene for the predicted speed-up
+    else:  # no training run: time two full frames of the scene for the predicted speed-up
         t0 = time.perf_counter()
-        full_steps = run.step_frame().steps
+        for _ in range(2):
+            fs = run.step_frame()
+            frame_times.append((fs.steps, fs.step_seconds))
+            full_steps += fs.steps
         t_snap = time.perf_counter() - t0
-    sub = train_subspace(model, modes=s["modes"], modal_derivatives=s["modal_derivatives"],
-                         cubature_tolerance=s["cubature_tolerance"], max_cubature_points=s["max_cubature_points"],
-                         seed=s["seed"], cache=path, retrain=True, num_training_poses=s["training_poses"],
-                         num_validation_poses=s["validation_poses"], snapshots=snapshots,
-                         pose_source=_POSE_SOURCE[s["training"]],
-                         handles=sel, handle_targets_at=targets_at if sel else None,
-                         load_response=bool(s.get("load_response", False)), pod_modes=int(s.get("pod_modes") or 0),
-                         rotation_lifting=int(s.get("rotation_lifting") or 0))
+    full_step, full_load = _steady_step_seconds(frame_times)
+    t_extra = 0.0
+    if snapshots is not None and int(s.get("training_dt_scale") or 1) > 1:
+        t0 = time.perf_counter()
+        full_step = _time_scene_steps(scene, run.sim)
+        t_extra = time.perf_counter() - t0
+    timed_dt = float(sp.integrator["dt"])
+    budget = float(s.get("max_error") or 0.0)
+    if snapshots is None:
+        schedule = [int(s.get("pod_modes") or 0)]
+    else:
+        schedule = _pod_schedule(int(s.get("pod_modes") or 0), int(s.get("max_pod_modes") or 0), len(snapshots) - 1)
+        if not budget:
+            schedule = schedule[:1]
+    attempts, earlier, sub, last_r = [], 0.0, None, None
+    for pod in schedule:
+        t_try = time.perf_counter()
+        sub = train_subspace(model, modes=s["modes"], modal_derivatives=s["modal_derivatives"],
+                             cubature_tolerance=s["cubature_tolerance"], max_cubature_points=s["max_cubature_points"],
+                             seed=s["seed"], cache=None, retrain=True, num_training_poses=s["training_poses"],
+                             num_validation_poses=s["validation_poses"], snapshots=snapshots,
+                             pose_source=_POSE_SOURCE[s["training"]],
+                             handles=sel, handle_targets_at=targets_at if sel else None,
+                             load_response=bool(s.get("load_response", False)), pod_modes=pod,
+                             rotation_lifting=int(s.get("rotation_lifting") or 0))
+        rep = sub.report
+        _replay(scene, run, sub, snapshots, device=device, precision=precision)
+        r = int(sub.U.shape[1])
+        att = {"pod_modes": int(rep.get("pod_modes", 0)), "r": r, "cubature_points": int(rep["cubature_points"]),
+               "rms_error": rep.get("replay_rms_error"), "tip_error": rep.get("replay_tip_error"),
+               "seconds": time.perf_counter() - t_try}
+        attempts.append(att)
+        if log is not None and budget and snapshots is not None:
+            log(f"budget: r = {r} ({att['pod_modes']} POD), {att['cubature_points']} cubature points: replay RMS "
+                f"error {att['rms_error']:.3g} ({'within' if att['rms_error'] <= budget else 'above'} {budget:g})")
+        if not budget or snapshots is None or att["rms_error"] <= budget:
+            break
+        if last_r is not None and r <= last_r:  # more POD columns asked for, none came (no energy left)
+            break
+        last_r = r
+        earlier += att["seconds"]
     rep = sub.report
+    s_pod = int(s.get("pod_modes") or 0)
+    # the cache records the scene's settings (pod_modes as the scene asks; the count chosen is in the report)
+    sub.settings["pod_modes"] = s_pod
+    if not s_pod:
+        sub.settings.pop("pod_modes", None)
+    sub.settings.update(max_error=budget, max_pod_modes=int(s.get("max_pod_modes") or 0))
+    rep["budget"] = {"max_error": budget, "checked": bool(budget and snapshots is not None),
+                     "met": (None if not (budget and snapshots is not None) else bool(attempts[-1]["rms_error"] <= budget)),
+                     "attempts": attempts, "max_pod_modes": int(s.get("max_pod_modes") or 0)}
+    if rep["budget"]["met"] is False:
+        best = min(attempts, key=lambda a: (not np.isfinite(a["rms_error"]), a["rms_error"]))  # a diverged replay: NaN
+        raise BudgetNotMet(
+            f"{_where(scene)}: [subspace] max_error = {budget:g} not met: the reduced replay of the training run is "
+            f"{best['rms_error']:.3g} RMS error at best (r = {best['r']}: {s['modes']} modes + {best['pod_modes']} POD "
+            f"columns, {best['cubature_points']} cubature points; tried POD columns "
+            f"{', '.join(str(a['pod_modes']) for a in attempts)}, up to [subspace] max_pod_modes = "
+            f"{int(s.get('max_pod_modes') or 0)}). Raise max_pod_modes or modes, lower cubature_tolerance, train "
+            f"over more frames, or set max_error = 0 to accept this subspace; the cache was not written")
     if snapshots is not None:
         rep["snapshot_seconds"] = t_snap
         rep["snapshot_frames"] = len(snapshots) - 1
     rep["full_steps"] = full_steps
-    rep["full_step_seconds"] = t_snap / max(full_steps, 1)
-    if snapshots is not None and int(s.get("training_dt_scale") or 1) > 1:
-        rep["full_step_seconds"] = _time_scene_steps(scene, run.sim)
-    rep["timed_step_dt"] = float(run.sim.dt)  # the step the full step time is of (the scene's dt)
-    _replay(scene, run, sub, snapshots, device=device, precision=precision)
-    rep["training_seconds"] = (t_snap + rep.get("basis_seconds", 0.0) + rep.get("cubature_seconds", 0.0)
-                               + rep.get("replay_seconds", 0.0))
-    red, full = rep["reduced_step_seconds"], rep["full_step_seconds"]
-    rep["predicted_speedup"] = full / max(red, 1e-12)
-    per_frame = (full - red) * int(sp.integrator["substeps"])
-    rep["break_even_frames"] = (int(np.ceil(rep["training_seconds"] / per_frame)) if per_frame > 0 else None)
+    rep["full_run_seconds"] = t_snap
+    rep["full_step_seconds"] = full_step
+    rep["timed_step_dt"] = timed_dt  # the step the full step time is of (the scene's dt)
+    rep["budget_search_seconds"] = earlier
+    rep["cache"] = f"trained ({why}), saved to {path}"
+    total = time.perf_counter() - t_start
+    items = {"setup (model, simulators)": t_setup, "full training run" if snapshots is not None else "two full frames (timing)": t_snap,
+             "basis": rep.get("basis_seconds", 0.0), "cubature": rep.get("cubature_seconds", 0.0),
+             "reduced replay": rep.get("replay_seconds", 0.0)}
+    if t_extra:
+        items["timing full steps at the scene's dt"] = t_extra
+    if earlier:
+        items[f"{len(attempts) - 1} earlier budget attempt(s)"] = earlier
+    items["other (stiffness for the basis, lifting)"] = max(0.0, total - sum(items.values()))
+    rep["training_items"] = items
+    rep["training_seconds"] = float(sum(items.values()))
+    rep["kernel_load_seconds"] = full_load + rep.get("replay_load_seconds", 0.0)
+    red = rep["reduced_step_seconds"]
+    rep["predicted_speedup"] = full_step / max(red, 1e-12)
+    per_frame = (full_step - red) * int(sp.integrator["substeps"])
+    # what training costs beyond what a full run pays as well (building the scene, loading kernels)
+    recurring = max(rep["training_seconds"] - t_setup - rep["kernel_load_seconds"], 0.0)
+    rep["break_even_seconds"] = recurring
+    rep["break_even_frames"] = (int(np.ceil(recurring / per_frame)) if per_frame > 0 else None)
     sub.save(path)
     return sub
 
 
-def _drive(scene, run, frames, progress=None):
+def _steady_step_seconds(frame_times) -> tuple:
+    """(seconds per step leaving the first frame out, the first frame's excess over that): the first
+    frame of a run loads (or compiles) its Warp kernels, once per process and module."""
+    if not frame_times:
+        return float("nan"), 0.0
+    if len(frame_times) == 1:
+        n, t = frame_times[0]
+        return t / max(n, 1), 0.0
+    n = sum(f[0] for f in frame_times[1:])
+    t = sum(f[1] for f in frame_times[1:])
+    each = t / max(n, 1)
+    return each, max(0.0, frame_times[0][1] - frame_times[0][0] * each)
+
+
+def _drive(scene, run, frames, progress=None, per_frame=None):
     """Run ``run.sim`` over ``frames`` frames of the scene, handles ramped over those frames.
     Positions after every frame, or with ``[subspace] training_dt_scale`` = k > 1 after every step
     of k x dt (the same simulated time in fewer steps). Returns (positions list with the rest pose
-    first, steps, seconds spent stepping)."""
+    first, steps, seconds spent stepping); ``per_frame`` (a list), when given, gets (steps, seconds)
+    per frame (per coarse step)."""
     sp = scene.spec
     sim = run.sim
     xs = [run.model.rest_positions.copy()]
@@ -249,6 +370,8 @@ def _drive(scene, run, frames, progress=None):
             fs = run.step_frame(total_frames=frames)
             steps += fs.steps
             seconds += fs.step_seconds
+            if per_frame is not None:
+                per_frame.append((fs.steps, fs.step_seconds))
             xs.append(sim.positions())
             if progress is not None:
                 progress(k + 1, frames)
@@ -261,8 +384,11 @@ def _drive(scene, run, frames, progress=None):
         run._set_handles(lambda h, t=t_next: t / (h["ramp_time"] or duration))
         t0 = time.perf_counter()
         sim.step()
-        seconds += time.perf_counter() - t0
+        dt_wall = time.perf_counter() - t0
+        seconds += dt_wall
         steps += 1
+        if per_frame is not None:
+            per_frame.append((1, dt_wall))
         xs.append(sim.positions())
         if progress is not None:
             progress(k + 1, count)
@@ -286,33 +412,36 @@ def _time_scene_steps(scene, sim) -> float:
 
 def _replay(scene, run, sub, snapshots, *, device, precision):
     """Run the reduced simulator over the training run (same frames and step; or a few frames
-    without one) on the same SceneRun driver: the reduced step time (for the predicted speed-up)
-    and, with snapshots, the in-sample trajectory error against the full training run (tip: the
-    free vertex that moved most; relative to its peak displacement; RMS relative to the
-    bounding-box diagonal)."""
+    without one) on the same SceneRun driver: the reduced step time (for the predicted speed-up;
+    the first frame, which loads the reduced kernels, left out) and, with snapshots, the in-sample
+    trajectory error against the full training run (tip: the free vertex that moved most;
+    relative to its peak displacement; RMS relative to the bounding-box diagonal)."""
     import warnings
 
     model = run.model
+    t_start = time.perf_counter()
     rsim = _reduced_simulator(scene, model, sub, device=device, precision=precision)
     s = scene.spec.subspace
     frames = int(s["training_frames"] or scene.spec.output["frames"]) if snapshots is not None \
         else min(int(scene.spec.output["frames"]), 4)
     run.sim, run.frame = rsim, 0
+    per_frame = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # non-converged reduced steps show in the error
         if snapshots is None:
-            xs, steps, t = [], 0, 0.0
+            xs = []
             for _ in range(frames):
                 fs = run.step_frame(total_frames=frames)
-                steps += fs.steps
-                t += fs.step_seconds
+                per_frame.append((fs.steps, fs.step_seconds))
         else:
-            xs, steps, t = _drive(scene, run, frames)
+            xs, _, _ = _drive(scene, run, frames, per_frame=per_frame)
+        step, load = _steady_step_seconds(per_frame)
+        if snapshots is not None and int(s.get("training_dt_scale") or 1) > 1:
+            step = _time_scene_steps(scene, rsim)
     rep = sub.report
-    rep["replay_seconds"] = t
-    rep["reduced_step_seconds"] = t / max(steps, 1)
-    if snapshots is not None and int(s.get("training_dt_scale") or 1) > 1:
-        rep["reduced_step_seconds"] = _time_scene_steps(scene, rsim)
+    rep["replay_seconds"] = time.perf_counter() - t_start
+    rep["replay_load_seconds"] = load
+    rep["reduced_step_seconds"] = step
     if snapshots is not None:
         rep.update(trajectory_errors(model, np.array(snapshots), np.array(xs)))
 
@@ -341,7 +470,11 @@ def describe_subspace(scene) -> str:
              f"(modal derivatives {'on' if s['modal_derivatives'] else 'off'}), "
              f"cubature tolerance {s['cubature_tolerance']:g}, at most {s['max_cubature_points']} points, "
              f"training {s['training']}"
-             + (f", rotation-aware handle lifting (order {s['rotation_lifting']})" if s.get("rotation_lifting") else "")]
+             + (f", rotation-aware handle lifting (order {s['rotation_lifting']})" if s.get("rotation_lifting") else "")
+             + (f"; error budget: train adds POD columns (up to {s.get('max_pod_modes')}) until its replay of the "
+                f"training run is within {float(s['max_error']):g} RMS" if s.get("max_error") and s["training"] != "random"
+                else "; error budget: none (training \"random\" has no run to replay)" if s.get("max_error")
+                else "; error budget: off (max_error = 0)")]
     if scene.integrator_type not in ("backward_euler", "bdf2", "newmark"):
         lines.append(f"  error: [subspace] needs [integrator] type = \"backward_euler\", \"bdf2\" or \"newmark\", "
                      f"got {scene.integrator_type!r}")
@@ -360,6 +493,9 @@ def describe_subspace(scene) -> str:
                      f"training error {rep.get('training_error', float('nan')):.3g}, validation error "
                      f"{rep.get('validation_error', float('nan')):.3g}"
                      + (f", {rep['handles']} handle(s)" if rep.get("handles") else "")
+                     + (f", replay RMS error {rep['replay_rms_error']:.3g}" if "replay_rms_error" in rep else "")
+                     + (f" with {rep['pod_modes']} POD columns chosen by the budget"
+                        if len((rep.get("budget") or {}).get("attempts") or []) > 1 else "")
                      + (f"; predicted {rep['predicted_speedup']:.0f}x faster per step, cheaper than a full run "
                         f"beyond {rep['break_even_frames']} frames" if rep.get("break_even_frames") else ""))
         limit = s.get("max_validation_error")

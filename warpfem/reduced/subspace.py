@@ -286,22 +286,41 @@ def format_report(report: dict) -> str:
              f"cubature: {report.get('cubature_points')} of {report.get('num_elements')} elements, training error "
              f"{report.get('training_error', float('nan')):.3g}, validation error {report.get('validation_error', float('nan')):.3g}"
              f"{'' if report.get('reached_tolerance', True) else ' (point cap reached before the tolerance)'}",
-             f"time: basis {report.get('basis_seconds', 0):.2f} s, cubature {report.get('cubature_seconds', 0):.2f} s"
-             + (f", full-simulation snapshots {report['snapshot_seconds']:.2f} s" if "snapshot_seconds" in report else ""),
+             *([] if "training_items" in report else  # train_scene itemises every time below
+               [f"time: basis {report.get('basis_seconds', 0):.2f} s, cubature {report.get('cubature_seconds', 0):.2f} s"
+                + (f", full-simulation snapshots {report['snapshot_seconds']:.2f} s" if "snapshot_seconds" in report
+                   else "")]),
              f"cache: {report.get('cache')}"]
-    if "training_seconds" in report:
-        steps = report.get("full_steps", 0)
-        each = (report["snapshot_seconds"] / max(steps, 1) if "snapshot_seconds" in report
-                else report.get("full_step_seconds", float("nan")))  # the training run's own steps
-        lines.append(f"training cost: {report['training_seconds']:.1f} s including {steps} full "
-                     f"step(s) ({each:.3g} s each)")
+    if "training_items" in report:
+        items = report["training_items"]
+        lines.append(f"training cost: {report['training_seconds']:.1f} s = "
+                     + " + ".join(f"{k} {v:.1f} s" for k, v in items.items())
+                     + f" ({report.get('full_steps', 0)} full step(s)"
+                     + (f"; {report['kernel_load_seconds']:.1f} s of it loading Warp kernels in the first frames, "
+                        "once per process" if report.get("kernel_load_seconds", 0) >= 0.05 else "") + ")")
+    elif "training_seconds" in report:  # a cache written before the itemised report
+        lines.append(f"training cost: {report['training_seconds']:.1f} s including {report.get('full_steps', 0)} full step(s)")
     if "replay_tip_error" in report:
         lines.append(f"reduced replay of the training run: tip error {report['replay_tip_error']:.3g} of its peak, "
                      f"RMS error {report['replay_rms_error']:.3g} of the size (in-sample: the basis saw this run)")
+    b = report.get("budget")
+    if b and b.get("max_error"):
+        at = b.get("attempts") or []
+        if not b.get("checked"):
+            lines.append(f"error budget: [subspace] max_error = {b['max_error']:g} not checked (training = \"random\" "
+                         "has no training run to replay)")
+        elif at:
+            tried = ", ".join(f"{a['pod_modes']} POD: {100 * a['rms_error']:.2g} %" for a in at)
+            lines.append(f"error budget: replay RMS error {100 * at[-1]['rms_error']:.2g} % "
+                         f"{'<=' if b.get('met') else '>'} max_error {100 * b['max_error']:.2g} % with r = {at[-1]['r']}"
+                         + (f" ({at[-1]['pod_modes']} POD columns chosen; tried {tried})" if len(at) > 1
+                            else " (the scene's sizes)"))
     if "predicted_speedup" in report:
         be = report.get("break_even_frames")
         lines.append(f"predicted: reduced step {1e3 * report['reduced_step_seconds']:.3g} ms vs full "
                      f"{1e3 * report['full_step_seconds']:.4g} ms, {report['predicted_speedup']:.0f}x faster per step; "
-                     + (f"training + reduced run is cheaper than a full run for scenes longer than {be} frames"
+                     + (f"training + reduced run is cheaper than a full run for scenes longer than {be} frames "
+                        f"({report.get('break_even_seconds', report.get('training_seconds', 0.0)):.1f} s of training "
+                        "beyond what a full run also pays (set-up, kernel loading), over the time saved per frame)"
                         if be is not None else "no break-even (the reduced step is not faster here)"))
     return "\n".join(lines)

@@ -16,6 +16,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Callable
 
+from warpfem.model import static_supports_error
+
 from .schema import ELEMENTS, INTEGRATOR_KEYS, SCHEMA, Key, SceneError, SceneSpec, parse_scene_dict, parse_scene_file
 
 __all__ = ["SceneError", "SceneSpec", "Key", "SCHEMA", "ELEMENTS", "INTEGRATOR_KEYS", "IntegratorType",
@@ -132,10 +134,9 @@ def _build_backward_euler(scene, model, *, device, precision):
 
 
 def _build_static(scene, model, *, device, precision):
-    fixed_any = model.fixed.any(axis=0)
-    if not fixed_any.all():
-        raise ValueError("a static solve needs [[fixed]] or [[handle]] components in x, y and z to remove rigid "
-                         f"motions; free axes: {[a for a, f in zip('xyz', fixed_any) if not f]}")
+    problem = static_supports_error(model, "[[fixed]] or [[handle]]")
+    if problem:
+        raise ValueError(problem)
     return _simulator(model, scene.spec.integrator, device=device, precision=precision, dt=1.0, dynamic=False)
 
 
@@ -148,16 +149,16 @@ _STATIC_KEYS = {k: v for k, v in INTEGRATOR_KEYS.items() if k not in ("dt", "dam
 
 register_integrator(IntegratorType(
     "backward_euler", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
-    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities")))
+    builds=("mass matrix", "Hessian (Newton; linear solver below)", "positions/velocities")))
 register_integrator(IntegratorType(
     "bdf2", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
-    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities + previous step's")))
+    builds=("mass matrix", "Hessian (Newton; linear solver below)", "positions/velocities + previous step's")))
 register_integrator(IntegratorType(
     "newmark", _build_backward_euler, keys=_DYNAMIC_KEYS, dynamic=True,
-    builds=("mass matrix", "Hessian (Newton + block-Jacobi PCG)", "positions/velocities/accelerations")))
+    builds=("mass matrix", "Hessian (Newton; linear solver below)", "positions/velocities/accelerations")))
 register_integrator(IntegratorType(
     "static", _build_static, keys=_STATIC_KEYS, dynamic=False, static_solve=_static_solve,
-    builds=("Hessian (Newton + block-Jacobi PCG)", "positions")))
+    builds=("Hessian (Newton; linear solver below)", "positions")))
 
 
 
@@ -182,7 +183,7 @@ _WARPING_KEYS["scheme"] = Key("choice", default="backward_euler", choices=("back
                               doc="time scheme of the one linear solve per step (docs/integrators.md)")
 register_integrator(IntegratorType(
     "stiffness_warping", _build_stiffness_warping, keys=_WARPING_KEYS, dynamic=True,
-    builds=("mass matrix", "warped stiffness K' (one block-Jacobi PCG solve per step)", "per-tet 12x12 K_e",
+    builds=("mass matrix", "warped stiffness K' (one linear solve per step; linear solver below)", "per-tet 12x12 K_e",
             "positions/velocities")))
 
 from .scene import FrameStats, Scene, SceneRun, estimate_device_memory, handle_targets, load_scene, traction_forces  # noqa: E402

@@ -34,6 +34,16 @@ class FrameStats:
         return dict(self.__dict__)
 
 
+def _incomplete_reason(e: BaseException, frame: int) -> str:
+    """What an incomplete output records: ``"SolveFailed: ..."``, ``"KeyboardInterrupt: interrupted
+    (Ctrl-C) at frame 3"``, ``"Terminated: SIGTERM at frame 3"`` (an exception's own message when it
+    has one)."""
+    msg = str(e)
+    if isinstance(e, KeyboardInterrupt):
+        msg = f"{msg or 'interrupted (Ctrl-C)'} at frame {frame}"
+    return f"{type(e).__name__}: {msg}"
+
+
 class SceneRun:
     """A built scene: ``model``, ``sim`` (the integrator), ``skinner`` (None without [surface])."""
 
@@ -161,6 +171,10 @@ class SceneRun:
 
         stats = Scene.stats_path(usd, out["stats"] if stats is None else stats)
         vtu = out.get("vtu") if vtu is None else vtu
+        from warpfem.io.outputs import check_output_paths
+
+        # every output path before anything is written (OutputPathError, a ValueError, names the bad one)
+        check_output_paths({"usd": usd, "states": states, "stats": stats, "vtu": vtu})
         writer = log = volume = None
         from warpfem.io.vtu import VtuSeriesWriter, warpfem_version
 
@@ -212,10 +226,11 @@ class SceneRun:
                 if progress is not None:
                     progress(fs)
         except BaseException as e:
+            reason = _incomplete_reason(e, self.frame)
             if writer is not None:
-                writer.close(complete=False, reason=f"{type(e).__name__}: {e}")
+                writer.close(complete=False, reason=reason)
             if volume is not None:
-                volume.close(complete=False, reason=f"{type(e).__name__}: {e}")
+                volume.close(complete=False, reason=reason)
             raise
         else:
             if writer is not None:

@@ -96,7 +96,8 @@ class Scene:
         wanted = etype.meshio_cell
         if element in ELEMENTS_FROM_TETS:
             try:  # a surface file is tetrahedralised (warpfem.mesh.tetrahedralize; cached)
-                tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher") if m.get(k) is not None}
+                tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher", "target_tets")
+                         if m.get(k) is not None}
                 mesh = load_mesh(path, inside_surface=m["inside_surface"], **tetra)
                 self._tetrahedralization = getattr(mesh, "tetrahedralization", None)
             except MeshError:
@@ -203,9 +204,22 @@ class Scene:
             lines.append(f"integrator: {self.integrator_type}, dt = {integ['dt']:g} s, {integ['substeps']} step(s) per frame")
         else:
             lines.append(f"integrator: {self.integrator_type}, {integ.get('load_steps', 1)} load step(s) per frame")
-        lines.append(f"  builds: {', '.join(entry.builds)}")
         from . import section_entries
 
+        reduced = [e for e in section_entries(self) if e.section == "subspace" and e.builds]
+        lines.append(f"  builds: {', '.join(reduced[0].builds if reduced else entry.builds)}")
+        ls = self.linear_solver_plan()
+        if ls is not None:
+            head = "  linear solver: "
+            if reduced:
+                head += "dense r x r (the reduced system); `warpfem train`'s full training run: "
+                ls = ls["training_run"]
+            lines.append(head + ls["name"] + (" (picks by size and device, docs/linear_solvers.md)"
+                                              if ls["name"] == "auto" else "") + ":")
+            lines.append(f"    cpu: {ls['cpu']}")
+            lines.append(f"    cuda: {ls['cuda']}")
+        for i, c in enumerate(self.collider_plan()):
+            lines.append(f"collider #{i + 1}: {c['text']}")
         for extra in section_entries(self):  # e.g. [subspace]: the reduced run (warpfem.reduced.scene)
             if extra.describe is not None:
                 lines.append(extra.describe(self))
@@ -217,8 +231,9 @@ class Scene:
             sv, st = load_surface(sp.surface["path"])
             p = len(sv)
             how = "barycentric" if mesh.element.is_linear_tet else f"{k} shape functions"
-            lines.append(f"render surface: {sp.surface['path']} ({p} vertices, {len(st)} triangles), embedded in the "
-                         f"{etype} elements ({how} per vertex)")
+            own = " (the [mesh] surface at full resolution)" if sp.surface.get("from_mesh") else ""
+            lines.append(f"render surface: {sp.surface['path']}{own} ({p} vertices, {len(st)} triangles), embedded in "
+                         f"the {etype} elements ({how} per vertex); physics mesh: {m} elements, {n} vertices")
         else:
             ids, tri = boundary_surface(mesh)
             p = 0
@@ -236,6 +251,78 @@ class Scene:
                                        stiffness_damping=sp.integrator.get("damping_stiffness", 0.0) > 0)
             lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz} 3x3 matrix blocks)")
         return "\n".join(lines)
+
+    def linear_solver_plan(self) -> dict | None:
+        """The linear solver the run will use (``[integrator] linear_solver``) and, per device, what
+        it will do on this mesh (``auto``: :func:`warpfem.solvers.linear.auto.describe_choice`, by the
+        number of unknowns); None when the integrator takes no linear solver (a reduced run solves
+        its r x r systems densely)."""
+        from . import INTEGRATORS, section_entries
+
+        entry = INTEGRATORS[self.integrator_type]
+        if "linear_solver" not in entry.keys:
+            return None
+        name = self.spec.integrator.get("linear_solver") or "auto"
+        dofs = 3 * self.mesh().num_vertices
+        if name == "auto":
+            from warpfem.solvers.linear.auto import describe_choice
+
+            plan = {"name": name, "unknowns": dofs, **describe_choice(dofs)}
+        else:
+            import importlib
+
+            from warpfem.solvers.linear.base import _REGISTRY
+
+            mod, cls = _REGISTRY[name].split(":")
+            doc = (getattr(importlib.import_module(mod), cls).__doc__ or name).strip().split("\n")[0].rstrip(".")
+            plan = {"name": name, "unknowns": dofs, "cpu": doc, "cuda": doc}
+        if any(e.section == "subspace" for e in section_entries(self)):  # reduced: dense r x r; training: full
+            return {"name": "dense (reduced r x r)", "training_run": plan}
+        return plan
+
+    def collider_plan(self) -> list:
+        """The ``[[collider]]`` entries as they will run: type, name, geometry, motion, friction and
+        the contact distance / barrier stiffness with the body-based defaults filled in (as
+        :class:`warpfem.contact.contact.ContactSet` fills them: dhat 0.1 x mean boundary edge, kappa
+        max(E x mean edge, weight / (surface vertices x dhat)), friction velocity 1e-3 x diagonal)."""
+        sp = self.spec
+        if not sp.collider:
+            return []
+        mesh = self.mesh()
+        X = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.asarray(mesh.boundary_faces())
+        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        mean_edge = float(np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1).mean())
+        diagonal = float(np.linalg.norm(np.ptp(X, axis=0)))
+        surface = int(np.unique(faces).size)
+        mass = float(sp.material["density"]) * mesh.total_volume()
+        E = float(sp.material.get("youngs_modulus") or 0.0)
+        geometry = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "box": ("box_min", "box_max"),
+                    "mesh": ("path", "scale", "offset")}
+        out = []
+        for i, c in enumerate(sp.collider):
+            dhat = c["dhat"] if c.get("dhat") is not None else 0.1 * mean_edge
+            kappa = c["stiffness"] if c.get("stiffness") is not None else max(E * mean_edge, mass * 9.81 / (surface * dhat))
+            epsv = c["friction_velocity"] if c.get("friction_velocity") is not None else 1e-3 * diagonal
+            geo = {k: (list(c[k]) if isinstance(c[k], tuple) else c[k]) for k in geometry[c["type"]] if c.get(k) is not None}
+            moves = any(c.get("translation") or ()) or bool(c.get("rotation_angle"))
+            d = {"type": c["type"], "name": c.get("name") or f"{c['type']}{i + 1}", **geo,
+                 "friction": float(c["friction"]), "dhat": float(dhat), "dhat_default": c.get("dhat") is None,
+                 "stiffness": float(kappa), "stiffness_default": c.get("stiffness") is None,
+                 "friction_velocity": float(epsv), "moving": moves}
+            if moves:
+                d.update(translation=list(c["translation"]), rotation_angle=float(c["rotation_angle"] or 0.0),
+                         rotation_axis=None if c.get("rotation_axis") is None else list(c["rotation_axis"]),
+                         ramp_time=c.get("ramp_time"))
+            text = (f"{d['type']} {d['name']!r}, " + ", ".join(f"{k} {v}" for k, v in geo.items())
+                    + f", friction {d['friction']:g}"
+                    + f", dhat {dhat:.4g} m{' (default: 0.1 x mean boundary edge)' if d['dhat_default'] else ''}"
+                    + f", barrier stiffness {kappa:.4g} N/m{' (default)' if d['stiffness_default'] else ''}"
+                    + (f", moves by {list(c['translation'])} m" if any(c.get("translation") or ()) else "")
+                    + (f", turns {c['rotation_angle']:g} deg" if c.get("rotation_angle") else "")
+                    + (f" over {c['ramp_time']:g} s" if moves and c.get("ramp_time") else " over the run" if moves else ""))
+            out.append({**d, "text": text})
+        return out
 
     def summary(self) -> dict:
         """What :meth:`describe` prints, as a JSON-serialisable dict (``warpfem describe --json``)."""
@@ -293,7 +380,8 @@ class Scene:
             "gravity": list(sp.top["gravity"]),
             "selections": selections, "tractions": tractions,
             "integrator": {**{key: plain(val) for key, val in sp.integrator.items()}, "dynamic": bool(entry.dynamic),
-                           "builds": list(entry.builds)},
+                           "builds": list(entry.builds), "linear_solver_plan": self.linear_solver_plan()},
+            "colliders": [{k: v for k, v in c.items() if k != "text"} for c in self.collider_plan()],
             "subspace": subspace,
             "frames": int(out["frames"]), "fps": float(out["fps"]), "duration": float(out["frames"] / out["fps"]),
             "render_surface": surface,

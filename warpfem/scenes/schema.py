@@ -50,6 +50,11 @@ class Key:
     doc: str = ""
 
 
+#: ``[mesh] target_tets`` of a surface file when neither it nor max_edge_length is given (measured
+#: error against cost: docs/meshing.md, kernels_bench/bench_target_tets.py)
+TARGET_TETS_DEFAULT = 20_000
+
+
 def _positive(v):
     return None if v > 0 else "must be > 0"
 
@@ -128,7 +133,15 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "max_radius_edge_ratio": Key("float", default=None, check=lambda v: None if v >= 1.1 else "must be >= 1.1",
                                      doc="surface files: TetGen quality bound, circumradius / shortest edge (default 2)"),
         "mesher": Key("choice", default=None, choices=("auto", "tetgen", "tetwild"),
-                      doc="surface files: 'tetgen' (warpfem[mesh]), 'tetwild' (warpfem[tetwild]); default auto"),
+                      doc="surface files: 'tetgen' (warpfem[mesh]), 'tetwild' (warpfem[tetwild]); default auto "
+                          "(a surface that is not clean goes to TetWild when installed)"),
+        "target_tets": Key("int", default=None, check=lambda v: None if v >= 10 else "must be >= 10",
+                           doc=f"surface files: at most about this many tets (a finer surface is meshed coarser, "
+                               f"decimated for the physics mesh; default {TARGET_TETS_DEFAULT} unless max_edge_length "
+                               f"is given; docs/meshing.md)"),
+        "embed_surface": Key("bool", default=True,
+                             doc="surface files: the input surface is the render surface, embedded in the tets "
+                                 "(unless [surface] names another); false: the tet mesh's boundary"),
     },
     "material": {
         "model": Key("choice", required=True, choices=tuple(MATERIAL_TYPES),
@@ -232,6 +245,14 @@ SCHEMA: dict[str, dict[str, Key]] = {
                                 check=lambda v: None if v == 0 or 2 <= v <= 15 else "must be 0 (linear lifting) or 2..15",
                                 doc="handles (all three components) move the interior by their rotation angle, not "
                                     "linearly: series order J (7 is exact to 1e-4 at 90 degrees); 0 = linear lifting"),
+        "max_error": Key("float", default=0.02, check=lambda v: None if 0 <= v < 1 else "must be in [0, 1) (0 = no budget)",
+                         doc="error budget of `warpfem train`: while the reduced replay of the training run is above "
+                             "this RMS trajectory error (max over frames of the RMS vertex error / bounding-box "
+                             "diagonal), POD columns of the training run are added (pod_modes, then 4, 8, 16, ... up "
+                             "to max_pod_modes); train fails, writing no cache, when that is not enough. 0 = no "
+                             "budget (train the given sizes only); not checked with training = 'random'"),
+        "max_pod_modes": Key("int", default=32, check=_non_negative,
+                             doc="cap on the POD columns train may use to meet max_error"),
         "max_validation_error": Key("float", default=None, check=_unit_interval,
                                     doc="`warpfem run` warns (log + stderr) when the cache's cubature validation "
                                         "error is above this"),
@@ -462,7 +483,16 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
     elif any(data["mesh"].get(k) is not None for k in ("size", "cells", "origin")):
         ctx.fail("[mesh].path", "size/cells/origin only apply to generator = \"box\"")
     element = mesh["element"]
-    tetra_keys = [k for k in ("max_edge_length", "max_radius_edge_ratio", "mesher") if mesh[k] is not None]
+    tetra_keys = [k for k in ("max_edge_length", "max_radius_edge_ratio", "mesher", "target_tets") if mesh[k] is not None]
+    if "embed_surface" in data["mesh"]:
+        tetra_keys.append("embed_surface")
+    surface_file = bool(mesh["path"]) and os.path.splitext(mesh["path"])[1].lower() in (".obj", ".off", ".ply", ".stl")
+    if mesh["path"] and not surface_file and tetra_keys:
+        # (load_mesh says the same for the options it gets; said here before any file is read)
+        ctx.fail(f"[mesh].{tetra_keys[0]}", "only applies to surface files (.obj/.off/.ply/.stl, tetrahedralised on "
+                 "load); this file is read as a volume mesh")
+    if surface_file and mesh["target_tets"] is None and mesh["max_edge_length"] is None:
+        mesh["target_tets"] = TARGET_TETS_DEFAULT
     if mesh["generator"] == "box" and tetra_keys:
         ctx.fail(f"[mesh].{tetra_keys[0]}", "only applies to path = \"surface.obj/.off/.ply/.stl\" (tetrahedralised on load)")
     if mesh["path"] and os.path.splitext(mesh["path"])[1].lower() in (".obj", ".off", ".ply", ".stl"):
@@ -507,6 +537,9 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
 
     output = _check_table(ctx, "output", data.get("output", {}), SCHEMA["output"])
     surface = _check_table(ctx, "surface", data["surface"], SCHEMA["surface"]) if "surface" in data else None
+    if surface is None and surface_file and mesh["embed_surface"]:
+        # the user's own surface at full resolution is what gets rendered; the tets only carry it
+        surface = {"path": mesh["path"], "name": "surface", "from_mesh": True}
     subspace = _check_table(ctx, "subspace", data["subspace"], SCHEMA["subspace"]) if "subspace" in data else None
     if subspace is not None and element not in ELEMENTS_LINEAR_TET:
         only = " / ".join(f'"{n}"' for n in ELEMENTS_LINEAR_TET)

@@ -85,6 +85,7 @@ class SolveStats:
     linear_iterations: int = 0  # iterations of the linear solver (CG iterations; 1 per direct solve)
     host_syncs: int = 0  # host read-backs made inside the linear solves (see warpfem.solvers.linear)
     hessian_evaluations: int = 0  # Newton matrices evaluated (counted by the reduced simulator, which keeps its matrix)
+    singular_solves: int = 0  # Newton systems a direct solve found singular or indefinite (shifted and/or deflated)
     history: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -156,6 +157,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
         st.cg_iterations += iterations
         st.linear_iterations += iterations
         st.host_syncs += int(getattr(lin, "host_syncs", 0))
+        st.singular_solves += int(getattr(lin, "shift", 0.0) > 0.0 or getattr(lin, "deflated", 0) > 0)
         gd, negligible = problem.direction_check(y, g, d)
         if not (gd < 0.0):  # not a descent direction (indefinite Hessian or CG breakdown)
             problem.fallback_direction(g, d)

@@ -15,6 +15,18 @@ def _err(msg):
     print(f"warpfem tradeoff: error: {msg}", file=sys.stderr)
 
 
+def _outputs_unwritable(named, err) -> bool:
+    """Report the first output path that cannot be written (one line) and return True."""
+    from warpfem.io.outputs import OutputPathError, check_output_paths
+
+    try:
+        check_output_paths(named)
+    except OutputPathError as e:
+        err(str(e))
+        return True
+    return False
+
+
 def _cmd_tradeoff(args) -> int:
     from warpfem.scenes import SceneError, load_scene
 
@@ -32,6 +44,8 @@ def _cmd_tradeoff(args) -> int:
         _err(f"--plot must end in .png, got {args.plot!r}")
         return EXIT_INVALID
     if _cli.check_device(args, _err) is not None:  # a bad --device: before the scene is read
+        return EXIT_INVALID
+    if _outputs_unwritable({"--json": args.json, "--markdown": args.markdown, "--plot": args.plot}, _err):
         return EXIT_INVALID
     try:
         load_scene(args.scene)
@@ -177,7 +191,7 @@ def _cmd_tune(args) -> int:
 
     from .cluster import executor_from_args
     from .grid import GridError, TruthSpec
-    from .tune import format_tune, load_space, tune, write_scene
+    from .tune import SPACES, format_tune, load_space, tune, write_scene
 
     if not args.max_error > 0:
         _tune_err(f"--max-error must be > 0, got {args.max_error}")
@@ -189,6 +203,9 @@ def _cmd_tune(args) -> int:
         if val is not None and not val.lower().endswith(ext):
             _tune_err(f"{opt} must end in {ext}, got {val!r}")
             return EXIT_INVALID
+    if args.space is not None and args.space not in SPACES and not args.space.lower().endswith(".toml"):
+        _tune_err(f"--space must be {' or '.join(SPACES)} or a search-space .toml file, got {args.space!r}")
+        return EXIT_INVALID
     if _cli.check_device(args, _tune_err) is not None:
         return EXIT_INVALID
     try:
@@ -197,7 +214,8 @@ def _cmd_tune(args) -> int:
         _tune_err(str(e))
         return EXIT_INVALID
     try:
-        axes = load_space(args.space) if args.space else {}
+        space = args.space if args.space in SPACES else "default"
+        axes = load_space(args.space) if args.space and args.space not in SPACES else {}
         if args.subspace:
             axes["subspace"] = list(args.subspace)
         truth = None if args.no_truth else TruthSpec.from_dict(
@@ -209,6 +227,8 @@ def _cmd_tune(args) -> int:
     stem = os.path.splitext(os.path.basename(args.scene))[0]
     out = args.out or os.path.join("out", "tune", f"{stem}.tuned.toml")
     report = args.report or os.path.splitext(out)[0] + ".json"
+    if _outputs_unwritable({"--out": out, "--report": report}, _tune_err):  # before minutes of runs
+        return EXIT_INVALID
     init = _cli.init_warp
     if init is not None:
         init(args.device, args.verbose)
@@ -219,7 +239,7 @@ def _cmd_tune(args) -> int:
     try:
         result = tune(args.scene, args.max_error, quantity=args.quantity, frames=args.frames, device=args.device,
                       axes=axes, truth=truth, cost=args.cost, executor=executor, log=log,
-                      tip_point=tuple(args.tip_point) if args.tip_point else None)
+                      tip_point=tuple(args.tip_point) if args.tip_point else None, space=space)
     except (SceneError, GridError) as e:
         _tune_err(str(e))
         return EXIT_INVALID
@@ -255,7 +275,11 @@ def register_tune(subparsers):
     p.add_argument("--frames", type=int, default=None, help="frames of the full run (default: the scene's)")
     p.add_argument("--out", default=None, metavar="TUNED.toml", help="scene file to write (default out/tune/<scene>.tuned.toml)")
     p.add_argument("--report", default=None, metavar="REPORT.json", help="search report (default next to --out)")
-    p.add_argument("--space", default=None, metavar="SPACE.toml", help="search-space file (axes as arrays)")
+    p.add_argument("--space", default=None, metavar="default|full|SPACE.toml",
+                   help="search space: default (the registered dynamic integrators on the scene's element and its "
+                        "higher-order partner, 1/2/4 substeps, float64: minutes), full (every element, 1-8 substeps, "
+                        "two tolerances each, both precisions, every linear solver: hours), or a file of axes (arrays) "
+                        "replacing those of the default space")
     p.add_argument("--subspace", type=int, nargs="+", default=None, metavar="R",
                    help="also search reduced runs with these subspace sizes (trains each once: minutes)")
     p.add_argument("--truth-refine", type=int, default=None, help="reference mesh: cells x this (default 2)")

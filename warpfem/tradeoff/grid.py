@@ -17,6 +17,14 @@ __all__ = ["QUANTITIES", "GridError", "TradeoffConfig", "TruthSpec", "TradeoffGr
 QUANTITIES = {"tip": "tip_error", "rms": "rms_error", "surface": "surface_error", "energy": "energy_error"}
 
 
+def _suggest(key, known) -> str:
+    """`` (did you mean 'x'?)`` for the known key closest to a misspelt one (as scene files do)."""
+    import difflib
+
+    close = difflib.get_close_matches(str(key), sorted(known), n=1, cutoff=0.6)
+    return f" (did you mean '{close[0]}'?)" if close else ""
+
+
 class GridError(ValueError):
     """An invalid grid (file or options): the message names the file and the key."""
 
@@ -59,7 +67,7 @@ class TradeoffConfig:
         known = {f.name for f in fields(cls)}
         bad = sorted(set(d) - known)
         if bad:
-            raise GridError(f"{where}: unknown key {bad[0]!r}; known keys: {', '.join(sorted(known))}")
+            raise GridError(f"{where}: unknown key {bad[0]!r}{_suggest(bad[0], known)}; known keys: {', '.join(sorted(known))}")
         sub = d.get("subspace")
         if sub is not None:
             if not isinstance(sub, dict):
@@ -142,7 +150,8 @@ class TruthSpec:
 
         bad = sorted(set(d) - {"element", "refine", "substeps"})
         if bad:
-            raise GridError(f"{where}: unknown key {bad[0]!r}; known keys: element, refine, substeps")
+            raise GridError(f"{where}: unknown key {bad[0]!r}{_suggest(bad[0], ('element', 'refine', 'substeps'))}; "
+                            "known keys: element, refine, substeps")
         el = d.get("element")
         if el is not None and el not in ELEMENTS:
             raise GridError(f"{where}.element: must be one of {', '.join(ELEMENTS)}, got {el!r}")
@@ -229,7 +238,7 @@ def load_grid(path) -> TradeoffGrid:
     data = read_toml(path, GridError, what="grid file")
     bad = sorted(set(data) - _GRID_KEYS)
     if bad:
-        raise GridError(f"{path}: {bad[0]}: unknown key; known: {', '.join(sorted(_GRID_KEYS))}")
+        raise GridError(f"{path}: {bad[0]}: unknown key{_suggest(bad[0], _GRID_KEYS)}; known: {', '.join(sorted(_GRID_KEYS))}")
     grid = builtin_grid(data["base"]) if "base" in data else TradeoffGrid(configs=[], reference=_cfg(**_REFERENCE, substeps=4),
                                                                           truth=TruthSpec())
     grid.name = os.path.basename(path)

@@ -1,12 +1,16 @@
 """``warpfem tune SCENE --max-error E``: the cheapest configuration of a scene whose error against
 the converged reference stays below E.
 
-The search space is data-driven: the registered dynamic integrator types
-(:data:`warpfem.scenes.INTEGRATORS`), every element type (:data:`warpfem.scenes.ELEMENTS`), substeps
-per frame, Newton and CG tolerances, precision, the ``[integrator] linear_solver`` choices when the
-scene schema has that key (:data:`warpfem.scenes.schema.INTEGRATOR_KEYS`), and optionally reduced
-runs of given subspace sizes. Candidates the scene layer rejects are dropped, and candidates whose
-effective settings coincide (a tolerance an integrator does not take) are run once.
+The search space is data-driven. The default one (``space="default"``, minutes on the shipped
+scenes): the registered dynamic integrator types (:data:`warpfem.scenes.INTEGRATORS`) on the
+scene's element and its higher-order partner (tet4 -> tet10, hex8 -> hex27), 1, 2 or 4 substeps per
+frame, one Newton and one CG tolerance (1e-4), float64, the scene's linear solver
+(:data:`DEFAULT_AXES`). ``space="full"`` (``warpfem tune --space full``) grows it to every element
+type (:data:`warpfem.scenes.ELEMENTS`), 1-8 substeps, two Newton and two CG tolerances, both
+precisions and the ``[integrator] linear_solver`` choices when the scene schema has that key
+(:data:`FULL_AXES`; 1,600 candidates on the cantilever). Reduced runs of given subspace sizes are
+added on request. Candidates the scene layer rejects are dropped, and candidates whose effective
+settings coincide (a tolerance an integrator does not take) are run once.
 
 Search (no full grid): candidates whose mesh alone already misses the budget (the discretisation
 error of the time-converged run on that mesh, measured with the reference) are dropped before any
@@ -41,24 +45,61 @@ from .results import _json_value
 from .runner import (SerialExecutor, Unavailable, _job_outcome, make_job, run_job, scene_document, variant_document,
                      variant_scene)
 
-__all__ = ["tune", "format_tune", "search_space", "TuneResult", "DEFAULT_AXES", "write_scene", "toml_dumps", "load_space",
+__all__ = ["tune", "format_tune", "search_space", "TuneResult", "DEFAULT_AXES", "FULL_AXES", "SPACES", "space_axes",
+           "plan_runs", "format_plan", "write_scene", "toml_dumps", "load_space",
            "rerun_error"]
 
-# axes besides integrator / element / linear_solver (filled from the registries)
-DEFAULT_AXES = {"substeps": [1, 2, 4, 8], "tol": [1e-3, 1e-5], "cg_tol": [1e-2, 1e-4], "precision": ["float32", "float64"]}
+# axes besides integrator / element / linear_solver (filled from the registries).
+# DEFAULT_AXES: the search space of a plain `warpfem tune` (minutes on the shipped scenes: the registered
+# dynamic integrators on the scene's element and its higher-order partner, 1-4 substeps, one Newton and
+# one CG tolerance, float64, the scene's linear solver); FULL_AXES (`--space full`): every element,
+# 1-8 substeps, two tolerances each, both precisions and every linear solver (1,600 candidates on the
+# cantilever: hours).
+DEFAULT_AXES = {"substeps": [1, 2, 4], "tol": [1e-4], "cg_tol": [1e-4], "precision": ["float64"]}
+FULL_AXES = {"substeps": [1, 2, 4, 8], "tol": [1e-3, 1e-5], "cg_tol": [1e-2, 1e-4], "precision": ["float32", "float64"]}
+SPACES = ("default", "full")
 _AXES = ("integrator", "element", "substeps", "tol", "cg_tol", "precision", "linear_solver", "subspace")
 QUANTITY_FIELDS = {"tip": "tip_error", "rms": "rms_error"}
 
 
-def _registered_axes() -> dict:
+def _registered_axes(full: bool = True, doc=None) -> dict:
+    """Integrator, element and linear-solver axes from the registries: every registered value
+    (``full``), or the default space's: every dynamic integrator, the scene's element (``doc``) and
+    its higher-order partner (:func:`_element_partners`), and no linear-solver axis (the scene's own)."""
     from warpfem.scenes import ELEMENTS, INTEGRATORS
     from warpfem.scenes.schema import INTEGRATOR_KEYS
 
     axes = {"integrator": sorted(n for n, e in INTEGRATORS.items() if e.dynamic), "element": list(ELEMENTS)}
+    if not full:
+        el = str(((doc or {}).get("mesh") or {}).get("element", "tet4"))
+        axes["element"] = _element_partners(el)
+        return axes
     key = INTEGRATOR_KEYS.get("linear_solver")
     if key is not None:  # optional axis: only once the schema has the key
         axes["linear_solver"] = list(getattr(key, "choices", None) or [])
     return axes
+
+
+def _element_partners(name: str) -> list:
+    """The element ``name`` and the registered element of the same reference shape (same corner
+    nodes and reference volume) with the fewest nodes above its own (tet4 -> tet10, hex8 -> hex27)."""
+    from warpfem.mesh.element_types import ELEMENTS
+
+    if name not in ELEMENTS:
+        return [name]
+    e = ELEMENTS[name]
+    same = [(o.nodes_per_element, n) for n, o in ELEMENTS.items()
+            if len(o.corner_nodes) == len(e.corner_nodes) and o.reference_volume == e.reference_volume
+            and o.nodes_per_element > e.nodes_per_element]
+    return [name] + ([min(same)[1]] if same else [])
+
+
+def space_axes(space, doc=None) -> dict:
+    """The axes of a named search space (``"default"`` or ``"full"``, :data:`SPACES`) for a scene document."""
+    if space not in SPACES:
+        raise GridError(f"search space must be one of {', '.join(SPACES)} or a .toml file, got {space!r}")
+    full = space == "full"
+    return {**_registered_axes(full, doc), **(FULL_AXES if full else DEFAULT_AXES)}
 
 
 def load_space(path) -> dict:
@@ -76,12 +117,14 @@ def load_space(path) -> dict:
     return data
 
 
-def search_space(doc, scene_path, axes: dict | None = None) -> tuple:
+def search_space(doc, scene_path, axes: dict | None = None, space: str = "default") -> tuple:
     """(candidates, dropped): every combination of the axes that the scene layer accepts, one per
-    distinct effective setting. ``axes`` overrides the defaults (registered integrators, all
-    elements, :data:`DEFAULT_AXES`, linear solvers when the schema has them); ``subspace``: a list of
-    mode counts for reduced candidates (default none: training takes minutes per size)."""
-    ax = {**_registered_axes(), **DEFAULT_AXES, "subspace": []}
+    distinct effective setting. ``axes`` overrides the axes of ``space`` (:func:`space_axes`:
+    ``"default"``, the registered dynamic integrators on the scene's element and its higher-order
+    partner with :data:`DEFAULT_AXES`; ``"full"``, every registered integrator, element and linear
+    solver with :data:`FULL_AXES`); ``subspace``: a list of mode counts for reduced candidates
+    (default none: training takes minutes per size)."""
+    ax = {**space_axes(space, doc), "subspace": []}
     ax.update(axes or {})
     from warpfem.scenes import INTEGRATORS
 
@@ -190,15 +233,19 @@ def _row(res, quantity, cost) -> dict:
 
 def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="cpu", axes=None, candidates=None,
          truth: TruthSpec | None = TruthSpec(), reference_config: TradeoffConfig | None = None, reference=None,
-         cost="time", eta: int = 3, keep: int = 3, executor=None, log=None, tip_point=None) -> TuneResult:
+         cost="time", eta: int = 3, keep: int = 3, executor=None, log=None, tip_point=None,
+         space: str = "default") -> TuneResult:
     """Search the cheapest configuration of the scene whose ``quantity`` error ("tip" or "rms")
     against the reference is at most ``max_error`` (see the module docstring).
 
-    ``axes``: overrides of the search space (:func:`search_space`), or ``candidates``: an explicit
+    ``space``: ``"default"`` (minutes on the shipped scenes) or ``"full"`` (every registered value:
+    hours), see :func:`search_space`; ``axes``: overrides of its axes, or ``candidates``: an explicit
     list of :class:`TradeoffConfig`. ``truth``: the converged reference (None: the tight run on the
     scene's own mesh, solver/step error only). ``reference``: a :class:`warpfem.tradeoff.reference.Reference`
     computed before (for these frames), reused instead of running it again. ``cost``: "time" or
-    "work". ``executor``: serial (default) or :class:`warpfem.tradeoff.cluster.DaskExecutor`."""
+    "work". ``executor``: serial (default) or :class:`warpfem.tradeoff.cluster.DaskExecutor`.
+    ``log(line)`` gets, before any run, the number of runs of each stage (:func:`plan_runs`), then a
+    line per finished run with the stage's elapsed time and ETA."""
     from warpfem.scenes import load_scene
 
     if quantity not in QUANTITY_FIELDS:
@@ -220,7 +267,7 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
     t_start = time.perf_counter()
     dropped = []
     if candidates is None:
-        candidates, dropped = search_space(doc, scene_path, axes)
+        candidates, dropped = search_space(doc, scene_path, axes, space)
     if not candidates:
         raise GridError("the search space has no configuration this scene accepts"
                         + (f" (e.g. {dropped[0][0]}: {dropped[0][1]})" if dropped else ""))
@@ -233,15 +280,20 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
         if reference is None:
             ref_cfg = reference_config or _cfg(**_REFERENCE, substeps=4)
             plan = plan_reference(doc, scene_path, base, ref_cfg, truth, candidates)
-            log(f"reference: {len(plan['jobs'])} runs")
+            planned = plan_runs(len(candidates), frames, eta=eta, keep=keep, reference_runs=len(plan["jobs"]))
+            log(format_plan(planned))
+            stage = _Stage(log, f"reference ({frames} frames)", [_run_weight(c, doc) for c in plan["jobs"]])
             outs = executor.map(run_job, [make_job(doc, scene_path, c, device=device, frames=frames, plan=plan,
                                                    tip_point=tip_point) for c in plan["jobs"]],
-                                on_done=lambda i, o: log("  " + _job_outcome(o, plan["jobs"][i], None)[0].name))
+                                on_done=lambda i, o: stage.done(i, _job_outcome(o, plan["jobs"][i], None)[0].name))
             outs = [_job_outcome(o, plan["jobs"][i], getattr(executor, "retried", {}).get(i)) for i, o in enumerate(outs)]
             reference = finish_reference(plan, outs, tip_point=tip_point, frames=frames)
             runs["reference"] = len(plan["jobs"])
         elif reference.frames != frames:
             raise GridError(f"the given reference covers {reference.frames} frames, the search {frames}")
+        else:
+            planned = plan_runs(len(candidates), frames, eta=eta, keep=keep, reference_runs=0)
+            log(format_plan(planned))
         est = (reference.info.get("time") or {}).get(f"estimated_error_{quantity}")
         if est is not None and est > max_error / 3:
             notes.append(f"the reference's own estimated {quantity} error ({est:.2e}) is not small against the budget "
@@ -260,10 +312,11 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
                 alive.append(c)
         log(f"{len(alive)} candidates after the discretisation check ({len(pruned)} dropped)")
 
-        def run_all(cfgs, n):
+        def run_all(cfgs, n, label):
             jobs = [make_job(doc, scene_path, c, device=device, frames=n, plan=reference.plan, tip_point=tip_point,
                              cache_dir=cache_dir) for c in cfgs]
-            outs = executor.map(run_job, jobs)
+            stage = _Stage(log, label, [_run_weight(c, doc) for c in cfgs])
+            outs = executor.map(run_job, jobs, on_done=lambda i, o: stage.done(i, cfgs[i].name))
             res = []
             for i, o in enumerate(outs):
                 r, traj = _job_outcome(o, cfgs[i], getattr(executor, "retried", {}).get(i))
@@ -273,13 +326,13 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
             return res
 
         _pretrain(doc, scene_path, alive, cache_dir, device, log)
-        prefixes = sorted({max(1, frames // 2 ** k) for k in (3, 2, 1)} - {frames})
+        prefixes = prefix_lengths(frames)
         rungs = []
         ranked, fallback = alive, []
         for n in prefixes:
             if len(ranked) <= keep:
                 break
-            res = run_all(ranked, n)
+            res = run_all(ranked, n, f"prefix of {n} frame(s)")
             runs["prefix"] += len(res)
             frame_runs += n * len(res)
             feasible = sorted([r for r in res if r.status == "ok" and _error(r, quantity) <= max_error],
@@ -307,7 +360,7 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
         while start < len(ranked) and winner is None:
             batch = ranked[start:start + keep]
             start += keep
-            res = run_all(batch, frames)
+            res = run_all(batch, frames, f"full runs ({frames} frames)")
             runs["full"] += len(res)
             frame_runs += frames * len(res)
             full += res
@@ -319,7 +372,7 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
                                                   _cost(r, cost) if r.status == "ok" else math.inf))
     if winner is None:
         notes.append(f"no candidate meets {quantity} error <= {max_error:g}")
-    search = {"candidates_run": runs, "frame_runs": frame_runs, "whole_grid_frame_runs": len(candidates) * frames,
+    search = {"candidates_run": runs, "planned": planned, "frame_runs": frame_runs, "whole_grid_frame_runs": len(candidates) * frames,
               "prefixes": prefixes, "eta": eta, "keep": keep, "seconds": time.perf_counter() - t_start}
     result = TuneResult(scene=portable_path(scene_path), max_error=float(max_error), quantity=quantity, cost=cost,
                       frames=frames, winner=None if winner is None else _row(winner, quantity, cost),
@@ -329,6 +382,77 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
                       notes=notes)
     result._scene_file = os.path.abspath(scene_path)
     return result
+
+
+def prefix_lengths(frames: int) -> list:
+    """The prefixes (frames) of successive halving: frames/8, frames/4, frames/2 (distinct, shorter than the run)."""
+    return sorted({max(1, frames // 2 ** k) for k in (3, 2, 1)} - {frames})
+
+
+def plan_runs(candidates: int, frames: int, *, eta: int = 3, keep: int = 3, reference_runs: int = 0) -> dict:
+    """How many runs a search of ``candidates`` configurations does, at most, stage by stage (before
+    any run): the reference runs, every prefix rung with all its candidates surviving (a rung keeps
+    at most max(keep, ceil(n / eta)) of its n), and ``keep`` full runs (more only when none of them
+    is within budget). The discretisation check and the budget only lower these counts."""
+    stages = [("reference", frames, int(reference_runs))] if reference_runs else []
+    n = int(candidates)
+    for p in prefix_lengths(frames):
+        if n <= keep:
+            break
+        stages.append(("prefix", p, n))
+        n = max(keep, math.ceil(n / eta))
+    stages.append(("full", frames, min(keep, n)))
+    return {"candidates": int(candidates), "stages": stages, "runs": sum(s[2] for s in stages),
+            "run_frames": sum(s[1] * s[2] for s in stages)}
+
+
+def format_plan(plan: dict) -> str:
+    """The up-front line: ``N candidates: at most R runs (...)``."""
+    parts = []
+    for kind, n_frames, count in plan["stages"]:
+        what = {"reference": "reference", "prefix": "prefix", "full": "full"}[kind]
+        parts.append(f"{count} {what} run(s) of {n_frames} frame(s)")
+    return (f"search plan: {plan['candidates']} candidates; at most {plan['runs']} runs "
+            f"({plan['run_frames']} run-frames): " + ", then ".join(parts)
+            + " (fewer when candidates are pruned; more full runs only if none is within budget)")
+
+
+class _Stage:
+    """Progress of one search stage: a line per finished run with elapsed time and ETA. The ETA
+    weighs the runs left by a relative cost estimate (:func:`_run_weight`: steps x element nodes
+    x refinement cubed), so a stage that starts with its most expensive run (the reference on the
+    refined mesh at the finest step) does not predict every run to cost as much."""
+
+    def __init__(self, log, label, weights):
+        self.log, self.label = log, label
+        self.weights = [float(w) for w in weights]
+        self.total, self.count, self.done_weight = len(self.weights), 0, 0.0
+        self.t0 = time.perf_counter()
+        log(f"{label}: {self.total} run(s)")
+
+    def done(self, i, name):
+        self.count += 1
+        self.done_weight += self.weights[i]
+        el = time.perf_counter() - self.t0
+        left = sum(self.weights) - self.done_weight
+        eta = el / max(self.done_weight, 1e-300) * left
+        self.log(f"  {self.label} {self.count}/{self.total}: {name}  elapsed {_clock(el)}  ETA {_clock(eta)}")
+
+
+def _run_weight(cfg, doc) -> float:
+    """Relative cost of a run (for ETAs only): substeps x nodes per element x refine^3."""
+    from warpfem.mesh.element_types import ELEMENTS
+
+    mesh = (doc or {}).get("mesh") or {}
+    el = cfg.element or mesh.get("element", "tet4")
+    k = ELEMENTS[el].nodes_per_element if el in ELEMENTS else 4
+    sub = cfg.substeps or ((doc or {}).get("integrator") or {}).get("substeps") or 1
+    return float(sub) * k * float(cfg.refine or 1) ** 3
+
+
+def _clock(seconds) -> str:
+    s = int(round(seconds))
+    return f"{s // 3600}:{s // 60 % 60:02d}:{s % 60:02d}"
 
 
 def _pretrain(doc, scene_path, cfgs, cache_dir, device, log):

@@ -22,9 +22,11 @@ Rule (measurements in docs/linear_solvers.md):
   least 5 systems after the choice) exceeds ``recheck_factor`` times the cost the choice was made
   at (the systems became harder), the candidates are measured again, at most
   ``max_explorations`` measurements per run.
-* If a factorisation finds a matrix not positive definite (an unprojected Hessian, a singular
-  static system), that system and all later ones go to PCG (which stops at negative curvature with
-  a descent direction); ``direct`` is then no longer a candidate.
+* A factorisation that meets a non-positive pivot is retried with a small diagonal shift by the
+  direct solver itself (a semi-definite projected Hessian); only a matrix that no shift makes
+  positive definite (an unprojected Hessian far from convex) sends that system and all later ones
+  to PCG (which stops at negative curvature with a descent direction); ``direct`` is then no longer
+  a candidate.
 
 A run that stays with the starting solver pays nothing for this beyond the timing; exploring costs
 one extra solve (plus set-up) per candidate, once, on runs whose solves take more than
@@ -54,6 +56,34 @@ CANDIDATES = ("pcg", "multigrid", "direct")
 def starts_direct(pattern) -> bool:
     """The small-system rule: direct from the first solve (CPU, at most SMALL_DIRECT_DOFS_CPU unknowns)."""
     return (not pattern.device.is_cuda) and 3 * pattern.num_rows <= SMALL_DIRECT_DOFS_CPU
+
+
+def describe_choice(num_dofs: int) -> dict:
+    """What ``auto`` (as the simulators build it) will run for a system of ``num_dofs`` unknowns,
+    by device (``warpfem describe``): {"cpu": text, "cuda": text}, from the same rule and limits
+    as :func:`starts_direct`, :func:`direct_allowed` and the candidates."""
+    from warpfem.solvers.linear.direct import available_backends
+
+    backend = available_backends()[0]
+    limit = DIRECT_MAX_DOFS_CPU if backend == "pardiso" else SUPERLU_MAX_DOFS_CPU
+    mg = ["multigrid"] if _multigrid_available() else []
+    measured = f"than {EXPLORE_SECONDS:g} s, the cheapest measured of "
+    if num_dofs <= SMALL_DIRECT_DOFS_CPU:
+        cpu = (f"direct (sparse Cholesky, {backend}) from the first solve: {num_dofs:,} unknowns <= "
+               f"{SMALL_DIRECT_DOFS_CPU:,}; from the first Newton system that costs more {measured}"
+               f"{', '.join(['direct', 'pcg'] + mg)}; block-Jacobi PCG if a factorisation finds the matrix not "
+               f"positive definite")
+    elif num_dofs <= limit:
+        cpu = (f"block-Jacobi PCG first; from the first Newton system that costs more {measured}"
+               f"{', '.join(['pcg'] + mg + [f'direct (sparse Cholesky, {backend})'])} ({num_dofs:,} unknowns: "
+               f"above {SMALL_DIRECT_DOFS_CPU:,}, within the direct limit {limit:,})")
+    else:
+        cpu = (f"block-Jacobi PCG first; from the first Newton system that costs more {measured}"
+               f"{', '.join(['pcg'] + mg)} ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})")
+    cuda = ("block-Jacobi PCG (the data stay on the device)" if not mg else
+            f"block-Jacobi PCG first; from the first Newton system that costs more {measured}pcg, multigrid "
+            f"(the data stay on the device)")
+    return {"cpu": cpu, "cuda": cuda}
 
 
 def simulator_options(name: str, options: dict | None) -> dict:
@@ -196,10 +226,10 @@ class AutoSolver(LinearSolver):
         if self.active == "direct":
             d = self._make("direct")
             d.prepare(values, mask)
-            if d._failure:
+            if d.failure:
                 # not positive definite: PCG handles these (it stops at negative curvature with a
                 # descent direction), so this and every later system go to PCG, for good
-                log.info("linear solver auto: %s; PCG from now on", d._failure)
+                log.info("linear solver auto: %s; PCG from now on", d.failure)
                 self.candidates = [c for c in self.candidates if c != "direct"]
                 self.active = "pcg"
         if self.active != "direct":
@@ -238,7 +268,7 @@ class AutoSolver(LinearSolver):
             wp.synchronize_device(self.device)
             t0 = time.perf_counter()
             s.prepare(values, mask)
-            if getattr(s, "_failure", ""):
+            if getattr(s, "failure", ""):
                 self.candidates = [c for c in self.candidates if c != name]
                 continue
             r = s.solve(b, trial, tol=tol, maxiter=maxiter)

@@ -38,7 +38,11 @@ class LinearSolveResult:
     ``residual`` is ||b - A x|| / ||b|| as far as the solver knows it (the recursive residual for
     iterative solvers, the true one for direct solvers); ``host_syncs`` counts the times the
     host waited for the device (read-backs) inside the solve, ``failed`` says why a solve could not
-    be done at all (e.g. a factorisation of an indefinite matrix), empty otherwise.
+    be done at all (e.g. a factorisation of an indefinite matrix), empty otherwise; ``shift`` is the
+    diagonal shift a direct factorisation needed (0.0 when the matrix factorised as it is; see
+:mod:`warpfem.solvers.linear.direct`); ``deflated`` the number of (near) zero- or
+    negative-curvature eigendirections a direct solve took out of the system and stepped along by a
+    scaled gradient instead (0 normally).
     """
 
     iterations: int
@@ -47,6 +51,8 @@ class LinearSolveResult:
     host_syncs: int = 0
     negative_curvature: bool = False
     failed: str = ""
+    shift: float = 0.0
+    deflated: int = 0
 
 
 class MissingExtra(ImportError):

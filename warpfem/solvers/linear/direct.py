@@ -17,10 +17,20 @@ Backends (``backend=``), measured in docs/linear_solvers.md:
   redoes the ordering and symbolic analysis every prepare.
 * ``"auto"``: pardiso when installed, else superlu.
 
-The matrices are assumed symmetric positive definite (Hessians are SPD-projected by default).
-If a factorisation finds a non-positive pivot (an indefinite or singular matrix), ``solve``
-returns ``failed`` with the reason and ``x`` = the block-Jacobi direction, so the Newton loop
-can fall back; nothing raises.
+The matrices are assumed symmetric positive definite (Hessians are SPD-projected by default),
+but a projected Hessian can be only semi-definite: the projection clamps negative eigenvalues of
+each element's dP/dF to exactly zero, and without a mass term (a static solve) a deformation mode
+that every element clamps (a homogeneous state) is a global zero eigenvalue. Whether the
+factorisation then meets a pivot of +1e-10 or -1e-10 depends on round-off, i.e. on the CPU's code
+path (MKL picks its kernels by processor). So a factorisation that finds a non-positive pivot is
+retried with a diagonal shift A + delta I on the free DOFs, delta = SHIFTS[k] x the largest free
+diagonal entry, the smallest that factorises, and the solve refines against the *unshifted* A
+(x <- x + (A + delta I)^-1 (b - A x)) until the residual meets the tolerance or stops decreasing:
+a consistent semi-definite system is solved to the requested tolerance, and otherwise the first
+shifted solve is a descent direction (Levenberg-Marquardt). ``LinearSolveResult.shift`` reports
+delta (0 when A factorised as it is). Only a matrix that no shift up to SHIFTS[-1] makes positive
+definite (an unprojected Hessian far from convex) is reported ``failed`` with the reason and
+``x`` = the block-Jacobi direction, so the Newton loop can fall back; nothing raises.
 
 The data path is device -> host (blocks) -> factor -> host solve -> device, fine on the CPU; on
 CUDA it costs two copies of the blocks per Newton iteration (a GPU direct solver, e.g. cuDSS,
@@ -40,6 +50,16 @@ from warpfem.solvers.linear.base import HostLinearSolver, LinearSolveResult, Mis
 log = logging.getLogger(__name__)
 
 BACKENDS = ("auto", "pardiso", "qdldl", "superlu")
+#: diagonal shifts tried, in turn, after a non-positive pivot, relative to the largest free diagonal entry
+SHIFTS = (1e-10, 1e-8, 1e-6, 1e-4, 1e-2)
+#: refinement iterations against the unshifted matrix after a shifted factorisation
+SHIFTED_REFINEMENTS = 20
+#: eigenvalues at most this x the largest free diagonal entry count as zero (a condition number of 1e10,
+#: beyond what a float64 factorisation resolves)
+NULL_TOLERANCE = 1e-10
+#: vectors of the block inverse iteration that finds the near-null space: the six rigid motions of a
+#: free body and three more, whose smallest Ritz value estimates the smallest positive curvature
+NULL_PROBES = 9
 
 
 class _NotPositiveDefinite(RuntimeError):
@@ -191,6 +211,11 @@ class DirectSolver(HostLinearSolver):
         self.backend_name = backend
         self.backend = _make_backend(backend)
         self.triangle = self.backend.triangle
+        self._failure = ""
+        self._shift = 0.0
+        self._null = None
+        self._scale = 1.0
+        self.shifted_factorisations = 0  # how many factorisations needed a diagonal shift (cumulative)
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     @property
@@ -198,43 +223,130 @@ class DirectSolver(HostLinearSolver):
         """How many symbolic analyses (orderings) the backend has done."""
         return self.backend.symbolic_count
 
+    @property
+    def failure(self) -> str:
+        """Why the last prepared matrix could not be factorised even with a shift ("" when it was)."""
+        return self._failure
+
+    @property
+    def shift(self) -> float:
+        """The diagonal shift the last factorisation needed (0.0: the matrix factorised as it is)."""
+        return self._shift
+
     def _prepare(self, values, mask):
         A = self.host_matrix(values, mask)
         self._A_host = A
         self._failure = ""
+        self._shift = 0.0
+        self._null = None
+        free = self._mask_host > 0.0
+        d = A.diagonal()
+        scale = float(np.max(np.abs(d[free]))) if free.any() else 1.0
+        self._scale = scale if (np.isfinite(scale) and scale > 0.0) else 1.0
         try:
             self.backend.factor(A)
         except _NotPositiveDefinite as e:
-            self._failure = str(e)
-            self._setup_inv_diag(values, mask)
-            log.warning("direct solver (%s): %s; returning the block-Jacobi direction", self.backend_name, e)
+            self._factor_shifted(A, str(e), values, mask)
+
+    def _factor_shifted(self, A, reason, values, mask):
+        """Factorise A + delta I (free DOFs) with the smallest delta of SHIFTS that works."""
+        scale = self._scale
+        for rel in SHIFTS:
+            delta = rel * scale
+            As = A.copy()
+            As.data[self._diag_pos] += delta * self._mask_host
+            try:
+                self.backend.factor(As)
+            except _NotPositiveDefinite:
+                continue
+            self._shift = delta
+            self.shifted_factorisations += 1
+            log.info("direct solver (%s): %s; factorised with a diagonal shift of %.1e x the largest diagonal "
+                     "entry (%.3e) and refining against the unshifted matrix", self.backend_name, reason, rel, delta)
+            return
+        self._failure = f"{reason}; still not positive definite with a diagonal shift of {SHIFTS[-1]:g} x {scale:.3e}"
+        self._setup_inv_diag(values, mask)
+        log.warning("direct solver (%s): %s; returning the block-Jacobi direction", self.backend_name, self._failure)
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         if self._failure:
             wp.launch(K.block_apply_kernel, dim=self.num_rows, inputs=[self.inv_diag, b, x], device=self.device)
             return LinearSolveResult(0, float("nan"), False, host_syncs=0, failed=self._failure)
         bh = b.numpy().reshape(-1) * self._mask_host  # float64; the system is P b (b should already be masked)
-        xh = self.backend.solve(bh) * self._mask_host  # exactly zero at fixed DOFs
         syncs = 1
         bn = float(np.linalg.norm(bh))
+        xh, rel = self._refined_solve(bh, bn, tol)
         if not np.all(np.isfinite(xh)):
             return LinearSolveResult(1, float("nan"), False, host_syncs=syncs, failed="non-finite solution")
+        deflated = 0
+        xx = float(xh @ xh)
+        # Rayleigh quotient of the solution: when x is dominated by an eigendirection of (near) zero
+        # eigenvalue, x.b / x.x is that eigenvalue. A pivot of the wrong sign sent us here already.
+        if self._shift > 0.0 or (xx > 0.0 and float(xh @ bh) < NULL_TOLERANCE * self._scale * xx):
+            V, lam_plus = self._near_null_space()
+            if V.shape[1]:
+                deflated = V.shape[1]
+                c = V.T @ bh
+                xh, rel = self._refined_solve(bh - V @ c, bn, tol)
+                xh = xh - V @ (V.T @ xh) + V @ (c / lam_plus)
+        if self.device.is_cpu:  # x.numpy() is a view of x's memory on the CPU: write in place
+            x.numpy()[...] = xh.reshape(-1, 3)
+        else:
+            x.assign(xh.reshape(-1, 3).astype(_np_of(x)))
+        return LinearSolveResult(1, rel, bool(rel <= tol), host_syncs=syncs, shift=self._shift, deflated=deflated)
+
+    def _refined_solve(self, bh, bn, tol):
+        """x ~ A^-1 b from the factor, with iterative refinement against the unshifted matrix: when
+        a tight tolerance is below the factor's accuracy (2 rounds), or after a shifted
+        factorisation (until the tolerance is met or the residual stops decreasing; each round
+        shrinks the error in an eigendirection of eigenvalue lam by delta / (lam + delta)).
+        Returns (x, ||A x - b|| / ||b||)."""
+        xh = self.backend.solve(bh) * self._mask_host  # exactly zero at fixed DOFs
+        if not np.all(np.isfinite(xh)):
+            return xh, float("nan")
         r = self._host_residual(xh, bh)
         rel = 0.0 if bn == 0.0 else float(np.linalg.norm(r) / bn)
-        for _ in range(2):  # iterative refinement when a tight tolerance is below the factor's accuracy
+        for _ in range(SHIFTED_REFINEMENTS if self._shift > 0.0 else 2):
             if rel <= tol:
                 break
             x_new = xh - self.backend.solve(r) * self._mask_host
             r_new = self._host_residual(x_new, bh)
             rel_new = float(np.linalg.norm(r_new) / bn)
-            if not rel_new < rel:
+            if not (np.isfinite(rel_new) and rel_new < rel):
                 break
             xh, r, rel = x_new, r_new, rel_new
-        if self.device.is_cpu:  # x.numpy() is a view of x's memory on the CPU: write in place
-            x.numpy()[...] = xh.reshape(-1, 3)
-        else:
-            x.assign(xh.reshape(-1, 3).astype(_np_of(x)))
-        return LinearSolveResult(1, rel, bool(rel <= tol), host_syncs=syncs)
+        return xh, rel
+
+    def _near_null_space(self):
+        """(V, lam_plus): an orthonormal basis V of the free-DOF eigendirections of A with
+        eigenvalue <= NULL_TOLERANCE x the largest diagonal entry (zero or negative), and the
+        smallest Ritz value above that (the curvature the step along V is scaled by).
+
+        Block inverse iteration with the (shifted) factor on NULL_PROBES masked vectors, then
+        Rayleigh-Ritz with the unshifted A; computed once per prepared matrix."""
+        if self._null is not None:
+            return self._null
+        m = self._mask_host
+        n_free = int(np.sum(m > 0.0))
+        k = min(NULL_PROBES, n_free)
+        rng = np.random.default_rng(0)
+        V = rng.standard_normal((self.n3, k)) * m[:, None]
+        for _ in range(3):
+            V = np.linalg.qr(V)[0]
+            V = np.column_stack([self.backend.solve(np.ascontiguousarray(V[:, j])) for j in range(k)]) * m[:, None]
+        V = np.linalg.qr(V)[0]
+        AV = np.column_stack([self._host_residual(V[:, j], np.zeros(self.n3)) for j in range(k)])
+        theta, Y = np.linalg.eigh(0.5 * (V.T @ AV + AV.T @ V))
+        V = V @ Y
+        small = theta <= NULL_TOLERANCE * self._scale
+        above = theta[~small]
+        lam_plus = float(above[0]) if above.size else float(self._scale)
+        self._null = (V[:, small], lam_plus)
+        if small.any():
+            log.info("direct solver (%s): %d eigendirection(s) of (near) zero or negative curvature (Ritz values "
+                     "%s, smallest positive %.3e): solved on the rest, a gradient step scaled by %.3e along them",
+                     self.backend_name, int(small.sum()), np.array2string(theta[small], precision=3), lam_plus, lam_plus)
+        return self._null
 
     def _host_residual(self, xh, bh):
         A = self._A_host
