@@ -300,7 +300,7 @@ class _Level:
         self.dinv = wp.zeros(size // b, dtype=wp.types.matrix(shape=(b, b), dtype=scalar), device=device)
         self.P = self.R = None
         self.AP = None  # A P, in the structure computed at set-up
-        self.Minv = None  # the coarsest level's dense pseudo-inverse
+        self.Minv = None  # the coarsest level's dense inverse
 
 
 class MultigridPCG(LinearSolver):
@@ -330,8 +330,8 @@ class MultigridPCG(LinearSolver):
 
     def __init__(self, pattern, *, vec_type, scalar, positions=None, max_coarse: int = 300, max_levels: int = 10,
                  degree: int = 3, lower: float = 0.03, check_every: int | None = None, rebuild_factor: float = 3.0,
-                 coarse_update: str = "lagged", lag_factor: float = 1.5, strength="symmetric", aggregate="standard", smooth=("jacobi", {"omega": 4.0 / 3.0}),
-                 improve_candidates=None):
+                 coarse_update: str = "lagged", lag_factor: float = 1.5, strength="symmetric", aggregate="standard",
+                 smooth=("jacobi", {"omega": 4.0 / 3.0}), improve_candidates=None):
         self.pyamg = require("pyamg", "amg", "'multigrid' linear solver")
         if int(degree) != degree or degree < 1:
             raise ValueError(f"degree must be a positive integer, got {degree!r}")
@@ -417,8 +417,8 @@ class MultigridPCG(LinearSolver):
         A, m = self._host_matrix(values, mask)
         ml = self.pyamg.smoothed_aggregation_solver(
             scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
-            max_coarse=max(1, self.max_coarse // self._B0.shape[1]), max_levels=self.max_levels, keep=False, coarse_solver="pinv",
-            **self.sa_options)
+            max_coarse=max(1, self.max_coarse // self._B0.shape[1]),  # pyamg counts aggregates (blocks)
+            max_levels=self.max_levels, keep=False, coarse_solver="pinv", **self.sa_options)
         dev, s = self.device, self.scalar
         levels = [_Level(self._A0, 3 * self.num_rows, s, dev)]
         levels[0].f, levels[0].x = self._rf, self._zf  # the V-cycle reads CG's r and writes its z
