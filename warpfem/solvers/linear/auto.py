@@ -13,7 +13,8 @@ Rule (measurements in docs/linear_solvers.md):
   kernels_bench/bench_auto_crossover.py).
 * Every Newton system's cost (prepare + solve, wall time; each solver's solve ends with a
   read-back, so no extra synchronisation) is measured. The first one that costs more than
-  ``explore_seconds`` is solved again by every other candidate, each timed the same way; one-time
+  ``explore_seconds`` (not counting the run's very first system, which carries one-time warm-up)
+  is solved again by every other candidate, each timed the same way; one-time
   set-up (a factorisation's symbolic analysis, the multigrid hierarchy) is timed apart and not
   counted. The cheapest candidate whose solve converged, if it costs at most ``switch_margin``
   times the current solver (timing noise), becomes the solver of every later system, and its
@@ -180,6 +181,7 @@ class AutoSolver(LinearSolver):
         self.costs = {}  # seconds per Newton system (prepare + solve) of each measured candidate
         self.setup_seconds = {}  # one-time set-up of each candidate (not in ``costs``)
         self.explorations = 0
+        self._solves = 0
         self._chosen_cost = None  # the cost at the last measurement of the candidates
         self._t_prepare = time.perf_counter()
         self._make(self.active)  # its set-up now, with the simulator's, not inside the first timed step
@@ -239,8 +241,10 @@ class AutoSolver(LinearSolver):
         res = self.solvers[self.active].solve(b, x, tol=tol, maxiter=maxiter)
         cost = time.perf_counter() - self._t_prepare
         self.costs[self.active] = cost
+        self._solves += 1
         others = [c for c in self.candidates if c != self.active]
-        if cost <= self.explore_seconds or not others or self.explorations >= self.max_explorations:
+        if (self._solves == 1  # the run's first system carries one-time warm-up (kernel loads, allocations)
+                or cost <= self.explore_seconds or not others or self.explorations >= self.max_explorations):
             return res
         if self._chosen_cost is not None:
             # after a choice: a moving average over the solves since (one expensive system, such
