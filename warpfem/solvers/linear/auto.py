@@ -13,8 +13,8 @@ Rule (measurements in docs/linear_solvers.md):
   kernels_bench/bench_auto_crossover.py).
 * Every Newton system's cost (prepare + solve, wall time; each solver's solve ends with a
   read-back, so no extra synchronisation) is measured. The first one that costs more than
-  ``explore_seconds`` (not counting the run's very first system, which carries one-time warm-up)
-  is solved again by every other candidate, each timed the same way; one-time
+  ``explore_seconds`` is solved again by the current solver (its cost without one-time warm-up:
+  if that is below ``explore_seconds`` nothing else happens) and by every other candidate, each timed the same way; one-time
   set-up (a factorisation's symbolic analysis, the multigrid hierarchy) is timed apart and not
   counted. The cheapest candidate whose solve converged, if it costs at most ``switch_margin``
   times the current solver (timing noise), becomes the solver of every later system, and its
@@ -181,7 +181,7 @@ class AutoSolver(LinearSolver):
         self.costs = {}  # seconds per Newton system (prepare + solve) of each measured candidate
         self.setup_seconds = {}  # one-time set-up of each candidate (not in ``costs``)
         self.explorations = 0
-        self._solves = 0
+        self._cheap_rechecks = 0
         self._chosen_cost = None  # the cost at the last measurement of the candidates
         self._t_prepare = time.perf_counter()
         self._make(self.active)  # its set-up now, with the simulator's, not inside the first timed step
@@ -241,10 +241,9 @@ class AutoSolver(LinearSolver):
         res = self.solvers[self.active].solve(b, x, tol=tol, maxiter=maxiter)
         cost = time.perf_counter() - self._t_prepare
         self.costs[self.active] = cost
-        self._solves += 1
         others = [c for c in self.candidates if c != self.active]
-        if (self._solves == 1  # the run's first system carries one-time warm-up (kernel loads, allocations)
-                or cost <= self.explore_seconds or not others or self.explorations >= self.max_explorations):
+        if (cost <= self.explore_seconds or not others or self.explorations >= self.max_explorations
+                or self._cheap_rechecks >= 3):
             return res
         if self._chosen_cost is not None:
             # after a choice: a moving average over the solves since (one expensive system, such
@@ -257,10 +256,24 @@ class AutoSolver(LinearSolver):
 
     def _explore(self, b, x, tol, maxiter, res, cost, others):
         """Solve this system with every other candidate, timed; keep the cheapest (by the margin)."""
-        self.explorations += 1
         values, mask = self._values, self._mask
+        # the current solver again on this system, warm: the cost that triggered this may carry
+        # one-time warm-up (kernel loads, allocations, a first factorisation's set-up)
+        current = self.solvers[self.active]
+        first_syncs = res.host_syncs
+        wp.synchronize_device(self.device)
+        t0 = time.perf_counter()
+        current.prepare(values, mask)
+        res = current.solve(b, x, tol=tol, maxiter=maxiter)
+        cost = time.perf_counter() - t0
+        self.costs[self.active] = cost
+        if cost <= self.explore_seconds:
+            res.host_syncs += first_syncs
+            self._cheap_rechecks += 1  # after three of these, systems near the threshold stop re-solving
+            return res  # cheap after all: nothing else is built or measured
+        self.explorations += 1
         start, best, best_cost, best_res = self.active, self.active, cost, res
-        syncs = res.host_syncs
+        syncs = first_syncs + res.host_syncs
         trial, best_x = wp.empty_like(x), None
         for name in others:
             s = self._make(name)
