@@ -49,7 +49,7 @@ log = logging.getLogger(__name__)
 DIRECT_MAX_DOFS_CPU = 200_000
 SUPERLU_MAX_DOFS_CPU = 20_000
 SMALL_DIRECT_DOFS_CPU = 10_000  # crossover measured in kernels_bench/bench_auto_crossover.py
-EXPLORE_SECONDS = 0.05
+EXPLORE_SECONDS = 0.02
 INITIAL_CHOICES = ("pcg", "size")
 CANDIDATES = ("pcg", "multigrid", "direct")
 
