@@ -87,6 +87,9 @@ def plan(args, out: Path):
     j = out / "solver_overhead.json"
     P.append(("solver-overhead", py + [str(HERE / "bench_solver_overhead.py"), *dev, "--json", str(j)]
               + (["--steps", "10"] if q else []), j, None))
+    j, m = out / "scale.json", out / "scale.md"
+    P.append(("scale", py + [str(HERE / "bench_scale.py"), *dev, "--out", str(out / "scale")]
+              + (["--quick"] if q else ["--bunny"]), j, m))
     j, m = out / "peer_vbd.json", out / "peer_vbd.md"
     P.append(("peer-vbd", py + [str(HERE / "bench_peer_vbd.py"), *dev, "--json", str(j), "--markdown", str(m)]
               + (["--quick"] if q else []), j, m))

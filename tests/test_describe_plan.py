@@ -51,10 +51,12 @@ def test_describe_names_the_solver_auto_will_run(tmp_path, capsys):
 
 
 def test_auto_choice_by_size():
-    from warpfem.solvers.linear.auto import SMALL_DIRECT_DOFS_CPU, SWITCH_ITERATIONS, describe_choice
+    from warpfem.solvers.linear.auto import EXPLORE_SECONDS, SMALL_DIRECT_DOFS_CPU, describe_choice
 
     big = describe_choice(SMALL_DIRECT_DOFS_CPU + 3)
-    assert big["cpu"].startswith("block-Jacobi PCG, switching to direct") and f"more than {SWITCH_ITERATIONS}" in big["cpu"]
+    # the measured-cost rule: PCG first, then the cheapest measured candidate
+    assert big["cpu"].startswith("block-Jacobi PCG first") and f"more than {EXPLORE_SECONDS:g} s" in big["cpu"]
+    assert "multigrid" in big["cpu"] and "direct" in big["cpu"]
     assert describe_choice(SMALL_DIRECT_DOFS_CPU)["cpu"].startswith("direct")
 
 

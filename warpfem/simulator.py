@@ -68,7 +68,7 @@ class Simulator(SimulatorBase):
         damping_mass, damping_stiffness: Rayleigh coefficients alpha (1/s) and beta (s).
         require_convergence: raise :class:`SolveFailed` (state untouched) instead of accepting a
             non-converged step. NaN/inf always raises and never touches the state.
-        linear_solver: "auto", "pcg", "direct" or "amg": the solver of each Newton system
+        linear_solver: "auto", "pcg", "direct", "amg" or "multigrid": the solver of each Newton system
             (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
             ``max_line_search``, ``armijo``, ``project_hessian`` (see :class:`NewtonOptions`).

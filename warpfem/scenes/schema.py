@@ -279,7 +279,7 @@ INTEGRATOR_KEYS: dict[str, Key] = {
     "damping_mass": Key("float", default=0.0, check=_non_negative, doc="Rayleigh alpha (1/s)"),
     "damping_stiffness": Key("float", default=0.0, check=_non_negative, doc="Rayleigh beta (s)"),
     "load_steps": Key("int", default=1, check=_positive, doc="static: load ramp steps per frame"),
-    "linear_solver": Key("choice", default="auto", choices=("auto", "pcg", "direct", "amg"),
+    "linear_solver": Key("choice", default="auto", choices=("auto", "pcg", "direct", "amg", "multigrid"),
                          doc="solver of the Newton systems (docs/linear_solvers.md)"),
 }
 

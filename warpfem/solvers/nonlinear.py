@@ -11,9 +11,11 @@ the tolerance, and a step length a is accepted when E(y + a d) <= E(y) + c a d^T
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
+
+from warpfem.solvers.linear.forcing import FORCING, ForcingTerms
 
 
 @dataclass
@@ -31,6 +33,9 @@ class NewtonOptions:
         armijo: sufficient-decrease constant c.
         project_hessian: SPD-project each element's dP/dF (needed for non-convex materials far from
             rest; off gives the exact Hessian).
+        forcing: "fixed" (every linear solve to ``cg_tol``) or "eisenstat_walker" (adaptive
+            tolerances, loose far from the solution, never tighter than ``cg_tol``;
+            :mod:`warpfem.solvers.linear.forcing`, measured effect in docs/linear_solvers.md).
     """
 
     tol: float = 1e-6
@@ -41,6 +46,7 @@ class NewtonOptions:
     max_line_search: int = 30
     armijo: float = 1e-4
     project_hessian: bool = True
+    forcing: str = "fixed"
 
     def validate(self):
         for name in ("tol", "cg_tol"):
@@ -55,6 +61,8 @@ class NewtonOptions:
                 raise ValueError(f"{name} must be a positive integer, got {v!r}")
         if not 0.0 < self.armijo < 0.5:
             raise ValueError(f"armijo must be in (0, 0.5), got {self.armijo!r}")
+        if self.forcing not in FORCING:
+            raise ValueError(f"forcing must be one of {FORCING}, got {self.forcing!r}")
 
 
 @dataclass
@@ -137,9 +145,13 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     eps_mach = problem.eps
 
     # with newton_step, the start's energy and gradient are read with the first iteration's numbers
+    # inexact Newton's forcing terms (None: every solve to cg_tol); the first solve's tolerance is
+    # known before the start's gradient (eta0), so it can ride with the start's evaluation
+    forcing = None if opts.forcing == "fixed" else ForcingTerms(opts.forcing, opts.cg_tol, opts.tol)
     first = None
     if fused and hasattr(problem, "newton_step") and not problem.bounds_step() and opts.max_iters > 0:
-        lin0, pre0, (E, mag, gmag, gnorm0) = problem.newton_step(y, g, d, y_try, g_try, opts, start=True)
+        opts0 = opts if forcing is None else replace(opts, cg_tol=forcing.first_tolerance())
+        lin0, pre0, (E, mag, gmag, gnorm0) = problem.newton_step(y, g, d, y_try, g_try, opts0, start=True)
         first = (lin0, pre0)
     elif hasattr(problem, "evaluate"):  # energy and gradient with one read-back
         E, mag, gmag, gnorm0 = problem.evaluate(y, g)
@@ -162,23 +174,27 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
         st.converged, st.reason = True, "already at equilibrium"
         return finish()
     gnorm = gnorm0
+    if forcing is not None:
+        forcing.start(gnorm0, first_solved=first is not None)
     for _ in range(opts.max_iters):
         pre = None  # the fused first trial: (g.d, negligible, E, |E|, gradient magnitude, ||g_try||)
         alpha_pre = 1.0  # the step length of that trial
-        if first is not None:  # done with the start's evaluation
+        if first is not None:  # done with the start's evaluation (its solve ran at the first tolerance)
             (lin, pre), first = first, None
-        elif fused and not problem.bounds_step():
-            if hasattr(problem, "newton_step"):  # solve + first trial, one read-back
-                lin, pre = problem.newton_step(y, g, d, y_try, g_try, opts)
-            else:
-                lin = problem.solve_newton_system(y, g, d, opts)
-                pre = problem.trial_step(y, g, d, 1.0, y_try, g_try)
-        elif fused:  # a bounded step (contact): the bound first, then the trial at it, one read-back each
-            lin = problem.solve_newton_system(y, g, d, opts)
-            alpha_pre = min(1.0, problem.max_step(y, d))
-            pre = problem.trial_step(y, g, d, alpha_pre, y_try, g_try)
         else:
-            lin = problem.solve_newton_system(y, g, d, opts)  # an iteration count or a LinearSolveResult
+            lin_opts = opts if forcing is None else replace(opts, cg_tol=forcing.next(gnorm))
+            if fused and not problem.bounds_step():
+                if hasattr(problem, "newton_step"):  # solve + first trial, one read-back
+                    lin, pre = problem.newton_step(y, g, d, y_try, g_try, lin_opts)
+                else:
+                    lin = problem.solve_newton_system(y, g, d, lin_opts)
+                    pre = problem.trial_step(y, g, d, 1.0, y_try, g_try)
+            elif fused:  # a bounded step (contact): the bound first, then the trial at it, one read-back each
+                lin = problem.solve_newton_system(y, g, d, lin_opts)
+                alpha_pre = min(1.0, problem.max_step(y, d))
+                pre = problem.trial_step(y, g, d, alpha_pre, y_try, g_try)
+            else:
+                lin = problem.solve_newton_system(y, g, d, lin_opts)  # an iteration count or a LinearSolveResult
         iterations = int(getattr(lin, "iterations", lin))
         st.cg_iterations += iterations
         st.linear_iterations += iterations

@@ -100,7 +100,7 @@ class StiffnessWarpingSimulator(SimulatorBase):
             "bdf2" or "newmark" (or an instance from :mod:`warpfem.integrators`); each step is one
             Newton iteration of that scheme's incremental potential with the warped linear model.
         linear_solver, linear_solver_options: the solver of the step's linear system ("auto",
-            "pcg", "direct", "amg"; docs/linear_solvers.md) and its constructor options.
+            "pcg", "direct", "amg", "multigrid"; docs/linear_solvers.md) and its constructor options.
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, rotation="polar", cg_tol=1e-6,

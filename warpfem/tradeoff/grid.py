@@ -90,8 +90,8 @@ class TradeoffConfig:
             v = getattr(self, k)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise GridError(f"{where}.{k}: must be an integer >= 1, got {v!r}")
-        if self.linear_solver is not None and self.linear_solver not in ("auto", "pcg", "direct", "amg"):
-            raise GridError(f"{where}.linear_solver: must be one of auto, pcg, direct, amg, got {self.linear_solver!r}")
+        if self.linear_solver is not None and self.linear_solver not in ("auto", "pcg", "direct", "amg", "multigrid"):
+            raise GridError(f"{where}.linear_solver: must be one of auto, pcg, direct, amg, multigrid, got {self.linear_solver!r}")
         for k in ("integrator", "element", "name", "linear_solver"):
             v = getattr(self, k)
             if v is not None and not isinstance(v, str):

@@ -1,33 +1,46 @@
-"""The ``auto`` linear solver: block-Jacobi PCG that hands over to the direct solver when the
-systems turn out to be hard.
+"""The ``auto`` linear solver: it measures what each candidate solver costs on the run's own
+Newton systems and keeps the cheapest.
 
 Rule (measurements in docs/linear_solvers.md):
 
-* CUDA: ``pcg`` only (the data stay on the device; the loop is a CUDA graph with a host check
-  every k iterations; the host backends would copy the matrix down and back every iteration).
-* CPU, small systems (at most SMALL_DIRECT_DOFS_CPU unknowns): ``direct`` from the first solve,
-  when the solver is built by a simulator (``initial="size"``, the simulators' default): one
-  factorisation costs less than the launches of even a few dozen PCG iterations (measured with
-  kernels_bench/bench_auto_crossover.py). A factorisation that meets a non-positive pivot is
-  retried with a small diagonal shift by the direct solver itself (a semi-definite projected
-  Hessian); only a matrix that no shift makes positive definite (an unprojected Hessian far from
-  convex) sends that system and all later ones to PCG.
-* CPU, larger systems: start with ``pcg``; when a solve needs more than ``switch_iterations`` (250) iterations,
-  every later ``prepare`` uses ``direct`` instead (its symbolic analysis is done at that moment,
-  once), provided the system has at most DIRECT_MAX_DOFS_CPU unknowns (PARDISO installed) or
-  SUPERLU_MAX_DOFS_CPU (SuperLU only). The choice never goes back, so a run stays deterministic.
+* Candidates: ``pcg`` always; ``multigrid`` when pyamg is installed; ``direct`` on the CPU up to
+  DIRECT_MAX_DOFS_CPU unknowns (PARDISO installed) or SUPERLU_MAX_DOFS_CPU (SuperLU only). CUDA:
+  ``pcg`` and ``multigrid`` (the host backends would copy the matrix down and back every Newton
+  iteration).
+* Start: ``pcg``; or, when the solver is built by a simulator (``initial="size"``, the simulators'
+  default) for a CPU system of at most SMALL_DIRECT_DOFS_CPU unknowns, ``direct`` (one
+  factorisation of such a system costs less than the launches of a few dozen PCG iterations,
+  kernels_bench/bench_auto_crossover.py).
+* Every Newton system's cost (prepare + solve, wall time; each solver's solve ends with a
+  read-back, so no extra synchronisation) is measured. The first one that costs more than
+  ``explore_seconds`` is solved again by the current solver (its cost without one-time warm-up:
+  if that is below ``explore_seconds`` nothing else happens) and by every other candidate, each timed the same way; one-time
+  set-up (a factorisation's symbolic analysis, the multigrid hierarchy) is timed apart and not
+  counted. The cheapest candidate whose solve converged, if it costs at most ``switch_margin``
+  times the current solver (timing noise), becomes the solver of every later system, and its
+  answer is returned for this one; otherwise the current solver stays.
+* After a choice, when the moving average of the chosen solver's cost (weight 0.3 per system, at
+  least 5 systems after the choice) exceeds ``recheck_factor`` times the cost the choice was made
+  at (the systems became harder), the candidates are measured again, at most
+  ``max_explorations`` measurements per run.
+* A factorisation that meets a non-positive pivot is retried with a small diagonal shift by the
+  direct solver itself (a semi-definite projected Hessian); only a matrix that no shift makes
+  positive definite (an unprojected Hessian far from convex) sends that system and all later ones
+  to PCG (which stops at negative curvature with a descent direction); ``direct`` is then no longer
+  a candidate.
 
-Why an iteration count: whether the factorisation pays depends on how hard the systems are
-(stiffness against mass, Poisson ratio), not only on size. Per step on this CPU, block-Jacobi PCG
-won on the mass-dominated box beam (60 and 211 iterations per solve at nu = 0.3 / 0.49: 2.3x and
-1.6x faster than direct) and was even with it on the octopus at 90 iterations, while direct won
-where PCG needed 271 (octopus, nu = 0.49: 3x), 370 (bunny: 1.5x) and 983 iterations (bunny,
-nu = 0.49: 5x).
+A run that stays with the starting solver pays nothing for this beyond the timing; exploring costs
+one extra solve (plus set-up) per candidate, once, on runs whose solves take more than
+``explore_seconds``. Which solver wins depends on the measured times, so two runs on a loaded
+machine may choose differently; every candidate solves to the same tolerance.
 """
 
 from __future__ import annotations
 
 import logging
+import time
+
+import warp as wp
 
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
 
@@ -35,9 +48,10 @@ log = logging.getLogger(__name__)
 
 DIRECT_MAX_DOFS_CPU = 200_000
 SUPERLU_MAX_DOFS_CPU = 20_000
-SWITCH_ITERATIONS = 250
 SMALL_DIRECT_DOFS_CPU = 10_000  # crossover measured in kernels_bench/bench_auto_crossover.py
+EXPLORE_SECONDS = 0.02
 INITIAL_CHOICES = ("pcg", "size")
+CANDIDATES = ("pcg", "multigrid", "direct")
 
 
 def starts_direct(pattern) -> bool:
@@ -48,21 +62,29 @@ def starts_direct(pattern) -> bool:
 def describe_choice(num_dofs: int) -> dict:
     """What ``auto`` (as the simulators build it) will run for a system of ``num_dofs`` unknowns,
     by device (``warpfem describe``): {"cpu": text, "cuda": text}, from the same rule and limits
-    as :func:`starts_direct` and :func:`direct_allowed`."""
+    as :func:`starts_direct`, :func:`direct_allowed` and the candidates."""
     from warpfem.solvers.linear.direct import available_backends
 
     backend = available_backends()[0]
     limit = DIRECT_MAX_DOFS_CPU if backend == "pardiso" else SUPERLU_MAX_DOFS_CPU
+    mg = ["multigrid"] if _multigrid_available() else []
+    measured = f"than {EXPLORE_SECONDS:g} s, the cheapest measured of "
     if num_dofs <= SMALL_DIRECT_DOFS_CPU:
         cpu = (f"direct (sparse Cholesky, {backend}) from the first solve: {num_dofs:,} unknowns <= "
-               f"{SMALL_DIRECT_DOFS_CPU:,}; block-Jacobi PCG if a factorisation finds the matrix not positive definite")
+               f"{SMALL_DIRECT_DOFS_CPU:,}; from the first Newton system that costs more {measured}"
+               f"{', '.join(['direct', 'pcg'] + mg)}; block-Jacobi PCG if a factorisation finds the matrix not "
+               f"positive definite")
     elif num_dofs <= limit:
-        cpu = (f"block-Jacobi PCG, switching to direct (sparse Cholesky, {backend}) for good after a solve that "
-               f"needs more than {SWITCH_ITERATIONS} iterations ({num_dofs:,} unknowns: above {SMALL_DIRECT_DOFS_CPU:,}, "
-               f"within the direct limit {limit:,})")
+        cpu = (f"block-Jacobi PCG first; from the first Newton system that costs more {measured}"
+               f"{', '.join(['pcg'] + mg + [f'direct (sparse Cholesky, {backend})'])} ({num_dofs:,} unknowns: "
+               f"above {SMALL_DIRECT_DOFS_CPU:,}, within the direct limit {limit:,})")
     else:
-        cpu = (f"block-Jacobi PCG only ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})")
-    return {"cpu": cpu, "cuda": "block-Jacobi PCG (the data stay on the device)"}
+        cpu = (f"block-Jacobi PCG first; from the first Newton system that costs more {measured}"
+               f"{', '.join(['pcg'] + mg)} ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})")
+    cuda = ("block-Jacobi PCG (the data stay on the device)" if not mg else
+            f"block-Jacobi PCG first; from the first Newton system that costs more {measured}pcg, multigrid "
+            f"(the data stay on the device)")
+    return {"cpu": cpu, "cuda": cuda}
 
 
 def simulator_options(name: str, options: dict | None) -> dict:
@@ -82,6 +104,14 @@ def _pardiso_available() -> bool:
     return available_backends()[0] == "pardiso"
 
 
+def _multigrid_available() -> bool:
+    try:
+        import pyamg  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
 def direct_allowed(pattern) -> bool:
     """Whether ``auto`` may hand this pattern's systems to the direct solver."""
     if pattern.device.is_cuda:
@@ -91,95 +121,216 @@ def direct_allowed(pattern) -> bool:
 
 
 class AutoSolver(LinearSolver):
-    """PCG first; direct from the first ``prepare`` after a PCG solve that needed more than
-    ``switch_iterations`` iterations (when :func:`direct_allowed`).
+    """The cheapest of the candidate solvers by measured time per Newton system (see the module).
 
     Args:
-        switch_iterations: the PCG iteration count that triggers the switch.
         initial: "pcg" (start with PCG whatever the size) or "size" (direct from the first solve
             when :func:`starts_direct`; what the simulators use).
-        check_every, use_cuda_graph: passed to the PCG; backend: passed to the direct solver.
-        positions: accepted and ignored (the model description the other solvers get).
+        candidates: the solvers to measure (default: pcg, multigrid when pyamg is installed,
+            direct where :func:`direct_allowed`); names outside these are ignored.
+        explore_seconds: measure the other candidates only when the first solve took longer.
+        switch_margin: switch only to a candidate at most this fraction of the current cost.
+        recheck_factor, max_explorations: measure again when the chosen solver's cost grows past
+            this factor of its cost at the choice, at most this many measurements per run.
+        check_every, use_cuda_graph: passed to the PCG; backend: passed to the direct solver;
+            positions: the rest positions (the multigrid's rigid-body modes).
     """
 
     name = "auto"
-    eager_inv_diag = False  # the inner solvers keep their own (``self.pcg.inv_diag``, ``self.direct.inv_diag``)
-    # ``self.pcg`` (the PCG workspace: six vectors and the block-Jacobi diagonal) exists only once PCG is
-    # used: a small CPU system that stays direct never allocates it
+    eager_inv_diag = False  # the inner solvers keep their own
+    # only the solvers in use are built: a small CPU system that stays direct never allocates the
+    # PCG workspace (``self.pcg`` stays None)
 
-    def __init__(self, pattern, *, vec_type, scalar, switch_iterations: int = SWITCH_ITERATIONS,
-                 check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto", positions=None,
-                 initial: str = "pcg", cpu_serial: bool = False):
+    def __init__(self, pattern, *, vec_type, scalar, initial: str = "pcg", candidates=None,
+                 explore_seconds: float = EXPLORE_SECONDS, switch_margin: float = 0.8, recheck_factor: float = 2.0,
+                 max_explorations: int = 2, check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto",
+                 positions=None, cpu_serial: bool = False):
         if initial not in INITIAL_CHOICES:
             raise ValueError(f"initial must be one of {INITIAL_CHOICES}, got {initial!r}")
+        if not (explore_seconds >= 0.0):
+            raise ValueError(f"explore_seconds must be >= 0, got {explore_seconds!r}")
+        if not (0.0 < switch_margin <= 1.0):
+            raise ValueError(f"switch_margin must be in (0, 1], got {switch_margin!r}")
+        if not (recheck_factor >= 1.0):
+            raise ValueError(f"recheck_factor must be >= 1, got {recheck_factor!r}")
+        if int(max_explorations) != max_explorations or max_explorations < 0:
+            raise ValueError(f"max_explorations must be an integer >= 0, got {max_explorations!r}")
+        if candidates is not None:
+            unknown = set(candidates) - set(CANDIDATES)
+            if unknown:
+                raise ValueError(f"unknown candidate(s) {sorted(unknown)}; auto chooses among {', '.join(CANDIDATES)}")
         self._initial = initial
-        if int(switch_iterations) != switch_iterations or switch_iterations < 1:
-            raise ValueError(f"switch_iterations must be a positive integer, got {switch_iterations!r}")
-        self.switch_iterations = int(switch_iterations)
+        self._candidates_arg = None if candidates is None else tuple(candidates)
+        self.explore_seconds, self.switch_margin = float(explore_seconds), float(switch_margin)
+        self.recheck_factor, self.max_explorations = float(recheck_factor), int(max_explorations)
         self._pcg_options = dict(check_every=check_every, use_cuda_graph=use_cuda_graph, cpu_serial=cpu_serial)
         self._backend = backend
+        self._positions = positions
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
+    # -- candidates -----------------------------------------------------------------------------
     def _analyse(self, pattern):
         if self.analyse_count > 1:  # a grown pattern: the solvers built so far analyse it
-            for s in (self.pcg, self.direct):
-                if s is not None:
-                    s.analyse(pattern)
+            for s in self.solvers.values():
+                s.analyse(pattern)
             return
-        self.pcg = None
-        self.direct = None
+        self.solvers = {}
+        allowed = {"pcg": True, "multigrid": _multigrid_available(), "direct": direct_allowed(pattern)}
+        wanted = self._candidates_arg or CANDIDATES
+        self.candidates = [c for c in CANDIDATES if c in wanted and allowed[c]]
+        if "pcg" not in self.candidates:
+            self.candidates.insert(0, "pcg")  # the fallback of an indefinite system
         self.active = "pcg"
-        self._may_switch = direct_allowed(pattern)
-        if self._initial == "size" and self._may_switch and starts_direct(pattern):
+        if self._initial == "size" and "direct" in self.candidates and starts_direct(pattern):
             self.active = "direct"
             log.debug("linear solver auto: %d unknowns on the CPU; direct from the first solve", 3 * pattern.num_rows)
-            self._make_direct()  # its symbolic set-up now, with the simulator's, not inside the first timed step
-        else:
-            self._make_pcg()  # likewise
+        self.costs = {}  # seconds per Newton system (prepare + solve) of each measured candidate
+        self.setup_seconds = {}  # one-time set-up of each candidate (not in ``costs``)
+        self.explorations = 0
+        self._cheap_rechecks = 0
+        self._chosen_cost = None  # the cost at the last measurement of the candidates
+        self._t_prepare = time.perf_counter()
+        self._make(self.active)  # its set-up now, with the simulator's, not inside the first timed step
 
-    def _make_pcg(self):
-        from warpfem.solvers.linear.pcg import DevicePCG
+    def _make(self, name):
+        if name not in self.solvers:
+            t0 = time.perf_counter()
+            if name == "pcg":
+                from warpfem.solvers.linear.pcg import DevicePCG
 
-        self.pcg = DevicePCG(self.pattern, vec_type=self.vec_type, scalar=self.scalar, **self._pcg_options)
+                s = DevicePCG(self.pattern, vec_type=self.vec_type, scalar=self.scalar, **self._pcg_options)
+            elif name == "direct":
+                from warpfem.solvers.linear.direct import DirectSolver
 
-    def _make_direct(self):
-        from warpfem.solvers.linear.direct import DirectSolver
+                s = DirectSolver(self.pattern, vec_type=self.vec_type, scalar=self.scalar, backend=self._backend)
+            else:
+                from warpfem.solvers.linear.multigrid import MultigridPCG
 
-        self.direct = DirectSolver(self.pattern, vec_type=self.vec_type, scalar=self.scalar, backend=self._backend)
+                s = MultigridPCG(self.pattern, vec_type=self.vec_type, scalar=self.scalar, positions=self._positions)
+            self.solvers[name] = s
+            self.setup_seconds[name] = self.setup_seconds.get(name, 0.0) + time.perf_counter() - t0
+        return self.solvers[name]
 
+    @property
+    def pcg(self):
+        """The PCG solver, if it has been used (None otherwise)."""
+        return self.solvers.get("pcg")
+
+    @property
+    def _may_switch(self) -> bool:
+        """Whether the direct solver is still a candidate (it is dropped after a failed factorisation)."""
+        return "direct" in self.candidates
+
+    @property
+    def direct(self):
+        """The direct solver, if it has been used (None otherwise)."""
+        return self.solvers.get("direct")
+
+    # -- interface --------------------------------------------------------------------------------
     def _prepare(self, values, mask):
-        if self.active == "direct" and self.direct is None:
-            self._make_direct()
+        # the cost of a Newton system runs from here to the end of its solve (every solver's solve
+        # ends with a read-back, so the device has finished by then: no extra synchronisation)
+        self._t_prepare = time.perf_counter()
         if self.active == "direct":
-            self.direct.prepare(values, mask)
-            if self.direct.failure:
-                # not positive definite (an unprojected Hessian, a singular static system): PCG
-                # handles these (it stops at negative curvature with a descent direction), so this
-                # and every later system go to PCG; no switching back
-                log.info("linear solver auto: %s; PCG from now on", self.direct.failure)
-                self.active, self._may_switch = "pcg", False
-        if self.active == "pcg":
-            if self.pcg is None:  # started direct, and the direct solver gave up on this system
-                self._make_pcg()
-            self.pcg.prepare(values, mask)
+            d = self._make("direct")
+            d.prepare(values, mask)
+            if d.failure:
+                # not positive definite: PCG handles these (it stops at negative curvature with a
+                # descent direction), so this and every later system go to PCG, for good
+                log.info("linear solver auto: %s; PCG from now on", d.failure)
+                self.candidates = [c for c in self.candidates if c != "direct"]
+                self.active = "pcg"
+        if self.active != "direct":
+            self._make(self.active).prepare(values, mask)
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
-        if self.active == "direct":
-            return self.direct.solve(b, x, tol=tol, maxiter=maxiter)
-        res = self.pcg.solve(b, x, tol=tol, maxiter=maxiter)
-        if self._may_switch and res.iterations > self.switch_iterations:
-            log.info("linear solver auto: PCG needed %d iterations (> %d); switching to the direct solver",
-                     res.iterations, self.switch_iterations)
-            self.active = "direct"
-        return res
+        res = self.solvers[self.active].solve(b, x, tol=tol, maxiter=maxiter)
+        cost = time.perf_counter() - self._t_prepare
+        self.costs[self.active] = cost
+        others = [c for c in self.candidates if c != self.active]
+        if (cost <= self.explore_seconds or not others or self.explorations >= self.max_explorations
+                or self._cheap_rechecks >= 3):
+            return res
+        if self._chosen_cost is not None:
+            # after a choice: a moving average over the solves since (one expensive system, such
+            # as a multigrid's re-formed coarse operators, does not trigger a new measurement)
+            self._since_choice += 1
+            self._avg_cost = cost if self._avg_cost is None else 0.7 * self._avg_cost + 0.3 * cost
+            if self._since_choice < 5 or self._avg_cost <= self.recheck_factor * self._chosen_cost:
+                return res
+        return self._explore(b, x, tol, maxiter, res, cost, others)
+
+    def _explore(self, b, x, tol, maxiter, res, cost, others):
+        """Solve this system with every other candidate, timed; keep the cheapest (by the margin)."""
+        values, mask = self._values, self._mask
+        # the current solver again on this system, warm: the cost that triggered this may carry
+        # one-time warm-up (kernel loads, allocations, a first factorisation's set-up)
+        current = self.solvers[self.active]
+        first_syncs = res.host_syncs
+        wp.synchronize_device(self.device)
+        t0 = time.perf_counter()
+        current.prepare(values, mask)
+        res = current.solve(b, x, tol=tol, maxiter=maxiter)
+        cost = time.perf_counter() - t0
+        self.costs[self.active] = cost
+        if cost <= self.explore_seconds:
+            res.host_syncs += first_syncs
+            self._cheap_rechecks += 1  # after three of these, systems near the threshold stop re-solving
+            return res  # cheap after all: nothing else is built or measured
+        self.explorations += 1
+        start, best, best_cost, best_res = self.active, self.active, cost, res
+        syncs = first_syncs + res.host_syncs
+        trial, best_x = wp.empty_like(x), None
+        for name in others:
+            s = self._make(name)
+            if name == "multigrid" and s.levels is None:  # its hierarchy: set-up, timed apart
+                t0 = time.perf_counter()
+                s.prepare(values, mask)
+                wp.synchronize_device(self.device)
+                self.setup_seconds[name] += time.perf_counter() - t0
+            wp.synchronize_device(self.device)
+            t0 = time.perf_counter()
+            s.prepare(values, mask)
+            if getattr(s, "failure", ""):
+                self.candidates = [c for c in self.candidates if c != name]
+                continue
+            r = s.solve(b, trial, tol=tol, maxiter=maxiter)
+            c = time.perf_counter() - t0
+            syncs += r.host_syncs
+            self.costs[name] = c
+            log.debug("linear solver auto: %s %.3f s (%d iterations) on the measured system", name, c, r.iterations)
+            if r.converged and not r.failed and c < best_cost and c < self.switch_margin * cost:
+                best, best_cost, best_res = name, c, r
+                if best_x is None:
+                    best_x = wp.empty_like(x)
+                wp.copy(best_x, trial)
+        if best != start:
+            wp.copy(x, best_x)
+            log.info("linear solver auto: %s (%.3f s per Newton system) instead of %s (%.3f s)", best, best_cost,
+                     start, cost)
+        self.active, self._chosen_cost = best, best_cost
+        self._since_choice, self._avg_cost = 0, None
+        best_res.host_syncs = syncs
+        return best_res
 
     # -- deferred solves (PCG only): see DevicePCG.solve_deferred -----------------------------------
+    def _may_explore(self) -> bool:
+        others = [c for c in self.candidates if c != self.active]
+        return bool(others) and self.explorations < self.max_explorations and self._cheap_rechecks < 3
+
     @property
     def deferred_chunks(self) -> int:
         return self.pcg.deferred_chunks if self.pcg is not None else 0
 
     def can_defer(self) -> bool:
-        return self.active == "pcg" and self.pcg is not None and self.pcg.can_defer()
+        """PCG's solve may be deferred (its report read with the Newton trial) only where no timed
+        comparison with the other candidates is due: a deferred solve is not measured against them.
+        So: PCG active, and either nothing left to explore or its systems cheaper than
+        ``explore_seconds`` (where one read-back less per Newton iteration matters)."""
+        pcg = self.pcg
+        if self.active != "pcg" or pcg is None or not pcg.can_defer():
+            return False
+        return not self._may_explore() or self.costs.get("pcg", float("inf")) <= self.explore_seconds
 
     def solve_deferred(self, b, x, **kw):
         self.pcg.solve_deferred(b, x, **kw)
@@ -187,8 +338,5 @@ class AutoSolver(LinearSolver):
     def complete_deferred(self, report):
         res, changed = self.pcg.complete_deferred(report)
         self.host_syncs += res.host_syncs
-        if self._may_switch and res.iterations > self.switch_iterations:
-            log.info("linear solver auto: PCG needed %d iterations (> %d); switching to the direct solver",
-                     res.iterations, self.switch_iterations)
-            self.active = "direct"
+        self.costs["pcg"] = time.perf_counter() - self._t_prepare  # (with the fused trial: an upper bound)
         return res, changed

@@ -222,6 +222,7 @@ _REGISTRY: dict[str, str] = {
     "pcg": "warpfem.solvers.linear.pcg:DevicePCG",
     "direct": "warpfem.solvers.linear.direct:DirectSolver",
     "amg": "warpfem.solvers.linear.amg:AMGSolver",
+    "multigrid": "warpfem.solvers.linear.multigrid:MultigridPCG",
 }
 
 LINEAR_SOLVERS = tuple(_REGISTRY)
