@@ -125,6 +125,6 @@ def test_every_linear_solver_takes_the_grown_pattern():
     X = ref.model.rest_positions
     gap = lambda s: np.linalg.norm(s.positions()[i] - s.positions()[j] - (X[i] - X[j]))  # noqa: E731
     assert gap(ref) < 0.5 * gap(free_ref)  # the spring holds the free end to the middle
-    for name in ("pcg", "amg", "auto"):
+    for name in ("pcg", "amg", "multigrid", "auto"):
         sim, _, _ = _run(name)
         assert np.abs(sim.positions() - ref.positions()).max() <= 1e-7, name
