@@ -11,7 +11,9 @@ Rule (measurements in docs/linear_solvers.md):
   default) for a CPU system of at most SMALL_DIRECT_DOFS_CPU unknowns, ``direct`` (one
   factorisation of such a system costs less than the launches of a few dozen PCG iterations,
   kernels_bench/bench_auto_crossover.py).
-* Every Newton system's cost (prepare + solve, wall time; each solver's solve ends with a
+* Systems of at most EXPLORE_MIN_DOFS unknowns (``explore_min_dofs``) keep the starting solver:
+  no timing decides anything, so small runs are reproducible bit for bit on any machine load.
+* Every larger Newton system's cost (prepare + solve, wall time; each solver's solve ends with a
   read-back, so no extra synchronisation) is measured. The first one that costs more than
   ``explore_seconds`` is solved again by the current solver (its cost without one-time warm-up:
   if that is below ``explore_seconds`` nothing else happens) and by every other candidate, each timed the same way; one-time
@@ -31,8 +33,10 @@ Rule (measurements in docs/linear_solvers.md):
 
 A run that stays with the starting solver pays nothing for this beyond the timing; exploring costs
 one extra solve (plus set-up) per candidate, once, on runs whose solves take more than
-``explore_seconds``. Which solver wins depends on the measured times, so two runs on a loaded
-machine may choose differently; every candidate solves to the same tolerance.
+``explore_seconds``. Which solver wins depends on the measured times, so two runs of a system
+above EXPLORE_MIN_DOFS unknowns on a loaded machine may choose differently (every candidate solves
+to the same tolerance); name the solver (``linear_solver = "multigrid"``, ...) for runs that must
+be reproducible bit for bit.
 """
 
 from __future__ import annotations
@@ -50,6 +54,10 @@ DIRECT_MAX_DOFS_CPU = 200_000
 SUPERLU_MAX_DOFS_CPU = 20_000
 SMALL_DIRECT_DOFS_CPU = 10_000  # crossover measured in kernels_bench/bench_auto_crossover.py
 EXPLORE_SECONDS = 0.02
+#: systems with at most this many unknowns are never timed against the other candidates: their
+#: solver is the starting one, so small runs (tests, studies compared bit for bit, a serial and a
+#: Dask run of the same study) are reproducible whatever the machine's load
+EXPLORE_MIN_DOFS = 3_000
 INITIAL_CHOICES = ("pcg", "size")
 CANDIDATES = ("pcg", "multigrid", "direct")
 
@@ -144,7 +152,7 @@ class AutoSolver(LinearSolver):
     def __init__(self, pattern, *, vec_type, scalar, initial: str = "pcg", candidates=None,
                  explore_seconds: float = EXPLORE_SECONDS, switch_margin: float = 0.8, recheck_factor: float = 2.0,
                  max_explorations: int = 2, check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto",
-                 positions=None, cpu_serial: bool = False):
+                 positions=None, cpu_serial: bool = False, explore_min_dofs: int = EXPLORE_MIN_DOFS):
         if initial not in INITIAL_CHOICES:
             raise ValueError(f"initial must be one of {INITIAL_CHOICES}, got {initial!r}")
         if not (explore_seconds >= 0.0):
@@ -162,6 +170,7 @@ class AutoSolver(LinearSolver):
         self._initial = initial
         self._candidates_arg = None if candidates is None else tuple(candidates)
         self.explore_seconds, self.switch_margin = float(explore_seconds), float(switch_margin)
+        self.explore_min_dofs = int(explore_min_dofs)
         self.recheck_factor, self.max_explorations = float(recheck_factor), int(max_explorations)
         self._pcg_options = dict(check_every=check_every, use_cuda_graph=use_cuda_graph, cpu_serial=cpu_serial)
         self._backend = backend
@@ -249,7 +258,7 @@ class AutoSolver(LinearSolver):
         self.costs[self.active] = cost
         others = [c for c in self.candidates if c != self.active]
         if (cost <= self.explore_seconds or not others or self.explorations >= self.max_explorations
-                or self._cheap_rechecks >= 3):
+                or self._cheap_rechecks >= 3 or 3 * self.num_rows <= self.explore_min_dofs):
             return res
         if self._chosen_cost is not None:
             # after a choice: a moving average over the solves since (one expensive system, such
@@ -316,7 +325,8 @@ class AutoSolver(LinearSolver):
     # -- deferred solves (PCG only): see DevicePCG.solve_deferred -----------------------------------
     def _may_explore(self) -> bool:
         others = [c for c in self.candidates if c != self.active]
-        return bool(others) and self.explorations < self.max_explorations and self._cheap_rechecks < 3
+        return (bool(others) and self.explorations < self.max_explorations and self._cheap_rechecks < 3
+                and 3 * self.num_rows > self.explore_min_dofs)
 
     @property
     def deferred_chunks(self) -> int:
