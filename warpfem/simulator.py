@@ -36,6 +36,9 @@ from warpfem.solvers.linear.auto import simulator_options
 from warpfem.solvers.state import SimulatorBase, check_simulator_options
 from warpfem.solvers.sparse import BlockPattern, HessianSystem, PatternView
 
+#: the choices of ``Simulator(initial_guess=...)``
+INITIAL_GUESSES = ("previous", "extrapolated")
+
 
 class QuadratureSet(NamedTuple):
     """One set of quadrature points the element kernels run over (``Simulator._qp_sets``).
@@ -72,12 +75,21 @@ class Simulator(SimulatorBase):
             (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
             ``max_line_search``, ``armijo``, ``project_hessian`` (see :class:`NewtonOptions`).
+        initial_guess: where each step's Newton solve starts (free components; fixed ones always
+            start at their prescribed value). "previous" (default): the previous velocity v_n.
+            "extrapolated": constant acceleration from the history, v_n + h (v_n - v_{n-1}) / h_prev
+            (Newmark: v_n + h a_n); the first step after a state change starts at v_n. Converges
+            to the same step; the measured effect on Newton iterations is in docs/integrators.md.
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
                  damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, linear_solver="auto",
-                 linear_solver_options=None, colliders=None, **newton_options):
+                 linear_solver_options=None, colliders=None, initial_guess="previous", **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
+        if initial_guess not in INITIAL_GUESSES:
+            raise ValueError(f"initial_guess must be one of {', '.join(repr(g) for g in INITIAL_GUESSES)}, "
+                             f"got {initial_guess!r}")
+        self.initial_guess = initial_guess
         self.integrator = make_integrator(integrator)
         unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
         if unknown:
@@ -417,8 +429,9 @@ class Simulator(SimulatorBase):
         xb, vh, s = prediction
         fixed_v = self._prescribed_velocity(state_in, xb, s, control, self._fixed_v)
         y = self._y
-        # initial guess: previous velocity on free components, prescribed on fixed ones
-        launch(LK.select_kernel, dim=n, inputs=[self._mask, state_in.v, fixed_v, y], device=self.device)
+        # initial guess: previous (or extrapolated) velocity on free components, prescribed on fixed ones
+        launch(LK.select_kernel, dim=n, inputs=[self._mask, self._guess(state_in, dt), fixed_v, y],
+               device=self.device)
         self._inertia.set_prediction(vh)
         contact = self._sync_contact_form()
         pot = self._potential.begin(xb, s, self._weights(s, control))
@@ -432,9 +445,32 @@ class Simulator(SimulatorBase):
         stats.newton_syncs = pot.host_syncs - syncs0
         stats.launches = COUNTERS["launches"] - launches0
         self._finish(stats, t0, f"step {self.step_count}")
+        keep = state_out.history.get("guess_v_prev")  # the buffer, kept across the integrator's clear()
         self.integrator.advance(state_in, y, prediction, dt, ops, state_out)
+        if self.initial_guess == "extrapolated":
+            vp = state_out.history["guess_v_prev"] = keep if keep is not None else ops.new_vector()
+            ops.copy(vp, state_in.v)
+            state_out.history["guess_h"] = dt
         state_out.time = state_in.time + dt
         return stats
+
+    def _guess(self, state, dt):
+        """The free components of the Newton solve's start: v_n ("previous"), or v_n extrapolated
+        at constant acceleration ("extrapolated", when the history has what it needs)."""
+        hist = state.history
+        if self.initial_guess != "extrapolated":
+            return state.v
+        out = self._prediction_work.get("guess")
+        if out is None:
+            out = self._prediction_work["guess"] = self.ops.new_vector()
+        if "a" in hist:  # Newmark: the scheme's own a_n
+            self.ops.lincomb(1.0, state.v, dt, hist["a"], out)
+        elif "guess_v_prev" in hist and hist.get("guess_h"):
+            self.ops.lincomb(1.0, state.v, -1.0, hist["guess_v_prev"], out)
+            self.ops.lincomb(1.0, state.v, dt / hist["guess_h"], out, out)
+        else:
+            return state.v
+        return out
 
     def _begin_contact_step(self, state_in, xb, s, fixed_v, y, dt):
         """Contact data of the coming step; ``y`` becomes the direction from a feasible start."""
