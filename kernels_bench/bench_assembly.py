@@ -185,13 +185,14 @@ def cpu_model():
     return platform.processor() or "unknown"
 
 
-def run_case(cells, precision, device, repeats, batches=5):
+def run_case(cells, precision, device, repeats, batches=5, noise=0.1):
     mesh = wf.box_tet_mesh(size=(4.0, 1.0, 1.0), cells=tuple(cells))
     mat = wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
     model = wf.Model(mesh, mat)
     sim = wf.Simulator(model, device=device, precision=precision)
     rng = np.random.default_rng(0)
-    sim.set_positions(mesh.vertices + 0.01 * rng.standard_normal(mesh.vertices.shape))
+    h = min(s / c for s, c in zip((4.0, 1.0, 1.0), cells))
+    sim.set_positions(mesh.vertices + noise * h * rng.standard_normal(mesh.vertices.shape))
     dev, m = sim.device, mesh.num_tets
     S, qp, mp = sim.scalar_type, sim.quadrature_points, sim.material_params
     bi = sim.pattern.block_index
@@ -246,7 +247,7 @@ def run_case(cells, precision, device, repeats, batches=5):
         for name, fn in parts.items():
             reps = 1 if name == "numpy" else repeats
             t[name] = min(t[name], best_time(fn, dev, reps, batches=1, clock=clock))
-    row = dict(tets=m, vertices=mesh.num_vertices, nnz_blocks=sim.pattern.nnz, precision=precision, cells=list(cells),
+    row = dict(tets=m, noise=noise, vertices=mesh.num_vertices, nnz_blocks=sim.pattern.nnz, precision=precision, cells=list(cells),
                seconds=t, mtets_per_s={k: m / v / 1e6 for k, v in t.items()},
                hessian_over_force=t["hessian"] / t["force"], numpy_over_hessian=t["numpy"] / t["hessian"],
                share_of_hessian={k: t[k] / t["hessian"] for k in ("zero", "kernel", "svd", "parts", "eigen", "blocks", "blocks_legacy", "scatter")},
@@ -261,6 +262,8 @@ def main(argv=None):
     ap.add_argument("--precisions", nargs="+", default=["float32", "float64"])
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--batches", type=int, default=5)
+    ap.add_argument("--noise", type=float, default=0.1,
+                    help="vertex perturbation, standard deviation as a fraction of the smallest cell edge")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     wp.config.quiet = True
@@ -269,7 +272,7 @@ def main(argv=None):
     for size in args.sizes:
         cells = [int(c) for c in size.split(",")]
         for prec in args.precisions:
-            r = run_case(cells, prec, args.device, args.repeats, args.batches)
+            r = run_case(cells, prec, args.device, args.repeats, args.batches, args.noise)
             rows.append(r)
             mt = r["mtets_per_s"]
             print(f"{r['tets']:>7} tets {prec}: force {mt['force']:.2f} Mtets/s, hessian {mt['hessian']:.3f} Mtets/s "
