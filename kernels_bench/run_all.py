@@ -6,6 +6,7 @@ Warp kernel cache is shared, so only the first run of a module compiles it), its
 
   kernels-float32, kernels-float64  bench_kernels.py   every kernel family, items/s, bandwidth, numpy baseline
   forces                            bench_forces.py    force and Hessian throughput vs numpy
+  assembly                          bench_assembly.py  force vs Hessian Mtets/s, where the Hessian's time goes
   warping                           bench_warping.py   stiffness warping vs Newton, cost and error
   elements                          bench_elements.py  Tet4/Tet10/Hex8/Hex27 accuracy per second
   reduced                           bench_reduced.py   reduced (cubature) vs full steps
@@ -68,6 +69,9 @@ def plan(args, out: Path):
     j = out / "forces.json"
     P.append(("forces", py + [str(HERE / "bench_forces.py"), *dev, "--json", str(j)]
               + (["--cells", "40", "10", "10", "--repeats", "5"] if q else []), j, None))
+    j = out / "assembly_cpu.json" if args.device == "cpu" else out / f"assembly_{args.device.replace(':', '')}.json"
+    P.append(("assembly", py + [str(HERE / "bench_assembly.py"), *dev, "--json", str(j)]
+              + (["--sizes", "40,10,10", "--batches", "3"] if q else []), j, None))
     j = out / "warping.json"
     P.append(("warping", py + [str(HERE / "bench_warping.py"), *dev, "--json", str(j)]
               + (["--steps", "10", "--refine", "4"] if q else []), j, None))
