@@ -19,6 +19,28 @@ def parse_components(components: str) -> list[int]:
     return sorted(_COMPONENTS[c] for c in components)
 
 
+def rigid_body_modes(positions, *, normalize: bool = True) -> np.ndarray:
+    """(3n, 6) translations and rotations about the centroid of ``positions`` (n, 3), DOF-major
+    per vertex (x0, y0, z0, x1, ...): column a < 3 the unit translation along axis a, column 3 + a
+    the rotation e_a x (X - c); each column scaled to unit norm unless ``normalize=False``."""
+    X = np.asarray(positions, dtype=np.float64)
+    n = len(X)
+    d = X - X.mean(axis=0)
+    B = np.zeros((n, 3, 6))
+    for a in range(3):
+        B[:, a, a] = 1.0
+    # rotation about axis e_a: u = e_a x d
+    B[:, 1, 3], B[:, 2, 3] = -d[:, 2], d[:, 1]
+    B[:, 0, 4], B[:, 2, 4] = d[:, 2], -d[:, 0]
+    B[:, 0, 5], B[:, 1, 5] = -d[:, 1], d[:, 0]
+    B = B.reshape(3 * n, 6)
+    if not normalize:
+        return B
+    norms = np.linalg.norm(B, axis=0)
+    norms[norms == 0.0] = 1.0
+    return B / norms
+
+
 def _direction(v) -> str:
     """'the x axis' for a coordinate direction, else the unit vector."""
     u = np.asarray(v, dtype=np.float64) / np.linalg.norm(v)
@@ -145,19 +167,15 @@ class Model:
         X = self.rest_positions
         c = X.mean(axis=0)
         L = float(np.linalg.norm(np.ptp(X, axis=0))) or 1.0
-        d = (X - c) / L  # rotation columns scaled to the size of the translation columns
         n = len(X)
-        R = np.zeros((n, 3, 6))
-        for a in range(3):
-            R[:, a, a] = 1.0
-            w = np.zeros(3)
-            w[a] = 1.0
-            R[:, :, 3 + a] = np.cross(w, d)
-        rows = R[self.fixed]  # (number of fixed components, 6)
+        B = rigid_body_modes(X, normalize=False)  # columns: translations, e_a x (X - c)
+        norms = np.linalg.norm(B, axis=0)
+        norms[norms == 0.0] = 1.0
+        rows = (B / norms).reshape(n, 3, 6)[self.fixed]  # unit columns: a rank test free of units
         if rows.shape[0]:
             _, sv, Vt = np.linalg.svd(rows, full_matrices=True)
             rank = int(np.sum(sv > 1e-9 * sv[0])) if sv.size else 0
-            N = Vt[rank:].T  # (6, k) coefficients of the free motions
+            N = Vt[rank:].T  # (6, k) coefficients of the free motions (unit columns)
         else:
             N = np.eye(6)
         if N.shape[1] == 0:
@@ -168,7 +186,7 @@ class Model:
         rr = int(np.sum(sr > 1e-9)) if sr.size else 0
         T = np.linalg.qr((N @ Vr[rr:].T)[:3])[0][:, : N.shape[1] - rr]  # (3, kt) free translations
         out += [f"translation along {_direction(b)}" for b in T.T]
-        Q = N @ Vr[:rr].T  # (6, kr) motions that rotate
+        Q = (N @ Vr[:rr].T) / norms[:, None]  # (6, kr) motions that rotate: (t, w) in m and 1/m
         if rr:
             # rotation axes: the coordinate axes in the span of the free rotation parts first
             Wb = np.linalg.qr(Q[3:])[0][:, :rr]
@@ -177,14 +195,14 @@ class Model:
                 r = e - sum(((a @ e) * a for a in axes), np.zeros(3))
                 if len(axes) < rr and np.linalg.norm(r) > 1e-6:
                     axes.append(r / np.linalg.norm(r))
-            for w in axes[:rr]:
+            for w in axes[:rr]:  # a unit rotation about w: v = t + w x (X - c)
                 coef = np.linalg.lstsq(Q[3:], w, rcond=None)[0]
                 t = Q[:3] @ coef
                 t = t - T @ (T.T @ t)  # the part no free translation explains
-                p = c + L * np.cross(w, t)
+                p = c + np.cross(w, t)  # the axis point nearest the centroid
                 p[np.abs(p) < 1e-9 * L] = 0.0
                 text = f"rotation about {_direction(w)} through ({p[0]:.4g}, {p[1]:.4g}, {p[2]:.4g})"
-                if abs(float(t @ w)) > 1e-9:
+                if abs(float(t @ w)) > 1e-9 * L:
                     text += " (with a slide along it)"
                 out.append(text)
         return out

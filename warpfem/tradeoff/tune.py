@@ -191,9 +191,14 @@ class TuneResult:
     executor: str = ""
     notes: list = field(default_factory=list)
     schema: str = "warpfem.tune/1"
+    #: the scene file on this machine as the search read it (absolute): kept out of the JSON, which
+    #: records ``scene`` relative to the repository root
+    local_scene_file: str | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
-        return _json_value(dataclasses.asdict(self))
+        d = dataclasses.asdict(self)
+        d.pop("local_scene_file")
+        return _json_value(d)
 
     def to_json(self, path) -> str:
         os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
@@ -204,9 +209,8 @@ class TuneResult:
     def scene_file(self) -> str:
         """The scene file on this machine: the one the search read, else ``scene`` (recorded
         relative to the repository root) resolved there."""
-        own = getattr(self, "_scene_file", None)
-        if own:
-            return own
+        if self.local_scene_file:
+            return self.local_scene_file
         root = repository_root()
         return os.path.join(root, self.scene) if root and not os.path.isabs(self.scene) else self.scene
 
@@ -380,7 +384,7 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
                       rungs=rungs, pruned=pruned, candidates=len(candidates), dropped=[list(d) for d in dropped],
                       reference=reference.info, search=search, device=str(device), executor=executor.description,
                       notes=notes)
-    result._scene_file = os.path.abspath(scene_path)
+    result.local_scene_file = os.path.abspath(scene_path)
     return result
 
 

@@ -22,28 +22,10 @@ import logging
 import numpy as np
 import warp as wp
 
+from warpfem.model import rigid_body_modes
 from warpfem.solvers.linear.base import HostLinearSolver, LinearSolveResult, require
 
 log = logging.getLogger(__name__)
-
-
-def rigid_body_modes(positions) -> np.ndarray:
-    """(3n, 6) translations and rotations about the centroid of ``positions`` (n, 3), DOF-major
-    per vertex (x0, y0, z0, x1, ...); each column scaled to unit norm."""
-    X = np.asarray(positions, dtype=np.float64)
-    n = len(X)
-    d = X - X.mean(axis=0)
-    B = np.zeros((n, 3, 6))
-    for a in range(3):
-        B[:, a, a] = 1.0
-    # rotation about axis e_a: u = e_a x d
-    B[:, 1, 3], B[:, 2, 3] = -d[:, 2], d[:, 1]
-    B[:, 0, 4], B[:, 2, 4] = d[:, 2], -d[:, 0]
-    B[:, 0, 5], B[:, 1, 5] = -d[:, 1], d[:, 0]
-    B = B.reshape(3 * n, 6)
-    norms = np.linalg.norm(B, axis=0)
-    norms[norms == 0.0] = 1.0
-    return B / norms
 
 
 class AMGSolver(HostLinearSolver):

@@ -46,7 +46,7 @@ import warp as wp
 import warp.sparse as wsp
 
 from warpfem.kernels.generic import RecordedLaunch, both_precisions
-from warpfem.solvers.linear.amg import rigid_body_modes
+from warpfem.model import rigid_body_modes
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult, require
 from warpfem.solvers.linear.pcg import (_NEGATIVE, _NONFINITE, _RUNNING, _pcg_carry_kernel, _pcg_direction_kernel,
                                         _pcg_matvec_kernel, _pcg_start_kernel)
