@@ -74,13 +74,9 @@ class _Legacy:
         return res
 
 
-def run_case(label, make, steps):
-    t0 = time.perf_counter()
-    obj = make()
-    build_s = time.perf_counter() - t0
-    sim = obj.sim if hasattr(obj, "sim") else obj
-    if getattr(make, "legacy", False):
-        sim.linear_solver = _Legacy(sim)
+def step_recorder(obj, sim):
+    """(advance, records): ``advance()`` runs one frame of a scene run (or one step of a bare
+    simulator) and ``records`` collects the SolveStats of the steps it took (clear it per frame)."""
     records = []
     orig = sim.step
 
@@ -90,7 +86,17 @@ def run_case(label, make, steps):
         return st
 
     sim.step = step
-    advance = obj.step_frame if hasattr(obj, "step_frame") else sim.step
+    return (obj.step_frame if hasattr(obj, "step_frame") else sim.step), records
+
+
+def run_case(label, make, steps):
+    t0 = time.perf_counter()
+    obj = make()
+    build_s = time.perf_counter() - t0
+    sim = obj.sim if hasattr(obj, "sim") else obj
+    if getattr(make, "legacy", False):
+        sim.linear_solver = _Legacy(sim)
+    advance, records = step_recorder(obj, sim)
     rows = []
     for k in range(steps + 1):
         records.clear()

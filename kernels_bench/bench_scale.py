@@ -42,6 +42,7 @@ sys.path.insert(0, str(ROOT))
 import warp as wp  # noqa: E402
 
 import warpfem as wf  # noqa: E402
+from kernels_bench.bench_linear_solvers import step_recorder  # noqa: E402
 
 
 def box_sim(c, *, nu, solver, device, precision):
@@ -81,16 +82,7 @@ def run_one(make, steps):
     obj, tets = make()
     build = time.perf_counter() - t0
     sim = obj.sim if hasattr(obj, "sim") else obj
-    records = []
-    orig = sim.step
-
-    def step():
-        st = orig()
-        records.append(st)
-        return st
-
-    sim.step = step
-    advance = obj.step_frame if hasattr(obj, "step_frame") else sim.step
+    advance, records = step_recorder(obj, sim)
     rows = []
     for k in range(steps + 1):
         records.clear()
