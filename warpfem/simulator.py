@@ -160,6 +160,8 @@ class Simulator(SimulatorBase):
         self._static_potential = None
         self.contact = None  # warpfem.contact.ContactSet once a collider is added
         self._contact_form = None
+        self.surface_contact = None  # warpfem.contact.SurfaceContact after set_contact(...)
+        self._surface_form = None
         for c in colliders or ():
             self.add_collider(c)
 
@@ -182,22 +184,45 @@ class Simulator(SimulatorBase):
         self.contact.add(collider)
         return collider
 
+    def set_contact(self, /, *, bodies=None, friction=0.0, dhat=None, stiffness=None, friction_velocity=None, **flags):
+        """Contact between the model's bodies and of each with itself (docs/contact.md): a barrier
+        on point-triangle and edge-edge distances of the boundary surface, lagged friction and a
+        continuous-collision bound on every line search. Keys (those of a scene's ``[contact]``):
+        ``bodies`` (different connected components / bodies; default True when the model has two
+        or more), ``self`` (within one; default False), ``friction`` (mu), ``dhat`` (m),
+        ``stiffness`` (kappa of the squared-distance barrier, N/m^3), ``friction_velocity`` (m/s).
+        ``sim.set_contact(bodies=False)`` (and no ``self``) turns it off. Returns the
+        :class:`warpfem.contact.SurfaceContact` (or None when off)."""
+        from warpfem.contact.surface import SurfaceContact, SurfaceContactForm
+
+        sc = SurfaceContact(self, bodies=bodies, friction=friction, dhat=dhat, stiffness=stiffness,
+                            friction_velocity=friction_velocity, **flags)
+        if self.surface_contact is not None:
+            self.surface_contact.detach()
+        if not (sc.bodies or sc.self_contact):
+            sc.detach()
+            self.surface_contact, self._surface_form = None, None
+            return None
+        self.surface_contact, self._surface_form = sc, SurfaceContactForm(sc)
+        return sc
+
     def _sync_contact_form(self):
-        """The contact form is in the potential exactly when colliders act (``contact`` may be
-        replaced or emptied from outside)."""
+        """The contact forms are in the potential exactly when colliders act (``contact`` may be
+        replaced or emptied from outside) or surface contact is on (``set_contact``)."""
         active = self.contact is not None and len(self.contact) > 0
         if active and (self._contact_form is None or self._contact_form.contact is not self.contact):
             from warpfem.contact import ContactForm
 
             self._contact_form = ContactForm(self.contact)
+        surface = self.surface_contact is not None and self._surface_form is not None
         forms = self._potential.forms
-        want = [f for f in forms if f.name != "contact"]
-        if active:  # before the load: its gradient (a constant vector) is added last, as before the forms list
-            at = next((k for k, f in enumerate(want) if f.name == "load"), len(want))
-            want.insert(at, self._contact_form)
+        want = [f for f in forms if f.name not in ("contact", "surface_contact")]
+        # before the load: its gradient (a constant vector) is added last, as before the forms list
+        at = next((k for k, f in enumerate(want) if f.name == "load"), len(want))
+        want[at:at] = ([self._contact_form] if active else []) + ([self._surface_form] if surface else [])
         if want != forms:
             self._potential.set_forms(want)
-        return active
+        return active or surface
 
     def add_form(self, form):
         """Append a term (a :class:`warpfem.solvers.forms.Form`) to the incremental potential of every
@@ -477,7 +502,11 @@ class Simulator(SimulatorBase):
         from warpfem.contact.contact import CollisionError
 
         ops, t = self.ops, state_in.time
-        self.contact.begin_step(t, t + dt, dt, x0=state_in.x)
+        colliders = self.contact is not None and len(self.contact) > 0
+        if colliders:
+            self.contact.begin_step(t, t + dt, dt, x0=state_in.x)
+        if self._surface_form is not None:
+            self.surface_contact.begin_step(state_in.x, dt)
         # the unknown that keeps every vertex where it is (fixed ones at their targets): feasible
         # unless a collider moved into the body
         y0 = self._contact_start
@@ -486,14 +515,17 @@ class Simulator(SimulatorBase):
         launch(LK.select_kernel, dim=self.num_vertices, inputs=[self._mask, y0, fixed_v, y0], device=self.device)
         x0 = self._work.x
         ops.lincomb(1.0, xb, s, y0, x0)
-        try:
-            self.contact.check(x0, t + dt, what="moved into the body within one step (reduce dt or "
-                               "slow the collider)")
-        except CollisionError as e:
-            raise SolveFailed(f"step {self.step_count}: {e}; state left unchanged",
-                              SolveStats(reason="collider intersects the body")) from e
-        self.contact.set_poses(t, t + dt)
-        self._contact_form.begin(xb, s)
+        if colliders:
+            try:
+                self.contact.check(x0, t + dt, what="moved into the body within one step (reduce dt or "
+                                   "slow the collider)")
+            except CollisionError as e:
+                raise SolveFailed(f"step {self.step_count}: {e}; state left unchanged",
+                                  SolveStats(reason="collider intersects the body")) from e
+            self.contact.set_poses(t, t + dt)
+            self._contact_form.begin(xb, s)
+        if self._surface_form is not None:
+            self._surface_form.begin(xb, s)
         # y := y - y0 (the direction from the feasible start), cut by the step bound in _step()
         ops.lincomb(1.0, y, -1.0, y0, y)
 
@@ -503,6 +535,9 @@ class Simulator(SimulatorBase):
         Loads and prescribed targets are ramped linearly over ``load_steps`` Newton solves
         (more steps: more robust for large deformation). Velocities are set to zero.
         """
+        if self.surface_contact is not None:
+            raise ValueError("solve_static does not handle surface contact (set_contact); use a damped time "
+                             "integration to reach rest")
         if self.contact is not None and len(self.contact):
             raise ValueError("solve_static does not handle colliders (contact is a dynamic term here); "
                              "use a damped time integration to reach rest on a collider")

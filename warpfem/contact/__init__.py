@@ -3,6 +3,8 @@ potential: smooth barrier, continuous-collision step bound, lagged friction (doc
 
 from warpfem.contact.colliders import COLLIDER_TYPES, Box, Collider, MeshCollider, Plane, Sphere, make_collider
 from warpfem.contact.contact import CollisionError, ContactForm, ContactSet
+from warpfem.contact.surface import ContactSurface, SurfaceContact, SurfaceContactForm, contact_surface
 
 __all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider", "COLLIDER_TYPES",
-           "ContactSet", "ContactForm", "CollisionError"]
+           "ContactSet", "ContactForm", "CollisionError", "ContactSurface", "SurfaceContact", "SurfaceContactForm",
+           "contact_surface"]

@@ -11,13 +11,13 @@ import warp as wp
 
 from warpfem.kernels.structs import STRUCT_TYPES
 
-PRECISION_TYPES = tuple({"s": s, "v": v, "m": m, **STRUCT_TYPES[s]}
-                        for s, v, m in ((wp.float32, wp.vec3, wp.mat33), (wp.float64, wp.vec3d, wp.mat33d)))
+PRECISION_TYPES = tuple({"s": s, "v": v, "m": m, "v4": v4, **STRUCT_TYPES[s]}
+                        for s, v, m, v4 in ((wp.float32, wp.vec3, wp.mat33, wp.vec4), (wp.float64, wp.vec3d, wp.mat33d, wp.vec4d)))
 
 
 def both_precisions(**roles):
     """Kernel decorator: ``roles`` maps each generic argument to "s" (scalar value), "s[]", "v[]",
-    "m[]" (1-d arrays of scalar, vec3, mat33), "s[,]" or "v[,]" (2-d scalar / vec3 arrays), or a
+    "m[]", "v4[]" (1-d arrays of scalar, vec3, mat33, vec4), "s[,]" or "v[,]" (2-d scalar / vec3 arrays), or a
     struct of :mod:`warpfem.kernels.structs`: "qp" (``QuadraturePoints32/64``), "mat"
     (``MaterialParams32/64``), "tets" (``WarpedTets32/64``)."""
 
@@ -33,7 +33,7 @@ def both_precisions(**roles):
                 elif role in ("s[,]", "v[,]"):
                     arg_types[arg.label] = wp.array2d(dtype=types[role[0]])
                 else:
-                    arg_types[arg.label] = wp.array(dtype=types[role[0]])
+                    arg_types[arg.label] = wp.array(dtype=types[role[:-2]])
             wp.overload(kernel, arg_types)
         return kernel
 

@@ -1,0 +1,434 @@
+"""Contact between bodies and of a body with itself: the model's boundary surface against itself.
+
+:func:`contact_surface` extracts, from a volume mesh (and an optional per-vertex body id), the
+surface triangles, their unique edges, the surface vertices and a group id per vertex (the
+connected component of the element graph, split further by body id): two primitives of the same
+group are *self* contact, of different groups *body* contact. :class:`SurfaceContact` holds them on
+the device with two Warp BVHs (triangles, edges), finds the candidate pairs of each Newton
+iteration (``wp.bvh_query_aabb`` over boxes of the segment x -> x + s d padded by dhat / 2,
+refitted per query), grows the Hessian's pattern for new pairs (``HessianSystem.ensure_blocks``)
+and lags friction at the step start; :class:`SurfaceContactForm` is its form of the incremental
+potential (energy, gradient, SPD-projected Hessian blocks, additive-CCD ``max_step``). The
+kernels and the formulas: :mod:`warpfem.contact.surface_kernels`; docs/contact.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
+import warp as wp
+
+from warpfem.contact import surface_kernels as SK
+from warpfem.kernels.generic import launch
+from warpfem.solvers.forms import Form
+
+__all__ = ["ContactSurface", "contact_surface", "SurfaceContact", "SurfaceContactForm", "CONTACT_KEYS", "pair_terms"]
+
+#: the keys of ``Simulator.set_contact`` and of a scene's ``[contact]`` table
+CONTACT_KEYS = ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity")
+STEP_ETA = 0.2  # the step bound keeps each pair's gap at least this fraction of its current one
+
+
+@dataclass
+class ContactSurface:
+    """The boundary surface of a model for contact.
+
+    triangles (m, 3), edges (e, 2) (unique, i < j) and vertices (v,) are mesh vertex indices;
+    group (n,) int32 per mesh vertex (connected component x body); num_groups."""
+
+    triangles: np.ndarray
+    edges: np.ndarray
+    vertices: np.ndarray
+    group: np.ndarray
+    num_groups: int
+
+
+def contact_surface(mesh, body=None, *, elements=None) -> ContactSurface:
+    """The contact surface of ``mesh`` (a :class:`~warpfem.mesh.VolumeMesh`: its
+    ``boundary_faces()``). ``body``: optional (n,) body id per vertex (a model of several
+    bodies); groups are the connected components of the element graph (``elements``: (m, k)
+    connectivity, default ``mesh.elements``), split by body id."""
+    faces = np.asarray(mesh.boundary_faces(), dtype=np.int64).reshape(-1, 3)
+    n = int(mesh.num_vertices)
+    E = np.asarray(mesh.elements if elements is None else elements, dtype=np.int64)
+    E = E.reshape(len(E), -1) if E.ndim == 2 else E.reshape(-1, E.shape[-1])
+    k = E.shape[1]
+    rows = np.repeat(E[:, 0], k)
+    cols = E.ravel()
+    A = scipy.sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
+    _, comp = scipy.sparse.csgraph.connected_components(A, directed=False)
+    if body is not None:
+        body = np.asarray(body, dtype=np.int64).reshape(-1)
+        if body.shape != (n,):
+            raise ValueError(f"contact_surface: body must hold one id per vertex ({n}), got shape {body.shape}")
+        _, comp = np.unique(np.stack([body, comp], axis=1), axis=0, return_inverse=True)
+    _, group = np.unique(comp, return_inverse=True)
+    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    e = np.unique(np.sort(e, axis=1), axis=0)
+    return ContactSurface(triangles=faces, edges=e, vertices=np.unique(faces), group=group.reshape(-1).astype(np.int32),
+                          num_groups=int(group.max()) + 1 if n else 0)
+
+
+def _barrier_slope(d, dhat):
+    """b'(d) of b(d) = -(d - dhat)^2 ln(d / dhat)."""
+    return -2.0 * (d - dhat) * np.log(d / dhat) - (d - dhat) ** 2 / d
+
+
+def _capacity(k):
+    return int(2 ** int(np.ceil(np.log2(max(int(k), 256)))))
+
+
+def pair_terms(kind, x, *, dhat, kappa, rest=None, direction=None, precision="float64", device="cpu"):
+    """One pair evaluated by the contact kernels (for tests and tools): ``kind`` "pt" (x: point,
+    then the triangle's three vertices) or "ee" (edge a, then edge b), ``x`` (4, 3). Returns a dict:
+    distance, energy (kappa m b), gradient (12,), hessian (12, 12, exact) and hessian_psd (its
+    projection) and, with ``direction`` (4, 3), step (the additive-CCD step bound along it)."""
+    f64 = precision == "float64"
+    S, V, M = (wp.float64, wp.vec3d, wp.mat33d) if f64 else (wp.float32, wp.vec3, wp.mat33)
+    npt = np.float64 if f64 else np.float32
+    k = {"pt": SK.PT, "ee": SK.EE}[kind]
+    x = np.asarray(x, dtype=np.float64).reshape(4, 3)
+    xa = wp.array(x.astype(npt), dtype=V, device=device)
+    ra = wp.array(np.asarray(x if rest is None else rest, dtype=npt).reshape(4, 3), dtype=V, device=device)
+    da = wp.array(np.zeros((4, 3), npt) if direction is None else np.asarray(direction, dtype=npt).reshape(4, 3), dtype=V,
+                  device=device)
+    pairs = wp.array(np.array([[0, 1, 2, 3]], dtype=np.int32), dtype=wp.vec4i, device=device)
+    kinds = wp.array(np.array([k], dtype=np.int32), dtype=wp.int32, device=device)
+    count = wp.array(np.array([1], dtype=np.int32), dtype=wp.int32, device=device)
+    blocks = wp.array(np.arange(16, dtype=np.int32), dtype=wp.int32, device=device)
+    dist = wp.zeros(1, dtype=S, device=device)
+    fw = wp.zeros(1, dtype=wp.vec4d if f64 else wp.vec4, device=device)
+    fn = wp.zeros(1, dtype=V, device=device)
+    flam = wp.zeros(1, dtype=S, device=device)
+    out = {}
+
+    def go(mode, g=None, values=None):
+        acc = wp.zeros(4, dtype=wp.float64, device=device)
+        acc.fill_(1.0) if mode == SK.MODE_MAX_STEP else None
+        g = wp.zeros(4, dtype=V, device=device) if g is None else g
+        values = wp.zeros(16, dtype=M, device=device) if values is None else values
+        launch(SK.pair_kernel, 1, [xa, ra, pairs, kinds, count, S(dhat * dhat), S(kappa), mode, S(1.0), da, S(STEP_ETA), g,
+                                   blocks, values, dist, fw, fn, flam, acc, 0], device)
+        return acc.numpy(), g.numpy(), values.numpy()
+
+    go(SK.MODE_DISTANCE)
+    out["distance"] = float(dist.numpy()[0])
+    out["energy"] = float(go(SK.MODE_ENERGY)[0][0])
+    out["gradient"] = go(SK.MODE_GRADIENT)[1].astype(np.float64).reshape(12)
+    for key, mode in (("hessian", SK.MODE_HESSIAN_UNPROJECTED), ("hessian_psd", SK.MODE_HESSIAN)):
+        blk = go(mode)[2].astype(np.float64).reshape(4, 4, 3, 3)
+        out[key] = blk.transpose(0, 2, 1, 3).reshape(12, 12)
+    if direction is not None:
+        out["step"] = float(go(SK.MODE_MAX_STEP)[0][3])
+    return out
+
+
+class SurfaceContact:
+    """Surface contact of one simulator (``sim``: ``model``, ``ops``, ``system``, ``device``, ``x``).
+
+    Args (``Simulator.set_contact``): ``bodies`` (contact between different groups; default:
+    True when the model has two or more), ``self`` (contact within a group, default False),
+    ``friction`` (mu), ``dhat`` (m, default 0.1 x the mean surface edge), ``stiffness`` (kappa,
+    N/m^2 for the squared-distance barrier: default such that the barrier's force at dhat / 2
+    equals E x mean edge x dhat / 2, the collider default's force there), ``friction_velocity``
+    (m/s, default 1e-3 body diagonals per second)."""
+
+    def __init__(self, sim, *, bodies=None, friction=0.0, dhat=None, stiffness=None, friction_velocity=None,
+                 body=None, **flags):
+        unknown = set(flags) - {"self", "self_contact"}
+        if unknown:
+            raise TypeError(f"set_contact: unknown key(s) {sorted(unknown)}; known: {', '.join(CONTACT_KEYS)}")
+        self_on = bool(flags.get("self", flags.get("self_contact", False)))
+        self.sim = sim
+        self.ops = ops = sim.ops
+        self.system = sim.system
+        model = sim.model
+        if body is None:
+            offsets = getattr(model, "body_offsets", None)
+            if offsets is not None and len(offsets) > 2:
+                body = np.repeat(np.arange(len(offsets) - 1), np.diff(np.asarray(offsets)))
+        qd = model.quadrature
+        surf = contact_surface(model.mesh, body, elements=np.asarray(qd.elements).reshape(-1, qd.nodes_per_element))
+        self.surface = surf
+        self.bodies = (surf.num_groups >= 2) if bodies is None else bool(bodies)
+        self.self_contact = self_on
+        X = np.asarray(model.rest_positions, dtype=np.float64)
+        mean_edge = float(np.linalg.norm(X[surf.edges[:, 0]] - X[surf.edges[:, 1]], axis=1).mean())
+        self.mean_edge = mean_edge
+        self.diagonal = float(np.linalg.norm(np.ptp(X, axis=0)))
+        self.nv, self.nt, self.ne = len(surf.vertices), len(surf.triangles), len(surf.edges)
+        for key, v in (("dhat", dhat), ("stiffness", stiffness), ("friction_velocity", friction_velocity)):
+            if v is not None and not (np.isfinite(v) and v > 0.0):
+                raise ValueError(f"set_contact: {key} must be > 0, got {v!r}")
+        if not (np.isfinite(friction) and friction >= 0.0):
+            raise ValueError(f"set_contact: friction must be >= 0, got {friction!r}")
+        self.friction = float(friction)
+        self.dhat = 0.1 * mean_edge if dhat is None else float(dhat)
+        self.kappa = self.default_stiffness(self.dhat) if stiffness is None else float(stiffness)
+        self.friction_velocity = 1e-3 * self.diagonal if friction_velocity is None else float(friction_velocity)
+        dev = sim.device
+        self.device = dev
+        i32 = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.int32).ravel(), dtype=wp.int32, device=dev)  # noqa: E731
+        self._verts, self._tris, self._edges = i32(surf.vertices), i32(surf.triangles), i32(surf.edges)
+        self._group = i32(surf.group)
+        box = lambda k: (wp.zeros(k, dtype=wp.vec3, device=dev), wp.zeros(k, dtype=wp.vec3, device=dev))  # noqa: E731
+        self._vbox, self._tbox, self._ebox = box(self.nv), box(self.nt), box(self.ne)
+        self._rest = ops.new_vector()
+        self._rest.assign(X.astype(ops.np_dtype))
+        self._zero_dir = ops.new_vector()
+        self._boxes(sim.x, None, 1.0)
+        self._tbvh = wp.Bvh(*self._tbox)
+        self._ebvh = wp.Bvh(*self._ebox)
+        self._count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._alloc(_capacity(4 * (self.nv + self.ne)))
+        self.num_pairs = 0
+        self.pairs_np = np.zeros((0, 4), dtype=np.int64)
+        self._blocks_for = None
+        # friction lagged at the step start
+        self.num_friction = 0
+        self._f_pairs_np = np.zeros((0, 4), dtype=np.int64)
+        self._f_cap = 0
+        self._f_blocks = None
+        self._x0 = ops.new_vector()
+        self._eps = 0.0
+        self.system.listeners.append(self._pattern_changed)
+        self.queries = 0  # broad-phase queries made (for benchmarks)
+
+    def default_stiffness(self, dhat):
+        """kappa (N/m^3) of the squared-distance barrier: its force at d = dhat / 2 (2 d kappa |b'(d^2)|)
+        equals that of the collider barrier's default kappa (E x mean surface edge, at least the
+        weight under 1 g per surface vertex per dhat; docs/contact.md) there."""
+        E = float(getattr(self.sim.model.material, "youngs_modulus", 0.0) or 0.0)
+        k_lin = max(E * self.mean_edge, float(self.sim.model.total_mass) * 9.81 / (max(self.nv, 1) * dhat))
+        return k_lin * abs(_barrier_slope(0.5 * dhat, dhat)) / (dhat * abs(_barrier_slope(0.25 * dhat * dhat, dhat * dhat)))
+
+    def _alloc(self, cap):
+        dev, ops = self.device, self.ops
+        self.capacity = cap
+        self._pairs = wp.zeros(cap, dtype=wp.vec4i, device=dev)
+        self._kinds = wp.zeros(cap, dtype=wp.int32, device=dev)
+        self._blocks = wp.zeros(16 * cap, dtype=wp.int32, device=dev)
+        self._dist = wp.zeros(cap, dtype=ops.scalar, device=dev)
+        self._fw = wp.zeros(cap, dtype=wp.vec4d if ops.np_dtype == np.float64 else wp.vec4, device=dev)
+        self._fn = wp.zeros(cap, dtype=ops.vec, device=dev)
+        self._flam = wp.zeros(cap, dtype=ops.scalar, device=dev)
+
+    # -- broad phase ---------------------------------------------------------------------------------
+    def _boxes(self, x, d, scale):
+        ops, dev = self.ops, self.device
+        d = self._zero_dir if d is None else d
+        pad = ops.scalar(0.5 * self.dhat * 1.001)
+        for prims, k, (lo, hi), m in ((self._verts, 1, self._vbox, self.nv), (self._tris, 3, self._tbox, self.nt),
+                                      (self._edges, 2, self._ebox, self.ne)):
+            launch(SK.boxes_kernel, m, [x, d, ops.scalar(scale), prims, k, pad, lo, hi], dev)
+
+    def update_pairs(self, x, d=None, scale=1.0):
+        """Candidate pairs for every point of the segment x -> x + scale d (d None: x alone): the
+        pairs whose primitives' padded boxes overlap; grows the Hessian's pattern for new pairs.
+        One read-back (the pairs)."""
+        self._boxes(x, d, scale)
+        self._tbvh.refit()
+        self._ebvh.refit()
+        self.queries += 1
+        while True:
+            self._count.zero_()
+            launch(SK.broad_phase_kernel, self.nv + self.ne, [
+                self._tbvh.id, self._ebvh.id, self._vbox[0], self._vbox[1], self._ebox[0], self._ebox[1], self._verts,
+                self._tris, self._edges, self._group, int(self.self_contact), int(self.bodies), self.nv, self._pairs,
+                self._kinds, self._count, self.capacity], self.device)
+            n = int(self._count.numpy()[0])
+            if n <= self.capacity:
+                break
+            self._alloc(_capacity(2 * n))
+        self.num_pairs = n
+        self.pairs_np = self._pairs.numpy()[:n].astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
+        if n:
+            self._ensure(self.pairs_np)
+        self._blocks_for = None
+        self._update_blocks()
+        return n
+
+    def _ensure(self, quads):
+        a = np.repeat(quads, 4, axis=1).reshape(-1)
+        b = np.tile(quads, (1, 4)).reshape(-1)
+        self.system.ensure_blocks(np.stack([a, b], axis=1))
+
+    def _block_positions(self, quads, cap, out=None):
+        """Device int32 (16 cap,): the pattern positions of the 4 x 4 vertex blocks of each quad."""
+        full = np.zeros(16 * cap, dtype=np.int32)
+        if len(quads):
+            a = np.repeat(quads, 4, axis=1).reshape(-1)
+            b = np.tile(quads, (1, 4)).reshape(-1)
+            pos = self.system.pattern.pair_index(np.stack([a, b], axis=1))
+            if np.any(pos < 0):
+                raise RuntimeError("surface contact: a pair's Hessian block is missing from the pattern")
+            full[:len(pos)] = pos
+        if out is None or out.shape[0] != len(full):
+            return wp.array(full, dtype=wp.int32, device=self.device)
+        out.assign(full)
+        return out
+
+    def _update_blocks(self):
+        self._blocks = self._block_positions(self.pairs_np, self.capacity, self._blocks)
+        self._blocks_for = self.system.pattern.version
+
+    def detach(self):
+        """Stop following the Hessian's pattern (the simulator dropped this contact)."""
+        if self._pattern_changed in self.system.listeners:
+            self.system.listeners.remove(self._pattern_changed)
+
+    def _pattern_changed(self, pattern):
+        if self.num_pairs:
+            self._update_blocks()
+        if self.num_friction:
+            self._f_blocks = self._block_positions(self._f_pairs_np, self._f_cap, self._f_blocks)
+
+    # -- pair kernel ---------------------------------------------------------------------------------
+    def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0):
+        ops = self.ops
+        if self.num_pairs == 0:
+            return
+        launch(SK.pair_kernel, self.capacity, [
+            x, self._rest, self._pairs, self._kinds, self._count, ops.scalar(self.dhat ** 2), ops.scalar(self.kappa),
+            int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA),
+            ops.zero if g is None else g, self._blocks, self.system.hessian_values if values is None else values,
+            self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot)],
+            self.device)
+
+    def _acc_default(self):
+        if getattr(self, "_acc", None) is None:
+            self._acc = wp.zeros(4, dtype=wp.float64, device=self.device)
+        return self._acc
+
+    def distances(self, x=None) -> np.ndarray:
+        """Distances (m) of the current candidate pairs at x (default: the current positions),
+        after a broad phase at x."""
+        x = self.sim.x if x is None else x
+        self.update_pairs(x)
+        self.run(SK.MODE_DISTANCE, x)
+        return self._dist.numpy()[:self.num_pairs].astype(np.float64)
+
+    def min_distance(self, x=None) -> float:
+        d = self.distances(x)
+        return float(d.min()) if len(d) else float("inf")
+
+    def barrier_energy(self, x=None) -> float:
+        """Barrier energy (J) at x (default: current positions), friction excluded."""
+        x = self.sim.x if x is None else x
+        self.update_pairs(x)
+        acc = self._acc_default()
+        acc.zero_()
+        self.run(SK.MODE_ENERGY, x, acc=acc)
+        a = acc.numpy()
+        return float("inf") if a[1] > 0 else float(a[0])
+
+    # -- friction lagging ----------------------------------------------------------------------------
+    def begin_step(self, x0, dt):
+        """Broad phase at the step start x0 and, with friction, the lagged normal forces, closest
+        points and normals of the pairs within dhat."""
+        wp.copy(self._x0, x0)
+        self.update_pairs(x0)
+        self._eps = self.friction_velocity * float(dt)
+        self.num_friction = 0
+        if self.friction <= 0.0 or self.num_pairs == 0:
+            return
+        self._flam.zero_()
+        self.run(SK.MODE_LAG, x0)
+        lam = self._flam.numpy()[:self.num_pairs]
+        keep = np.nonzero(lam > 0.0)[0]
+        self.num_friction = len(keep)
+        if not len(keep):
+            return
+        # the lagged pairs, compacted (host: once per step)
+        quads = self.pairs_np[keep]
+        self._f_pairs_np = quads
+        cap = _capacity(len(keep))
+        dev = self.device
+        if cap != self._f_cap:
+            self._f_cap = cap
+            self._f_pairs = wp.zeros(cap, dtype=wp.vec4i, device=dev)
+            self._f_w = wp.zeros(cap, dtype=self._fw.dtype, device=dev)
+            self._f_n = wp.zeros(cap, dtype=self._fn.dtype, device=dev)
+            self._f_lam = wp.zeros(cap, dtype=self._flam.dtype, device=dev)
+            self._f_blocks = None
+        for src, dst in ((self._pairs, self._f_pairs), (self._fw, self._f_w), (self._fn, self._f_n),
+                         (self._flam, self._f_lam)):
+            a = src.numpy()
+            b = np.zeros((cap,) + a.shape[1:], dtype=a.dtype)
+            b[:len(keep)] = a[keep]
+            dst.assign(b)
+        self._f_blocks = self._block_positions(quads, cap, self._f_blocks)
+
+    def run_friction(self, mode, dbase, y, sy, *, scale=1.0, g=None, values=None, acc=None, slot=0):
+        if self.num_friction == 0:
+            return
+        ops = self.ops
+        launch(SK.friction_kernel, self._f_cap, [
+            dbase, y, ops.scalar(sy), self._f_pairs, self._f_w, self._f_n, self._f_lam, self.num_friction,
+            ops.scalar(self.friction), ops.scalar(self._eps), int(mode), ops.scalar(scale), ops.zero if g is None else g,
+            self._f_blocks, self.system.hessian_values if values is None else values,
+            self._acc_default() if acc is None else acc, int(slot)], self.device)
+
+    @property
+    def step_start(self):
+        return self._x0
+
+
+class SurfaceContactForm(Form):
+    """Barrier (+ lagged friction) of a :class:`SurfaceContact` as a form of x = x_b + s y; its
+    :meth:`max_step` refreshes the candidate pairs for the segment of the coming line search and
+    bounds it by additive CCD."""
+
+    name = "surface_contact"
+    variable = "x"
+
+    def __init__(self, contact: SurfaceContact):
+        self.contact = contact
+        self.s = 1.0
+        self._dbase = contact.ops.new_vector()
+        self._use_dbase = False
+
+    def begin(self, xb, s):
+        """The step's x_b and s (friction's x - x_n = (x_b - x_n) + s y); ``xb=None``: static."""
+        self.s = float(s)
+        self._use_dbase = xb is not None
+        if xb is not None:
+            self.contact.ops.lincomb(1.0, xb, -1.0, self.contact.step_start, self._dbase)
+
+    def _friction(self, mode, y, x, **kw):
+        c = self.contact
+        if c.num_friction == 0:
+            return
+        if self._use_dbase and y is not None:
+            c.run_friction(mode, self._dbase, y, self.s, **kw)
+        else:  # x - x_n with x the unknown
+            c.ops.lincomb(-1.0, c.step_start, 0.0, c.step_start, self._dbase)
+            c.run_friction(mode, self._dbase, x, 1.0, **kw)
+
+    def read(self, row):
+        e = float(row[0])
+        return e, e, not (row[1] > 0)
+
+    def gradient_magnitude(self, row, scale):
+        return float(np.sqrt(row[2]))
+
+    def energy(self, y, x, acc):
+        self.contact.run(SK.MODE_ENERGY, x, acc=acc, slot=self.acc_slot)
+        self._friction(0, y, x, acc=acc, slot=self.acc_slot)
+
+    def gradient(self, y, x, scale, g, acc):
+        self.contact.run(SK.MODE_GRADIENT, x, scale=scale, g=g, acc=acc, slot=self.acc_slot)
+        self._friction(1, y, x, scale=scale, g=g, acc=acc, slot=self.acc_slot)
+
+    def hessian(self, y, x, scale, values):
+        self.contact.run(SK.MODE_HESSIAN, x, scale=scale, values=values)
+        self._friction(2, y, x, scale=scale, values=values)
+
+    def max_step(self, x, d, s, acc):
+        """Candidate pairs over x -> x + s d, then the additive-CCD bound into acc[slot + 3]."""
+        c = self.contact
+        c.update_pairs(x, d, s)
+        c.run(SK.MODE_MAX_STEP, x, scale=s, d=d, acc=acc, slot=self.acc_slot)
