@@ -136,7 +136,7 @@ class SurfaceContact:
     equals E x mean edge x dhat / 2, the collider default's force there), ``friction_velocity``
     (m/s, default 1e-3 body diagonals per second)."""
 
-    def __init__(self, sim, *, bodies=None, friction=0.0, dhat=None, stiffness=None, friction_velocity=None,
+    def __init__(self, sim, /, *, bodies=None, friction=0.0, dhat=None, stiffness=None, friction_velocity=None,
                  body=None, **flags):
         unknown = set(flags) - {"self", "self_contact"}
         if unknown:

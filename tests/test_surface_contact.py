@@ -1,0 +1,275 @@
+"""Surface contact (body-body and self): pair distances, barrier, derivatives and the CCD step
+bound against IPC Toolkit (ipctk) and finite differences; collisions that never intersect
+(checked by ipctk.has_intersections), conserve momentum and never gain energy; every linear
+solver on the grown pattern; the ``set_contact`` keys."""
+
+import numpy as np
+import pytest
+
+from warpfem.contact import Plane
+from warpfem.contact.surface import pair_terms
+from warpfem.materials import make_material
+from warpfem.mesh import TetMesh, box_tet_mesh
+from warpfem.model import Model
+from warpfem.simulator import Simulator
+
+ipctk = pytest.importorskip("ipctk")
+
+DHAT, KAPPA = 0.5, 3.0
+
+
+def _ipc_reference(kind, x, rest):
+    """Distance, energy kappa m b(d^2, dhat^2), gradient and Hessian composed from ipctk's pieces."""
+    x = [np.asarray(p, dtype=np.float64) for p in x]
+    if kind == "pt":
+        d, gd, Hd = (ipctk.point_triangle_distance(*x), ipctk.point_triangle_distance_gradient(*x),
+                     ipctk.point_triangle_distance_hessian(*x))
+        m, gm, Hm = 1.0, np.zeros(12), np.zeros((12, 12))
+    else:
+        d, gd, Hd = (ipctk.edge_edge_distance(*x), ipctk.edge_edge_distance_gradient(*x),
+                     ipctk.edge_edge_distance_hessian(*x))
+        ex = ipctk.edge_edge_mollifier_threshold(*[np.asarray(p, dtype=np.float64) for p in rest])
+        m, gm, Hm = (ipctk.edge_edge_mollifier(*x, ex), ipctk.edge_edge_mollifier_gradient(*x, ex),
+                     ipctk.edge_edge_mollifier_hessian(*x, ex))
+    t = DHAT ** 2
+    b, b1, b2 = ipctk.barrier(d, t), ipctk.barrier_first_derivative(d, t), ipctk.barrier_second_derivative(d, t)
+    E = KAPPA * m * b
+    g = KAPPA * (m * b1 * gd + b * gm)
+    H = KAPPA * (m * (b2 * np.outer(gd, gd) + b1 * Hd) + b1 * (np.outer(gm, gd) + np.outer(gd, gm)) + b * Hm)
+    return np.sqrt(d), E, g, H
+
+
+def _cases():
+    """Pairs within dhat covering the closest-feature cases (face / edge / vertex interiors)."""
+    tri = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]
+    pts = {"pt-face": [0.2, 0.3, 0.2], "pt-edge": [0.5, -0.2, 0.15], "pt-vertex": [-0.2, -0.1, 0.1],
+           "pt-hyp-edge": [0.7, 0.6, -0.1]}
+    out = [(name, "pt", np.array([p] + tri), None) for name, p in pts.items()]
+    ea = [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]
+    eb = {"ee-interior": [[0.4, -0.5, 0.2], [0.6, 0.5, 0.25]], "ee-edge-vertex": [[1.1, -0.5, 0.1], [1.2, 0.5, 0.1]],
+          "ee-vertex-vertex": [[1.2, 0.1, 0.1], [1.5, 0.4, 0.1]],
+          "ee-near-parallel": [[0.2, 0.05, 0.2], [0.9, 0.051, 0.2003]]}
+    for name, e in eb.items():
+        x = np.array(ea + e)
+        rest = x + np.array([[0, 0, 0], [0, 0, 0], [0, 0, 0], [0.0, 0.1, 0.0]])  # eps_x from the rest shape
+        out.append((name, "ee", x, rest))
+    return out
+
+
+@pytest.mark.parametrize("name,kind,x,rest", _cases(), ids=[c[0] for c in _cases()])
+def test_pair_barrier_and_derivatives_match_ipctk(name, kind, x, rest):
+    d, E, g, H = _ipc_reference(kind, list(x), list(rest if rest is not None else x))
+    assert d < DHAT
+    o = pair_terms(kind, x, dhat=DHAT, kappa=KAPPA, rest=rest)
+    assert o["distance"] == pytest.approx(d, rel=1e-12)
+    assert o["energy"] == pytest.approx(E, rel=1e-10)
+    assert np.abs(o["gradient"] - g).max() <= 1e-10 * np.abs(g).max()
+    assert np.abs(o["hessian"] - H).max() <= 1e-9 * np.abs(H).max()
+    w, V = np.linalg.eigh(0.5 * (H + H.T))  # the per-pair PSD projection
+    assert np.abs(o["hessian_psd"] - (V * np.maximum(w, 0.0)) @ V.T).max() <= 1e-9 * np.abs(H).max()
+    if name == "ee-near-parallel":
+        assert ipctk.edge_edge_mollifier(*x, ipctk.edge_edge_mollifier_threshold(*rest)) < 0.9  # mollified
+
+
+@pytest.mark.parametrize("kind", ["pt", "ee"])
+def test_pair_derivatives_match_finite_differences_in_both_precisions(kind, rng):
+    x = _cases()[0 if kind == "pt" else 4][2]
+    o = pair_terms(kind, x, dhat=DHAT, kappa=KAPPA)
+    h = 1e-6
+    gfd, Hfd = np.zeros(12), np.zeros((12, 12))
+    for c in range(12):
+        e = np.zeros(12)
+        e[c] = h
+        p = pair_terms(kind, x + e.reshape(4, 3), dhat=DHAT, kappa=KAPPA)
+        m = pair_terms(kind, x - e.reshape(4, 3), dhat=DHAT, kappa=KAPPA)
+        gfd[c] = (p["energy"] - m["energy"]) / (2 * h)
+        Hfd[:, c] = (p["gradient"] - m["gradient"]) / (2 * h)
+    assert np.abs(o["gradient"] - gfd).max() <= 1e-6 * np.abs(gfd).max()
+    assert np.abs(o["hessian"] - Hfd).max() <= 1e-6 * np.abs(Hfd).max()
+    o32 = pair_terms(kind, x, dhat=DHAT, kappa=KAPPA, precision="float32")
+    assert o32["energy"] == pytest.approx(o["energy"], rel=1e-4)
+    assert np.abs(o32["gradient"] - o["gradient"]).max() <= 1e-4 * np.abs(o["gradient"]).max()
+
+
+def test_ccd_step_bound_is_below_ipctk_time_of_impact(rng):
+    """Approaching pairs: the additive-CCD bound never passes ipctk's collision-free step and
+    keeps at least 0.2 of the gap; pairs that do not collide get most of the step."""
+    tri = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    n_hit = 0
+    for trial in range(12):
+        kind = "pt" if trial % 2 == 0 else "ee"
+        if kind == "pt":
+            x = np.vstack([[0.2 + 0.3 * rng.random(), 0.2 * rng.random(), 0.3], tri])
+            V, F, E = x, np.array([[1, 2, 3]]), None
+        else:
+            x = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.5, -0.5, 0.3], [0.5 + 0.2 * rng.random(), 0.5, 0.3]])
+            V, F, E = x, np.zeros((0, 3), dtype=int), np.array([[0, 1], [2, 3]])
+        d = 0.3 * rng.standard_normal((4, 3))
+        d[0 if kind == "pt" else 2:, 2] += -0.8 if kind == "ee" else 0.0
+        if kind == "pt":
+            d[0, 2] -= 0.8
+        mesh = ipctk.CollisionMesh(V, ipctk.edges(F) if E is None else E, F)
+        t_ipc = ipctk.compute_collision_free_stepsize(mesh, V, V + d)
+        o = pair_terms(kind, x, dhat=DHAT, kappa=KAPPA, direction=d)
+        t = o["step"]
+        assert 0.0 < t <= t_ipc + 1e-12
+        d_end = pair_terms(kind, x + t * d, dhat=DHAT, kappa=KAPPA)["distance"]
+        if t < 1.0:  # stopped where the gap reached 0.2 of its start (whether or not the pair collides)
+            assert d_end >= 0.2 * o["distance"] * 0.999
+        if t_ipc < 1.0:
+            n_hit += 1
+            assert t >= 0.4 * t_ipc  # not needlessly short (the gap is 0.2 of its start there)
+        else:
+            assert pair_terms(kind, x + d, dhat=DHAT, kappa=KAPPA)["distance"] > 0.0
+    assert n_hit >= 6  # most of these pairs collide within the step
+
+
+def _two_boxes(cells=2, gap=0.02, E=1e5, offset=(0.03, 0.0, 0.02)):
+    a = box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(cells,) * 3, origin=(0.0, 0.0, 0.0))
+    b = box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(cells,) * 3, origin=(offset[0], 0.1 + gap, offset[2]))
+    V = np.concatenate([a.vertices, b.vertices])
+    T = np.concatenate([a.tets, b.tets + len(a.vertices)])
+    return TetMesh(V, T), len(a.vertices)
+
+
+def _collision_mesh(mesh):
+    F = np.asarray(mesh.boundary_faces())
+    return ipctk.CollisionMesh(np.asarray(mesh.vertices, dtype=np.float64), ipctk.edges(F), F)
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_two_boxes_collide_in_free_space_momentum_conserved_never_intersecting(precision):
+    mesh, na = _two_boxes()
+    m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),
+              gravity=(0.0, 0.0, 0.0))
+    sim = Simulator(m, dt=0.01, integrator="newmark", precision=precision, tol=1e-8, max_iters=100)
+    sc = sim.set_contact()
+    assert sc.bodies and not sc.self_contact and sc.surface.num_groups == 2
+    v = np.zeros((m.num_vertices, 3))
+    v[na:, 1] = -1.0
+    v[na:, 0] = 0.3
+    sim.set_velocities(v)
+    M = m.lumped_mass
+    P0 = (M[:, None] * v).sum(axis=0)
+    cm = _collision_mesh(mesh)
+    touched = 0
+    for _ in range(8):
+        st = sim.step()
+        assert st.converged
+        x = sim.positions()
+        assert not ipctk.has_intersections(cm, np.asfortranarray(x))
+        P = (M[:, None] * sim.velocities()).sum(axis=0)
+        tol = 1e-9 if precision == "float64" else 2e-4
+        assert np.abs(P - P0).max() <= tol * np.abs(P0).max()
+        touched += sc.num_pairs > 0
+    assert touched >= 2
+    vb = sim.velocities()[na:, 1].mean()
+    va = sim.velocities()[:na, 1].mean()
+    assert va < -0.3 and vb > -0.7  # the lower box was pushed, the upper one slowed: they did collide
+
+
+def test_box_dropped_on_box_on_floor_energy_never_grows_backward_euler():
+    mesh, na = _two_boxes(gap=0.01, offset=(0.02, 0.0, 0.01))
+    m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=2e4, poisson_ratio=0.3, density=1000.0),
+              gravity=(0.0, -9.81, 0.0))
+    sim = Simulator(m, dt=0.01, precision="float64", tol=1e-10, max_iters=100,
+                    colliders=[Plane(point=(0.0, -0.001, 0.0), normal=(0.0, 1.0, 0.0), name="floor")])
+    sc = sim.set_contact(friction=0.0)
+    v = np.zeros((m.num_vertices, 3))
+    v[na:, 1] = -0.5
+    sim.set_velocities(v)
+    cm = _collision_mesh(mesh)
+
+    def energy():
+        return sim.total_energy() + sim.contact.barrier_energy() + sc.barrier_energy()
+
+    e = [energy()]
+    for _ in range(12):
+        assert sim.step().converged
+        assert not ipctk.has_intersections(cm, np.asfortranarray(sim.positions()))
+        e.append(energy())
+    e = np.array(e)
+    assert np.all(np.diff(e) <= 1e-9 * np.abs(e).max())
+    assert sc.min_distance() < sc.dhat  # the boxes are in contact at the end
+
+
+def _u_shape(cells=(6, 4, 1)):
+    """A U of two arms on a base (one connected body), arms 0.1 apart, meshed from a box."""
+    box = box_tet_mesh(size=(0.3, 0.4, 0.05), cells=cells)
+    X, T = np.asarray(box.vertices), np.asarray(box.tets)
+    c = X[T].mean(axis=1)
+    keep = ~((c[:, 0] > 0.1) & (c[:, 0] < 0.2) & (c[:, 1] > 0.1))  # cut the slot between the arms
+    T = T[keep]
+    used = np.unique(T)
+    remap = -np.ones(len(X), dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    return TetMesh(X[used], remap[T])
+
+
+@pytest.mark.parametrize("self_on", [True, False])
+def test_u_folded_onto_itself_never_intersects_with_self_contact(self_on):
+    mesh = _u_shape()
+    m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),
+              gravity=(0.0, 0.0, 0.0))
+    X = np.asarray(mesh.vertices)
+    sim = Simulator(m, dt=0.01, precision="float64", tol=1e-8, max_iters=100, damping_mass=1.0)
+    sc = sim.set_contact(**{"self": self_on})
+    if not self_on:
+        assert sc is None  # one body, no self contact: nothing to do
+    else:
+        assert sc.self_contact and not sc.bodies and sc.surface.num_groups == 1
+    v = np.zeros_like(X)
+    arm = X[:, 1] > 0.15
+    v[arm & (X[:, 0] < 0.15), 0] = 3.0 * (X[arm & (X[:, 0] < 0.15), 1] - 0.1)  # the arms swing towards each other
+    v[arm & (X[:, 0] > 0.15), 0] = -3.0 * (X[arm & (X[:, 0] > 0.15), 1] - 0.1)
+    sim.set_velocities(v)
+    cm = _collision_mesh(mesh)
+    crossed = False
+    for _ in range(8):
+        sim.step()
+        crossed = crossed or ipctk.has_intersections(cm, np.asfortranarray(sim.positions()))
+        if self_on:
+            assert not crossed
+    if self_on:
+        assert sc.min_distance() < sc.dhat  # the arms met
+    else:
+        assert crossed  # without self contact the arms pass through each other
+
+
+def test_every_linear_solver_takes_the_contact_blocks():
+    def run(solver):
+        mesh, na = _two_boxes()
+        m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),
+                  gravity=(0.0, 0.0, 0.0))
+        sim = Simulator(m, dt=0.01, integrator="backward_euler", linear_solver=solver, tol=1e-10, cg_tol=1e-12,
+                        max_iters=100)
+        sim.set_contact()
+        nnz0 = sim.pattern.nnz
+        v = np.zeros((m.num_vertices, 3))
+        v[na:, 1] = -1.5
+        sim.set_velocities(v)
+        for _ in range(3):
+            assert sim.step().converged
+        assert sim.pattern.nnz > nnz0  # contact blocks between the boxes entered the pattern
+        return sim.positions()
+
+    ref = run("direct")
+    for name in ("pcg", "amg", "multigrid", "auto"):
+        assert np.abs(run(name) - ref).max() <= 1e-6, name
+
+
+def test_set_contact_keys_are_checked():
+    mesh, _ = _two_boxes()
+    m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0))
+    sim = Simulator(m, dt=0.01)
+    with pytest.raises(TypeError, match="unknown key.*selff"):
+        sim.set_contact(selff=True)
+    with pytest.raises(ValueError, match="dhat must be > 0"):
+        sim.set_contact(dhat=-1.0)
+    with pytest.raises(ValueError, match="friction must be >= 0"):
+        sim.set_contact(friction=-0.1)
+    assert sim.set_contact(bodies=False) is None and sim.surface_contact is None
+    sc = sim.set_contact(dhat=1e-3, stiffness=5.0, friction=0.2)
+    assert (sc.dhat, sc.kappa, sc.friction, sc.bodies) == (1e-3, 5.0, 0.2, True)
+    with pytest.raises(ValueError, match="surface contact"):
+        sim.solve_static()
