@@ -280,3 +280,40 @@ def test_collider_moving_into_the_body_within_a_step_fails_cleanly():
     with pytest.raises(SolveFailed, match="'hammer'.*moved into the body"):
         sim.step()
     assert sim.time == 0.0 and np.array_equal(sim.positions(), x0)
+
+
+def _incline_drop(mu, theta, steps, dt=0.01, **kw):
+    """A block dropped from 1 cm (above dhat) onto an incline: its centre of mass down the slope
+    (position, velocity) per step and the first step in contact."""
+    c, s = math.cos(theta), math.sin(theta)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    box = box_tet_mesh(size=(L, L, L), cells=(2, 2, 2), origin=(-0.5 * L, 0.01, -0.5 * L))
+    mesh = TetMesh(np.asarray(box.vertices) @ R.T, box.tets)
+    m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0),
+              gravity=(0.0, -G, 0.0))
+    t = -R[:, 0]
+    sim = Simulator(m, dt=dt, max_iters=200, colliders=[Plane(point=(0, 0, 0), normal=R[:, 1], friction=mu)], **kw)
+    Mv = m.lumped_mass / m.lumped_mass.sum()
+    pos, vel, land = [], [], None
+    for k in range(steps):
+        sim.step()
+        assert sim.contact.distances().min() > 0.0
+        pos.append(float((Mv[:, None] * sim.positions()).sum(axis=0) @ t))
+        vel.append(float((Mv[:, None] * sim.velocities()).sum(axis=0) @ t))
+        if land is None and sim.contact.distances().min() < sim.contact.dhat[0]:
+            land = k
+    return np.array(pos), np.array(vel), land
+
+
+def test_incline_30_degrees_landing_sticks_within_2_mm_and_slides_within_2_percent():
+    """Issue 24's friction targets: landing on a 30 degree incline, mu = 0.8 moves < 2 mm in the
+    0.5 s after landing; mu = 0.3 slides with g (sin - mu cos) within 2 %. Lagged once from the
+    step start (friction_iterations=0) the landing block moved 2.02 mm (docs/contact.md)."""
+    theta = math.radians(30.0)
+    p, _, land = _incline_drop(0.8, theta, 56)
+    assert land is not None and land < 6
+    assert abs(p[land + 50] - p[land]) < 2e-3
+    mu = 0.3
+    _, v, land = _incline_drop(mu, theta, 40)
+    a = (v[land + 30] - v[land + 10]) / (20 * 0.01)
+    assert a == pytest.approx(G * (math.sin(theta) - mu * math.cos(theta)), rel=0.02)

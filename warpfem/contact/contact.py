@@ -201,6 +201,21 @@ class ContactSet:
         self.ops.lincomb(-1.0, self._x0, 0.0, self._x0, self._neg_x0)
         self.run(CK.MODE_LAG, self._x0)
 
+    def has_friction(self) -> bool:
+        return any(c.friction > 0.0 for c in self.colliders)
+
+    def relag(self, x) -> np.ndarray:
+        """Friction's normal forces and normals lagged again, from the positions x (the step's
+        last iterate; the step start and the collider motion stay): one fixed-point iteration of
+        the lagging. Returns the normal forces (surface vertices x colliders) before the update."""
+        before = self._lam.numpy().astype(np.float64)
+        self.run(CK.MODE_LAG, x)
+        return before
+
+    def normal_forces(self) -> np.ndarray:
+        """The lagged normal forces (N) per (surface vertex, collider)."""
+        return self._lam.numpy().astype(np.float64)
+
     @property
     def step_start(self):
         """The positions the friction of the current step is lagged from (device array)."""

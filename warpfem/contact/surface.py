@@ -332,11 +332,32 @@ class SurfaceContact:
         wp.copy(self._x0, x0)
         self.update_pairs(x0)
         self._eps = self.friction_velocity * float(dt)
+        self.lag(x0)
+
+    def has_friction(self) -> bool:
+        return self.friction > 0.0
+
+    def normal_forces(self) -> np.ndarray:
+        """The lagged normal forces (N) of the friction pairs."""
+        if not self.num_friction:
+            return np.zeros(0)
+        return self._f_lam.numpy()[:self.num_friction].astype(np.float64)
+
+    def relag(self, x) -> np.ndarray:
+        """Friction lagged again from x (the step's last iterate, on the last candidate pairs);
+        returns the normal forces before."""
+        before = self.normal_forces()
+        self.lag(x)
+        return before
+
+    def lag(self, x):
+        """Friction's normal forces, closest points and normals from the positions x (pairs
+        within dhat among the current candidates)."""
         self.num_friction = 0
         if self.friction <= 0.0 or self.num_pairs == 0:
             return
         self._flam.zero_()
-        self.run(SK.MODE_LAG, x0)
+        self.run(SK.MODE_LAG, x)
         lam = self._flam.numpy()[:self.num_pairs]
         keep = np.nonzero(lam > 0.0)[0]
         self.num_friction = len(keep)

@@ -88,6 +88,7 @@ class SolveStats:
     launches: int = 0  # kernel launches of the step (kernels.generic.COUNTERS, recorded PCG launches included)
     hessian_evaluations: int = 0  # Newton matrices evaluated (counted by the reduced simulator, which keeps its matrix)
     singular_solves: int = 0  # Newton systems a direct solve found singular or indefinite (shifted and/or deflated)
+    friction_iterations: int = 0  # extra solves of a step with friction lagged again from its end (Simulator)
     history: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
