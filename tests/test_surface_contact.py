@@ -3,6 +3,8 @@ bound against IPC Toolkit (ipctk) and finite differences; collisions that never 
 (checked by ipctk.has_intersections), conserve momentum and never gain energy; every linear
 solver on the grown pattern; the ``set_contact`` keys."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -305,3 +307,46 @@ def test_block_on_slab_friction_sticks_and_slides_with_coulomb_acceleration():
     _, v = _block_on_slab(mu, theta, 35)
     a = (v[34] - v[4]) / 0.3
     assert a == pytest.approx(9.81 * (np.sin(theta) - mu * np.cos(theta)), rel=0.02)  # measured +0.13 %
+
+
+_SCENE = """
+gravity = [0.0, -9.81, 0.0]
+[mesh]
+generator = "box"
+size = [0.1, 0.1, 0.1]
+cells = [1, 1, 1]
+[material]
+model = "stable_neo_hookean"
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+[integrator]
+type = "{integrator}"
+[output]
+frames = 1
+{contact}
+"""
+
+
+def _scene(tmp_path, contact, integrator="backward_euler"):
+    from warpfem.scenes import load_scene
+
+    p = tmp_path / "s.toml"
+    p.write_text(_SCENE.format(integrator=integrator, contact=contact))
+    return load_scene(p)
+
+
+def test_scene_contact_table_sets_the_simulator_and_is_validated(tmp_path):
+    from warpfem.scenes import SceneError
+
+    run = _scene(tmp_path, "[contact]\nself = true\nfriction = 0.2\ndhat = 1e-3\nfriction_iterations = 2\n").build()
+    sc = run.sim.surface_contact
+    assert sc.self_contact and not sc.bodies and (sc.friction, sc.dhat) == (0.2, 1e-3)  # one body: bodies off
+    assert run.sim.friction_iterations == 2
+    assert _scene(tmp_path, "").build().sim.surface_contact is None  # no [contact]: one body, nothing to do
+    for text, where, what in [("[contact]\nselff = true\n", "[contact].selff", "did you mean 'self'"),
+                              ("[contact]\nfriction = -1.0\n", "[contact].friction", ">= 0"),
+                              ("[contact]\nbodies = 1\n", "[contact].bodies", "true or false")]:
+        with pytest.raises(SceneError, match=rf"{re.escape(where)}.*{what}"):
+            _scene(tmp_path, text)
+    with pytest.raises(SceneError, match=r"\[contact\].*full-space dynamic integrator"):
+        _scene(tmp_path, "[contact]\nself = true\n", integrator="static")

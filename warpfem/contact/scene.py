@@ -32,6 +32,19 @@ def add_scene_colliders(scene, sim, *, duration):
             scene.fail(f"[[collider]] #{i + 1}", str(e))
 
 
+def set_scene_contact(scene, sim):
+    """The scene's ``[contact]`` table on ``sim`` (``Simulator.set_contact`` and the friction
+    lagging iterations)."""
+    c = scene.spec.contact
+    if not hasattr(sim, "set_contact"):
+        scene.fail("[contact]", f"{type(sim).__name__} does not handle contact")
+    try:
+        sim.friction_iterations, sim.friction_tol = int(c["friction_iterations"]), float(c["friction_tol"])
+        sim.set_contact(**{k: c[k] for k in ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity")})
+    except (TypeError, ValueError) as e:
+        scene.fail("[contact]", str(e))
+
+
 def collider_prims(sim, extent):
     """[(prim name, faces, points_at() -> (k, 3))] for the simulator's colliders (``extent``: half
     size of the drawn floor square)."""

@@ -454,6 +454,10 @@ class Scene:
             from warpfem.contact.scene import add_scene_colliders
 
             add_scene_colliders(self, sim, duration=sp.output["frames"] / sp.output["fps"])
+        if sp.contact is not None:  # body-body and self-contact (warpfem.contact.surface)
+            from warpfem.contact.scene import set_scene_contact
+
+            set_scene_contact(self, sim)
         return SceneRun(self, model, sim, sel["handle"], device=device, precision=precision)
 
 

@@ -187,6 +187,23 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "rotation_center": Key("vec3", default=None, doc="default: the collider's centre"),
         "ramp_time": Key("float", default=None, check=_positive, doc="s; default: the whole run"),
     },
+    # contact between the bodies and of each with itself (warpfem.contact.surface, docs/contact.md);
+    # the keys of Simulator.set_contact, plus the friction lagging iterations (colliders too)
+    "contact": {
+        "bodies": Key("bool", default=None, doc="contact between different bodies / components; default: true when "
+                                                "the model has two or more"),
+        "self": Key("bool", default=False, doc="contact of a body with itself"),
+        "friction": Key("float", default=0.0, check=_non_negative, doc="Coulomb coefficient mu of the surface pairs"),
+        "dhat": Key("float", default=None, check=_positive, doc="contact distance (m); default 0.1 x mean surface edge"),
+        "stiffness": Key("float", default=None, check=_positive,
+                         doc="barrier kappa of the squared-distance barrier (N/m^3); default from Young's modulus"),
+        "friction_velocity": Key("float", default=None, check=_positive, doc="m/s below which friction sticks (smoothing)"),
+        "friction_iterations": Key("int", default=4, check=_non_negative,
+                                   doc="re-solves of a step with friction lagged from its end (colliders too); 0 = "
+                                       "lagged once from the step start"),
+        "friction_tol": Key("float", default=0.01, check=_positive,
+                            doc="stop them when the normal forces change by less than this fraction"),
+    },
     "traction": {
         "box_min": Key("vec3", required=True),
         "box_max": Key("vec3", required=True),
@@ -298,6 +315,7 @@ class SceneSpec:
     output: dict
     surface: dict | None
     subspace: dict | None = None
+    contact: dict | None = None
     fixed: list = field(default_factory=list)
     handle: list = field(default_factory=list)
     force: list = field(default_factory=list)
@@ -541,6 +559,9 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
         # the user's own surface at full resolution is what gets rendered; the tets only carry it
         surface = {"path": mesh["path"], "name": "surface", "from_mesh": True}
     subspace = _check_table(ctx, "subspace", data["subspace"], SCHEMA["subspace"]) if "subspace" in data else None
+    contact = _check_table(ctx, "contact", data["contact"], SCHEMA["contact"]) if "contact" in data else None
+    if contact is not None and subspace is not None:
+        ctx.fail("[contact]", "reduced runs ([subspace]) do not handle contact")
     if subspace is not None and element not in ELEMENTS_LINEAR_TET:
         only = " / ".join(f'"{n}"' for n in ELEMENTS_LINEAR_TET)
         ctx.fail("[subspace]", f"reduced simulation supports element = {only} only; the mesh uses {element!r}")
@@ -576,8 +597,11 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
             ctx.fail("[integrator].dt", f"dt = {dt!r} s must divide the frame time 1/fps = {frame_time!r} s "
                      f"(e.g. dt = {frame_time / sub!r})")
         integrator["substeps"] = int(sub)
+    if contact is not None and itype not in ("backward_euler", "bdf2", "newmark"):
+        ctx.fail("[contact]", f"contact needs a full-space dynamic integrator (backward_euler, bdf2, newmark), "
+                              f"[integrator].type is {itype!r}")
     return SceneSpec(path=path, base_dir=ctx.base_dir, top=top, mesh=mesh, material=material,
-                     integrator=integrator, output=output, surface=surface, subspace=subspace, **arrays)
+                     integrator=integrator, output=output, surface=surface, subspace=subspace, contact=contact, **arrays)
 
 
 def _check_collider(ctx, i, c, raw, itype, subspace):
