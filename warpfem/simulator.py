@@ -212,6 +212,11 @@ class Simulator(SimulatorBase):
         self.surface_contact, self._surface_form = sc, SurfaceContactForm(sc)
         return sc
 
+    @property
+    def surface_contact_form(self):
+        """The form of the surface contact in the potential (None when off)."""
+        return self._surface_form
+
     def _sync_contact_form(self):
         """The contact forms are in the potential exactly when colliders act (``contact`` may be
         replaced or emptied from outside) or surface contact is on (``set_contact``)."""

@@ -30,6 +30,10 @@ __all__ = ["ContactSurface", "contact_surface", "SurfaceContact", "SurfaceContac
 #: the keys of ``Simulator.set_contact`` and of a scene's ``[contact]`` table
 CONTACT_KEYS = ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity")
 STEP_ETA = 0.2  # the step bound keeps each pair's gap at least this fraction of its current one
+#: Jacobi's stopping test of the per-pair PSD projection: off-diagonal squared norm below this x |H|^2
+JACOBI_TOL = {np.dtype(np.float64): 1e-22, np.dtype(np.float32): 1e-11}
+#: when the pattern must grow, it grows by the pairs within this many dhat (fewer growths later)
+GROWTH_MARGIN = 2.0
 
 
 @dataclass
@@ -111,7 +115,7 @@ def pair_terms(kind, x, *, dhat, kappa, rest=None, direction=None, precision="fl
         g = wp.zeros(4, dtype=V, device=device) if g is None else g
         values = wp.zeros(16, dtype=M, device=device) if values is None else values
         launch(SK.pair_kernel, 1, [xa, ra, pairs, kinds, count, S(dhat * dhat), S(kappa), mode, S(1.0), da, S(STEP_ETA), g,
-                                   blocks, values, dist, fw, fn, flam, acc, 0], device)
+                                   blocks, values, dist, fw, fn, flam, acc, 0, S(JACOBI_TOL[np.dtype(npt)])], device)
         return acc.numpy(), g.numpy(), values.numpy()
 
     go(SK.MODE_DISTANCE)
@@ -186,7 +190,6 @@ class SurfaceContact:
         self._alloc(_capacity(4 * (self.nv + self.ne)))
         self.num_pairs = 0
         self.pairs_np = np.zeros((0, 4), dtype=np.int64)
-        self._blocks_for = None
         # friction lagged at the step start
         self.num_friction = 0
         self._f_pairs_np = np.zeros((0, 4), dtype=np.int64)
@@ -217,19 +220,45 @@ class SurfaceContact:
         self._flam = wp.zeros(cap, dtype=ops.scalar, device=dev)
 
     # -- broad phase ---------------------------------------------------------------------------------
-    def _boxes(self, x, d, scale):
+    def _boxes(self, x, d, scale, margin=1.0):
         ops, dev = self.ops, self.device
         d = self._zero_dir if d is None else d
-        pad = ops.scalar(0.5 * self.dhat * 1.001)
+        pad = ops.scalar(0.5 * margin * self.dhat * 1.001)
         for prims, k, (lo, hi), m in ((self._verts, 1, self._vbox, self.nv), (self._tris, 3, self._tbox, self.nt),
                                       (self._edges, 2, self._ebox, self.ne)):
             launch(SK.boxes_kernel, m, [x, d, ops.scalar(scale), prims, k, pad, lo, hi], dev)
 
     def update_pairs(self, x, d=None, scale=1.0):
         """Candidate pairs for every point of the segment x -> x + scale d (d None: x alone): the
-        pairs whose primitives' padded boxes overlap; grows the Hessian's pattern for new pairs.
-        One read-back (the pairs)."""
-        self._boxes(x, d, scale)
+        pairs whose primitives' padded boxes overlap; grows the Hessian's pattern for new pairs
+        (then by the pairs within GROWTH_MARGIN dhat, so that it grows less often). One read-back
+        (the pairs)."""
+        n = self._query(x, d, scale, 1.0)
+        self.num_pairs = n
+        self.pairs_np = self._pairs.numpy()[:n].astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
+        if n and not self._contains(self.pairs_np):
+            kinds = self._kinds.numpy()[:n].copy()
+            m = self._query(x, d, scale, GROWTH_MARGIN)  # the wider set, grown at once
+            self._ensure(self._pairs.numpy()[:m].astype(np.int64))
+            if self.capacity < n:
+                self._alloc(_capacity(n))
+            self._pairs.assign(np.concatenate([self.pairs_np, np.zeros((self.capacity - n, 4), np.int64)]).astype(np.int32))
+            self._kinds.assign(np.concatenate([kinds, np.zeros(self.capacity - n, np.int32)]))
+            self._count.assign(np.array([n], dtype=np.int32))
+        self._update_blocks()
+        return n
+
+    def _quad_pairs(self, quads):
+        a = np.repeat(quads, 4, axis=1).reshape(-1)
+        b = np.tile(quads, (1, 4)).reshape(-1)
+        p = np.stack([a, b], axis=1)
+        return p[p[:, 0] != p[:, 1]]
+
+    def _contains(self, quads):
+        return self.system.pattern.contains(self._quad_pairs(quads))
+
+    def _query(self, x, d, scale, margin):
+        self._boxes(x, d, scale, margin)
         self._tbvh.refit()
         self._ebvh.refit()
         self.queries += 1
@@ -241,20 +270,11 @@ class SurfaceContact:
                 self._kinds, self._count, self.capacity], self.device)
             n = int(self._count.numpy()[0])
             if n <= self.capacity:
-                break
+                return n
             self._alloc(_capacity(2 * n))
-        self.num_pairs = n
-        self.pairs_np = self._pairs.numpy()[:n].astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
-        if n:
-            self._ensure(self.pairs_np)
-        self._blocks_for = None
-        self._update_blocks()
-        return n
 
     def _ensure(self, quads):
-        a = np.repeat(quads, 4, axis=1).reshape(-1)
-        b = np.tile(quads, (1, 4)).reshape(-1)
-        self.system.ensure_blocks(np.stack([a, b], axis=1))
+        self.system.ensure_blocks(self._quad_pairs(quads))
 
     def _block_positions(self, quads, cap, out=None):
         """Device int32 (16 cap,): the pattern positions of the 4 x 4 vertex blocks of each quad."""
@@ -273,7 +293,6 @@ class SurfaceContact:
 
     def _update_blocks(self):
         self._blocks = self._block_positions(self.pairs_np, self.capacity, self._blocks)
-        self._blocks_for = self.system.pattern.version
 
     def detach(self):
         """Stop following the Hessian's pattern (the simulator dropped this contact)."""
@@ -295,8 +314,8 @@ class SurfaceContact:
             x, self._rest, self._pairs, self._kinds, self._count, ops.scalar(self.dhat ** 2), ops.scalar(self.kappa),
             int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA),
             ops.zero if g is None else g, self._blocks, self.system.hessian_values if values is None else values,
-            self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot)],
-            self.device)
+            self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot),
+            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)])], self.device)
 
     def _acc_default(self):
         if getattr(self, "_acc", None) is None:
@@ -330,8 +349,9 @@ class SurfaceContact:
         """Broad phase at the step start x0 and, with friction, the lagged normal forces, closest
         points and normals of the pairs within dhat."""
         wp.copy(self._x0, x0)
-        self.update_pairs(x0)
         self._eps = self.friction_velocity * float(dt)
+        if self.friction > 0.0:  # (without friction the step's first max_step finds the pairs)
+            self.update_pairs(x0)
         self.lag(x0)
 
     def has_friction(self) -> bool:

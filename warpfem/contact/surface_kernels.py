@@ -259,9 +259,10 @@ def add_block(H: Any, i: int, j: int, M: Any):
 
 
 @wp.func
-def psd_project(A: Any):
+def psd_project(A: Any, tol: Any):
     """The projection of the symmetric 12 x 12 matrix A onto the PSD cone (cyclic Jacobi
-    eigen-decomposition, negative eigenvalues set to 0)."""
+    eigen-decomposition until the off-diagonal part's squared norm is below tol x |A|^2,
+    negative eigenvalues set to 0)."""
     n = 12
     zero = A[0, 0] - A[0, 0]
     one = zero + type(zero)(1.0)
@@ -277,7 +278,7 @@ def psd_project(A: Any):
         for p in range(n):
             for q in range(p + 1, n):
                 off = off + A[p, q] * A[p, q]
-        if off <= type(zero)(1e-26) * scale:
+        if off <= tol * scale:
             break
         for p in range(n):
             for q in range(p + 1, n):
@@ -425,14 +426,14 @@ def pair_accd(kind: int, x0: Any, x1: Any, x2: Any, x3: Any, p0: Any, p1: Any, p
 
 
 @both_precisions(x="v[]", rest="v[]", dx="v[]", dhat2="s", kappa="s", eta="s", scale="s", g="v[]", values="m[]",
-                 out="s[]", f_w="v4[]", f_n="v[]", f_lam="s[]")
+                 out="s[]", f_w="v4[]", f_n="v[]", f_lam="s[]", jtol="s")
 @wp.kernel
 def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.array(dtype=wp.vec4i),
                 kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), dhat2: Any, kappa: Any,
                 mode: int, scale: Any, dx: wp.array(dtype=Any), eta: Any, g: wp.array(dtype=Any),
                 blocks: wp.array(dtype=wp.int32), values: wp.array(dtype=Any), out: wp.array(dtype=Any),
                 f_w: wp.array(dtype=Any), f_n: wp.array(dtype=Any), f_lam: wp.array(dtype=Any),
-                acc: wp.array(dtype=wp.float64), slot: int):
+                acc: wp.array(dtype=wp.float64), slot: int, jtol: Any):
     p = wp.tid()
     if p >= count[0]:
         return
@@ -549,7 +550,7 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
                     + (b0 * m1) * _hc_block(i, j, u, v, one)
             H = add_block(H, i, j, kappa * blk)
     if mode == 2:
-        H = psd_project(H)
+        H = psd_project(H, jtol)
     for i in range(4):
         for j in range(4):
             M = rr - rr
