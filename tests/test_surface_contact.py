@@ -275,6 +275,14 @@ def test_set_contact_keys_are_checked():
     assert (sc.dhat, sc.kappa, sc.friction, sc.bodies) == (1e-3, 5.0, 0.2, True)
     with pytest.raises(ValueError, match="surface contact"):
         sim.solve_static()
+    from warpfem.contact import CollisionError
+
+    touching, _ = _two_boxes(gap=0.0)  # the upper box's base on the lower box's top: pairs at distance 0
+    sim2 = Simulator(Model(touching, make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3,
+                                                   density=1000.0)), dt=0.01)
+    with pytest.raises(CollisionError, match=r"surface pairs touch now .*distance 0"):
+        sim2.set_contact()
+    assert sim2.surface_contact is None and not sim2.system.listeners
 
 
 def _block_on_slab(mu, theta, steps):

@@ -198,7 +198,8 @@ class Simulator(SimulatorBase):
         or more), ``self`` (within one; default False), ``friction`` (mu), ``dhat`` (m),
         ``stiffness`` (kappa of the squared-distance barrier, N/m^3), ``friction_velocity`` (m/s).
         ``sim.set_contact(bodies=False)`` (and no ``self``) turns it off. Returns the
-        :class:`warpfem.contact.SurfaceContact` (or None when off)."""
+        :class:`warpfem.contact.SurfaceContact` (or None when off). Raises
+        :class:`warpfem.contact.CollisionError` naming a pair when surface primitives touch now."""
         from warpfem.contact.surface import SurfaceContact, SurfaceContactForm
 
         sc = SurfaceContact(self, bodies=bodies, friction=friction, dhat=dhat, stiffness=stiffness,

@@ -22,6 +22,7 @@ import scipy.sparse.csgraph
 import warp as wp
 
 from warpfem.contact import surface_kernels as SK
+from warpfem.contact.contact import CollisionError
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import Form
 
@@ -58,7 +59,8 @@ def contact_surface(mesh, body=None, *, elements=None) -> ContactSurface:
     faces = np.asarray(mesh.boundary_faces(), dtype=np.int64).reshape(-1, 3)
     n = int(mesh.num_vertices)
     E = np.asarray(mesh.elements if elements is None else elements, dtype=np.int64)
-    E = E.reshape(len(E), -1) if E.ndim == 2 else E.reshape(-1, E.shape[-1])
+    if E.ndim != 2 or not E.size:  # (no single connectivity table: connect through the surface instead)
+        E = faces
     k = E.shape[1]
     rows = np.repeat(E[:, 0], k)
     cols = E.ravel()
@@ -199,6 +201,13 @@ class SurfaceContact:
         self._eps = 0.0
         self.system.listeners.append(self._pattern_changed)
         self.queries = 0  # broad-phase queries made (for benchmarks)
+        d = self.distances()
+        if len(d) and d.min() <= 0.0:
+            self.detach()
+            k = int(np.argmin(d))
+            kind = "vertex-triangle" if int(self._kinds.numpy()[k]) == SK.PT else "edge-edge"
+            raise CollisionError(f"set_contact: {int((d <= 0.0).sum())} surface pairs touch now (first: {kind} pair, "
+                                 f"vertices {self.pairs_np[k].tolist()}, distance {d[k]:.3g} m)")
 
     def default_stiffness(self, dhat):
         """kappa (N/m^3) of the squared-distance barrier: its force at d = dhat / 2 (2 d kappa |b'(d^2)|)
