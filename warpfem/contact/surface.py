@@ -33,8 +33,9 @@ CONTACT_KEYS = ("bodies", "self", "friction", "dhat", "stiffness", "friction_vel
 STEP_ETA = 0.2  # the step bound keeps each pair's gap at least this fraction of its current one
 #: Jacobi's stopping test of the per-pair PSD projection: off-diagonal squared norm below this x |H|^2
 JACOBI_TOL = {np.dtype(np.float64): 1e-22, np.dtype(np.float32): 1e-11}
-#: when the pattern must grow, it grows by the pairs within this many dhat (fewer growths later)
-GROWTH_MARGIN = 2.0
+#: the broad phase's candidates are the pairs within this many dhat over the segment (the margin
+#: lets later line searches whose boxes fit in these reuse them, and the pattern grow less often)
+QUERY_MARGIN = 2.0
 
 
 @dataclass
@@ -201,6 +202,9 @@ class SurfaceContact:
         self._eps = 0.0
         self.system.listeners.append(self._pattern_changed)
         self.queries = 0  # broad-phase queries made (for benchmarks)
+        self.reused = 0  # broad phases answered by the last query's pairs
+        self._valid = False  # whether the last query's boxes and pairs stand (see update_pairs)
+        self._misses = wp.zeros(1, dtype=wp.int32, device=dev)
         d = self.distances()
         if len(d) and d.min() <= 0.0:
             self.detach()
@@ -239,23 +243,32 @@ class SurfaceContact:
 
     def update_pairs(self, x, d=None, scale=1.0):
         """Candidate pairs for every point of the segment x -> x + scale d (d None: x alone): the
-        pairs whose primitives' padded boxes overlap; grows the Hessian's pattern for new pairs
-        (then by the pairs within GROWTH_MARGIN dhat, so that it grows less often). One read-back
-        (the pairs)."""
-        n = self._query(x, d, scale, 1.0)
+        pairs whose primitives' boxes over the segment, padded by QUERY_MARGIN dhat / 2, overlap.
+        When every primitive's box padded by dhat / 2 fits in its box of the last query, that
+        query's pairs still hold every pair within dhat and are kept (no refit, no query);
+        otherwise the BVHs are refitted and queried, and the Hessian's pattern grows for new pairs.
+        One read-back (the misses, or the pairs)."""
+        if self._valid and self._fits(x, d, scale):
+            self.reused += 1
+            return self.num_pairs
+        n = self._query(x, d, scale, QUERY_MARGIN)
         self.num_pairs = n
         self.pairs_np = self._pairs.numpy()[:n].astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
         if n and not self._contains(self.pairs_np):
-            kinds = self._kinds.numpy()[:n].copy()
-            m = self._query(x, d, scale, GROWTH_MARGIN)  # the wider set, grown at once
-            self._ensure(self._pairs.numpy()[:m].astype(np.int64))
-            if self.capacity < n:
-                self._alloc(_capacity(n))
-            self._pairs.assign(np.concatenate([self.pairs_np, np.zeros((self.capacity - n, 4), np.int64)]).astype(np.int32))
-            self._kinds.assign(np.concatenate([kinds, np.zeros(self.capacity - n, np.int32)]))
-            self._count.assign(np.array([n], dtype=np.int32))
+            self._ensure(self.pairs_np)
         self._update_blocks()
+        self._valid = True
         return n
+
+    def _fits(self, x, d, scale):
+        ops, dev = self.ops, self.device
+        d = self._zero_dir if d is None else d
+        pad = ops.scalar(0.5 * self.dhat * 1.001)
+        self._misses.zero_()
+        for prims, k, (lo, hi), m in ((self._verts, 1, self._vbox, self.nv), (self._tris, 3, self._tbox, self.nt),
+                                      (self._edges, 2, self._ebox, self.ne)):
+            launch(SK.boxes_fit_kernel, m, [x, d, ops.scalar(scale), prims, k, pad, lo, hi, self._misses], dev)
+        return int(self._misses.numpy()[0]) == 0
 
     def _quad_pairs(self, quads):
         a = np.repeat(quads, 4, axis=1).reshape(-1)

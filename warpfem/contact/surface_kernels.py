@@ -337,6 +337,35 @@ def boxes_kernel(x: wp.array(dtype=Any), dx: wp.array(dtype=Any), scale: Any, pr
     uppers[i] = wp.vec3(wp.float32(hi[0]) + r, wp.float32(hi[1]) + r, wp.float32(hi[2]) + r)
 
 
+@both_precisions(x="v[]", dx="v[]", scale="s", pad="s")
+@wp.kernel
+def boxes_fit_kernel(x: wp.array(dtype=Any), dx: wp.array(dtype=Any), scale: Any, prims: wp.array(dtype=wp.int32),
+                     k: int, pad: Any, lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3),
+                     misses: wp.array(dtype=wp.int32)):
+    """misses[0] += 1 for each primitive whose box over x -> x + scale dx, padded by pad, is not
+    inside its box of the last query (then the candidate pairs of that query may miss a pair)."""
+    i = wp.tid()
+    v = prims[k * i]
+    lo = x[v]
+    hi = x[v]
+    for j in range(k):
+        u = prims[k * i + j]
+        p = x[u]
+        q = p + scale * dx[u]
+        lo = wp.min(lo, wp.min(p, q))
+        hi = wp.max(hi, wp.max(p, q))
+    m = wp.max(wp.max(wp.abs(lo[0]), wp.abs(lo[1])), wp.max(wp.abs(lo[2]), wp.max(wp.abs(hi[0]), wp.max(wp.abs(hi[1]), wp.abs(hi[2])))))
+    r = wp.float32(pad) + wp.float32(2e-6) * wp.float32(m)
+    L = lowers[i]
+    U = uppers[i]
+    out = int(0)
+    for a in range(3):
+        if wp.float32(lo[a]) - r < L[a] or wp.float32(hi[a]) + r > U[a]:
+            out = out + 1
+    if out > 0:
+        wp.atomic_add(misses, 0, 1)
+
+
 @wp.func
 def _keep(group: wp.array(dtype=wp.int32), a: int, b: int, self_on: int, bodies_on: int):
     if group[a] == group[b]:
