@@ -138,10 +138,11 @@ class SurfaceContact:
 
     Args (``Simulator.set_contact``): ``bodies`` (contact between different groups; default:
     True when the model has two or more), ``self`` (contact within a group, default False),
-    ``friction`` (mu), ``dhat`` (m, default 0.1 x the mean surface edge), ``stiffness`` (kappa,
-    N/m^2 for the squared-distance barrier: default such that the barrier's force at dhat / 2
-    equals E x mean edge x dhat / 2, the collider default's force there), ``friction_velocity``
-    (m/s, default 1e-3 body diagonals per second)."""
+    ``friction`` (mu), ``dhat`` (m, default 0.1 x the mean surface edge), ``stiffness`` (kappa of
+    the squared-distance barrier, N/m^3; default: the barrier's force at dhat / 2 is the collider
+    default's there, :meth:`default_stiffness`), ``friction_velocity`` (m/s, default 1e-3 body
+    diagonals per second). ``body``: optional (n,) body id per vertex (default from
+    ``model.body_offsets`` when the model has two or more bodies)."""
 
     def __init__(self, sim, /, *, bodies=None, friction=0.0, dhat=None, stiffness=None, friction_velocity=None,
                  body=None, **flags):
@@ -158,7 +159,11 @@ class SurfaceContact:
             if offsets is not None and len(offsets) > 2:
                 body = np.repeat(np.arange(len(offsets) - 1), np.diff(np.asarray(offsets)))
         qd = model.quadrature
-        surf = contact_surface(model.mesh, body, elements=np.asarray(qd.elements).reshape(-1, qd.nodes_per_element))
+        try:
+            elements = np.asarray(qd.elements).reshape(-1, int(qd.nodes_per_element))
+        except (AttributeError, TypeError, ValueError):  # no single table: components through the surface
+            elements = np.zeros((0, 3), dtype=np.int64)
+        surf = contact_surface(model.mesh, body, elements=elements)
         self.surface = surf
         self.bodies = (surf.num_groups >= 2) if bodies is None else bool(bodies)
         self.self_contact = self_on
