@@ -56,6 +56,8 @@ ACCD_MAX_ITERS = 100
 
 mat12f = wp.types.matrix(shape=(12, 12), dtype=wp.float32)
 mat12d = wp.types.matrix(shape=(12, 12), dtype=wp.float64)
+mat9f = wp.types.matrix(shape=(9, 9), dtype=wp.float32)
+mat9d = wp.types.matrix(shape=(9, 9), dtype=wp.float64)
 
 
 @wp.func
@@ -215,6 +217,16 @@ def _empty12(z: wp.float64):
 
 
 @wp.func
+def _empty9(z: wp.float32):
+    return mat9f()
+
+
+@wp.func
+def _empty9(z: wp.float64):
+    return mat9d()
+
+
+@wp.func
 def _pick(i: int, a: Any, b: Any, c: Any, d: Any):
     if i == 0:
         return a
@@ -259,11 +271,10 @@ def add_block(H: Any, i: int, j: int, M: Any):
 
 
 @wp.func
-def psd_project(A: Any, tol: Any):
-    """The projection of the symmetric 12 x 12 matrix A onto the PSD cone (cyclic Jacobi
+def psd_project(A: Any, n: int, tol: Any):
+    """The projection of the symmetric n x n matrix A onto the PSD cone (cyclic Jacobi
     eigen-decomposition until the off-diagonal part's squared norm is below tol x |A|^2,
     negative eigenvalues set to 0)."""
-    n = 12
     zero = A[0, 0] - A[0, 0]
     one = zero + type(zero)(1.0)
     two = one + one
@@ -312,6 +323,70 @@ def psd_project(A: Any, tol: Any):
             for i in range(n):
                 for j in range(n):
                     R[i, j] = R[i, j] + lam * V[i, k] * V[j, k]
+    return R
+
+
+@wp.func
+def _gram_schmidt(a: Any, b: Any, c: Any):
+    """Orthonormal rows spanning the (independent) 4-vectors a, b, c."""
+    q0 = wp.normalize(a)
+    b1 = b - wp.dot(b, q0) * q0
+    q1 = wp.normalize(b1)
+    c1 = c - wp.dot(c, q0) * q0
+    c1 = c1 - wp.dot(c1, q1) * q1
+    q2 = wp.normalize(c1)
+    return q0, q1, q2
+
+
+@wp.func
+def _qrow(q0: Any, q1: Any, q2: Any, al: int):
+    if al == 0:
+        return q0
+    if al == 1:
+        return q1
+    return q2
+
+
+@wp.func
+def psd_project_pair(H: Any, kind: int, w: Any, tol: Any):
+    """PSD projection of a pair's 12 x 12 Hessian, whose rows and columns lie in span{w, e, f} x
+    R^3 (w the closest-point weights; e, f the two edge patterns of the triangle or of the two
+    edges, which span the dw/dbeta of every feature and the mollifier's vertex patterns): the
+    9 x 9 matrix in an orthonormal basis of that span is projected (same eigenvalues, about 2.4x
+    fewer operations than the 12 x 12 one)."""
+    zero = w[0] - w[0]
+    one = zero + type(zero)(1.0)
+    e = wp.vector(zero, one, -one, zero)
+    f = wp.vector(zero, one, zero, -one)
+    if kind == 1:
+        e = wp.vector(-one, one, zero, zero)
+        f = wp.vector(zero, zero, -one, one)
+    q0, q1, q2 = _gram_schmidt(w, e, f)
+    M = _empty9(zero)
+    for al in range(3):
+        qa = _qrow(q0, q1, q2, al)
+        for be in range(3):
+            qb = _qrow(q0, q1, q2, be)
+            for a in range(3):
+                for b in range(3):
+                    acc = zero
+                    for i in range(4):
+                        for j in range(4):
+                            acc = acc + qa[i] * qb[j] * H[3 * i + a, 3 * j + b]
+                    M[3 * al + a, 3 * be + b] = acc
+    M = psd_project(M, 9, tol)
+    R = H - H
+    for i in range(4):
+        for j in range(4):
+            for a in range(3):
+                for b in range(3):
+                    acc = zero
+                    for al in range(3):
+                        qa = _qrow(q0, q1, q2, al)
+                        for be in range(3):
+                            qb = _qrow(q0, q1, q2, be)
+                            acc = acc + qa[i] * qb[j] * M[3 * al + a, 3 * be + b]
+                    R[3 * i + a, 3 * j + b] = acc
     return R
 
 
@@ -579,7 +654,7 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
                     + (b0 * m1) * _hc_block(i, j, u, v, one)
             H = add_block(H, i, j, kappa * blk)
     if mode == 2:
-        H = psd_project(H, jtol)
+        H = psd_project_pair(H, kind, w, jtol)
     for i in range(4):
         for j in range(4):
             M = rr - rr
