@@ -80,11 +80,15 @@ class Simulator(SimulatorBase):
             "extrapolated": constant acceleration from the history, v_n + h (v_n - v_{n-1}) / h_prev
             (Newmark: v_n + h a_n); the first step after a state change starts at v_n. Converges
             to the same step; the measured effect on Newton iterations is in docs/integrators.md.
+        friction_iterations, friction_tol: with friction in contact (colliders or ``set_contact``),
+            re-solve a converged step with the normal forces and normals lagged again from its end,
+            at most this many times, while they change by more than ``friction_tol`` of the
+            largest (0: lagged once from the step start). Measured effect: docs/contact.md.
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
                  damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, linear_solver="auto",
-                 linear_solver_options=None, colliders=None, initial_guess="previous", friction_iterations=4,
+                 linear_solver_options=None, colliders=None, initial_guess="previous", friction_iterations=1,
                  friction_tol=0.01, **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         if initial_guess not in INITIAL_GUESSES:

@@ -198,7 +198,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "stiffness": Key("float", default=None, check=_positive,
                          doc="barrier kappa of the squared-distance barrier (N/m^3); default from Young's modulus"),
         "friction_velocity": Key("float", default=None, check=_positive, doc="m/s below which friction sticks (smoothing)"),
-        "friction_iterations": Key("int", default=4, check=_non_negative,
+        "friction_iterations": Key("int", default=1, check=_non_negative,
                                    doc="re-solves of a step with friction lagged from its end (colliders too); 0 = "
                                        "lagged once from the step start"),
         "friction_tol": Key("float", default=0.01, check=_positive,
