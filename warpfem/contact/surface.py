@@ -16,6 +16,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import logging
+
 import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
@@ -25,6 +27,8 @@ from warpfem.contact import surface_kernels as SK
 from warpfem.contact.contact import CollisionError
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import Form
+
+log = logging.getLogger(__name__)
 
 __all__ = ["ContactSurface", "contact_surface", "SurfaceContact", "SurfaceContactForm", "CONTACT_KEYS", "pair_terms"]
 
@@ -217,6 +221,13 @@ class SurfaceContact:
             kind = "vertex-triangle" if int(self._kinds.numpy()[k]) == SK.PT else "edge-edge"
             raise CollisionError(f"set_contact: {int((d <= 0.0).sum())} surface pairs touch now (first: {kind} pair, "
                                  f"vertices {self.pairs_np[k].tolist()}, distance {d[k]:.3g} m)")
+        close = d < self.dhat
+        if close.any():
+            k = int(np.argmin(d))
+            log.warning("set_contact: %d surface pairs start closer than dhat = %.3g m (closest %.3g m, vertices %s): "
+                        "the barrier pushes them apart in the first steps%s", int(close.sum()), self.dhat, d[k],
+                        self.pairs_np[k].tolist(), "; with self contact, give a dhat below the mesh's smallest gap "
+                        "between primitives that are not neighbours" if self.self_contact else "")
 
     def default_stiffness(self, dhat):
         """kappa (N/m^3) of the squared-distance barrier: its force at d = dhat / 2 (2 d kappa |b'(d^2)|)
