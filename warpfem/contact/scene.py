@@ -32,10 +32,11 @@ def add_scene_colliders(scene, sim, *, duration):
             scene.fail(f"[[collider]] #{i + 1}", str(e))
 
 
-def set_scene_contact(scene, sim):
+def set_scene_contact(scene, sim, table=None):
     """The scene's ``[contact]`` table on ``sim`` (``Simulator.set_contact`` and the friction
-    lagging iterations)."""
-    c = scene.spec.contact
+    lagging iterations); ``table``: the keys to use instead (a scene of several bodies without a
+    table: its defaults)."""
+    c = scene.spec.contact if table is None else table
     if not hasattr(sim, "set_contact"):
         scene.fail("[contact]", f"{type(sim).__name__} does not handle contact")
     try:

@@ -454,10 +454,13 @@ class Scene:
             from warpfem.contact.scene import add_scene_colliders
 
             add_scene_colliders(self, sim, duration=sp.output["frames"] / sp.output["fps"])
-        if sp.contact is not None:  # body-body and self-contact (warpfem.contact.surface)
+        several = len(getattr(model, "body_offsets", ())) > 2  # two or more bodies: contact between them by default
+        if sp.contact is not None or (several and hasattr(sim, "set_contact")):  # warpfem.contact.surface
             from warpfem.contact.scene import set_scene_contact
+            from warpfem.scenes.schema import SCHEMA
 
-            set_scene_contact(self, sim)
+            set_scene_contact(self, sim, sp.contact if sp.contact is not None
+                              else {k: key.default for k, key in SCHEMA["contact"].items()})
         return SceneRun(self, model, sim, sel["handle"], device=device, precision=precision)
 
 
