@@ -346,7 +346,9 @@ def _scene(tmp_path, contact, integrator="backward_euler"):
 def test_scene_contact_table_sets_the_simulator_and_is_validated(tmp_path):
     from warpfem.scenes import SceneError
 
-    run = _scene(tmp_path, "[contact]\nself = true\nfriction = 0.2\ndhat = 1e-3\nfriction_iterations = 2\n").build()
+    scene = _scene(tmp_path, "[contact]\nself = true\nfriction = 0.2\ndhat = 1e-3\nfriction_iterations = 2\n")
+    assert "contact: bodies = default, self = True, friction = 0.2, dhat = 0.001" in scene.describe()
+    run = scene.build()
     sc = run.sim.surface_contact
     assert sc.self_contact and not sc.bodies and (sc.friction, sc.dhat) == (0.2, 1e-3)  # one body: bodies off
     assert run.sim.friction_iterations == 2

@@ -223,6 +223,12 @@ class Scene:
             lines.append(f"    cuda: {ls['cuda']}")
         for i, c in enumerate(self.collider_plan()):
             lines.append(f"collider #{i + 1}: {c['text']}")
+        if sp.contact is not None:
+            c = sp.contact
+            lines.append("contact: " + ", ".join(
+                f"{k} = {('default' if c[k] is None else c[k])}" for k in ("bodies", "self", "friction", "dhat", "stiffness",
+                                                                         "friction_velocity"))
+                + " (docs/contact.md)")
         for extra in section_entries(self):  # e.g. [subspace]: the reduced run (warpfem.reduced.scene)
             if extra.describe is not None:
                 lines.append(extra.describe(self))
@@ -385,6 +391,7 @@ class Scene:
             "integrator": {**{key: plain(val) for key, val in sp.integrator.items()}, "dynamic": bool(entry.dynamic),
                            "builds": list(entry.builds), "linear_solver_plan": self.linear_solver_plan()},
             "colliders": [{k: v for k, v in c.items() if k != "text"} for c in self.collider_plan()],
+            "contact": dict(sp.contact) if sp.contact is not None else None,
             "subspace": subspace,
             "frames": int(out["frames"]), "fps": float(out["fps"]), "duration": float(out["frames"] / out["fps"]),
             "render_surface": surface,
