@@ -275,6 +275,9 @@ INTEGRATOR_KEYS: dict[str, Key] = {
     "max_iters": Key("int", default=30, check=_positive, doc="Newton iterations per solve"),
     "max_cg_iters": Key("int", default=2000, check=_positive, doc="PCG iterations per Newton iteration"),
     "project_hessian": Key("bool", default=True),
+    "hessian_projection": Key("choice", default="on_demand", choices=("always", "on_demand"),
+                              doc="with project_hessian: project every Newton system, or only once the exact "
+                                  "Hessian fails (docs/integrators.md)"),
     "require_convergence": Key("bool", default=False, doc="fail the run on a non-converged step"),
     "damping_mass": Key("float", default=0.0, check=_non_negative, doc="Rayleigh alpha (1/s)"),
     "damping_stiffness": Key("float", default=0.0, check=_non_negative, doc="Rayleigh beta (s)"),
