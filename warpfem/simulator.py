@@ -30,8 +30,8 @@ from warpfem.kernels.generic import COUNTERS, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.model import static_supports_error
 from warpfem.solvers.forms import DampingForm, ElasticForm, IncrementalPotential, InertiaForm, LoadForm, Workspace
-from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.state import SimulatorBase, check_simulator_options
+from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
+from warpfem.solvers.state import SimulatorBase, check_simulator_options, newton_options_from
 from warpfem.solvers.sparse import PatternView
 
 #: the choices of ``Simulator(initial_guess=...)``
@@ -89,11 +89,7 @@ class Simulator(SimulatorBase):
                              f"got {initial_guess!r}")
         self.initial_guess = initial_guess
         self.integrator = make_integrator(integrator)
-        unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
-        if unknown:
-            raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
-        self.options = NewtonOptions(**newton_options)
-        self.options.validate()
+        self.options = newton_options_from(newton_options)
         self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
         n = self.num_vertices
         dev, qd, mat = self.device, model.quadrature, model.material

@@ -29,8 +29,8 @@ from warpfem.kernels import subspace as RK
 from warpfem.kernels.generic import RecordedLaunch, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.integrators import make_integrator
-from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.state import PRECISIONS, State, StepperBase, check_simulator_options
+from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
+from warpfem.solvers.state import PRECISIONS, State, StepperBase, check_simulator_options, newton_options_from
 
 
 
@@ -337,23 +337,16 @@ class ReducedSimulator(StepperBase):
 
     def __init__(self, model, subspace, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
                  damping_stiffness=0.0, require_convergence=False, integrator="backward_euler", **newton_options):
-        self._s, self._vec, _, self._np = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
+        types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         self.integrator = make_integrator(integrator)
-        unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
-        if unknown:
-            raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
+        self.options = newton_options_from(newton_options)
         subspace.check(model)
         lifting = subspace.lifting if subspace.lifting is not None and subspace.lifting.size else None
-        self.options = NewtonOptions(**newton_options)
-        self.options.validate()
-        self.model, self.subspace = model, subspace
-        self.device = _get_device(device)
-        self.precision = precision
-        self.dt, self.damping_mass, self.damping_stiffness = float(dt), float(damping_mass), float(damping_stiffness)
-        self.require_convergence = bool(require_convergence)
+        self.subspace = subspace
+        self._setup_options(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
         U = subspace.U
         self.r = U.shape[1]
-        self.num_vertices = n = model.num_vertices
+        n = self.num_vertices
         cub = subspace.cubature
         # kinematic handles: x = X + U q + L a (a prescribed); the kernels see the basis B = [U | L]
         self.lifting = lifting

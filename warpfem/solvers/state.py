@@ -38,7 +38,7 @@ import warp as wp
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 
-__all__ = ["SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
+__all__ = ["newton_options_from", "SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
 
 #: precision name -> (scalar, vec3, mat33 Warp types, numpy dtype)
 PRECISIONS = {
@@ -61,6 +61,20 @@ def check_simulator_options(precision, dt, damping_mass, damping_stiffness):
         raise ValueError(f"Rayleigh damping coefficients must be >= 0, got damping_mass={damping_mass!r}, "
                          f"damping_stiffness={damping_stiffness!r}")
     return PRECISIONS[precision]
+
+
+def newton_options_from(options: dict):
+    """The :class:`~warpfem.solvers.nonlinear.NewtonOptions` of a simulator's keyword options,
+    validated; raises TypeError naming unknown keys, ValueError naming a bad value."""
+    from warpfem.solvers.nonlinear import NewtonOptions
+
+    known = NewtonOptions.__dataclass_fields__
+    unknown = set(options) - set(known)
+    if unknown:
+        raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(known)}")
+    opts = NewtonOptions(**options)
+    opts.validate()
+    return opts
 
 
 class State:
@@ -247,6 +261,21 @@ class StepperBase(ControlledSimulator):
     ``require_convergence``, ``kinetic_energy()``, ``elastic_energy()`` and
     ``_external_work(state)`` (x^T f_ext of the unscaled external forces)."""
 
+    def _setup_options(self, model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence):
+        """The options every simulator takes (validated by :func:`check_simulator_options`, which
+        returned ``types``): model, device, precision and its types, dt, Rayleigh damping."""
+        from warpfem.device import get_device
+
+        self.model = model
+        self.device = get_device(device)
+        self.precision = precision
+        self._s, self._vec, self._mat, self._np = types
+        self.dt = float(dt)
+        self.damping_mass = float(damping_mass)
+        self.damping_stiffness = float(damping_stiffness)
+        self.require_convergence = bool(require_convergence)
+        self.num_vertices = model.num_vertices
+
     def _setup_states(self, state, spare):
         """The simulator's state, the spare state ``step()`` writes, a fresh :class:`Control`."""
         self.state, self._spare = state, spare
@@ -341,17 +370,8 @@ class SimulatorBase(SimulatorState, StepperBase):
     the stiffness values at x for stiffness damping (or None)`` (out := the elastic force at x)."""
 
     def _setup_base(self, model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence):
-        from warpfem.device import get_device
-
-        self.model = model
-        self.device = get_device(device)
-        self.precision = precision
-        self._s, self._vec, self._mat, self._np = types
-        self.dt = float(dt)
-        self.damping_mass = float(damping_mass)
-        self.damping_stiffness = float(damping_stiffness)
-        self.require_convergence = bool(require_convergence)
-        self.num_vertices = n = model.num_vertices
+        self._setup_options(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
+        n = self.num_vertices
         self.ops = DeviceVectors(n, self.device, types, acceleration=self._equation_of_motion_acceleration)
         self._vec_array = self.ops.new_vector
         self._zero = self.ops.zero
