@@ -158,10 +158,10 @@ class StiffnessWarpingSimulator(SimulatorBase):
             elements get a proper rotation), "qr" (Gram-Schmidt on the columns of F, OpenTissue's
             choice: cheaper, depends on the local vertex order) or "identity" (R = I: plain linear
             FEM, for tests and comparisons).
-        cg_tol: relative residual of the one PCG solve per step.
+        cg_tol: relative residual of the one linear solve per step.
         max_cg_iters: cap on PCG iterations per step.
         damping_mass, damping_stiffness: Rayleigh alpha (1/s) and beta (s); C = alpha M + beta K'.
-        require_convergence: raise :class:`SolveFailed` (state untouched) when PCG does not reach
+        require_convergence: raise :class:`SolveFailed` (state untouched) when the linear solve does not reach
             ``cg_tol``; otherwise a warning. NaN/inf always raises and leaves the state untouched.
         integrator: the time scheme, as for :class:`warpfem.Simulator`: "backward_euler" (default),
             "bdf2" or "newmark" (or an instance from :mod:`warpfem.integrators`); each step is one
@@ -311,8 +311,8 @@ class StiffnessWarpingSimulator(SimulatorBase):
         return self._k_values
 
     def add_collider(self, *args, **kw):
-        """Not supported: stiffness warping (a linearised step with no line search) does not handle contact; use :class:`warpfem.Simulator`."""
-        raise ValueError("stiffness warping (a linearised step with no line search) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
+        """Not supported: stiffness warping (a linearised step) does not handle contact; use :class:`warpfem.Simulator`."""
+        raise ValueError("stiffness warping (a linearised step) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
 
     def _step(self, state_in, state_out, control, dt) -> SolveStats:
         """One linearly implicit step of ``dt`` with the simulator's integrator: one Newton
