@@ -5,8 +5,8 @@ As in NVIDIA's ``newton``, what a step reads and writes is kept apart from the m
 
 * the :class:`~warpfem.model.Model` (mesh, material, mass, fixed set, loads) does not change
   during a step;
-* a :class:`State` is what a step advances: positions, velocities (device arrays), the
-  integrator's history (``history``: x_{n-1}, v_{n-1} or a_n and the step size they belong to)
+* a :class:`State` is what a step advances: positions, velocities (device arrays; the reduced
+  simulator's coordinate arrays), the integrator's history (``history``: x_{n-1}, v_{n-1} or a_n and the step size they belong to)
   and the time;
 * a :class:`Control` is what drives one step from outside: kinematic targets of fixed vertices and
   the load scale.
@@ -17,7 +17,11 @@ simulator's own state (two states used in turn: no allocation per step).
 :class:`DeviceVectors` is the vector algebra of the device vec3 arrays (the
 :class:`warpfem.integrators.VectorOps` the integrators use).
 
-:class:`SimulatorState` is a mixin: positions and velocities as device arrays of vec3, Dirichlet
+:class:`StepperBase` is what the three simulators share (state and control, both forms of
+``step``, ``new_state``, ``predict``, the failure handling ``_finish`` / :func:`check_solve`, the
+total energy); :class:`SimulatorBase` adds what the two full-space ones share (device vectors,
+the Hessian system and linear solver, ``sync_model``, the forms' weights, prescribed velocities,
+Newmark's a_0). :class:`SimulatorState` is a mixin of the latter: positions and velocities as device arrays of vec3, Dirichlet
 components (``fix``/``release``, kept on the model) and kinematic targets for the next step.
 A class using it provides:
 
