@@ -30,11 +30,9 @@ from warpfem.kernels.generic import COUNTERS, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.model import static_supports_error
 from warpfem.solvers.forms import DampingForm, ElasticForm, IncrementalPotential, InertiaForm, LoadForm, Workspace
-from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.linear import make_linear_solver
-from warpfem.solvers.linear.auto import simulator_options
-from warpfem.solvers.state import SimulatorBase, check_simulator_options
-from warpfem.solvers.sparse import BlockPattern, HessianSystem, PatternView
+from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
+from warpfem.solvers.state import SimulatorBase, check_simulator_options, newton_options_from
+from warpfem.solvers.sparse import PatternView
 
 #: the choices of ``Simulator(initial_guess=...)``
 INITIAL_GUESSES = ("previous", "extrapolated")
@@ -92,11 +90,7 @@ class Simulator(SimulatorBase):
                              f"got {initial_guess!r}")
         self.initial_guess = initial_guess
         self.integrator = make_integrator(integrator)
-        unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
-        if unknown:
-            raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
-        self.options = NewtonOptions(**newton_options)
-        self.options.validate()
+        self.options = newton_options_from(newton_options)
         self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
         n = self.num_vertices
         dev, qd, mat = self.device, model.quadrature, model.material
@@ -112,14 +106,9 @@ class Simulator(SimulatorBase):
         self._points = quadrature_points(self._s, self._x_rest, self._elements, self._k, self._qp_element,
                                          self._qp_weight, self._qp_dNdX)
         self._material = material_params(self._s, mat.kind, mat.kernel_mu, mat.kernel_lam)
-        self.system = HessianSystem(BlockPattern(qd.elements, qd.nodes_per_element, n, device=dev, block_type=self._mat))
-        self.system.values["mass"] = self.system.pattern.values_from_scalar_matrix(model.mass)
-        self.system.new_values("hessian")
+        self._setup_system(qd.elements, qd.nodes_per_element, linear_solver, linear_solver_options)
         if damping_stiffness > 0:
             self.system.new_values("kn")
-        self._pcg = make_linear_solver(linear_solver, self.system.pattern, vec_type=self._vec, scalar=self._s,
-                                       positions=model.rest_positions, **simulator_options(linear_solver, linear_solver_options))
-        self.system.solver = self._pcg
         self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
         # quadrature-point sets the kernels run over: (count, points, material, energy buffer). Selective reduced
         # integration (qd.volumetric) runs the same material kernels with the split parameters of
@@ -206,29 +195,7 @@ class Simulator(SimulatorBase):
         self._potential.add_form(form)
         return form
 
-    # -- model changes (no pattern rebuild) -----------------------------------------------------------
-    def sync_model(self):
-        """Upload the model's fixed mask and external forces (call after changing them; in place)."""
-        mask = (~self.model.fixed).astype(self._np)
-        fext = self.model.external_forces()
-        if getattr(self, "_mask", None) is None:
-            self._mask, self._fext = self._vec_array(mask), self._vec_array(fext)
-        else:
-            self._mask.assign(mask)
-            self._fext.assign(fext.astype(self._np))
-        self._fext_norm = float(np.linalg.norm(fext))
-        if getattr(self, "_load", None) is not None:
-            self._load.norm = self._fext_norm
-
     # -- stages (each a function that can be timed) ------------------------------------------------
-    @property
-    def _pattern(self):
-        return self.system.pattern
-
-    @property
-    def _mass_values(self):
-        return self.system.values["mass"]
-
     @property
     def _hess_values(self):
         return self.system.values["hessian"]
@@ -236,15 +203,6 @@ class Simulator(SimulatorBase):
     @property
     def _kn_values(self):
         return self.system.values.get("kn")
-
-    def _bsr_mv(self, values, x, alpha, y):
-        pt = self._pattern
-        launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, x, self._s(alpha), y], self.device)
-
-    def _linear_solve(self, values, rhs, out, opts):
-        """out ~ A^-1 rhs on the free components (A the masked block matrix ``values``, rhs masked):
-        the Newton systems' linear solver (block-Jacobi PCG); returns a result with ``iterations``."""
-        return self._pcg.solve(values, self._mask, rhs, out, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
 
     def _elastic_energy(self, x):
         parts = []
@@ -378,30 +336,13 @@ class Simulator(SimulatorBase):
                 val[i] = p
         return val
 
-    def _equation_of_motion_acceleration(self, state, out):
-        """out = a with M a = f(x) + f_ext - C v on the free components (0 on fixed ones), C the
-        Rayleigh damping alpha M + beta K(x): the acceleration of ``state`` (Newmark's a_0)."""
-        n = self.num_vertices
-        rhs = self._work.tmp
-        rhs.zero_()
+    def _elastic_force_for_acceleration(self, x, out):
+        """out := f(x), the elastic force; the stiffness damping's K(x_n) (assembled at the start
+        of the step) for the equation-of-motion acceleration (SimulatorBase)."""
+        out.zero_()
         for qs in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=qs.count, inputs=[state.x, qs.points, qs.material, self._s(1.0), rhs],
-                   device=self.device)
-        launch(LK.axpy_kernel, dim=n, inputs=[self._s(self._step_control.load_scale), self._fext, rhs], device=self.device)
-        if self.damping_mass != 0.0:
-            self._bsr_mv(self._mass_values, state.v, -self.damping_mass, rhs)
-        if self.damping_stiffness != 0.0:  # K(x_n), assembled at the start of the step
-            self._bsr_mv(self._kn_values, state.v, -self.damping_stiffness, rhs)
-        launch(LK.mask_kernel, dim=n, inputs=[self._mask, rhs], device=self.device)
-        res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.options.max_cg_iters, 100))
-        if not np.isfinite(res.residual):
-            raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
-                              SolveStats(reason="non-finite initial acceleration"))
-
-    def _weights(self, s, control):
-        """The forms' weights for a step of scale s (the one place the integrator's s enters the
-        weights; the chain factors of the forms of x are the potential's)."""
-        return {"inertia": 1.0, "damping": s, "elastic": 1.0, "load": s * control.load_scale, "contact": 1.0}
+            launch(FK.qp_force_kernel, dim=qs.count, inputs=[x, qs.points, qs.material, self._s(1.0), out], device=self.device)
+        return self._kn_values
 
     def potential(self, state=None, control=None, dt=None):
         """The incremental potential of a step of ``dt`` from ``state`` (default: the simulator's
