@@ -304,10 +304,11 @@ class Body:
             are ``mesh.vertices + offset`` (``Body.mesh`` is the moved mesh).
         initial_velocity: (3,) velocity (m/s) of every vertex at t = 0.
         volumetric_integration: "full" or "reduced" (Hex8), as for :class:`Model`.
+        mass_matrix: "lumped" or "consistent" for this body (default: the model's).
     """
 
     def __init__(self, mesh, material, *, name=None, offset=(0.0, 0.0, 0.0), initial_velocity=(0.0, 0.0, 0.0),
-                 volumetric_integration: str = "full"):
+                 volumetric_integration: str = "full", mass_matrix: str | None = None):
         off = np.asarray(offset, dtype=np.float64)
         v0 = np.asarray(initial_velocity, dtype=np.float64)
         for what, v, raw in (("offset", off, offset), ("initial_velocity", v0, initial_velocity)):
@@ -324,6 +325,7 @@ class Body:
         self.mesh, self.material, self.name = mesh, material, name
         self.offset, self.initial_velocity = off, v0
         self.volumetric_integration = volumetric_integration
+        self.mass_matrix = mass_matrix
 
     def __repr__(self):
         return (f"Body({self.name!r}, {getattr(self.mesh, 'element_type', '?')}, {self.mesh.num_vertices} vertices, "
@@ -407,7 +409,7 @@ def _from_bodies(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lu
     parts = []
     for b in bodies:
         try:
-            parts.append(cls(b.mesh, b.material, gravity=gravity, mass_matrix=mass_matrix,
+            parts.append(cls(b.mesh, b.material, gravity=gravity, mass_matrix=b.mass_matrix or mass_matrix,
                              volumetric_integration=b.volumetric_integration))
         except (ValueError, TypeError) as e:
             raise type(e)(f"body {b.name!r}: {e}") from e
