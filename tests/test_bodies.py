@@ -179,6 +179,15 @@ def test_combined_surface_for_contact():
     assert np.bincount(model.mesh.vertex_bodies()).tolist() == [tet.num_vertices, hexa.num_vertices]
     edges = model.mesh.boundary_edges()
     assert np.all(model.mesh.vertex_bodies()[edges[:, 0]] == model.mesh.vertex_bodies()[edges[:, 1]])
+    np.testing.assert_array_equal(model.boundary_edges(), edges)
+    np.testing.assert_array_equal(model.vertex_bodies(), model.mesh.vertex_bodies())
+    # Euler: every body's closed boundary has V - E + F = 2
+    for b in range(2):
+        fb = faces[model.mesh.face_bodies() == b]
+        eb = edges[model.mesh.vertex_bodies()[edges[:, 0]] == b]
+        assert np.unique(fb).size - len(eb) + len(fb) == 2
+    single = wf.Model(tet, mat)
+    assert single.vertex_bodies().tolist() == [0] * tet.num_vertices and single.num_bodies == 1
     # a collider sees every body's surface vertices
     sim = wf.Simulator(model)
     sim.add_collider(wf.Plane(point=(0.0, 0.0, -0.5), normal=(0.0, 0.0, 1.0)))

@@ -93,10 +93,16 @@ def test_two_body_scene_outputs_and_each_body_as_alone(tmp_path):
         if "offset" in single:  # today's form has no offset: move the box instead
             single = single.replace("offset = [0.0, 0.5, 0.0]\n", "").replace('generator = "box"',
                                                                              'generator = "box"\norigin = [0.0, 0.5, 0.0]')
-        s = load_scene(_write(tmp_path, "one.toml", SHARED.replace("usd_volume = true", "") + single))
+        s = load_scene(_write(tmp_path, "one.toml", SHARED + single))
         npz = str(tmp_path / "one.npz")
-        s.build().run(states=npz)
+        s.build().run(states=npz, usd=str(tmp_path / "one.usda"))
         alone = np.load(npz)["positions"]
+        from pxr import Usd, UsdGeom
+
+        stage = Usd.Stage.Open(str(tmp_path / "one.usda"))  # usd_volume of a one-body scene: prim "volume"
+        volume = UsdGeom.TetMesh(stage.GetPrimAtPath("/Root/volume"))
+        np.testing.assert_allclose(np.array(volume.GetPointsAttr().Get(3)), alone[3], atol=1e-6)
+        assert "body_offsets" not in np.load(npz)  # today's single-body npz unchanged
         assert np.abs(alone[-1] - alone[0]).max() > 1e-3  # it sags
         assert np.abs(d["positions"][:, lo:hi] - alone).max() < 1e-9
     # USD: one Mesh prim per body (its boundary) and a TetMesh beside it, both animated as the states

@@ -286,6 +286,17 @@ class Model:
             raise IndexError(f"body {self.body_names[b]!r}: vertex index {int(bad[0])} out of range [0, {hi - lo})")
         return idx + lo
 
+    def vertex_bodies(self) -> np.ndarray:
+        """(n,) the body index of each vertex (all 0 for a single-mesh model)."""
+        return np.repeat(np.arange(len(self.body_offsets) - 1), np.diff(self.body_offsets))
+
+    def boundary_edges(self) -> np.ndarray:
+        """(e, 2) unique edges (i < j) of the boundary triangles ``mesh.boundary_faces()`` (every
+        body's, global vertex indices); with :meth:`vertex_bodies` what a body-body contact needs."""
+        f = np.asarray(self.mesh.boundary_faces(), dtype=np.int64)
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        return np.unique(e, axis=0)
+
     def initial_velocities(self):
         """(n, 3) velocities at t = 0 (the bodies' ``initial_velocity``), or None when all are zero."""
         if not self.bodies or not any(np.any(b.initial_velocity != 0.0) for b in self.bodies):
