@@ -192,3 +192,26 @@ def test_combined_surface_for_contact():
     sim = wf.Simulator(model)
     sim.add_collider(wf.Plane(point=(0.0, 0.0, -0.5), normal=(0.0, 0.0, 1.0)))
     assert sim.contact.surface.size == np.unique(faces).size
+
+
+def test_static_solve_with_selective_reduced_integration_and_direct_solver():
+    """Quasi-static equilibrium of two clamped bodies, the Hex8 one with selective reduced
+    integration (two quadrature sets of one body in the pattern's group): each as alone."""
+    tet, hexa = _meshes()
+    mats = [wf.StableNeoHookean(**MAT_A), wf.StableNeoHookean(**MAT_B)]
+    vi = ["full", "reduced"]
+    model = wf.Model.from_bodies([wf.Body(tet, mats[0]), wf.Body(hexa, mats[1], offset=(0, 1, 0),
+                                                                  volumetric_integration=vi[1])], gravity=G)
+    for b in range(2):
+        model.fix(model.body_vertices(b, _clamp(model.bodies[b].mesh, model.bodies[b].mesh.vertices.min(axis=0))))
+    sim = wf.Simulator(model, linear_solver="direct", tol=1e-10)
+    assert sim.solve_static().converged
+    x = sim.positions()
+    for b in range(2):
+        alone = wf.Model(model.bodies[b].mesh, mats[b], gravity=G, volumetric_integration=vi[b])
+        alone.fix(_clamp(alone.mesh, alone.mesh.vertices.min(axis=0)))
+        s = wf.Simulator(alone, linear_solver="direct", tol=1e-10)
+        s.solve_static()
+        lo, hi = model.body_offsets[b], model.body_offsets[b + 1]
+        assert np.abs(s.positions() - alone.rest_positions).max() > 0.03  # sags (m)
+        assert np.abs(s.positions() - x[lo:hi]).max() < 1e-10
