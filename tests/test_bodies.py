@@ -92,6 +92,12 @@ def test_union_pattern_and_block_diagonal_hessian():
     ref = scipy.sparse.block_diag(parts, format="csr")
     assert abs(K - ref).max() < 1e-9 * abs(ref).max()
     assert energy > 0 and sim.elastic_energy(x) == pytest.approx(energy, rel=1e-12)
+    # a block between the bodies (what body-body contact adds): the pattern grows, the groups follow
+    o = model.body_offsets
+    assert sim.system.ensure_blocks([[0, int(o[1]) + 3]]) and sim.pattern.nnz == nnz + 2
+    assert len(sim.pattern.block_indices) == 2
+    K2 = sim.stiffness_matrix(x, project=False)
+    assert abs(K2 - ref).max() < 1e-9 * abs(ref).max()
 
 
 @pytest.mark.parametrize("precision", ["float64", "float32"])
