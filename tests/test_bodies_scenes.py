@@ -178,6 +178,10 @@ def test_body_scene_errors_name_the_body_and_key(tmp_path):
     fails((SHARED + BODY_SOFT + BODY_STIFF).replace('type = "backward_euler"', 'type = "stiffness_warping"')
           .replace('element = "hex8"', "").replace("tol = 1e-9\n", "").replace('linear_solver = "pcg"\n', ""),
           "'stiffness_warping' simulates one body")
+    fails(SHARED + BODY_SOFT + "[subspace]\nmodes = 4\n", "[subspace]: reduced runs take a one-body scene")
+    fails("body = 3\n" + SHARED, "write the bodies as an array of tables [[body]]")
+    fails(SHARED + BODY_SOFT + BODY_STIFF.replace("[body.material]", "[body.materal]"), "[[body]] #2 'stiff'.materal",
+          "did you mean 'material'")
     # overlapping bodies at t = 0: the build refuses naming both and the first crossing
     scene = load_scene(_write(tmp_path, "overlap.toml", SHARED + BODY_SOFT + BODY_STIFF.replace(
         "offset = [0.0, 0.5, 0.0]", "offset = [0.13, 0.04, 0.03]").replace("box_min = [-1, 0.4, -1]\nbox_max = [0.0, 1, 1]",

@@ -642,6 +642,9 @@ def _parse_bodies(ctx, data, integrators) -> SceneSpec:
         shown = f"[[{s}]]" if s in ARRAY_SECTIONS else f"[{s}]"
         ctx.fail(shown, f"a scene with [[body]] tables cannot also have a top-level {shown}: [[body]] and top-level "
                  f"{shown} are two ways to give the {s}; move it into a [[body]] table ([[body.{s}]] or [body.{s}])")
+    if "subspace" in data:
+        ctx.fail("[subspace]", "reduced runs take a one-body scene of the top-level form ([mesh], [material]); this "
+                 "scene has [[body]] tables")
     itype = data.get("integrator", {}).get("type", SCHEMA["integrator"]["type"].default) \
         if isinstance(data.get("integrator", {}), dict) else None
     shared = {k: v for k, v in data.items() if k != "body"}
@@ -672,12 +675,9 @@ def _parse_bodies(ctx, data, integrators) -> SceneSpec:
         spec = parse_scene_dict(sub, path=ctx.path, base_dir=ctx.base_dir, integrators=integrators, _body=label)
         bodies.append({"name": name, "offset": own["offset"], "initial_velocity": own["initial_velocity"], "spec": spec,
                        "label": label})
-    if len(bodies) > 1:
-        if itype in SINGLE_BODY_INTEGRATORS:
-            ctx.fail("[integrator].type", f"{itype!r} simulates one body; this scene has {len(bodies)} [[body]] tables "
-                     "(use backward_euler, bdf2, newmark or static)")
-        if "subspace" in data:
-            ctx.fail("[subspace]", f"reduced runs simulate one body; this scene has {len(bodies)} [[body]] tables")
+    if len(bodies) > 1 and itype in SINGLE_BODY_INTEGRATORS:
+        ctx.fail("[integrator].type", f"{itype!r} simulates one body; this scene has {len(bodies)} [[body]] tables "
+                 "(use backward_euler, bdf2, newmark or static)")
     first = bodies[0]["spec"]
     merged = {s: [e for b in bodies for e in getattr(b["spec"], s)] for s in ("fixed", "handle", "force", "traction")}
     return SceneSpec(path=first.path, base_dir=first.base_dir, top=first.top, mesh=first.mesh, material=first.material,
