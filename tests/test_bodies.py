@@ -165,12 +165,13 @@ def test_overlapping_bodies_refused_naming_both_and_the_crossing():
         wf.Model.from_bodies([wf.Body(tet, mat, name="beam"), wf.Body(small, mat, name="cube", offset=(0.13, 0.02, 0.02))])
     # touching face to face is not an overlap; apart is not either
     assert first_body_overlap([tet, wf.Body(small, mat, offset=(0.0, 0.1, 0.0)).mesh], ["a", "b"]) == ""
+    assert first_body_overlap([tet, wf.Body(small, mat, offset=(0.13, 0.1, 0.02)).mesh], ["a", "b"]) == ""
     assert first_body_overlap([tet, wf.Body(small, mat, offset=(1.0, 0.0, 0.0)).mesh], ["a", "b"]) == ""
     model = wf.Model.from_bodies([wf.Body(tet, mat), wf.Body(small, mat, offset=(0.13, 0.02, 0.02))], check_overlap=False)
     assert model.num_bodies == 2
     # winding numbers: 1 inside, 0 outside
-    np.testing.assert_allclose(winding_number([[0.2, 0.05, 0.05], [1.0, 0.0, 0.0]], tet.vertices, tet.boundary_faces()),
-                               [1.0, 0.0], atol=1e-9)
+    np.testing.assert_allclose(winding_number([[0.2, 0.05, 0.05], [1.0, 0.0, 0.0], [0.23, 0.1, 0.04]], tet.vertices,
+                                              tet.boundary_faces()), [1.0, 0.0, 0.5], atol=1e-9)
 
 
 def test_combined_surface_for_contact():

@@ -124,7 +124,10 @@ def winding_number(points, vertices, faces) -> np.ndarray:
         num = np.einsum("ij,ij->i", a, np.cross(b, c))
         den = la * lb * lc + np.einsum("ij,ij->i", a, b) * lc + np.einsum("ij,ij->i", b, c) * la \
             + np.einsum("ij,ij->i", c, a) * lb
-        out.append(np.arctan2(num, den).sum() / (2.0 * np.pi))
+        # a triangle whose plane holds the point (the point on it: touching) adds nothing, so a point on
+        # the surface gets about 0.5 rather than the sign of round-off
+        omega = np.where(np.abs(num) <= 1e-12 * la * lb * lc, 0.0, np.arctan2(num, den))
+        out.append(omega.sum() / (2.0 * np.pi))
     return np.asarray(out)
 
 
