@@ -237,6 +237,11 @@ def test_usd_tetmesh_and_closed_mesh_input(tmp_path):
                   + "[body.material]\nmodel = \"linear\"\nyoungs_modulus = 1e5\npoisson_ratio = 0.3\n")
     scene = load_scene(_write(tmp_path, "usd_in.toml", scene_text))
     assert scene.mesh().num_vertices == 40 and "file " + path in scene.describe()
+    # Tet10 elements from a USD TetMesh: mid-edge nodes added (as for tet files)
+    tet10 = load_scene(_write(tmp_path, "usd10.toml", scene_text.replace('prim = "/World/Beam"',
+                                                                          'prim = "/World/Beam"\nelement = "tet10"')))
+    bm = tet10.bodies[1].mesh()
+    assert bm.element_type == "tet10" and bm.total_volume() == pytest.approx(0.004, rel=1e-6)
     # a closed Mesh prim is tetrahedralised (TetGen): the box's volume exactly
     faces = box.boundary_faces()
     surf = _usd_surface(tmp_path / "box.usda", box.vertices, faces)
@@ -276,3 +281,29 @@ def test_usd_input_errors_name_file_and_prim(tmp_path):
         load_scene(_write(tmp_path, "h.toml", base + '[mesh]\npath = "two.usda"\nelement = "hex8"\n'))
     with pytest.raises(SceneError, match=r"\[mesh\]: .*two.usda: 2 mesh prims"):
         load_scene(_write(tmp_path, "m.toml", base + '[mesh]\npath = "two.usda"\n')).mesh()
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_body_render_surface_embedded_and_moved_by_the_offset(tmp_path, precision):
+    """A body's [body.surface] file is in the body's own frame (moved by its offset) and embedded in
+    its own elements: its USD prim follows the body (here the surface is the box's boundary, so its
+    points are the boundary nodes' positions)."""
+    from warpfem.mesh import box_hex_mesh
+
+    hexa = box_hex_mesh(size=(0.4, 0.1, 0.1), cells=(4, 1, 1))
+    faces = np.asarray(hexa.boundary_faces())
+    ids = np.unique(faces)
+    remap = np.full(hexa.num_vertices, -1)
+    remap[ids] = np.arange(ids.size)
+    meshio.write(str(tmp_path / "skin.obj"), meshio.Mesh(hexa.vertices[ids], [("triangle", remap[faces])]))
+    text = (SHARED.replace("usd_volume = true", "") + BODY_SOFT
+            + BODY_STIFF.replace("[[body.fixed]]", '[body.surface]\npath = "skin.obj"\n[[body.fixed]]'))
+    run = load_scene(_write(tmp_path, "skin.toml", text)).build(precision=precision)
+    usd, npz = str(tmp_path / "skin.usda"), str(tmp_path / "skin.npz")
+    run.run(usd=usd, states=npz)
+    d = np.load(npz)
+    times, frames = read_usd_mesh_frames(usd, "stiff")
+    assert len(frames) == 4
+    np.testing.assert_allclose(frames[0], hexa.vertices[ids] + (0.0, 0.5, 0.0), atol=1e-6)
+    np.testing.assert_allclose(frames[-1], d["positions"][-1, 20 + ids], atol=2e-6 if precision == "float32" else 1e-9)
+    assert np.abs(frames[-1] - frames[0]).max() > 1e-3
