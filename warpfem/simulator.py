@@ -44,7 +44,8 @@ class QuadratureSet(NamedTuple):
     count: number of points (the launch dimension); points: its ``QuadraturePoints32/64`` struct
     (rest positions, connectivity, nodes per element k, point -> element, weights, dN/dX);
     material: its ``MaterialParams32/64`` struct (kind, kernel mu, kernel lam; for selective
-    reduced integration the split parameters of the set); energy: per-point energy buffer (J).
+    reduced integration the split parameters of the set); energy: per-point energy buffer (J);
+    group: the body whose elements the points belong to (``BlockPattern.block_indices[group]``).
     The structs (``warpfem.kernels.structs``) are built once here and never changed, so the
     recorded launches of ``kernels.generic.launch`` reuse them without re-packing."""
 
@@ -52,6 +53,7 @@ class QuadratureSet(NamedTuple):
     points: object
     material: object
     energy: object
+    group: int = 0  # the body (element group) of the points: its part of the pattern's block_index
 
 
 class Simulator(SimulatorBase):
@@ -93,42 +95,60 @@ class Simulator(SimulatorBase):
         self.options = newton_options_from(newton_options)
         self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
         n = self.num_vertices
-        dev, qd, mat = self.device, model.quadrature, model.material
-        self._qp_count = qd.num_points
-        self._elements = wp.array(qd.elements, dtype=wp.int32, device=dev)
-        self._qp_element = wp.array(qd.qp_element, dtype=wp.int32, device=dev)
-        self._qp_weight = wp.array(qd.qp_weight.astype(self._np), dtype=self._s, device=dev)
-        self._qp_dNdX = wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev)
-        self._k = qd.nodes_per_element
+        dev = self.device
+        # one quadrature set per body (a single-mesh model: its one body); each body's own element
+        # type (k), material and connectivity (global vertex indices), all in one vertex space
+        quads = list(getattr(model, "quadratures", None) or [model.quadrature])
+        mats = list(getattr(model, "materials", None) or [model.material])
+        splits = list(getattr(model, "body_volumetric_parameters", None) or [getattr(model, "volumetric_parameters", None)])
         self._x_rest = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev)
-        # the kernels' shared arguments as structs (warpfem.kernels.structs): the main point set and
-        # the full material (stresses() and, without selective reduced integration, everything)
-        self._points = quadrature_points(self._s, self._x_rest, self._elements, self._k, self._qp_element,
-                                         self._qp_weight, self._qp_dNdX)
-        self._material = material_params(self._s, mat.kind, mat.kernel_mu, mat.kernel_lam)
-        self._setup_system(qd.elements, qd.nodes_per_element, linear_solver, linear_solver_options)
-        if damping_stiffness > 0:
-            self.system.new_values("kn")
-        self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
-        # quadrature-point sets the kernels run over: (count, points, material, energy buffer). Selective reduced
-        # integration (qd.volumetric) runs the same material kernels with the split parameters of
-        # model.volumetric_parameters (Material.volumetric_split): the remaining part on the full
-        # rule, the volumetric part on the 1-point rule; energy, force and Hessian are sums over the
-        # sets (the Hessian of each part SPD-projected on its own). stresses() evaluates the full
-        # material at the main (full-rule) points.
-        self._qp_sets = [QuadratureSet(self._qp_count, self._points, self._material, self._energy_q)]
-        if getattr(qd, "volumetric", None) is not None:
+        self._qp_sets, self._main_sets = [], []
+        for group, (qd, mat, split) in enumerate(zip(quads, mats, splits)):
+            elements = wp.array(qd.elements, dtype=wp.int32, device=dev)
+            points = quadrature_points(self._s, self._x_rest, elements, qd.nodes_per_element,
+                                       wp.array(qd.qp_element, dtype=wp.int32, device=dev),
+                                       wp.array(qd.qp_weight.astype(self._np), dtype=self._s, device=dev),
+                                       wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev))
+            # the kernels' shared arguments as structs (warpfem.kernels.structs): the main point set and
+            # the full material (stresses() and, without selective reduced integration, everything)
+            material = material_params(self._s, mat.kind, mat.kernel_mu, mat.kernel_lam)
+            energy = wp.zeros(qd.num_points, dtype=self._s, device=dev)
+            main = QuadratureSet(qd.num_points, points, material, energy, group)
+            self._main_sets.append(main)
+            if getattr(qd, "volumetric", None) is None:
+                self._qp_sets.append(main)
+                continue
+            # selective reduced integration (qd.volumetric) runs the same material kernels with the split
+            # parameters of the body's volumetric_parameters (Material.volumetric_split): the remaining part
+            # on the full rule, the volumetric part on the 1-point rule; energy, force and Hessian are sums
+            # over the sets (the Hessian of each part SPD-projected on its own). stresses() evaluates the
+            # full material at the main (full-rule) points.
             vq = qd.volumetric
-            split = getattr(model, "volumetric_parameters", None) or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
-            (mu_f, lam_f), (mu_v, lam_v) = split
-            vpoints = quadrature_points(self._s, self._x_rest, self._elements, self._k,
+            (mu_f, lam_f), (mu_v, lam_v) = split or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
+            vpoints = quadrature_points(self._s, self._x_rest, elements, qd.nodes_per_element,
                                         wp.array(vq.qp_element, dtype=wp.int32, device=dev),
                                         wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),
                                         wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev))
-            self._qp_sets = [QuadratureSet(self._qp_count, self._points, material_params(self._s, mat.kind, mu_f, lam_f),
-                                           self._energy_q),
-                             QuadratureSet(vq.num_points, vpoints, material_params(self._s, mat.kind, mu_v, lam_v),
-                                           wp.zeros(vq.num_points, dtype=self._s, device=dev))]
+            self._qp_sets += [QuadratureSet(qd.num_points, points, material_params(self._s, mat.kind, mu_f, lam_f),
+                                            energy, group),
+                              QuadratureSet(vq.num_points, vpoints, material_params(self._s, mat.kind, mu_v, lam_v),
+                                            wp.zeros(vq.num_points, dtype=self._s, device=dev), group)]
+        first = self._main_sets[0]
+        self._points, self._material = first.points, first.material  # the first body's (benchmarks, tools)
+        self._elements = first.points.elements
+        self._k = quads[0].nodes_per_element
+        self._qp_count = sum(ms.count for ms in self._main_sets)
+        self._energy_q = first.energy
+        if len(quads) == 1:
+            self._setup_system(quads[0].elements, quads[0].nodes_per_element, linear_solver, linear_solver_options)
+        else:  # the union of the bodies' element patterns (one element group per body)
+            self._setup_system([q.elements for q in quads], [q.nodes_per_element for q in quads], linear_solver,
+                               linear_solver_options)
+        if damping_stiffness > 0:
+            self.system.new_values("kn")
+        v0 = model.initial_velocities() if hasattr(model, "initial_velocities") else None
+        if v0 is not None:  # the bodies' initial_velocity (Model.from_bodies)
+            self.state.v.assign(v0.astype(self._np))
         # the incremental potential: one list of weighted forms, built once (solvers/forms.py)
         system, ops = self.system, self.ops
         pattern = PatternView(system)  # forms follow the pattern when it grows
@@ -206,7 +226,7 @@ class Simulator(SimulatorBase):
 
     def _elastic_energy(self, x):
         parts = []
-        for count, points, material, buf in self._qp_sets:
+        for count, points, material, buf, _ in self._qp_sets:
             launch(FK.qp_energy_kernel, dim=count, inputs=[x, points, material, buf], device=self.device)
             parts.append(buf.numpy().astype(np.float64))
         e = np.concatenate(parts)
@@ -300,9 +320,12 @@ class Simulator(SimulatorBase):
     def stresses(self, x=None) -> np.ndarray:
         """First Piola-Kirchhoff stress (Pa) at every quadrature point, (Q, 3, 3)."""
         xa = self.x if x is None else self._vec_array(x)
-        P = wp.zeros(self._qp_count, dtype=self._mat, device=self.device)
-        launch(FK.qp_stress_kernel, dim=self._qp_count, inputs=[xa, self._points, self._material, P], device=self.device)
-        return P.numpy().astype(np.float64)
+        parts = []
+        for ms in self._main_sets:  # one per body, in body order
+            P = wp.zeros(ms.count, dtype=self._mat, device=self.device)
+            launch(FK.qp_stress_kernel, dim=ms.count, inputs=[xa, ms.points, ms.material, P], device=self.device)
+            parts.append(P.numpy().astype(np.float64))
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def elastic_energy(self, x=None) -> float:
         """V(x) (J) at x (default: current positions)."""

@@ -102,6 +102,8 @@ class CubatureForces:
     """
 
     def __init__(self, model, U, elements, weights, *, device="cpu", precision="float64"):
+        if getattr(model, "num_bodies", 1) > 1:
+            raise ValueError(f"the reduced simulator simulates one body; the model has {model.num_bodies} (use warpfem.Simulator)")
         qd = model.quadrature
         from warpfem.mesh.element_types import get_element
 

@@ -165,7 +165,8 @@ class LoadForm(Form):
 
 class ElasticForm(Form):
     """V(x) summed over quadrature-point sets (``QuadratureSet``s: count, points, material, energy
-    buffer); Hessian SPD-projected per point when ``options.project_hessian``."""
+    buffer, element group: the pattern's ``block_indices`` entry of its elements, one per body);
+    Hessian SPD-projected per point when ``options.project_hessian``."""
 
     name = "elastic"
     variable = "x"
@@ -202,7 +203,8 @@ class ElasticForm(Form):
         project = self.options.project_hessian if project is None else project
         for qs in self.qp_sets:
             launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(scale), int(project),
-                                                    self.pattern.block_index, values], self.ops.device)
+                                                    self.pattern.block_indices[getattr(qs, "group", 0)], values],
+                   self.ops.device)
 
 
 class IncrementalPotential:

@@ -181,6 +181,8 @@ class StiffnessWarpingSimulator(SimulatorBase):
             raise ValueError(f"cg_tol must be in (0, 1), got {cg_tol!r}")
         if int(max_cg_iters) != max_cg_iters or max_cg_iters < 1:
             raise ValueError(f"max_cg_iters must be a positive integer, got {max_cg_iters!r}")
+        if getattr(model, "num_bodies", 1) > 1:
+            raise ValueError(f"stiffness warping simulates one body; the model has {model.num_bodies} (use warpfem.Simulator)")
         qd = model.quadrature
         from warpfem.mesh.element_types import get_element
 
