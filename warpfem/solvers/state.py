@@ -37,6 +37,7 @@ import warp as wp
 
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
+from warpfem.solvers.adjoint import active_tape, recorded_step
 
 __all__ = ["SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
 
@@ -175,10 +176,12 @@ class SimulatorState(ControlledSimulator):
         """A state with zeroed buffers of this simulator's size (for ``step(state_in, state_out, ...)``)."""
         return State(self._vec_array(), self._vec_array())
 
-    def new_state(self):
+    def new_state(self, requires_grad=False):
         """A copy of the current state (its own buffers): an input or output of
-        ``step(state_in, state_out, control, dt)``."""
-        s = State(wp.clone(self.state.x), wp.clone(self.state.v), time=self.state.time)
+        ``step(state_in, state_out, control, dt)``. ``requires_grad``: positions and velocities
+        with gradient arrays, for steps recorded on a ``wp.Tape`` (docs/gradients.md)."""
+        s = State(wp.clone(self.state.x, requires_grad=requires_grad), wp.clone(self.state.v, requires_grad=requires_grad),
+                  time=self.state.time)
         s.history = {k: (wp.clone(v) if isinstance(v, wp.array) else v) for k, v in self.state.history.items()}
         return s
 
@@ -273,15 +276,25 @@ class StepperBase(ControlledSimulator):
             if state_out is not None:
                 raise TypeError("step(): give both state_in and state_out, or neither")
             own_in, own_out = self._own_states()
-            stats = self._step(own_in, own_out, self.control, self.dt if dt is None else float(dt))
+            stats = self._run_step(own_in, own_out, self.control, self.dt if dt is None else float(dt), own=True)
             self._commit(own_out)
             self.control.targets.clear()
             self.step_count += 1
             return stats
         if state_out is None or state_out is state_in:
             raise ValueError("step(state_in, state_out, ...) needs a distinct output state (see new_state())")
-        return self._step(state_in, state_out, Control() if control is None else control,
-                          self.dt if dt is None else float(dt))
+        return self._run_step(state_in, state_out, Control() if control is None else control,
+                              self.dt if dt is None else float(dt))
+
+    def _run_step(self, state_in, state_out, control, dt, own=False):
+        """``_step``, or, while a gradient recording (``step_recorder``) or a ``wp.Tape`` is
+        active, the recorded step of :func:`warpfem.solvers.adjoint.recorded_step`."""
+        def run():
+            return self._step(state_in, state_out, control, dt)
+
+        if getattr(self, "step_recorder", None) is None and active_tape() is None:
+            return run()
+        return recorded_step(self, run, state_in, state_out, control, dt, own=own)
 
 
 class SimulatorBase(SimulatorState, StepperBase):
