@@ -13,8 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
 
 import warpfem as wf
+from warpfem.solvers.state import Control
 from warpfem.solvers.adjoint import Recording, set_element_stiffness_scale
 
 STEPS = 10
@@ -94,3 +96,56 @@ def test_gradients_match_central_differences(integrator):
         errors[kind] = abs(an - fd) / abs(fd)
     print(integrator, {k: f"{e:.1e}" for k, e in errors.items()})
     assert max(errors.values()) <= 1e-5, errors
+
+
+@wp.kernel
+def _weighted_sum(x: wp.array(dtype=wp.vec3d), w: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
+    i = wp.tid()
+    wp.atomic_add(loss, 0, wp.dot(x[i], w[i]))
+
+
+@pytest.mark.parametrize("integrator", ["backward_euler", "bdf2", "newmark"])
+def test_steps_on_a_tape_backpropagate_a_warp_loss(integrator):
+    """A Warp loss on every state, steps recorded on a wp.Tape: the tape's gradients (state grads
+    and sim.adjoint's parameters) equal the Recording's, which the test above checks against FD."""
+    _, ref = run(integrator, BASE, grads=True)
+    p = BASE
+    mat = wf.StableNeoHookean(youngs_modulus=p["E"], poisson_ratio=p["nu"], density=p["rho"])
+    model = wf.Model(MESH, mat, gravity=(0.0, 0.0, -9.81))
+    model.fix(FIXED)
+    sim = wf.Simulator(model, dt=0.01, integrator=integrator, damping_mass=0.5, **SOLVER)
+    states = [sim.new_state(requires_grad=True) for _ in range(STEPS + 1)]
+    weights = [wp.array(w, dtype=wp.vec3d) for w in WEIGHTS]
+    loss = wp.zeros(1, dtype=wp.float64, requires_grad=True)
+    tape = wp.Tape()
+    with tape:
+        wp.launch(_weighted_sum, dim=N, inputs=[states[0].x, weights[0], loss])
+        for k in range(STEPS):
+            control = Control({DRIVEN: TARGETS[k]})
+            sim.step(states[k], states[k + 1], control, 0.01)
+            wp.launch(_weighted_sum, dim=N, inputs=[states[k + 1].x, weights[k + 1], loss])
+        with pytest.raises(ValueError, match="states of their own"):
+            sim.step()
+    tape.backward(loss)
+    g = sim.adjoint.parameter_gradients()
+    for name in ("youngs_modulus", "poisson_ratio", "density", "forces"):
+        assert np.allclose(g[name], ref[name], rtol=1e-9, atol=1e-12 * np.max(np.abs(ref[name]))), name
+    assert np.allclose(states[0].x.grad.numpy(), ref["initial_positions"], rtol=1e-9, atol=1e-9)
+    assert np.allclose(states[0].v.grad.numpy(), ref["initial_velocities"], rtol=1e-9, atol=1e-12)
+    assert np.allclose(g["targets"][3][DRIVEN], ref["targets"][3][DRIVEN], rtol=1e-9)
+    tape.zero()
+    assert not np.any(states[0].x.grad.numpy())
+
+
+def test_unsupported_runs_say_so():
+    model = wf.Model(MESH, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0))
+    model.fix(FIXED)
+    sim = wf.Simulator(model, dt=0.01, damping_stiffness=0.01)
+    with pytest.raises(NotImplementedError, match="damping_stiffness"):
+        Recording(sim)
+    sim = wf.Simulator(model, dt=0.01)
+    sim.add_collider(type="plane", point=(0.0, 0.0, -0.5), normal=(0.0, 0.0, 1.0))
+    with pytest.raises(NotImplementedError, match="contact"):
+        Recording(sim)
+    with pytest.raises(ValueError, match="unknown parameter"):
+        Recording(wf.Simulator(model, dt=0.01), params=["youngs"])
