@@ -67,7 +67,8 @@ from warpfem.kernels.generic import launch
 from warpfem.kernels.structs import material_params
 
 __all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
-           "material_set_parameters", "check_differentiable"]
+           "set_material_parameters", "material_set_parameters", "check_differentiable", "Recording",
+           "recorded_step", "active_tape", "tape_adjoint"]
 
 #: the parameter names the adjoint can differentiate
 PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_scale", "forces", "gravity",
@@ -647,3 +648,23 @@ def recorded_step(sim, run, state_in, state_out, control, dt, *, own):
 
     tape.record_func(backward, [a for a in (state_in.x, state_in.v, state_out.x, state_out.v) if a.requires_grad])
     return stats
+
+
+def set_material_parameters(sim, youngs_modulus=None, poisson_ratio=None):
+    """Change the whole body's Young's modulus and Poisson ratio of a built ``sim`` in place (the
+    kernel parameters of every point set; ``sim.model.material`` becomes a material of the same
+    class with the new values), for runs that differentiate or fit them without rebuilding."""
+    model = sim.model
+    old = model.material
+    E = float(old.youngs_modulus if youngs_modulus is None else youngs_modulus)
+    nu = float(old.poisson_ratio if poisson_ratio is None else poisson_ratio)
+    new = type(old)(youngs_modulus=E, poisson_ratio=nu, density=old.density)
+    sets = sim.quadrature_sets
+    vi = getattr(model, "volumetric_integration", "full")
+    pairs = material_set_parameters(new, E, nu, vi, len(sets) > 1)
+    for qs, (mu, lam) in zip(sets, pairs):
+        qs.material.mu, qs.material.lam = sim.scalar_type(mu), sim.scalar_type(lam)
+    if vi == "reduced":
+        model.volumetric_parameters = tuple((float(a), float(b)) for a, b in pairs)
+    model.material = new
+    return new
