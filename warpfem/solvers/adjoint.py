@@ -218,6 +218,7 @@ class StepAdjoint:
         self.solves = 0  # adjoint solves done
         self.refinements = 0  # refinement rounds (inner solves) done
         self.prepares = 0  # times the solver was prepared on the exact Hessian
+        self._stale_ok = True  # whether the last reuse of a factorisation of another matrix converged
         self.zero_grad()
 
     # -- parameters -------------------------------------------------------------------------------------
@@ -240,6 +241,7 @@ class StepAdjoint:
     def zero_grad(self):
         """Clear the accumulated parameter gradients."""
         m = self.sim.model.mesh.num_elements
+        self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": 0.0, "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
                       "targets": {}}
@@ -315,9 +317,6 @@ class StepAdjoint:
         prepared matrix (prepared on H when that contracts slowly)."""
         sim = self.sim
         solver = sim.linear_solver
-        dev = sim.device
-        S = sim.scalar_type
-        pt = sim.pattern
         b = mask * b_host
         bn = float(np.linalg.norm(b))
         if bn == 0.0:
@@ -325,11 +324,19 @@ class StepAdjoint:
         self.solves += 1
         mask_d = sim.free_mask
         rd, dl = self._dev[1], self._dev[2]
-        inner = 0.5 if getattr(solver, "name", "") == "direct" else 1e-8 if sim.precision == "float64" else 1e-5
-        maxiter = max(sim.options.max_cg_iters, 200)
+        direct = getattr(solver, "name", "") == "direct"
+        # a factorisation is worth reusing (refinement against H) while that converges fast; a
+        # preconditioner (PCG, AMG, multigrid) is cheap to set up on H itself, then solved to tol
+        inner = 0.5 if direct else 0.1 * self.tol
+        maxiter = max(sim.options.max_cg_iters, 10 * sim.num_vertices)
+        prepared = False
+        if not direct or not self._stale_ok:
+            solver.prepare(H, mask_d)
+            self.prepares += 1
+            prepared = True
         lam = np.zeros_like(b)
         r = b.copy()
-        prepared, prev = False, np.inf
+        prev = np.inf
         for _ in range(self.max_refinements):
             self._upload(rd, r)
             self.refinements += 1
@@ -347,17 +354,19 @@ class StepAdjoint:
                 prepared = True
                 continue
             lam_new = lam + d
-            Hl = self._mv(H, lam_new)
-            r_new = b - mask * Hl
+            r_new = b - mask * self._mv(H, lam_new)
             rn = float(np.linalg.norm(r_new))
             if rn < prev or not prepared:
                 lam, r = lam_new, r_new
             if rn <= self.tol * bn:
+                if direct and not prepared:
+                    self._stale_ok = True
                 return lam
             if not prepared and (rn > 0.2 * min(prev, bn) or not np.isfinite(rn)):
                 solver.prepare(H, mask_d)  # the prepared matrix is too far from H: prepare on H itself
                 self.prepares += 1
                 prepared = True
+                self._stale_ok = False  # the next step prepares at once (until a stale one works again)
             elif prepared and rn >= prev:
                 break
             prev = min(prev, rn)
