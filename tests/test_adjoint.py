@@ -140,15 +140,15 @@ def test_steps_on_a_tape_backpropagate_a_warp_loss(integrator):
 def test_unsupported_runs_say_so():
     model = wf.Model(MESH, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0))
     model.fix(FIXED)
-    sim = wf.Simulator(model, dt=0.01, damping_stiffness=0.01)
+    sim = wf.Simulator(model, dt=0.01, damping_stiffness=0.01, linear_solver="pcg")
     with pytest.raises(NotImplementedError, match="damping_stiffness"):
         Recording(sim)
-    sim = wf.Simulator(model, dt=0.01)
+    sim = wf.Simulator(model, dt=0.01, linear_solver="pcg")
     sim.add_collider(type="plane", point=(0.0, 0.0, -0.5), normal=(0.0, 0.0, 1.0))
     with pytest.raises(NotImplementedError, match="contact"):
         Recording(sim)
     with pytest.raises(ValueError, match="unknown parameter"):
-        Recording(wf.Simulator(model, dt=0.01), params=["youngs"])
+        Recording(wf.Simulator(model, dt=0.01, linear_solver="pcg"), params=["youngs"])
 
 
 def test_reduced_runs_say_gradients_are_not_supported():

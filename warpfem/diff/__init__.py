@@ -134,7 +134,7 @@ class SceneProblem:
     new density rebuilds the model: its mass matrix and gravity change)."""
 
     def __init__(self, scene, observed, *, vertices=None, frames=None, device="cpu", precision="float64",
-                 newton_tol=1e-10):
+                 newton_tol=1e-10, run_frames=None):
         self.scene = scene_with_parameters(_scene(scene), newton_tol=newton_tol)
         if not self.scene.dynamic:
             raise DiffInputError(f"{self.scene.path or 'the scene'}: gradients need a dynamic integrator "
@@ -145,10 +145,12 @@ class SceneProblem:
         self.device, self.precision = device, precision
         n = self.scene.mesh().num_vertices
         self.observed, self.vertices, self.frames = check_observation(observed, n, vertices, frames)
-        want = int(self.scene.spec.output["frames"]) + 1
+        # the run that recorded it: the scene's [output] frames, or `warpfem run --frames N` (run_frames)
+        want = int(self.scene.spec.output["frames"] if run_frames is None else run_frames) + 1
         if self.observed.shape[0] != want:
+            how = "[output] frames" if run_frames is None else "--frames"
             raise DiffInputError(f"the observation has {self.observed.shape[0]} frames, the scene runs "
-                                 f"{want - 1} frames ([output] frames; {want} states with frame 0)")
+                                 f"{want - 1} frames ({how}; {want} states with frame 0)")
         self._run = self._density = self._initial = None
 
     def _prepare(self, params):
@@ -213,7 +215,7 @@ def _record_and_differentiate(sim, F, obs, vertices, frames, wanted, advance):
 
 def loss_and_gradients(source, observed, *, vertices=None, frames=None, params=None, steps_per_frame=1,
                        targets=None, element_stiffness_scale=None, device="cpu", precision="float64",
-                       newton_tol=1e-10, wanted=None) -> DiffResult:
+                       newton_tol=1e-10, wanted=None, run_frames=None) -> DiffResult:
     """Run ``source`` forward for ``len(observed) - 1`` frames and return the squared-distance loss
     to ``observed`` and its gradients (see the module docstring).
 
@@ -231,13 +233,15 @@ def loss_and_gradients(source, observed, *, vertices=None, frames=None, params=N
         newton_tol: the Newton tolerance of a scene's run (tightened to it; gradients are exact at
             the converged solution); a simulator source keeps its own.
         wanted: parameter names to compute (default all).
+        run_frames: the frames of a scene's run (default its ``[output] frames``, as ``warpfem run``
+            without ``--frames``); the observation must have run_frames + 1.
     """
     from warpfem.simulator import Simulator
     from warpfem.solvers.adjoint import set_element_stiffness_scale
 
     if not isinstance(source, Simulator):
         problem = SceneProblem(source, observed, vertices=vertices, frames=frames, device=device, precision=precision,
-                               newton_tol=newton_tol)
+                               newton_tol=newton_tol, run_frames=run_frames)
         return problem.evaluate(params, wanted, element_stiffness_scale=element_stiffness_scale)
     if params:
         raise DiffInputError("params are for scene sources; build the simulator with the values you want")

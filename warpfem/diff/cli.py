@@ -54,7 +54,8 @@ def _cmd_fit(args) -> int:
 
     try:
         res = fit(scene, observed, args.params, vertices=vertices, bounds=bounds, max_iterations=args.max_iterations,
-                  device=args.device, precision=args.precision, newton_tol=args.newton_tol, progress=progress)
+                  device=args.device, precision=args.precision, newton_tol=args.newton_tol, progress=progress,
+                  run_frames=args.frames)
     except (DiffInputError, SceneError) as e:
         _cli.error(f"{args.scene}: {str(e).splitlines()[0]}")
         return _cli.EXIT_INVALID
@@ -93,6 +94,8 @@ def register(subparsers):
     p.add_argument("--vertices", help="file of observed vertex indices (text or .npy); the observation holds "
                                       "those vertices, or all of them")
     p.add_argument("--bounds", nargs="*", metavar="NAME=LO,HI", help="search bounds (SI units)")
+    p.add_argument("--frames", type=int, help="frames of the recorded run, as `warpfem run --frames` (default the "
+                                              "scene's [output] frames); the observation has one more")
     p.add_argument("--max-iterations", type=int, default=50, help="L-BFGS-B iterations (default 50)")
     p.add_argument("--newton-tol", type=float, default=1e-10,
                    help="Newton tolerance of the runs (tightened to it: gradients hold at converged steps)")

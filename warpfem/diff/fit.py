@@ -103,18 +103,19 @@ def _check_params(params):
 
 def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices=None, frames=None, bounds=None,
         initial=None, max_iterations=50, device="cpu", precision="float64", newton_tol=1e-10, gtol=1e-9,
-        progress=None) -> FitResult:
+        progress=None, run_frames=None) -> FitResult:
     """Fit ``params`` of ``scene`` (path or Scene) to ``observed`` (frames, n or k, 3) positions.
 
     ``bounds``: name -> (lo, hi) (default :data:`DEFAULT_BOUNDS`); ``initial``: name -> start
-    value (default the scene's); ``progress(iteration, loss, params)`` after each iteration."""
+    value (default the scene's); ``progress(iteration, loss, params)`` after each iteration;
+    ``run_frames``: the frames of the recorded run (default the scene's ``[output] frames``)."""
     from scipy.optimize import minimize
 
     from warpfem.diff import SceneProblem
 
     params = _check_params(params)
     problem = SceneProblem(scene, observed, vertices=vertices, frames=frames, device=device, precision=precision,
-                           newton_tol=newton_tol)
+                           newton_tol=newton_tol, run_frames=run_frames)
     sc, obs, vertices, frames = problem.scene, problem.observed, problem.vertices, problem.frames
     bnds = dict(DEFAULT_BOUNDS)
     for k, b in (bounds or {}).items():
