@@ -174,9 +174,11 @@ class SceneProblem:
             self._run.frame = 0
         return self._run
 
-    def evaluate(self, params=None, wanted=None, element_stiffness_scale=None) -> DiffResult:
+    def evaluate(self, params=None, wanted=None, element_stiffness_scale=None, last_frame=None) -> DiffResult:
         """Loss and gradients at ``params`` (names of :data:`SCENE_PARAMETERS`; others keep the
-        scene's) and the per-element stiffness factors (default 1)."""
+        scene's) and the per-element stiffness factors (default 1). ``last_frame``: run only up to
+        that frame, the loss over the chosen frames up to it (the handles still ramp as in the
+        whole run)."""
         from warpfem.solvers.adjoint import set_element_stiffness_scale
 
         params = dict(params or {})
@@ -184,7 +186,11 @@ class SceneProblem:
         run = self._prepare(params)
         set_element_stiffness_scale(run.sim, element_stiffness_scale)
         F = self.observed.shape[0]
-        return _record_and_differentiate(run.sim, F, self.observed, self.vertices, self.frames, wanted,
+        last = F - 1 if last_frame is None else int(last_frame)
+        if not 1 <= last <= F - 1:
+            raise DiffInputError(f"last_frame must be in 1..{F - 1}, got {last_frame!r}")
+        frames = [f for f in self.frames if f <= last]
+        return _record_and_differentiate(run.sim, last + 1, self.observed, self.vertices, frames, wanted,
                                          lambda f: run.step_frame(total_frames=F - 1))
 
 

@@ -103,12 +103,17 @@ def _check_params(params):
 
 def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices=None, frames=None, bounds=None,
         initial=None, max_iterations=50, device="cpu", precision="float64", newton_tol=1e-10, gtol=1e-9,
-        progress=None, run_frames=None) -> FitResult:
+        progress=None, run_frames=None, stages=None, first_stage_frames=5) -> FitResult:
     """Fit ``params`` of ``scene`` (path or Scene) to ``observed`` (frames, n or k, 3) positions.
 
     ``bounds``: name -> (lo, hi) (default :data:`DEFAULT_BOUNDS`); ``initial``: name -> start
     value (default the scene's); ``progress(iteration, loss, params)`` after each iteration;
-    ``run_frames``: the frames of the recorded run (default the scene's ``[output] frames``)."""
+    ``run_frames``: the frames of the recorded run (default the scene's ``[output] frames``);
+    ``stages``: continuation over the recording's length, each stage an L-BFGS-B run on a prefix
+    of the frames starting where the last one ended (the loss of a long oscillating trajectory has
+    many local minima in E and density; on a short prefix it has one): None (default) doubles the
+    prefix from ``first_stage_frames`` (5, 10, 20, ..., all frames); an int k takes k equal
+    steps; 1 fits all frames at once."""
     from scipy.optimize import minimize
 
     from warpfem.diff import SceneProblem
@@ -140,51 +145,73 @@ def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices
         return {p: (math.exp(v) if _LOG[p] else float(v)) for p, v in zip(params, z)}
 
     zb = [((math.log(bnds[p][0]), math.log(bnds[p][1])) if _LOG[p] else bnds[p]) for p in params]
-    cache, evals, history = {}, [0], []
+    evals, history = [0], []
     t0 = time.perf_counter()
-    L0 = [None]
+    F = obs.shape[0]
+    if stages is None:
+        lasts, k = [], max(1, int(first_stage_frames))
+        while k < F - 1:
+            lasts.append(k)
+            k *= 2
+        lasts.append(F - 1)
+    elif int(stages) < 1:
+        raise DiffInputError(f"stages must be >= 1, got {stages!r}")
+    else:
+        lasts = sorted({max(1, math.ceil((F - 1) * k / int(stages))) for k in range(1, int(stages) + 1)})
 
-    def evaluate(z):
-        key = tuple(np.round(z, 15))
-        if key in cache:
-            return cache[key]
-        vals = from_z(z)
-        res = problem.evaluate(vals, wanted=list(params))
-        evals[0] += 1
-        if L0[0] is None:
-            L0[0] = res.loss if res.loss > 0 else 1.0
-        g = np.array([res.gradients[p] * (vals[p] if _LOG[p] else 1.0) for p in params])
-        out = (res.loss / L0[0], g / L0[0], res.loss)
-        if not (np.isfinite(out[0]) and np.all(np.isfinite(out[1]))):
-            raise RuntimeError(f"the loss or its gradient is not finite at {vals}")
-        cache[key] = out
-        return out
+    def make_eval(last):
+        cache, L0 = {}, [None]
 
-    def fun(z):
-        f, g, _ = evaluate(z)
-        return f, g
+        def evaluate(z):
+            key = tuple(np.round(z, 15))
+            if key in cache:
+                return cache[key]
+            vals = from_z(z)
+            res = problem.evaluate(vals, wanted=list(params), last_frame=last)
+            evals[0] += 1
+            if L0[0] is None:
+                L0[0] = res.loss if res.loss > 0 else 1.0
+            g = np.array([res.gradients[p] * (vals[p] if _LOG[p] else 1.0) for p in params])
+            out = (res.loss / L0[0], g / L0[0], res.loss)
+            if not (np.isfinite(out[0]) and np.all(np.isfinite(out[1]))):
+                raise RuntimeError(f"the loss or its gradient is not finite at {vals}")
+            cache[key] = out
+            return out
 
-    first = evaluate(to_z(start))
-    history.append(first[2])
+        return evaluate
+
+    z = to_z(start)
     it = [0]
+    opt = None
+    nit = 0
+    whole = make_eval(lasts[-1])
+    history.append(whole(z)[2])  # the loss over every frame: at the start, after each stage, per last-stage iteration
+    for last in lasts:
+        evaluate = whole if last == lasts[-1] else make_eval(last)
 
-    def callback(zk):
-        it[0] += 1
-        _, _, L = evaluate(zk)
-        history.append(L)
-        if progress is not None:
-            progress(it[0], L, from_z(zk))
+        def callback(zk, evaluate=evaluate, last=last):
+            it[0] += 1
+            _, _, L = evaluate(zk)
+            if last == lasts[-1]:
+                history.append(L)
+            if progress is not None:
+                progress(it[0], L, from_z(zk))
 
-    opt = minimize(fun, to_z(start), jac=True, method="L-BFGS-B", bounds=zb, callback=callback,
-                   options={"maxiter": int(max_iterations), "ftol": 1e-15, "gtol": float(gtol), "maxls": 30})
-    final = evaluate(opt.x)
+        opt = minimize(lambda zz, evaluate=evaluate: evaluate(zz)[:2], z, jac=True, method="L-BFGS-B", bounds=zb,
+                       callback=callback,
+                       options={"maxiter": int(max_iterations), "ftol": 1e-15, "gtol": float(gtol), "maxls": 30})
+        z = opt.x
+        nit += int(opt.nit)
+        if last != lasts[-1]:
+            history.append(whole(z)[2])
+    final = whole(opt.x)
     # the projected gradient's norm (components pushing out of an active bound do not count)
     g = final[1].copy()
     for i, (lo, hi) in enumerate(zb):
         if (opt.x[i] <= lo and g[i] > 0) or (opt.x[i] >= hi and g[i] < 0):
             g[i] = 0.0
     return FitResult(params=from_z(opt.x), initial=start, loss=final[2], loss_history=[float(h) for h in history],
-                     iterations=int(opt.nit), evaluations=evals[0], gradient_norm=float(np.linalg.norm(g)),
+                     iterations=nit, evaluations=evals[0], gradient_norm=float(np.linalg.norm(g)),
                      converged=bool(opt.success), message=str(opt.message), seconds=time.perf_counter() - t0,
                      frames=len(frames), vertices=int(len(vertices)), bounds={p: list(bnds[p]) for p in params})
 
