@@ -247,3 +247,23 @@ def test_diff_api_on_a_simulator_matches_finite_differences():
     fd_v = (go(1e5, v0 + 1e-5 * d).loss - go(1e5, v0 - 1e-5 * d).loss) / 2e-5
     assert abs(res.gradients["youngs_modulus"] - fd_E) <= 1e-5 * abs(fd_E)
     assert abs(np.sum(res.gradients["initial_velocities"] * d) - fd_v) <= 1e-5 * abs(fd_v)
+
+
+def test_parameters_changed_in_place_step_like_a_rebuilt_simulator():
+    from warpfem.solvers.adjoint import set_density, set_material_parameters
+
+    def build(E, nu, rho):
+        model = wf.Model(MESH, wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=nu, density=rho),
+                         gravity=(0.0, 0.0, -9.81))
+        model.fix(FIXED)
+        return wf.Simulator(model, dt=0.01, integrator="newmark", **SOLVER)
+
+    a = build(1e5, 0.3, 1000.0)
+    set_material_parameters(a, youngs_modulus=2e5, poisson_ratio=0.2)
+    set_density(a, 1500.0)
+    b = build(2e5, 0.2, 1500.0)
+    for _ in range(3):
+        a.step()
+        b.step()
+    assert np.allclose(a.positions(), b.positions(), rtol=0, atol=1e-12)
+    assert a.model.material.density == 1500.0 and a.model.material.youngs_modulus == 2e5

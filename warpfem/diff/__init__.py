@@ -129,9 +129,9 @@ def _scene(source):
 
 
 class SceneProblem:
-    """A scene's gradient runs against one observation, built once: every :meth:`evaluate` with new
-    Young's modulus / Poisson ratio changes them in place and restarts from the initial state (a
-    new density rebuilds the model: its mass matrix and gravity change)."""
+    """A scene's gradient runs against one observation, built once: every :meth:`evaluate` changes
+    Young's modulus, Poisson ratio and density in place (``set_material_parameters``,
+    ``set_density``) and restarts from the initial state."""
 
     def __init__(self, scene, observed, *, vertices=None, frames=None, device="cpu", precision="float64",
                  newton_tol=1e-10, run_frames=None):
@@ -151,27 +151,27 @@ class SceneProblem:
             how = "[output] frames" if run_frames is None else "--frames"
             raise DiffInputError(f"the observation has {self.observed.shape[0]} frames, the scene runs "
                                  f"{want - 1} frames ({how}; {want} states with frame 0)")
-        self._run = self._density = self._initial = None
+        self._run = self._initial = None
 
     def _prepare(self, params):
-        from warpfem.solvers.adjoint import set_material_parameters
+        from warpfem.solvers.adjoint import set_density, set_material_parameters
 
-        density = float(params.get("density", self.scene.spec.material["density"]))
-        if self._run is None or density != self._density:
+        mat = self.scene.spec.material
+        if self._run is None:
             self._run = scene_with_parameters(self.scene, params).build(device=self.device, precision=self.precision)
-            self._density = density
             sim = self._run.sim
             self._initial = (sim.positions(), sim.velocities())
-        else:
-            sim = self._run.sim
-            set_material_parameters(sim, params.get("youngs_modulus", self.scene.spec.material["youngs_modulus"]),
-                                    params.get("poisson_ratio", self.scene.spec.material["poisson_ratio"]))
-            sim.set_positions(self._initial[0])  # clears the integrator's history
-            sim.set_velocities(self._initial[1])
-            sim.time = 0.0
-            sim.step_count = 0
-            sim.control.targets.clear()
-            self._run.frame = 0
+            return self._run
+        sim = self._run.sim
+        set_material_parameters(sim, params.get("youngs_modulus", mat["youngs_modulus"]),
+                                params.get("poisson_ratio", mat["poisson_ratio"]))
+        set_density(sim, params.get("density", mat["density"]))
+        sim.set_positions(self._initial[0])  # clears the integrator's history
+        sim.set_velocities(self._initial[1])
+        sim.time = 0.0
+        sim.step_count = 0
+        sim.control.targets.clear()
+        self._run.frame = 0
         return self._run
 
     def evaluate(self, params=None, wanted=None, element_stiffness_scale=None, last_frame=None) -> DiffResult:

@@ -67,7 +67,7 @@ from warpfem.kernels.generic import launch
 from warpfem.kernels.structs import material_params
 
 __all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
-           "set_material_parameters", "material_set_parameters", "check_differentiable", "Recording",
+           "set_material_parameters", "set_density", "material_set_parameters", "check_differentiable", "Recording",
            "recorded_step", "active_tape", "tape_adjoint"]
 
 #: the parameter names the adjoint can differentiate
@@ -676,4 +676,26 @@ def set_material_parameters(sim, youngs_modulus=None, poisson_ratio=None):
     if vi == "reduced":
         model.volumetric_parameters = tuple((float(a), float(b)) for a, b in pairs)
     model.material = new
+    return new
+
+
+def set_density(sim, density):
+    """Change the density of a built ``sim`` in place: the model's mass matrices and gravity (all
+    proportional to it), the simulator's mass blocks and external forces (``sync_model``)."""
+    model = sim.model
+    old = model.material
+    rho = float(density)
+    if not (np.isfinite(rho) and rho > 0):
+        raise ValueError(f"density must be a positive number of kg/m^3, got {density!r}")
+    r = rho / float(old.density)
+    if r == 1.0:
+        return old
+    new = type(old)(youngs_modulus=old.youngs_modulus, poisson_ratio=old.poisson_ratio, density=rho)
+    model.mass = model.mass * r
+    model.lumped_mass = model.lumped_mass * r
+    model.gravity_mass = model.gravity_mass * r
+    model.material = new
+    mv = sim.mass_values
+    mv.assign(mv.numpy() * mv.numpy().dtype.type(r))
+    sim.sync_model()
     return new
