@@ -30,6 +30,9 @@ import numpy as np
 __all__ = ["loss_and_gradients", "SceneProblem", "DiffResult", "positions_loss", "SCENE_PARAMETERS", "scene_with_parameters",
            "DiffInputError", "check_observation"]
 
+#: the tightest Newton tolerance a float32 gradient run asks for (below it float32 round-off stalls Newton)
+FLOAT32_NEWTON_TOL = 1e-5
+
 #: the parameters a scene's gradient run can set (and ``warpfem fit`` identify)
 SCENE_PARAMETERS = ("youngs_modulus", "poisson_ratio", "density")
 
@@ -135,6 +138,8 @@ class SceneProblem:
 
     def __init__(self, scene, observed, *, vertices=None, frames=None, device="cpu", precision="float64",
                  newton_tol=1e-10, run_frames=None):
+        if precision == "float32" and newton_tol is not None:
+            newton_tol = max(float(newton_tol), FLOAT32_NEWTON_TOL)  # float32's round-off floor
         self.scene = scene_with_parameters(_scene(scene), newton_tol=newton_tol)
         if not self.scene.dynamic:
             raise DiffInputError(f"{self.scene.path or 'the scene'}: gradients need a dynamic integrator "

@@ -233,7 +233,7 @@ class StepAdjoint:
             return np.asarray(material_set_parameters(mat, E_, nu_, vi, has_vol), dtype=np.float64)
 
         J = np.zeros((len(self._sets), 2, 2))
-        hE, hn = 1e-6 * E, 1e-6 * max(abs(nu), 1e-3)
+        hE, hn = 1e-6 * E, 1e-6 * max(abs(nu), 0.1)
         J[:, :, 0] = (f(E + hE, nu) - f(E - hE, nu)) / (2 * hE)
         J[:, :, 1] = (f(E, nu + hn) - f(E, nu - hn)) / (2 * hn)
         return J
