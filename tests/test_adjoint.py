@@ -145,7 +145,15 @@ def test_unsupported_runs_say_so():
         Recording(sim)
     sim = wf.Simulator(model, dt=0.01, linear_solver="pcg")
     sim.add_collider(type="plane", point=(0.0, 0.0, -0.5), normal=(0.0, 0.0, 1.0))
-    with pytest.raises(NotImplementedError, match="contact"):
+    with pytest.raises(NotImplementedError, match="set its stiffness explicitly"):
+        Recording(sim)
+    sim = wf.Simulator(model, dt=0.01, linear_solver="pcg")
+    sim.add_collider(type="sphere", center=(0.0, 0.0, -1.0), radius=0.5, stiffness=1e4)
+    with pytest.raises(NotImplementedError, match="only planes"):
+        Recording(sim)
+    sim = wf.Simulator(model, dt=0.01, linear_solver="pcg")
+    sim.add_collider(type="plane", point=(0.0, 0.0, -0.5), normal=(0.0, 0.0, 1.0), stiffness=1e4, friction=0.3)
+    with pytest.raises(NotImplementedError, match="friction"):
         Recording(sim)
     with pytest.raises(ValueError, match="unknown parameter"):
         Recording(wf.Simulator(model, dt=0.01, linear_solver="pcg"), params=["youngs"])
@@ -267,3 +275,48 @@ def test_parameters_changed_in_place_step_like_a_rebuilt_simulator():
         b.step()
     assert np.allclose(a.positions(), b.positions(), rtol=0, atol=1e-12)
     assert a.model.material.density == 1500.0 and a.model.material.youngs_modulus == 2e5
+
+
+def _contact_run(integrator, E=1e5, shift=np.zeros(3), v0=None, x0=None, grads=False):
+    model = wf.Model(MESH, wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=0.3, density=1000.0),
+                     gravity=(0.0, 0.0, -9.81))
+    sim = wf.Simulator(model, dt=0.01, integrator=integrator, **{**SOLVER, "max_iters": 80})
+    sim.set_positions(MESH.vertices if x0 is None else x0)
+    sim.set_velocities(np.tile([0.0, 0.0, -0.5], (N, 1)) if v0 is None else v0)
+    sim.add_collider(type="plane", point=tuple(np.array([0.0, 0.0, -0.01]) + shift), normal=(0.0, 0.0, 1.0),
+                     stiffness=1e4, dhat=0.01)
+    xs = [sim.positions()]
+    rec = Recording(sim)
+    with rec if grads else _null():
+        for _ in range(STEPS):
+            assert sim.step().converged
+            xs.append(sim.positions())
+    assert min(x[:, 2].min() for x in xs) < -0.01 + 0.01  # within dhat of the plane: the barrier acts
+    loss = float(sum(np.sum(w * x) for w, x in zip(WEIGHTS, xs)))
+    return (loss, rec.backward({k: WEIGHTS[k] for k in range(STEPS + 1)})) if grads else loss
+
+
+@pytest.mark.parametrize("integrator", ["backward_euler", "bdf2", "newmark"])
+def test_gradients_through_plane_contact(integrator):
+    """A free box thrown onto a frictionless plane (barrier active in most steps): E, the plane's
+    translation (all steps), initial velocities and positions against central differences. The
+    barrier is stiff on the scale of dhat = 1 cm, so the steps are small (h^2 error ~1e-8)."""
+    _, g = _contact_run(integrator, grads=True)
+    d3 = np.array([0.3, -0.2, 1.0])
+    D = RNG.standard_normal((N, 3))
+    v0 = np.tile([0.0, 0.0, -0.5], (N, 1))
+    cases = {
+        "youngs_modulus": (g["youngs_modulus"], lambda h: _contact_run(integrator, E=1e5 + h), 10.0),
+        "collider_translations": (sum(float(np.dot(t["plane"], d3)) for t in g["collider_translations"].values()),
+                                  lambda h: _contact_run(integrator, shift=h * d3), 3e-7),
+        "initial_velocities": (float(np.sum(g["initial_velocities"] * D)),
+                               lambda h: _contact_run(integrator, v0=v0 + h * D), 1e-6),
+        "initial_positions": (float(np.sum(g["initial_positions"] * D)),
+                              lambda h: _contact_run(integrator, x0=MESH.vertices + h * D), 3e-7),
+    }
+    errors = {}
+    for name, (an, f, h) in cases.items():
+        fd = (f(h) - f(-h)) / (2 * h)
+        errors[name] = abs(an - fd) / abs(fd)
+    print(integrator, {k: f"{e:.1e}" for k, e in errors.items()})
+    assert max(errors.values()) <= 1e-5, errors

@@ -46,9 +46,13 @@ function theorem holds at the solution, not at an early-stopped iterate.
 * ``initial_positions``, ``initial_velocities`` (n, 3): the state the recording started from (and
   the integrator's history of that state, ``initial_history``).
 * ``targets``: {step index: {vertex: (3,)}}, the kinematic targets of fixed vertices (control).
+* ``collider_translations``: {step index: {collider name: (3,)}}, the translation of each plane's
+  pose at the step's end (frictionless planes with an explicit stiffness: the barrier's Hessian
+  kappa b''(d) n n^T is then exact, enters H, and d(grad E_c)/d(translation) = -that Hessian).
 
-Not supported (a clear ``NotImplementedError``): contact (colliders' barrier and friction; their
-poses), stiffness-proportional damping (K(x_n) is SPD-projected at the step's start: its
+Not supported (a clear ``NotImplementedError``): other colliders (spheres, boxes, meshes: their
+Hessian drops the curvature term), friction, a default (E- and mass-dependent) barrier stiffness,
+rotating planes; stiffness-proportional damping (K(x_n) is SPD-projected at the step's start: its
 derivative in x_n would need third derivatives), other simulators (stiffness warping, reduced).
 Fixed sets, loads and material must stay as they were during a recording.
 
@@ -72,7 +76,7 @@ __all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_eleme
 
 #: the parameter names the adjoint can differentiate
 PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_scale", "forces", "gravity",
-              "initial_positions", "initial_velocities", "targets")
+              "initial_positions", "initial_velocities", "targets", "collider_translations")
 
 _KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
 
@@ -88,9 +92,17 @@ def check_differentiable(sim):
     if not hasattr(sim, "quadrature_sets") or name not in _KINDS:
         raise NotImplementedError(f"gradients are supported for warpfem.Simulator with backward_euler, bdf2 or "
                                   f"newmark, not for {type(sim).__name__} (integrator {name!r})")
-    if getattr(sim, "contact", None) is not None and len(sim.contact):
-        raise NotImplementedError("gradients with contact (colliders) are not supported yet: remove the colliders "
-                                  "or differentiate a run without them")
+    contact = getattr(sim, "contact", None)
+    if contact is not None and len(contact):
+        for c in contact.colliders:
+            why = ("only planes are supported" if getattr(c, "type_name", "") != "plane" else
+                   "friction must be 0" if c.friction != 0.0 else
+                   "set its stiffness explicitly (the default follows E and the mass)" if c.stiffness is None else
+                   "rotating planes are not supported" if (c.rotation_axis is not None and c.rotation_angle != 0.0)
+                   else "")
+            if why:
+                raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): {why}; "
+                                          "differentiable contact is frictionless planes with a given stiffness")
     if sim.damping_stiffness != 0.0:
         raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
                                   "supported: use damping_mass")
@@ -244,7 +256,7 @@ class StepAdjoint:
         self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": 0.0, "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
-                      "targets": {}}
+                      "targets": {}, "collider_translations": {}}
 
     def parameter_gradients(self) -> dict:
         """The accumulated gradients by parameter name (numpy; see the module docstring)."""
@@ -273,8 +285,10 @@ class StepAdjoint:
             else:
                 kind = "newmark_a0"
         s = {"be": dt, "bdf2_first": dt, "bdf2": 2.0 * dt / 3.0, "newmark": 0.5 * dt, "newmark_a0": 0.5 * dt}[kind]
-        return StepRecord(kind, dt, s, _host(state_in.x), _host(state_in.v), h, _host(self.sim.free_mask),
-                          control.targets, control.load_scale)
+        rec = StepRecord(kind, dt, s, _host(state_in.x), _host(state_in.v), h, _host(self.sim.free_mask),
+                         control.targets, control.load_scale)
+        rec.t0 = float(state_in.time)
+        return rec
 
     def record_after(self, rec: StepRecord, state_out):
         """Complete ``rec`` with the converged step written into ``state_out``."""
@@ -403,6 +417,39 @@ class StepAdjoint:
             out += np.bincount(el, weights=w0 * np.einsum("qij,qij->q", Ph, G), minlength=m)
         return out
 
+    def _add_contact_hessian(self, rec):
+        """Add the barrier's Hessian of every plane at x_{n+1} (poses at the step's end) into
+        self._K; returns {plane name: (vertices in range, kappa b''(d), world normal)} or None.
+        For a plane the barrier's Hessian kappa b''(d) n n^T is exact (the distance is linear)."""
+        contact = getattr(self.sim, "contact", None)
+        if contact is None or not len(contact):
+            return None
+        surf = np.asarray(contact.surface)
+        xs = rec.x_next[surf]
+        t1 = rec.t0 + rec.dt
+        out = {}
+        blocks = np.zeros((self.n, 3, 3))
+        for j, c in enumerate(contact.colliders):
+            R, trans = c.pose(t1)
+            n = R @ c.normal
+            d = (np.einsum("ij,vj->vi", R.T, xs - trans) - c.point) @ c.normal
+            dh, kappa = float(contact.dhat[j]), float(contact.kappa[j])
+            near = (d > 0.0) & (d < dh)
+            dd = d[near]
+            t = dd - dh
+            b2 = -2.0 * np.log(dd / dh) - 4.0 * t / dd + t * t / (dd * dd)
+            k_nn = kappa * b2
+            verts = surf[near]
+            blocks[verts] += k_nn[:, None, None] * np.outer(n, n)[None]
+            out[c.name] = (verts, k_nn, n)
+        touched = np.flatnonzero(np.abs(blocks).sum(axis=(1, 2)) > 0)
+        if len(touched):
+            K = self._K.numpy()
+            diag = np.asarray(self.sim.pattern.diag_index)
+            K[diag[touched]] += blocks[touched].astype(K.dtype)
+            self._K.assign(K)
+        return out
+
     def _mat_type(self):
         return wp.mat33d if self.sim.precision == "float64" else wp.mat33
 
@@ -438,6 +485,7 @@ class StepAdjoint:
             vhat_bar -= hbar["a"] / s
         # the implicit solve: H lambda = ybar on the free components
         x_dev = self._assemble_K(rec.x_next)
+        planes = self._add_contact_hessian(rec)
         pt = sim.pattern
         self._H.zero_()
         launch(LK.add_scaled_kernel, pt.nnz, [sim.mass_values, sim.scalar_type(1.0 + s * alpha), self._H], sim.device)
@@ -464,6 +512,11 @@ class StepAdjoint:
                 for i in idx.tolist():
                     store[i] = store.get(i, 0.0) + p_bar[i]
         xn_bar[~tgt] += p_bar[~tgt]
+        if planes is not None and np.any(lam):  # d(grad E_c)/d(translation) = -K_c: tbar = s K_c lambda per plane
+            store = self.grads["collider_translations"].setdefault(step_index, {})
+            for name, (verts, k_nn, n) in planes.items():
+                t_bar = s * float(np.sum(k_nn * (lam[verts] @ n))) * n
+                store[name] = store.get(name, 0.0) + t_bar
         # parameters at the converged step
         if np.any(lam):
             self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha)
