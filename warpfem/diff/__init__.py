@@ -17,7 +17,8 @@ simulator's ``steps_per_frame``).
 Gradients (keys of :attr:`DiffResult.gradients`): ``youngs_modulus``, ``poisson_ratio``,
 ``density`` (scalars), ``element_stiffness_scale`` (m,), ``forces`` (n, 3: the model's constant
 applied forces), ``gravity`` (3,), ``initial_positions`` / ``initial_velocities`` (n, 3),
-``targets`` ({step: {vertex: (3,)}}: the kinematic handles' targets of each step).
+``targets`` ({step: {vertex: (3,)}}: the kinematic handles' targets of each step),
+``collider_translations`` ({step: {collider: (3,)}}: frictionless planes and spheres).
 """
 
 from __future__ import annotations

@@ -46,12 +46,12 @@ function theorem holds at the solution, not at an early-stopped iterate.
 * ``initial_positions``, ``initial_velocities`` (n, 3): the state the recording started from (and
   the integrator's history of that state, ``initial_history``).
 * ``targets``: {step index: {vertex: (3,)}}, the kinematic targets of fixed vertices (control).
-* ``collider_translations``: {step index: {collider name: (3,)}}, the translation of each plane's
-  pose at the step's end (frictionless planes with an explicit stiffness: the barrier's Hessian
-  kappa b''(d) n n^T is then exact, enters H, and d(grad E_c)/d(translation) = -that Hessian).
+* ``collider_translations``: {step index: {collider name: (3,)}}, the translation of each
+  collider's pose at the step's end (frictionless planes and spheres with an explicit stiffness:
+  the barrier's exact Hessian, curvature term included, enters H, and d(grad E_c)/d(translation)
+  = -that Hessian).
 
-Not supported (a clear ``NotImplementedError``): other colliders (spheres, boxes, meshes: their
-Hessian drops the curvature term), friction, a default (E- and mass-dependent) barrier stiffness,
+Not supported (a clear ``NotImplementedError``): boxes and mesh colliders, friction, a default (E- and mass-dependent) barrier stiffness,
 rotating planes; stiffness-proportional damping (K(x_n) is SPD-projected at the step's start: its
 derivative in x_n would need third derivatives), other simulators (stiffness warping, reduced).
 Fixed sets, loads and material must stay as they were during a recording.
@@ -95,14 +95,14 @@ def check_differentiable(sim):
     contact = getattr(sim, "contact", None)
     if contact is not None and len(contact):
         for c in contact.colliders:
-            why = ("only planes are supported" if getattr(c, "type_name", "") != "plane" else
+            why = ("only planes and spheres are supported" if getattr(c, "type_name", "") not in ("plane", "sphere") else
                    "friction must be 0" if c.friction != 0.0 else
                    "set its stiffness explicitly (the default follows E and the mass)" if c.stiffness is None else
-                   "rotating planes are not supported" if (c.rotation_axis is not None and c.rotation_angle != 0.0)
+                   "rotating colliders are not supported" if (c.rotation_axis is not None and c.rotation_angle != 0.0)
                    else "")
             if why:
                 raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): {why}; "
-                                          "differentiable contact is frictionless planes with a given stiffness")
+                                          "differentiable contact is frictionless planes and spheres with a given stiffness")
     if sim.damping_stiffness != 0.0:
         raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
                                   "supported: use damping_mass")
@@ -418,9 +418,10 @@ class StepAdjoint:
         return out
 
     def _add_contact_hessian(self, rec):
-        """Add the barrier's Hessian of every plane at x_{n+1} (poses at the step's end) into
-        self._K; returns {plane name: (vertices in range, kappa b''(d), world normal)} or None.
-        For a plane the barrier's Hessian kappa b''(d) n n^T is exact (the distance is linear)."""
+        """Add the barrier's exact Hessian of every collider at x_{n+1} (poses at the step's end)
+        into self._K; returns {collider name: (vertices in range, their 3x3 blocks)} or None.
+        Plane: kappa b''(d) n n^T (the distance is linear); sphere: plus kappa b'(d) (I - n n^T) / L,
+        the curvature term the forward's projected Hessian leaves out."""
         contact = getattr(self.sim, "contact", None)
         if contact is None or not len(contact):
             return None
@@ -431,17 +432,30 @@ class StepAdjoint:
         blocks = np.zeros((self.n, 3, 3))
         for j, c in enumerate(contact.colliders):
             R, trans = c.pose(t1)
-            n = R @ c.normal
-            d = (np.einsum("ij,vj->vi", R.T, xs - trans) - c.point) @ c.normal
+            p = np.einsum("ji,vj->vi", R, xs - trans)  # R^T (x - t): the collider's frame
+            if c.type_name == "plane":
+                d = (p - c.point) @ c.normal
+                nl = np.broadcast_to(c.normal, p.shape)
+                L = None
+            else:  # sphere (check_differentiable lets nothing else through)
+                r = p - c.center()
+                L = np.linalg.norm(r, axis=1)
+                d = L - c.radius
+                nl = r / np.where(L > 0, L, 1.0)[:, None]
             dh, kappa = float(contact.dhat[j]), float(contact.kappa[j])
             near = (d > 0.0) & (d < dh)
-            dd = d[near]
+            dd, n = d[near], nl[near] @ R.T
             t = dd - dh
-            b2 = -2.0 * np.log(dd / dh) - 4.0 * t / dd + t * t / (dd * dd)
-            k_nn = kappa * b2
+            lg = np.log(dd / dh)
+            b1 = -2.0 * t * lg - t * t / dd
+            b2 = -2.0 * lg - 4.0 * t / dd + t * t / (dd * dd)
+            nn = np.einsum("vi,vj->vij", n, n)
+            B = (kappa * b2)[:, None, None] * nn
+            if L is not None:
+                B = B + (kappa * b1 / L[near])[:, None, None] * (np.eye(3)[None] - nn)
             verts = surf[near]
-            blocks[verts] += k_nn[:, None, None] * np.outer(n, n)[None]
-            out[c.name] = (verts, k_nn, n)
+            np.add.at(blocks, verts, B)
+            out[c.name] = (verts, B)
         touched = np.flatnonzero(np.abs(blocks).sum(axis=(1, 2)) > 0)
         if len(touched):
             K = self._K.numpy()
@@ -514,8 +528,8 @@ class StepAdjoint:
         xn_bar[~tgt] += p_bar[~tgt]
         if planes is not None and np.any(lam):  # d(grad E_c)/d(translation) = -K_c: tbar = s K_c lambda per plane
             store = self.grads["collider_translations"].setdefault(step_index, {})
-            for name, (verts, k_nn, n) in planes.items():
-                t_bar = s * float(np.sum(k_nn * (lam[verts] @ n))) * n
+            for name, (verts, B) in planes.items():
+                t_bar = s * np.einsum("vij,vj->i", B, lam[verts])
                 store[name] = store.get(name, 0.0) + t_bar
         # parameters at the converged step
         if np.any(lam):
