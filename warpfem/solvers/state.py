@@ -289,11 +289,12 @@ class StepperBase(ControlledSimulator):
     def _run_step(self, state_in, state_out, control, dt, own=False):
         """``_step``, or, while a gradient recording (``step_recorder``) or a ``wp.Tape`` is
         active, the recorded step of :func:`warpfem.solvers.adjoint.recorded_step`."""
+        if getattr(self, "step_recorder", None) is None and active_tape() is None:
+            return self._step(state_in, state_out, control, dt)
+
         def run():
             return self._step(state_in, state_out, control, dt)
 
-        if getattr(self, "step_recorder", None) is None and active_tape() is None:
-            return run()
         return recorded_step(self, run, state_in, state_out, control, dt, own=own)
 
 
