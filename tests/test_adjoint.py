@@ -152,8 +152,8 @@ def test_unsupported_runs_say_so():
     with pytest.raises(NotImplementedError, match="only planes and spheres"):
         Recording(sim)
     sim = wf.Simulator(model, dt=0.01, linear_solver="pcg")
-    sim.add_collider(type="plane", point=(0.0, 0.0, -0.5), normal=(0.0, 0.0, 1.0), stiffness=1e4, friction=0.3)
-    with pytest.raises(NotImplementedError, match="friction"):
+    sim.add_collider(type="sphere", center=(0.0, 0.0, -1.0), radius=0.5, stiffness=1e4, friction=0.3)
+    with pytest.raises(NotImplementedError, match="friction is supported on planes only"):
         Recording(sim)
     with pytest.raises(ValueError, match="unknown parameter"):
         Recording(wf.Simulator(model, dt=0.01, linear_solver="pcg"), params=["youngs"])
@@ -354,3 +354,42 @@ def test_gradients_through_sphere_contact():
     assert abs(an - fd) <= 1e-5 * abs(fd), (an, fd)
     fd_E = (go(np.zeros(3), E=1e5 + 10.0) - go(np.zeros(3), E=1e5 - 10.0)) / 20.0
     assert abs(g["youngs_modulus"] - fd_E) <= 1e-5 * abs(fd_E), (g["youngs_modulus"], fd_E)
+
+
+@pytest.mark.parametrize("integrator", ["backward_euler", "bdf2", "newmark"])
+def test_gradients_through_plane_friction(integrator):
+    """The box thrown sideways onto a plane with Coulomb friction 0.4 (lagged from the step's start:
+    the normal force lam_n(x_n) and the collider's motion enter the reverse pass through x_n and
+    both poses): the plane's translation, the friction coefficient and v_0 against central
+    differences."""
+    v0 = np.tile([0.4, 0.1, -0.3], (N, 1))
+
+    def go(shift=np.zeros(3), mu=0.4, v=v0, grads=False):
+        model = wf.Model(MESH, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),
+                         gravity=(0.0, 0.0, -9.81))
+        sim = wf.Simulator(model, dt=0.01, integrator=integrator, **{**SOLVER, "tol": 1e-12, "max_iters": 100})
+        sim.set_velocities(v)
+        sim.add_collider(type="plane", point=tuple(np.array([0.0, 0.0, -0.012]) + shift), normal=(0.0, 0.0, 1.0),
+                         stiffness=1e4, dhat=0.01, friction=mu)
+        xs = [sim.positions()]
+        rec = Recording(sim)
+        with rec if grads else _null():
+            for _ in range(STEPS):
+                assert sim.step().converged
+                xs.append(sim.positions())
+        loss = float(sum(np.sum(w * x) for w, x in zip(WEIGHTS, xs)))
+        return (loss, rec.backward({k: WEIGHTS[k] for k in range(STEPS + 1)})) if grads else loss
+
+    _, g = go(grads=True)
+    d3, D = np.array([0.3, -0.2, 1.0]), RNG.standard_normal((N, 3))
+    assert g["collider_friction"]["plane"] != 0.0  # friction acts
+    cases = {"collider_translations": (sum(float(np.dot(t["plane"], d3)) for t in g["collider_translations"].values()),
+                                       lambda h: go(shift=h * d3), 3e-7),
+             "collider_friction": (g["collider_friction"]["plane"], lambda h: go(mu=0.4 + h), 1e-5),
+             "initial_velocities": (float(np.sum(g["initial_velocities"] * D)), lambda h: go(v=v0 + h * D), 1e-6)}
+    errors = {}
+    for name, (an, f, h) in cases.items():
+        fd = (f(h) - f(-h)) / (2 * h)
+        errors[name] = abs(an - fd) / abs(fd)
+    print(integrator, {k: f"{e:.1e}" for k, e in errors.items()})
+    assert max(errors.values()) <= 1e-5, errors

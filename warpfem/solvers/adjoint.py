@@ -47,11 +47,15 @@ function theorem holds at the solution, not at an early-stopped iterate.
   the integrator's history of that state, ``initial_history``).
 * ``targets``: {step index: {vertex: (3,)}}, the kinematic targets of fixed vertices (control).
 * ``collider_translations``: {step index: {collider name: (3,)}}, the translation of each
-  collider's pose at the step's end (frictionless planes and spheres with an explicit stiffness:
-  the barrier's exact Hessian, curvature term included, enters H, and d(grad E_c)/d(translation)
-  = -that Hessian).
+  collider's pose at the end of that step (key -1: at the recording's start; planes and spheres
+  with an explicit stiffness: the barrier's exact Hessian, curvature term included, enters H, and
+  d(grad E_c)/d(translation) = -that Hessian);
+* ``collider_friction``: {collider name: float}, the Coulomb coefficient of each plane. Friction
+  (planes) is lagged from the step's start: D = mu lam_n f0(|u|), u = P (x - x_n - w) with
+  lam_n = -kappa b'(d(x_n)) and w the plane's motion over the step, so its adjoint adds its exact
+  Hessian to H and terms in x_n, both poses and mu.
 
-Not supported (a clear ``NotImplementedError``): boxes and mesh colliders, friction, a default (E- and mass-dependent) barrier stiffness,
+Not supported (a clear ``NotImplementedError``): boxes and mesh colliders, friction on spheres, a default (E- and mass-dependent) barrier stiffness,
 rotating planes; stiffness-proportional damping (K(x_n) is SPD-projected at the step's start: its
 derivative in x_n would need third derivatives), other simulators (stiffness warping, reduced).
 Fixed sets, loads and material must stay as they were during a recording.
@@ -76,7 +80,7 @@ __all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_eleme
 
 #: the parameter names the adjoint can differentiate
 PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_scale", "forces", "gravity",
-              "initial_positions", "initial_velocities", "targets", "collider_translations")
+              "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_friction")
 
 _KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
 
@@ -96,7 +100,7 @@ def check_differentiable(sim):
     if contact is not None and len(contact):
         for c in contact.colliders:
             why = ("only planes and spheres are supported" if getattr(c, "type_name", "") not in ("plane", "sphere") else
-                   "friction must be 0" if c.friction != 0.0 else
+                   "friction is supported on planes only" if (c.friction != 0.0 and c.type_name != "plane") else
                    "set its stiffness explicitly (the default follows E and the mass)" if c.stiffness is None else
                    "rotating colliders are not supported" if (c.rotation_axis is not None and c.rotation_angle != 0.0)
                    else "")
@@ -256,7 +260,7 @@ class StepAdjoint:
         self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": 0.0, "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
-                      "targets": {}, "collider_translations": {}}
+                      "targets": {}, "collider_translations": {}, "collider_friction": {}}
 
     def parameter_gradients(self) -> dict:
         """The accumulated gradients by parameter name (numpy; see the module docstring)."""
@@ -455,7 +459,10 @@ class StepAdjoint:
                 B = B + (kappa * b1 / L[near])[:, None, None] * (np.eye(3)[None] - nn)
             verts = surf[near]
             np.add.at(blocks, verts, B)
-            out[c.name] = (verts, B)
+            fr = self._plane_friction(rec, c, j, surf, R, trans) if c.friction != 0.0 else None
+            if fr is not None:
+                np.add.at(blocks, fr[0], fr[1])
+            out[c.name] = (verts, B, fr)
         touched = np.flatnonzero(np.abs(blocks).sum(axis=(1, 2)) > 0)
         if len(touched):
             K = self._K.numpy()
@@ -463,6 +470,41 @@ class StepAdjoint:
             K[diag[touched]] += blocks[touched].astype(K.dtype)
             self._K.assign(K)
         return out
+
+    def _plane_friction(self, rec, c, j, surf, R, trans):
+        """Lagged friction of a plane (translating, R = I): D = mu lam_n f0(|u|), u = P (x - x_n - w),
+        lam_n = -kappa b'(d(x_n)) at the step's end pose, w = t1 - t0. Returns (vertices, the
+        exact Hessian blocks d2D/dx2, f1 u, mu kappa b''(d_n), lam_n, u) of the pairs with
+        lam_n > 0, or None."""
+        contact = self.sim.contact
+        dh, kappa, mu = float(contact.dhat[j]), float(contact.kappa[j]), float(c.friction)
+        eps = float(contact.epsv[j]) * rec.dt
+        n = c.normal
+        xn = rec.x[surf]
+        dn = (xn - trans - c.point) @ n
+        act = (dn > 0.0) & (dn < dh)
+        if not np.any(act):
+            return None
+        dd = dn[act]
+        t = dd - dh
+        lg = np.log(dd / dh)
+        b1 = -2.0 * t * lg - t * t / dd
+        b2 = -2.0 * lg - 4.0 * t / dd + t * t / (dd * dd)
+        lam_n = -kappa * b1
+        _, t0 = c.pose(rec.t0)
+        w = trans - t0
+        P = np.eye(3) - np.outer(n, n)
+        verts = surf[act]
+        u = (rec.x_next[verts] - rec.x[verts] - w) @ P
+        yv = np.linalg.norm(u, axis=1)
+        big = yv >= eps
+        f1 = np.where(big, 1.0 / np.where(yv > 0, yv, 1.0), 2.0 / eps - yv / (eps * eps))
+        f1p_over_y = np.where(big, -1.0 / np.where(yv > 0, yv, 1.0) ** 3,
+                              -1.0 / (eps * eps * np.where(yv > 0, yv, 1.0)))
+        f1p_over_y = np.where(yv > 0, f1p_over_y, 0.0)
+        cc = mu * lam_n
+        Hf = cc[:, None, None] * (f1[:, None, None] * P[None] + f1p_over_y[:, None, None] * np.einsum("vi,vj->vij", u, u))
+        return verts, Hf, f1[:, None] * u, mu * kappa * b2, lam_n, u
 
     def _mat_type(self):
         return wp.mat33d if self.sim.precision == "float64" else wp.mat33
@@ -528,8 +570,21 @@ class StepAdjoint:
         xn_bar[~tgt] += p_bar[~tgt]
         if planes is not None and np.any(lam):  # d(grad E_c)/d(translation) = -K_c: tbar = s K_c lambda per plane
             store = self.grads["collider_translations"].setdefault(step_index, {})
-            for name, (verts, B) in planes.items():
+            for ci, (name, (verts, B, fr)) in enumerate(planes.items()):
                 t_bar = s * np.einsum("vij,vj->i", B, lam[verts])
+                if fr is not None:  # lagged friction: through lam_n(x_n; t1), u(x_n, w = t1 - t0)
+                    fv, Hf, f1u, mkb2, lam_n, u = fr
+                    n = self.sim.contact.colliders[ci].normal
+                    Hl = np.einsum("vij,vj->vi", Hf, lam[fv])
+                    coef = mkb2 * np.einsum("vi,vi->v", f1u, lam[fv])
+                    # x_n explicitly: -s lambda^T d(grad D)/dx_n, d(grad D)/dx_n = -Hf - mu kappa b''(d_n) f1 u n^T
+                    np.add.at(xn_bar, fv, s * Hl + s * coef[:, None] * n[None])
+                    t_bar = t_bar + s * Hl.sum(axis=0) - s * coef.sum() * n  # the end pose (t1)
+                    start = self.grads["collider_translations"].setdefault(
+                        -1 if step_index is None else step_index - 1, {})
+                    start[name] = start.get(name, 0.0) - s * Hl.sum(axis=0)  # the start pose (t0): u has +t0
+                    fb = self.grads["collider_friction"]
+                    fb[name] = fb.get(name, 0.0) - s * float(np.sum(lam_n * np.einsum("vi,vi->v", f1u, lam[fv])))
                 store[name] = store.get(name, 0.0) + t_bar
         # parameters at the converged step
         if np.any(lam):
