@@ -52,10 +52,14 @@ def _cmd_fit(args) -> int:
             shown = ", ".join(f"{p} = {v:.6g}" for p, v in vals.items())
             print(f"iteration {k}: loss {loss:.6e} m^2, {shown}", flush=True)
 
+    def stage(frames, total):
+        if not args.quiet:
+            print(f"fitting frames 1-{frames} of {total}" + (" (all)" if frames == total else ""), flush=True)
+
     try:
         res = fit(scene, observed, args.params, vertices=vertices, bounds=bounds, max_iterations=args.max_iterations,
                   device=args.device, precision=args.precision, newton_tol=args.newton_tol, progress=progress,
-                  run_frames=args.frames)
+                  run_frames=args.frames, stage_progress=stage)
     except (DiffInputError, SceneError) as e:
         _cli.error(f"{args.scene}: {str(e).splitlines()[0]}")
         return _cli.EXIT_INVALID

@@ -103,7 +103,7 @@ def _check_params(params):
 
 def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices=None, frames=None, bounds=None,
         initial=None, max_iterations=50, device="cpu", precision="float64", newton_tol=1e-10, gtol=1e-9,
-        progress=None, run_frames=None, stages=None, first_stage_frames=5) -> FitResult:
+        progress=None, run_frames=None, stages=None, first_stage_frames=5, stage_progress=None) -> FitResult:
     """Fit ``params`` of ``scene`` (path or Scene) to ``observed`` (frames, n or k, 3) positions.
 
     ``bounds``: name -> (lo, hi) (default :data:`DEFAULT_BOUNDS`); ``initial``: name -> start
@@ -113,7 +113,8 @@ def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices
     of the frames starting where the last one ended (the loss of a long oscillating trajectory has
     many local minima in E and density; on a short prefix it has one): None (default) doubles the
     prefix from ``first_stage_frames`` (5, 10, 20, ..., all frames); an int k takes k equal
-    steps; 1 fits all frames at once."""
+    steps; 1 fits all frames at once. ``stage_progress(frames, total)`` at the start of each stage
+    (the losses ``progress`` reports are those of the stage's frames)."""
     from scipy.optimize import minimize
 
     from warpfem.diff import SceneProblem
@@ -188,6 +189,8 @@ def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices
     history.append(whole(z)[2])  # the loss over every frame: at the start, after each stage, per last-stage iteration
     for last in lasts:
         evaluate = whole if last == lasts[-1] else make_eval(last)
+        if stage_progress is not None:
+            stage_progress(last, F - 1)
 
         def callback(zk, evaluate=evaluate, last=last):
             it[0] += 1
