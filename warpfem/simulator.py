@@ -258,6 +258,12 @@ class Simulator(SimulatorBase):
         return self._points
 
     @property
+    def quadrature_sets(self):
+        """The quadrature-point sets the element kernels run over (:class:`QuadratureSet`: the main
+        set first, then the one-point volumetric set of selective reduced integration)."""
+        return list(self._qp_sets)
+
+    @property
     def material_params(self):
         """The material as the kernels take it (``kernels.structs.MaterialParams``: kind, kernel mu, lam)."""
         return self._material

@@ -41,6 +41,7 @@ import warp as wp
 
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
+from warpfem.solvers.adjoint import active_tape, recorded_step
 
 __all__ = ["newton_options_from", "SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
 
@@ -297,12 +298,17 @@ class StepperBase(ControlledSimulator):
     def time(self, value):
         self.state.time = float(value)
 
-    def new_state(self) -> State:
+    def new_state(self, requires_grad=False) -> State:
         """A copy of the current state (its own buffers and history): an input or output of
-        ``step(state_in, state_out, control, dt)``."""
+        ``step(state_in, state_out, control, dt)``. ``requires_grad``: positions and velocities
+        with gradient arrays, for steps recorded on a ``wp.Tape`` (docs/gradients.md)."""
         c = self.ops.clone
         st = self.state
-        return State(c(st.x), c(st.v), {k: c(v) for k, v in st.history.items()}, st.time)
+        if requires_grad:
+            x, v = wp.clone(st.x, requires_grad=True), wp.clone(st.v, requires_grad=True)
+        else:
+            x, v = c(st.x), c(st.v)
+        return State(x, v, {k: c(v) for k, v in st.history.items()}, st.time)
 
     def _state_changed(self):
         """The state was set from outside: time integrators restart their history (BDF2 takes a
@@ -338,15 +344,26 @@ class StepperBase(ControlledSimulator):
             if state_out is not None:
                 raise TypeError("step(): give both state_in and state_out, or neither")
             own_in, own_out = self._own_states()
-            stats = self._step(own_in, own_out, self.control, self.dt if dt is None else float(dt))
+            stats = self._run_step(own_in, own_out, self.control, self.dt if dt is None else float(dt), own=True)
             self._commit(own_out)
             self.control.targets.clear()
             self.step_count += 1
             return stats
         if state_out is None or state_out is state_in:
             raise ValueError("step(state_in, state_out, ...) needs a distinct output state (see new_state())")
-        return self._step(state_in, state_out, Control() if control is None else control,
-                          self.dt if dt is None else float(dt))
+        return self._run_step(state_in, state_out, Control() if control is None else control,
+                              self.dt if dt is None else float(dt))
+
+    def _run_step(self, state_in, state_out, control, dt, own=False):
+        """``_step``, or, while a gradient recording (``step_recorder``) or a ``wp.Tape`` is
+        active, the recorded step of :func:`warpfem.solvers.adjoint.recorded_step`."""
+        if getattr(self, "step_recorder", None) is None and active_tape() is None:
+            return self._step(state_in, state_out, control, dt)
+
+        def run():
+            return self._step(state_in, state_out, control, dt)
+
+        return recorded_step(self, run, state_in, state_out, control, dt, own=own)
 
     def _finish(self, stats, t0, what, *, finite=True, stacklevel=5):
         """The end of every simulator's solve: its time, then :func:`check_solve` (raises before the
