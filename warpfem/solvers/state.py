@@ -308,7 +308,7 @@ class StepperBase(ControlledSimulator):
             x, v = wp.clone(st.x, requires_grad=True), wp.clone(st.v, requires_grad=True)
         else:
             x, v = c(st.x), c(st.v)
-        return State(x, v, {k: c(v) for k, v in st.history.items()}, st.time)
+        return State(x, v, {k: c(h) for k, h in st.history.items()}, st.time)
 
     def _state_changed(self):
         """The state was set from outside: time integrators restart their history (BDF2 takes a
