@@ -12,6 +12,10 @@ Cases (backward Euler, float64, default tolerances tol 1e-6 / cg_tol 1e-4 unless
 * ``squeeze``: the beam of tests/test_projection_on_demand.py (1 x 0.2 x 0.2 m, 144 tets, both ends
   held, the right end pushed 25 % in and 5 cm sideways over the run), dt 1/60 and dt 1 s (nearly
   quasi-static: it buckles and the exact Hessian is indefinite);
+* ``bunny_fine``: examples/meshes/bunny.off tetrahedralised at ``max_edge_length = 0.004`` (TetGen,
+  the ``mesh`` extra: 189,851 tets, 34,948 vertices, a scanned-statue-sized mesh), E 5e4, nu 0.4,
+  base fixed, no damping, dt 1/24, multigrid unless ``--solver`` says otherwise (not in the default
+  list: about a minute per step and mode here);
 * ``twist``: the static two-turn twist of a bar clamped at both ends (kernels_bench/stability_cases.py
   ``clamped_bar``, 16 x 2 x 2 cells, 8 load steps).
 
@@ -63,6 +67,16 @@ def _bunny(dt, solver, mode):
     return run.sim, advance
 
 
+def _bunny_fine(solver, mode):
+    mesh = wf.load_mesh(os.path.join(ROOT, "examples", "meshes", "bunny.off"), max_edge_length=0.004)
+    mat = wf.make_material("stable_neo_hookean", youngs_modulus=5e4, poisson_ratio=0.4, density=1000.0)
+    model = wf.Model(mesh, mat, gravity=(0.0, -9.81, 0.0))
+    model.fix(wf.select_vertices_in_box(mesh, (-1, -1, -1), (1, 0.038, 1)))
+    sim = wf.Simulator(model, dt=1.0 / 24.0, linear_solver="multigrid" if solver == "auto" else solver,
+                       hessian_projection=mode)
+    return sim, lambda k: sim.step()
+
+
 def _squeeze(dt, solver, mode, steps):
     mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=(6, 2, 2))
     model = wf.Model(mesh, wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.4, density=1000.0))
@@ -112,6 +126,8 @@ def build(case, solver, mode, steps):
         return _bunny(1.0 / 60.0, solver, mode)
     if case == "bunny24":
         return _bunny(1.0 / 24.0, solver, mode)
+    if case == "bunny_fine":
+        return _bunny_fine(solver, mode)
     if case == "squeeze":
         return _squeeze(1.0 / 60.0, solver, mode, steps)
     if case == "squeeze_dt1":
