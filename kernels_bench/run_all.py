@@ -91,6 +91,9 @@ def plan(args, out: Path):
     j = out / "solver_overhead.json"
     P.append(("solver-overhead", py + [str(HERE / "bench_solver_overhead.py"), *dev, "--json", str(j)]
               + (["--steps", "10"] if q else []), j, None))
+    j = out / "adjoint.json"
+    P.append(("adjoint", py + [str(HERE / "bench_adjoint.py"), *dev, "--json", str(j)]
+              + (["--steps", "5", "--integrators", "backward_euler"] if q else []), j, None))
     j, m = out / "scale.json", out / "scale.md"
     P.append(("scale", py + [str(HERE / "bench_scale.py"), *dev, "--out", str(out / "scale")]
               + (["--quick"] if q else ["--bunny"]), j, m))

@@ -12,27 +12,9 @@ import pytest
 from warpfem.cli import main
 from warpfem.io import read_usd_mesh_frames, usd_validation_errors
 
-SCENE = """
-gravity = [0.0, -9.81, 0.0]
-[mesh]
-generator = "box"
-size = [1.0, 0.2, 0.2]
-cells = [4, 1, 1]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-[[fixed]]
-box_min = [-1.0, -1.0, -1.0]
-box_max = [0.0, 1.0, 1.0]
-[integrator]
-type = "backward_euler"
-dt = 0.025
-[output]
-fps = 20
-frames = 5
-states = "{states}"
-"""
+from tiny_scenes import cli_beam_toml
+
+SCENE = cli_beam_toml(frames=5) + 'states = "{states}"\n'
 
 SURFACE_OBJ = "v 0.2 0.05 0.05\nv 0.9 0.05 0.05\nv 0.9 0.15 0.05\nv 0.5 0.1 0.15\nf 1 2 3\nf 1 2 4\nf 2 3 4\nf 3 1 4\n"
 

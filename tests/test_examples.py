@@ -133,3 +133,17 @@ def test_tradeoff_example_frontier(tmp_path):
     assert r[res["chosen"]].tip_error <= 0.05
     times, pts = _frames(stage, "boundary")
     assert times == [0.0, 1.0, 2.0] and pts[0].shape == (res["surface_points"], 3)
+
+
+def test_control_example_steers_the_tip_to_its_target(tmp_path):
+    res = _load("control_handle").main(["--device", "cpu", "--num-frames", "4", "--iterations", "12", "--headless",
+                                         "--stage-path", str(tmp_path / "control.usda")])
+    assert res["miss_after"] < 0.05 * res["miss_before"], res
+    assert res["loss_history"][-1] < 1e-2 * res["loss_history"][0]
+    times, pts = _frames(tmp_path / "control.usda", "beam")
+    assert times == [0.0, 1.0, 2.0, 3.0, 4.0]
+
+
+def test_fit_example_recovers_the_material(tmp_path):
+    res = _load("fit_material").main(["--device", "cpu", "--num-frames", "6", "--headless", "--stage-path", "None"])
+    assert abs(res["youngs_modulus"] / 1.0e5 - 1.0) < 0.005 and abs(res["poisson_ratio"] - 0.12) < 0.005, res

@@ -18,33 +18,15 @@ from warpfem.cli import main
 from warpfem.io.outputs import OutputPathError, check_output_paths, output_path_problem
 from warpfem.progress import COMPILING_NOTICE, CompileWatch, Progress
 
+from tiny_scenes import cli_beam_toml
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-SCENE = """
-gravity = [0.0, -9.81, 0.0]
-[mesh]
-generator = "box"
-size = [1.0, 0.2, 0.2]
-cells = [4, 1, 1]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-[[fixed]]
-box_min = [-1.0, -1.0, -1.0]
-box_max = [0.0, 1.0, 1.0]
-[integrator]
-type = "backward_euler"
-dt = 0.025
-[output]
-fps = 20
-frames = {frames}
-"""
 
 
 def scene_file(tmp_path, extra="", frames=2, name="s.toml"):
     p = tmp_path / name
-    p.write_text(textwrap.dedent(SCENE.format(frames=frames)) + textwrap.dedent(extra))
+    p.write_text(textwrap.dedent(cli_beam_toml(frames=frames)) + textwrap.dedent(extra))
     return str(p)
 
 
@@ -221,7 +203,7 @@ def test_describe_prints_the_tetrahedralisation_once_and_quiet_drops_the_cache_l
     pytest.importorskip("tetgen")
     monkeypatch.setenv("WARPFEM_CACHE_DIR", str(tmp_path / "cache"))
     (tmp_path / "cube.obj").write_text(CUBE_OBJ)
-    text = textwrap.dedent(SCENE.format(frames=1)).replace(
+    text = textwrap.dedent(cli_beam_toml(frames=1)).replace(
         'generator = "box"\nsize = [1.0, 0.2, 0.2]\ncells = [4, 1, 1]', 'path = "cube.obj"')
     scene = tmp_path / "cube.toml"
     scene.write_text(text)

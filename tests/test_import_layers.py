@@ -37,6 +37,7 @@ LAYERS = {
     "warpfem.reduced.cli": 6,
     "warpfem.scenes": 6,
     "warpfem.tradeoff": 6,
+    "warpfem.diff": 6,
     "warpfem.cli": 6,
     "warpfem.__main__": 7,
 }

@@ -21,6 +21,8 @@ ALLOWED = {
                                                                    "guarded, falls back to the plain launch"),
     ("kernels/generic.py", "cmd.kernel._invoke_cache"): (1, "Warp's CPU entry-point cache (version-pinned direct call)"),
     ("solvers/linear/direct.py", "self.ps._call_pardiso"): (1, "pypardiso has no public call for a chosen phase"),
+    ("solvers/adjoint.py", "wp._src"): (1, "Warp's runtime holds the active wp.Tape: no public call says whether a "
+                                           "tape records or pauses it (steps on a tape record their own backward)"),
     ("tradeoff/cluster.py", "os._exit"): (1, "the standard library's exit without clean-up (a public function)"),
 }
 
@@ -54,7 +56,7 @@ def test_no_module_reads_private_attributes_of_other_objects():
                        f"ALLOWED): {sorted(extra.items())}")
     stale = {k for k, (c, _) in ALLOWED.items() if found.get(k, 0) < c}
     assert not stale, f"ALLOWED lists reach-ins that are gone (shrink the list): {sorted(stale)}"
-    assert sum(found.values()) <= 5
+    assert sum(found.values()) <= 6
 
 
 def test_the_checker_sees_a_reach_in():

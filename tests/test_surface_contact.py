@@ -364,3 +364,23 @@ def test_scene_contact_table_sets_the_simulator_and_is_validated(tmp_path):
             _scene(tmp_path, text)
     with pytest.raises(SceneError, match=r"\[contact\].*full-space dynamic integrator"):
         _scene(tmp_path, "[contact]\nself = true\n", integrator="static")
+
+
+def test_bodies_of_a_multi_body_model_collide_without_intersecting():
+    """Model.from_bodies: two bodies (groups from body_offsets), contact on by default."""
+    from warpfem.model import Body
+
+    mat = make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    cube = box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(2, 2, 2))
+    m = Model.from_bodies([Body(cube, mat, name="low"),
+                           Body(cube, mat, name="high", offset=(0.02, 0.12, 0.01), initial_velocity=(0.0, -1.0, 0.0))])
+    sim = Simulator(m, dt=0.01, integrator="newmark", tol=1e-8, max_iters=100)
+    sc = sim.set_contact()
+    assert sc.bodies and sc.surface.num_groups == 2
+    F = np.asarray(m.mesh.boundary_faces())
+    cm = ipctk.CollisionMesh(np.asarray(m.rest_positions, dtype=np.float64), ipctk.edges(F), F)
+    for _ in range(5):
+        assert sim.step().converged
+        assert not ipctk.has_intersections(cm, np.asfortranarray(sim.positions()))
+    lo = slice(int(m.body_offsets[0]), int(m.body_offsets[1]))
+    assert sim.velocities()[lo, 1].mean() < -0.2  # the lower body was hit

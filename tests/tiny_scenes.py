@@ -1,6 +1,32 @@
 """Small scene files shared by the tests: a 1 m clamped beam of a few Tet4 cells (trade-off tests)
 and an 8 m clamped beam of 8 cells with an optional handle at its free end (reduced-run tests: as a
-scene file, as a Python model, and the runners that step them)."""
+scene file, as a Python model, and the runners that step them); and the 4-cell command-line beam of
+the CLI and first-hour tests."""
+
+
+def cli_beam_toml(*, frames: int = 5) -> str:
+    """The command-line tests' beam: 1 m x 0.2 m x 0.2 m, 4 x 1 x 1 Tet4 cells, E 1e5, clamped at
+    x = 0, gravity along -y, backward Euler at dt 0.025, 20 fps, ``frames`` frames (no states file)."""
+    return f"""
+gravity = [0.0, -9.81, 0.0]
+[mesh]
+generator = "box"
+size = [1.0, 0.2, 0.2]
+cells = [4, 1, 1]
+[material]
+model = "stable_neo_hookean"
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+[[fixed]]
+box_min = [-1.0, -1.0, -1.0]
+box_max = [0.0, 1.0, 1.0]
+[integrator]
+type = "backward_euler"
+dt = 0.025
+[output]
+fps = 20
+frames = {frames}
+"""
 
 
 def tiny_beam_toml(name: str = "tiny_beam", *, cells: int = 4, frames: int = 2) -> str:

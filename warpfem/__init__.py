@@ -30,7 +30,7 @@ from warpfem.materials import (  # noqa: E402
 from warpfem.mesh import (ElementMesh, MeshError, TetMesh, VolumeMesh, box_hex_mesh, box_tet_mesh,
                           embed_points_in_elements, load_element_mesh, load_mesh, save_element_mesh, save_mesh,
                           select_vertices_in_box, tet10_from_tet4)
-from warpfem.model import Model
+from warpfem.model import Body, Model
 from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
 from warpfem.simulator import Simulator
 from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats
@@ -56,6 +56,7 @@ __all__ = [
     "LinearElastic",
     "MeshError",
     "Model",
+    "Body",
     "NewtonOptions",
     "Simulator",
     "State",

@@ -320,6 +320,7 @@ COMMANDS = {
     "train": "warpfem.reduced.cli:register",
     "tradeoff": "warpfem.tradeoff.cli:register",
     "tune": "warpfem.tradeoff.cli:register_tune",
+    "fit": "warpfem.diff.cli:register",
 }
 
 # Names kept for modules written against the earlier API (subcommands registered on import).

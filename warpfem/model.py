@@ -122,6 +122,13 @@ class Model:
         self.gravity_mass = np.asarray(self.mass.sum(axis=1), dtype=np.float64).ravel()
         self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
         self.forces = np.zeros((self.num_vertices, 3))
+        # one body: the multi-body view of it (Model.from_bodies fills these for several)
+        self.bodies = []
+        self.body_names = [getattr(mesh, "name", None) or "body"]
+        self.body_offsets = np.array([0, self.num_vertices], dtype=np.int64)
+        self.quadratures = [self.quadrature]
+        self.materials = [material]
+        self.body_volumetric_parameters = [self.volumetric_parameters]
 
     # -- rest state -----------------------------------------------------------------------------
     @property
@@ -162,8 +169,15 @@ class Model:
         component: the null space of the 6 rigid modes restricted to the fixed rows. Pure
         translations are named by their direction; every other free motion as a rotation about
         an axis through a point (p = c + w x t / |w|^2), plus its slide along the axis if any.
-        A static solve of such a model is singular (no mass term holds the motion).
+        A static solve of such a model is singular (no mass term holds the motion). Several
+        bodies: each body's free motions, prefixed by its name.
         """
+        if len(self.bodies) > 1:
+            out = []
+            for name, part, lo, hi in zip(self.body_names, self.body_models, self.body_offsets[:-1], self.body_offsets[1:]):
+                part.fixed = self.fixed[lo:hi]
+                out += [f"{name}: {m}" for m in part.free_rigid_motions()]
+            return out
         X = self.rest_positions
         c = X.mean(axis=0)
         L = float(np.linalg.norm(np.ptp(X, axis=0))) or 1.0
@@ -213,3 +227,232 @@ class Model:
         if f.shape != (3,) or not np.all(np.isfinite(f)):
             raise ValueError(f"force must be 3 finite numbers, got {force!r}")
         np.add.at(self.forces, self.indices(indices), f)
+
+
+    # -- several bodies (Model.from_bodies) -------------------------------------------------------
+    @classmethod
+    def from_bodies(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped",
+                    check_overlap: bool = True) -> "Model":
+        """A model of several bodies (:class:`Body`: mesh, material, name, offset, initial velocity),
+        simulated together by one simulator.
+
+        One vertex space: the bodies' vertices concatenated in body order (``body_offsets``: the
+        first vertex of each body, then the total); ``rest_positions``, ``fixed``, ``forces``,
+        ``lumped_mass`` and the (block-diagonal) ``mass`` are global, ``quadratures`` holds one
+        quadrature set per body (its element type, connectivity in global indices) and
+        ``materials`` one material per body, so each body keeps its own element type and material.
+        ``mesh`` is a :class:`BodiesMesh` (the bodies' boundary triangles in global indices, the
+        body of each vertex); :meth:`body_vertices` maps a body's own vertex indices to global
+        ones. ``gravity`` and ``mass_matrix`` apply to every body. Bodies interact only through
+        contact forms; without them each moves exactly as it would alone.
+
+        Bodies that overlap at the start (boundary surfaces crossing, or one inside another) are
+        refused with :class:`warpfem.mesh.intersect.BodyOverlapError` naming the two bodies and the
+        first crossing (an edge of one through a triangle of the other, with positions);
+        ``check_overlap=False`` skips the test (``warpfem.mesh.intersect.first_body_overlap``).
+        """
+        return _from_bodies(cls, bodies, gravity=gravity, mass_matrix=mass_matrix, check_overlap=check_overlap)
+
+    @property
+    def num_bodies(self) -> int:
+        """How many bodies the model holds (1 for a single-mesh model)."""
+        return max(1, len(self.bodies))
+
+    def body_index(self, body) -> int:
+        """The index of ``body`` (its name, index or :class:`Body`); KeyError naming the bodies."""
+        names = self.body_names
+        if isinstance(body, Body):
+            body = body.name
+        if isinstance(body, (int, np.integer)) and not isinstance(body, bool):
+            if 0 <= int(body) < len(names):
+                return int(body)
+            raise KeyError(f"body index {body} out of range [0, {len(names)})")
+        if body in names:
+            return names.index(body)
+        raise KeyError(f"no body {body!r}; bodies: {', '.join(names)}")
+
+    def body_vertices(self, body, indices=None) -> np.ndarray:
+        """Global vertex indices of ``body``'s own vertex ``indices`` (default: all its vertices)."""
+        b = self.body_index(body)
+        lo, hi = int(self.body_offsets[b]), int(self.body_offsets[b + 1])
+        if indices is None:
+            return np.arange(lo, hi, dtype=np.int64)
+        idx = np.atleast_1d(np.asarray(indices))
+        if idx.size and idx.dtype.kind not in "iu":
+            raise TypeError(f"vertex indices must be integers, got dtype {idx.dtype}")
+        idx = idx.astype(np.int64).ravel()
+        bad = idx[(idx < 0) | (idx >= hi - lo)]
+        if bad.size:
+            raise IndexError(f"body {self.body_names[b]!r}: vertex index {int(bad[0])} out of range [0, {hi - lo})")
+        return idx + lo
+
+    def vertex_bodies(self) -> np.ndarray:
+        """(n,) the body index of each vertex (all 0 for a single-mesh model)."""
+        return np.repeat(np.arange(len(self.body_offsets) - 1), np.diff(self.body_offsets))
+
+    def boundary_edges(self) -> np.ndarray:
+        """(e, 2) unique edges (i < j) of the boundary triangles ``mesh.boundary_faces()`` (every
+        body's, global vertex indices); with :meth:`vertex_bodies` what a body-body contact needs."""
+        f = np.asarray(self.mesh.boundary_faces(), dtype=np.int64)
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        return np.unique(e, axis=0)
+
+    def initial_velocities(self):
+        """(n, 3) velocities at t = 0 (the bodies' ``initial_velocity``), or None when all are zero."""
+        if not self.bodies or not any(np.any(b.initial_velocity != 0.0) for b in self.bodies):
+            return None
+        return np.repeat(np.stack([b.initial_velocity for b in self.bodies]), np.diff(self.body_offsets), axis=0)
+
+# ----------------------------------------------------------------------------- several bodies
+class Body:
+    """One deformable body of a multi-body :class:`Model` (``Model.from_bodies``).
+
+    Args:
+        mesh: its volume mesh (any element type; ``warpfem.mesh.VolumeMesh``), positions in m.
+        material: its material (``warpfem.materials``; its own density).
+        name: a name (USD prim, ParaView block and messages); default ``body<i>`` (1-based).
+        offset: (3,) translation (m) applied to the mesh's vertices: the body's rest positions
+            are ``mesh.vertices + offset`` (``Body.mesh`` is the moved mesh).
+        initial_velocity: (3,) velocity (m/s) of every vertex at t = 0.
+        volumetric_integration: "full" or "reduced" (Hex8), as for :class:`Model`.
+        mass_matrix: "lumped" or "consistent" for this body (default: the model's).
+    """
+
+    def __init__(self, mesh, material, *, name=None, offset=(0.0, 0.0, 0.0), initial_velocity=(0.0, 0.0, 0.0),
+                 volumetric_integration: str = "full", mass_matrix: str | None = None):
+        off = np.asarray(offset, dtype=np.float64)
+        v0 = np.asarray(initial_velocity, dtype=np.float64)
+        for what, v, raw in (("offset", off, offset), ("initial_velocity", v0, initial_velocity)):
+            if v.shape != (3,) or not np.all(np.isfinite(v)):
+                raise ValueError(f"body {name or ''}: {what} must be 3 finite numbers, got {raw!r}".replace("body : ", "body: "))
+        if name is not None and (not isinstance(name, str) or not name):
+            raise ValueError(f"body name must be a non-empty string, got {name!r}")
+        if np.any(off != 0.0):
+            from warpfem.mesh import VolumeMesh
+
+            mesh = VolumeMesh(np.asarray(mesh.vertices, dtype=np.float64) + off, np.asarray(mesh.elements),
+                              mesh.element_type, reorient=False, remove_unreferenced=False,
+                              name=getattr(mesh, "name", None))
+        self.mesh, self.material, self.name = mesh, material, name
+        self.offset, self.initial_velocity = off, v0
+        self.volumetric_integration = volumetric_integration
+        self.mass_matrix = mass_matrix
+
+    def __repr__(self):
+        return (f"Body({self.name!r}, {getattr(self.mesh, 'element_type', '?')}, {self.mesh.num_vertices} vertices, "
+                f"{type(self.material).__name__})")
+
+
+class BodiesMesh:
+    """The bodies of a multi-body :class:`Model` seen as one point set (``Model.mesh``): vertices
+    concatenated in body order, boundary triangles with global vertex indices (each body's own
+    ``boundary_faces()``, shifted by its first vertex), and which body each vertex and triangle
+    belongs to. No element connectivity: the bodies' element types may differ (``meshes``)."""
+
+    def __init__(self, meshes, offsets, names):
+        self.meshes, self.body_offsets, self.names = list(meshes), np.asarray(offsets, dtype=np.int64), list(names)
+        self.vertices = np.concatenate([np.asarray(m.vertices, dtype=np.float64) for m in self.meshes])
+        self.name = "+".join(self.names)
+        self._faces = None
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.body_offsets[-1])
+
+    @property
+    def num_elements(self) -> int:
+        return int(sum(m.num_elements for m in self.meshes))
+
+    @property
+    def element_types(self) -> list:
+        return [m.element_type for m in self.meshes]
+
+    def bounds(self):
+        return self.vertices.min(axis=0), self.vertices.max(axis=0)
+
+    def total_volume(self) -> float:
+        return float(sum(m.total_volume() for m in self.meshes))
+
+    def boundary_faces(self) -> np.ndarray:
+        """(f, 3) outward boundary triangles of every body, global vertex indices, in body order."""
+        if self._faces is None:
+            self._faces = np.concatenate([np.asarray(m.boundary_faces(), dtype=np.int64) + o
+                                          for m, o in zip(self.meshes, self.body_offsets[:-1])])
+        return self._faces
+
+    def face_bodies(self) -> np.ndarray:
+        """(f,) body index of each triangle of :meth:`boundary_faces`."""
+        return self.vertex_bodies()[self.boundary_faces()[:, 0]]
+
+    def vertex_bodies(self) -> np.ndarray:
+        """(n,) body index of each vertex."""
+        return np.repeat(np.arange(len(self.meshes)), np.diff(self.body_offsets))
+
+    def boundary_edges(self) -> np.ndarray:
+        """(e, 2) unique edges (i < j) of the boundary triangles, global indices."""
+        f = self.boundary_faces()
+        e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+        return np.unique(e, axis=0)
+
+
+def _from_bodies(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped", check_overlap: bool = True):
+    """``Model.from_bodies``: see there."""
+    import dataclasses
+
+    bodies = list(bodies)
+    if not bodies:
+        raise ValueError("Model.from_bodies needs at least one body")
+    for i, b in enumerate(bodies):
+        if not isinstance(b, Body):
+            raise TypeError(f"body #{i + 1} must be a warpfem.Body, got {type(b).__name__}")
+    names = [b.name or f"body{i + 1}" for i, b in enumerate(bodies)]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"body names must be unique, {dup[0]!r} is given {names.count(dup[0])} times")
+    for b, n in zip(bodies, names):
+        b.name = n
+    if check_overlap and len(bodies) > 1:
+        from warpfem.mesh.intersect import BodyOverlapError, first_body_overlap
+
+        problem = first_body_overlap([b.mesh for b in bodies], names)
+        if problem:
+            raise BodyOverlapError(problem)
+    parts = []
+    for b in bodies:
+        try:
+            parts.append(cls(b.mesh, b.material, gravity=gravity, mass_matrix=b.mass_matrix or mass_matrix,
+                             volumetric_integration=b.volumetric_integration))
+        except (ValueError, TypeError) as e:
+            raise type(e)(f"body {b.name!r}: {e}") from e
+    sizes = [p.num_vertices for p in parts]
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    self = cls.__new__(cls)
+    self.bodies, self.body_models, self.body_offsets, self.body_names = bodies, parts, offsets, names
+    for p, n in zip(parts, names):
+        p.body_names = [n]
+    self.mesh = BodiesMesh([b.mesh for b in bodies], offsets, names)
+    # the material contact defaults scale with (the stiffest body's); per body: bodies[i].material
+    self.material = max((b.material for b in bodies), key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0))
+    self.materials = [b.material for b in bodies]
+    self.gravity = parts[0].gravity
+    self.mass_matrix_kind = mass_matrix
+    self.rest_positions = np.concatenate([p.rest_positions for p in parts])
+    self.num_vertices = int(offsets[-1])
+    self.volumetric_integration = [b.volumetric_integration for b in bodies]
+    self.volumetric_parameters = None
+    self.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
+
+    def shifted(qd, o):
+        if qd is None:
+            return None
+        return dataclasses.replace(qd, elements=(np.asarray(qd.elements, dtype=np.int64) + o).astype(qd.elements.dtype),
+                                   volumetric=shifted(qd.volumetric, o))
+
+    self.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, offsets[:-1])]
+    self.quadrature = self.quadratures[0] if len(parts) == 1 else None
+    self.lumped_mass = np.concatenate([p.lumped_mass for p in parts])
+    self.mass = scipy.sparse.block_diag([p.mass for p in parts], format="csr")
+    self.gravity_mass = np.concatenate([p.gravity_mass for p in parts])
+    self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
+    self.forces = np.zeros((self.num_vertices, 3))
+    return self

@@ -30,11 +30,9 @@ from warpfem.kernels.generic import COUNTERS, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.model import static_supports_error
 from warpfem.solvers.forms import DampingForm, ElasticForm, IncrementalPotential, InertiaForm, LoadForm, Workspace
-from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.linear import make_linear_solver
-from warpfem.solvers.linear.auto import simulator_options
-from warpfem.solvers.state import SimulatorBase, check_simulator_options
-from warpfem.solvers.sparse import BlockPattern, HessianSystem, PatternView
+from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
+from warpfem.solvers.state import SimulatorBase, check_simulator_options, newton_options_from
+from warpfem.solvers.sparse import PatternView
 
 #: the choices of ``Simulator(initial_guess=...)``
 INITIAL_GUESSES = ("previous", "extrapolated")
@@ -46,7 +44,8 @@ class QuadratureSet(NamedTuple):
     count: number of points (the launch dimension); points: its ``QuadraturePoints32/64`` struct
     (rest positions, connectivity, nodes per element k, point -> element, weights, dN/dX);
     material: its ``MaterialParams32/64`` struct (kind, kernel mu, kernel lam; for selective
-    reduced integration the split parameters of the set); energy: per-point energy buffer (J).
+    reduced integration the split parameters of the set); energy: per-point energy buffer (J);
+    group: the body whose elements the points belong to (``BlockPattern.block_indices[group]``).
     The structs (``warpfem.kernels.structs``) are built once here and never changed, so the
     recorded launches of ``kernels.generic.launch`` reuse them without re-packing."""
 
@@ -54,6 +53,7 @@ class QuadratureSet(NamedTuple):
     points: object
     material: object
     energy: object
+    group: int = 0  # the body (element group) of the points: its part of the pattern's block_index
 
 
 class Simulator(SimulatorBase):
@@ -74,7 +74,8 @@ class Simulator(SimulatorBase):
         linear_solver: "auto", "pcg", "direct", "amg" or "multigrid": the solver of each Newton system
             (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
-            ``max_line_search``, ``armijo``, ``project_hessian`` (see :class:`NewtonOptions`).
+            ``max_line_search``, ``armijo``, ``project_hessian``, ``hessian_projection``, ``forcing``
+            (see :class:`NewtonOptions`).
         initial_guess: where each step's Newton solve starts (free components; fixed ones always
             start at their prescribed value). "previous" (default): the previous velocity v_n.
             "extrapolated": constant acceleration from the history, v_n + h (v_n - v_{n-1}) / h_prev
@@ -101,54 +102,63 @@ class Simulator(SimulatorBase):
             raise ValueError(f"friction_tol must be > 0, got {friction_tol!r}")
         self.friction_iterations, self.friction_tol = int(friction_iterations), float(friction_tol)
         self.integrator = make_integrator(integrator)
-        unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
-        if unknown:
-            raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
-        self.options = NewtonOptions(**newton_options)
-        self.options.validate()
+        self.options = newton_options_from(newton_options)
         self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
         n = self.num_vertices
-        dev, qd, mat = self.device, model.quadrature, model.material
-        self._qp_count = qd.num_points
-        self._elements = wp.array(qd.elements, dtype=wp.int32, device=dev)
-        self._qp_element = wp.array(qd.qp_element, dtype=wp.int32, device=dev)
-        self._qp_weight = wp.array(qd.qp_weight.astype(self._np), dtype=self._s, device=dev)
-        self._qp_dNdX = wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev)
-        self._k = qd.nodes_per_element
+        dev = self.device
+        # one quadrature set per body (a single-mesh model: its one body); each body's own element
+        # type (k), material and connectivity (global vertex indices), all in one vertex space
+        quads = list(getattr(model, "quadratures", None) or [model.quadrature])
+        mats = list(getattr(model, "materials", None) or [model.material])
+        splits = list(getattr(model, "body_volumetric_parameters", None) or [getattr(model, "volumetric_parameters", None)])
         self._x_rest = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev)
-        # the kernels' shared arguments as structs (warpfem.kernels.structs): the main point set and
-        # the full material (stresses() and, without selective reduced integration, everything)
-        self._points = quadrature_points(self._s, self._x_rest, self._elements, self._k, self._qp_element,
-                                         self._qp_weight, self._qp_dNdX)
-        self._material = material_params(self._s, mat.kind, mat.kernel_mu, mat.kernel_lam)
-        self.system = HessianSystem(BlockPattern(qd.elements, qd.nodes_per_element, n, device=dev, block_type=self._mat))
-        self.system.values["mass"] = self.system.pattern.values_from_scalar_matrix(model.mass)
-        self.system.new_values("hessian")
-        if damping_stiffness > 0:
-            self.system.new_values("kn")
-        self._pcg = make_linear_solver(linear_solver, self.system.pattern, vec_type=self._vec, scalar=self._s,
-                                       positions=model.rest_positions, **simulator_options(linear_solver, linear_solver_options))
-        self.system.solver = self._pcg
-        self._energy_q = wp.zeros(self._qp_count, dtype=self._s, device=dev)
-        # quadrature-point sets the kernels run over: (count, points, material, energy buffer). Selective reduced
-        # integration (qd.volumetric) runs the same material kernels with the split parameters of
-        # model.volumetric_parameters (Material.volumetric_split): the remaining part on the full
-        # rule, the volumetric part on the 1-point rule; energy, force and Hessian are sums over the
-        # sets (the Hessian of each part SPD-projected on its own). stresses() evaluates the full
-        # material at the main (full-rule) points.
-        self._qp_sets = [QuadratureSet(self._qp_count, self._points, self._material, self._energy_q)]
-        if getattr(qd, "volumetric", None) is not None:
+        self._qp_sets, self._main_sets = [], []
+        for group, (qd, mat, split) in enumerate(zip(quads, mats, splits)):
+            elements = wp.array(qd.elements, dtype=wp.int32, device=dev)
+            points = quadrature_points(self._s, self._x_rest, elements, qd.nodes_per_element,
+                                       wp.array(qd.qp_element, dtype=wp.int32, device=dev),
+                                       wp.array(qd.qp_weight.astype(self._np), dtype=self._s, device=dev),
+                                       wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev))
+            # the kernels' shared arguments as structs (warpfem.kernels.structs): the main point set and
+            # the full material (stresses() and, without selective reduced integration, everything)
+            material = material_params(self._s, mat.kind, mat.kernel_mu, mat.kernel_lam)
+            energy = wp.zeros(qd.num_points, dtype=self._s, device=dev)
+            main = QuadratureSet(qd.num_points, points, material, energy, group)
+            self._main_sets.append(main)
+            if getattr(qd, "volumetric", None) is None:
+                self._qp_sets.append(main)
+                continue
+            # selective reduced integration (qd.volumetric) runs the same material kernels with the split
+            # parameters of the body's volumetric_parameters (Material.volumetric_split): the remaining part
+            # on the full rule, the volumetric part on the 1-point rule; energy, force and Hessian are sums
+            # over the sets (the Hessian of each part SPD-projected on its own). stresses() evaluates the
+            # full material at the main (full-rule) points.
             vq = qd.volumetric
-            split = getattr(model, "volumetric_parameters", None) or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
-            (mu_f, lam_f), (mu_v, lam_v) = split
-            vpoints = quadrature_points(self._s, self._x_rest, self._elements, self._k,
+            (mu_f, lam_f), (mu_v, lam_v) = split or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
+            vpoints = quadrature_points(self._s, self._x_rest, elements, qd.nodes_per_element,
                                         wp.array(vq.qp_element, dtype=wp.int32, device=dev),
                                         wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),
                                         wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev))
-            self._qp_sets = [QuadratureSet(self._qp_count, self._points, material_params(self._s, mat.kind, mu_f, lam_f),
-                                           self._energy_q),
-                             QuadratureSet(vq.num_points, vpoints, material_params(self._s, mat.kind, mu_v, lam_v),
-                                           wp.zeros(vq.num_points, dtype=self._s, device=dev))]
+            self._qp_sets += [QuadratureSet(qd.num_points, points, material_params(self._s, mat.kind, mu_f, lam_f),
+                                            energy, group),
+                              QuadratureSet(vq.num_points, vpoints, material_params(self._s, mat.kind, mu_v, lam_v),
+                                            wp.zeros(vq.num_points, dtype=self._s, device=dev), group)]
+        first = self._main_sets[0]
+        self._points, self._material = first.points, first.material  # the first body's (benchmarks, tools)
+        self._elements = first.points.elements
+        self._k = quads[0].nodes_per_element
+        self._qp_count = sum(ms.count for ms in self._main_sets)
+        self._energy_q = first.energy
+        if len(quads) == 1:
+            self._setup_system(quads[0].elements, quads[0].nodes_per_element, linear_solver, linear_solver_options)
+        else:  # the union of the bodies' element patterns (one element group per body)
+            self._setup_system([q.elements for q in quads], [q.nodes_per_element for q in quads], linear_solver,
+                               linear_solver_options)
+        if damping_stiffness > 0:
+            self.system.new_values("kn")
+        v0 = model.initial_velocities() if hasattr(model, "initial_velocities") else None
+        if v0 is not None:  # the bodies' initial_velocity (Model.from_bodies)
+            self.state.v.assign(v0.astype(self._np))
         # the incremental potential: one list of weighted forms, built once (solvers/forms.py)
         system, ops = self.system, self.ops
         pattern = PatternView(system)  # forms follow the pattern when it grows
@@ -246,29 +256,7 @@ class Simulator(SimulatorBase):
         self._potential.add_form(form)
         return form
 
-    # -- model changes (no pattern rebuild) -----------------------------------------------------------
-    def sync_model(self):
-        """Upload the model's fixed mask and external forces (call after changing them; in place)."""
-        mask = (~self.model.fixed).astype(self._np)
-        fext = self.model.external_forces()
-        if getattr(self, "_mask", None) is None:
-            self._mask, self._fext = self._vec_array(mask), self._vec_array(fext)
-        else:
-            self._mask.assign(mask)
-            self._fext.assign(fext.astype(self._np))
-        self._fext_norm = float(np.linalg.norm(fext))
-        if getattr(self, "_load", None) is not None:
-            self._load.norm = self._fext_norm
-
     # -- stages (each a function that can be timed) ------------------------------------------------
-    @property
-    def _pattern(self):
-        return self.system.pattern
-
-    @property
-    def _mass_values(self):
-        return self.system.values["mass"]
-
     @property
     def _hess_values(self):
         return self.system.values["hessian"]
@@ -277,18 +265,9 @@ class Simulator(SimulatorBase):
     def _kn_values(self):
         return self.system.values.get("kn")
 
-    def _bsr_mv(self, values, x, alpha, y):
-        pt = self._pattern
-        launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, x, self._s(alpha), y], self.device)
-
-    def _linear_solve(self, values, rhs, out, opts):
-        """out ~ A^-1 rhs on the free components (A the masked block matrix ``values``, rhs masked):
-        the Newton systems' linear solver (block-Jacobi PCG); returns a result with ``iterations``."""
-        return self._pcg.solve(values, self._mask, rhs, out, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
-
     def _elastic_energy(self, x):
         parts = []
-        for count, points, material, buf in self._qp_sets:
+        for count, points, material, buf, _ in self._qp_sets:
             launch(FK.qp_energy_kernel, dim=count, inputs=[x, points, material, buf], device=self.device)
             parts.append(buf.numpy().astype(np.float64))
         e = np.concatenate(parts)
@@ -318,6 +297,12 @@ class Simulator(SimulatorBase):
     def quadrature_points(self):
         """The main quadrature-point set as the kernels take it (``kernels.structs.QuadraturePoints``)."""
         return self._points
+
+    @property
+    def quadrature_sets(self):
+        """The quadrature-point sets the element kernels run over (:class:`QuadratureSet`: the main
+        set first, then the one-point volumetric set of selective reduced integration)."""
+        return list(self._qp_sets)
 
     @property
     def material_params(self):
@@ -382,9 +367,12 @@ class Simulator(SimulatorBase):
     def stresses(self, x=None) -> np.ndarray:
         """First Piola-Kirchhoff stress (Pa) at every quadrature point, (Q, 3, 3)."""
         xa = self.x if x is None else self._vec_array(x)
-        P = wp.zeros(self._qp_count, dtype=self._mat, device=self.device)
-        launch(FK.qp_stress_kernel, dim=self._qp_count, inputs=[xa, self._points, self._material, P], device=self.device)
-        return P.numpy().astype(np.float64)
+        parts = []
+        for ms in self._main_sets:  # one per body, in body order
+            P = wp.zeros(ms.count, dtype=self._mat, device=self.device)
+            launch(FK.qp_stress_kernel, dim=ms.count, inputs=[xa, ms.points, ms.material, P], device=self.device)
+            parts.append(P.numpy().astype(np.float64))
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def elastic_energy(self, x=None) -> float:
         """V(x) (J) at x (default: current positions)."""
@@ -418,30 +406,13 @@ class Simulator(SimulatorBase):
                 val[i] = p
         return val
 
-    def _equation_of_motion_acceleration(self, state, out):
-        """out = a with M a = f(x) + f_ext - C v on the free components (0 on fixed ones), C the
-        Rayleigh damping alpha M + beta K(x): the acceleration of ``state`` (Newmark's a_0)."""
-        n = self.num_vertices
-        rhs = self._work.tmp
-        rhs.zero_()
+    def _elastic_force_for_acceleration(self, x, out):
+        """out := f(x), the elastic force; the stiffness damping's K(x_n) (assembled at the start
+        of the step) for the equation-of-motion acceleration (SimulatorBase)."""
+        out.zero_()
         for qs in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=qs.count, inputs=[state.x, qs.points, qs.material, self._s(1.0), rhs],
-                   device=self.device)
-        launch(LK.axpy_kernel, dim=n, inputs=[self._s(self._step_control.load_scale), self._fext, rhs], device=self.device)
-        if self.damping_mass != 0.0:
-            self._bsr_mv(self._mass_values, state.v, -self.damping_mass, rhs)
-        if self.damping_stiffness != 0.0:  # K(x_n), assembled at the start of the step
-            self._bsr_mv(self._kn_values, state.v, -self.damping_stiffness, rhs)
-        launch(LK.mask_kernel, dim=n, inputs=[self._mask, rhs], device=self.device)
-        res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.options.max_cg_iters, 100))
-        if not np.isfinite(res.residual):
-            raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
-                              SolveStats(reason="non-finite initial acceleration"))
-
-    def _weights(self, s, control):
-        """The forms' weights for a step of scale s (the one place the integrator's s enters the
-        weights; the chain factors of the forms of x are the potential's)."""
-        return {"inertia": 1.0, "damping": s, "elastic": 1.0, "load": s * control.load_scale, "contact": 1.0}
+            launch(FK.qp_force_kernel, dim=qs.count, inputs=[x, qs.points, qs.material, self._s(1.0), out], device=self.device)
+        return self._kn_values
 
     def potential(self, state=None, control=None, dt=None):
         """The incremental potential of a step of ``dt`` from ``state`` (default: the simulator's

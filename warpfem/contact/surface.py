@@ -60,15 +60,19 @@ def contact_surface(mesh, body=None, *, elements=None) -> ContactSurface:
     """The contact surface of ``mesh`` (a :class:`~warpfem.mesh.VolumeMesh`: its
     ``boundary_faces()``). ``body``: optional (n,) body id per vertex (a model of several
     bodies); groups are the connected components of the element graph (``elements``: (m, k)
-    connectivity, default ``mesh.elements``), split by body id."""
+    connectivity or a list of such tables, one per element type; default ``mesh.elements``, else
+    the surface triangles), split by body id."""
     faces = np.asarray(mesh.boundary_faces(), dtype=np.int64).reshape(-1, 3)
     n = int(mesh.num_vertices)
-    E = np.asarray(mesh.elements if elements is None else elements, dtype=np.int64)
-    if E.ndim != 2 or not E.size:  # (no single connectivity table: connect through the surface instead)
-        E = faces
-    k = E.shape[1]
-    rows = np.repeat(E[:, 0], k)
-    cols = E.ravel()
+    if elements is None:
+        elements = getattr(mesh, "elements", None)
+    tables = elements if isinstance(elements, (list, tuple)) else [elements]
+    tables = [np.asarray(E, dtype=np.int64) for E in tables if E is not None]
+    tables = [E for E in tables if E.ndim == 2 and E.size]
+    if not tables:  # no connectivity table: connect through the surface instead
+        tables = [faces]
+    rows = np.concatenate([np.repeat(E[:, 0], E.shape[1]) for E in tables])
+    cols = np.concatenate([E.ravel() for E in tables])
     A = scipy.sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
     _, comp = scipy.sparse.csgraph.connected_components(A, directed=False)
     if body is not None:
@@ -162,11 +166,12 @@ class SurfaceContact:
             offsets = getattr(model, "body_offsets", None)
             if offsets is not None and len(offsets) > 2:
                 body = np.repeat(np.arange(len(offsets) - 1), np.diff(np.asarray(offsets)))
-        qd = model.quadrature
-        try:
-            elements = np.asarray(qd.elements).reshape(-1, int(qd.nodes_per_element))
-        except (AttributeError, TypeError, ValueError):  # no single table: components through the surface
-            elements = np.zeros((0, 3), dtype=np.int64)
+        elements = []  # one connectivity table per quadrature set (a body each in a multi-body model)
+        for qd in getattr(model, "quadratures", None) or [model.quadrature]:
+            try:
+                elements.append(np.asarray(qd.elements).reshape(-1, int(qd.nodes_per_element)))
+            except (AttributeError, TypeError, ValueError):  # components through the surface instead
+                pass
         surf = contact_surface(model.mesh, body, elements=elements)
         self.surface = surf
         self.bodies = (surf.num_groups >= 2) if bodies is None else bool(bodies)

@@ -2,9 +2,9 @@
 collections (.pvd + .vtu) of the volume mesh, preview pictures (matplotlib, lazily)."""
 
 from .states import StatesWriter
-from .vtu import VtuSeriesWriter, VtuWriterError, element_stress_fields, read_pvd, warpfem_version
+from .vtu import VtuBodiesWriter, VtuSeriesWriter, VtuWriterError, element_stress_fields, read_pvd, warpfem_version
 from .usd import UsdMeshWriter, UsdWriterError, clip_directory, read_usd_mesh_frames, usd_validation_errors
 
 __all__ = ["UsdMeshWriter", "UsdWriterError", "clip_directory", "read_usd_mesh_frames", "usd_validation_errors",
-           "StatesWriter", "VtuSeriesWriter", "VtuWriterError", "element_stress_fields", "read_pvd",
+           "StatesWriter", "VtuSeriesWriter", "VtuBodiesWriter", "VtuWriterError", "element_stress_fields", "read_pvd",
            "warpfem_version"]

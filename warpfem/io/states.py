@@ -7,8 +7,9 @@ files. Python memory therefore stays at one frame plus one chunk whatever the ru
 memory map's pages belong to the operating system's file cache, which can drop them).
 
 The ``.npz`` holds ``rest`` (n, 3) float64 rest positions (m), ``positions`` (k, n, 3) float64
-(frame 0 is the state before the first step), ``times`` (k,) s and ``fps``; a run closed early
-(failure, interrupt) holds the k frames written.
+(frame 0 is the state before the first step), ``times`` (k,) s and ``fps`` (and, for several
+bodies, ``body_offsets`` and ``body_names``: rest and positions hold every body's vertices in body
+order); a run closed early (failure, interrupt) holds the k frames written.
 """
 
 from __future__ import annotations
@@ -31,9 +32,11 @@ class StatesWriter:
     max_frames : frames that may be written (the disk-backed buffer's length).
     fps : frames per second, stored as ``fps``.
     chunk_bytes : largest block copied at once when assembling the ``.npz``.
+    extra : {name: array} stored as they are (several bodies: ``body_offsets``, the first vertex of
+        each body then the total, and ``body_names``).
     """
 
-    def __init__(self, path, *, rest, max_frames: int, fps: float, chunk_bytes: int = 8 << 20):
+    def __init__(self, path, *, rest, max_frames: int, fps: float, chunk_bytes: int = 8 << 20, extra=None):
         path = os.fspath(path)
         rest = np.array(rest, dtype=np.float64)
         if rest.ndim != 2 or rest.shape[1] != 3:
@@ -45,6 +48,10 @@ class StatesWriter:
         self.fps = float(fps)
         self.max_frames = int(max_frames)
         self.chunk_bytes = int(chunk_bytes)
+        self.extra = {k: np.asarray(v) for k, v in (extra or {}).items()}
+        clash = set(self.extra) & {"rest", "times", "fps", "positions"}
+        if clash:
+            raise ValueError(f"extra arrays may not be named {sorted(clash)}")
         os.makedirs(os.path.dirname(os.path.abspath(path)) or ".", exist_ok=True)
         self._tmp = path + ".frames.npy"
         self._tmp_times = path + ".times.npy"
@@ -83,7 +90,7 @@ class StatesWriter:
             tmp_npz = self.path + ".partial"
             with zipfile.ZipFile(tmp_npz, mode="w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
                 for key, value in (("rest", self.rest), ("times", np.array(self._times[:k])),
-                                   ("fps", np.array(self.fps))):
+                                   ("fps", np.array(self.fps)), *self.extra.items()):
                     with zf.open(f"{key}.npy", "w", force_zip64=True) as f:
                         np.lib.format.write_array(f, np.require(value, requirements="C"))
                 view = self._frames[:k]

@@ -283,6 +283,44 @@ class UsdMeshWriter:
         self._manifest_attrs |= {(name, "points"), (name, "extent")}
         return str(prim.path)
 
+    def add_tet_mesh(self, name: str, tets, num_points: int, surface_faces=None):
+        """Add a volume ``name``: a ``UsdGeom.TetMesh`` over ``num_points`` points with tetrahedra
+        ``tets`` (m, 4), positively oriented (its right-handed faces point out, as USD's
+        ``ComputeSurfaceFaces`` expects), and optionally its outward ``surfaceFaceVertexIndices``
+        (f, 3). Its points are animated by :meth:`write_frame` like a mesh's. Returns the prim path."""
+        from pxr import Sdf, UsdGeom, Vt
+
+        self._check_open()
+        if not isinstance(name, str) or not Sdf.Path.IsValidIdentifier(name):
+            raise UsdWriterError(f"tet mesh name {name!r} is not a valid USD prim name (letters, digits, _)")
+        if name in self._meshes:
+            raise UsdWriterError(f"mesh {name!r} already added")
+        if isinstance(num_points, bool) or not (isinstance(num_points, numbers.Integral) and num_points > 0):
+            raise UsdWriterError(f"tet mesh {name!r}: num_points must be a positive integer, got {num_points!r}")
+        tets = _to_numpy(tets)
+        if tets.ndim != 2 or tets.shape[1] != 4 or tets.shape[0] == 0 or not np.issubdtype(tets.dtype, np.integer):
+            raise UsdWriterError(f"tet mesh {name!r}: tets must be integers of shape (m, 4) with m > 0, got {tets.shape}")
+        if tets.min() < 0 or tets.max() >= num_points:
+            raise UsdWriterError(f"tet mesh {name!r}: a tet vertex index is outside [0, {num_points})")
+        prim = Sdf.CreatePrimInLayer(self._layer, self._root_path.AppendChild(name))
+        prim.specifier = Sdf.SpecifierDef
+        prim.typeName = "TetMesh"
+        tn = Sdf.ValueTypeNames
+        values = [("tetVertexIndices", tn.Int4Array, Vt.Vec4iArray.FromNumpy(np.ascontiguousarray(tets, dtype=np.int32)), False),
+                  ("orientation", tn.Token, UsdGeom.Tokens.rightHanded, True),
+                  ("points", tn.Point3fArray, None, False), ("extent", tn.Float3Array, None, False)]
+        if surface_faces is not None:
+            f = np.asarray(_to_numpy(surface_faces), dtype=np.int64).reshape(-1, 3)
+            values.append(("surfaceFaceVertexIndices", tn.Int3Array, Vt.Vec3iArray.FromNumpy(np.ascontiguousarray(f, dtype=np.int32)),
+                           False))
+        for attr, type_name, value, uniform in values:
+            spec = Sdf.AttributeSpec(prim, attr, type_name, Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying)
+            if value is not None:
+                spec.default = value
+        self._meshes[name] = [prim, int(num_points), False]
+        self._manifest_attrs |= {(name, "points"), (name, "extent")}
+        return str(prim.path)
+
     # ------------------------------------------------------------------ frames
     def write_frame(self, frame_index: int, points: dict, normals: dict | None = None):
         """Write one frame: ``points[name]`` (p, 3) for meshes added with :meth:`add_mesh`.

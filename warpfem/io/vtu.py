@@ -33,7 +33,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-__all__ = ["VtuSeriesWriter", "VtuWriterError", "read_pvd", "frame_directory", "deformation_gradients",
+__all__ = ["VtuSeriesWriter", "VtuBodiesWriter", "VtuWriterError", "read_pvd", "frame_directory", "deformation_gradients",
            "element_stress_fields", "von_mises", "warpfem_version"]
 
 _FRAME_RE = re.compile(r"^frame_\d{6}\.vtu$")
@@ -114,10 +114,13 @@ def element_stress_fields(sim, model, x=None) -> dict:
     (the deformed-volume mean of the Cauchy stress); von Mises from sigma_e.
     """
     x = sim.positions() if x is None else np.asarray(x, dtype=np.float64)
-    qd = model.quadrature
     F = deformation_gradients(model, x)
+    return _element_fields(model.quadrature, F, _pk1(sim, model, x, F))
+
+
+def _element_fields(qd, F, P) -> dict:
+    """J, Cauchy stress and von Mises per element from F and P at the quadrature points of ``qd``."""
     J = np.linalg.det(F)
-    P = _pk1(sim, model, x, F)
     tau = P @ np.swapaxes(F, 1, 2)  # Kirchhoff stress J sigma
     m = qd.num_elements
     el = np.asarray(qd.qp_element, dtype=np.int64)
@@ -249,6 +252,110 @@ class VtuSeriesWriter:
         if self.closed:
             return
         self.closed = True
+        self._write_pvd(complete=complete, reason="" if complete else str(reason))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        self.close(complete=exc_type is None, reason="" if exc is None else f"{exc_type.__name__}: {exc}")
+        return False
+
+
+class _BodyView:
+    """One body of a multi-body model as :func:`deformation_gradients` reads a model (local indices)."""
+
+    def __init__(self, qd, rest):
+        self.quadrature, self.rest_positions = qd, rest
+
+
+class VtuBodiesWriter:
+    """Several bodies in one ParaView collection ``path`` (``.pvd``): one block per body, by name.
+
+    Per frame the ``.pvd`` lists one ``<DataSet>`` per body (``part`` = body index, ``name`` = body
+    name); body ``name``'s frames are ``<path>.vtu/<name>.vtu/frame_*.vtu`` (a per-body collection
+    ``<path>.vtu/<name>.pvd`` is written beside them). Each block holds the body's own element type,
+    points and the fields of :class:`VtuSeriesWriter`.
+
+    bodies : [(name, cells (m, k) in the body's own vertex numbering, element_type, first vertex,
+        end vertex)] in body order.
+    """
+
+    def __init__(self, path, *, bodies, compression: str | None = "zlib"):
+        path = os.fspath(path)
+        if not path.lower().endswith(".pvd"):
+            raise VtuWriterError(f"{path}: a ParaView collection must end in .pvd")
+        self.path = path
+        self.names = [b[0] for b in bodies]
+        self.ranges = [(int(b[3]), int(b[4])) for b in bodies]
+        folder = frame_directory(path)
+        self.writers = [VtuSeriesWriter(os.path.join(folder, f"{name}.pvd"), cells=cells, element_type=etype,
+                                        compression=compression) for name, cells, etype, _, _ in bodies]
+        self.version = warpfem_version()
+        self.closed = False
+        self._write_pvd(complete=False, reason="")
+
+    @property
+    def frames_written(self) -> int:
+        return self.writers[0].frames_written
+
+    def write_state(self, time: float, sim, model):
+        """Write a frame of every body: positions, displacement, velocity and the element fields of
+        :func:`element_stress_fields` (``model``: a ``Model.from_bodies`` model)."""
+        x = np.asarray(sim.positions(), dtype=np.float64)
+        v = np.asarray(sim.velocities(), dtype=np.float64) if hasattr(sim, "velocities") else np.zeros_like(x)
+        P_all = np.asarray(sim.stresses(x), dtype=np.float64) if hasattr(sim, "stresses") else None
+        start = 0
+        import dataclasses
+
+        for b, (w, (lo, hi)) in enumerate(zip(self.writers, self.ranges)):
+            qd = model.quadratures[b]
+            local = dataclasses.replace(qd, elements=np.asarray(qd.elements, dtype=np.int64) - lo, volumetric=None)
+            view = _BodyView(local, model.rest_positions[lo:hi])
+            xb = x[lo:hi]
+            F = deformation_gradients(view, xb)
+            if P_all is not None:
+                P = P_all[start:start + qd.num_points]
+            else:
+                P = np.asarray(model.materials[b].pk1(F), dtype=np.float64)
+            start += qd.num_points
+            fields = _element_fields(local, F, P)
+            w.write_frame(time, xb, point_data={"displacement": xb - view.rest_positions, "velocity": v[lo:hi]},
+                          cell_data={"J": fields["J"], "von_mises": fields["von_mises"],
+                                     "cauchy_stress": fields["cauchy_stress"].reshape(-1, 9)})
+        self._write_pvd(complete=False, reason="")
+
+    def _write_pvd(self, *, complete: bool, reason: str):
+        meta = {"complete": bool(complete), "frames": self.frames_written, "version": self.version,
+                "bodies": self.names}
+        if reason:
+            meta["reason"] = reason
+        comment = json.dumps(meta).replace("--", "- -")
+        base = os.path.dirname(os.path.abspath(self.path))
+        lines = ['<?xml version="1.0"?>',
+                 '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+                 f"  <!-- warpfem {comment} -->",
+                 "  <Collection>"]
+        for k in range(self.frames_written):
+            for part, (name, w) in enumerate(zip(self.names, self.writers)):
+                t, f = w.entries[k]
+                rel = os.path.relpath(os.path.join(os.path.dirname(os.path.abspath(w.path)), f), base).replace(os.sep, "/")
+                lines.append(f'    <DataSet timestep="{t!r}" group="" part="{part}" name={quoteattr(name)} '
+                             f'file={quoteattr(rel)}/>')
+        lines += ["  </Collection>", "</VTKFile>", ""]
+        os.makedirs(base, exist_ok=True)
+        tmp = self.path + ".partial"
+        with open(tmp, "w", encoding="utf-8") as f:
+            f.write("\n".join(lines))
+        os.replace(tmp, self.path)
+
+    def close(self, *, complete: bool = True, reason: str = ""):
+        """Mark the collection (and each body's) complete, or not with ``reason``. Idempotent."""
+        if self.closed:
+            return
+        self.closed = True
+        for w in self.writers:
+            w.close(complete=complete, reason=reason)
         self._write_pvd(complete=complete, reason="" if complete else str(reason))
 
     def __enter__(self):

@@ -17,7 +17,7 @@ __all__ = ["load_mesh", "save_mesh", "load_element_mesh", "save_element_mesh"]
 
 
 def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
-              cache=None, target_tets=None, **kw):
+              cache=None, target_tets=None, prim=None, **kw):
     """Load the ``tetra`` cells of any meshio-readable file as a Tet4 ``VolumeMesh``.
 
     A surface file (.obj, .off, .ply, .stl: chosen by the extension) is checked and
@@ -31,12 +31,25 @@ def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_ed
     triangle cells are kept (for convex-hull tetrahedralisations such as libigl's bunny.mesh);
     ``vertex_map`` still maps file vertex indices to mesh indices. ``kw`` goes to ``VolumeMesh``
     (``reorient``, ``remove_unreferenced``). Errors and warnings name the file.
+
+    A USD file (.usd, .usda, .usdc) holds a ``UsdGeom.TetMesh`` (read as it is) or a closed
+    ``UsdGeom.Mesh`` (tetrahedralised, not cached): ``prim`` names the prim path, default the file's
+    only one (:func:`warpfem.mesh.usd_in.load_usd_mesh`).
     """
     import meshio
 
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"mesh file not found: {path}")
+    from .usd_in import is_usd_path, load_usd_mesh
+
+    if is_usd_path(path):
+        if inside_surface:
+            raise MeshError(f"{path}: inside_surface applies to tet files with triangle cells, not to USD files")
+        return load_usd_mesh(path, prim=prim, max_edge_length=max_edge_length, max_radius_edge_ratio=max_radius_edge_ratio,
+                             mesher=mesher, target_tets=target_tets, **kw)
+    if prim is not None:
+        raise MeshError(f"{path}: prim applies to USD files (.usd, .usda, .usdc) only")
     from .tetrahedralization import SURFACE_EXTENSIONS, tetrahedralize_file
 
     tetra_opts = {"max_edge_length": max_edge_length, "max_radius_edge_ratio": max_radius_edge_ratio,

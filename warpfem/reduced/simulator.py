@@ -29,8 +29,8 @@ from warpfem.kernels import subspace as RK
 from warpfem.kernels.generic import RecordedLaunch, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.integrators import make_integrator
-from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.state import PRECISIONS, Control, State, StepperBase, check_simulator_options, check_solve
+from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
+from warpfem.solvers.state import PRECISIONS, State, StepperBase, check_simulator_options, newton_options_from
 
 
 
@@ -102,6 +102,8 @@ class CubatureForces:
     """
 
     def __init__(self, model, U, elements, weights, *, device="cpu", precision="float64"):
+        if getattr(model, "num_bodies", 1) > 1:
+            raise ValueError(f"the reduced simulator simulates one body; the model has {model.num_bodies} (use warpfem.Simulator)")
         qd = model.quadrature
         from warpfem.mesh.element_types import get_element
 
@@ -318,8 +320,12 @@ class ReducedSimulator(StepperBase):
             ``project_hessian`` (``cg_tol`` / ``max_cg_iters`` are accepted and unused: the r x r
             system is solved directly).
 
-    Fixed vertices stay where the basis puts them (at rest: fixed rows of U are zero). State: the
-    reduced coordinates ``q`` and velocities ``qdot`` (numpy float64, r).
+    Fixed vertices stay where the basis puts them (at rest: fixed rows of U are zero). State
+    (``state``, a :class:`~warpfem.solvers.state.State` as for the full-space simulators, with the
+    same ``step`` / ``new_state`` / ``time`` / ``load_scale`` / energies and failure handling from
+    :class:`~warpfem.solvers.state.StepperBase`): x = z = [q; a] (reduced coordinates and handle
+    coordinates), v = z' = [qdot; adot], numpy float64; ``q``, ``qdot``, ``a``, ``adot`` are
+    views of it.
 
     Newton matrix: the r x r matrix is kept across Newton iterations and steps (BFGS-updated,
     evaluated again when it stops contracting; see ``_ReducedPotential``); set
@@ -333,23 +339,16 @@ class ReducedSimulator(StepperBase):
 
     def __init__(self, model, subspace, *, device="cpu", precision="float64", dt=1.0 / 60.0, damping_mass=0.0,
                  damping_stiffness=0.0, require_convergence=False, integrator="backward_euler", **newton_options):
-        self._s, self._vec, _, self._np = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
+        types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         self.integrator = make_integrator(integrator)
-        unknown = set(newton_options) - set(NewtonOptions.__dataclass_fields__)
-        if unknown:
-            raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(NewtonOptions.__dataclass_fields__)}")
+        self.options = newton_options_from(newton_options)
         subspace.check(model)
         lifting = subspace.lifting if subspace.lifting is not None and subspace.lifting.size else None
-        self.options = NewtonOptions(**newton_options)
-        self.options.validate()
-        self.model, self.subspace = model, subspace
-        self.device = _get_device(device)
-        self.precision = precision
-        self.dt, self.damping_mass, self.damping_stiffness = float(dt), float(damping_mass), float(damping_stiffness)
-        self.require_convergence = require_convergence
+        self.subspace = subspace
+        self._setup_options(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
         U = subspace.U
         self.r = U.shape[1]
-        self.num_vertices = n = model.num_vertices
+        n = self.num_vertices
         cub = subspace.cubature
         # kinematic handles: x = X + U q + L a (a prescribed); the kernels see the basis B = [U | L]
         self.lifting = lifting
@@ -366,22 +365,19 @@ class ReducedSimulator(StepperBase):
         self.reuse_newton_matrix = True  # False: the exact Hessian at every Newton iterate (plain Newton)
         self._pot = None  # the step's potential (work arrays kept across steps)
         self.kept_matrix_poor = 0  # > 0: the kept matrix contracted badly at a step start; refresh there
-        self._history = {}  # the integrator's history (warpfem.integrators)
-        self.control = self.control_of_step = Control()  # load_scale; targets: handle group -> coordinates for the end of the next step
         self._prediction_work = {}
-        self._ops = _CoordinateVectors(self.r + self.p, self._equation_of_motion_acceleration)
+        self.ops = _CoordinateVectors(self.r + self.p, self._equation_of_motion_acceleration)
+        # the state (StepperBase): x = z = [q; a], v = z' = [qdot; adot], numpy float64, two in turn;
+        # the control's targets: handle group -> coordinates for the end of the next step
+        k = self.r + self.p
+        self._setup_states(State(np.zeros(k), np.zeros(k)), State(np.zeros(k), np.zeros(k)))
         self.mass_r = self._reduced_mass(U)
         self.mass_ul = U.T @ (self._mass3() @ lifting.L) if lifting is not None else np.zeros((self.r, 0))
-        self.a = np.zeros(self.p)      # handle coordinates (prescribed)
-        self.adot = np.zeros(self.p)
+        self._mass_B = None  # B^T M B (kinetic energy), made on first use
         self._X = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=self.device)
         self._x = wp.zeros(n, dtype=self._vec, device=self.device)
         self._qdev = wp.zeros(self.r + self.p, dtype=self._s, device=self.device)
         self._surface = None
-        self.q = np.zeros(self.r)
-        self.qdot = np.zeros(self.r)
-        self.time = 0.0
-        self.step_count = 0
         self.sync_model()
 
     def _mass3(self):
@@ -396,7 +392,39 @@ class ReducedSimulator(StepperBase):
 
     def sync_model(self):
         """Project the model's external forces (gravity + applied) onto the basis: U^T f_ext (call after changes)."""
-        self.fext_r = self.subspace.U.T @ self.model.external_forces().reshape(-1)
+        f = self.model.external_forces().reshape(-1)
+        self.fext_r = self.subspace.U.T @ f
+        self._fext_B = self._B.T @ f  # x^T f_ext = X^T f_ext + z^T B^T f_ext
+        self._fext_X = float(self.model.rest_positions.reshape(-1) @ f)
+
+    # -- the state: views of ``state`` (z = [q; a], z' = [qdot; adot]) -------------------------------
+    @property
+    def q(self) -> np.ndarray:
+        """Reduced coordinates (r,): a view of the state's buffer (rewritten by later steps)."""
+        return self.state.x[:self.r]
+
+    @q.setter
+    def q(self, value):
+        self.state.x[:self.r] = value
+
+    @property
+    def qdot(self) -> np.ndarray:
+        """Reduced velocities (r,): a view of the state's buffer."""
+        return self.state.v[:self.r]
+
+    @qdot.setter
+    def qdot(self, value):
+        self.state.v[:self.r] = value
+
+    @property
+    def a(self) -> np.ndarray:
+        """Handle coordinates (p,), prescribed: a view of the state's buffer."""
+        return self.state.x[self.r:]
+
+    @property
+    def adot(self) -> np.ndarray:
+        """Handle velocities (p,): a view of the state's buffer."""
+        return self.state.v[self.r:]
 
     # -- state ------------------------------------------------------------------------------------
     def _reconstruct(self, X, U, q, out):
@@ -406,12 +434,12 @@ class ReducedSimulator(StepperBase):
 
     @property
     def z(self) -> np.ndarray:
-        """Coordinates in the kernel basis [U | L]: [q; a]."""
-        return np.concatenate([self.q, self.a])
+        """Coordinates in the kernel basis [U | L]: [q; a] (a copy)."""
+        return self.state.x.copy()
 
     def positions_device(self):
         """x = X + U q (+ L a) as a device array of vec3 (computed on the device only when asked)."""
-        return self._reconstruct(self._X, self.forces.U, self.z, self._x)
+        return self._reconstruct(self._X, self.forces.U, self.state.x, self._x)
 
     @property
     def x(self):
@@ -424,7 +452,7 @@ class ReducedSimulator(StepperBase):
 
     def velocities(self) -> np.ndarray:
         """Full-mesh velocities U qdot (+ L adot) (n, 3), m/s."""
-        return (self._B @ np.concatenate([self.qdot, self.adot])).reshape(-1, 3)
+        return (self._B @ self.state.v).reshape(-1, 3)
 
     # -- kinematic handles --------------------------------------------------------------------------
     def set_targets(self, indices, positions):
@@ -486,7 +514,7 @@ class ReducedSimulator(StepperBase):
         if self._surface is None:
             raise RuntimeError("call set_render_surface(W) first")
         WX, WU, out = self._surface
-        return self._reconstruct(WX, WU, self.z, out).numpy().astype(np.float64)
+        return self._reconstruct(WX, WU, self.state.x, out).numpy().astype(np.float64)
 
     def surface_points(self, embedding) -> np.ndarray:
         """Render-surface points (p, 3) for an embedding (``warpfem.skinning.Embedding``), the hook
@@ -507,7 +535,20 @@ class ReducedSimulator(StepperBase):
         return np.linalg.solve(self.mass_r, self.subspace.U.T @ (M3 @ d))
 
     def elastic_energy(self) -> float:
-        return self.forces.evaluate(self.z)[0]
+        """V_c(z) (J): the cubature energy of the current state."""
+        return self.forces.evaluate(self.state.x)[0]
+
+    def kinetic_energy(self) -> float:
+        """1/2 z'^T B^T M B z' (J): the kinetic energy of the full-mesh velocities B z'."""
+        if self._mass_B is None:
+            MB = self._B.T @ (self._mass3() @ self._B)
+            self._mass_B = 0.5 * (MB + MB.T)
+        zd = self.state.v
+        return 0.5 * float(zd @ (self._mass_B @ zd))
+
+    def _external_work(self, state) -> float:
+        """x^T f_ext (J) of x = X + B z (StepperBase's total energy)."""
+        return self._fext_X + float(state.x @ self._fext_B)
 
     # -- public views the step potential (_ReducedPotential) uses ------------------------------------
     @property
@@ -528,24 +569,20 @@ class ReducedSimulator(StepperBase):
     def _newton_matrix(self):  # the older name (tests)
         return self.newton_matrix
 
-    # -- the state the integrators advance: z = [q; a], z' = [qdot; adot] ---------------------------------
-    def state(self) -> State:
-        """The current state as the integrators see it: x = z = [q; a], v = z' = [qdot; adot]."""
-        return State(self.z, np.concatenate([self.qdot, self.adot]), self._history, self.time)
-
-    def predict(self):
-        """The integrator's prediction (z_b, z'_hat, s) of the coming step."""
-        return self.integrator.predict(self.state(), self.dt, self._ops, self._prediction_work)
-
+    # -- the state the integrators advance: z = [q; a], z' = [qdot; adot] (``state``) ---------------------
     def set_state(self, q=None, qdot=None):
-        """Set reduced coordinates / velocities (r,); time integrators restart their history."""
+        """Set reduced coordinates / velocities (r,); time integrators restart their history.
+        Raises ValueError (state untouched) for a wrong shape or NaN/inf."""
+        checked = {}
         for name, val in (("q", q), ("qdot", qdot)):
             if val is not None:
                 a = np.asarray(val, dtype=np.float64)
                 if a.shape != (self.r,) or not np.all(np.isfinite(a)):
                     raise ValueError(f"{name} must be {self.r} finite numbers, got shape {a.shape}")
-                setattr(self, name, a.copy())
-        self._history = {}
+                checked[name] = a
+        for name, a in checked.items():
+            setattr(self, name, a)
+        self._state_changed()
 
     def damping_matrices(self, z):
         """Rows r of the reduced Rayleigh damping C = alpha B^T M B + beta B^T K(z) B: (C_rr, C_rl)."""
@@ -565,7 +602,7 @@ class ReducedSimulator(StepperBase):
         C, C_ul = self.damping_matrices(z)
         f = self.forces.evaluate(z)[1][:r]
         zdot = state.v
-        rhs = f + self.control_of_step.load_scale * self.fext_r - C @ zdot[:r] - C_ul @ zdot[r:]
+        rhs = f + self._step_control.load_scale * self.fext_r - C @ zdot[:r] - C_ul @ zdot[r:]
         out[:] = 0.0
         out[:r] = np.linalg.solve(self.mass_r, rhs)
         if not np.all(np.isfinite(out)):
@@ -577,23 +614,6 @@ class ReducedSimulator(StepperBase):
         """Not supported: a reduced simulator (x = X + U q) does not handle contact; use :class:`warpfem.Simulator`."""
         raise ValueError("a reduced simulator (x = X + U q) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
 
-    def _own_states(self):
-        n = self.r + self.p
-        return self.state(), State(np.zeros(n), np.zeros(n), {})
-
-    def _commit(self, out):
-        r = self.r
-        self.q, self.a, self.qdot, self.adot = out.x[:r].copy(), out.x[r:].copy(), out.v[:r].copy(), out.v[r:].copy()
-        self._history = out.history
-        self.time = out.time
-
-    def new_state(self) -> State:
-        """A copy of the current state (z = [q; a], z' = [qdot; adot], history, time): an input or
-        output of ``step(state_in, state_out, control, dt)``."""
-        st = self.state()
-        return State(st.x.copy(), st.v.copy(), {k: (v.copy() if isinstance(v, np.ndarray) else v)
-                                                  for k, v in st.history.items()}, st.time)
-
     def _step(self, state_in, state_out, control, dt) -> SolveStats:
         """One reduced step of ``dt`` from ``state_in`` into ``state_out`` with the simulator's integrator
         (Newton with an Armijo line search and a dense r x r solve: :func:`~warpfem.solvers.nonlinear.newton_solve`,
@@ -602,8 +622,8 @@ class ReducedSimulator(StepperBase):
         (:meth:`set_targets`); ``control.load_scale`` scales the external forces."""
         t0 = time.perf_counter()
         r = self.r
-        self.control_of_step = control
-        prediction = self.integrator.predict(state_in, dt, self._ops, self._prediction_work)
+        self._step_control = control
+        prediction = self.integrator.predict(state_in, dt, self.ops, self._prediction_work)
         zb, zhat, s = prediction
         # handles: a_{n+1} prescribed, so their end-of-step velocity is (a_{n+1} - a_b) / s; the
         # kinetic and damping energies of V = U v + L adot couple through M_ul = U^T M L (and beta K_ul)
@@ -617,12 +637,10 @@ class ReducedSimulator(StepperBase):
         v = np.array(state_in.v[:r], dtype=np.float64)
         st = newton_solve(pot, v, self.options)
         st.hessian_evaluations = pot.hessians
-        st.seconds = time.perf_counter() - t0
         if not st.converged:
             self.newton_matrix = None  # computed along a failed solve: not reused
-        check_solve(st, f"reduced step {self.step_count}", require_convergence=self.require_convergence,
-                    finite=bool(np.all(np.isfinite(v))), stacklevel=4)
-        self.integrator.advance(state_in, np.concatenate([v, adot]), prediction, dt, self._ops, state_out)
+        self._finish(st, t0, f"reduced step {self.step_count}", finite=bool(np.all(np.isfinite(v))))
+        self.integrator.advance(state_in, np.concatenate([v, adot]), prediction, dt, self.ops, state_out)
         state_out.x[r:] = a_next  # exactly the prescribed coordinates
         state_out.time = state_in.time + dt
         return st
@@ -985,6 +1003,11 @@ class _CoordinateVectors:
     @staticmethod
     def copy(dst, src):
         dst[:] = src
+
+    @staticmethod
+    def clone(a):
+        """A copy of a coordinate vector; anything else (a step size) as it is."""
+        return a.copy() if isinstance(a, np.ndarray) else a
 
     def acceleration(self, state, out):
         self._acceleration(state, out)

@@ -113,7 +113,7 @@ def register_integrator(entry: IntegratorType, *, replace: bool = False) -> Inte
     return entry
 
 
-_NEWTON = ("tol", "atol", "cg_tol", "max_iters", "max_cg_iters", "project_hessian")
+_NEWTON = ("tol", "atol", "cg_tol", "max_iters", "max_cg_iters", "project_hessian", "hessian_projection")
 
 
 def _simulator(model, opts, *, device, precision, dt, dynamic, integrator="backward_euler"):

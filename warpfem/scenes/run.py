@@ -60,7 +60,10 @@ class SceneRun:
         mesh = scene.mesh()
         # a simulator may map an embedding to surface points itself (e.g. a reduced one, O(r) per point)
         self._sim_surface_points = getattr(sim, "surface_points", None)
-        if sp.surface is not None:
+        self.body_surfaces = None  # [[body]] scenes: [(prim name, faces, count, points())] per body
+        if sp.bodies:
+            self._setup_body_surfaces(scene, device, precision)
+        elif sp.surface is not None:
             from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
 
             pts, tris = load_surface(sp.surface["path"])
@@ -77,8 +80,69 @@ class SceneRun:
             self.surface_vertex_ids, self.surface_faces = boundary_surface(mesh)
             self.surface_name = "boundary"
 
+    def _setup_body_surfaces(self, scene, device, precision):
+        """One render surface per body (its [surface], embedded in its own elements, or its boundary);
+        ``surface_points()`` / ``surface_faces`` are all of them concatenated (previews)."""
+        from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
+
+        self.embedding = self.skinner = None
+        self.surface_vertex_ids = None
+        self.surface_name = "bodies"
+        out = []
+        offsets = self.model.body_offsets
+        for b, lo, hi in zip(scene.bodies, offsets[:-1], offsets[1:]):
+            lo, hi = int(lo), int(hi)
+            bm = b.mesh()
+            if b.spec.surface is not None:
+                pts, tris = load_surface(b.spec.surface["path"])
+                emb = embed_points_in_mesh(np.asarray(pts, dtype=np.float64) + b.offset, bm)
+                skinner = SurfaceSkinner(emb, bm, device=device, precision=precision)
+
+                def points(skinner=skinner, lo=lo, hi=hi):
+                    return skinner.apply(self.sim.x[lo:hi]).numpy().astype(np.float64)
+
+                out.append((b.body_name, np.asarray(tris), emb.num_points, points))
+            else:
+                ids, tris = boundary_surface(bm)
+
+                def points(ids=ids + lo):
+                    return self.sim.positions()[ids]
+
+                out.append((b.body_name, np.asarray(tris), int(ids.size), points))
+        self.body_surfaces = out
+        starts = np.concatenate([[0], np.cumsum([c for _, _, c, _ in out])])
+        self.surface_faces = np.concatenate([f + int(o) for (_, f, _, _), o in zip(out, starts[:-1])])
+
+    def usd_surfaces(self) -> list:
+        """The USD prims of the render surfaces: [(name, faces, number of points)] (one per body)."""
+        if self.body_surfaces is not None:
+            return [(name, faces, count) for name, faces, count, _ in self.body_surfaces]
+        return [(self.surface_name, self.surface_faces, self.num_surface_points)]
+
+    def usd_surface_points(self) -> dict:
+        """{prim name: current points} of :meth:`usd_surfaces`."""
+        if self.body_surfaces is not None:
+            return {name: points() for name, _, _, points in self.body_surfaces}
+        return {self.surface_name: self.surface_points()}
+
+    def usd_volumes(self) -> list:
+        """``[output] usd_volume``: [(prim name, tets (m, 4) over the body's own vertices, surface faces,
+        first vertex, end vertex)], one per body (a one-body scene: "volume"); corner tets of
+        higher-order elements, so the TetMesh shows the element corners' motion."""
+        out = []
+        offsets = self.model.body_offsets
+        meshes = [b.mesh() for b in self.scene.bodies] or [self.scene.mesh()]
+        names = [f"{b.body_name}_volume" for b in self.scene.bodies] or ["volume"]
+        for name, m, lo, hi in zip(names, meshes, offsets[:-1], offsets[1:]):
+            tets = np.asarray(m.corner_tets(), dtype=np.int64)
+            faces = np.asarray(m.boundary_faces(), dtype=np.int64) if m.element.is_linear_tet else None
+            out.append((name, tets, faces, int(lo), int(hi)))
+        return out
+
     @property
     def num_surface_points(self) -> int:
+        if self.body_surfaces is not None:
+            return int(sum(c for _, _, c, _ in self.body_surfaces))
         if self.embedding is not None:
             return self.embedding.num_points
         return int(self.surface_vertex_ids.size)
@@ -90,7 +154,9 @@ class SceneRun:
     def surface_points(self) -> np.ndarray:
         """Current render-surface points (p, 3): x_surface = W x on the device (the skinner), or the
         simulator's own ``surface_points(embedding)`` when it has one; without ``[surface]`` the
-        boundary vertices' positions."""
+        boundary vertices' positions. ``[[body]]`` scenes: every body's, concatenated in body order."""
+        if self.body_surfaces is not None:
+            return np.concatenate([points() for _, _, _, points in self.body_surfaces])
         if self.embedding is not None:
             if self._sim_surface_points is not None:
                 return np.asarray(self._sim_surface_points(self.embedding), dtype=np.float64)
@@ -183,22 +249,47 @@ class SceneRun:
         history = []
         positions = None  # frames stream to disk (StatesWriter): memory does not grow with the run
         if states:
-            positions = StatesWriter(states, rest=self.model.rest_positions, max_frames=total + 1, fps=self.fps)
+            extra = {}
+            if self.scene.spec.bodies:  # rest / positions hold every body's vertices in body order
+                extra = {"body_offsets": np.asarray(self.model.body_offsets, dtype=np.int64),
+                         "body_names": np.array(self.model.body_names)}
+            positions = StatesWriter(states, rest=self.model.rest_positions, max_frames=total + 1, fps=self.fps,
+                                     extra=extra)
             positions.write_frame(self.sim.positions(), self._time())
         try:
             if usd:
                 writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
-                writer.add_mesh(self.surface_name, self.surface_faces, self.num_surface_points)
+                for name, faces, count in self.usd_surfaces():
+                    writer.add_mesh(name, faces, count)
+                volumes = self.usd_volumes() if out.get("usd_volume") else []
+                for name, tets, faces, lo, hi in volumes:
+                    writer.add_tet_mesh(name, tets, hi - lo, surface_faces=faces)
                 from warpfem.contact.scene import collider_prims
 
                 colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
                 for name, faces, pts in colliders:
                     writer.add_mesh(name, faces, len(pts()))
-                writer.write_frame(self.frame, {self.surface_name: self.surface_points(),
-                                                **{name: pts() for name, _, pts in colliders}})
+
+                def usd_frame():
+                    frame = self.usd_surface_points()
+                    if volumes:
+                        x = self.sim.positions()
+                        frame.update({name: x[lo:hi] for name, _, _, lo, hi in volumes})
+                    frame.update({name: pts() for name, _, pts in colliders})
+                    return frame
+
+                writer.write_frame(self.frame, usd_frame())
             if vtu:
-                qd = self.model.quadrature
-                volume = VtuSeriesWriter(vtu, cells=qd.elements, element_type=qd.element_type)
+                if self.scene.spec.bodies:  # one block per body, by name
+                    from warpfem.io.vtu import VtuBodiesWriter
+
+                    offs = self.model.body_offsets
+                    volume = VtuBodiesWriter(vtu, bodies=[(b.body_name, b.mesh().elements, b.mesh().element_type,
+                                                           int(lo), int(hi))
+                                                          for b, lo, hi in zip(self.scene.bodies, offs[:-1], offs[1:])])
+                else:
+                    qd = self.model.quadrature
+                    volume = VtuSeriesWriter(vtu, cells=qd.elements, element_type=qd.element_type)
                 volume.write_state(self._time(), self.sim, self.model)
             if stats:
                 os.makedirs(os.path.dirname(os.path.abspath(stats)), exist_ok=True)
@@ -220,8 +311,7 @@ class SceneRun:
                 if positions is not None:
                     positions.write_frame(self.sim.positions(), fs.time)
                 if writer is not None:
-                    writer.write_frame(self.frame, {self.surface_name: self.surface_points(),
-                                                    **{name: pts() for name, _, pts in colliders}})
+                    writer.write_frame(self.frame, usd_frame())
                 if volume is not None:
                     volume.write_state(fs.time, self.sim, self.model)
                 if progress is not None:

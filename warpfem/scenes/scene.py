@@ -20,7 +20,7 @@ import numpy as np
 
 from .schema import ELEMENTS, ELEMENTS_FROM_TETS, ELEMENTS_WITH_BOX, SceneError, SceneSpec, parse_scene_file
 
-__all__ = ["Scene", "SceneRun", "FrameStats", "load_scene", "traction_forces", "element_traction_forces",
+__all__ = ["Scene", "BodyScene", "SceneRun", "FrameStats", "load_scene", "traction_forces", "element_traction_forces",
            "handle_targets", "estimate_device_memory", "boundary_surface", "quadrature_points_per_element"]
 
 
@@ -32,8 +32,149 @@ from .memory import (_block_nnz, _fmt_bytes, _volume_cell_types, estimate_device
 from .run import FrameStats, SceneRun  # noqa: E402, F401 - running a built scene
 
 
+def _body_plain(v):
+    return list(v) if isinstance(v, tuple) else v
+
+
+
+class _SceneBodies:
+    """What a scene of ``[[body]]`` tables builds and describes (mixed into :class:`Scene`)."""
+
+    def _bodies_model(self):
+        """The ``Model.from_bodies`` of a ``[[body]]`` scene (each body's material, element type, mass
+        matrix kind); overlapping bodies are a SceneError naming both and the first crossing."""
+        from warpfem.materials import make_material
+        from warpfem.model import Body, Model
+
+        bodies = []
+        for b in self.bodies:
+            mat = b.spec.material
+            material = make_material(mat["model"], youngs_modulus=mat["youngs_modulus"], poisson_ratio=mat["poisson_ratio"],
+                                     density=mat["density"])
+            body = Body(b.mesh(), material, name=b.body_name, initial_velocity=b.initial_velocity,
+                        volumetric_integration=mat["volumetric_integration"], mass_matrix=mat["mass_matrix"])
+            body.offset = b.offset  # the mesh is already moved (selections were made on it)
+            bodies.append(body)
+        try:
+            return Model.from_bodies(bodies, gravity=self.spec.top["gravity"])
+        except ValueError as e:
+            self._fail("[[body]]", str(e))
+
+
+    def _describe_bodies(self) -> str:
+        """``warpfem describe`` of a ``[[body]]`` scene: every body, then the shared sections."""
+        from . import INTEGRATORS, section_entries
+
+        sp = self.spec
+        mesh = self.mesh()
+        lines = [f"scene {self.name!r} ({self.path}): {len(self.bodies)} bodies, {mesh.num_elements} elements, "
+                 f"{mesh.num_vertices} vertices, {3 * mesh.num_vertices} DOFs in all"]
+        memory = {"float32": 0, "float64": 0}
+        nnz_total = 0
+        for b, lo, hi in zip(self.bodies, mesh.body_offsets[:-1], mesh.body_offsets[1:]):
+            bs, bm = b.spec, b.mesh()
+            etype, vi = bs.mesh["element"], bs.material["volumetric_integration"]
+            qpe = quadrature_points_per_element(etype, vi)
+            src = (f"box generator size {list(bs.mesh['size'])} m, cells {list(bs.mesh['cells'])}" if bs.mesh["generator"]
+                   else f"file {bs.mesh['path']}" + (f" prim {bs.mesh['prim']}" if bs.mesh.get("prim") else ""))
+            lines.append(f"body {b.body_name!r} ({b.label}): vertices {lo}..{hi - 1}: {src}")
+            if getattr(bm, "tetrahedralization", None) is not None:
+                lines.append(f"  {bm.tetrahedralization.describe()}")
+            lines += [f"  warning: {w}" for w in b.mesh_warnings]
+            lines.append(f"  element {etype} ({ELEMENTS[etype]}): {bm.num_elements} elements, {bm.num_vertices} vertices, "
+                         f"{bm.num_elements * qpe} quadrature points")
+            mat = bs.material
+            lines.append(f"  material: {mat['model']} E = {mat['youngs_modulus']:g} Pa, nu = {mat['poisson_ratio']:g}, "
+                         f"density = {mat['density']:g} kg/m^3, {mat['mass_matrix']} mass, {vi} volumetric integration")
+            lines.append(f"  offset {b.offset.tolist()} m, initial velocity {b.initial_velocity.tolist()} m/s, "
+                         f"bounds {np.round(bm.bounds()[0], 6).tolist()} .. {np.round(bm.bounds()[1], 6).tolist()}")
+            sel = b.selections()
+            for s in ("fixed", "handle", "force"):
+                for i, (e, ids) in enumerate(zip(getattr(bs, s), sel[s])):
+                    extra = f", components {e['components']}" if s in ("fixed", "handle") else f", {list(e['force'])} N each"
+                    if s == "handle":
+                        extra += f", translation {list(e['translation'])} m"
+                    lines.append(f"  {s} #{i + 1}: {ids.size} vertices{extra}")
+            for i, (f, faces, area) in enumerate(b.tractions()):
+                lines.append(f"  traction #{i + 1}: {faces.size} faces, area {area:.6g} m^2")
+            if bs.surface is not None:
+                lines.append(f"  render surface: {bs.surface['path']} (USD prim {b.body_name}), embedded in its elements")
+            else:
+                ids, tri = boundary_surface(bm)
+                lines.append(f"  render surface: its boundary ({ids.size} vertices, {len(tri)} triangles; USD prim "
+                             f"{b.body_name})")
+            k = bm.nodes_per_element
+            nnz = _block_nnz(bm.elements, k, bm.num_vertices)
+            nnz_total += nnz
+            for prec in memory:
+                memory[prec] += estimate_device_memory(num_vertices=bm.num_vertices, num_elements=bm.num_elements,
+                                                       nodes_per_element=k, num_points=bm.num_elements * qpe, block_nnz=nnz,
+                                                       precision=prec, weights_per_point=k,
+                                                       stiffness_damping=sp.integrator.get("damping_stiffness", 0.0) > 0)
+        lines.append(f"gravity: {list(sp.top['gravity'])} m/s^2")
+        entry = INTEGRATORS[self.integrator_type]
+        integ = sp.integrator
+        if entry.dynamic:
+            lines.append(f"integrator: {self.integrator_type}, dt = {integ['dt']:g} s, {integ['substeps']} step(s) per frame")
+        else:
+            lines.append(f"integrator: {self.integrator_type}, {integ.get('load_steps', 1)} load step(s) per frame")
+        lines.append(f"  builds: {', '.join(entry.builds)} (one vertex space, one quadrature set per body)")
+        ls = self.linear_solver_plan()
+        if ls is not None:
+            lines.append(f"  linear solver: {ls['name']}: cpu: {ls['cpu']}; cuda: {ls['cuda']}")
+        for i, c in enumerate(self.collider_plan()):
+            lines.append(f"collider #{i + 1}: {c['text']}")
+        for extra in section_entries(self):
+            if extra.describe is not None:
+                lines.append(extra.describe(self))
+        out = sp.output
+        lines.append(f"frames: {out['frames']} at {out['fps']:g} fps ({out['frames'] / out['fps']:g} s)")
+        lines.append(f"outputs: usd {out['usd'] or '-'} (one prim per body{', with its TetMesh' if out.get('usd_volume') else ''}), "
+                     f"states {out['states'] or '-'} (bodies concatenated, body_offsets), "
+                     f"stats {self.stats_path(out['usd'], out['stats']) or '-'}")
+        if out.get("vtu"):
+            lines.append(f"  vtu: {out['vtu']} (ParaView collection, one block per body)")
+        for prec, b in memory.items():
+            lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz_total} 3x3 matrix blocks)")
+        return "\n".join(lines)
+
+
+    def _summary_bodies(self) -> dict:
+        """``describe --json`` of a ``[[body]]`` scene: the shared keys and one entry per body."""
+        from warpfem.io.vtu import warpfem_version
+
+        from . import INTEGRATORS
+
+        sp, mesh = self.spec, self.mesh()
+        entry = INTEGRATORS[self.integrator_type]
+        out = sp.output
+        bodies = []
+        for b, lo, hi in zip(self.bodies, mesh.body_offsets[:-1], mesh.body_offsets[1:]):
+            s = b.summary()
+            bodies.append({"name": b.body_name, "offset": b.offset.tolist(), "initial_velocity": b.initial_velocity.tolist(),
+                           "first_vertex": int(lo), "vertices": int(hi - lo), "mesh": s["mesh"], "material": s["material"],
+                           "selections": s["selections"], "tractions": s["tractions"], "render_surface": s["render_surface"],
+                           "matrix_blocks": s["matrix_blocks"], "estimated_device_memory_bytes": s["estimated_device_memory_bytes"]})
+        return {
+            "scene": self.name, "path": self.path, "warpfem_version": warpfem_version(),
+            "bodies": bodies, "body_offsets": [int(o) for o in mesh.body_offsets],
+            "vertices": int(mesh.num_vertices), "elements": int(mesh.num_elements), "dofs": int(3 * mesh.num_vertices),
+            "gravity": list(sp.top["gravity"]),
+            "integrator": {**{key: _body_plain(val) for key, val in sp.integrator.items()}, "dynamic": bool(entry.dynamic),
+                           "builds": list(entry.builds), "linear_solver_plan": self.linear_solver_plan()},
+            "colliders": [{k: v for k, v in c.items() if k != "text"} for c in self.collider_plan()],
+            "frames": int(out["frames"]), "fps": float(out["fps"]), "duration": float(out["frames"] / out["fps"]),
+            "outputs": {"usd": out["usd"], "usd_clip_frames": out["clip_frames"] if out["usd"] else None,
+                        "usd_volume": bool(out.get("usd_volume")), "states": out["states"],
+                        "stats": self.stats_path(out["usd"], out["stats"]), "vtu": out.get("vtu")},
+            "matrix_blocks": int(sum(b["matrix_blocks"] for b in bodies)),
+            "estimated_device_memory_bytes": {p: int(sum(b["estimated_device_memory_bytes"][p] for b in bodies))
+                                              for p in ("float32", "float64")},
+        }
+
+
 # ----------------------------------------------------------------------------- Scene
-class Scene:
+class Scene(_SceneBodies):
     """A validated scene file. Nothing is loaded or allocated until :meth:`describe`/:meth:`build`."""
 
     def __init__(self, spec: SceneSpec):
@@ -65,9 +206,24 @@ class Scene:
     _fail = fail
 
     # -- mesh and selections (numpy) --------------------------------------------------------------
+    @property
+    def bodies(self) -> list:
+        """The ``[[body]]`` tables as scenes of their own (:class:`BodyScene`: mesh moved by the
+        body's offset, selections in its own vertex numbering); [] for a single-body scene."""
+        if getattr(self, "_bodies", None) is None:
+            self._bodies = [BodyScene(self, b) for b in self.spec.bodies]
+        return self._bodies
+
     def mesh(self):
         """The simulation mesh (loaded / generated once): a ``warpfem.mesh.VolumeMesh`` of the scene's
-        element type."""
+        element type; for ``[[body]]`` scenes a :class:`warpfem.model.BodiesMesh` of every body's mesh."""
+        if self._mesh is None and self.spec.bodies:
+            from warpfem.model import BodiesMesh
+
+            meshes = [b.mesh() for b in self.bodies]
+            offsets = np.concatenate([[0], np.cumsum([m.num_vertices for m in meshes])])
+            self._mesh = BodiesMesh(meshes, offsets, [b.body_name for b in self.bodies])
+            self.mesh_warnings = [f"{b.label}: {w}" for b in self.bodies for w in b.mesh_warnings]
         if self._mesh is None:
             import warnings
 
@@ -99,11 +255,15 @@ class Scene:
         wanted = etype.meshio_cell
         if element in ELEMENTS_FROM_TETS:
             try:  # a surface file is tetrahedralised (warpfem.mesh.tetrahedralize; cached)
-                tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher", "target_tets")
+                tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher", "target_tets", "prim")
                          if m.get(k) is not None}
                 mesh = load_mesh(path, inside_surface=m["inside_surface"], **tetra)
                 self._tetrahedralization = getattr(mesh, "tetrahedralization", None)
             except MeshError:
+                from warpfem.mesh.usd_in import is_usd_path
+
+                if is_usd_path(path):  # a TetMesh or a closed Mesh, nothing else to try
+                    raise
                 cells = _volume_cell_types(path)
                 if "tetra" in cells or not (wanted in cells):
                     raise
@@ -140,11 +300,28 @@ class Scene:
         return ids
 
     def selections(self) -> dict:
-        """Vertex ids per ``[[fixed]]``, ``[[handle]]``, ``[[force]]`` entry: {section: [ids, ...]}."""
+        """Vertex ids per ``[[fixed]]``, ``[[handle]]``, ``[[force]]`` entry: {section: [ids, ...]}
+        (``[[body]]`` scenes: every body's entries in body order, global vertex ids)."""
+        if self.spec.bodies:
+            out = {s: [] for s in ("fixed", "handle", "force")}
+            offsets = self.mesh().body_offsets
+            for b, lo in zip(self.bodies, offsets[:-1]):
+                for s, ids in b.selections().items():
+                    out[s] += [i + int(lo) for i in ids]
+            return out
         return {s: [self._select(s, i, e) for i, e in enumerate(getattr(self.spec, s))] for s in ("fixed", "handle", "force")}
 
     def tractions(self):
         """[(forces (n, 3), loaded faces, area)] per ``[[traction]]`` entry (consistent loads)."""
+        if self.spec.bodies:
+            mesh = self.mesh()
+            out = []
+            for b, lo, hi in zip(self.bodies, mesh.body_offsets[:-1], mesh.body_offsets[1:]):
+                for f, faces, area in b.tractions():
+                    g = np.zeros((mesh.num_vertices, 3))
+                    g[lo:hi] = f
+                    out.append((g, faces, area))
+            return out
         mesh = self.mesh()
         tet4 = mesh.element.is_linear_tet  # plain triangles; other types integrate N_a on their faces
         faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
@@ -164,6 +341,8 @@ class Scene:
         """What :meth:`build` will build: counts, selections, integrator, outputs and memory."""
         from . import INTEGRATORS
 
+        if self.spec.bodies:
+            return self._describe_bodies()
         sp = self.spec
         mesh = self.mesh()
         k = mesh.nodes_per_element
@@ -306,6 +485,9 @@ class Scene:
         surface = int(np.unique(faces).size)
         mass = float(sp.material["density"]) * mesh.total_volume()
         E = float(sp.material.get("youngs_modulus") or 0.0)
+        if sp.bodies:  # as the model: every body's mass, the stiffest body's E
+            mass = sum(float(b.spec.material["density"]) * b.mesh().total_volume() for b in self.bodies)
+            E = max(float(b.spec.material.get("youngs_modulus") or 0.0) for b in self.bodies)
         geometry = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "box": ("box_min", "box_max"),
                     "mesh": ("path", "scale", "offset")}
         out = []
@@ -339,6 +521,8 @@ class Scene:
 
         from . import INTEGRATORS
 
+        if self.spec.bodies:
+            return self._summary_bodies()
         sp, mesh = self.spec, self.mesh()
         k, n, m = mesh.nodes_per_element, mesh.num_vertices, mesh.num_elements
         etype, vi = sp.mesh["element"], sp.material["volumetric_integration"]
@@ -435,11 +619,14 @@ class Scene:
         mat = sp.material
         material = make_material(mat["model"], youngs_modulus=mat["youngs_modulus"], poisson_ratio=mat["poisson_ratio"],
                                  density=mat["density"])
-        try:
-            model = Model(mesh, material, gravity=sp.top["gravity"], mass_matrix=mat["mass_matrix"],
-                          volumetric_integration=mat["volumetric_integration"])
-        except ValueError as e:  # e.g. an element with det J <= 0 at a quadrature point (named)
-            self._fail("[mesh]" if "element" in str(e).lower() else "[material]", str(e))
+        if sp.bodies:
+            model = self._bodies_model()
+        else:
+            try:
+                model = Model(mesh, material, gravity=sp.top["gravity"], mass_matrix=mat["mass_matrix"],
+                              volumetric_integration=mat["volumetric_integration"])
+            except ValueError as e:  # e.g. an element with det J <= 0 at a quadrature point (named)
+                self._fail("[mesh]" if "element" in str(e).lower() else "[material]", str(e))
         for e, ids in zip(sp.fixed, sel["fixed"]):
             model.fix(ids, e["components"])
         for e, ids in zip(sp.force, sel["force"]):
@@ -469,6 +656,45 @@ class Scene:
             set_scene_contact(self, sim, sp.contact if sp.contact is not None
                               else {k: key.default for k, key in SCHEMA["contact"].items()})
         return SceneRun(self, model, sim, sel["handle"], device=device, precision=precision)
+
+
+# ----------------------------------------------------------------------------- several bodies
+def _shifted(mesh, offset):
+    """``mesh`` moved by ``offset`` (the same class of mesh; its loader's notes kept)."""
+    from warpfem.mesh import VolumeMesh
+
+    moved = VolumeMesh(np.asarray(mesh.vertices, dtype=np.float64) + offset, np.asarray(mesh.elements),
+                       mesh.element_type, reorient=False, remove_unreferenced=False, name=getattr(mesh, "name", None))
+    for attr in ("tetrahedralization", "vertex_map", "usd_surface"):
+        if getattr(mesh, attr, None) is not None:
+            value = getattr(mesh, attr)
+            if attr == "usd_surface":
+                value = (value[0] + offset, value[1])
+            setattr(moved, attr, value)
+    return moved
+
+
+class BodyScene(Scene):
+    """One ``[[body]]`` table of a scene, as a scene of its own: its spec holds the body's mesh,
+    material, fixed / handle / force / traction entries and surface (and the shared sections); its
+    mesh is moved by the body's ``offset`` (so selection boxes are in scene coordinates); errors
+    name the body."""
+
+    def __init__(self, parent: Scene, body: dict):
+        super().__init__(body["spec"])
+        self.parent, self.body = parent, body
+        self.label, self.body_name = body["label"], body["name"]
+        self.offset = np.asarray(body["offset"], dtype=np.float64)
+        self.initial_velocity = np.asarray(body["initial_velocity"], dtype=np.float64)
+
+    def fail(self, where, msg):
+        raise SceneError(f"{self.path or '<scene>'}: {self.label}: {where}: {msg}")
+
+    _fail = fail
+
+    def _make_mesh(self):
+        mesh = super()._make_mesh()
+        return _shifted(mesh, self.offset) if np.any(self.offset != 0.0) else mesh
 
 
 def load_scene(path) -> Scene:

@@ -124,8 +124,12 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "size": Key("vec3", check=_positive_vec3, doc="box size (m)"),
         "cells": Key("int3", check=_positive_int3, doc="box cells per axis (6 tets or 1 hex each)"),
         "origin": Key("vec3", default=(0.0, 0.0, 0.0), doc="box min corner (m)"),
-        "path": Key("path", doc="volume mesh file (meshio: .mesh, .msh, .vtu, ...) or closed surface (.obj, .off, .ply, .stl)"),
+        "path": Key("path", doc="volume mesh file (meshio: .mesh, .msh, .vtu, ...), closed surface (.obj, .off, .ply, .stl) "
+                            "or USD file (.usd, .usda, .usdc: a TetMesh, or a closed Mesh tetrahedralised)"),
         "inside_surface": Key("bool", default=False, doc="keep only tets inside the file's triangles (tet files)"),
+        "prim": Key("str", default=None, check=lambda v: None if v.startswith("/") else "must be an absolute prim path "
+                    "such as \"/World/Bunny\"", doc="USD files (.usd/.usda/.usdc): the TetMesh or closed Mesh prim "
+                    "to read; default the file's only one"),
         "element": Key("choice", default="tet4", choices=tuple(ELEMENTS), doc="element type: " + ", ".join(ELEMENTS)),
         # surface files (.obj/.off/.ply/.stl) are tetrahedralised on load (warpfem.mesh.tetrahedralize, docs/meshing.md)
         "max_edge_length": Key("float", default=None, check=_positive,
@@ -221,6 +225,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "vtu": Key("outpath", default=None, check=lambda v: None if v.lower().endswith(".pvd") else "must end in .pvd",
                    doc="ParaView collection (.pvd + one .vtu per frame in <name>.vtu/) of the volume mesh"),
         "up_axis": Key("choice", default="Y", choices=("Y", "Z")),
+        "usd_volume": Key("bool", default=False,
+                          doc="also write each body's volume as an animated UsdGeom.TetMesh (prim <body>_volume, or "
+                              "volume for a one-body scene) beside its surface Mesh (corner tets of higher-order elements)"),
         "clip_frames": Key("int", default=100, check=_non_negative,
                            doc="frames per USD value clip (bounds the writer's memory); 0 = one file, all in memory"),
     },
@@ -279,6 +286,19 @@ SCHEMA: dict[str, dict[str, Key]] = {
 # the (repeated) [[array]] sections
 ARRAY_SECTIONS = ("fixed", "handle", "force", "traction", "collider")
 
+# [[body]] tables (several bodies, each its own mesh and material): a body's own keys, and the
+# sections it holds (the keys of today's top-level ones; a scene has either these at the top level or
+# [[body]] tables). Selection boxes, handle centres and traction boxes are in scene coordinates, after
+# the body's offset.
+BODY_KEYS: dict[str, Key] = {
+    "name": Key("str", default=None, doc="body name: USD prim, ParaView block, messages (default body<i>)"),
+    "offset": Key("vec3", default=(0.0, 0.0, 0.0), doc="translation of the body's mesh (m)"),
+    "initial_velocity": Key("vec3", default=(0.0, 0.0, 0.0), doc="velocity of every vertex at t = 0 (m/s)"),
+}
+BODY_SECTIONS = ("mesh", "material", "fixed", "handle", "force", "traction", "surface")
+# integrator types (and sections) that simulate one body only
+SINGLE_BODY_INTEGRATORS = ("stiffness_warping",)
+
 # [[collider]]: the keys each type needs (required) and the keys only some types take
 COLLIDER_TYPE_KEYS = {"plane": ((), ("point", "normal")), "sphere": (("center", "radius"), ()),
                       "box": (("box_min", "box_max"), ()), "mesh": (("path",), ("scale", "offset"))}
@@ -292,6 +312,9 @@ INTEGRATOR_KEYS: dict[str, Key] = {
     "max_iters": Key("int", default=30, check=_positive, doc="Newton iterations per solve"),
     "max_cg_iters": Key("int", default=2000, check=_positive, doc="PCG iterations per Newton iteration"),
     "project_hessian": Key("bool", default=True),
+    "hessian_projection": Key("choice", default="on_demand", choices=("always", "on_demand"),
+                              doc="with project_hessian: project every Newton system, or only once the exact "
+                                  "Hessian fails (docs/integrators.md)"),
     "require_convergence": Key("bool", default=False, doc="fail the run on a non-converged step"),
     "damping_mass": Key("float", default=0.0, check=_non_negative, doc="Rayleigh alpha (1/s)"),
     "damping_stiffness": Key("float", default=0.0, check=_non_negative, doc="Rayleigh beta (s)"),
@@ -322,15 +345,21 @@ class SceneSpec:
     traction: list = field(default_factory=list)
     collider: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)  # sections handled by registered extensions
+    # [[body]] scenes: one dict per body (name, offset, initial_velocity, spec: the body's own SceneSpec
+    # with its mesh, material, fixed, handle, force, traction, surface); empty for a single-body scene
+    bodies: list = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- checking
 class _Ctx:
-    def __init__(self, path, base_dir):
+    def __init__(self, path, base_dir, body=""):
         self.path, self.base_dir = path, base_dir
+        self.body = body  # "[[body]] #2 'right'" while a body's own sections are checked
 
     def fail(self, where, msg):
         src = self.path or "<scene>"
+        if self.body and where and where.lstrip("[").split("]")[0].split(".")[0] in BODY_SECTIONS:
+            where = f"{self.body}: {where}"
         raise SceneError(f"{src}: {where}: {msg}" if where else f"{src}: {msg}")
 
 
@@ -459,11 +488,13 @@ def _check_selection(ctx, section, i, entry, *, require=True):
 
 
 def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | None = None,
-                     integrators: dict | None = None) -> SceneSpec:
+                     integrators: dict | None = None, _body: str = "") -> SceneSpec:
     """Validate a parsed TOML document; ``integrators`` maps type names to their registry entries."""
     if integrators is None:
         from . import INTEGRATORS as integrators
-    ctx = _Ctx(path, base_dir or (os.path.dirname(os.path.abspath(path)) if path else os.getcwd()))
+    ctx = _Ctx(path, base_dir or (os.path.dirname(os.path.abspath(path)) if path else os.getcwd()), _body)
+    if "body" in data:
+        return _parse_bodies(ctx, data, integrators)
     sections = set(SCHEMA) - {""}
     top_schema = dict(SCHEMA[""])
     for s in sections:
@@ -505,7 +536,19 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
     if "embed_surface" in data["mesh"]:
         tetra_keys.append("embed_surface")
     surface_file = bool(mesh["path"]) and os.path.splitext(mesh["path"])[1].lower() in (".obj", ".off", ".ply", ".stl")
-    if mesh["path"] and not surface_file and tetra_keys:
+    usd_file = bool(mesh["path"]) and os.path.splitext(mesh["path"])[1].lower() in (".usd", ".usda", ".usdc")
+    if mesh["prim"] is not None and not usd_file:
+        ctx.fail("[mesh].prim", "only applies to USD files (path = \"file.usd/.usda/.usdc\")")
+    if usd_file:
+        if element not in ELEMENTS_FROM_TETS:
+            ctx.fail("[mesh].element", f"a USD file holds tets (a TetMesh, or a Mesh tetrahedralised): use element = "
+                     f"{_tet_types()}, not {element!r}")
+        if mesh["inside_surface"]:
+            ctx.fail("[mesh].inside_surface", "only applies to tet files with triangle cells, not to USD files")
+        if "embed_surface" in data["mesh"]:
+            ctx.fail("[mesh].embed_surface", "only applies to .obj/.off/.ply/.stl surface files (a USD file's render "
+                     "surface is the tet mesh's boundary unless [surface] names one)")
+    if mesh["path"] and not (surface_file or usd_file) and tetra_keys:
         # (load_mesh says the same for the options it gets; said here before any file is read)
         ctx.fail(f"[mesh].{tetra_keys[0]}", "only applies to surface files (.obj/.off/.ply/.stl, tetrahedralised on "
                  "load); this file is read as a volume mesh")
@@ -602,6 +645,71 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
                               f"[integrator].type is {itype!r}")
     return SceneSpec(path=path, base_dir=ctx.base_dir, top=top, mesh=mesh, material=material,
                      integrator=integrator, output=output, surface=surface, subspace=subspace, contact=contact, **arrays)
+
+
+def _body_label(i, name):
+    return f"[[body]] #{i + 1}" + (f" {name!r}" if isinstance(name, str) and name else "")
+
+
+def _parse_bodies(ctx, data, integrators) -> SceneSpec:
+    """A scene of ``[[body]]`` tables: each body's sections checked as a single-body scene's (errors
+    name the body), the shared sections once; the result's fixed / handle / force / traction are
+    every body's entries in body order (their vertices are mapped to the global numbering when
+    selected) and ``bodies`` holds each body's own spec."""
+    import re
+
+    raw = data["body"]
+    if not isinstance(raw, list):
+        ctx.fail("body", "write the bodies as an array of tables [[body]] (got a single [body] table)")
+    if not raw:
+        ctx.fail("[[body]]", "needs at least one body")
+    mixed = [s for s in BODY_SECTIONS if s in data]
+    if mixed:
+        s = mixed[0]
+        shown = f"[[{s}]]" if s in ARRAY_SECTIONS else f"[{s}]"
+        ctx.fail(shown, f"a scene with [[body]] tables cannot also have a top-level {shown}: [[body]] and top-level "
+                 f"{shown} are two ways to give the {s}; move it into a [[body]] table ([[body.{s}]] or [body.{s}])")
+    if "subspace" in data:
+        ctx.fail("[subspace]", "reduced runs take a one-body scene of the top-level form ([mesh], [material]); this "
+                 "scene has [[body]] tables")
+    itype = data.get("integrator", {}).get("type", SCHEMA["integrator"]["type"].default) \
+        if isinstance(data.get("integrator", {}), dict) else None
+    shared = {k: v for k, v in data.items() if k != "body"}
+    names, bodies = [], []
+    for i, b in enumerate(raw):
+        label = _body_label(i, b.get("name") if isinstance(b, dict) else None)
+        if not isinstance(b, dict):
+            ctx.fail(label, f"expected a table, got {_typename(b)}")
+        allowed = {**BODY_KEYS, **{s: None for s in BODY_SECTIONS}}
+        for k in b:
+            if k not in allowed:
+                ctx.fail(f"{label}.{k}", f"unknown key{_suggest(k, allowed)}; known keys of a body: "
+                         f"{', '.join(sorted(allowed))}")
+        own = {}
+        for k, key in BODY_KEYS.items():
+            own[k] = _convert(ctx, f"{label}.{k}", key, b[k]) if k in b else key.default
+        name = own["name"] or f"body{i + 1}"
+        if not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+            ctx.fail(f"{label}.name", f"must be a valid USD prim name (letters, digits, _; not starting with a digit), "
+                     f"got {name!r}")
+        if name in names:
+            ctx.fail(f"{label}.name", f"{name!r} is already the name of [[body]] #{names.index(name) + 1}; names must be unique")
+        names.append(name)
+        for s in ("mesh", "material"):
+            if s not in b:
+                ctx.fail(f"{label}.{s}", f"required: each [[body]] has its own [body.{s}] table")
+        sub = dict(shared, **{s: b[s] for s in BODY_SECTIONS if s in b})
+        spec = parse_scene_dict(sub, path=ctx.path, base_dir=ctx.base_dir, integrators=integrators, _body=label)
+        bodies.append({"name": name, "offset": own["offset"], "initial_velocity": own["initial_velocity"], "spec": spec,
+                       "label": label})
+    if len(bodies) > 1 and itype in SINGLE_BODY_INTEGRATORS:
+        ctx.fail("[integrator].type", f"{itype!r} simulates one body; this scene has {len(bodies)} [[body]] tables "
+                 "(use backward_euler, bdf2, newmark or static)")
+    first = bodies[0]["spec"]
+    merged = {s: [e for b in bodies for e in getattr(b["spec"], s)] for s in ("fixed", "handle", "force", "traction")}
+    return SceneSpec(path=first.path, base_dir=first.base_dir, top=first.top, mesh=first.mesh, material=first.material,
+                     integrator=first.integrator, output=first.output, surface=None, subspace=first.subspace,
+                     collider=first.collider, extra=first.extra, bodies=bodies, **merged)
 
 
 def _check_collider(ctx, i, c, raw, itype, subspace):

@@ -165,7 +165,8 @@ class LoadForm(Form):
 
 class ElasticForm(Form):
     """V(x) summed over quadrature-point sets (``QuadratureSet``s: count, points, material, energy
-    buffer); Hessian SPD-projected per point when ``options.project_hessian``."""
+    buffer, element group: the pattern's ``block_indices`` entry of its elements, one per body);
+    Hessian SPD-projected per point when ``options.project_hessian``."""
 
     name = "elastic"
     variable = "x"
@@ -173,6 +174,9 @@ class ElasticForm(Form):
     def __init__(self, ops, qp_sets, pattern, options):
         self.ops, self.qp_sets, self.pattern, self.options = ops, qp_sets, pattern, options
         self._fa = ops.new_vector()
+        #: the Newton loop's choice for its systems (None: the options'; False: the exact Hessian,
+        #: project-on-demand Newton before a system needed the projection)
+        self.project_now = None
 
     def energy(self, y, x, acc):
         for qs in self.qp_sets:
@@ -192,14 +196,15 @@ class ElasticForm(Form):
         return float(np.sqrt(row[2]))
 
     def hessian(self, y, x, scale, values):
-        self.assemble(x, scale, values)
+        self.assemble(x, scale, values, project=self.project_now)
 
     def assemble(self, x, scale, values, project=None):
         """values += scale d2V/dx2 at x (SPD-projected per point if ``project``, default the options')."""
         project = self.options.project_hessian if project is None else project
         for qs in self.qp_sets:
             launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(scale), int(project),
-                                                    self.pattern.block_index, values], self.ops.device)
+                                                    self.pattern.block_indices[getattr(qs, "group", 0)], values],
+                   self.ops.device)
 
 
 class IncrementalPotential:
@@ -223,11 +228,16 @@ class IncrementalPotential:
         self.ops, self.system, self.mask, self.linear_solve, self.work = ops, system, mask, linear_solve, work
         self.n = ops.n
         self.eps = float(np.finfo(ops.np_dtype).eps)
-        self.gradient_test_below = 0.0  # see newton_solve (the reduced problem uses it)
+        # an energy change (or predicted change) below this fraction of the energy's magnitude is not
+        # resolved by its sums, whose terms cancel (measured: round-off of 1e-13 relative in float64 on
+        # a stiff bar, E = 1e9): a full Newton step is then judged by whether it halves the gradient
+        # norm (see newton_solve)
+        self.gradient_test_below = max(1e-10, 64.0 * self.eps)
         self.forms = []
         self.host_syncs = 0  # read-backs of this potential (cumulative)
         self.xb, self.s = None, 1.0
         self._x_of_y = None
+        self.projecting = True  # whether Newton systems use the projected Hessian (see set_projection)
         self.set_forms(forms)
 
     # -- forms --------------------------------------------------------------------------------------
@@ -245,6 +255,19 @@ class IncrementalPotential:
         self._report_at = 5 * size
         for i, f in enumerate(forms):
             f.bind(self.acc, _HEAD + ROW * i)
+
+    def set_projection(self, on: bool):
+        """Project-on-demand Newton (``NewtonOptions.hessian_projection = "on_demand"``): with
+        ``on`` False the elastic forms assemble their exact Hessian and the linear solver reports an
+        indefinite matrix instead of shifting it (``definite_only``); True restores the options'
+        projection."""
+        self.projecting = bool(on)
+        for f in self.forms:
+            if hasattr(f, "project_now"):
+                f.project_now = None if on else False
+        solver = getattr(self.system, "solver", None)
+        if solver is not None and hasattr(solver, "definite_only"):
+            solver.definite_only = not on
 
     def add_form(self, form):
         self.set_forms(self.forms + [form])

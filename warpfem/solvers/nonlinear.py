@@ -18,6 +18,18 @@ import numpy as np
 from warpfem.solvers.linear.forcing import FORCING, ForcingTerms
 
 
+#: the values of ``NewtonOptions.hessian_projection``
+HESSIAN_PROJECTIONS = ("always", "on_demand")
+
+
+def indefinite_system(lin) -> bool:
+    """Whether a linear solve's result says its matrix was not positive definite: PCG met
+    non-positive curvature, a direct factorisation failed or needed a diagonal shift, or
+    (near) null directions were deflated."""
+    return bool(getattr(lin, "negative_curvature", False) or getattr(lin, "failed", "")
+                or getattr(lin, "shift", 0.0) > 0.0 or getattr(lin, "deflated", 0) > 0)
+
+
 @dataclass
 class NewtonOptions:
     """Accuracy/speed knobs of the Newton solve (all keyword-settable on the simulator).
@@ -36,6 +48,14 @@ class NewtonOptions:
         forcing: "fixed" (every linear solve to ``cg_tol``) or "eisenstat_walker" (adaptive
             tolerances, loose far from the solution, never tighter than ``cg_tol``;
             :mod:`warpfem.solvers.linear.forcing`, measured effect in docs/linear_solvers.md).
+        hessian_projection: with ``project_hessian``, "always" (every Newton system from the
+            projected Hessian: projected Newton) or "on_demand" (each solve starts from the exact
+            Hessian and switches to the projected one for the rest of the solve as soon as a
+            Newton system is found indefinite, its direction is not a descent direction, or its
+            line search fails: Longva et al. 2023, "Pitfalls of Projection: A study of Newton-type
+            solvers for incremental potentials", project-on-demand Newton). The projection's
+            clamping makes projected Newton converge linearly; on demand keeps Newton's quadratic
+            convergence where the exact Hessian is definite (measured in docs/integrators.md).
     """
 
     tol: float = 1e-6
@@ -47,6 +67,7 @@ class NewtonOptions:
     armijo: float = 1e-4
     project_hessian: bool = True
     forcing: str = "fixed"
+    hessian_projection: str = "on_demand"
 
     def validate(self):
         for name in ("tol", "cg_tol"):
@@ -63,6 +84,8 @@ class NewtonOptions:
             raise ValueError(f"armijo must be in (0, 0.5), got {self.armijo!r}")
         if self.forcing not in FORCING:
             raise ValueError(f"forcing must be one of {FORCING}, got {self.forcing!r}")
+        if self.hessian_projection not in HESSIAN_PROJECTIONS:
+            raise ValueError(f"hessian_projection must be one of {HESSIAN_PROJECTIONS}, got {self.hessian_projection!r}")
 
 
 @dataclass
@@ -89,6 +112,7 @@ class SolveStats:
     hessian_evaluations: int = 0  # Newton matrices evaluated (counted by the reduced simulator, which keeps its matrix)
     singular_solves: int = 0  # Newton systems a direct solve found singular or indefinite (shifted and/or deflated)
     friction_iterations: int = 0  # extra solves of a step with friction lagged again from its end (Simulator)
+    projected_retries: int = 0  # hessian_projection="on_demand": Newton systems solved again with the projected Hessian
     history: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -130,11 +154,17 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     * optionally ``max_step(y, d) -> alpha_max``: the line search starts at min(1, alpha_max)
       (contact's continuous-collision bound: no step crosses a collider);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
-      step changes the energy by less than that fraction of its magnitude (below what the energy
-      sum resolves), the step is accepted if it halves the gradient norm.
+      step changes the energy, or the Newton model predicts it to change (|g.d|), by less than that
+      fraction of its magnitude (below what the energy sum resolves), the step is accepted if it
+      halves the gradient norm.
     """
     st = SolveStats()
     syncs0 = getattr(problem, "host_syncs", None)
+    # project-on-demand Newton: the exact Hessian until a Newton system says it is not enough
+    on_demand = (opts.project_hessian and opts.hessian_projection == "on_demand"
+                 and hasattr(problem, "set_projection"))
+    if on_demand:
+        problem.set_projection(False)
     if hasattr(problem, "vectors"):  # work vectors the problem keeps (no allocation per solve)
         g, d, y_try = problem.vectors()
     else:
@@ -164,6 +194,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     st.energy, st.gradient_norm = E, gnorm0
 
     def finish():
+        if on_demand:
+            problem.set_projection(True)
         if syncs0 is not None:
             st.newton_syncs = problem.host_syncs - syncs0
         return st
@@ -180,32 +212,52 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     for _ in range(opts.max_iters):
         pre = None  # the fused first trial: (g.d, negligible, E, |E|, gradient magnitude, ||g_try||)
         alpha_pre = 1.0  # the step length of that trial
+        def solve_system(lin_opts):
+            """This iteration's Newton system: (linear result, fused first trial or None, its step length)."""
+            if fused and not problem.bounds_step():
+                if hasattr(problem, "newton_step"):  # solve + first trial, one read-back
+                    return problem.newton_step(y, g, d, y_try, g_try, lin_opts) + (1.0,)
+                lin = problem.solve_newton_system(y, g, d, lin_opts)
+                return lin, problem.trial_step(y, g, d, 1.0, y_try, g_try), 1.0
+            if fused:  # a bounded step (contact): the bound first, then the trial at it, one read-back each
+                lin = problem.solve_newton_system(y, g, d, lin_opts)
+                a_pre = min(1.0, problem.max_step(y, d))
+                return lin, problem.trial_step(y, g, d, a_pre, y_try, g_try), a_pre
+            return problem.solve_newton_system(y, g, d, lin_opts), None, 1.0  # an iteration count or a LinearSolveResult
+
+        lin_opts = None
         if first is not None:  # done with the start's evaluation (its solve ran at the first tolerance)
             (lin, pre), first = first, None
         else:
             lin_opts = opts if forcing is None else replace(opts, cg_tol=forcing.next(gnorm))
-            if fused and not problem.bounds_step():
-                if hasattr(problem, "newton_step"):  # solve + first trial, one read-back
-                    lin, pre = problem.newton_step(y, g, d, y_try, g_try, lin_opts)
-                else:
-                    lin = problem.solve_newton_system(y, g, d, lin_opts)
-                    pre = problem.trial_step(y, g, d, 1.0, y_try, g_try)
-            elif fused:  # a bounded step (contact): the bound first, then the trial at it, one read-back each
-                lin = problem.solve_newton_system(y, g, d, lin_opts)
-                alpha_pre = min(1.0, problem.max_step(y, d))
-                pre = problem.trial_step(y, g, d, alpha_pre, y_try, g_try)
+            lin, pre, alpha_pre = solve_system(lin_opts)
+        for retry in range(2):
+            iterations = int(getattr(lin, "iterations", lin))
+            st.cg_iterations += iterations
+            st.linear_iterations += iterations
+            st.host_syncs += int(getattr(lin, "host_syncs", 0))
+            st.singular_solves += int(getattr(lin, "shift", 0.0) > 0.0 or getattr(lin, "deflated", 0) > 0)
+            if pre is not None:
+                gd, negligible = pre[0], pre[1]
             else:
-                lin = problem.solve_newton_system(y, g, d, lin_opts)  # an iteration count or a LinearSolveResult
-        iterations = int(getattr(lin, "iterations", lin))
-        st.cg_iterations += iterations
-        st.linear_iterations += iterations
-        st.host_syncs += int(getattr(lin, "host_syncs", 0))
-        st.singular_solves += int(getattr(lin, "shift", 0.0) > 0.0 or getattr(lin, "deflated", 0) > 0)
+                gd, negligible = problem.direction_check(y, g, d)
+            if not (on_demand and retry == 0 and not problem.projecting):
+                break
+            # a full step of the exact Hessian's direction that fails the Armijo test (the fused trial
+            # tells) is a sign its model of the energy is not to be trusted either
+            full_rejected = pre is not None and not (
+                np.isfinite(pre[2]) and (pre[2] <= E + opts.armijo * alpha_pre * gd + 16.0 * eps_mach * mag
+                                         or (min(abs(pre[2] - E), abs(gd)) <= problem.gradient_test_below * mag
+                                             and pre[5] <= 0.5 * gnorm)))
+            if not (indefinite_system(lin) or not (gd < 0.0) or full_rejected):
+                break
+            # the exact Hessian was not enough: project from now on in this solve, and solve again
+            problem.set_projection(True)
+            st.projected_retries += 1
+            if lin_opts is None:
+                lin_opts = opts if forcing is None else replace(opts, cg_tol=forcing.next(gnorm))
+            lin, pre, alpha_pre = solve_system(lin_opts)
         bounded = hasattr(problem, "max_step")
-        if pre is not None:
-            gd, negligible = pre[0], pre[1]
-        else:
-            gd, negligible = problem.direction_check(y, g, d)
         if not (gd < 0.0):  # not a descent direction (indefinite Hessian or CG breakdown)
             pre = None
             problem.fallback_direction(g, d)
@@ -239,15 +291,24 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
                     g_new = pre[4], pre[5]
                 break
             if (_ls == 0 and problem.gradient_test_below > 0.0 and np.isfinite(E_try)
-                    and abs(E_try - E) <= problem.gradient_test_below * mag):
-                # energy change below what the sums resolve: accept the full Newton step if it
-                # halves the gradient norm (it is then a contraction)
-                if problem.gradient(y_try, problem.new_vector())[1] <= 0.5 * gnorm:
+                    and min(abs(E_try - E), abs(gd)) <= problem.gradient_test_below * mag):
+                # energy change (or the decrease the Newton model predicts) below what the sums
+                # resolve: accept the full Newton step if it halves the gradient norm (it is then a
+                # contraction); the fused trial has that norm
+                if pre is not None:
+                    if pre[5] <= 0.5 * gnorm:
+                        accepted, g_new = True, (pre[4], pre[5])
+                        break
+                elif problem.gradient(y_try, problem.new_vector())[1] <= 0.5 * gnorm:
                     accepted = True
                     break
             alpha *= 0.5
             st.line_search_steps += 1
         if not accepted:
+            if on_demand and not problem.projecting:  # the exact Hessian's direction failed: project from now on
+                problem.set_projection(True)
+                st.projected_retries += 1
+                continue
             if getattr(problem, "refresh_direction", None) is not None and problem.refresh_direction():
                 continue  # the direction came from a kept (older) Newton matrix: try again with a fresh one
             if gnorm <= 1e3 * floor_factor * gmag:

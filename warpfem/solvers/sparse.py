@@ -30,17 +30,28 @@ class BlockPattern:
         nnz: number of stored blocks.
         offsets, columns: device int32 arrays (CSR layout of the blocks).
         block_index: device int32 array, (m * k * k,) position of block (e, a, b).
+        block_indices: per element group, its part of ``block_index`` (several groups: the bodies of
+            a multi-body model, ``elements_flat`` and ``nodes_per_element`` given as lists).
         diag_index: numpy int array (n,), position of each diagonal block.
     """
 
     def __init__(self, elements_flat: np.ndarray, nodes_per_element: int, num_vertices: int, *, device, block_type,
                  extra_pairs=None):
-        k = int(nodes_per_element)
         n = int(num_vertices)
-        self._elements_flat, self._k = np.asarray(elements_flat), k
-        E = np.asarray(elements_flat, dtype=np.int64).reshape(-1, k)
-        rows = np.repeat(E, k, axis=1).ravel()
-        cols = np.tile(E, (1, k)).ravel()
+        # several element groups (bodies of different element types): elements_flat and
+        # nodes_per_element are then lists, one entry per group; block_index holds the groups' element
+        # blocks one after the other and block_indices[g] is group g's part (a view)
+        multi = isinstance(nodes_per_element, (list, tuple))
+        groups = (list(zip(elements_flat, nodes_per_element)) if multi else [(elements_flat, nodes_per_element)])
+        self._groups = [(np.asarray(e), int(k)) for e, k in groups]
+        self._elements_flat, self._k = (([e for e, _ in self._groups], [k for _, k in self._groups]) if multi
+                                        else self._groups[0])
+        row_parts, col_parts = [], []
+        for e, k in self._groups:
+            E = np.asarray(e, dtype=np.int64).reshape(-1, k)
+            row_parts.append(np.repeat(E, k, axis=1).ravel())
+            col_parts.append(np.tile(E, (1, k)).ravel())
+        rows, cols = np.concatenate(row_parts), np.concatenate(col_parts)
         diag = np.arange(n, dtype=np.int64)
         extra = np.zeros((0, 2), dtype=np.int64) if extra_pairs is None else np.asarray(extra_pairs, dtype=np.int64).reshape(-1, 2)
         if extra.size and (extra.min() < 0 or extra.max() >= n):
@@ -72,6 +83,10 @@ class BlockPattern:
         self.rows_np = r
         self.cols_np = c
         self.block_index = wp.array(inverse[: len(rows)].astype(np.int32), dtype=wp.int32, device=device)
+        self.block_indices = [self.block_index]  # per element group (one group: the array itself)
+        if multi:
+            sizes = np.cumsum([0] + [len(r) for r in row_parts])
+            self.block_indices = [self.block_index[int(a):int(b)] for a, b in zip(sizes[:-1], sizes[1:])]
         self.diag_index = inverse[len(rows):len(rows) + n]
         self._keys = uniq
         self.version = 0  # how many times the pattern grew (0: the mesh's own)

@@ -1,12 +1,12 @@
-"""State, control and the state API shared by the full-space simulators (``Simulator``,
-``StiffnessWarpingSimulator``).
+"""State, control and the simulator base shared by the three simulators (``Simulator``,
+``StiffnessWarpingSimulator``, ``ReducedSimulator``).
 
 As in NVIDIA's ``newton``, what a step reads and writes is kept apart from the model:
 
 * the :class:`~warpfem.model.Model` (mesh, material, mass, fixed set, loads) does not change
   during a step;
-* a :class:`State` is what a step advances: positions, velocities (device arrays), the
-  integrator's history (``history``: x_{n-1}, v_{n-1} or a_n and the step size they belong to)
+* a :class:`State` is what a step advances: positions, velocities (device arrays; the reduced
+  simulator's coordinate arrays), the integrator's history (``history``: x_{n-1}, v_{n-1} or a_n and the step size they belong to)
   and the time;
 * a :class:`Control` is what drives one step from outside: kinematic targets of fixed vertices and
   the load scale.
@@ -17,7 +17,11 @@ simulator's own state (two states used in turn: no allocation per step).
 :class:`DeviceVectors` is the vector algebra of the device vec3 arrays (the
 :class:`warpfem.integrators.VectorOps` the integrators use).
 
-:class:`SimulatorState` is a mixin: positions and velocities as device arrays of vec3, Dirichlet
+:class:`StepperBase` is what the three simulators share (state and control, both forms of
+``step``, ``new_state``, ``predict``, the failure handling ``_finish`` / :func:`check_solve`, the
+total energy); :class:`SimulatorBase` adds what the two full-space ones share (device vectors,
+the Hessian system and linear solver, ``sync_model``, the forms' weights, prescribed velocities,
+Newmark's a_0). :class:`SimulatorState` is a mixin of the latter: positions and velocities as device arrays of vec3, Dirichlet
 components (``fix``/``release``, kept on the model) and kinematic targets for the next step.
 A class using it provides:
 
@@ -37,8 +41,9 @@ import warp as wp
 
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
+from warpfem.solvers.adjoint import active_tape, recorded_step
 
-__all__ = ["SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
+__all__ = ["newton_options_from", "SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
 
 #: precision name -> (scalar, vec3, mat33 Warp types, numpy dtype)
 PRECISIONS = {
@@ -61,6 +66,20 @@ def check_simulator_options(precision, dt, damping_mass, damping_stiffness):
         raise ValueError(f"Rayleigh damping coefficients must be >= 0, got damping_mass={damping_mass!r}, "
                          f"damping_stiffness={damping_stiffness!r}")
     return PRECISIONS[precision]
+
+
+def newton_options_from(options: dict):
+    """The :class:`~warpfem.solvers.nonlinear.NewtonOptions` of a simulator's keyword options,
+    validated; raises TypeError naming unknown keys, ValueError naming a bad value."""
+    from warpfem.solvers.nonlinear import NewtonOptions
+
+    known = NewtonOptions.__dataclass_fields__
+    unknown = set(options) - set(known)
+    if unknown:
+        raise TypeError(f"unknown solver option(s) {sorted(unknown)}; known: {sorted(known)}")
+    opts = NewtonOptions(**options)
+    opts.validate()
+    return opts
 
 
 class State:
@@ -113,6 +132,11 @@ class DeviceVectors:
         if dst is not src:
             wp.copy(dst, src)
 
+    @staticmethod
+    def clone(a):
+        """A copy of a vector of this algebra (its own buffer); anything else (a step size) as it is."""
+        return wp.clone(a) if isinstance(a, wp.array) else a
+
     def acceleration(self, state, out):
         self._acceleration(state, out)
 
@@ -155,15 +179,6 @@ class SimulatorState(ControlledSimulator):
         self.state.v = value
 
     @property
-    def time(self) -> float:
-        """Simulated time (s) of the current state."""
-        return self.state.time
-
-    @time.setter
-    def time(self, value):
-        self.state.time = float(value)
-
-    @property
     def _targets(self):
         return self.control.targets
 
@@ -174,13 +189,6 @@ class SimulatorState(ControlledSimulator):
     def _new_state(self):
         """A state with zeroed buffers of this simulator's size (for ``step(state_in, state_out, ...)``)."""
         return State(self._vec_array(), self._vec_array())
-
-    def new_state(self):
-        """A copy of the current state (its own buffers): an input or output of
-        ``step(state_in, state_out, control, dt)``."""
-        s = State(wp.clone(self.state.x), wp.clone(self.state.v), time=self.state.time)
-        s.history = {k: (wp.clone(v) if isinstance(v, wp.array) else v) for k, v in self.state.history.items()}
-        return s
 
     # -- boundary conditions (no re-assembly, no pattern rebuild) --------------------------------------
     def fix(self, indices, components="xyz"):
@@ -228,11 +236,6 @@ class SimulatorState(ControlledSimulator):
         self.state.v.assign(self._checked_state(v, "velocities").astype(self._np))
         self._state_changed()
 
-    def _state_changed(self):
-        """The state was set from outside: time integrators restart their history (BDF2 takes a
-        backward Euler step, Newmark recomputes the acceleration)."""
-        self.state.history.clear()
-
 
 def check_solve(stats, what: str, *, require_convergence: bool, finite: bool = True, stacklevel: int = 3):
     """The failure handling of every simulator's step: raise :class:`SolveFailed` (the caller has
@@ -251,12 +254,80 @@ def check_solve(stats, what: str, *, require_convergence: bool, finite: bool = T
 
 
 class StepperBase(ControlledSimulator):
-    """The two forms of ``step``, written once for every simulator (full space, stiffness warping,
-    reduced). A subclass provides ``_step(state_in, state_out, control, dt) -> SolveStats`` (reads
-    ``state_in`` only, raises before writing ``state_out``), ``_own_states() -> (state, a state to
-    write)``, ``_commit(state_out)`` (make it the simulator's state), ``control``, ``dt`` and
-    ``step_count``."""
+    """What every simulator (full space, stiffness warping, reduced) shares: the current
+    :class:`State` and :class:`Control` (``state``, ``control``, ``time``, ``load_scale``), the two
+    forms of ``step`` (two states used in turn: no allocation per step), ``new_state``,
+    ``predict``, the failure handling of a step (:meth:`_finish`, :func:`check_solve`) and the
+    total energy (with the load scale).
 
+    A subclass calls :meth:`_setup_states` and provides ``_step(state_in, state_out, control, dt)
+    -> SolveStats`` (reads ``state_in`` only, raises before writing ``state_out``), ``dt``,
+    ``integrator``, ``ops`` (its vector algebra, with ``clone``), ``_prediction_work`` (dict),
+    ``require_convergence``, ``kinetic_energy()``, ``elastic_energy()`` and
+    ``_external_work(state)`` (x^T f_ext of the unscaled external forces)."""
+
+    def _setup_options(self, model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence):
+        """The options every simulator takes (validated by :func:`check_simulator_options`, which
+        returned ``types``): model, device, precision and its types, dt, Rayleigh damping."""
+        from warpfem.device import get_device
+
+        self.model = model
+        self.device = get_device(device)
+        self.precision = precision
+        self._s, self._vec, self._mat, self._np = types
+        self.dt = float(dt)
+        self.damping_mass = float(damping_mass)
+        self.damping_stiffness = float(damping_stiffness)
+        self.require_convergence = bool(require_convergence)
+        self.num_vertices = model.num_vertices
+
+    def _setup_states(self, state, spare):
+        """The simulator's state, the spare state ``step()`` writes, a fresh :class:`Control`."""
+        self.state, self._spare = state, spare
+        self.control = Control()
+        self._step_control = self.control  # the control of the step being taken (Newmark's a_0 reads it)
+        self.step_count = 0
+
+    # -- the current state --------------------------------------------------------------------------
+    @property
+    def time(self) -> float:
+        """Simulated time (s) of the current state."""
+        return self.state.time
+
+    @time.setter
+    def time(self, value):
+        self.state.time = float(value)
+
+    def new_state(self, requires_grad=False) -> State:
+        """A copy of the current state (its own buffers and history): an input or output of
+        ``step(state_in, state_out, control, dt)``. ``requires_grad``: positions and velocities
+        with gradient arrays, for steps recorded on a ``wp.Tape`` (docs/gradients.md)."""
+        c = self.ops.clone
+        st = self.state
+        if requires_grad:
+            x, v = wp.clone(st.x, requires_grad=True), wp.clone(st.v, requires_grad=True)
+        else:
+            x, v = c(st.x), c(st.v)
+        return State(x, v, {k: c(h) for k, h in st.history.items()}, st.time)
+
+    def _state_changed(self):
+        """The state was set from outside: time integrators restart their history (BDF2 takes a
+        backward Euler step, Newmark recomputes the acceleration)."""
+        self.state.history.clear()
+
+    def predict(self, state=None, dt=None):
+        """The integrator's prediction (x_b, v_hat, s) for a step of ``dt`` from ``state``
+        (defaults: the simulator's); the vectors are work buffers, valid until the next step."""
+        return self.integrator.predict(self.state if state is None else state, self.dt if dt is None else float(dt),
+                                       self.ops, self._prediction_work)
+
+    # -- energies -------------------------------------------------------------------------------------
+    def total_energy(self) -> float:
+        """Kinetic + elastic - x^T f_ext (J, f_ext times ``load_scale``): conserved by the exact
+        dynamics without damping."""
+        return self.kinetic_energy() + self.elastic_energy() - self.load_scale * self._external_work(self.state)
+
+    # -- the step ---------------------------------------------------------------------------------------
     def step(self, state_in=None, state_out=None, control=None, dt=None):
         """Advance one step; returns its :class:`~warpfem.SolveStats`.
 
@@ -273,47 +344,110 @@ class StepperBase(ControlledSimulator):
             if state_out is not None:
                 raise TypeError("step(): give both state_in and state_out, or neither")
             own_in, own_out = self._own_states()
-            stats = self._step(own_in, own_out, self.control, self.dt if dt is None else float(dt))
+            stats = self._run_step(own_in, own_out, self.control, self.dt if dt is None else float(dt), own=True)
             self._commit(own_out)
             self.control.targets.clear()
             self.step_count += 1
             return stats
         if state_out is None or state_out is state_in:
             raise ValueError("step(state_in, state_out, ...) needs a distinct output state (see new_state())")
-        return self._step(state_in, state_out, Control() if control is None else control,
-                          self.dt if dt is None else float(dt))
+        return self._run_step(state_in, state_out, Control() if control is None else control,
+                              self.dt if dt is None else float(dt))
+
+    def _run_step(self, state_in, state_out, control, dt, own=False):
+        """``_step``, or, while a gradient recording (``step_recorder``) or a ``wp.Tape`` is
+        active, the recorded step of :func:`warpfem.solvers.adjoint.recorded_step`."""
+        if getattr(self, "step_recorder", None) is None and active_tape() is None:
+            return self._step(state_in, state_out, control, dt)
+
+        def run():
+            return self._step(state_in, state_out, control, dt)
+
+        return recorded_step(self, run, state_in, state_out, control, dt, own=own)
+
+    def _finish(self, stats, t0, what, *, finite=True, stacklevel=5):
+        """The end of every simulator's solve: its time, then :func:`check_solve` (raises before the
+        caller writes any state; ``finite`` False: the solution has NaN/inf)."""
+        stats.seconds = time.perf_counter() - t0
+        check_solve(stats, what, require_convergence=self.require_convergence, finite=finite, stacklevel=stacklevel)
+
+    def _own_states(self):
+        return self.state, self._spare
+
+    def _commit(self, state_out):
+        self.state, self._spare = state_out, self.state
 
 
 class SimulatorBase(SimulatorState, StepperBase):
-    """What the full-space simulators (``Simulator``, ``StiffnessWarpingSimulator``) share: set-up of
-    the model, device, precision and step options, the state / control pair, the vector algebra,
-    energies (with the control's load scale), the prescribed velocities of fixed vertices, the
-    failure handling and the two forms of ``step``. A subclass provides ``_step(state_in,
-    state_out, control, dt) -> SolveStats`` (reads ``state_in`` only), ``_mass_values``,
-    ``_bsr_mv``, ``elastic_energy`` and ``_equation_of_motion_acceleration(state, out)``."""
+    """What the full-space simulators (``Simulator``, ``StiffnessWarpingSimulator``) share beyond
+    :class:`StepperBase`: set-up of the model, device, precision and step options, the device
+    vector algebra, the block-sparse :class:`~warpfem.solvers.sparse.HessianSystem` (``system``:
+    pattern, "mass" values, the linear solver), the model's mask and external forces
+    (``sync_model``), masked products and linear solves, the kinetic energy, the forms' weights
+    (``_weights``), the prescribed velocities of fixed vertices and the equation-of-motion
+    acceleration (Newmark's a_0). A subclass provides ``_step``, ``elastic_energy``, ``options``
+    (:class:`~warpfem.solvers.nonlinear.NewtonOptions`), ``_work`` (a
+    :class:`~warpfem.solvers.forms.Workspace`) and ``_elastic_force_for_acceleration(x, out) ->
+    the stiffness values at x for stiffness damping (or None)`` (out := the elastic force at x)."""
 
     def _setup_base(self, model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence):
-        from warpfem.device import get_device
-
-        self.model = model
-        self.device = get_device(device)
-        self.precision = precision
-        self._s, self._vec, self._mat, self._np = types
-        self.dt = float(dt)
-        self.damping_mass = float(damping_mass)
-        self.damping_stiffness = float(damping_stiffness)
-        self.require_convergence = bool(require_convergence)
-        self.num_vertices = n = model.num_vertices
-        self.step_count = 0
+        self._setup_options(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
+        n = self.num_vertices
         self.ops = DeviceVectors(n, self.device, types, acceleration=self._equation_of_motion_acceleration)
         self._vec_array = self.ops.new_vector
         self._zero = self.ops.zero
-        self.state = State(self._vec_array(model.rest_positions), self._vec_array())
+        self._setup_states(State(self._vec_array(model.rest_positions), self._vec_array()), None)
         self._spare = self._new_state()  # the other state of step(): the two are used in turn
-        self.control = Control()
-        self._step_control = self.control
         self._mask = None
         self.sync_model()
+
+    def _setup_system(self, elements, nodes_per_element, linear_solver, linear_solver_options):
+        """The Hessian's pattern of the mesh, the mass matrix in it and the linear solver bound to it."""
+        from warpfem.solvers.linear import make_linear_solver
+        from warpfem.solvers.linear.auto import simulator_options
+        from warpfem.solvers.sparse import BlockPattern, HessianSystem
+
+        self.system = HessianSystem(BlockPattern(elements, nodes_per_element, self.num_vertices, device=self.device,
+                                                 block_type=self._mat))
+        self.system.values["mass"] = self.system.pattern.values_from_scalar_matrix(self.model.mass)
+        self.system.new_values("hessian")
+        self._pcg = make_linear_solver(linear_solver, self.system.pattern, vec_type=self._vec, scalar=self._s,
+                                       positions=self.model.rest_positions,
+                                       **simulator_options(linear_solver, linear_solver_options))
+        self.system.solver = self._pcg
+
+    @property
+    def _pattern(self):
+        return self.system.pattern
+
+    @property
+    def _mass_values(self):
+        return self.system.values["mass"]
+
+    # -- model changes (no pattern rebuild) -----------------------------------------------------------
+    def sync_model(self):
+        """Upload the model's fixed mask and external forces (call after changing them; in place)."""
+        mask = (~self.model.fixed).astype(self._np)
+        fext = self.model.external_forces()
+        if getattr(self, "_mask", None) is None:
+            self._mask, self._fext = self._vec_array(mask), self._vec_array(fext)
+        else:
+            self._mask.assign(mask)
+            self._fext.assign(fext.astype(self._np))
+        self._fext_norm = float(np.linalg.norm(fext))
+        if getattr(self, "_load", None) is not None:
+            self._load.norm = self._fext_norm
+
+    # -- products and solves ------------------------------------------------------------------------
+    def _bsr_mv(self, values, x, alpha, y):
+        """y += alpha A x, A the block matrix ``values`` in the current pattern."""
+        pt = self._pattern
+        launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, x, self._s(alpha), y], self.device)
+
+    def _linear_solve(self, values, rhs, out, opts):
+        """out ~ A^-1 rhs on the free components (A the masked block matrix ``values``, rhs masked):
+        the Newton systems' linear solver; returns its result (``iterations``, ``converged``, ...)."""
+        return self._pcg.solve(values, self._mask, rhs, out, tol=opts.cg_tol, maxiter=opts.max_cg_iters)
 
     # -- energies -----------------------------------------------------------------------------------
     def _dot(self, a, b) -> float:
@@ -326,10 +460,8 @@ class SimulatorBase(SimulatorState, StepperBase):
         self._bsr_mv(self._mass_values, self.v, 1.0, q)
         return 0.5 * self._dot(self.v, q)
 
-    def total_energy(self) -> float:
-        """Kinetic + elastic - x^T f_ext (J, f_ext times ``load_scale``): conserved by the exact
-        dynamics without damping."""
-        return self.kinetic_energy() + self.elastic_energy() - self.load_scale * self._dot(self.x, self._fext)
+    def _external_work(self, state) -> float:
+        return self._dot(state.x, self._fext)
 
     def _work_vector(self):
         if getattr(self, "_energy_tmp", None) is None:
@@ -337,6 +469,11 @@ class SimulatorBase(SimulatorState, StepperBase):
         return self._energy_tmp
 
     # -- the step ---------------------------------------------------------------------------------------
+    def _weights(self, s, control):
+        """The forms' weights for a step of scale s (the one place the integrator's s enters the
+        weights; the chain factors of the forms of x are the potential's)."""
+        return {"inertia": 1.0, "damping": s, "elastic": 1.0, "load": s * control.load_scale, "contact": 1.0}
+
     def _prescribed_velocity(self, state, xb, s, control, out):
         """``out`` := the end-of-step velocity that puts fixed components at their target (or keeps
         them where they are), (p - x_b) / s; only its fixed components are used."""
@@ -353,20 +490,21 @@ class SimulatorBase(SimulatorState, StepperBase):
         out.assign(((p - xb.numpy().astype(np.float64)) / s).astype(self._np))
         return out
 
-    def _finish(self, stats, t0, what, stacklevel=5):
-        stats.seconds = time.perf_counter() - t0
-        check_solve(stats, what, require_convergence=self.require_convergence, stacklevel=stacklevel)
+    def _equation_of_motion_acceleration(self, state, out):
+        """out = a with M a = f(x) + f_ext - C v on the free components (0 on fixed ones), f the
+        elastic force and C = alpha M + beta K the Rayleigh damping at ``state`` (Newmark's a_0)."""
+        from warpfem.solvers.nonlinear import SolveFailed, SolveStats
 
-    def predict(self, state=None, dt=None):
-        """The integrator's prediction (x_b, v_hat, s) for a step of ``dt`` from ``state``
-        (defaults: the simulator's); the vectors are work buffers, valid until the next step."""
-        return self.integrator.predict(self.state if state is None else state, self.dt if dt is None else float(dt),
-                                       self.ops, self._prediction_work)
-
-    # -- the simulator's own state in step() (StepperBase) -----------------------------------------------
-    def _own_states(self):
-        return self.state, self._spare
-
-    def _commit(self, state_out):
-        self.state, self._spare = state_out, self.state
-
+        n = self.num_vertices
+        rhs = self._work.tmp  # (forms.Workspace)
+        K = self._elastic_force_for_acceleration(state.x, rhs)  # rhs = f(x); K(x) when damping needs it
+        launch(LK.axpy_kernel, n, [self._s(self._step_control.load_scale), self._fext, rhs], self.device)
+        if self.damping_mass != 0.0:
+            self._bsr_mv(self._mass_values, state.v, -self.damping_mass, rhs)
+        if self.damping_stiffness != 0.0:
+            self._bsr_mv(K, state.v, -self.damping_stiffness, rhs)
+        launch(LK.mask_kernel, n, [self._mask, rhs], self.device)
+        res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.options.max_cg_iters, 100))
+        if not np.isfinite(res.residual):
+            raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
+                              SolveStats(reason="non-finite initial acceleration"))

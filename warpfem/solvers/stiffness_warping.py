@@ -20,11 +20,20 @@ differentiated). Substituting x+ = x + h v+ and v+ = v + dv:
     (M + h C + h^2 K') dv = h (f_ext - K' x - f0' - C v - h K' v),
     v+ = v + dv,   x+ = x + h v+.
 
-One PCG solve per step (no Newton loop, no line search). Fixed components are prescribed: dv is
-set there so that v+ equals the prescribed velocity (0, or (target - x)/h for ``set_targets``),
-the known columns are moved to the right-hand side and the masked product skips fixed rows and
-columns (OpenTissue's "skip the fixed columns"), so fixing and releasing vertices between steps
-costs nothing and never touches the sparsity pattern.
+This is one Newton iteration, from v_n, of the step's incremental potential with the elastic term
+replaced by the warped linear model frozen at x_n (:class:`WarpedElasticForm`, a quadratic in x):
+
+    E(v) = 1/2 |v - v_hat|_M^2 + s/2 v^T C v + E_w(x_b + s v) - s v^T f_ext,
+    E_w(x) = 1/2 (x - x_n)^T K' (x - x_n) - f_w(x_n)^T (x - x_n),   f_w(x_n) = -(K' x_n + f0'),
+
+whose Hessian is the matrix above (M + s C + s^2 K', s = h for backward Euler) and whose gradient
+at v_n is minus the right-hand side. The step runs through the one Newton loop of every simulator
+(:func:`warpfem.solvers.nonlinear.newton_solve`, ``max_iters = 1``): one linear solve, the full
+step accepted by the line search (a conjugate-gradient iterate of a quadratic always decreases it),
+the convergence of the step being that of its linear solve. Fixed components are prescribed: the
+Newton loop starts at the prescribed velocity there (0, or (target - x)/h for ``set_targets``) and
+the masked Newton systems skip fixed rows and columns (OpenTissue's "skip the fixed columns"), so
+fixing and releasing vertices between steps costs nothing and never touches the sparsity pattern.
 
 With every R_e = I (``rotation="identity"``) this is exactly linear elasticity integrated by
 backward Euler (the linear system is the one Newton solves in one iteration). With R_e from the
@@ -45,13 +54,12 @@ from warpfem.kernels import warping as WK
 from warpfem.kernels.generic import COUNTERS, launch
 from warpfem.kernels.structs import warped_tets
 from warpfem.integrators import make_integrator
-from warpfem.solvers.nonlinear import SolveFailed, SolveStats
-from warpfem.solvers.linear import make_linear_solver
-from warpfem.solvers.linear.auto import simulator_options
-from warpfem.solvers.state import SimulatorBase, check_simulator_options, check_solve
-from warpfem.solvers.sparse import BlockPattern
+from warpfem.solvers.forms import DampingForm, Form, IncrementalPotential, InertiaForm, LoadForm, Workspace
+from warpfem.solvers.nonlinear import NewtonOptions, SolveStats, newton_solve
+from warpfem.solvers.sparse import PatternView
+from warpfem.solvers.state import SimulatorBase, check_simulator_options
 
-__all__ = ["StiffnessWarpingSimulator", "ROTATIONS", "tet_linear_stiffness_blocks"]
+__all__ = ["StiffnessWarpingSimulator", "WarpedElasticForm", "ROTATIONS", "tet_linear_stiffness_blocks"]
 
 
 #: rotation estimators: name -> kernel int
@@ -73,6 +81,65 @@ def tet_linear_stiffness_blocks(dNdX: np.ndarray, volumes: np.ndarray, mu: float
     return K * V[:, None, None, None, None]
 
 
+class WarpedElasticForm(Form):
+    """The warped linear elasticity of a step, a quadratic in the positions x frozen at the step's
+    start x_n (the rotations R_e, hence K' and f0', are those of x_n):
+
+        E_w(x) = 1/2 (x - x_n)^T K' (x - x_n) - f_w^T (x - x_n),   f_w = -(K' x_n + f0'),
+
+    gradient K' (x - x_n) - f_w = K' x + f0' (minus the warped force, R_e not differentiated),
+    Hessian K'. ``stiffness`` returns K''s block values (a callable: they follow the pattern),
+    ``force`` is the device array of f_w; :meth:`set_linearisation` names x_n for the step."""
+
+    name = "elastic"
+    variable = "x"
+    joint = True  # a quadratic: its gradient is measured with the other quadratic terms
+
+    def __init__(self, ops, pattern, stiffness, force):
+        self.ops, self.pattern, self.stiffness, self.force = ops, pattern, stiffness, force
+        self.x0 = None
+        self._dx = ops.new_vector()
+
+    def set_linearisation(self, x0):
+        """The positions x_n the quadratic is written about (the state's: not copied, not written)."""
+        self.x0 = x0
+
+    def _diff_mv(self, x, scale, g, acc, gradient, energy):
+        pt, S = self.pattern, self.ops.scalar
+        launch(LK.bsr_diff_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, self.stiffness(), x, self.x0, S(scale), g,
+                                                    acc, self.acc_slot, gradient, energy], self.ops.device)
+
+    def energy(self, y, x, acc):
+        self._diff_mv(x, 1.0, self._dx, acc, 0, 1)  # 1/2 (x - x_n)^T K' (x - x_n)
+        self.ops.lincomb(1.0, x, -1.0, self.x0, self._dx)
+        launch(LK.dot_slot_kernel, self.ops.n, [self._dx, self.force, wp.float64(-1.0), acc, self.acc_slot],
+               self.ops.device)
+
+    def gradient(self, y, x, scale, g, acc):
+        self._diff_mv(x, scale, g, acc, 1, 0)
+        launch(LK.axpy_kernel, self.ops.n, [self.ops.scalar(-scale), self.force, g], self.ops.device)
+
+    def hessian(self, y, x, scale, values):
+        launch(LK.add_scaled_kernel, self.pattern.nnz, [self.stiffness(), self.ops.scalar(scale), values],
+               self.ops.device)
+
+
+class _OneSolvePotential(IncrementalPotential):
+    """The step's potential, keeping the result of its last linear solve (``linear``): a step of
+    stiffness warping converges when its one linear solve does."""
+
+    linear = None
+
+    def newton_step(self, *args, **kw):
+        out = super().newton_step(*args, **kw)
+        self.linear = out[0]
+        return out
+
+    def solve_newton_system(self, *args, **kw):
+        self.linear = super().solve_newton_system(*args, **kw)
+        return self.linear
+
+
 class StiffnessWarpingSimulator(SimulatorBase):
     """Corotational linear FEM (stiffness warping) with linearly implicit backward Euler.
 
@@ -91,10 +158,10 @@ class StiffnessWarpingSimulator(SimulatorBase):
             elements get a proper rotation), "qr" (Gram-Schmidt on the columns of F, OpenTissue's
             choice: cheaper, depends on the local vertex order) or "identity" (R = I: plain linear
             FEM, for tests and comparisons).
-        cg_tol: relative residual of the one PCG solve per step.
+        cg_tol: relative residual of the one linear solve per step.
         max_cg_iters: cap on PCG iterations per step.
         damping_mass, damping_stiffness: Rayleigh alpha (1/s) and beta (s); C = alpha M + beta K'.
-        require_convergence: raise :class:`SolveFailed` (state untouched) when PCG does not reach
+        require_convergence: raise :class:`SolveFailed` (state untouched) when the linear solve does not reach
             ``cg_tol``; otherwise a warning. NaN/inf always raises and leaves the state untouched.
         integrator: the time scheme, as for :class:`warpfem.Simulator`: "backward_euler" (default),
             "bdf2" or "newmark" (or an instance from :mod:`warpfem.integrators`); each step is one
@@ -114,6 +181,8 @@ class StiffnessWarpingSimulator(SimulatorBase):
             raise ValueError(f"cg_tol must be in (0, 1), got {cg_tol!r}")
         if int(max_cg_iters) != max_cg_iters or max_cg_iters < 1:
             raise ValueError(f"max_cg_iters must be a positive integer, got {max_cg_iters!r}")
+        if getattr(model, "num_bodies", 1) > 1:
+            raise ValueError(f"stiffness warping simulates one body; the model has {model.num_bodies} (use warpfem.Simulator)")
         qd = model.quadrature
         from warpfem.mesh.element_types import get_element
 
@@ -126,10 +195,9 @@ class StiffnessWarpingSimulator(SimulatorBase):
                 raise TypeError(f"model.material must be a warpfem material with {attr!r}, got {type(mat).__name__}")
 
         self.rotation = rotation
-        self.cg_tol = float(cg_tol)
-        self.max_cg_iters = int(max_cg_iters)
+        # the step is one Newton iteration (one linear solve) of a quadratic potential
+        self.options = NewtonOptions(max_iters=1, cg_tol=float(cg_tol), max_cg_iters=int(max_cg_iters))
         self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
-        n = self.num_vertices
         self.num_elements = m = qd.num_elements
 
         dev = self.device
@@ -142,26 +210,46 @@ class StiffnessWarpingSimulator(SimulatorBase):
         self._R = wp.zeros(m, dtype=self._mat, device=dev)
         self._energy_e = wp.zeros(m, dtype=self._s, device=dev)
 
-        self._pattern = BlockPattern(qd.elements, 4, n, device=dev, block_type=self._mat)
-        self._mass_values = self._pattern.values_from_scalar_matrix(model.mass)
-        self._k_values = self._pattern.new_values()  # K'
-        self._a_values = self._pattern.new_values()  # M + h C + h^2 K'
-        self._pcg = make_linear_solver(linear_solver, self._pattern, vec_type=self._vec, scalar=self._s,
-                                       positions=model.rest_positions, **simulator_options(linear_solver, linear_solver_options))
-
-        self._f0, self._fel, self._rhs, self._w, self._dv, self._tmp, self._vnext, self._pv = (
-            self._vec_array() for _ in range(8))
+        self._setup_system(qd.elements, 4, linear_solver, linear_solver_options)
+        system, ops = self.system, self.ops
+        system.new_values("stiffness")  # K'; the Newton matrix M + s C + s^2 K' is "hessian"
+        self._f0, self._fel, self._pv, self._y = (self._vec_array() for _ in range(4))
         self._prediction_work = {}
+        # the step's incremental potential: the forms of Simulator with the warped quadratic as elasticity
+        pattern = PatternView(system)
+        self._inertia = InertiaForm(ops, pattern, lambda: system.values["mass"])
+        self._elastic = WarpedElasticForm(ops, pattern, lambda: system.values["stiffness"], self._fel)
+        self._load = LoadForm(ops, self._fext, self._fext_norm)
+        forms = [self._inertia]
+        if self.damping_mass != 0.0 or self.damping_stiffness != 0.0:
+            forms.append(DampingForm(ops, pattern, lambda: system.values["mass"], self.damping_mass,
+                                     lambda: system.values["stiffness"], self.damping_stiffness))
+        forms += [self._elastic, self._load]
+        self._work = Workspace(ops)
+        self._potential = _OneSolvePotential(ops, forms, system=system, mask=self._mask,
+                                             linear_solve=lambda *a, **kw: self._linear_solve(*a, **kw), work=self._work)
 
-    # -- model changes (no pattern rebuild) -----------------------------------------------------------
-    def sync_model(self):
-        """Upload the model's fixed mask and external forces (call after changing them on the model; in place)."""
-        mask, fext = (~self.model.fixed).astype(self._np), self.model.external_forces().astype(self._np)
-        if self._mask is None:
-            self._mask, self._fext = self._vec_array(mask), self._vec_array(fext)
-        else:
-            self._mask.assign(mask)
-            self._fext.assign(fext)
+    @property
+    def cg_tol(self) -> float:
+        """Relative residual of the one linear solve per step."""
+        return self.options.cg_tol
+
+    @cg_tol.setter
+    def cg_tol(self, value):
+        self.options.cg_tol = float(value)
+
+    @property
+    def max_cg_iters(self) -> int:
+        """Cap on the iterations of the one linear solve per step."""
+        return self.options.max_cg_iters
+
+    @max_cg_iters.setter
+    def max_cg_iters(self, value):
+        self.options.max_cg_iters = int(value)
+
+    @property
+    def _k_values(self):
+        return self.system.values["stiffness"]
 
     # -- stages ------------------------------------------------------------------------------------
     def _launch(self, kernel, dim, inputs):
@@ -181,10 +269,6 @@ class StiffnessWarpingSimulator(SimulatorBase):
         self._launch(WK.warped_assembly_kernel, self.num_elements,
                      [x, self._tets, self._R, self._s(force_scale), int(matrix), self._pattern.block_index,
                       self._k_values, self._f0, self._fel])
-
-    def _bsr_mv(self, values, x, alpha, y):
-        pt = self._pattern
-        self._launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, x, self._s(alpha), y])
 
     # -- helpers (analysis, tests) -----------------------------------------------------------------
     def rotations(self, x=None) -> np.ndarray:
@@ -221,85 +305,54 @@ class StiffnessWarpingSimulator(SimulatorBase):
         return float(self._energy_e.numpy().astype(np.float64).sum())
 
     # -- time stepping ------------------------------------------------------------------------------
-    def _equation_of_motion_acceleration(self, state, out):
-        """out = a with M a = f_w(x) + f_ext - C v on the free components (0 on fixed ones), f_w the
-        warped force and C = alpha M + beta K' at ``state`` (Newmark's a_0)."""
-        n, s = self.num_vertices, self._s
-        b = self.damping_stiffness
-        self._assemble(state.x, matrix=b != 0.0, force_scale=1.0)
-        rhs = self._tmp
-        launch(LK.lincomb_kernel, n, [s(self._step_control.load_scale), self._fext, s(1.0), self._fel, rhs], self.device)
-        if self.damping_mass != 0.0:
-            self._bsr_mv(self._mass_values, state.v, -self.damping_mass, rhs)
-        if b != 0.0:
-            self._bsr_mv(self._k_values, state.v, -b, rhs)
-        launch(LK.mask_kernel, n, [self._mask, rhs], self.device)
-        res = self._pcg.solve(self._mass_values, self._mask, rhs, out, tol=1e-12, maxiter=max(self.max_cg_iters, 100))
-        if not np.isfinite(res.residual):
-            raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
-                              SolveStats(reason="non-finite initial acceleration"))
+    def _elastic_force_for_acceleration(self, x, out):
+        """out := f_w(x), the warped force with the rotations at x, and K' there when stiffness
+        damping needs it (SimulatorBase's equation-of-motion acceleration, Newmark's a_0)."""
+        self._assemble(x, matrix=self.damping_stiffness != 0.0)
+        wp.copy(out, self._fel)
+        return self._k_values
 
     def add_collider(self, *args, **kw):
-        """Not supported: stiffness warping (a linearised step with no line search) does not handle contact; use :class:`warpfem.Simulator`."""
-        raise ValueError("stiffness warping (a linearised step with no line search) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
+        """Not supported: stiffness warping (a linearised step) does not handle contact; use :class:`warpfem.Simulator`."""
+        raise ValueError("stiffness warping (a linearised step) does not handle colliders; use warpfem.Simulator (Newton, any integrator) for contact")
 
     def _step(self, state_in, state_out, control, dt) -> SolveStats:
-        """One linearly implicit step of ``dt`` (one PCG solve) with the simulator's
-        integrator: one Newton iteration, from v_n, of the integrator's incremental potential with
-        the warped linear model frozen at the start of the step.
+        """One linearly implicit step of ``dt`` with the simulator's integrator: one Newton
+        iteration, from v_n, of the integrator's incremental potential with the warped linear model
+        frozen at the start of the step, through the one Newton loop (``newton_solve``).
 
         Returns :class:`~warpfem.SolveStats` (``newton_iterations`` = 1, ``cg_iterations``,
-        ``residual`` = the PCG relative residual). On NaN/inf (or PCG non-convergence with
-        ``require_convergence``) raises :class:`SolveFailed` and leaves the state as it was.
+        ``residual`` = the linear solve's relative residual; ``converged`` = the linear solve
+        reached ``cg_tol``). On NaN/inf (or non-convergence with ``require_convergence``) raises
+        :class:`SolveFailed` and leaves the state as it was.
         """
         t0 = time.perf_counter()
-        launches0 = COUNTERS["launches"]
+        n, pot = self.num_vertices, self._potential
         self._step_control = control
-        a, b = self.damping_mass, self.damping_stiffness
-        n, nnz = self.num_vertices, self._pattern.nnz
-        s = self._s
-        x, v = state_in.x, state_in.v
+        syncs0, launches0 = pot.host_syncs, COUNTERS["launches"]
         prediction = self.integrator.predict(state_in, dt, self.ops, self._prediction_work)
-        xb, vh, c = prediction
-        # K', f0' and c * f_el = -c (K' x_n + f0') at the start of the step
-        self._assemble(x, matrix=True, force_scale=c)
-        # A = (1 + c alpha) M + c (beta + c) K'
-        self._launch(LK.scale_copy_kernel, nnz, [self._mass_values, s(1.0 + c * a), self._a_values])
-        self._launch(LK.add_scaled_kernel, nnz, [self._k_values, s(c * (b + c)), self._a_values])
-        # rhs = -grad E(v_n) = c f_ext + c f_el(x_n) - c alpha M v_n - c (beta + c) K' v_n
-        #       - c K' (x_b - x_n) + M (v_hat - v_n)
-        rhs = self._rhs
-        self._launch(LK.lincomb_kernel, n, [s(c * control.load_scale), self._fext, s(1.0), self._fel, rhs])
-        if a != 0.0:
-            self._bsr_mv(self._mass_values, v, -c * a, rhs)
-        self._bsr_mv(self._k_values, v, -c * (b + c), rhs)
-        if xb is not x:
-            self._launch(LK.lincomb_kernel, n, [s(1.0), xb, s(-1.0), x, self._tmp])
-            self._bsr_mv(self._k_values, self._tmp, -c, rhs)
-        if vh is not v:
-            self._launch(LK.lincomb_kernel, n, [s(1.0), vh, s(-1.0), v, self._tmp])
-            self._bsr_mv(self._mass_values, self._tmp, 1.0, rhs)
-        # prescribed components: w = (I - P)(v_prescribed - v), moved to the right-hand side
-        pv = self._prescribed_velocity(state_in, xb, c, control, self._pv)
-        self._launch(LK.lincomb_kernel, n, [s(1.0), pv, s(-1.0), v, self._tmp])
-        self._launch(LK.select_kernel, n, [self._mask, self._zero, self._tmp, self._w])
-        self._bsr_mv(self._a_values, self._w, -1.0, rhs)
-        self._launch(LK.mask_kernel, n, [self._mask, rhs])
-        res = self._pcg.solve(self._a_values, self._mask, rhs, self._dv, tol=self.cg_tol, maxiter=self.max_cg_iters)
-        # dv = free solution + prescribed part; v+ = v + dv; x+ = x_b + c v+ (the integrator)
-        self._launch(LK.axpy_kernel, n, [s(1.0), self._w, self._dv])
-        v_next = self._vnext
-        self._launch(LK.lincomb_kernel, n, [s(1.0), v, s(1.0), self._dv, v_next])
-        vv = self._pcg.dot(v_next, v_next)
-        stats = SolveStats(converged=bool(res.converged), newton_iterations=1, cg_iterations=res.iterations,
-                           residual=res.residual, linear_iterations=res.iterations, host_syncs=res.host_syncs)
-        stats.reason = "linear solve converged" if res.converged else f"PCG stopped at relative residual {res.residual:.2e}"
-        stats.seconds = time.perf_counter() - t0
+        xb, vh, s = prediction
+        self._assemble(state_in.x, matrix=True)  # R_e, K', f0' and f_w at x_n
+        # the start: v_n on free components, the prescribed velocity on fixed ones
+        fixed_v = self._prescribed_velocity(state_in, xb, s, control, self._pv)
+        y = self._y
+        self._launch(LK.select_kernel, n, [self._mask, state_in.v, fixed_v, y])
+        self._inertia.set_prediction(vh)
+        self._elastic.set_linearisation(state_in.x)
+        pot.linear = None
+        pot.begin(xb, s, self._weights(s, control))
+        stats = newton_solve(pot, y, self.options)
+        stats.newton_syncs = pot.host_syncs - syncs0
         stats.launches = COUNTERS["launches"] - launches0
-        if not np.isfinite(vv) or not np.isfinite(res.residual):
+        lin = pot.linear
+        finite = bool(np.isfinite(stats.energy) and (lin is None or np.isfinite(lin.residual)))
+        if lin is not None and stats.newton_iterations == 1:  # the Newton step was taken: the linear solve decides
+            stats.converged, stats.residual = bool(lin.converged), float(lin.residual)
+            stats.reason = ("linear solve converged" if lin.converged else
+                            f"linear solve stopped at relative residual {lin.residual:.2e}")
+        if not finite:
             stats.converged, stats.reason = False, "non-finite velocity"
-        check_solve(stats, f"step {self.step_count}", require_convergence=self.require_convergence,
-                    finite=bool(np.isfinite(vv) and np.isfinite(res.residual)), stacklevel=4)
-        self.integrator.advance(state_in, v_next, prediction, dt, self.ops, state_out)
+        self._finish(stats, t0, f"step {self.step_count}", finite=finite)
+        self.integrator.advance(state_in, y, prediction, dt, self.ops, state_out)
         state_out.time = state_in.time + dt
         return stats

@@ -48,7 +48,9 @@ def _cmd_tradeoff(args) -> int:
     if _outputs_unwritable({"--json": args.json, "--markdown": args.markdown, "--plot": args.plot}, _err):
         return EXIT_INVALID
     try:
-        load_scene(args.scene)
+        if load_scene(args.scene).spec.bodies:
+            _err(f"{args.scene}: trade-off studies take a one-body scene; this one has [[body]] tables")
+            return EXIT_INVALID
     except SceneError as e:
         _err(str(e))
         return EXIT_INVALID
@@ -212,6 +214,9 @@ def _cmd_tune(args) -> int:
         scene = load_scene(args.scene)
     except SceneError as e:
         _tune_err(str(e))
+        return EXIT_INVALID
+    if scene.spec.bodies:
+        _tune_err(f"{args.scene}: tune takes a one-body scene; this one has [[body]] tables")
         return EXIT_INVALID
     try:
         space = args.space if args.space in SPACES else "default"

@@ -216,6 +216,9 @@ class DirectSolver(HostLinearSolver):
         self._null = None
         self._scale = 1.0
         self.shifted_factorisations = 0  # how many factorisations needed a diagonal shift (cumulative)
+        #: set by project-on-demand Newton while it tries the exact Hessian: a non-positive pivot
+        #: then fails the solve at once (no shifted retries), and the Newton loop projects
+        self.definite_only = False
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     @property
@@ -252,6 +255,10 @@ class DirectSolver(HostLinearSolver):
         try:
             self.backend.factor(A)
         except _NotPositiveDefinite as e:
+            if self.definite_only:
+                self._failure = f"{e} (exact Hessian: the Newton loop projects it)"
+                self._setup_inv_diag(values, mask)
+                return
             self._factor_shifted(A, str(e), values, mask)
 
     def _factor_shifted(self, A, reason, values, mask):

@@ -1,0 +1,111 @@
+"""Cost of the adjoint (reverse pass) of implicit steps against the forward steps, in the same run.
+
+The 480-tet cantilever (examples/scenes/cantilever.toml: 189 vertices, stable neo-Hookean, gravity)
+is stepped ``--steps`` times with a gradient recording (:class:`warpfem.solvers.adjoint.Recording`),
+then the reverse pass of a loss on every state's positions runs. Reported per linear solver
+(direct: the forward's factorisation reused by the refinement; pcg) and integrator: forward ms per
+step (with the recording, and without it in a second run), backward ms per step, their ratio,
+adjoint refinements and re-preparations per step, and host memory per recorded step.
+
+    .venv/bin/python kernels_bench/bench_adjoint.py [--steps 20] [--device cpu] [--tol 1e-8] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+SCENE = os.path.join(ROOT, "examples", "scenes", "cantilever.toml")
+
+
+def measure(solver: str, integrator: str, steps: int, device: str, tol: float, dt: float = 1.0 / 48.0,
+            cells=None) -> dict:
+    import numpy as np
+    import warp as wp
+
+    wp.config.quiet = True
+    import warpfem as wf
+    from warpfem.scenes import load_scene
+    from warpfem.solvers.adjoint import Recording
+
+    scene = load_scene(SCENE)
+    if cells is not None:  # a finer cantilever (the scene's is 20 x 2 x 2 cells)
+        scene.spec.mesh["cells"] = list(cells)
+    model = scene.build(device=device, precision="float64").model
+
+    def make():
+        opts = {"linear_solver": solver, "tol": tol, "max_iters": 50}
+        if solver == "pcg":
+            opts.update(cg_tol=1e-6, max_cg_iters=5000)
+        return wf.Simulator(model, device=device, dt=dt, integrator=integrator, **opts)
+
+    # without recording (the plain forward), then with it, same settings
+    sim = make()
+    sim.step()  # warm-up (kernels loaded, solver analysed)
+    t = time.perf_counter()
+    for _ in range(steps):
+        sim.step()
+    plain = (time.perf_counter() - t) / steps
+    sim = make()
+    sim.step()
+    rec = Recording(sim, params=("youngs_modulus", "poisson_ratio", "density", "forces"))
+    newton = 0
+    t = time.perf_counter()
+    with rec:
+        for _ in range(steps):
+            newton += sim.step().newton_iterations
+    fwd = (time.perf_counter() - t) / steps
+    rng = np.random.default_rng(0)
+    xg = {k: rng.standard_normal((sim.num_vertices, 3)) for k in range(steps + 1)}
+    adj = rec.adjoint
+    r0, p0 = adj.refinements, adj.prepares
+    t = time.perf_counter()
+    g = rec.backward(xg)
+    bwd = (time.perf_counter() - t) / steps
+    assert np.isfinite(g["youngs_modulus"])
+    return {"solver": solver, "integrator": integrator, "steps": steps, "newton_tol": tol,
+            "newton_iterations_per_step": newton / steps, "forward_ms": 1e3 * plain, "forward_recorded_ms": 1e3 * fwd,
+            "backward_ms": 1e3 * bwd, "ratio": bwd / fwd, "ratio_to_plain": bwd / plain,
+            "refinements_per_step": (adj.refinements - r0) / steps, "prepares_per_step": (adj.prepares - p0) / steps,
+            "bytes_per_step": rec.nbytes / steps, "vertices": sim.num_vertices, "dt": dt}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--tol", type=float, default=1e-8, help="Newton tolerance of the forward steps")
+    ap.add_argument("--solvers", nargs="+", default=["direct", "pcg"])
+    ap.add_argument("--integrators", nargs="+", default=["backward_euler", "bdf2", "newmark"])
+    ap.add_argument("--dt", type=float, default=1.0 / 48.0, help="time step (s); the scene's is 1/48")
+    ap.add_argument("--cells", nargs=3, type=int, help="mesh cells of the cantilever (default the scene's 20 2 2)")
+    ap.add_argument("--json")
+    args = ap.parse_args(argv)
+    rows = [measure(s, i, args.steps, args.device, args.tol, args.dt, args.cells) for s in args.solvers
+            for i in args.integrators]
+    machine = f"{platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}"
+    r0 = rows[0]
+    print(f"cantilever ({r0['vertices']} vertices), {args.steps} steps of {args.dt:.4g} s, Newton tol {args.tol:g}, device {args.device} ({machine})")
+    print("| solver | integrator | Newton it./step | forward ms/step (recorded / plain) | backward ms/step | "
+          "backward / forward | refinements / prepares per step | KiB per recorded step |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['solver']} | {r['integrator']} | {r['newton_iterations_per_step']:.1f} | "
+              f"{r['forward_recorded_ms']:.1f} / {r['forward_ms']:.1f} | {r['backward_ms']:.1f} | {r['ratio']:.2f} | "
+              f"{r['refinements_per_step']:.1f} / {r['prepares_per_step']:.2f} | {r['bytes_per_step'] / 1024:.1f} |")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"machine": machine, "device": args.device, "rows": rows}, f, indent=2)
+
+
+if __name__ == "__main__":
+    main()

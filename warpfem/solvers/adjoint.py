@@ -1,0 +1,823 @@
+"""Adjoint (reverse-mode) gradients of the implicit time step of :class:`~warpfem.simulator.Simulator`.
+
+One step solves, for the end-of-step velocity y (the Newton unknown; x_{n+1} = x_b + s y), the
+stationarity of the incremental potential on the free components (docs/integrators.md)
+
+    g(y; p) = M (y - v_hat) + s alpha M y + s grad V(x_b + s y; theta) - s c f_ext = 0,
+    y_c = (p_c - x_b,c) / s                            (fixed components: targets or kept in place)
+
+with p = (x_b, v_hat, theta = material parameters, density, f_ext, targets) and c the control's
+load scale. At convergence the implicit function theorem gives dy/dp = -H^-1 dg/dp with
+H = (1 + s alpha) M + s^2 K(x_{n+1}) on the free components, so a step's reverse pass is one linear
+solve, not a replay of the Newton iterations: given ybar (the adjoint of y), solve
+
+    H_ff lambda_f = ybar_f,      then  pbar = -lambda^T dg/dp,
+    ybar_c - (H lambda)_c flows into the prescribed values of the fixed components.
+
+**The Hessian.** K is the *exact* (unprojected) elastic Hessian at the converged positions,
+assembled again here (``project = 0``): the forward Newton loop may SPD-project per point
+(``project_hessian``, the default), which changes its iterates but not the point it converges to;
+only the exact Hessian gives the exact derivative. The linear solve reuses whatever the forward
+solver last prepared (the direct solver's factorisation, PCG's preconditioned matrix) as the
+inner solve of an iterative refinement against the exact H (residuals r = ybar - H lambda with
+the exact matrix); it prepares the solver on the exact H only when the refinement contracts
+slowly (the prepared matrix is too far from H: another step's Hessian, or projection that clipped
+much). The refinement runs to ``tol`` (relative residual, 1e-12 in float64), so the gradients
+are as accurate as the forward solve's convergence allows: the forward Newton solve must be
+converged tightly (``tol`` of the simulator; the FD tests use 1e-12) because the implicit
+function theorem holds at the solution, not at an early-stopped iterate.
+
+**Parameters** (names of :attr:`StepAdjoint.grads`):
+
+* ``youngs_modulus``, ``poisson_ratio``: the whole body's material (through the kernel parameters
+  of every quadrature-point set, selective reduced integration included). Every registered
+  material's stress is linear in its two kernel parameters (mu, lam), so dP/dmu = P(F; 1, 0) and
+  dP/dlam = P(F; 0, 1) are evaluated by the forward force kernel with unit parameters: no new
+  kernel, no Warp autodiff (the kernel modules keep ``enable_backward = False``, no extra
+  compile). d(mu, lam)/d(E, nu) is the material class's own parameter map (differentiated
+  numerically at 1e-6 relative: a rational function, error ~1e-12).
+* ``element_stiffness_scale`` (m,): per-element factors c_e on the elastic energy (an element's E
+  scaled by c_e), applied in the forward run by :func:`set_element_stiffness_scale` (the
+  quadrature weights of the element kernels scaled, mass untouched); the per-point contraction
+  w_q P(F_q) : grad(lambda) is done on the host from the stress kernel's output.
+* ``density``: mass matrix and gravity scale with it (Newmark's a_0 too).
+* ``forces`` (n, 3): the model's constant applied forces (``model.forces``: per vertex, N);
+  ``gravity`` (3,).
+* ``initial_positions``, ``initial_velocities`` (n, 3): the state the recording started from (and
+  the integrator's history of that state, ``initial_history``).
+* ``targets``: {step index: {vertex: (3,)}}, the kinematic targets of fixed vertices (control).
+* ``collider_translations``: {step index: {collider name: (3,)}}, the translation of each
+  collider's pose at the end of that step (key -1: at the recording's start; planes and spheres
+  with an explicit stiffness: the barrier's exact Hessian, curvature term included, enters H, and
+  d(grad E_c)/d(translation) = -that Hessian);
+* ``collider_friction``: {collider name: float}, the Coulomb coefficient of each plane. Friction
+  (planes) is lagged from the step's start: D = mu lam_n f0(|u|), u = P (x - x_n - w) with
+  lam_n = -kappa b'(d(x_n)) and w the plane's motion over the step, so its adjoint adds its exact
+  Hessian to H and terms in x_n, both poses and mu.
+
+Not supported (a clear ``NotImplementedError``): boxes and mesh colliders, friction on spheres, a default (E- and mass-dependent) barrier stiffness,
+rotating planes; stiffness-proportional damping (K(x_n) is SPD-projected at the step's start: its
+derivative in x_n would need third derivatives), other simulators (stiffness warping, reduced).
+Fixed sets, loads and material must stay as they were during a recording.
+
+All vector algebra of the reverse pass is on the host in float64 (numpy); the device does the
+Hessian assembly, the force and stress kernels and the linear solves.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from warpfem.kernels import fem as FK
+from warpfem.kernels import linalg as LK
+from warpfem.kernels.generic import launch
+from warpfem.kernels.structs import material_params
+
+__all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
+           "set_material_parameters", "set_density", "material_set_parameters", "check_differentiable", "Recording",
+           "recorded_step", "active_tape", "tape_adjoint"]
+
+#: the parameter names the adjoint can differentiate
+PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_scale", "forces", "gravity",
+              "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_friction")
+
+_KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
+
+
+class AdjointError(RuntimeError):
+    """The reverse pass could not be done (e.g. its linear solve did not converge)."""
+
+
+def check_differentiable(sim):
+    """Raise ``NotImplementedError`` (saying what) when gradients of ``sim``'s steps are not supported."""
+    integ = getattr(sim, "integrator", None)
+    name = getattr(integ, "name", None)
+    if not hasattr(sim, "quadrature_sets") or name not in _KINDS:
+        raise NotImplementedError(f"gradients are supported for warpfem.Simulator with backward_euler, bdf2 or "
+                                  f"newmark, not for {type(sim).__name__} (integrator {name!r})")
+    contact = getattr(sim, "contact", None)
+    if contact is not None and len(contact):
+        for c in contact.colliders:
+            why = ("only planes and spheres are supported" if getattr(c, "type_name", "") not in ("plane", "sphere") else
+                   "friction is supported on planes only" if (c.friction != 0.0 and c.type_name != "plane") else
+                   "set its stiffness explicitly (the default follows E and the mass)" if c.stiffness is None else
+                   "rotating colliders are not supported" if (c.rotation_axis is not None and c.rotation_angle != 0.0)
+                   else "")
+            if why:
+                raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): {why}; "
+                                          "differentiable contact is frictionless planes and spheres with a given stiffness")
+    if sim.damping_stiffness != 0.0:
+        raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
+                                  "supported: use damping_mass")
+
+
+def material_set_parameters(material, E, nu, volumetric_integration="full", has_volumetric_set=False):
+    """[(mu, lam) of each quadrature-point set] of a material of ``material``'s class with Young's
+    modulus E and Poisson ratio nu (the kernel parameters the simulator gives its point sets)."""
+    m = type(material)(youngs_modulus=E, poisson_ratio=nu, density=material.density)
+    if volumetric_integration == "reduced":
+        (mu_f, lam_f), (mu_v, lam_v) = m.volumetric_split()
+        return [(mu_f, lam_f), (mu_v, lam_v)]
+    if has_volumetric_set:
+        return [(m.kernel_mu, 0.0), (0.0, m.kernel_lam)]
+    return [(m.kernel_mu, m.kernel_lam)]
+
+
+def _base_weights(model):
+    qd = model.quadrature
+    w = [np.asarray(qd.qp_weight, dtype=np.float64)]
+    if getattr(qd, "volumetric", None) is not None:
+        w.append(np.asarray(qd.volumetric.qp_weight, dtype=np.float64))
+    return w
+
+
+def _set_elements(model):
+    qd = model.quadrature
+    e = [np.asarray(qd.qp_element)]
+    if getattr(qd, "volumetric", None) is not None:
+        e.append(np.asarray(qd.volumetric.qp_element))
+    return e
+
+
+def _set_dNdX(model):
+    qd = model.quadrature
+    d = [np.asarray(qd.qp_dNdX, dtype=np.float64)]
+    if getattr(qd, "volumetric", None) is not None:
+        d.append(np.asarray(qd.volumetric.qp_dNdX, dtype=np.float64))
+    return d
+
+
+def set_element_stiffness_scale(sim, scale):
+    """Scale the elastic energy of element e by ``scale[e]`` (> 0; an element-wise Young's modulus
+    factor) in every later step of ``sim``: the quadrature weights of the element kernels become
+    w_q scale[e(q)] (the mass is not changed). ``None`` restores 1."""
+    m = sim.model.mesh.num_elements
+    c = np.ones(m) if scale is None else np.asarray(scale, dtype=np.float64).reshape(-1)
+    if c.shape != (m,) or not np.all(np.isfinite(c)) or np.any(c <= 0):
+        raise ValueError(f"element_stiffness_scale must be {m} finite positive numbers (one per element), "
+                         f"got shape {np.shape(scale)}")
+    for qs, w0, el in zip(sim.quadrature_sets, _base_weights(sim.model), _set_elements(sim.model)):
+        qs.points.weight.assign((w0 * c[el]).astype(sim.numpy_dtype))
+    sim.element_stiffness_scale = c
+
+
+class StepRecord:
+    """What the reverse pass needs of one forward step (host float64 copies): the kind of step
+    ("be", "bdf2_first", "bdf2", "newmark_a0", "newmark"), dt, s, the input state (x, v and the
+    history it used), the converged y (= v_{n+1}), x_{n+1}, v_hat (Newmark), the free mask, the
+    control's targets and load scale."""
+
+    def __init__(self, kind, dt, s, x, v, hist, mask, targets, load_scale):
+        self.kind, self.dt, self.s = kind, float(dt), float(s)
+        self.x, self.v, self.hist, self.mask = x, v, hist, mask
+        self.targets = {int(i): np.array(p, dtype=np.float64) for i, p in targets.items()}
+        self.load_scale = float(load_scale)
+        self.y = self.x_next = self.v_hat = None
+
+    @property
+    def nbytes(self) -> int:
+        arrays = [self.x, self.v, self.mask, self.y, self.x_next, self.v_hat, *self.hist.values()]
+        return int(sum(a.nbytes for a in arrays if isinstance(a, np.ndarray)))
+
+
+def _host(a):
+    return a.numpy().astype(np.float64)
+
+
+class StepAdjoint:
+    """The reverse pass of ``sim``'s steps (see the module docstring).
+
+    ``record_before(state_in, control, dt)`` and ``record_after(record, state_out)`` around a
+    forward step give a :class:`StepRecord`; ``backward(record, xbar, vbar, hbar)`` returns the
+    adjoints of the step's input (x_n, v_n, history dict) given those of its output, and adds the
+    parameter gradients into :attr:`grads` (``zero_grad()`` clears them).
+
+    Args:
+        sim: a :class:`~warpfem.simulator.Simulator` (backward Euler, BDF2 or Newmark; no contact).
+        params: parameter names to accumulate (default: all of :data:`PARAMETERS`); the per-element
+            contraction is done only when ``element_stiffness_scale`` is asked for.
+        tol: relative residual of the adjoint solve (default 1e-12 in float64, 1e-6 in float32).
+        max_refinements: cap on refinement rounds of the adjoint solve.
+    """
+
+    def __init__(self, sim, params=None, *, tol=None, max_refinements=40):
+        check_differentiable(sim)
+        self.sim = sim
+        params = PARAMETERS if params is None else tuple(params)
+        unknown = [p for p in params if p not in PARAMETERS]
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {unknown}; known: {', '.join(PARAMETERS)}")
+        self.params = params
+        self.tol = float(tol) if tol is not None else (1e-12 if sim.precision == "float64" else 1e-6)
+        self.max_refinements = int(max_refinements)
+        model = sim.model
+        self.n = n = sim.num_vertices
+        self.kind_name = _KINDS[sim.integrator.name]
+        self._M = sim.mass_matrix().tocsr()
+        rho = float(model.material.density)
+        self._rho = rho
+        self._fgrav_unit = (model.gravity_mass[:, None] * model.gravity[None, :]) / rho  # gravity per unit density
+        self._fext = model.external_forces()
+        self._sets = sim.quadrature_sets
+        mat = model.material
+        self._kind = int(mat.kind)
+        S = sim.scalar_type
+        self._unit = (material_params(S, self._kind, 1.0, 0.0), material_params(S, self._kind, 0.0, 1.0))
+        self._set_elem, self._set_dNdX, self._set_w0 = _set_elements(model), _set_dNdX(model), _base_weights(model)
+        self._conn = np.asarray(model.quadrature.elements).reshape(-1, model.quadrature.nodes_per_element)
+        self._param_jac = self._material_jacobian()
+        pat = sim.pattern
+        self._K = pat.new_values()
+        self._H = pat.new_values()
+        self._dev = [sim.new_vector() for _ in range(6)]  # b, r, dl, lam, tmp, x
+        self.solves = 0  # adjoint solves done
+        self.refinements = 0  # refinement rounds (inner solves) done
+        self.prepares = 0  # times the solver was prepared on the exact Hessian
+        self._stale_ok = True  # whether the last reuse of a factorisation of another matrix converged
+        self.zero_grad()
+
+    # -- parameters -------------------------------------------------------------------------------------
+    def _material_jacobian(self):
+        """d(mu_s, lam_s)/d(E, nu) of every point set: (sets, 2 [mu, lam], 2 [E, nu])."""
+        model, mat = self.sim.model, self.sim.model.material
+        E, nu = float(mat.youngs_modulus), float(mat.poisson_ratio)
+        vi = getattr(model, "volumetric_integration", "full")
+        has_vol = len(self._sets) > 1
+
+        def f(E_, nu_):
+            return np.asarray(material_set_parameters(mat, E_, nu_, vi, has_vol), dtype=np.float64)
+
+        J = np.zeros((len(self._sets), 2, 2))
+        hE, hn = 1e-6 * E, 1e-6 * max(abs(nu), 0.1)
+        J[:, :, 0] = (f(E + hE, nu) - f(E - hE, nu)) / (2 * hE)
+        J[:, :, 1] = (f(E, nu + hn) - f(E, nu - hn)) / (2 * hn)
+        return J
+
+    def zero_grad(self):
+        """Clear the accumulated parameter gradients."""
+        m = self.sim.model.mesh.num_elements
+        self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
+        self._mulam_bar = np.zeros((len(self._sets), 2))
+        self.grads = {"density": 0.0, "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
+                      "targets": {}, "collider_translations": {}, "collider_friction": {}}
+
+    def parameter_gradients(self) -> dict:
+        """The accumulated gradients by parameter name (numpy; see the module docstring)."""
+        g = dict(self.grads)
+        EN = np.einsum("sk,skp->p", self._mulam_bar, self._param_jac)
+        g["youngs_modulus"], g["poisson_ratio"] = float(EN[0]), float(EN[1])
+        g["gravity"] = self.sim.model.gravity_mass @ g["forces"]
+        g["density"] = float(g["density"])
+        return {k: v for k, v in g.items() if k in self.params or k in ("youngs_modulus", "poisson_ratio")}
+
+    # -- recording ------------------------------------------------------------------------------------------
+    def record_before(self, state_in, control, dt) -> StepRecord:
+        """Copy what the reverse pass of a step from ``state_in`` needs (call before the step)."""
+        check_differentiable(self.sim)
+        dt = float(dt)
+        hist, h = state_in.history, {}
+        kind = self.kind_name
+        if kind == "bdf2":
+            if hist.get("h") != dt or "x_prev" not in hist:
+                kind = "bdf2_first"
+            else:
+                h = {"x_prev": _host(hist["x_prev"]), "v_prev": _host(hist["v_prev"])}
+        elif kind == "newmark":
+            if "a" in hist:
+                h = {"a": _host(hist["a"])}
+            else:
+                kind = "newmark_a0"
+        s = {"be": dt, "bdf2_first": dt, "bdf2": 2.0 * dt / 3.0, "newmark": 0.5 * dt, "newmark_a0": 0.5 * dt}[kind]
+        rec = StepRecord(kind, dt, s, _host(state_in.x), _host(state_in.v), h, _host(self.sim.free_mask),
+                         control.targets, control.load_scale)
+        rec.t0 = float(state_in.time)
+        return rec
+
+    def record_after(self, rec: StepRecord, state_out):
+        """Complete ``rec`` with the converged step written into ``state_out``."""
+        rec.y = _host(state_out.v)
+        rec.x_next = _host(state_out.x)
+        if rec.kind.startswith("newmark"):
+            rec.v_hat = rec.y - rec.s * _host(state_out.history["a"])  # a_{n+1} = (y - v_hat) / s
+        return rec
+
+    # -- device helpers ---------------------------------------------------------------------------------------
+    def _upload(self, buf, a):
+        buf.assign(np.ascontiguousarray(a, dtype=self.sim.numpy_dtype))
+        return buf
+
+    def _assemble_K(self, x_host):
+        """Exact elastic Hessian at x into self._K (device)."""
+        sim = self.sim
+        xd = self._upload(self._dev[5], x_host)
+        self._K.zero_()
+        old = sim.options.project_hessian
+        sim.options.project_hessian = False
+        try:
+            sim.assemble_stiffness(xd, self._K, scale=1.0)
+        finally:
+            sim.options.project_hessian = old
+        return xd
+
+    def _mv(self, values, a_host):
+        """values @ a (device block matrix, host vectors)."""
+        sim = self.sim
+        a = self._upload(self._dev[3], a_host)
+        out = self._dev[4]
+        out.zero_()
+        pt = sim.pattern
+        launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, a, sim.scalar_type(1.0), out], sim.device)
+        return _host(out)
+
+    def _solve(self, H, b_host, mask):
+        """lambda with (P H P + I - P) lambda = P b, to self.tol, by refinement on the solver's
+        prepared matrix (prepared on H when that contracts slowly)."""
+        sim = self.sim
+        solver = sim.linear_solver
+        b = mask * b_host
+        bn = float(np.linalg.norm(b))
+        if bn == 0.0:
+            return np.zeros_like(b)
+        self.solves += 1
+        mask_d = sim.free_mask
+        rd, dl = self._dev[1], self._dev[2]
+        direct = getattr(solver, "name", "") == "direct"
+        # a factorisation is worth reusing (refinement against H) while that converges fast; a
+        # preconditioner (PCG, AMG, multigrid) is cheap to set up on H itself, then solved to tol
+        inner = 0.5 if direct else 0.1 * self.tol
+        maxiter = max(sim.options.max_cg_iters, 10 * sim.num_vertices)
+        prepared = False
+        if not direct or not self._stale_ok:
+            solver.prepare(H, mask_d)
+            self.prepares += 1
+            prepared = True
+        lam = np.zeros_like(b)
+        r = b.copy()
+        prev = np.inf
+        for _ in range(self.max_refinements):
+            self._upload(rd, r)
+            self.refinements += 1
+            try:
+                res = solver.solve(rd, dl, tol=inner, maxiter=maxiter)
+                ok = not getattr(res, "failed", "")
+            except Exception:  # nothing prepared yet (no Newton iteration ran): prepare on H
+                ok = False
+            d = _host(dl) * mask if ok else None
+            if d is None or not np.all(np.isfinite(d)):
+                if prepared:
+                    break
+                solver.prepare(H, mask_d)
+                self.prepares += 1
+                prepared = True
+                continue
+            lam_new = lam + d
+            r_new = b - mask * self._mv(H, lam_new)
+            rn = float(np.linalg.norm(r_new))
+            if rn < prev or not prepared:
+                lam, r = lam_new, r_new
+            if rn <= self.tol * bn:
+                if direct and not prepared:
+                    self._stale_ok = True
+                return lam
+            if not prepared and (rn > 0.2 * min(prev, bn) or not np.isfinite(rn)):
+                solver.prepare(H, mask_d)  # the prepared matrix is too far from H: prepare on H itself
+                self.prepares += 1
+                prepared = True
+                self._stale_ok = False  # the next step prepares at once (until a stale one works again)
+            elif prepared and rn >= prev:
+                break
+            prev = min(prev, rn)
+        rel = float(np.linalg.norm(b - mask * self._mv(H, lam)) / bn)
+        if rel <= max(100.0 * self.tol, 1e-9 if sim.precision == "float64" else 1e-4):
+            return lam
+        raise AdjointError(f"the adjoint solve did not converge (relative residual {rel:.2e} > {self.tol:.1e}); "
+                           "the step's exact Hessian may be singular or indefinite")
+
+    def _forces_unit(self, x_dev, w_host):
+        """(sets, 2): w . grad_x V_s(x; mu=1, lam=0) and (0, 1) for every point set."""
+        sim = self.sim
+        f = self._dev[4]
+        out = np.zeros((len(self._sets), 2))
+        for i, qs in enumerate(self._sets):
+            for j, unit in enumerate(self._unit):
+                f.zero_()
+                launch(FK.qp_force_kernel, qs.count, [x_dev, qs.points, unit, sim.scalar_type(1.0), f], sim.device)
+                out[i, j] = -float(np.sum(_host(f) * w_host))  # the kernel adds -grad V
+        return out
+
+    def _element_contraction(self, x_dev, w_host):
+        """(m,): sum over each element's points of w0_q P(F_q) : grad(w)_q (d/dc_e of w . grad V)."""
+        sim = self.sim
+        m = sim.model.mesh.num_elements
+        out = np.zeros(m)
+        k = self._conn.shape[1]
+        for qs, el, dN, w0 in zip(self._sets, self._set_elem, self._set_dNdX, self._set_w0):
+            P = wp.zeros(qs.count, dtype=self._mat_type(), device=sim.device)
+            launch(FK.qp_stress_kernel, qs.count, [x_dev, qs.points, qs.material, P], sim.device)
+            Ph = P.numpy().astype(np.float64)
+            wn = w_host[self._conn[el]]  # (Q, k, 3)
+            G = np.einsum("qai,qaj->qij", wn, dN.reshape(-1, k, 3))
+            out += np.bincount(el, weights=w0 * np.einsum("qij,qij->q", Ph, G), minlength=m)
+        return out
+
+    def _add_contact_hessian(self, rec):
+        """Add the barrier's exact Hessian of every collider at x_{n+1} (poses at the step's end)
+        into self._K; returns {collider name: (vertices in range, their 3x3 blocks)} or None.
+        Plane: kappa b''(d) n n^T (the distance is linear); sphere: plus kappa b'(d) (I - n n^T) / L,
+        the curvature term the forward's projected Hessian leaves out."""
+        contact = getattr(self.sim, "contact", None)
+        if contact is None or not len(contact):
+            return None
+        surf = np.asarray(contact.surface)
+        xs = rec.x_next[surf]
+        t1 = rec.t0 + rec.dt
+        out = {}
+        blocks = np.zeros((self.n, 3, 3))
+        for j, c in enumerate(contact.colliders):
+            R, trans = c.pose(t1)
+            p = np.einsum("ji,vj->vi", R, xs - trans)  # R^T (x - t): the collider's frame
+            if c.type_name == "plane":
+                d = (p - c.point) @ c.normal
+                nl = np.broadcast_to(c.normal, p.shape)
+                L = None
+            else:  # sphere (check_differentiable lets nothing else through)
+                r = p - c.center()
+                L = np.linalg.norm(r, axis=1)
+                d = L - c.radius
+                nl = r / np.where(L > 0, L, 1.0)[:, None]
+            dh, kappa = float(contact.dhat[j]), float(contact.kappa[j])
+            near = (d > 0.0) & (d < dh)
+            dd, n = d[near], nl[near] @ R.T
+            t = dd - dh
+            lg = np.log(dd / dh)
+            b1 = -2.0 * t * lg - t * t / dd
+            b2 = -2.0 * lg - 4.0 * t / dd + t * t / (dd * dd)
+            nn = np.einsum("vi,vj->vij", n, n)
+            B = (kappa * b2)[:, None, None] * nn
+            if L is not None:
+                B = B + (kappa * b1 / L[near])[:, None, None] * (np.eye(3)[None] - nn)
+            verts = surf[near]
+            np.add.at(blocks, verts, B)
+            fr = self._plane_friction(rec, c, j, surf, R, trans) if c.friction != 0.0 else None
+            if fr is not None:
+                np.add.at(blocks, fr[0], fr[1])
+            out[c.name] = (verts, B, fr)
+        touched = np.flatnonzero(np.abs(blocks).sum(axis=(1, 2)) > 0)
+        if len(touched):
+            K = self._K.numpy()
+            diag = np.asarray(self.sim.pattern.diag_index)
+            K[diag[touched]] += blocks[touched].astype(K.dtype)
+            self._K.assign(K)
+        return out
+
+    def _plane_friction(self, rec, c, j, surf, R, trans):
+        """Lagged friction of a plane (translating, R = I): D = mu lam_n f0(|u|), u = P (x - x_n - w),
+        lam_n = -kappa b'(d(x_n)) at the step's end pose, w = t1 - t0. Returns (vertices, the
+        exact Hessian blocks d2D/dx2, f1 u, mu kappa b''(d_n), lam_n, u) of the pairs with
+        lam_n > 0, or None."""
+        contact = self.sim.contact
+        dh, kappa, mu = float(contact.dhat[j]), float(contact.kappa[j]), float(c.friction)
+        eps = float(contact.epsv[j]) * rec.dt
+        n = c.normal
+        xn = rec.x[surf]
+        dn = (xn - trans - c.point) @ n
+        act = (dn > 0.0) & (dn < dh)
+        if not np.any(act):
+            return None
+        dd = dn[act]
+        t = dd - dh
+        lg = np.log(dd / dh)
+        b1 = -2.0 * t * lg - t * t / dd
+        b2 = -2.0 * lg - 4.0 * t / dd + t * t / (dd * dd)
+        lam_n = -kappa * b1
+        _, t0 = c.pose(rec.t0)
+        w = trans - t0
+        P = np.eye(3) - np.outer(n, n)
+        verts = surf[act]
+        u = (rec.x_next[verts] - rec.x[verts] - w) @ P
+        yv = np.linalg.norm(u, axis=1)
+        big = yv >= eps
+        f1 = np.where(big, 1.0 / np.where(yv > 0, yv, 1.0), 2.0 / eps - yv / (eps * eps))
+        f1p_over_y = np.where(big, -1.0 / np.where(yv > 0, yv, 1.0) ** 3,
+                              -1.0 / (eps * eps * np.where(yv > 0, yv, 1.0)))
+        f1p_over_y = np.where(yv > 0, f1p_over_y, 0.0)
+        cc = mu * lam_n
+        Hf = cc[:, None, None] * (f1[:, None, None] * P[None] + f1p_over_y[:, None, None] * np.einsum("vi,vj->vij", u, u))
+        return verts, Hf, f1[:, None] * u, mu * kappa * b2, lam_n, u
+
+    def _mat_type(self):
+        return wp.mat33d if self.sim.precision == "float64" else wp.mat33
+
+    # -- the reverse pass of one step -------------------------------------------------------------------------
+    def backward(self, rec: StepRecord, xbar, vbar, hbar=None, step_index=None):
+        """Adjoints (xbar_n, vbar_n, hbar_n) of a step's input from those of its output (x_{n+1},
+        v_{n+1}, history dict: "x_prev", "v_prev" (BDF2), "a" (Newmark)); parameter gradients are
+        added to :attr:`grads` (targets under ``step_index``)."""
+        sim, n = self.sim, self.n
+        hbar = hbar or {}
+        zero = np.zeros((n, 3))
+        xbar = zero if xbar is None else np.asarray(xbar, dtype=np.float64).reshape(n, 3)
+        vbar = zero if vbar is None else np.asarray(vbar, dtype=np.float64).reshape(n, 3)
+        h, s, kind, P = rec.dt, rec.s, rec.kind, rec.mask
+        alpha, c = sim.damping_mass, rec.load_scale
+        x_n, v_n, y = rec.x, rec.v, rec.y
+        if kind in ("be", "bdf2_first"):
+            v_hat = v_n
+        elif kind == "bdf2":
+            v_hat = v_n + (v_n - rec.hist["v_prev"]) / 3.0
+        else:
+            v_hat = rec.v_hat
+        xn_bar, vn_bar, h_in = np.zeros((n, 3)), np.zeros((n, 3)), {}
+        # outputs: x_{n+1} = x_b + s y, v_{n+1} = y, history
+        ybar = vbar + s * xbar
+        xb_bar = xbar.copy()
+        vhat_bar = np.zeros((n, 3))
+        if kind.startswith("bdf2"):
+            xn_bar += hbar.get("x_prev", 0.0)
+            vn_bar += hbar.get("v_prev", 0.0)
+        if kind.startswith("newmark") and "a" in hbar:
+            ybar = ybar + hbar["a"] / s  # a_{n+1} = (y - v_hat) / s
+            vhat_bar -= hbar["a"] / s
+        # the implicit solve: H lambda = ybar on the free components
+        x_dev = self._assemble_K(rec.x_next)
+        planes = self._add_contact_hessian(rec)
+        pt = sim.pattern
+        self._H.zero_()
+        launch(LK.add_scaled_kernel, pt.nnz, [sim.mass_values, sim.scalar_type(1.0 + s * alpha), self._H], sim.device)
+        launch(LK.add_scaled_kernel, pt.nnz, [self._K, sim.scalar_type(s * s), self._H], sim.device)
+        lam = self._solve(self._H, ybar, P)
+        if np.any(lam):
+            M_lam = (self._M @ lam.reshape(-1)).reshape(n, 3)
+            K_lam = self._mv(self._K, lam)
+            H_lam = (1.0 + s * alpha) * M_lam + s * s * K_lam
+        else:
+            M_lam = K_lam = H_lam = np.zeros((n, 3))
+        yc_bar = (1.0 - P) * (ybar - H_lam)
+        vhat_bar += M_lam
+        xb_bar -= s * K_lam
+        # fixed components: y_c = (p_c - x_b,c) / s, p = targets or x_n
+        p_bar = yc_bar / s
+        xb_bar -= p_bar
+        tgt = np.zeros(n, dtype=bool)
+        if rec.targets:
+            idx = np.fromiter(rec.targets.keys(), dtype=np.int64)
+            tgt[idx] = True
+            if "targets" in self.params:
+                store = self.grads["targets"].setdefault(step_index, {})
+                for i in idx.tolist():
+                    store[i] = store.get(i, 0.0) + p_bar[i]
+        xn_bar[~tgt] += p_bar[~tgt]
+        if planes is not None and np.any(lam):  # d(grad E_c)/d(translation) = -K_c: tbar = s K_c lambda per plane
+            store = self.grads["collider_translations"].setdefault(step_index, {})
+            for ci, (name, (verts, B, fr)) in enumerate(planes.items()):
+                t_bar = s * np.einsum("vij,vj->i", B, lam[verts])
+                if fr is not None:  # lagged friction: through lam_n(x_n; t1), u(x_n, w = t1 - t0)
+                    fv, Hf, f1u, mkb2, lam_n, u = fr
+                    n = self.sim.contact.colliders[ci].normal
+                    Hl = np.einsum("vij,vj->vi", Hf, lam[fv])
+                    coef = mkb2 * np.einsum("vi,vi->v", f1u, lam[fv])
+                    # x_n explicitly: -s lambda^T d(grad D)/dx_n, d(grad D)/dx_n = -Hf - mu kappa b''(d_n) f1 u n^T
+                    np.add.at(xn_bar, fv, s * Hl + s * coef[:, None] * n[None])
+                    t_bar = t_bar + s * Hl.sum(axis=0) - s * coef.sum() * n  # the end pose (t1)
+                    start = self.grads["collider_translations"].setdefault(
+                        -1 if step_index is None else step_index - 1, {})
+                    start[name] = start.get(name, 0.0) - s * Hl.sum(axis=0)  # the start pose (t0): u has +t0
+                    fb = self.grads["collider_friction"]
+                    fb[name] = fb.get(name, 0.0) - s * float(np.sum(lam_n * np.einsum("vi,vi->v", f1u, lam[fv])))
+                store[name] = store.get(name, 0.0) + t_bar
+        # parameters at the converged step
+        if np.any(lam):
+            self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha)
+        # the prediction (x_b, v_hat) from (x_n, v_n, history)
+        if kind in ("be", "bdf2_first"):
+            xn_bar += xb_bar
+            vn_bar += vhat_bar
+        elif kind == "bdf2":
+            xn_bar += (4.0 / 3.0) * xb_bar
+            vn_bar += (4.0 / 3.0) * vhat_bar
+            h_in = {"x_prev": -xb_bar / 3.0, "v_prev": -vhat_bar / 3.0}
+        else:  # Newmark: x_b = x_n + h/2 v_n, v_hat = v_n + h/2 a
+            xn_bar += xb_bar
+            vn_bar += 0.5 * h * xb_bar + vhat_bar
+            a_bar = 0.5 * h * vhat_bar
+            if kind == "newmark":
+                h_in = {"a": a_bar}
+            else:  # a_0 from M a_0 = f(x_n) + c f_ext - alpha M v_n (free components)
+                self._a0_backward(rec, a_bar, xn_bar, vn_bar, v_hat)
+        return xn_bar, vn_bar, h_in
+
+    def _accumulate_params(self, x_dev, w, sign, *, y=None, v_hat=None, s=1.0, c=1.0, alpha=0.0, a0=None, v_n=None):
+        """Parameter gradients of sign * w . dR/dtheta terms shared by the step and Newmark's a_0."""
+        self._mulam_bar += sign * self._forces_unit(x_dev, w)
+        if "element_stiffness_scale" in self.params:
+            self.grads["element_stiffness_scale"] += sign * self._element_contraction(x_dev, w)
+        M1 = lambda a: (self._M @ a.reshape(-1)).reshape(self.n, 3) / self._rho  # noqa: E731
+        if a0 is None:  # the step: g = M (y - v_hat) + s alpha M y + s grad V - s c f_ext
+            self.grads["forces"] += (-sign) * c * w  # sign = -s: s c w
+            self.grads["density"] += -float(np.sum(w * (M1(y - v_hat) + s * alpha * M1(y) - s * c * self._fgrav_unit)))
+        else:  # a_0: R = M a_0 + grad V(x_n) - c f_ext + alpha M v_n
+            self.grads["forces"] += c * w
+            self.grads["density"] += -float(np.sum(w * (M1(a0) - c * self._fgrav_unit + alpha * M1(v_n))))
+
+    def _a0_backward(self, rec, a_bar, xn_bar, vn_bar, v_hat):
+        n, P = self.n, rec.mask
+        a_bar = P * a_bar
+        if not np.any(a_bar):
+            return
+        diag = self._M.diagonal().reshape(n, 3)
+        a0 = 2.0 * (v_hat - rec.v) / rec.dt
+        # mu = M_ff^-1 a_bar (a lumped mass is diagonal; a consistent one is solved on the host)
+        if self._M.nnz == 3 * n:
+            mu = np.where(P > 0, a_bar / np.where(diag > 0, diag, 1.0), 0.0)
+        else:
+            import scipy.sparse.linalg as spla
+
+            free = P.reshape(-1) > 0
+            mu = np.zeros(3 * n)
+            mu[free] = spla.spsolve(self._M[free][:, free].tocsc(), a_bar.reshape(-1)[free])
+            mu = mu.reshape(n, 3)
+        x_dev = self._assemble_K(rec.x)
+        alpha = self.sim.damping_mass
+        xn_bar -= self._mv(self._K, mu)
+        vn_bar -= alpha * (self._M @ mu.reshape(-1)).reshape(n, 3)
+        self._accumulate_params(x_dev, mu, -1.0, c=rec.load_scale, alpha=alpha, a0=a0, v_n=rec.v)
+
+
+# -- recording steps: a plain-Python recording, and steps on a wp.Tape ---------------------------------------------
+def _warp_runtime():
+    """Warp's runtime object, where an active ``wp.Tape`` is kept (``runtime.tape``): Warp has no
+    public call that says whether a tape is recording, or that pauses it."""
+    return wp._src.context.runtime
+
+
+def active_tape():
+    """The ``wp.Tape`` being recorded (inside ``with tape:``), or None."""
+    return getattr(_warp_runtime(), "tape", None)
+
+
+class Recording:
+    """Record the steps of ``sim`` (every ``sim.step(...)`` while the recording is active, as a
+    context manager) for :meth:`backward`: the plain-Python form of the adjoint (no Warp code).
+
+    ``backward(x_grads, v_grads)`` takes the adjoints of the positions / velocities of the states
+    0..N of the recording (dicts: state index -> (n, 3); state k is the one after k recorded
+    steps) and returns the gradients by parameter name (:data:`PARAMETERS`; ``targets`` by step
+    index; ``initial_history`` the adjoint of the first state's integrator history)."""
+
+    def __init__(self, sim, params=None, *, tol=None):
+        self.sim = sim
+        self.adjoint = StepAdjoint(sim, params, tol=tol)
+        self.records = []
+        self.stats = []
+
+    def __enter__(self):
+        if getattr(self.sim, "step_recorder", None) is not None:
+            raise RuntimeError("this simulator is already being recorded")
+        self.sim.step_recorder = self
+        return self
+
+    def __exit__(self, *exc):
+        self.sim.step_recorder = None
+
+    @property
+    def steps(self) -> int:
+        return len(self.records)
+
+    @property
+    def nbytes(self) -> int:
+        """Host memory the recorded steps hold (bytes)."""
+        return int(sum(r.nbytes for r in self.records))
+
+    def record(self, run, state_in, state_out, control, dt):
+        """Run one step (``run()``) and keep its record."""
+        rec = self.adjoint.record_before(state_in, control, dt)
+        stats = run()
+        self.adjoint.record_after(rec, state_out)
+        self.records.append(rec)
+        self.stats.append(stats)
+        return stats
+
+    def backward(self, x_grads=None, v_grads=None) -> dict:
+        """Gradients of a loss L(x_0..x_N, v_0..v_N) given dL/dx_k (``x_grads``) and dL/dv_k."""
+        n, N = self.sim.num_vertices, len(self.records)
+        x_grads, v_grads = x_grads or {}, v_grads or {}
+
+        def get(d, k):
+            return np.asarray(d[k], dtype=np.float64).reshape(n, 3) if k in d else np.zeros((n, 3))
+
+        adj = self.adjoint
+        adj.zero_grad()
+        xbar, vbar, hbar = get(x_grads, N), get(v_grads, N), {}
+        for k in range(N - 1, -1, -1):
+            xbar, vbar, hbar = adj.backward(self.records[k], xbar, vbar, hbar, step_index=k)
+            xbar = xbar + get(x_grads, k)
+            vbar = vbar + get(v_grads, k)
+        g = adj.parameter_gradients()
+        g["initial_positions"], g["initial_velocities"], g["initial_history"] = xbar, vbar, hbar
+        return g
+
+
+def tape_adjoint(sim) -> StepAdjoint:
+    """The :class:`StepAdjoint` that steps of ``sim`` recorded on a ``wp.Tape`` use (made on first
+    use, kept as ``sim.adjoint``): its ``parameter_gradients()`` are the parameter gradients of
+    ``tape.backward()``, ``zero_grad()`` clears them (``tape.zero()`` clears the state arrays' grads)."""
+    adj = getattr(sim, "adjoint", None)
+    if adj is None:
+        adj = sim.adjoint = StepAdjoint(sim)
+        adj.history_grads = {}
+        adj.taped_steps = 0
+    return adj
+
+
+def _add_grad(arr, value):
+    if value is not None and arr.requires_grad and np.any(value):
+        g = arr.grad
+        g.assign((g.numpy().astype(np.float64) + value).astype(g.numpy().dtype))
+
+
+def recorded_step(sim, run, state_in, state_out, control, dt, *, own):
+    """A step of ``sim`` (``run()``) while a :class:`Recording` is active or a ``wp.Tape``
+    records. On a tape the step's own launches are not recorded (the tape is paused during the
+    forward solve) and a custom backward is recorded instead (``Tape.record_func``): it reads the
+    grads of ``state_out.x`` / ``.v`` and adds the step's adjoints to those of ``state_in`` (and
+    the parameter gradients to ``sim.adjoint``)."""
+    tape = active_tape()
+    recording = getattr(sim, "step_recorder", None)
+    if tape is None:
+        return recording.record(run, state_in, state_out, control, dt)
+    check_differentiable(sim)
+    if own:
+        raise ValueError("on a wp.Tape, step with states of their own: sim.step(state_in, state_out, control, dt) "
+                         "with a new state per step (sim.new_state(requires_grad=True)); sim.step() reuses two "
+                         "buffers, so their gradients would mix")
+    adj = tape_adjoint(sim)
+    runtime = _warp_runtime()
+    runtime.tape = None  # the forward's own launches are not taped: the step has its own backward
+    try:
+        if recording is not None:
+            stats = recording.record(run, state_in, state_out, control, dt)
+            rec = recording.records[-1]
+        else:
+            rec = adj.record_before(state_in, control, dt)
+            stats = run()
+            adj.record_after(rec, state_out)
+    finally:
+        runtime.tape = tape
+    index = adj.taped_steps
+    adj.taped_steps += 1
+
+    def backward():
+        xbar = state_out.x.grad.numpy().astype(np.float64) if state_out.x.requires_grad else None
+        vbar = state_out.v.grad.numpy().astype(np.float64) if state_out.v.requires_grad else None
+        hbar = adj.history_grads.pop(id(state_out), {})
+        xn, vn, h_in = adj.backward(rec, xbar, vbar, hbar, step_index=index)
+        _add_grad(state_in.x, xn)
+        _add_grad(state_in.v, vn)
+        if h_in:
+            adj.history_grads[id(state_in)] = h_in
+
+    tape.record_func(backward, [a for a in (state_in.x, state_in.v, state_out.x, state_out.v) if a.requires_grad])
+    return stats
+
+
+def set_material_parameters(sim, youngs_modulus=None, poisson_ratio=None):
+    """Change the whole body's Young's modulus and Poisson ratio of a built ``sim`` in place (the
+    kernel parameters of every point set; ``sim.model.material`` becomes a material of the same
+    class with the new values), for runs that differentiate or fit them without rebuilding."""
+    model = sim.model
+    old = model.material
+    E = float(old.youngs_modulus if youngs_modulus is None else youngs_modulus)
+    nu = float(old.poisson_ratio if poisson_ratio is None else poisson_ratio)
+    new = type(old)(youngs_modulus=E, poisson_ratio=nu, density=old.density)
+    sets = sim.quadrature_sets
+    vi = getattr(model, "volumetric_integration", "full")
+    pairs = material_set_parameters(new, E, nu, vi, len(sets) > 1)
+    for qs, (mu, lam) in zip(sets, pairs):
+        qs.material.mu, qs.material.lam = sim.scalar_type(mu), sim.scalar_type(lam)
+    if vi == "reduced":
+        model.volumetric_parameters = tuple((float(a), float(b)) for a, b in pairs)
+    model.material = new
+    return new
+
+
+def set_density(sim, density):
+    """Change the density of a built ``sim`` in place: the model's mass matrices and gravity (all
+    proportional to it), the simulator's mass blocks and external forces (``sync_model``)."""
+    model = sim.model
+    old = model.material
+    rho = float(density)
+    if not (np.isfinite(rho) and rho > 0):
+        raise ValueError(f"density must be a positive number of kg/m^3, got {density!r}")
+    r = rho / float(old.density)
+    if r == 1.0:
+        return old
+    new = type(old)(youngs_modulus=old.youngs_modulus, poisson_ratio=old.poisson_ratio, density=rho)
+    model.mass = model.mass * r
+    model.lumped_mass = model.lumped_mass * r
+    model.gravity_mass = model.gravity_mass * r
+    model.material = new
+    mv = sim.mass_values
+    mv.assign(mv.numpy() * mv.numpy().dtype.type(r))
+    sim.sync_model()
+    return new
