@@ -367,7 +367,9 @@ def test_scene_contact_table_sets_the_simulator_and_is_validated(tmp_path):
 
 
 def test_bodies_of_a_multi_body_model_collide_without_intersecting():
-    """Model.from_bodies: two bodies (groups from body_offsets), contact on by default."""
+    """Model.from_bodies: two bodies (groups from body_offsets), contact on by default; bodies that
+    touch at the start are refused naming them."""
+    from warpfem.contact import CollisionError
     from warpfem.model import Body
 
     mat = make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
@@ -384,3 +386,7 @@ def test_bodies_of_a_multi_body_model_collide_without_intersecting():
         assert not ipctk.has_intersections(cm, np.asfortranarray(sim.positions()))
     lo = slice(int(m.body_offsets[0]), int(m.body_offsets[1]))
     assert sim.velocities()[lo, 1].mean() < -0.2  # the lower body was hit
+    touching = Model.from_bodies([Body(cube, mat, name="low"), Body(cube, mat, name="high", offset=(0.02, 0.1, 0.01))])
+    with pytest.raises(CollisionError, match="touch now between bodies 'high' and 'low'|touch now between bodies 'low' "
+                                             "and 'high'"):
+        Simulator(touching, dt=0.01).set_contact()

@@ -224,8 +224,9 @@ class SurfaceContact:
             self.detach()
             k = int(np.argmin(d))
             kind = "vertex-triangle" if int(self._kinds.numpy()[k]) == SK.PT else "edge-edge"
-            raise CollisionError(f"set_contact: {int((d <= 0.0).sum())} surface pairs touch now (first: {kind} pair, "
-                                 f"vertices {self.pairs_np[k].tolist()}, distance {d[k]:.3g} m)")
+            raise CollisionError(f"set_contact: {int((d <= 0.0).sum())} surface pairs touch now{self._bodies_of(k)} "
+                                 f"(first: {kind} pair, vertices {self.pairs_np[k].tolist()}, distance {d[k]:.3g} m): "
+                                 "contact needs a gap between them")
         close = d < self.dhat
         if close.any():
             k = int(np.argmin(d))
@@ -233,6 +234,15 @@ class SurfaceContact:
                         "the barrier pushes them apart in the first steps%s", int(close.sum()), self.dhat, d[k],
                         self.pairs_np[k].tolist(), "; with self contact, give a dhat below the mesh's smallest gap "
                         "between primitives that are not neighbours" if self.self_contact else "")
+
+    def _bodies_of(self, k):
+        """' between bodies 'a' and 'b'' for candidate pair k of a multi-body model, else ''."""
+        offsets, names = getattr(self.sim.model, "body_offsets", None), getattr(self.sim.model, "body_names", None)
+        if offsets is None or names is None or len(offsets) < 3:
+            return ""
+        b = np.searchsorted(np.asarray(offsets), self.pairs_np[k, [0, 2 if self._kinds.numpy()[k] == SK.EE else 1]],
+                            side="right") - 1
+        return f" between bodies {names[b[0]]!r} and {names[b[1]]!r}" if b[0] != b[1] else f" in body {names[b[0]]!r}"
 
     def default_stiffness(self, dhat):
         """kappa (N/m^3) of the squared-distance barrier: its force at d = dhat / 2 (2 d kappa |b'(d^2)|)
