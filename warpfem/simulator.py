@@ -84,7 +84,8 @@ class Simulator(SimulatorBase):
         friction_iterations, friction_tol: with friction in contact (colliders or ``set_contact``),
             re-solve a converged step with the normal forces and normals lagged again from its end,
             at most this many times, while they change by more than ``friction_tol`` of the
-            largest (0: lagged once from the step start). Measured effect: docs/contact.md.
+            largest (0: lagged once from the step start; steps recorded for gradients lag once).
+            Measured effect: docs/contact.md.
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
@@ -454,7 +455,7 @@ class Simulator(SimulatorBase):
             launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self._contact_start, self._s(alpha), y, y],
                    device=self.device)
         stats = newton_solve(pot, y, self.options)
-        if contact and stats.converged and self.friction_iterations:
+        if contact and stats.converged and self.friction_iterations and not self._differentiating():
             self._friction_lag_iterations(pot, xb, s, y, stats)
         stats.newton_syncs = pot.host_syncs - syncs0
         stats.launches = COUNTERS["launches"] - launches0
@@ -467,6 +468,13 @@ class Simulator(SimulatorBase):
             state_out.history["guess_h"] = dt
         state_out.time = state_in.time + dt
         return stats
+
+    def _differentiating(self):
+        """Whether this step is recorded for gradients (the adjoint differentiates friction lagged
+        once from the step start, so differentiated steps do not iterate the lagging)."""
+        from warpfem.solvers.adjoint import active_tape
+
+        return getattr(self, "step_recorder", None) is not None or active_tape() is not None
 
     def _friction_lag_iterations(self, pot, xb, s, y, stats):
         """Fixed-point iterations of friction's lagging: the normal forces and normals (and the

@@ -107,6 +107,9 @@ def check_differentiable(sim):
             if why:
                 raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): {why}; "
                                           "differentiable contact is frictionless planes and spheres with a given stiffness")
+    if getattr(sim, "surface_contact", None) is not None:
+        raise NotImplementedError("gradients through surface contact (set_contact: body-body and self-contact) are "
+                                  "not supported: differentiable contact is frictionless planes and spheres")
     if sim.damping_stiffness != 0.0:
         raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
                                   "supported: use damping_mass")
