@@ -32,20 +32,20 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 CONFIGS = [("backward_euler", 1e-2, 1e-1), ("backward_euler", 1e-5, 1e-3), ("newmark", 1e-2, 1e-1)]
 
 
-def measure(steps: int, device="cpu") -> dict:
+def measure(steps: int, device="cpu", cells=(20, 2, 2), E=1e6, nu=0.3) -> dict:
     import numpy as np
     import warp as wp
 
     wp.config.quiet = True
     import warpfem as wf
 
-    mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=(20, 2, 2))
+    mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=tuple(cells))
     fixed = np.flatnonzero(mesh.vertices[:, 0] < 1e-9)
     tip = np.flatnonzero(mesh.vertices[:, 0] > 1.0 - 1e-9)
     out = {"warpfem": os.path.dirname(wf.__file__), "device": str(wp.get_device(device)), "tets": int(mesh.num_tets),
            "runs": []}
     for integ, tol, cg_tol in CONFIGS:
-        mat = wf.StableNeoHookean(youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0)
+        mat = wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=nu, density=1000.0)
         model = wf.Model(mesh, mat, gravity=(0.0, 0.0, -9.81), mass_matrix="lumped")
         model.fix(fixed)
         sim = wf.Simulator(model, device=device, dt=1.0 / 60.0, integrator=integ, tol=tol, cg_tol=cg_tol,
@@ -107,13 +107,13 @@ def measure(steps: int, device="cpu") -> dict:
     return out
 
 
-def baseline(rev: str, steps: int, device: str) -> dict:
+def baseline(rev: str, steps: int, device: str, extra=()) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         archive = subprocess.run(["git", "-C", ROOT, "archive", rev, "warpfem"], check=True, capture_output=True).stdout
         subprocess.run(["tar", "-x", "-C", tmp], input=archive, check=True)
         env = dict(os.environ, PYTHONPATH=tmp)
         res = subprocess.run([sys.executable, os.path.abspath(__file__), "--child", "--steps", str(steps),
-                              "--device", device], env=env, cwd=tmp, capture_output=True, text=True, check=True)
+                              "--device", device, *extra], env=env, cwd=tmp, capture_output=True, text=True, check=True)
         return json.loads(res.stdout.strip().splitlines()[-1])
 
 
@@ -122,20 +122,26 @@ def main(argv=None):
     ap.add_argument("--baseline", default="a3ec050", help="git revision to compare against ('' to skip)")
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--cells", default="20,2,2", help="cells of the 1 x 0.2 x 0.2 m beam (x6 tets); 16,3,3: 864 tets")
+    ap.add_argument("--E", type=float, default=1e6, help="Young's modulus (Pa)")
+    ap.add_argument("--nu", type=float, default=0.3, help="Poisson ratio")
     ap.add_argument("--json")
     ap.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
+    cells = tuple(int(c) for c in args.cells.split(","))
+    kw = dict(cells=cells, E=args.E, nu=args.nu)
+    extra = ["--cells", args.cells, "--E", repr(args.E), "--nu", repr(args.nu)]
     if args.child:
-        print(json.dumps(measure(args.steps, args.device)))
+        print(json.dumps(measure(args.steps, args.device, **kw)))
         return 0
     base = None
     if args.baseline:
         try:
-            base = baseline(args.baseline, args.steps, args.device)
+            base = baseline(args.baseline, args.steps, args.device, extra)
         except subprocess.CalledProcessError as e:
             print(f"baseline {args.baseline} not measured: {e}", file=sys.stderr)
     sys.path.insert(0, ROOT)
-    new = measure(args.steps, args.device)
+    new = measure(args.steps, args.device, **kw)
     from warpfem.paths import portable_path
 
     for d in (base, new):

@@ -103,3 +103,31 @@ def test_steady_steps_allocate_no_device_array_and_read_back_once_per_newton_ite
     assert counts["reads"] == newton
     assert syncs == counts["reads"]
     assert 0 < launches <= 40 * newton  # reported launches: a few tens per iteration, not hundreds
+
+
+@pytest.mark.parametrize("linear_solver", ["pcg", "direct"])
+def test_captured_newton_iterations_replay_the_same_launches(linear_solver, monkeypatch):
+    """The Newton iteration's launches before and after the linear solve are captured once per key
+    as a graph (Warp's CPU operation stream here) and replayed: the trajectory is bit for bit the
+    one of plain launches, the launch count is the same, and a material changed in place (a struct
+    field, packed by value into a graph) is a new key, not a stale replay."""
+    import warpfem.kernels.generic as G
+
+    def run(capture):
+        monkeypatch.setattr(G, "CAPTURE_SEQUENCES", capture)
+        sim = wf.Simulator(_model(), dt=0.02, integrator="bdf2", damping_mass=0.3, linear_solver=linear_solver,
+                           tol=1e-6, cg_tol=1e-4)
+        launches, xs = 0, []
+        for k in range(6):
+            if k == 4:  # stiffer from here on, in place
+                sim.material_params.mu = 2.0 * float(sim.material_params.mu)
+            launches += sim.step().launches
+            xs.append(sim.positions())
+        return np.array(xs), launches, sim._potential.graphs
+
+    plain, n_plain, g_plain = run(False)
+    replayed, n_replayed, g = run(True)
+    assert g_plain.replays == 0 and g.captures >= 2 and g.replays >= 6
+    assert np.abs(plain[-1] - plain[0]).max() > 1e-3  # it moves
+    np.testing.assert_array_equal(replayed, plain)
+    assert n_replayed == n_plain
