@@ -51,6 +51,7 @@ def _type_key(a):
 
 
 _LAUNCH_CACHE: dict = {}
+_WARP_SCALARS = (wp.float32, wp.float64, wp.int32, wp.int64, wp.uint32, wp.uint64, wp.float16)
 _IMMUTABLE = (int, float, bool)
 _LAUNCH_CACHE_SIZE = 256
 
@@ -81,7 +82,11 @@ def launch(kernel, dim, inputs, device):
                 ovl = kernel
             _OVERLOAD_CACHE[key] = ovl
         kernel = ovl
-    lkey = (kernel, dim if isinstance(dim, tuple) else (dim,), str(device))
+    # one entry per set of array arguments (by identity: an entry keeps its arrays alive, so their
+    # ids are not reused while it exists): a kernel launched on alternating arrays (the two states,
+    # the gradient and its trial buffer) finds its arrays already packed
+    lkey = (kernel, dim if isinstance(dim, tuple) else (dim,), str(device),
+            *[id(v) for v in inputs if isinstance(v, wp.array)])
     entry = _LAUNCH_CACHE.get(lkey)
     if entry is not None:
         cmd, module, exec_key, last = entry
@@ -95,8 +100,12 @@ def launch(kernel, dim, inputs, device):
             # (a Warp scalar, an unknown object) is re-packed.
             params = cmd.params
             for i, v in enumerate(inputs):
-                if v is last[i] and (isinstance(v, wp.array) or type(v) in _IMMUTABLE
-                                     or getattr(v, "_ctype", None) is params[i + 1]):
+                lv = last[i]
+                if v is lv and (isinstance(v, wp.array) or type(v) in _IMMUTABLE
+                                or getattr(v, "_ctype", None) is params[i + 1]):
+                    continue
+                # a Warp scalar (a new object per launch, e.g. ``wp.float64(s)``) of the value packed last
+                if type(v) is type(lv) and isinstance(v, _WARP_SCALARS) and v.value == lv.value:
                     continue
                 cmd.set_param_at_index(i, v)
                 last[i] = v
