@@ -182,16 +182,20 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
         report[3] = bb[0]
 
 
-@both_precisions(values="m[]", mask="v[]", inv_diag="m[]", b="v[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]")
+@both_precisions(values="m[]", mask="v[]", inv_diag="m[]", b="v[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]",
+                 pm="v[]")
 @wp.kernel
 def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
                        values: wp.array(dtype=Any), mask: wp.array(dtype=Any), inv_diag: wp.array(dtype=Any),
                        b: wp.array(dtype=Any), x: wp.array(dtype=Any), r: wp.array(dtype=Any), z: wp.array(dtype=Any),
-                       p: wp.array(dtype=Any), Ap: wp.array(dtype=Any), tol2: wp.array(dtype=wp.float64),
+                       p: wp.array(dtype=Any), Ap: wp.array(dtype=Any), pm: wp.array(dtype=Any),
+                       tol2: wp.array(dtype=wp.float64),
                        maxiter: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.float64)):
     """The whole solve in one launch of one thread, for the CPU (where a launch's threads run one
     after the other anyway, and launches, not arithmetic, cost the time on small meshes): the same
-    iteration, in the same order of operations, as the init / matvec / update / direction kernels."""
+    iteration, in the same order of operations, as the init / matvec / update / direction kernels.
+    The masked direction pm = mask * p is kept next to p (formed once per row, not once per block
+    of the product: the same numbers)."""
     n = b.shape[0]
     rz = wp.float64(0.0)
     rr = wp.float64(0.0)
@@ -202,6 +206,7 @@ def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
         r[i] = bi
         z[i] = zi
         p[i] = zi
+        pm[i] = cw_mul(mask[i], zi)
         rz += wp.float64(wp.dot(bi, zi))
         rr += wp.float64(wp.dot(bi, bi))
     bb = rr
@@ -217,8 +222,7 @@ def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
             pi = p[i]
             acc = pi - pi
             for q in range(offsets[i], offsets[i + 1]):
-                c = columns[q]
-                acc += values[q] * cw_mul(mask[c], p[c])
+                acc += values[q] * pm[columns[q]]
             m = mask[i]
             yv = cw_mul(m, acc) + pi - cw_mul(m, pi)
             Ap[i] = yv
@@ -253,7 +257,9 @@ def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
                 for i in range(n):
                     pv = p[i]
                     beta = type(pv[0])(rz1 / rz)
-                    p[i] = z[i] + beta * pv
+                    pn = z[i] + beta * pv
+                    p[i] = pn
+                    pm[i] = cw_mul(mask[i], pn)
             rz = rz1
     report[0] = wp.float64(st)
     report[1] = wp.float64(it)
@@ -296,6 +302,7 @@ class DevicePCG(LinearSolver):
         self.z = wp.zeros(n, dtype=vec, device=dev)
         self.p = wp.zeros(n, dtype=vec, device=dev)
         self.Ap = wp.zeros(n, dtype=vec, device=dev)
+        self.pm = wp.zeros(n, dtype=vec, device=dev) if self.cpu_serial else None  # mask * p (serial kernel)
         self._rz = wp.zeros(k + 1, dtype=wp.float64, device=dev)
         self._rr = wp.zeros(k + 1, dtype=wp.float64, device=dev)
         self._pap = wp.zeros(k + 1, dtype=wp.float64, device=dev)
@@ -354,7 +361,7 @@ class DevicePCG(LinearSolver):
             pt = self.pattern
             self._serial_cmd = self._record(_pcg_serial_kernel, 1, [
                 pt.offsets, pt.columns, self._values, self._mask, self.inv_diag, self.b, self.x, self.r, self.z, self.p,
-                self.Ap, self._tol2, self._maxiter, self._report])
+                self.Ap, self.pm, self._tol2, self._maxiter, self._report])
             self._serial_key = key
         self._serial_cmd.launch()
         COUNTERS["launches"] += 1
