@@ -152,7 +152,11 @@ def qp_hessian_kernel(
         K03 = -(K00 + K01 + K02)
         K13 = -(wp.transpose(K01) + K11 + K12)
         K23 = -(wp.transpose(K02) + wp.transpose(K12) + K22)
-        K33 = -(K03 + K13 + K23)
+        # K_33 = sum_{a, b < 3} K_ab = D + O + O^T, D = K00 + K11 + K22, O = K01 + K02 + K12, summed so
+        # that it is exactly symmetric in floating point
+        D = K00 + K11 + K22
+        O = K01 + K02 + K12
+        K33 = type(c)(0.5) * (D + wp.transpose(D)) + (O + wp.transpose(O))
         _add_block(values, block_index, base, 0, 0, K00)
         _add_pair(values, block_index, base, 0, 1, K01)
         _add_pair(values, block_index, base, 0, 2, K02)
