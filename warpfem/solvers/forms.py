@@ -452,7 +452,7 @@ class IncrementalPotential:
             lin = self.linear_solve(values, rhs, d, opts)
         if deferred:
             solver.solve_deferred(rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters, chunks=chunks, report_out=self.acc,
-                                  report_offset=r)
+                                  report_offset=r, graphs=self.graphs)
 
         def after_solve():  # the direction check, the full step, its energy and gradient
             self._launch_direction(y, g, d, self._acc_d)

@@ -439,24 +439,35 @@ class DevicePCG(LinearSolver):
         """Chunks a deferred solve should run before the caller's read-back (0: solve normally)."""
         return 1 if self.cpu_serial else self.last_chunks
 
-    def solve_deferred(self, b, x, *, tol, maxiter, chunks, report_out, report_offset):
+    def solve_deferred(self, b, x, *, tol, maxiter, chunks, report_out, report_offset, graphs=None):
         """Start a solve of (prepared matrix) x = b and run ``chunks`` chunks without reading back;
         x and the 4-number report (status, iterations, r.r, b.b) are copied on the device into
         ``x`` and ``report_out[report_offset:report_offset + 4]``. The caller reads the report
-        (with whatever else it reads) and finishes with :meth:`complete_deferred`."""
+        (with whatever else it reads) and finishes with :meth:`complete_deferred`. ``graphs`` (a
+        ``kernels.generic.CapturedSequences``): the CPU serial solve's copies, fills and launch are
+        captured once per set of arrays and tolerance and replayed."""
         if maxiter < 1:
             raise ValueError(f"maxiter must be >= 1, got {maxiter}")
-        wp.copy(self.b, b)
-        self._tol2.fill_(float(tol) ** 2)
-        self._maxiter.fill_(int(maxiter))
-        if self.cpu_serial:  # the solve is complete after its one launch
-            self._run_serial()
+
+        def work():
+            wp.copy(self.b, b)
+            self._tol2.fill_(float(tol) ** 2)
+            self._maxiter.fill_(int(maxiter))
+            if self.cpu_serial:  # the solve is complete after its one launch
+                self._run_serial()
+            else:
+                self._launch_start()
+                for _ in range(max(1, int(chunks))):
+                    self._run_chunk()
+            wp.copy(x, self.x)
+            wp.copy(report_out, self._report, dest_offset=int(report_offset), count=4)
+
+        if graphs is not None and self.cpu_serial and self._values is not None:
+            key = ("pcg", id(self), id(self.pattern), b.ptr, x.ptr, report_out.ptr, int(report_offset), self.b.ptr,
+                   self._values.ptr, self._mask.ptr, float(tol), int(maxiter))
+            graphs.run(key, work)
         else:
-            self._launch_start()
-            for _ in range(max(1, int(chunks))):
-                self._run_chunk()
-        wp.copy(x, self.x)
-        wp.copy(report_out, self._report, dest_offset=int(report_offset), count=4)
+            work()
         self._deferred = (x, float(tol), max(1, int(chunks)))
 
     def complete_deferred(self, report):
