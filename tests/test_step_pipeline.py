@@ -131,3 +131,26 @@ def test_captured_newton_iterations_replay_the_same_launches(linear_solver, monk
     assert np.abs(plain[-1] - plain[0]).max() > 1e-3  # it moves
     np.testing.assert_array_equal(replayed, plain)
     assert n_replayed == n_plain
+
+
+def test_sequences_inside_a_callers_capture_are_recorded_there():
+    """Inside a caller's own capture (e.g. a user capturing their loop) a captured sequence is not
+    replayed nor captured again (no nested capture): its work goes into the caller's graph."""
+    sim = wf.Simulator(_model(), dt=0.02, integrator="backward_euler", linear_solver="pcg", tol=1e-6, cg_tol=1e-4)
+    sim.step()
+    graphs, tmp = sim._potential.graphs, sim._potential.work.tmp
+
+    def fill():
+        tmp.fill_(1.0)
+
+    graphs.run(("probe",), fill)  # first time: as is
+    graphs.run(("probe",), fill)  # second: captured and replayed
+    captures, replays = graphs.captures, graphs.replays
+    assert replays >= 1
+    tmp.zero_()
+    with wp.ScopedCapture(device="cpu") as cap:
+        graphs.run(("probe",), fill)
+    assert (graphs.captures, graphs.replays) == (captures, replays)
+    assert np.abs(tmp.numpy()).max() == 0.0  # recorded into the caller's graph, not executed
+    wp.capture_launch(cap.graph)
+    assert np.all(tmp.numpy() == 1.0)

@@ -246,8 +246,8 @@ class CapturedSequences:
         self._seen.clear()
 
     def run(self, key, fn):
-        if key is None or not (self.enabled and CAPTURE_SEQUENCES):
-            return fn()
+        if key is None or not (self.enabled and CAPTURE_SEQUENCES) or getattr(self.device, "is_capturing", False):
+            return fn()  # (inside a caller's own capture the launches go into that one)
         entry = self._graphs.get(key)
         if entry is None:
             if key not in self._seen:
