@@ -18,7 +18,7 @@ is 39 kg = 40 kg minus the clamped vertices' share; warpfem keeps that mass on f
 it has no effect), ``builder.color()`` before ``finalize`` (VBD needs the graph colouring). VBD
 works in float32 only.
 
-Quantity: the mean z displacement of the 21 vertices on the tip face x = 1, sampled every 1/60 s
+Quantity: the mean z displacement of the vertices on the tip face x = 1 (21 or 16), sampled every 1/60 s
 for ``--duration`` seconds. Error = RMS over the samples of (tip - tip_ref), divided by the peak
 |tip_ref| (the largest tip displacement of the reference). Reference: warpfem Newmark (second
 order), float64, tol = cg_tol = 1e-8 (1e-6 with --quick), direct solves, at dt_r = 1/60 /
