@@ -226,6 +226,15 @@ class ElasticForm(Form):
                                                     self.pattern.block_index, values], self.ops.device)
 
 
+def _capture_key(form):
+    """The form's capture key; a subclass of a built-in form that does not define its own
+    ``capture_key`` gets None (it may do host work the built-in key does not describe)."""
+    cls = type(form)
+    if cls in (InertiaForm, DampingForm, LoadForm, ElasticForm) or "capture_key" in cls.__dict__:
+        return form.capture_key()
+    return None
+
+
 class IncrementalPotential:
     """E(y) = sum_f w_f E_f(x(y)) over the mesh's vertices, x = x_b + s y (``xb=None``: x = y).
 
@@ -474,7 +483,7 @@ class IncrementalPotential:
         """Run ``fn`` (launches only) through the graph cache, keyed by everything its launches
         depend on: the vectors, the step's x_b, s and weights, the forms' own keys, the mask and
         the accumulator; afterwards x = x_b + s ``x_of`` is in the work buffer (as ``fn`` leaves it)."""
-        keys = tuple(f.capture_key() for f in self.forms)
+        keys = tuple(_capture_key(f) for f in self.forms)
         if any(k is None for k in keys):
             fn()
             return
