@@ -7,7 +7,8 @@ neo-Hookean, positions perturbed from rest, float32 and float64, on the device (
   hessian     ``values.zero_()`` + ``qp_hessian_kernel`` (what a Newton iteration pays)
   zero        ``values.zero_()`` alone (the BSR value array, nnz 3x3 blocks)
   kernel      ``qp_hessian_kernel`` alone (into values that are not re-zeroed)
-  svd         bench-local kernel: F + ``signed_svd`` (``wp.svd3``) per point
+  svd         bench-local kernel: F + ``signed_svd`` (``wp.svd3``) per point (the Hessian's SVD before issue 21's point 4)
+  svd_jacobi  bench-local kernel: F + ``jacobi_signed_svd`` per point (the SVD the Hessian kernels use now)
   parts       bench-local kernel: F + ``material_hessian_parts`` (SVD, scaling block A, twist/flip), no projection
   eigen       bench-local kernel: F + ``material_hessian_parts`` + ``hessian_point_prepare`` per point
               (SVD, scaling block, projection), one scalar written per point
@@ -51,7 +52,8 @@ from warpfem.kernels import fem as FK  # noqa: E402
 from warpfem.kernels.common import point_deformation_gradient  # noqa: E402
 from warpfem.kernels.generic import both_precisions  # noqa: E402
 from warpfem.materials.dispatch import material_hessian_parts  # noqa: E402
-from warpfem.materials.eigensystem import hessian_point_block, hessian_point_prepare, signed_svd  # noqa: E402
+from warpfem.materials.eigensystem import (hessian_point_block, hessian_point_prepare, jacobi_signed_svd,  # noqa: E402
+                                           signed_svd)
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_forces import numpy_linear_hessian_blocks  # noqa: E402
@@ -74,6 +76,14 @@ def eigen_only_kernel(x: wp.array(dtype=Any), points: Any, material: Any, projec
 def svd_only_kernel(x: wp.array(dtype=Any), points: Any, out: wp.array(dtype=Any)):
     q = wp.tid()
     U, s, V = signed_svd(point_deformation_gradient(x, points, q))
+    out[q] = s[0] + s[1] + s[2] + U[0, 1] + V[1, 2]
+
+
+@both_precisions(x="v[]", points="qp", out="s[]")
+@wp.kernel
+def svd_jacobi_kernel(x: wp.array(dtype=Any), points: Any, out: wp.array(dtype=Any)):
+    q = wp.tid()
+    U, s, V = jacobi_signed_svd(point_deformation_gradient(x, points, q))
     out[q] = s[0] + s[1] + s[2] + U[0, 1] + V[1, 2]
 
 
@@ -220,6 +230,7 @@ def run_case(cells, precision, device, repeats, batches=5, noise=0.1):
         "zero": vals.zero_,
         "kernel": kernel,
         "svd": lambda: wp.launch(svd_only_kernel, dim=sim.num_points, inputs=[sim.x, qp, out_s], device=dev),
+        "svd_jacobi": lambda: wp.launch(svd_jacobi_kernel, dim=sim.num_points, inputs=[sim.x, qp, out_s], device=dev),
         "parts": lambda: wp.launch(parts_no_projection_kernel, dim=sim.num_points, inputs=[sim.x, qp, mp, out_s], device=dev),
         "eigen": lambda: wp.launch(eigen_only_kernel, dim=sim.num_points, inputs=[sim.x, qp, mp, project, out_s], device=dev),
         "blocks": lambda: wp.launch(blocks_no_scatter_kernel, dim=sim.num_points, inputs=[sim.x, qp, mp, project, out_m],
@@ -250,7 +261,7 @@ def run_case(cells, precision, device, repeats, batches=5, noise=0.1):
     row = dict(tets=m, noise=noise, vertices=mesh.num_vertices, nnz_blocks=sim.pattern.nnz, precision=precision, cells=list(cells),
                seconds=t, mtets_per_s={k: m / v / 1e6 for k, v in t.items()},
                hessian_over_force=t["hessian"] / t["force"], numpy_over_hessian=t["numpy"] / t["hessian"],
-               share_of_hessian={k: t[k] / t["hessian"] for k in ("zero", "kernel", "svd", "parts", "eigen", "blocks", "blocks_legacy", "scatter")},
+               share_of_hessian={k: t[k] / t["hessian"] for k in ("zero", "kernel", "svd", "svd_jacobi", "parts", "eigen", "blocks", "blocks_legacy", "scatter")},
                load_before=load0, load_after=loadavg())
     return row
 

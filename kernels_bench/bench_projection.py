@@ -9,8 +9,8 @@ Cases (backward Euler, float64, default tolerances tol 1e-6 / cg_tol 1e-4 unless
   clamped at x = 0, gravity, dt 1/60, nu 0.3 / 0.49 (the boxes of bench_scale.py);
 * ``bunny``: examples/scenes/bunny.toml (22,874 tets, nu 0.4, base fixed, ears moved by a handle,
   mass damping 1) at dt 1/60 and at its own dt 1/24;
-* ``squeeze``: the beam of tests/test_projection_on_demand.py (1 x 0.2 x 0.2 m, 144 tets, both ends
-  held, the right end pushed 25 % in and 5 cm sideways over the run), dt 1/60 and dt 1 s (nearly
+* ``squeeze``: ``stability_cases.squeezed_beam``, also in tests/test_projection_on_demand.py (1 x 0.2 x
+  0.2 m, 144 tets, both ends held, the right end pushed 25 % in and 5 cm sideways over the run), dt 1/60 and dt 1 s (nearly
   quasi-static: it buckles and the exact Hessian is indefinite);
 * ``bunny_fine``: examples/meshes/bunny.off tetrahedralised at ``max_edge_length = 0.004`` (TetGen,
   the ``mesh`` extra: 189,851 tets, 34,948 vertices, a scanned-statue-sized mesh), E 5e4, nu 0.4,
@@ -78,22 +78,9 @@ def _bunny_fine(solver, mode):
 
 
 def _squeeze(dt, solver, mode, steps):
-    mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=(6, 2, 2))
-    model = wf.Model(mesh, wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.4, density=1000.0))
-    X = mesh.vertices
-    left, right = np.flatnonzero(X[:, 0] < 1e-9), np.flatnonzero(X[:, 0] > 1.0 - 1e-9)
-    model.fix(left)
-    model.fix(right)
-    sim = wf.Simulator(model, dt=dt, linear_solver=solver, hessian_projection=mode)
+    from kernels_bench.stability_cases import squeezed_beam
 
-    def advance(k):
-        t = X[right].copy()
-        t[:, 0] -= 0.25 * (k + 1) / steps
-        t[:, 1] += 0.05 * (k + 1) / steps
-        sim.set_targets(right, t)
-        return sim.step()
-
-    return sim, advance
+    return squeezed_beam(steps, dt=dt, linear_solver=solver, hessian_projection=mode)
 
 
 def _twist(solver, mode, steps):

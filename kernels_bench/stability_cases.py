@@ -940,3 +940,27 @@ def locking(precision="float64", *, nu=0.4999, cells=(10, 2, 2)):
     return dict(case=f"locking:{nu}", material="linear", precision=precision, tip=float(d), tip_nu03=float(d_ref),
                 ratio=float(ratio), converged=bool(st.converged and st_ref.converged), seconds=time.perf_counter() - t0,
                 verdict="fails" if ratio < 0.5 else "recovers")
+
+
+# -- a squeezed beam (project-on-demand Newton) ---------------------------------------------------
+def squeezed_beam(steps, **simulator):
+    """A 1 x 0.2 x 0.2 m stable neo-Hookean beam (6 x 2 x 2 cells, E 1e5, nu 0.4, rho 1000), both
+    ends held; over ``steps`` steps the right end is pushed 25 % inward and 5 cm sideways:
+    compressed elements whose dP/dF has negative eigenvalues, which the projection clamps.
+    Returns (simulator, advance(k) -> SolveStats of step k); ``simulator`` are Simulator keywords."""
+    mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=(6, 2, 2))
+    model = wf.Model(mesh, wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.4, density=RHO))
+    X = mesh.vertices
+    left, right = np.flatnonzero(X[:, 0] < 1e-9), np.flatnonzero(X[:, 0] > 1.0 - 1e-9)
+    model.fix(left)
+    model.fix(right)
+    sim = wf.Simulator(model, device=DEVICE, **simulator)
+
+    def advance(k):
+        t = X[right].copy()
+        t[:, 0] -= 0.25 * (k + 1) / steps
+        t[:, 1] += 0.05 * (k + 1) / steps
+        sim.set_targets(right, t)
+        return sim.step()
+
+    return sim, advance

@@ -157,6 +157,10 @@ def test_unsupported_runs_say_so():
         Recording(sim)
     with pytest.raises(ValueError, match="unknown parameter"):
         Recording(wf.Simulator(model, dt=0.01, linear_solver="pcg"), params=["youngs"])
+    mat = wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    two = wf.Model.from_bodies([wf.Body(MESH, mat, name="a"), wf.Body(MESH, mat, name="b", offset=(5.0, 0.0, 0.0))])
+    with pytest.raises(NotImplementedError, match="model of 2 bodies"):
+        Recording(wf.Simulator(two, dt=0.01, linear_solver="pcg"))
 
 
 def test_reduced_runs_say_gradients_are_not_supported():

@@ -9,26 +9,14 @@ import numpy as np
 import pytest
 
 import warpfem as wf
+from kernels_bench import stability_cases as S
 
 
 def _squeezed_beam(mode, *, solver="direct", dt=1.0 / 60.0, steps=3, precision="float64"):
-    """A 1 x 0.2 x 0.2 m stable neo-Hookean beam (E 1e5, nu 0.4), both ends held; the right end is
-    pushed 25 % inward and 5 cm sideways over ``steps`` steps: compressed elements whose dP/dF
-    has negative eigenvalues, which the projection clamps."""
-    mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=(6, 2, 2))
-    model = wf.Model(mesh, wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.4, density=1000.0))
-    X = mesh.vertices
-    left, right = np.flatnonzero(X[:, 0] < 1e-9), np.flatnonzero(X[:, 0] > 1.0 - 1e-9)
-    model.fix(left)
-    model.fix(right)
-    sim = wf.Simulator(model, precision=precision, dt=dt, linear_solver=solver, hessian_projection=mode, tol=1e-8)
-    stats = []
-    for k in range(steps):
-        t = X[right].copy()
-        t[:, 0] -= 0.25 * (k + 1) / steps
-        t[:, 1] += 0.05 * (k + 1) / steps
-        sim.set_targets(right, t)
-        stats.append(sim.step())
+    """stability_cases.squeezed_beam: compressed elements whose dP/dF the projection clamps."""
+    sim, advance = S.squeezed_beam(steps, precision=precision, dt=dt, linear_solver=solver, hessian_projection=mode,
+                                   tol=1e-8)
+    stats = [advance(k) for k in range(steps)]
     return stats, sim.positions()
 
 

@@ -103,3 +103,54 @@ def test_steady_steps_allocate_no_device_array_and_read_back_once_per_newton_ite
     assert counts["reads"] == newton
     assert syncs == counts["reads"]
     assert 0 < launches <= 40 * newton  # reported launches: a few tens per iteration, not hundreds
+
+
+@pytest.mark.parametrize("linear_solver", ["pcg", "direct"])
+def test_captured_newton_iterations_replay_the_same_launches(linear_solver, monkeypatch):
+    """The Newton iteration's launches before and after the linear solve are captured once per key
+    as a graph (Warp's CPU operation stream here) and replayed: the trajectory is bit for bit the
+    one of plain launches, the launch count is the same, and a material changed in place (a struct
+    field, packed by value into a graph) is a new key, not a stale replay."""
+    import warpfem.kernels.generic as G
+
+    def run(capture):
+        monkeypatch.setattr(G, "CAPTURE_SEQUENCES", capture)
+        sim = wf.Simulator(_model(), dt=0.02, integrator="bdf2", damping_mass=0.3, linear_solver=linear_solver,
+                           tol=1e-6, cg_tol=1e-4)
+        launches, xs = 0, []
+        for k in range(6):
+            if k == 4:  # stiffer from here on, in place
+                sim.material_params.mu = 2.0 * float(sim.material_params.mu)
+            launches += sim.step().launches
+            xs.append(sim.positions())
+        return np.array(xs), launches, sim._potential.graphs
+
+    plain, n_plain, g_plain = run(False)
+    replayed, n_replayed, g = run(True)
+    assert g_plain.replays == 0 and g.captures >= 2 and g.replays >= 6
+    assert np.abs(plain[-1] - plain[0]).max() > 1e-3  # it moves
+    np.testing.assert_array_equal(replayed, plain)
+    assert n_replayed == n_plain
+
+
+def test_sequences_inside_a_callers_capture_are_recorded_there():
+    """Inside a caller's own capture (e.g. a user capturing their loop) a captured sequence is not
+    replayed nor captured again (no nested capture): its work goes into the caller's graph."""
+    sim = wf.Simulator(_model(), dt=0.02, integrator="backward_euler", linear_solver="pcg", tol=1e-6, cg_tol=1e-4)
+    sim.step()
+    graphs, tmp = sim._potential.graphs, sim._potential.work.tmp
+
+    def fill():
+        tmp.fill_(1.0)
+
+    graphs.run(("probe",), fill)  # first time: as is
+    graphs.run(("probe",), fill)  # second: captured and replayed
+    captures, replays = graphs.captures, graphs.replays
+    assert replays >= 1
+    tmp.zero_()
+    with wp.ScopedCapture(device="cpu") as cap:
+        graphs.run(("probe",), fill)
+    assert (graphs.captures, graphs.replays) == (captures, replays)
+    assert np.abs(tmp.numpy()).max() == 0.0  # recorded into the caller's graph, not executed
+    wp.capture_launch(cap.graph)
+    assert np.all(tmp.numpy() == 1.0)

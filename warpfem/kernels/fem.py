@@ -79,6 +79,18 @@ def qp_stress_kernel(x: wp.array(dtype=Any), points: Any, material: Any, P_out: 
     P_out[q] = material_pk1(material.kind, F, material.mu, material.lam)
 
 
+@wp.func
+def _add_block(values: wp.array(dtype=Any), block_index: wp.array(dtype=wp.int32), base: int, a: int, b: int, blk: Any):
+    wp.atomic_add(values, block_index[base + a * 4 + b], blk)
+
+
+@wp.func
+def _add_pair(values: wp.array(dtype=Any), block_index: wp.array(dtype=wp.int32), base: int, a: int, b: int, blk: Any):
+    """Blocks (a, b) and (b, a) = blk^T of a 4-node element (``block_index`` rows of 16)."""
+    wp.atomic_add(values, block_index[base + a * 4 + b], blk)
+    wp.atomic_add(values, block_index[base + b * 4 + a], wp.transpose(blk))
+
+
 @both_precisions(x="v[]", points="qp", material="mat", scale="s", values="m[]")
 @wp.kernel
 def qp_hessian_kernel(
@@ -103,7 +115,9 @@ def qp_hessian_kernel(
     9x9 dP/dF (``hessian_point_matrix``), contracted once per node a with dN_a/dX
     (``hessian_matrix_rows``), leaving 27 multiply-adds per block; for Tet4 (10 blocks per
     point, where building the 9x9 costs more than it saves) the compressed eigen form
-    (``hessian_point_prepare`` / ``hessian_point_block``, gradients rotated into the singular frame).
+    (``hessian_point_prepare`` / ``hessian_point_block``, gradients rotated into the singular frame),
+    with 6 contractions instead of 10: the gradients of a 4-node element sum to zero (partition of
+    unity), so the last node's blocks are sums of the others' (the same matrix up to round-off).
     """
     q = wp.tid()
     k = points.k
@@ -121,6 +135,38 @@ def qp_hessian_kernel(
                 wp.atomic_add(values, block_index[(e * k + a) * k + b], blk)
                 if b != a:
                     wp.atomic_add(values, block_index[(e * k + b) * k + a], wp.transpose(blk))
+    elif k == 4:
+        # four nodes: the gradients sum to zero (partition of unity), so the blocks of the last node
+        # are sums of the others' (K_a3 = -sum_b<3 K_ab, K_33 = -sum_a<3 K_a3): 6 contractions, not 10
+        U, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
+        base = e * 16
+        r0 = Vt * points.dNdX[q * 4]
+        r1 = Vt * points.dNdX[q * 4 + 1]
+        r2 = Vt * points.dNdX[q * 4 + 2]
+        K00 = c * hessian_point_block(U, A, cp, cm, r0, r0)
+        K01 = c * hessian_point_block(U, A, cp, cm, r0, r1)
+        K02 = c * hessian_point_block(U, A, cp, cm, r0, r2)
+        K11 = c * hessian_point_block(U, A, cp, cm, r1, r1)
+        K12 = c * hessian_point_block(U, A, cp, cm, r1, r2)
+        K22 = c * hessian_point_block(U, A, cp, cm, r2, r2)
+        K03 = -(K00 + K01 + K02)
+        K13 = -(wp.transpose(K01) + K11 + K12)
+        K23 = -(wp.transpose(K02) + wp.transpose(K12) + K22)
+        # K_33 = sum_{a, b < 3} K_ab = D + O + O^T, D = K00 + K11 + K22, O = K01 + K02 + K12, summed so
+        # that it is exactly symmetric in floating point
+        D = K00 + K11 + K22
+        O = K01 + K02 + K12
+        K33 = type(c)(0.5) * (D + wp.transpose(D)) + (O + wp.transpose(O))
+        _add_block(values, block_index, base, 0, 0, K00)
+        _add_pair(values, block_index, base, 0, 1, K01)
+        _add_pair(values, block_index, base, 0, 2, K02)
+        _add_pair(values, block_index, base, 0, 3, K03)
+        _add_block(values, block_index, base, 1, 1, K11)
+        _add_pair(values, block_index, base, 1, 2, K12)
+        _add_pair(values, block_index, base, 1, 3, K13)
+        _add_block(values, block_index, base, 2, 2, K22)
+        _add_pair(values, block_index, base, 2, 3, K23)
+        _add_block(values, block_index, base, 3, 3, K33)
     else:
         U, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
         for a in range(k):

@@ -51,6 +51,7 @@ def _type_key(a):
 
 
 _LAUNCH_CACHE: dict = {}
+_WARP_SCALARS = (wp.float32, wp.float64, wp.int32, wp.int64, wp.uint32, wp.uint64, wp.float16)
 _IMMUTABLE = (int, float, bool)
 _LAUNCH_CACHE_SIZE = 256
 
@@ -81,7 +82,11 @@ def launch(kernel, dim, inputs, device):
                 ovl = kernel
             _OVERLOAD_CACHE[key] = ovl
         kernel = ovl
-    lkey = (kernel, dim if isinstance(dim, tuple) else (dim,), str(device))
+    # one entry per set of array arguments (by identity: an entry keeps its arrays alive, so their
+    # ids are not reused while it exists): a kernel launched on alternating arrays (the two states,
+    # the gradient and its trial buffer) finds its arrays already packed
+    lkey = (kernel, dim if isinstance(dim, tuple) else (dim,), str(device),
+            *[id(v) for v in inputs if isinstance(v, wp.array)])
     entry = _LAUNCH_CACHE.get(lkey)
     if entry is not None:
         cmd, module, exec_key, last = entry
@@ -95,8 +100,12 @@ def launch(kernel, dim, inputs, device):
             # (a Warp scalar, an unknown object) is re-packed.
             params = cmd.params
             for i, v in enumerate(inputs):
-                if v is last[i] and (isinstance(v, wp.array) or type(v) in _IMMUTABLE
-                                     or getattr(v, "_ctype", None) is params[i + 1]):
+                lv = last[i]
+                if v is lv and (isinstance(v, wp.array) or type(v) in _IMMUTABLE
+                                or getattr(v, "_ctype", None) is params[i + 1]):
+                    continue
+                # a Warp scalar (a new object per launch, e.g. ``wp.float64(s)``) of the value packed last
+                if type(v) is type(lv) and isinstance(v, _WARP_SCALARS) and v.value == lv.value:
                     continue
                 cmd.set_param_at_index(i, v)
                 last[i] = v
@@ -197,3 +206,66 @@ class RecordedLaunch:
             direct[0](direct[1], direct[2])
         else:
             cmd.launch()
+
+
+#: capture and replay fixed sequences of device work (``CapturedSequences``); False turns it off everywhere
+CAPTURE_SEQUENCES = True
+
+
+class CapturedSequences:
+    """Fixed sequences of device work (kernel launches, memsets, copies), each captured once per
+    key as a Warp graph and replayed with ``wp.capture_launch``: a CUDA graph on CUDA, Warp's CPU
+    operation stream (replayed in C++, no Python per launch) on the CPU.
+
+    ``run(key, fn)``: ``fn()`` issues device work only (no read-back, no allocation) whose
+    arguments are all determined by ``key`` (``None``: not capturable, run as is). A key seen for
+    the first time runs ``fn`` as it is (it compiles and loads the kernels' modules); the second
+    time it is captured, then replayed, and every later time only replayed. What ``fn`` returns
+    is kept with the graph and returned by each replay. Launches are counted in ``COUNTERS`` as if
+    they had been made. On CUDA only with the memory pool enabled (captures need it for
+    allocations); never on CUDA without it. **The CUDA path has not been run** (no GPU in the
+    session that wrote it); the CPU path is tested (tests/test_step_pipeline.py).
+    """
+
+    MAX_GRAPHS = 16
+
+    def __init__(self, device):
+        dev = wp.get_device(device)
+        self.device = dev
+        try:
+            self.enabled = bool(dev.is_cpu or (dev.is_cuda and wp.is_mempool_enabled(dev)))
+        except Exception:  # noqa: BLE001 -- a Warp without the query: only the CPU path
+            self.enabled = bool(dev.is_cpu)
+        self._graphs: dict = {}
+        self._seen: set = set()
+        self.captures = 0
+        self.replays = 0
+
+    def clear(self):
+        self._graphs.clear()
+        self._seen.clear()
+
+    def run(self, key, fn):
+        if key is None or not (self.enabled and CAPTURE_SEQUENCES) or getattr(self.device, "is_capturing", False):
+            return fn()  # (inside a caller's own capture the launches go into that one)
+        entry = self._graphs.get(key)
+        if entry is None:
+            if key not in self._seen:
+                if len(self._seen) >= 16 * self.MAX_GRAPHS:
+                    self._seen.clear()
+                self._seen.add(key)
+                return fn()
+            if len(self._graphs) >= self.MAX_GRAPHS:
+                self._graphs.clear()
+            c0 = COUNTERS["launches"]
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as cap:
+                out = fn()
+            entry = (cap.graph, COUNTERS["launches"] - c0, out)
+            COUNTERS["launches"] = c0
+            self._graphs[key] = entry
+            self.captures += 1
+        graph, launches, out = entry
+        wp.capture_launch(graph)
+        COUNTERS["launches"] += launches
+        self.replays += 1
+        return out

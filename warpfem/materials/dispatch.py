@@ -26,7 +26,7 @@ import warp as wp
 # The material modules: importing one registers it. A new material is a module plus its name here.
 # (The dispatch tests kinds in this order: the common ones first.)
 from . import stable_neo_hookean, stable_neo_hookean_log, corotated, stvk, linear  # noqa: F401, I001
-from .eigensystem import hessian_block, scaling_eigensystem, signed_svd
+from .eigensystem import hessian_block, jacobi_signed_svd, scaling_eigensystem
 from .registry import MATERIAL_TYPES
 
 __all__ = ["material_psi", "material_pk1", "material_eigensystem", "material_hessian_parts", "hessian_block"]
@@ -138,7 +138,7 @@ def material_pk1(kind: int, F: Any, mu: Any, lam: Any):
 def material_hessian_parts(kind: int, F: Any, mu: Any, lam: Any):
     """dP/dF in eigen form before the scaling block is diagonalised: returns (U, V, A, twist, flip).
 
-    F = U diag(s) V^T (signed SVD, det U = det V = +1; U = V = I for linear elasticity); A =
+    F = U diag(s) V^T (signed SVD ``jacobi_signed_svd``, det U = det V = +1; U = V = I for linear elasticity); A =
     d2Psi/ds2 (symmetric 3x3, scaling modes U diag(q) V^T for its eigenvectors q); twist / flip
     eigenvalues of pair k (k=0 -> (1,2), 1 -> (0,2), 2 -> (0,1)). Assembly uses this directly
     (``hessian_point_prepare`` / ``hessian_point_matrix``): A needs an eigen-solve only to be
@@ -148,7 +148,7 @@ def material_hessian_parts(kind: int, F: Any, mu: Any, lam: Any):
     if found != 0:
         I = wp.identity(n=3, dtype=F.dtype)
         return I, I, A0, tw0, fl0
-    U, s, V = signed_svd(F)
+    U, s, V = jacobi_signed_svd(F)  # ~2x cheaper than wp.svd3 in float64, and more accurate in float32
     A, tw, fl = _eigen_s_chain(kind, F, s, mu, lam)
     return U, V, A, tw, fl
 

@@ -113,6 +113,9 @@ def check_differentiable(sim):
     if sim.damping_stiffness != 0.0:
         raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
                                   "supported: use damping_mass")
+    if getattr(sim.model, "num_bodies", 1) > 1:
+        raise NotImplementedError(f"gradients of a model of {sim.model.num_bodies} bodies are not supported yet "
+                                  "(one body per model)")
 
 
 def material_set_parameters(material, E, nu, volumetric_integration="full", has_volumetric_set=False):
@@ -127,28 +130,24 @@ def material_set_parameters(material, E, nu, volumetric_integration="full", has_
     return [(m.kernel_mu, m.kernel_lam)]
 
 
-def _base_weights(model):
+def _set_arrays(model, name, dtype=None):
+    """One quadrature-point array (``qp_weight``, ``qp_element``, ``qp_dNdX``) of each point set of
+    ``model``'s body: the main rule, then the volumetric rule of selective reduced integration."""
     qd = model.quadrature
-    w = [np.asarray(qd.qp_weight, dtype=np.float64)]
-    if getattr(qd, "volumetric", None) is not None:
-        w.append(np.asarray(qd.volumetric.qp_weight, dtype=np.float64))
-    return w
+    sets = [qd] + ([qd.volumetric] if getattr(qd, "volumetric", None) is not None else [])
+    return [np.asarray(getattr(q, name), dtype=dtype) for q in sets]
+
+
+def _base_weights(model):
+    return _set_arrays(model, "qp_weight", np.float64)
 
 
 def _set_elements(model):
-    qd = model.quadrature
-    e = [np.asarray(qd.qp_element)]
-    if getattr(qd, "volumetric", None) is not None:
-        e.append(np.asarray(qd.volumetric.qp_element))
-    return e
+    return _set_arrays(model, "qp_element")
 
 
 def _set_dNdX(model):
-    qd = model.quadrature
-    d = [np.asarray(qd.qp_dNdX, dtype=np.float64)]
-    if getattr(qd, "volumetric", None) is not None:
-        d.append(np.asarray(qd.volumetric.qp_dNdX, dtype=np.float64))
-    return d
+    return _set_arrays(model, "qp_dNdX", np.float64)
 
 
 def set_element_stiffness_scale(sim, scale):

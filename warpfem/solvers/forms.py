@@ -38,7 +38,7 @@ import warp as wp
 
 from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
-from warpfem.kernels.generic import launch
+from warpfem.kernels.generic import CapturedSequences, launch
 
 __all__ = ["Form", "InertiaForm", "DampingForm", "ElasticForm", "LoadForm", "IncrementalPotential",
            "FullSpacePotential", "Workspace"]
@@ -48,6 +48,10 @@ ROW = 4  # accumulator slots per form
 _G_JOINT, _G_NORM, _D_GD = 0, 1, 2
 _HEAD = 8
 _F64_ONE = wp.float64(1.0)
+
+
+def _ptr(a):
+    return 0 if a is None else (a.ptr, a.shape[0])
 
 
 class Workspace:
@@ -92,6 +96,13 @@ class Form:
         """The potential gives the form its accumulator and the first slot of its row."""
         self.acc_slot = int(slot)
 
+    def capture_key(self):
+        """What this form's launches depend on besides the potential's vectors, weights and s
+        (a hashable value), or None when its energy / gradient / Hessian do host work or read
+        back (then the Newton iteration's launches are not captured as a graph). A form returns a
+        key only when equal keys mean identical launches (the same arrays, scalars and structs)."""
+        return None
+
 
 class _QuadraticForm(Form):
     """1/2 (y - y0)^T (sum_k c_k A_k) (y - y0) over matrices in the Hessian's pattern."""
@@ -114,6 +125,9 @@ class _QuadraticForm(Form):
 
     def gradient(self, y, x, scale, g, acc):
         self._apply(y, g, scale, acc, 1, 0)
+
+    def capture_key(self):
+        return (id(self), self.acc_slot, _ptr(self.y0), tuple((_ptr(values()), c) for values, c in self.terms if c != 0.0))
 
     def hessian(self, y, x, scale, values):
         S = self.ops.scalar
@@ -162,6 +176,9 @@ class LoadForm(Form):
     def gradient_magnitude(self, row, scale):
         return abs(scale) * self.norm
 
+    def capture_key(self):
+        return (id(self), self.acc_slot, _ptr(self.fext))
+
 
 class ElasticForm(Form):
     """V(x) summed over quadrature-point sets (``QuadratureSet``s: count, points, material, energy
@@ -198,6 +215,14 @@ class ElasticForm(Form):
     def hessian(self, y, x, scale, values):
         self.assemble(x, scale, values, project=self.project_now)
 
+    def capture_key(self):
+        # a struct is packed by value into a graph: its fields are part of the key
+        mats = tuple((id(qs.points), qs.count, int(qs.material.kind), float(qs.material.mu), float(qs.material.lam),
+                      _ptr(self.pattern.block_indices[getattr(qs, "group", 0)])) for qs in self.qp_sets)
+        # the projection the Hessian is assembled with (project-on-demand Newton switches it)
+        project = self.options.project_hessian if self.project_now is None else self.project_now
+        return (id(self), self.acc_slot, _ptr(self._fa), bool(project), mats)
+
     def assemble(self, x, scale, values, project=None):
         """values += scale d2V/dx2 at x (SPD-projected per point if ``project``, default the options')."""
         project = self.options.project_hessian if project is None else project
@@ -205,6 +230,15 @@ class ElasticForm(Form):
             launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(scale), int(project),
                                                     self.pattern.block_indices[getattr(qs, "group", 0)], values],
                    self.ops.device)
+
+
+def _capture_key(form):
+    """The form's capture key; a subclass of a built-in form that does not define its own
+    ``capture_key`` gets None (it may do host work the built-in key does not describe)."""
+    cls = type(form)
+    if cls in (InertiaForm, DampingForm, LoadForm, ElasticForm) or "capture_key" in cls.__dict__:
+        return form.capture_key()
+    return None
 
 
 class IncrementalPotential:
@@ -238,6 +272,9 @@ class IncrementalPotential:
         self.xb, self.s = None, 1.0
         self._x_of_y = None
         self.projecting = True  # whether Newton systems use the projected Hessian (see set_projection)
+        #: the Newton iteration's two fixed sequences of launches (before and after the linear solve),
+        #: captured as graphs and replayed (``kernels.generic.CapturedSequences``; ``.enabled``)
+        self.graphs = CapturedSequences(ops.device)
         self.set_forms(forms)
 
     # -- forms --------------------------------------------------------------------------------------
@@ -425,13 +462,17 @@ class IncrementalPotential:
         defer (direct, AMG) solve first and the rest is read once after. ``start``: first
         evaluate the energy and gradient (into g) at y, and return their :meth:`evaluate` tuple
         third (the first iteration of a solve then costs one read-back too)."""
-        if start:
-            self._launch_energy(y, self._acc_e0)
-            self._launch_gradient(y, g, self._acc_g0)
         solver = self.system.solver
-        values = self.assemble_hessian(y, self.system.hessian_values)
-        rhs = self.work.rhs
-        launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
+        values, rhs = self.system.hessian_values, self.work.rhs
+
+        def before_solve():  # the start's energy and gradient, the Hessian, the right-hand side
+            if start:
+                self._launch_energy(y, self._acc_e0)
+                self._launch_gradient(y, g, self._acc_g0)
+            self.assemble_hessian(y, values)
+            launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
+
+        self._captured(("hessian", bool(start), self._x_of_y is y), (y, g, values, rhs), before_solve, y)
         chunks = getattr(solver, "deferred_chunks", 0)
         s, r = self._size, self._report_at
         deferred = hasattr(solver, "solve_deferred") and chunks > 0
@@ -444,11 +485,15 @@ class IncrementalPotential:
             lin = self.linear_solve(values, rhs, d, opts)
         if deferred:
             solver.solve_deferred(rhs, d, tol=opts.cg_tol, maxiter=opts.max_cg_iters, chunks=chunks, report_out=self.acc,
-                                  report_offset=r)
-        self._launch_direction(y, g, d, self._acc_d)
-        self.trial(y, 1.0, d, y_try)
-        self._launch_energy(y_try, self._acc_e)
-        self._launch_gradient(y_try, g_try, self._acc_g)
+                                  report_offset=r, graphs=self.graphs)
+
+        def after_solve():  # the direction check, the full step, its energy and gradient
+            self._launch_direction(y, g, d, self._acc_d)
+            self.trial(y, 1.0, d, y_try)
+            self._launch_energy(y_try, self._acc_e)
+            self._launch_gradient(y_try, g_try, self._acc_g)
+
+        self._captured(("trial",), (y, g, d, y_try, g_try), after_solve, y_try)
         a = self._read(self.acc)
         first = (self._energy_of(a[3 * s:4 * s]) + self._gradient_of(a[4 * s:5 * s])) if start else None
         trial = self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
@@ -457,6 +502,21 @@ class IncrementalPotential:
             if changed:  # the solve needed more chunks than guessed: d is new, evaluate its step again
                 trial = self.trial_step(y, g, d, 1.0, y_try, g_try)
         return (lin, trial, first) if start else (lin, trial)
+
+    def _captured(self, tag, vectors, fn, x_of):
+        """Run ``fn`` (launches only) through the graph cache, keyed by everything its launches
+        depend on: the vectors, the step's x_b, s and weights, the forms' own keys, the mask and
+        the accumulator; afterwards x = x_b + s ``x_of`` is in the work buffer (as ``fn`` leaves it)."""
+        keys = tuple(_capture_key(f) for f in self.forms)
+        if any(k is None for k in keys):
+            fn()
+            return
+        w = self.work
+        key = (tag, tuple(_ptr(v) for v in vectors), _ptr(self.xb), self.s, tuple(f.weight for f in self.forms), keys,
+               _ptr(self.mask), _ptr(self.acc), _ptr(w.x), _ptr(self.ops.zero), self.n)
+        self.graphs.run(key, fn)
+        if self.xb is not None:
+            self._x_of_y = x_of
 
     def assemble_hessian(self, y, values):
         values.zero_()

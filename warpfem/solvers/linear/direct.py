@@ -249,7 +249,7 @@ class DirectSolver(HostLinearSolver):
         self._shift = 0.0
         self._null = None
         free = self._mask_host > 0.0
-        d = A.diagonal()
+        d = A.data[self._diag_pos]  # the diagonal (positions found once per pattern; A.diagonal() searches)
         scale = float(np.max(np.abs(d[free]))) if free.any() else 1.0
         self._scale = scale if (np.isfinite(scale) and scale > 0.0) else 1.0
         try:
@@ -365,7 +365,7 @@ class DirectSolver(HostLinearSolver):
         A = self._A_host
         if self.triangle == "full":
             return A @ xh - bh
-        d = A.diagonal()
+        d = A.data[self._diag_pos]
         return A @ xh + A.T @ xh - d * xh - bh
 
 

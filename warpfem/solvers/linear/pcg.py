@@ -182,16 +182,20 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
         report[3] = bb[0]
 
 
-@both_precisions(values="m[]", mask="v[]", inv_diag="m[]", b="v[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]")
+@both_precisions(values="m[]", mask="v[]", inv_diag="m[]", b="v[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]",
+                 pm="v[]")
 @wp.kernel
 def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
                        values: wp.array(dtype=Any), mask: wp.array(dtype=Any), inv_diag: wp.array(dtype=Any),
                        b: wp.array(dtype=Any), x: wp.array(dtype=Any), r: wp.array(dtype=Any), z: wp.array(dtype=Any),
-                       p: wp.array(dtype=Any), Ap: wp.array(dtype=Any), tol2: wp.array(dtype=wp.float64),
+                       p: wp.array(dtype=Any), Ap: wp.array(dtype=Any), pm: wp.array(dtype=Any),
+                       tol2: wp.array(dtype=wp.float64),
                        maxiter: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.float64)):
     """The whole solve in one launch of one thread, for the CPU (where a launch's threads run one
     after the other anyway, and launches, not arithmetic, cost the time on small meshes): the same
-    iteration, in the same order of operations, as the init / matvec / update / direction kernels."""
+    iteration, in the same order of operations, as the init / matvec / update / direction kernels.
+    The masked direction pm = mask * p is kept next to p (formed once per row, not once per block
+    of the product: the same numbers)."""
     n = b.shape[0]
     rz = wp.float64(0.0)
     rr = wp.float64(0.0)
@@ -202,6 +206,7 @@ def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
         r[i] = bi
         z[i] = zi
         p[i] = zi
+        pm[i] = cw_mul(mask[i], zi)
         rz += wp.float64(wp.dot(bi, zi))
         rr += wp.float64(wp.dot(bi, bi))
     bb = rr
@@ -217,8 +222,7 @@ def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
             pi = p[i]
             acc = pi - pi
             for q in range(offsets[i], offsets[i + 1]):
-                c = columns[q]
-                acc += values[q] * cw_mul(mask[c], p[c])
+                acc += values[q] * pm[columns[q]]
             m = mask[i]
             yv = cw_mul(m, acc) + pi - cw_mul(m, pi)
             Ap[i] = yv
@@ -253,7 +257,9 @@ def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
                 for i in range(n):
                     pv = p[i]
                     beta = type(pv[0])(rz1 / rz)
-                    p[i] = z[i] + beta * pv
+                    pn = z[i] + beta * pv
+                    p[i] = pn
+                    pm[i] = cw_mul(mask[i], pn)
             rz = rz1
     report[0] = wp.float64(st)
     report[1] = wp.float64(it)
@@ -296,6 +302,7 @@ class DevicePCG(LinearSolver):
         self.z = wp.zeros(n, dtype=vec, device=dev)
         self.p = wp.zeros(n, dtype=vec, device=dev)
         self.Ap = wp.zeros(n, dtype=vec, device=dev)
+        self.pm = wp.zeros(n, dtype=vec, device=dev) if self.cpu_serial else None  # mask * p (serial kernel)
         self._rz = wp.zeros(k + 1, dtype=wp.float64, device=dev)
         self._rr = wp.zeros(k + 1, dtype=wp.float64, device=dev)
         self._pap = wp.zeros(k + 1, dtype=wp.float64, device=dev)
@@ -354,7 +361,7 @@ class DevicePCG(LinearSolver):
             pt = self.pattern
             self._serial_cmd = self._record(_pcg_serial_kernel, 1, [
                 pt.offsets, pt.columns, self._values, self._mask, self.inv_diag, self.b, self.x, self.r, self.z, self.p,
-                self.Ap, self._tol2, self._maxiter, self._report])
+                self.Ap, self.pm, self._tol2, self._maxiter, self._report])
             self._serial_key = key
         self._serial_cmd.launch()
         COUNTERS["launches"] += 1
@@ -432,24 +439,35 @@ class DevicePCG(LinearSolver):
         """Chunks a deferred solve should run before the caller's read-back (0: solve normally)."""
         return 1 if self.cpu_serial else self.last_chunks
 
-    def solve_deferred(self, b, x, *, tol, maxiter, chunks, report_out, report_offset):
+    def solve_deferred(self, b, x, *, tol, maxiter, chunks, report_out, report_offset, graphs=None):
         """Start a solve of (prepared matrix) x = b and run ``chunks`` chunks without reading back;
         x and the 4-number report (status, iterations, r.r, b.b) are copied on the device into
         ``x`` and ``report_out[report_offset:report_offset + 4]``. The caller reads the report
-        (with whatever else it reads) and finishes with :meth:`complete_deferred`."""
+        (with whatever else it reads) and finishes with :meth:`complete_deferred`. ``graphs`` (a
+        ``kernels.generic.CapturedSequences``): the CPU serial solve's copies, fills and launch are
+        captured once per set of arrays and tolerance and replayed."""
         if maxiter < 1:
             raise ValueError(f"maxiter must be >= 1, got {maxiter}")
-        wp.copy(self.b, b)
-        self._tol2.fill_(float(tol) ** 2)
-        self._maxiter.fill_(int(maxiter))
-        if self.cpu_serial:  # the solve is complete after its one launch
-            self._run_serial()
+
+        def work():
+            wp.copy(self.b, b)
+            self._tol2.fill_(float(tol) ** 2)
+            self._maxiter.fill_(int(maxiter))
+            if self.cpu_serial:  # the solve is complete after its one launch
+                self._run_serial()
+            else:
+                self._launch_start()
+                for _ in range(max(1, int(chunks))):
+                    self._run_chunk()
+            wp.copy(x, self.x)
+            wp.copy(report_out, self._report, dest_offset=int(report_offset), count=4)
+
+        if graphs is not None and self.cpu_serial and self._values is not None:
+            key = ("pcg", id(self), id(self.pattern), b.ptr, x.ptr, report_out.ptr, int(report_offset), self.b.ptr,
+                   self._values.ptr, self._mask.ptr, float(tol), int(maxiter))
+            graphs.run(key, work)
         else:
-            self._launch_start()
-            for _ in range(max(1, int(chunks))):
-                self._run_chunk()
-        wp.copy(x, self.x)
-        wp.copy(report_out, self._report, dest_offset=int(report_offset), count=4)
+            work()
         self._deferred = (x, float(tol), max(1, int(chunks)))
 
     def complete_deferred(self, report):
