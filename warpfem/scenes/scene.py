@@ -124,6 +124,7 @@ class _SceneBodies:
             lines.append(f"  linear solver: {ls['name']}: cpu: {ls['cpu']}; cuda: {ls['cuda']}")
         for i, c in enumerate(self.collider_plan()):
             lines.append(f"collider #{i + 1}: {c['text']}")
+        lines += self._contact_lines()
         for extra in section_entries(self):
             if extra.describe is not None:
                 lines.append(extra.describe(self))
@@ -337,6 +338,16 @@ class Scene(_SceneBodies):
         return out
 
     # -- describe ---------------------------------------------------------------------------------
+    def _contact_lines(self) -> list[str]:
+        """describe's line on surface contact ([contact], or its defaults in a scene of two or more bodies)."""
+        c = self.spec.contact
+        if c is None and len(self.spec.bodies or ()) < 2:
+            return []
+        c = dict.fromkeys(("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity")) if c is None else c
+        return ["contact: " + ", ".join(f"{k} = {('default' if c[k] is None else c[k])}"
+                                        for k in ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity"))
+                + (" ([contact] defaults: several bodies)" if self.spec.contact is None else "") + " (docs/contact.md)"]
+
     def describe(self, *, precision: str = "float64") -> str:
         """What :meth:`build` will build: counts, selections, integrator, outputs and memory."""
         from . import INTEGRATORS
@@ -402,12 +413,7 @@ class Scene(_SceneBodies):
             lines.append(f"    cuda: {ls['cuda']}")
         for i, c in enumerate(self.collider_plan()):
             lines.append(f"collider #{i + 1}: {c['text']}")
-        if sp.contact is not None:
-            c = sp.contact
-            lines.append("contact: " + ", ".join(
-                f"{k} = {('default' if c[k] is None else c[k])}" for k in ("bodies", "self", "friction", "dhat", "stiffness",
-                                                                         "friction_velocity"))
-                + " (docs/contact.md)")
+        lines += self._contact_lines()
         for extra in section_entries(self):  # e.g. [subspace]: the reduced run (warpfem.reduced.scene)
             if extra.describe is not None:
                 lines.append(extra.describe(self))

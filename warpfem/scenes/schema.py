@@ -709,7 +709,7 @@ def _parse_bodies(ctx, data, integrators) -> SceneSpec:
     merged = {s: [e for b in bodies for e in getattr(b["spec"], s)] for s in ("fixed", "handle", "force", "traction")}
     return SceneSpec(path=first.path, base_dir=first.base_dir, top=first.top, mesh=first.mesh, material=first.material,
                      integrator=first.integrator, output=first.output, surface=None, subspace=first.subspace,
-                     collider=first.collider, extra=first.extra, bodies=bodies, **merged)
+                     collider=first.collider, contact=first.contact, extra=first.extra, bodies=bodies, **merged)
 
 
 def _check_collider(ctx, i, c, raw, itype, subspace):
