@@ -237,27 +237,34 @@ class ContactSet:
         return f.numpy().astype(np.float64)
 
 
-class ContactForm(Form):
-    """Barrier + lagged friction of a :class:`ContactSet`, as a form of the positions x = x_b + s y
-    (static: x = y, s = 1) in the potential (``warpfem.solvers.forms``): the potential applies the
-    chain factors (gradient s dE/dx, Hessian s^2 d2E/dx2, vertex-diagonal: colliders are kinematic)
-    and reads the line-search bound from :meth:`max_step`."""
+class LaggedFrictionForm(Form):
+    """What the collider and the surface contact forms share: the step's x_b and s, and the
+    displacement base x_b - x_n of lagged friction (x - x_n = (x_b - x_n) + s y). ``contact`` has
+    ``ops`` and ``step_start`` (x_n)."""
 
-    name = "contact"
     variable = "x"
 
-    def __init__(self, contact: ContactSet):
+    def __init__(self, contact):
         self.contact = contact
         self.s = 1.0
         self._dbase = contact.ops.new_vector()
         self._use_dbase = False
 
     def begin(self, xb, s):
-        """The step's x_b and s (x - x_n = (x_b - x_n) + s y); ``xb=None``: x is the unknown itself."""
+        """The step's x_b and s; ``xb=None``: x is the unknown itself (static)."""
         self.s = float(s)
         self._use_dbase = xb is not None
         if xb is not None:
             self.contact.ops.lincomb(1.0, xb, -1.0, self.contact.step_start, self._dbase)
+
+
+class ContactForm(LaggedFrictionForm):
+    """Barrier + lagged friction of a :class:`ContactSet`, as a form of the positions x = x_b + s y
+    (static: x = y, s = 1) in the potential (``warpfem.solvers.forms``): the potential applies the
+    chain factors (gradient s dE/dx, Hessian s^2 d2E/dx2, vertex-diagonal: colliders are kinematic)
+    and reads the line-search bound from :meth:`max_step`."""
+
+    name = "contact"
 
     def _disp(self, y):
         if not self._use_dbase or y is None:

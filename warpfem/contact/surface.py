@@ -24,9 +24,8 @@ import scipy.sparse.csgraph
 import warp as wp
 
 from warpfem.contact import surface_kernels as SK
-from warpfem.contact.contact import CollisionError
+from warpfem.contact.contact import CollisionError, LaggedFrictionForm
 from warpfem.kernels.generic import launch
-from warpfem.solvers.forms import Form
 
 log = logging.getLogger(__name__)
 
@@ -471,26 +470,12 @@ class SurfaceContact:
         return self._x0
 
 
-class SurfaceContactForm(Form):
+class SurfaceContactForm(LaggedFrictionForm):
     """Barrier (+ lagged friction) of a :class:`SurfaceContact` as a form of x = x_b + s y; its
     :meth:`max_step` refreshes the candidate pairs for the segment of the coming line search and
     bounds it by additive CCD."""
 
     name = "surface_contact"
-    variable = "x"
-
-    def __init__(self, contact: SurfaceContact):
-        self.contact = contact
-        self.s = 1.0
-        self._dbase = contact.ops.new_vector()
-        self._use_dbase = False
-
-    def begin(self, xb, s):
-        """The step's x_b and s (friction's x - x_n = (x_b - x_n) + s y); ``xb=None``: static."""
-        self.s = float(s)
-        self._use_dbase = xb is not None
-        if xb is not None:
-            self.contact.ops.lincomb(1.0, xb, -1.0, self.contact.step_start, self._dbase)
 
     def _friction(self, mode, y, x, **kw):
         c = self.contact
