@@ -8,7 +8,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from warpfem.mesh import MeshError, MesherNotInstalled, check_surface, load_mesh, tet_volumes, tetrahedralize
+from warpfem.mesh import MeshError, MesherNotInstalled, check_surface, icosphere_surface, load_mesh, tet_volumes, tetrahedralize
 import warpfem.mesh.tetrahedralization as T
 from warpfem.mesh import tetrahedralize_file
 from warpfem.mesh import boundary_faces
@@ -32,29 +32,7 @@ def tetgen():
 
 
 def icosphere(level=2):
-    t = (1.0 + 5 ** 0.5) / 2.0
-    V = [[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-         [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]]
-    F = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6],
-         [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-         [8, 6, 7], [9, 8, 1]]
-    V = [np.array(v, float) / np.linalg.norm(v) for v in V]
-    for _ in range(level):
-        mid, out = {}, []
-
-        def m(a, b):
-            k = (min(a, b), max(a, b))
-            if k not in mid:
-                p = V[a] + V[b]
-                V.append(p / np.linalg.norm(p))
-                mid[k] = len(V) - 1
-            return mid[k]
-
-        for a, b, c in F:
-            ab, bc, ca = m(a, b), m(b, c), m(c, a)
-            out += [[a, ab, ca], [b, bc, ab], [c, ca, bc], [ab, bc, ca]]
-        F = out
-    return np.array(V), np.array(F, dtype=np.int64)
+    return icosphere_surface(1.0, level)
 
 
 def enclosed_volume(V, F):

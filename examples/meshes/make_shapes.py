@@ -14,33 +14,9 @@ import os
 
 import numpy as np
 
+from warpfem.mesh import icosphere_surface
+
 HERE = os.path.dirname(os.path.abspath(__file__))
-
-
-def icosphere(radius: float, subdivisions: int):
-    t = (1.0 + 5.0 ** 0.5) / 2.0
-    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
-         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
-    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2), (10, 7, 6),
-         (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10),
-         (8, 6, 7), (9, 8, 1)]
-    verts = [np.array(p, dtype=np.float64) / np.linalg.norm(p) for p in v]
-    for _ in range(subdivisions):
-        mid, faces = {}, []
-
-        def midpoint(a, b):
-            key = (min(a, b), max(a, b))
-            if key not in mid:
-                p = verts[a] + verts[b]
-                verts.append(p / np.linalg.norm(p))
-                mid[key] = len(verts) - 1
-            return mid[key]
-
-        for a, b, c in f:
-            ab, bc, ca = midpoint(a, b), midpoint(b, c), midpoint(c, a)
-            faces += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
-        f = faces
-    return radius * np.array(verts), np.array(f, dtype=np.int64)
 
 
 def bowl(outer: float, wall: float, rings: int, segments: int):
@@ -101,7 +77,7 @@ def _check_closed_outward(verts, faces):
 
 
 if __name__ == "__main__":
-    for name, (v, f) in {"ball.obj": icosphere(0.1, 3), "bowl.obj": bowl(0.3, 0.04, 24, 48)}.items():
+    for name, (v, f) in {"ball.obj": icosphere_surface(0.1, 3), "bowl.obj": bowl(0.3, 0.04, 24, 48)}.items():
         vol = _check_closed_outward(v, f)
         write_obj(os.path.join(HERE, name), v, f)
         print(f"{name}: {len(v)} vertices, {len(f)} triangles, volume {vol:.6f} m^3")

@@ -2,7 +2,7 @@
 boundary faces, mass, point location and tetrahedralisation of closed surfaces (optional mesher:
 ``pip install warpfem[mesh]``); the element types themselves are in ``element_types/``."""
 
-from .box import HEX_TO_TETS, box_hex_mesh, box_tet_mesh, tet10_from_tet4
+from .box import HEX_TO_TETS, box_hex_mesh, box_tet_mesh, icosphere_surface, tet10_from_tet4
 from .io import load_element_mesh, load_mesh, save_element_mesh, save_mesh
 from .locate import embed_points_in_elements
 from .mass import consistent_mass, element_mass_matrices, lumped_mass, mass_matrices
@@ -17,6 +17,7 @@ __all__ = [
     "ElementMesh",
     "MeshError",
     "box_tet_mesh",
+    "icosphere_surface",
     "box_hex_mesh",
     "tet10_from_tet4",
     "load_mesh",

@@ -12,7 +12,7 @@ from .element_types.base import HexElement
 from .element_types.tet10 import TET10_EDGES
 from .volume_mesh import MeshError, VolumeMesh
 
-__all__ = ["box_tet_mesh", "box_hex_mesh", "tet10_from_tet4", "HEX_CORNERS", "HEX_TO_TETS"]
+__all__ = ["box_tet_mesh", "box_hex_mesh", "tet10_from_tet4", "icosphere_surface", "HEX_CORNERS", "HEX_TO_TETS"]
 
 #: Unit-cell corner offsets (i, j, k) in the reference order 0..7.
 HEX_CORNERS = np.array(
@@ -111,3 +111,33 @@ def tet10_from_tet4(mesh, *, name=None):
     elements = np.concatenate([tets, len(X) + inv.reshape(-1, 6)], axis=1)
     return VolumeMesh(np.concatenate([X, mids]), elements, "tet10",
                       name=name if name is not None else getattr(mesh, "name", None))
+
+
+def icosphere_surface(radius: float = 1.0, subdivisions: int = 2):
+    """A closed triangle surface of a sphere about the origin: the icosahedron with each triangle
+    split in four ``subdivisions`` times, vertices pushed onto the sphere (10 4^k + 2 vertices,
+    20 4^k triangles, outward). Returns (vertices (n, 3) float64, triangles (m, 3) int64)."""
+    t = (1.0 + 5.0 ** 0.5) / 2.0
+    v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
+         (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
+    f = [(0, 11, 5), (0, 5, 1), (0, 1, 7), (0, 7, 10), (0, 10, 11), (1, 5, 9), (5, 11, 4), (11, 10, 2), (10, 7, 6),
+         (7, 1, 8), (3, 9, 4), (3, 4, 2), (3, 2, 6), (3, 6, 8), (3, 8, 9), (4, 9, 5), (2, 4, 11), (6, 2, 10),
+         (8, 6, 7), (9, 8, 1)]
+    verts = [np.array(p, dtype=np.float64) / np.linalg.norm(p) for p in v]
+    for _ in range(int(subdivisions)):
+        mid, faces = {}, []
+
+        def midpoint(a, b):
+            key = (min(a, b), max(a, b))
+            if key not in mid:
+                p = verts[a] + verts[b]
+                verts.append(p / np.linalg.norm(p))
+                mid[key] = len(verts) - 1
+            return mid[key]
+
+        for a, b, c in f:
+            ab, bc, ca = midpoint(a, b), midpoint(b, c), midpoint(c, a)
+            faces += [(a, ab, ca), (b, bc, ab), (c, ca, bc), (ab, bc, ca)]
+        f = faces
+    return float(radius) * np.array(verts), np.array(f, dtype=np.int64)
+
