@@ -191,6 +191,21 @@ def test_zero_volume_tets_named():
                 TetMesh(xs, [[0, 1, 2, 3]])
 
 
+def test_tiny_well_shaped_tet_beside_large_ones_is_not_degenerate():
+    """Degenerate means both tiny against the mesh (1e-12 of its bounding box cubed) and flat for
+    its own size: a TetGen-refined 2e-5-sized tet in a unit mesh passes, a flat one of that size fails."""
+    big = np.array(UNIT_TET_X, dtype=np.float64)
+    s = 2e-5  # volume s^3 / 6 = 1.3e-15 < 1e-12 * diag^3
+    tiny = np.array([[2.0, 0, 0], [2 + s, 0, 0], [2, s, 0], [2, 0, s]])
+    x = np.concatenate([big, tiny])
+    m = TetMesh(x, [[0, 1, 2, 3], [4, 5, 6, 7]])
+    assert m.rest_volumes()[1] == pytest.approx(s ** 3 / 6, rel=1e-9)
+    flat = tiny.copy()
+    flat[3, 2] = s * 1e-7  # the same size, 1e-7 of its height
+    with pytest.raises(MeshError, match=r"1 degenerate \(zero-volume\) tets.*tets 1"):
+        TetMesh(np.concatenate([big, flat]), [[0, 1, 2, 3], [4, 5, 6, 7]])
+
+
 def test_error_names_file(tmp_path):
     import meshio
 

@@ -484,9 +484,61 @@ def _edge_for_tets(mesher, vol, tets):
     return (FILL[mesher] * vol * 6.0 * math.sqrt(2.0) / tets) ** (1.0 / 3.0)
 
 
-def _simplified(V, F, faces, name):
+#: A decimated surface is accepted for TetGen when its worst triangle has shape quality
+#: 4 sqrt(3) area / (sum of squared edges) >= this (1 for equilateral) and its shortest edge is at least
+#: ``DECIMATION_MIN_EDGE`` times the tet edge bound. Quadric edge collapse leaves slivers and
+#: near-zero edges on flat or finely subdivided regions (its error is zero there); TetGen refines
+#: around them into 1e-21 m^3 tets. Measured (docs/meshing.md): bunny.off's decimation has quality
+#: 0.054 and edges >= 0.07 L, a 0.01-noise subdivided bunny 0.007 and 0.002 L.
+DECIMATION_MIN_QUALITY = 0.02
+DECIMATION_MIN_EDGE = 0.02
+#: ... and must keep the enclosed volume within this fraction (the mass follows the volume).
+DECIMATION_MAX_VOLUME_CHANGE = 0.1
+
+
+def _triangle_quality(V, F):
+    """(worst shape quality 4 sqrt(3) A / sum e^2, shortest edge) of a triangle surface."""
+    e2 = np.stack([np.sum((V[F[:, (k + 1) % 3]] - V[F[:, k]]) ** 2, axis=1) for k in range(3)], axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]]), axis=1)
+    q = 4.0 * math.sqrt(3.0) * area / np.maximum(e2.sum(axis=1), 1e-300)
+    return float(q.min()), float(math.sqrt(e2.min()))
+
+
+def _tangential_relaxation(V, F, iterations):
+    """Each vertex moved half-way towards the mean of its neighbours, within its tangent plane
+    (the normal part of the move removed): triangle shapes even out and the surface stays put to
+    first order (the enclosed volume shrinks 0.5-1 % on the meshes measured). It rounds sharp
+    features, so it is the last resort of :func:`_simplified`."""
+    import scipy.sparse as sp
+
+    n = len(V)
+    E = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
+    A = sp.coo_matrix((np.ones(len(E)), (E[:, 0], E[:, 1])), shape=(n, n)).tocsr()
+    A = ((A + A.T) > 0).astype(np.float64)
+    deg = np.maximum(np.asarray(A.sum(axis=1)).ravel(), 1.0)
+    V = np.array(V, dtype=np.float64)
+
+    for _ in range(iterations):
+        fn = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+        N = np.zeros_like(V)
+        for k in range(3):
+            np.add.at(N, F[:, k], fn)
+        N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-300)
+        d = (A @ V) / deg[:, None] - V
+        d -= np.sum(d * N, axis=1, keepdims=True) * N
+        V += 0.5 * d
+    return V
+
+
+def _simplified(V, F, faces, name, edge=None):
     """The surface decimated to about ``faces`` triangles (quadric edge collapse, fast-simplification),
-    retried with more faces while the result is not clean; None when no decimation is clean."""
+    retried with 1.6x more faces (up to 4 times) while the result is not clean; None when no
+    decimation is clean.
+
+    With ``edge`` (the tet edge bound) a decimation must also pass ``DECIMATION_MIN_QUALITY``,
+    ``DECIMATION_MIN_EDGE`` and ``DECIMATION_MAX_VOLUME_CHANGE``. When no plain decimation does, the same decimations are relaxed
+    tangentially (3, then 10 sweeps) and the first relaxed surface that is clean and passes is
+    taken; when none passes, the clean candidate of best quality is kept."""
     try:
         import fast_simplification
     except ImportError as exc:
@@ -494,18 +546,40 @@ def _simplified(V, F, faces, name):
             f"{name + ': ' if name else ''}a coarse simulation mesh of a {len(F)}-triangle surface (target_tets) needs the "
             "Python package 'fast_simplification' (quadric surface decimation), which is not installed: pip install "
             "'warpfem[mesh]' (or pip install fast-simplification), or set max_edge_length") from exc
+    vol0 = _enclosed_volume_and_area(V, F)[0]
+    decimations = []
     for _ in range(4):
         if faces >= 0.9 * len(F):
-            return None
+            break
         Vd, Fd = fast_simplification.simplify(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32),
                                               target_reduction=1.0 - faces / len(F))
-        Vd, Fd = np.asarray(Vd, dtype=np.float64), np.asarray(Fd, dtype=np.int64)
-        try:
-            return check_surface(Vd, Fd, name=name)
-        except MeshError as exc:
-            log.info("%s: decimation to %d triangles is not clean (%s); trying more", name, len(Fd), exc)
-            faces = int(faces * 1.6)
-    return None
+        decimations.append((np.asarray(Vd, dtype=np.float64), np.asarray(Fd, dtype=np.int64)))
+        faces = int(faces * 1.6)
+    best = None
+    for sweeps in (0, 3, 10) if edge is not None else (0,):
+        for Vd, Fd in decimations:
+            Vc = _tangential_relaxation(Vd, Fd, sweeps) if sweeps else Vd
+            try:
+                cand = check_surface(Vc, Fd, name=name)
+            except MeshError as exc:
+                log.info("%s: decimation to %d triangles (%d relaxation sweeps) is not clean (%s)", name, len(Fd), sweeps, exc)
+                continue
+            if edge is None:
+                return cand
+            q, e = _triangle_quality(*cand)
+            dv = abs(_enclosed_volume_and_area(*cand)[0] / max(vol0, 1e-300) - 1.0)
+            if dv > DECIMATION_MAX_VOLUME_CHANGE:
+                log.info("%s: decimation to %d triangles changes the volume by %.1f %%", name, len(Fd), 100 * dv)
+                continue
+            if q >= DECIMATION_MIN_QUALITY and e >= DECIMATION_MIN_EDGE * edge:
+                if sweeps:
+                    log.info("%s: decimated surface relaxed tangentially (%d sweeps): quality %.3g", name, sweeps, q)
+                return cand
+            log.info("%s: decimation to %d triangles (%d sweeps) has slivers: quality %.3g, shortest edge %.3g L",
+                     name, len(Fd), sweeps, q, e / edge)
+            if best is None or q > best[0]:
+                best = (q, cand)
+    return best[1] if best is not None else None
 
 
 def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
@@ -583,10 +657,24 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
         L = _edge_for_tets(opts["mesher"], vol, target)
         extra.update(target_tets=int(target))
         if opts["mesher"] == "tetgen":
-            simple = _simplified(V, F, int(area / (math.sqrt(3.0) / 4.0 * L * L)), name)
+            faces = int(area / (math.sqrt(3.0) / 4.0 * L * L))
+            simple = _simplified(V, F, faces, name, edge=L)
             if simple is not None:
                 Vm, Fm = simple
-            extra.update(simulation_surface_faces=int(len(Fm)))
+                extra.update(simulation_surface_faces=int(len(Fm)))
+            elif _installed(MESHERS["tetwild"][0]):
+                warnings.warn(f"{pre}no clean decimation of the {len(F)}-triangle surface to about {faces} triangles "
+                              "(quadric edge collapse leaves duplicated or zero-area faces on flat, finely subdivided "
+                              "regions): the coarse mesh for target_tets is made by TetWild from the full surface",
+                              RuntimeWarning, stacklevel=2)
+                opts["mesher"] = run_opts["mesher"] = "tetwild"
+                L = _edge_for_tets("tetwild", vol, target)
+            else:
+                warnings.warn(f"{pre}no clean decimation of the {len(F)}-triangle surface to about {faces} triangles "
+                              "(quadric edge collapse leaves duplicated or zero-area faces on flat, finely subdivided "
+                              f"regions): meshed at the surface's own resolution, about {own:.0f} tets instead of "
+                              f"target_tets = {target}. TetWild makes the coarse mesh from such a surface: pip install "
+                              "'warpfem[tetwild]'; or set max_edge_length", RuntimeWarning, stacklevel=2)
         run_opts["max_edge_length"] = L
     if L is not None:
         est = vol / _regular_tet_volume(L)
@@ -598,10 +686,11 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
     if coarsen and opts["mesher"] == "tetgen" and not (0.7 * target <= len(tets) <= 1.3 * target):
         L = L * (len(tets) / target) ** (1.0 / 3.0)  # the count goes as L^-3: one correction
         run_opts["max_edge_length"] = L
-        simple = _simplified(V, F, int(area / (math.sqrt(3.0) / 4.0 * L * L)), name)
-        Vm, Fm = simple if simple is not None else (V, F)
-        extra.update(simulation_surface_faces=int(len(Fm)))
-        nodes, tets = _run(Vm, Fm, run_opts, diag)
+        simple = _simplified(V, F, int(area / (math.sqrt(3.0) / 4.0 * L * L)), name, edge=L)
+        if simple is not None:  # else the first mesh stays (its count off the target)
+            Vm, Fm = simple
+            extra.update(simulation_surface_faces=int(len(Fm)))
+            nodes, tets = _run(Vm, Fm, run_opts, diag)
     seconds = time.perf_counter() - t0
     if coarsen:
         extra.update(edge_length=float(L))

@@ -25,8 +25,14 @@ from .element_types.tet4 import tet_volumes
 
 __all__ = ["MeshError", "VolumeMesh", "TetMesh", "ElementMesh", "TET_FACES", "tet_volumes", "boundary_faces"]
 
-#: Relative threshold for degenerate elements: |vol| <= DEGENERATE_RTOL * characteristic_length**3.
+#: Relative threshold for degenerate elements: |vol| <= DEGENERATE_RTOL * characteristic_length**3
+#: (the mesh's bounding-box diagonal) ...
 DEGENERATE_RTOL = 1e-12
+#: ... and flat for its own size: |vol| <= DEGENERATE_SHAPE_RTOL * h**3, h the diagonal of the element's
+#: own bounding box (a regular tet has 0.06 h^3). Both must hold: a tiny but well-shaped element is
+#: not degenerate (TetGen refines a fine scanned surface's near-touching features into tets of
+#: 2e-4 of the bounding box, a few 1e-14 of its cube, with 0.01-0.1 h^3).
+DEGENERATE_SHAPE_RTOL = 1e-6
 
 _MAX_LISTED = 10
 
@@ -150,11 +156,18 @@ class VolumeMesh:
         L = self._bbox_diagonal(x, t)
         vol = element.signed_point_volumes(x, t)  # (m, q)
         thresh = DEGENERATE_RTOL * L**3
-        degen = np.flatnonzero((np.abs(vol) <= thresh).any(axis=1))
+        small = (np.abs(vol) <= thresh).any(axis=1)
+        if small.any():
+            idx = np.flatnonzero(small)
+            X = x[t[idx]]
+            h = np.linalg.norm(X.max(axis=1) - X.min(axis=1), axis=1)
+            small[idx] = (np.abs(vol[idx]) <= DEGENERATE_SHAPE_RTOL * h[:, None] ** 3).any(axis=1)
+        degen = np.flatnonzero(small)
         if degen.size:
             raise MeshError(self._msg(
                 f"{degen.size} degenerate (zero-volume) {noun}s, |vol| <= {thresh:.3g} "
-                f"(= {DEGENERATE_RTOL:g} * {L:.3g}^3): {noun}s {_fmt_list(degen)}"))
+                f"(= {DEGENERATE_RTOL:g} * {L:.3g}^3) and <= {DEGENERATE_SHAPE_RTOL:g} * (own size)^3: "
+                f"{noun}s {_fmt_list(degen)}"))
         tangled = np.flatnonzero((vol < 0).any(axis=1) & (vol > 0).any(axis=1))
         if tangled.size:
             raise MeshError(self._msg(
