@@ -219,7 +219,10 @@ def _record_and_differentiate(sim, F, obs, vertices, frames, wanted, advance):
     t1 = time.perf_counter()
     positions = np.asarray(positions)
     loss, xg = positions_loss(positions, obs, vertices, frames)
-    grads = rec.backward({steps_at[f]: g for f, g in xg.items()})
+    try:
+        grads = rec.backward({steps_at[f]: g for f, g in xg.items()})
+    finally:
+        rec.release()  # the factorisations the steps kept for this reverse pass
     t2 = time.perf_counter()
     return DiffResult(loss=loss, gradients=grads, positions=positions, steps=rec.steps, recorded_bytes=rec.nbytes,
                       newton_iterations=newton, seconds_forward=t1 - t0, seconds_backward=t2 - t1)

@@ -84,6 +84,10 @@ PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_s
 
 _KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
 
+#: default memory for the factorisations that recorded steps keep for their reverse pass (direct
+#: solver; docs/gradients.md, "Cost"): 1 GiB
+DEFAULT_FACTOR_BUDGET = 1 << 30
+
 
 class AdjointError(RuntimeError):
     """The reverse pass could not be done (e.g. its linear solve did not converge)."""
@@ -176,6 +180,17 @@ class StepRecord:
         self.targets = {int(i): np.array(p, dtype=np.float64) for i, p in targets.items()}
         self.load_scale = float(load_scale)
         self.y = self.x_next = self.v_hat = None
+        self.factor = None  # the direct solver's factorisation of the step's last Newton matrix, when kept
+
+    @property
+    def factor_nbytes(self) -> int:
+        return 0 if self.factor is None else int(self.factor.nbytes)
+
+    def release(self):
+        """Free the kept factorisation (the reverse pass then refactorises this step)."""
+        if self.factor is not None:
+            self.factor.release()
+            self.factor = None
 
     @property
     def nbytes(self) -> int:
@@ -203,7 +218,7 @@ class StepAdjoint:
         max_refinements: cap on refinement rounds of the adjoint solve.
     """
 
-    def __init__(self, sim, params=None, *, tol=None, max_refinements=40):
+    def __init__(self, sim, params=None, *, tol=None, max_refinements=40, factor_budget=None):
         check_differentiable(sim)
         self.sim = sim
         params = PARAMETERS if params is None else tuple(params)
@@ -233,6 +248,11 @@ class StepAdjoint:
         self._K = pat.new_values()
         self._H = pat.new_values()
         self._dev = [sim.new_vector() for _ in range(6)]  # b, r, dl, lam, tmp, x
+        self._csr_map = None
+        #: bytes of factorisations the direct solver may keep for the reverse pass (all recorded
+        #: steps together; beyond it a step's reverse pass refactorises)
+        self.factor_budget = int(DEFAULT_FACTOR_BUDGET if factor_budget is None else factor_budget)
+        self.kept_solves = 0  # adjoint solves done with a factorisation kept by the forward step
         self.solves = 0  # adjoint solves done
         self.refinements = 0  # refinement rounds (inner solves) done
         self.prepares = 0  # times the solver was prepared on the exact Hessian
@@ -294,12 +314,20 @@ class StepAdjoint:
         rec = StepRecord(kind, dt, s, _host(state_in.x), _host(state_in.v), h, _host(self.sim.free_mask),
                          control.targets, control.load_scale)
         rec.t0 = float(state_in.time)
+        solver = self.sim.linear_solver
+        if self.factor_budget > 0 and hasattr(solver, "reserve_factors"):
+            solver.reserve_factors(self.factor_budget - solver.kept_bytes)
         return rec
 
     def record_after(self, rec: StepRecord, state_out):
         """Complete ``rec`` with the converged step written into ``state_out``."""
         rec.y = _host(state_out.v)
         rec.x_next = _host(state_out.x)
+        solver = self.sim.linear_solver
+        if self.factor_budget > 0 and hasattr(solver, "keep_factor"):
+            # the factorisation of the step's last Newton iteration, solved with in the reverse pass
+            # (refined against the exact Hessian) instead of factorising again
+            rec.factor = solver.keep_factor(self.factor_budget - solver.kept_bytes)
         if rec.kind.startswith("newmark"):
             rec.v_hat = rec.y - rec.s * _host(state_out.history["a"])  # a_{n+1} = (y - v_hat) / s
         return rec
@@ -332,9 +360,49 @@ class StepAdjoint:
         launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, a, sim.scalar_type(1.0), out], sim.device)
         return _host(out)
 
-    def _solve(self, H, b_host, mask):
-        """lambda with (P H P + I - P) lambda = P b, to self.tol, by refinement on the solver's
-        prepared matrix (prepared on H when that contracts slowly)."""
+    def _host_csr(self, values):
+        """The float64 scalar CSR matrix (3n x 3n, full) of device block values of the current pattern."""
+        import scipy.sparse
+
+        pt = self.sim.pattern
+        if self._csr_map is None or self._csr_map[0] is not pt:
+            n = pt.num_rows
+            offsets = pt.offsets.numpy()[: n + 1].astype(np.int64)
+            idx = np.arange(9 * pt.nnz, dtype=np.float64).reshape(pt.nnz, 3, 3) + 1.0  # +1: no explicit zero
+            A = scipy.sparse.bsr_matrix((idx, pt.cols_np, offsets), shape=(3 * n, 3 * n)).tocsr()
+            A.sort_indices()
+            self._csr_map = (pt, (A.data - 1.0).astype(np.int64), A.indices.copy(), A.indptr.copy())
+        _, src, indices, indptr = self._csr_map
+        v = values.numpy().reshape(-1).astype(np.float64, copy=False)[src]
+        return scipy.sparse.csr_matrix((v, indices, indptr), shape=(3 * self.n, 3 * self.n))
+
+    def _solve_kept(self, factor, Hmv, b, bn, mask):
+        """lambda by refinement against the exact H with a factorisation the forward step kept (of
+        its last Newton iteration's matrix); None when that contracts slowly (then the caller
+        prepares the solver on H)."""
+        lam = np.zeros_like(b)
+        r = b
+        prev = bn
+        for _ in range(self.max_refinements):
+            self.refinements += 1
+            d = factor.solve(r.reshape(-1)).reshape(-1, 3) * mask
+            if not np.all(np.isfinite(d)):
+                return None
+            lam = lam + d
+            r = b - mask * Hmv(lam)
+            rn = float(np.linalg.norm(r))
+            if rn <= self.tol * bn:
+                self.kept_solves += 1
+                return lam
+            if not np.isfinite(rn) or rn > 0.2 * prev:
+                return None
+            prev = rn
+        return None
+
+    def _solve(self, H, b_host, mask, Hmv, factor=None):
+        """lambda with (P H P + I - P) lambda = P b, to self.tol, by refinement on a factorisation
+        the step kept (``factor``), or on the solver's prepared matrix (prepared on H when that
+        contracts slowly). ``H()`` gives the device values of H, ``Hmv(a)`` its host product."""
         sim = self.sim
         solver = sim.linear_solver
         b = mask * b_host
@@ -342,6 +410,11 @@ class StepAdjoint:
         if bn == 0.0:
             return np.zeros_like(b)
         self.solves += 1
+        if factor is not None:
+            lam = self._solve_kept(factor, Hmv, b, bn, mask)
+            if lam is not None:
+                return lam
+        H = H()
         mask_d = sim.free_mask
         rd, dl = self._dev[1], self._dev[2]
         direct = getattr(solver, "name", "") == "direct"
@@ -350,7 +423,7 @@ class StepAdjoint:
         inner = 0.5 if direct else 0.1 * self.tol
         maxiter = max(sim.options.max_cg_iters, 10 * sim.num_vertices)
         prepared = False
-        if not direct or not self._stale_ok:
+        if not direct or not self._stale_ok or not getattr(solver, "has_factor", True):
             solver.prepare(H, mask_d)
             self.prepares += 1
             prepared = True
@@ -374,7 +447,7 @@ class StepAdjoint:
                 prepared = True
                 continue
             lam_new = lam + d
-            r_new = b - mask * self._mv(H, lam_new)
+            r_new = b - mask * Hmv(lam_new)
             rn = float(np.linalg.norm(r_new))
             if rn < prev or not prepared:
                 lam, r = lam_new, r_new
@@ -390,7 +463,7 @@ class StepAdjoint:
             elif prepared and rn >= prev:
                 break
             prev = min(prev, rn)
-        rel = float(np.linalg.norm(b - mask * self._mv(H, lam)) / bn)
+        rel = float(np.linalg.norm(b - mask * Hmv(lam)) / bn)
         if rel <= max(100.0 * self.tol, 1e-9 if sim.precision == "float64" else 1e-4):
             return lam
         raise AdjointError(f"the adjoint solve did not converge (relative residual {rel:.2e} > {self.tol:.1e}); "
@@ -544,15 +617,25 @@ class StepAdjoint:
         # the implicit solve: H lambda = ybar on the free components
         x_dev = self._assemble_K(rec.x_next)
         planes = self._add_contact_hessian(rec)
-        pt = sim.pattern
-        self._H.zero_()
-        launch(LK.add_scaled_kernel, pt.nnz, [sim.mass_values, sim.scalar_type(1.0 + s * alpha), self._H], sim.device)
-        launch(LK.add_scaled_kernel, pt.nnz, [self._K, sim.scalar_type(s * s), self._H], sim.device)
-        lam = self._solve(self._H, ybar, P)
+        Kc = self._host_csr(self._K)
+        cm, ck = 1.0 + s * alpha, s * s
+
+        def Hmv(a):
+            a = a.reshape(-1)
+            return (cm * (self._M @ a) + ck * (Kc @ a)).reshape(-1, 3)
+
+        def H():  # the device values of H (only when the solver must be prepared on it)
+            pt = sim.pattern
+            self._H.zero_()
+            launch(LK.add_scaled_kernel, pt.nnz, [sim.mass_values, sim.scalar_type(cm), self._H], sim.device)
+            launch(LK.add_scaled_kernel, pt.nnz, [self._K, sim.scalar_type(ck), self._H], sim.device)
+            return self._H
+
+        lam = self._solve(H, ybar, P, Hmv, getattr(rec, "factor", None))
         if np.any(lam):
             M_lam = (self._M @ lam.reshape(-1)).reshape(n, 3)
-            K_lam = self._mv(self._K, lam)
-            H_lam = (1.0 + s * alpha) * M_lam + s * s * K_lam
+            K_lam = (Kc @ lam.reshape(-1)).reshape(n, 3)
+            H_lam = cm * M_lam + ck * K_lam
         else:
             M_lam = K_lam = H_lam = np.zeros((n, 3))
         yc_bar = (1.0 - P) * (ybar - H_lam)
@@ -667,9 +750,9 @@ class Recording:
     steps) and returns the gradients by parameter name (:data:`PARAMETERS`; ``targets`` by step
     index; ``initial_history`` the adjoint of the first state's integrator history)."""
 
-    def __init__(self, sim, params=None, *, tol=None):
+    def __init__(self, sim, params=None, *, tol=None, factor_budget=None):
         self.sim = sim
-        self.adjoint = StepAdjoint(sim, params, tol=tol)
+        self.adjoint = StepAdjoint(sim, params, tol=tol, factor_budget=factor_budget)
         self.records = []
         self.stats = []
 
@@ -688,8 +771,18 @@ class Recording:
 
     @property
     def nbytes(self) -> int:
-        """Host memory the recorded steps hold (bytes)."""
+        """Host memory the recorded steps' vectors hold (bytes; kept factorisations: :attr:`factor_nbytes`)."""
         return int(sum(r.nbytes for r in self.records))
+
+    @property
+    def factor_nbytes(self) -> int:
+        """Memory of the factorisations the recorded steps keep (bytes; direct solver, ``factor_budget``)."""
+        return int(sum(r.factor_nbytes for r in self.records))
+
+    def release(self):
+        """Free the kept factorisations (later ``backward`` calls refactorise; the records stay)."""
+        for r in self.records:
+            r.release()
 
     def record(self, run, state_in, state_out, control, dt):
         """Run one step (``run()``) and keep its record."""
