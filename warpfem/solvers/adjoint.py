@@ -117,9 +117,6 @@ def check_differentiable(sim):
     if sim.damping_stiffness != 0.0:
         raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
                                   "supported: use damping_mass")
-    if getattr(sim.model, "num_bodies", 1) > 1:
-        raise NotImplementedError(f"gradients of a model of {sim.model.num_bodies} bodies are not supported yet "
-                                  "(one body per model)")
 
 
 def material_set_parameters(material, E, nu, volumetric_integration="full", has_volumetric_set=False):
@@ -134,37 +131,39 @@ def material_set_parameters(material, E, nu, volumetric_integration="full", has_
     return [(m.kernel_mu, m.kernel_lam)]
 
 
-def _set_arrays(model, name, dtype=None):
-    """One quadrature-point array (``qp_weight``, ``qp_element``, ``qp_dNdX``) of each point set of
-    ``model``'s body: the main rule, then the volumetric rule of selective reduced integration."""
-    qd = model.quadrature
-    sets = [qd] + ([qd.volumetric] if getattr(qd, "volumetric", None) is not None else [])
-    return [np.asarray(getattr(q, name), dtype=dtype) for q in sets]
+def _point_sets(model):
+    """The quadrature-point sets of ``model`` in the simulator's order (``Simulator.quadrature_sets``):
+    per body its main rule, then the volumetric rule of selective reduced integration. Each a dict:
+    ``body``, ``element`` (the point's element, numbered over every body), ``weight``, ``dNdX``
+    (float64), ``conn`` (the body's connectivity, global vertex indices)."""
+    quads = list(getattr(model, "quadratures", None) or [model.quadrature])
+    out, e0 = [], 0
+    for b, qd in enumerate(quads):
+        conn = np.asarray(qd.elements).reshape(-1, qd.nodes_per_element)
+        for q in [qd] + ([qd.volumetric] if getattr(qd, "volumetric", None) is not None else []):
+            out.append({"body": b, "element": np.asarray(q.qp_element, dtype=np.int64) + e0,
+                        "weight": np.asarray(q.qp_weight, dtype=np.float64),
+                        "dNdX": np.asarray(q.qp_dNdX, dtype=np.float64), "conn": conn, "e0": e0})
+        e0 += conn.shape[0]
+    return out
 
 
-def _base_weights(model):
-    return _set_arrays(model, "qp_weight", np.float64)
-
-
-def _set_elements(model):
-    return _set_arrays(model, "qp_element")
-
-
-def _set_dNdX(model):
-    return _set_arrays(model, "qp_dNdX", np.float64)
+def _body_materials(model):
+    return list(getattr(model, "materials", None) or [model.material])
 
 
 def set_element_stiffness_scale(sim, scale):
     """Scale the elastic energy of element e by ``scale[e]`` (> 0; an element-wise Young's modulus
     factor) in every later step of ``sim``: the quadrature weights of the element kernels become
-    w_q scale[e(q)] (the mass is not changed). ``None`` restores 1."""
+    w_q scale[e(q)] (the mass is not changed). ``None`` restores 1. With several bodies the
+    elements are numbered body after body."""
     m = sim.model.mesh.num_elements
     c = np.ones(m) if scale is None else np.asarray(scale, dtype=np.float64).reshape(-1)
     if c.shape != (m,) or not np.all(np.isfinite(c)) or np.any(c <= 0):
         raise ValueError(f"element_stiffness_scale must be {m} finite positive numbers (one per element), "
                          f"got shape {np.shape(scale)}")
-    for qs, w0, el in zip(sim.quadrature_sets, _base_weights(sim.model), _set_elements(sim.model)):
-        qs.points.weight.assign((w0 * c[el]).astype(sim.numpy_dtype))
+    for qs, ps in zip(sim.quadrature_sets, _point_sets(sim.model)):
+        qs.points.weight.assign((ps["weight"] * c[ps["element"]]).astype(sim.numpy_dtype))
     sim.element_stiffness_scale = c
 
 
@@ -232,17 +231,20 @@ class StepAdjoint:
         self.n = n = sim.num_vertices
         self.kind_name = _KINDS[sim.integrator.name]
         self._M = sim.mass_matrix().tocsr()
-        rho = float(model.material.density)
-        self._rho = rho
-        self._fgrav_unit = (model.gravity_mass[:, None] * model.gravity[None, :]) / rho  # gravity per unit density
+        mats = _body_materials(model)
+        self._mats = mats
+        self.bodies = len(mats)
+        offs = np.asarray(getattr(model, "body_offsets", [0, n]), dtype=np.int64)
+        self._vertex_body = np.repeat(np.arange(self.bodies), np.diff(offs))
+        self._rho_v = np.array([float(m.density) for m in mats])[self._vertex_body]  # density of each vertex
+        # gravity per unit density (each vertex's body's)
+        self._fgrav_unit = (model.gravity_mass[:, None] * model.gravity[None, :]) / self._rho_v[:, None]
         self._fext = model.external_forces()
         self._sets = sim.quadrature_sets
-        mat = model.material
-        self._kind = int(mat.kind)
         S = sim.scalar_type
-        self._unit = (material_params(S, self._kind, 1.0, 0.0), material_params(S, self._kind, 0.0, 1.0))
-        self._set_elem, self._set_dNdX, self._set_w0 = _set_elements(model), _set_dNdX(model), _base_weights(model)
-        self._conn = np.asarray(model.quadrature.elements).reshape(-1, model.quadrature.nodes_per_element)
+        self._psets = _point_sets(model)
+        self._unit = [(material_params(S, int(mats[ps["body"]].kind), 1.0, 0.0),
+                       material_params(S, int(mats[ps["body"]].kind), 0.0, 1.0)) for ps in self._psets]
         self._param_jac = self._material_jacobian()
         pat = sim.pattern
         self._K = pat.new_values()
@@ -261,36 +263,46 @@ class StepAdjoint:
 
     # -- parameters -------------------------------------------------------------------------------------
     def _material_jacobian(self):
-        """d(mu_s, lam_s)/d(E, nu) of every point set: (sets, 2 [mu, lam], 2 [E, nu])."""
-        model, mat = self.sim.model, self.sim.model.material
-        E, nu = float(mat.youngs_modulus), float(mat.poisson_ratio)
-        vi = getattr(model, "volumetric_integration", "full")
-        has_vol = len(self._sets) > 1
+        """d(mu_s, lam_s)/d(E_b, nu_b) of every point set s (of body b): (sets, 2 [mu, lam], 2 [E, nu])."""
+        model = self.sim.model
+        vis = getattr(model, "volumetric_integration", "full")
+        rows = []
+        for b, mat in enumerate(self._mats):
+            vi = vis[b] if isinstance(vis, (list, tuple)) else vis
+            has_vol = sum(ps["body"] == b for ps in self._psets) > 1
+            E, nu = float(mat.youngs_modulus), float(mat.poisson_ratio)
 
-        def f(E_, nu_):
-            return np.asarray(material_set_parameters(mat, E_, nu_, vi, has_vol), dtype=np.float64)
+            def f(E_, nu_):
+                return np.asarray(material_set_parameters(mat, E_, nu_, vi, has_vol), dtype=np.float64)
 
-        J = np.zeros((len(self._sets), 2, 2))
-        hE, hn = 1e-6 * E, 1e-6 * max(abs(nu), 0.1)
-        J[:, :, 0] = (f(E + hE, nu) - f(E - hE, nu)) / (2 * hE)
-        J[:, :, 1] = (f(E, nu + hn) - f(E, nu - hn)) / (2 * hn)
-        return J
+            hE, hn = 1e-6 * E, 1e-6 * max(abs(nu), 0.1)
+            J = np.zeros((2 if has_vol else 1, 2, 2))
+            J[:, :, 0] = (f(E + hE, nu) - f(E - hE, nu)) / (2 * hE)
+            J[:, :, 1] = (f(E, nu + hn) - f(E, nu - hn)) / (2 * hn)
+            rows.append(J)
+        return np.concatenate(rows)
 
     def zero_grad(self):
         """Clear the accumulated parameter gradients."""
         m = self.sim.model.mesh.num_elements
         self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
         self._mulam_bar = np.zeros((len(self._sets), 2))
-        self.grads = {"density": 0.0, "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
+        self.grads = {"density": np.zeros(self.bodies), "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
                       "targets": {}, "collider_translations": {}, "collider_friction": {}}
 
     def parameter_gradients(self) -> dict:
         """The accumulated gradients by parameter name (numpy; see the module docstring)."""
         g = dict(self.grads)
-        EN = np.einsum("sk,skp->p", self._mulam_bar, self._param_jac)
-        g["youngs_modulus"], g["poisson_ratio"] = float(EN[0]), float(EN[1])
+        EN = np.einsum("sk,skp->sp", self._mulam_bar, self._param_jac)  # per point set
+        body = np.array([ps["body"] for ps in self._psets])
+        EN = np.stack([EN[body == b].sum(axis=0) for b in range(self.bodies)])  # (bodies, 2)
         g["gravity"] = self.sim.model.gravity_mass @ g["forces"]
-        g["density"] = float(g["density"])
+        if self.bodies == 1:
+            g["youngs_modulus"], g["poisson_ratio"] = float(EN[0, 0]), float(EN[0, 1])
+            g["density"] = float(g["density"][0])
+        else:  # several bodies: one per body (Model.from_bodies order)
+            g["youngs_modulus"], g["poisson_ratio"] = EN[:, 0].copy(), EN[:, 1].copy()
+            g["density"] = np.array(g["density"], dtype=np.float64)
         return {k: v for k, v in g.items() if k in self.params or k in ("youngs_modulus", "poisson_ratio")}
 
     # -- recording ------------------------------------------------------------------------------------------
@@ -360,21 +372,33 @@ class StepAdjoint:
         launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, a, sim.scalar_type(1.0), out], sim.device)
         return _host(out)
 
-    def _host_csr(self, values):
-        """The float64 scalar CSR matrix (3n x 3n, full) of device block values of the current pattern."""
+    def _host_csr(self, values, mass_scale=None, scale=1.0):
+        """The float64 scalar CSR matrix (3n x 3n, full) of device block values of the current
+        pattern (``scale`` x them, plus ``mass_scale`` x the mass blocks when given). One matrix
+        object per use is kept and its data replaced (no construction per step)."""
         import scipy.sparse
 
         pt = self.sim.pattern
+        key = "H" if mass_scale is not None else "K"
         if self._csr_map is None or self._csr_map[0] is not pt:
             n = pt.num_rows
             offsets = pt.offsets.numpy()[: n + 1].astype(np.int64)
             idx = np.arange(9 * pt.nnz, dtype=np.float64).reshape(pt.nnz, 3, 3) + 1.0  # +1: no explicit zero
             A = scipy.sparse.bsr_matrix((idx, pt.cols_np, offsets), shape=(3 * n, 3 * n)).tocsr()
             A.sort_indices()
-            self._csr_map = (pt, (A.data - 1.0).astype(np.int64), A.indices.copy(), A.indptr.copy())
-        _, src, indices, indptr = self._csr_map
-        v = values.numpy().reshape(-1).astype(np.float64, copy=False)[src]
-        return scipy.sparse.csr_matrix((v, indices, indptr), shape=(3 * self.n, 3 * self.n))
+            src = (A.data - 1.0).astype(np.int64)
+            mats = {k: scipy.sparse.csr_matrix((np.zeros(len(src)), A.indices.copy(), A.indptr.copy()),
+                                               shape=A.shape) for k in ("H", "K")}
+            self._csr_map = (pt, src, mats)
+        _, src, mats = self._csr_map
+        A = mats[key]
+        v = values.numpy().reshape(-1)[src]
+        if scale != 1.0:
+            v *= scale
+        if mass_scale is not None:
+            v += mass_scale * self.sim.mass_values.numpy().reshape(-1)[src]
+        A.data = v.astype(np.float64, copy=False)
+        return A
 
     def _solve_kept(self, factor, Hmv, b, bn, mask):
         """lambda by refinement against the exact H with a factorisation the forward step kept (of
@@ -475,7 +499,7 @@ class StepAdjoint:
         f = self._dev[4]
         out = np.zeros((len(self._sets), 2))
         for i, qs in enumerate(self._sets):
-            for j, unit in enumerate(self._unit):
+            for j, unit in enumerate(self._unit[i]):
                 f.zero_()
                 launch(FK.qp_force_kernel, qs.count, [x_dev, qs.points, unit, sim.scalar_type(1.0), f], sim.device)
                 out[i, j] = -float(np.sum(_host(f) * w_host))  # the kernel adds -grad V
@@ -486,14 +510,15 @@ class StepAdjoint:
         sim = self.sim
         m = sim.model.mesh.num_elements
         out = np.zeros(m)
-        k = self._conn.shape[1]
-        for qs, el, dN, w0 in zip(self._sets, self._set_elem, self._set_dNdX, self._set_w0):
+        for qs, ps in zip(self._sets, self._psets):
             P = wp.zeros(qs.count, dtype=self._mat_type(), device=sim.device)
             launch(FK.qp_stress_kernel, qs.count, [x_dev, qs.points, qs.material, P], sim.device)
             Ph = P.numpy().astype(np.float64)
-            wn = w_host[self._conn[el]]  # (Q, k, 3)
-            G = np.einsum("qai,qaj->qij", wn, dN.reshape(-1, k, 3))
-            out += np.bincount(el, weights=w0 * np.einsum("qij,qij->q", Ph, G), minlength=m)
+            conn = ps["conn"]
+            k = conn.shape[1]
+            wn = w_host[conn[ps["element"] - ps["e0"]]]  # (Q, k, 3)
+            G = np.einsum("qai,qaj->qij", wn, ps["dNdX"].reshape(-1, k, 3))
+            out += np.bincount(ps["element"], weights=ps["weight"] * np.einsum("qij,qij->q", Ph, G), minlength=m)
         return out
 
     def _add_contact_hessian(self, rec):
@@ -617,12 +642,12 @@ class StepAdjoint:
         # the implicit solve: H lambda = ybar on the free components
         x_dev = self._assemble_K(rec.x_next)
         planes = self._add_contact_hessian(rec)
-        Kc = self._host_csr(self._K)
         cm, ck = 1.0 + s * alpha, s * s
+        Kc = self._host_csr(self._K)
+        Hc = self._host_csr(self._K, mass_scale=cm, scale=ck)
 
         def Hmv(a):
-            a = a.reshape(-1)
-            return (cm * (self._M @ a) + ck * (Kc @ a)).reshape(-1, 3)
+            return (Hc @ a.reshape(-1)).reshape(-1, 3)
 
         def H():  # the device values of H (only when the solver must be prepared on it)
             pt = sim.pattern
@@ -697,13 +722,19 @@ class StepAdjoint:
         self._mulam_bar += sign * self._forces_unit(x_dev, w)
         if "element_stiffness_scale" in self.params:
             self.grads["element_stiffness_scale"] += sign * self._element_contraction(x_dev, w)
-        M1 = lambda a: (self._M @ a.reshape(-1)).reshape(self.n, 3) / self._rho  # noqa: E731
+        # dM/d(rho_b): the body's rows of M over rho_b (M is block diagonal over the bodies)
+        M1 = lambda a: (self._M @ a.reshape(-1)).reshape(self.n, 3) / self._rho_v[:, None]  # noqa: E731
+        nb = self.bodies
+
+        def per_body(t):  # sum of w . t over each body's vertices
+            return np.bincount(self._vertex_body, weights=np.sum(w * t, axis=1), minlength=nb)
+
         if a0 is None:  # the step: g = M (y - v_hat) + s alpha M y + s grad V - s c f_ext
             self.grads["forces"] += (-sign) * c * w  # sign = -s: s c w
-            self.grads["density"] += -float(np.sum(w * (M1(y - v_hat) + s * alpha * M1(y) - s * c * self._fgrav_unit)))
+            self.grads["density"] -= per_body(M1(y - v_hat) + s * alpha * M1(y) - s * c * self._fgrav_unit)
         else:  # a_0: R = M a_0 + grad V(x_n) - c f_ext + alpha M v_n
             self.grads["forces"] += c * w
-            self.grads["density"] += -float(np.sum(w * (M1(a0) - c * self._fgrav_unit + alpha * M1(v_n))))
+            self.grads["density"] -= per_body(M1(a0) - c * self._fgrav_unit + alpha * M1(v_n))
 
     def _a0_backward(self, rec, a_bar, xn_bar, vn_bar, v_hat):
         n, P = self.n, rec.mask
@@ -881,6 +912,9 @@ def set_material_parameters(sim, youngs_modulus=None, poisson_ratio=None):
     kernel parameters of every point set; ``sim.model.material`` becomes a material of the same
     class with the new values), for runs that differentiate or fit them without rebuilding."""
     model = sim.model
+    if getattr(model, "num_bodies", 1) > 1:
+        raise NotImplementedError(f"set_material_parameters: a model of {model.num_bodies} bodies has a material per body; "
+                                  "change a body's material and build the simulator again")
     old = model.material
     E = float(old.youngs_modulus if youngs_modulus is None else youngs_modulus)
     nu = float(old.poisson_ratio if poisson_ratio is None else poisson_ratio)
@@ -900,6 +934,9 @@ def set_density(sim, density):
     """Change the density of a built ``sim`` in place: the model's mass matrices and gravity (all
     proportional to it), the simulator's mass blocks and external forces (``sync_model``)."""
     model = sim.model
+    if getattr(model, "num_bodies", 1) > 1:
+        raise NotImplementedError(f"set_density: a model of {model.num_bodies} bodies has a material per body; "
+                                  "change a body's material and build the simulator again")
     old = model.material
     rho = float(density)
     if not (np.isfinite(rho) and rho > 0):
