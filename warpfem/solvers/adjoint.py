@@ -251,6 +251,7 @@ class StepAdjoint:
         self._H = pat.new_values()
         self._dev = [sim.new_vector() for _ in range(6)]  # b, r, dl, lam, tmp, x
         self._csr_map = None
+        self._mass_gathered = None
         #: bytes of factorisations the direct solver may keep for the reverse pass (all recorded
         #: steps together; beyond it a step's reverse pass refactorises)
         self.factor_budget = int(DEFAULT_FACTOR_BUDGET if factor_budget is None else factor_budget)
@@ -286,6 +287,7 @@ class StepAdjoint:
         """Clear the accumulated parameter gradients."""
         m = self.sim.model.mesh.num_elements
         self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
+        self._mass_gathered = None  # the mass's CSR entries (gathered again: set_density may have changed it)
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": np.zeros(self.bodies), "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
                       "targets": {}, "collider_translations": {}, "collider_friction": {}}
@@ -372,14 +374,14 @@ class StepAdjoint:
         launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, a, sim.scalar_type(1.0), out], sim.device)
         return _host(out)
 
-    def _host_csr(self, values, mass_scale=None, scale=1.0):
-        """The float64 scalar CSR matrix (3n x 3n, full) of device block values of the current
-        pattern (``scale`` x them, plus ``mass_scale`` x the mass blocks when given). One matrix
-        object per use is kept and its data replaced (no construction per step)."""
+    def _host_H(self, values, mass_scale, scale):
+        """The float64 scalar CSR matrix (3n x 3n, full) of ``scale`` x the device block values
+        plus ``mass_scale`` x the mass blocks, in the current pattern. One matrix object is kept and
+        its data replaced (no construction per step); the mass's entries are gathered once per
+        reverse pass (:meth:`zero_grad`) and pattern."""
         import scipy.sparse
 
         pt = self.sim.pattern
-        key = "H" if mass_scale is not None else "K"
         if self._csr_map is None or self._csr_map[0] is not pt:
             n = pt.num_rows
             offsets = pt.offsets.numpy()[: n + 1].astype(np.int64)
@@ -387,18 +389,17 @@ class StepAdjoint:
             A = scipy.sparse.bsr_matrix((idx, pt.cols_np, offsets), shape=(3 * n, 3 * n)).tocsr()
             A.sort_indices()
             src = (A.data - 1.0).astype(np.int64)
-            mats = {k: scipy.sparse.csr_matrix((np.zeros(len(src)), A.indices.copy(), A.indptr.copy()),
-                                               shape=A.shape) for k in ("H", "K")}
-            self._csr_map = (pt, src, mats)
-        _, src, mats = self._csr_map
-        A = mats[key]
-        v = values.numpy().reshape(-1)[src]
-        if scale != 1.0:
-            v *= scale
-        if mass_scale is not None:
-            v += mass_scale * self.sim.mass_values.numpy().reshape(-1)[src]
-        A.data = v.astype(np.float64, copy=False)
-        return A
+            H = scipy.sparse.csr_matrix((np.zeros(len(src)), A.indices.copy(), A.indptr.copy()), shape=A.shape)
+            self._csr_map = (pt, src, H)
+            self._mass_gathered = None
+        _, src, H = self._csr_map
+        if self._mass_gathered is None:
+            self._mass_gathered = self.sim.mass_values.numpy().reshape(-1)[src].astype(np.float64)
+        v = values.numpy().reshape(-1)[src].astype(np.float64, copy=False)
+        v *= scale
+        v += mass_scale * self._mass_gathered
+        H.data = v
+        return H
 
     def _solve_kept(self, factor, Hmv, b, bn, mask):
         """lambda by refinement against the exact H with a factorisation the forward step kept (of
@@ -413,10 +414,12 @@ class StepAdjoint:
             if not np.all(np.isfinite(d)):
                 return None
             lam = lam + d
-            r = b - mask * Hmv(lam)
+            Hl = Hmv(lam)
+            r = b - mask * Hl
             rn = float(np.linalg.norm(r))
             if rn <= self.tol * bn:
                 self.kept_solves += 1
+                self._last_Hlam = Hl
                 return lam
             if not np.isfinite(rn) or rn > 0.2 * prev:
                 return None
@@ -643,8 +646,7 @@ class StepAdjoint:
         x_dev = self._assemble_K(rec.x_next)
         planes = self._add_contact_hessian(rec)
         cm, ck = 1.0 + s * alpha, s * s
-        Kc = self._host_csr(self._K)
-        Hc = self._host_csr(self._K, mass_scale=cm, scale=ck)
+        Hc = self._host_H(self._K, cm, ck)
 
         def Hmv(a):
             return (Hc @ a.reshape(-1)).reshape(-1, 3)
@@ -656,11 +658,12 @@ class StepAdjoint:
             launch(LK.add_scaled_kernel, pt.nnz, [self._K, sim.scalar_type(ck), self._H], sim.device)
             return self._H
 
+        self._last_Hlam = None
         lam = self._solve(H, ybar, P, Hmv, getattr(rec, "factor", None))
         if np.any(lam):
             M_lam = (self._M @ lam.reshape(-1)).reshape(n, 3)
-            K_lam = (Kc @ lam.reshape(-1)).reshape(n, 3)
-            H_lam = cm * M_lam + ck * K_lam
+            H_lam = Hmv(lam) if self._last_Hlam is None else self._last_Hlam  # the refinement's last product
+            K_lam = (H_lam - cm * M_lam) / ck
         else:
             M_lam = K_lam = H_lam = np.zeros((n, 3))
         yc_bar = (1.0 - P) * (ybar - H_lam)
