@@ -73,6 +73,7 @@ from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.kernels.structs import material_params
+from warpfem.solvers.adjoint_contact import collider_terms
 
 __all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
            "set_material_parameters", "set_density", "material_set_parameters", "check_differentiable", "Recording",
@@ -80,7 +81,8 @@ __all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_eleme
 
 #: the parameter names the adjoint can differentiate
 PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_scale", "forces", "gravity",
-              "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_friction")
+              "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_rotations",
+              "collider_friction")
 
 _KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
 
@@ -103,14 +105,9 @@ def check_differentiable(sim):
     contact = getattr(sim, "contact", None)
     if contact is not None and len(contact):
         for c in contact.colliders:
-            why = ("only planes and spheres are supported" if getattr(c, "type_name", "") not in ("plane", "sphere") else
-                   "friction is supported on planes only" if (c.friction != 0.0 and c.type_name != "plane") else
-                   "set its stiffness explicitly (the default follows E and the mass)" if c.stiffness is None else
-                   "rotating colliders are not supported" if (c.rotation_axis is not None and c.rotation_angle != 0.0)
-                   else "")
-            if why:
-                raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): {why}; "
-                                          "differentiable contact is frictionless planes and spheres with a given stiffness")
+            if c.stiffness is None:
+                raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): set its "
+                                          "stiffness explicitly (the default follows E and the mass)")
     if getattr(sim, "surface_contact", None) is not None:
         raise NotImplementedError("gradients through surface contact (set_contact: body-body and self-contact) are "
                                   "not supported: differentiable contact is frictionless planes and spheres")
@@ -290,7 +287,7 @@ class StepAdjoint:
         self._mass_gathered = None  # the mass's CSR entries (gathered again: set_density may have changed it)
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": np.zeros(self.bodies), "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
-                      "targets": {}, "collider_translations": {}, "collider_friction": {}}
+                      "targets": {}, "collider_translations": {}, "collider_rotations": {}, "collider_friction": {}}
 
     def parameter_gradients(self) -> dict:
         """The accumulated gradients by parameter name (numpy; see the module docstring)."""
@@ -525,47 +522,23 @@ class StepAdjoint:
         return out
 
     def _add_contact_hessian(self, rec):
-        """Add the barrier's exact Hessian of every collider at x_{n+1} (poses at the step's end)
-        into self._K; returns {collider name: (vertices in range, their 3x3 blocks)} or None.
-        Plane: kappa b''(d) n n^T (the distance is linear); sphere: plus kappa b'(d) (I - n n^T) / L,
-        the curvature term the forward's projected Hessian leaves out."""
+        """Add the exact Hessian of every collider's contact (barrier with its curvature term, lagged
+        friction) at x_{n+1} into self._K (diagonal blocks); returns [(collider, ColliderTerms)] of
+        the colliders in contact (``adjoint_contact``: complex-step derivatives) or None."""
         contact = getattr(self.sim, "contact", None)
         if contact is None or not len(contact):
             return None
         surf = np.asarray(contact.surface)
-        xs = rec.x_next[surf]
-        t1 = rec.t0 + rec.dt
-        out = {}
+        t0, t1 = rec.t0, rec.t0 + rec.dt
+        out = []
         blocks = np.zeros((self.n, 3, 3))
         for j, c in enumerate(contact.colliders):
-            R, trans = c.pose(t1)
-            p = np.einsum("ji,vj->vi", R, xs - trans)  # R^T (x - t): the collider's frame
-            if c.type_name == "plane":
-                d = (p - c.point) @ c.normal
-                nl = np.broadcast_to(c.normal, p.shape)
-                L = None
-            else:  # sphere (check_differentiable lets nothing else through)
-                r = p - c.center()
-                L = np.linalg.norm(r, axis=1)
-                d = L - c.radius
-                nl = r / np.where(L > 0, L, 1.0)[:, None]
-            dh, kappa = float(contact.dhat[j]), float(contact.kappa[j])
-            near = (d > 0.0) & (d < dh)
-            dd, n = d[near], nl[near] @ R.T
-            t = dd - dh
-            lg = np.log(dd / dh)
-            b1 = -2.0 * t * lg - t * t / dd
-            b2 = -2.0 * lg - 4.0 * t / dd + t * t / (dd * dd)
-            nn = np.einsum("vi,vj->vij", n, n)
-            B = (kappa * b2)[:, None, None] * nn
-            if L is not None:
-                B = B + (kappa * b1 / L[near])[:, None, None] * (np.eye(3)[None] - nn)
-            verts = surf[near]
-            np.add.at(blocks, verts, B)
-            fr = self._plane_friction(rec, c, j, surf, R, trans) if c.friction != 0.0 else None
-            if fr is not None:
-                np.add.at(blocks, fr[0], fr[1])
-            out[c.name] = (verts, B, fr)
+            terms = collider_terms(c, surf, rec.x_next, rec.x, c.pose(t1), c.pose(t0), float(contact.kappa[j]),
+                                   float(contact.dhat[j]), float(contact.epsv[j]) * rec.dt)
+            if terms is None:
+                continue
+            np.add.at(blocks, terms.verts, terms.H)
+            out.append((c, terms))
         touched = np.flatnonzero(np.abs(blocks).sum(axis=(1, 2)) > 0)
         if len(touched):
             K = self._K.numpy()
@@ -573,41 +546,6 @@ class StepAdjoint:
             K[diag[touched]] += blocks[touched].astype(K.dtype)
             self._K.assign(K)
         return out
-
-    def _plane_friction(self, rec, c, j, surf, R, trans):
-        """Lagged friction of a plane (translating, R = I): D = mu lam_n f0(|u|), u = P (x - x_n - w),
-        lam_n = -kappa b'(d(x_n)) at the step's end pose, w = t1 - t0. Returns (vertices, the
-        exact Hessian blocks d2D/dx2, f1 u, mu kappa b''(d_n), lam_n, u) of the pairs with
-        lam_n > 0, or None."""
-        contact = self.sim.contact
-        dh, kappa, mu = float(contact.dhat[j]), float(contact.kappa[j]), float(c.friction)
-        eps = float(contact.epsv[j]) * rec.dt
-        n = c.normal
-        xn = rec.x[surf]
-        dn = (xn - trans - c.point) @ n
-        act = (dn > 0.0) & (dn < dh)
-        if not np.any(act):
-            return None
-        dd = dn[act]
-        t = dd - dh
-        lg = np.log(dd / dh)
-        b1 = -2.0 * t * lg - t * t / dd
-        b2 = -2.0 * lg - 4.0 * t / dd + t * t / (dd * dd)
-        lam_n = -kappa * b1
-        _, t0 = c.pose(rec.t0)
-        w = trans - t0
-        P = np.eye(3) - np.outer(n, n)
-        verts = surf[act]
-        u = (rec.x_next[verts] - rec.x[verts] - w) @ P
-        yv = np.linalg.norm(u, axis=1)
-        big = yv >= eps
-        f1 = np.where(big, 1.0 / np.where(yv > 0, yv, 1.0), 2.0 / eps - yv / (eps * eps))
-        f1p_over_y = np.where(big, -1.0 / np.where(yv > 0, yv, 1.0) ** 3,
-                              -1.0 / (eps * eps * np.where(yv > 0, yv, 1.0)))
-        f1p_over_y = np.where(yv > 0, f1p_over_y, 0.0)
-        cc = mu * lam_n
-        Hf = cc[:, None, None] * (f1[:, None, None] * P[None] + f1p_over_y[:, None, None] * np.einsum("vi,vj->vij", u, u))
-        return verts, Hf, f1[:, None] * u, mu * kappa * b2, lam_n, u
 
     def _mat_type(self):
         return wp.mat33d if self.sim.precision == "float64" else wp.mat33
@@ -681,24 +619,19 @@ class StepAdjoint:
                 for i in idx.tolist():
                     store[i] = store.get(i, 0.0) + p_bar[i]
         xn_bar[~tgt] += p_bar[~tgt]
-        if planes is not None and np.any(lam):  # d(grad E_c)/d(translation) = -K_c: tbar = s K_c lambda per plane
-            store = self.grads["collider_translations"].setdefault(step_index, {})
-            for ci, (name, (verts, B, fr)) in enumerate(planes.items()):
-                t_bar = s * np.einsum("vij,vj->i", B, lam[verts])
-                if fr is not None:  # lagged friction: through lam_n(x_n; t1), u(x_n, w = t1 - t0)
-                    fv, Hf, f1u, mkb2, lam_n, u = fr
-                    n = self.sim.contact.colliders[ci].normal
-                    Hl = np.einsum("vij,vj->vi", Hf, lam[fv])
-                    coef = mkb2 * np.einsum("vi,vi->v", f1u, lam[fv])
-                    # x_n explicitly: -s lambda^T d(grad D)/dx_n, d(grad D)/dx_n = -Hf - mu kappa b''(d_n) f1 u n^T
-                    np.add.at(xn_bar, fv, s * Hl + s * coef[:, None] * n[None])
-                    t_bar = t_bar + s * Hl.sum(axis=0) - s * coef.sum() * n  # the end pose (t1)
-                    start = self.grads["collider_translations"].setdefault(
-                        -1 if step_index is None else step_index - 1, {})
-                    start[name] = start.get(name, 0.0) - s * Hl.sum(axis=0)  # the start pose (t0): u has +t0
-                    fb = self.grads["collider_friction"]
-                    fb[name] = fb.get(name, 0.0) - s * float(np.sum(lam_n * np.einsum("vi,vi->v", f1u, lam[fv])))
-                store[name] = store.get(name, 0.0) + t_bar
+        if planes and np.any(lam):  # -s lambda^T d(grad E_c)/d(x_n, poses, mu), per collider in contact
+            G = self.grads
+            end = G["collider_translations"].setdefault(step_index, {}), G["collider_rotations"].setdefault(step_index, {})
+            k0 = -1 if step_index is None else step_index - 1
+            start = G["collider_translations"].setdefault(k0, {}), G["collider_rotations"].setdefault(k0, {})
+            for col, tm in planes:
+                lv = lam[tm.verts]
+                np.add.at(xn_bar, tm.verts, -s * np.einsum("vik,vi->vk", tm.D_xn, lv))
+                par = -s * np.einsum("vip,vi->p", tm.D_par, lv)
+                for store, sl in ((end[0], par[0:3]), (end[1], par[3:6]), (start[0], par[6:9]), (start[1], par[9:12])):
+                    store[col.name] = store.get(col.name, 0.0) + sl
+                if col.friction != 0.0:
+                    G["collider_friction"][col.name] = G["collider_friction"].get(col.name, 0.0) + float(par[12])
         # parameters at the converged step
         if np.any(lam):
             self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha)
