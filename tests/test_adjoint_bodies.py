@@ -73,3 +73,13 @@ def test_several_bodies_gradients_match_central_differences(integrator):
         errors[what] = abs(an - fd) / abs(fd)
     print(integrator, {k: f"{e:.1e}" for k, e in errors.items()})
     assert max(errors.values()) <= 1e-5, errors
+
+
+def test_surface_contact_gradients_are_refused_with_a_reason():
+    bodies = [wf.Body(TET, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0), name="tet"),
+              wf.Body(HEX, wf.Corotated(youngs_modulus=3e5, poisson_ratio=0.2, density=600.0), name="hex",
+                      offset=OFFSET)]
+    sim = wf.Simulator(wf.Model.from_bodies(bodies), dt=0.01, linear_solver="direct")
+    sim.set_contact(bodies=True)
+    with pytest.raises(NotImplementedError, match="surface contact"):
+        Recording(sim)

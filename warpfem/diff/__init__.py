@@ -18,7 +18,8 @@ Gradients (keys of :attr:`DiffResult.gradients`): ``youngs_modulus``, ``poisson_
 ``density`` (scalars), ``element_stiffness_scale`` (m,), ``forces`` (n, 3: the model's constant
 applied forces), ``gravity`` (3,), ``initial_positions`` / ``initial_velocities`` (n, 3),
 ``targets`` ({step: {vertex: (3,)}}: the kinematic handles' targets of each step),
-``collider_translations`` ({step: {collider: (3,)}}: frictionless planes and spheres).
+``collider_translations`` / ``collider_rotations`` ({step: {collider: (3,)}}: the poses of planes,
+spheres, boxes and meshes), ``collider_friction`` ({collider: mu}).
 """
 
 from __future__ import annotations

@@ -46,19 +46,31 @@ function theorem holds at the solution, not at an early-stopped iterate.
 * ``initial_positions``, ``initial_velocities`` (n, 3): the state the recording started from (and
   the integrator's history of that state, ``initial_history``).
 * ``targets``: {step index: {vertex: (3,)}}, the kinematic targets of fixed vertices (control).
-* ``collider_translations``: {step index: {collider name: (3,)}}, the translation of each
-  collider's pose at the end of that step (key -1: at the recording's start; planes and spheres
-  with an explicit stiffness: the barrier's exact Hessian, curvature term included, enters H, and
-  d(grad E_c)/d(translation) = -that Hessian);
-* ``collider_friction``: {collider name: float}, the Coulomb coefficient of each plane. Friction
-  (planes) is lagged from the step's start: D = mu lam_n f0(|u|), u = P (x - x_n - w) with
-  lam_n = -kappa b'(d(x_n)) and w the plane's motion over the step, so its adjoint adds its exact
-  Hessian to H and terms in x_n, both poses and mu.
+* ``collider_translations``, ``collider_rotations``: {step index: {collider name: (3,)}}, a
+  translation and an axis-angle rotation (radians, about the collider's current centre) applied to
+  each collider's pose at the end of that step (key -1: at the recording's start); every collider
+  type (plane, sphere, box, mesh) with an explicit stiffness, moving or not. The contact terms
+  (barrier with its curvature term, lagged friction) enter H and the parameter, x_n and pose
+  derivatives through :mod:`warpfem.solvers.adjoint_contact` (complex-step derivatives of the
+  host contact gradient, exact to round-off);
+* ``collider_friction``: {collider name: float}, the Coulomb coefficient of each collider with
+  friction (lagged from the step's start: D = mu lam_n f0(|u|), u = P (x - x_n - w), lam_n and P
+  from x_n in the end pose, w the collider's motion of the point over the step).
+* Several bodies (``Model.from_bodies``): ``youngs_modulus``, ``poisson_ratio`` and ``density``
+  are arrays, one per body; ``element_stiffness_scale`` numbers the elements body after body.
 
-Not supported (a clear ``NotImplementedError``): boxes and mesh colliders, friction on spheres, a default (E- and mass-dependent) barrier stiffness,
-rotating planes; stiffness-proportional damping (K(x_n) is SPD-projected at the step's start: its
-derivative in x_n would need third derivatives), other simulators (stiffness warping, reduced).
-Fixed sets, loads and material must stay as they were during a recording.
+**Kept factorisations.** With the direct solver, each recorded step keeps the factorisation of its
+last Newton iteration's matrix (``DirectSolver.keep_factor``: a PARDISO factor slot of the same
+symbolic analysis, or the SuperLU / QDLDL factor object) within ``factor_budget`` bytes for all
+steps together (default :data:`DEFAULT_FACTOR_BUDGET`, 1 GiB; 0 keeps none); its reverse pass
+refines against the exact H with it instead of factorising again. Steps beyond the budget refine
+on the solver's current factorisation or prepare it on H. ``Recording.release()`` frees them.
+
+Not supported (a clear ``NotImplementedError``): a default (E- and mass-dependent) barrier
+stiffness; surface contact (bodies against each other, self contact); stiffness-proportional
+damping (K(x_n) is SPD-projected at the step's start: its derivative in x_n would need third
+derivatives), other simulators (stiffness warping, reduced). Fixed sets, loads and material must
+stay as they were during a recording.
 
 All vector algebra of the reverse pass is on the host in float64 (numpy); the device does the
 Hessian assembly, the force and stress kernels and the linear solves.
@@ -110,7 +122,8 @@ def check_differentiable(sim):
                                           "stiffness explicitly (the default follows E and the mass)")
     if getattr(sim, "surface_contact", None) is not None:
         raise NotImplementedError("gradients through surface contact (set_contact: body-body and self-contact) are "
-                                  "not supported: differentiable contact is frictionless planes and spheres")
+                                  "not supported: differentiable contact is against colliders (plane, sphere, box, "
+                                  "mesh; docs/gradients.md)")
     if sim.damping_stiffness != 0.0:
         raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
                                   "supported: use damping_mass")
