@@ -90,6 +90,7 @@ class _Pardiso:
         self.free_slots = []
         self.kept = 0  # factors handed out (``detach``) and not released
         self.current = False  # whether the current slot holds a factorisation
+        self._ij = None  # (indptr, indices, their 1-based int32 copies) of the last matrix
 
     def _call(self, phase, A, b, mnum=None):
         """PARDISO through pypardiso's MKL handle, with our maxfct and slot (pypardiso passes 1, 1)."""
@@ -99,8 +100,10 @@ class _Pardiso:
         x = np.zeros_like(b)
         err = ctypes.c_int32(0)
         i32, f64 = ctypes.POINTER(ctypes.c_int32), ctypes.POINTER(ctypes.c_double)
-        ia = A.indptr.astype(np.int32) + 1  # 1-based
-        ja = A.indices.astype(np.int32) + 1
+        ij = self._ij
+        if ij is None or ij[0] is not A.indptr or ij[1] is not A.indices:  # 1-based index arrays, once per pattern
+            ij = self._ij = (A.indptr, A.indices, A.indptr.astype(np.int32) + 1, A.indices.astype(np.int32) + 1)
+        ia, ja = ij[2], ij[3]
         c = ctypes.c_int32
         ps._mkl_pardiso(ps.pt.ctypes.data_as(ctypes.POINTER(ps._pt_type[0])), ctypes.byref(c(self.maxfct)),
                         ctypes.byref(c(self.mnum if mnum is None else mnum)), ctypes.byref(c(ps.mtype)),
