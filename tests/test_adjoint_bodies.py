@@ -2,6 +2,7 @@
 differences, float64, over 10 steps: a Tet4 beam and a Hex8 beam of different materials side by
 side (each clamped at x = 0, under gravity); Young's modulus, Poisson ratio and density of each
 body (one gradient per body), per-element stiffness (numbered body after body), initial positions.
+And frictionless surface contact between two bodies (the pairs' exact Hessian in H).
 """
 
 from __future__ import annotations
@@ -75,11 +76,72 @@ def test_several_bodies_gradients_match_central_differences(integrator):
     assert max(errors.values()) <= 1e-5, errors
 
 
-def test_surface_contact_gradients_are_refused_with_a_reason():
+def test_surface_contact_with_friction_or_a_default_stiffness_is_refused_with_a_reason():
     bodies = [wf.Body(TET, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0), name="tet"),
               wf.Body(HEX, wf.Corotated(youngs_modulus=3e5, poisson_ratio=0.2, density=600.0), name="hex",
                       offset=OFFSET)]
     sim = wf.Simulator(wf.Model.from_bodies(bodies), dt=0.01, linear_solver="direct")
     sim.set_contact(bodies=True)
-    with pytest.raises(NotImplementedError, match="surface contact"):
+    with pytest.raises(NotImplementedError, match="surface contact: give set_contact a stiffness"):
         Recording(sim)
+    sim.set_contact(bodies=True, stiffness=1e5, friction=0.3)
+    with pytest.raises(NotImplementedError, match="surface contact with friction"):
+        Recording(sim)
+
+
+def _stacked(E=1e5, dv=None, dforce=None, grads=False):
+    """A Tet4 beam pushed (0.5 N per vertex, gravity) onto a clamped Hex8 block 9 mm below it,
+    frictionless surface contact (kappa 1e5 N/m^3, dhat 1 cm): point-triangle and edge-edge pairs
+    within dhat in every step (asserted)."""
+    top = wf.box_tet_mesh(size=(0.2, 0.05, 0.05), cells=(2, 1, 1))
+    base = wf.box_hex_mesh(size=(0.3, 0.1, 0.05), cells=(2, 1, 1))
+    bodies = [wf.Body(top, wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=0.3, density=1000.0), name="top"),
+              wf.Body(base, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0), name="base",
+                      offset=(-0.05, -0.025, -0.059))]
+    model = wf.Model.from_bodies(bodies, gravity=(0.0, 0.0, -9.81))
+    n0 = top.num_vertices
+    model.forces[:n0] = (0.0, 0.0, -0.5)
+    if dforce is not None:
+        model.forces[:] += dforce
+    model.fix(np.flatnonzero(model.rest_positions[:, 2] < -0.1))
+    sim = wf.Simulator(model, dt=0.01, integrator="backward_euler", linear_solver="direct",
+                       linear_solver_options={"backend": "superlu"}, tol=1e-12, max_iters=300)
+    sc = sim.set_contact(bodies=True, dhat=0.01, stiffness=1e5)
+    v = np.zeros((sim.num_vertices, 3))
+    v[:n0] = (0.1, 0.0, -0.3)
+    sim.set_velocities(v if dv is None else v + dv)
+    xs, near = [sim.positions()], []
+    rec = Recording(sim)
+    with rec if grads else _Null():
+        for _ in range(STEPS):
+            assert sim.step().converged
+            xs.append(sim.positions())
+            near.append(int(np.sum(sc.distances() < 0.01)))
+    w = np.random.default_rng(2).standard_normal((STEPS + 1, sim.num_vertices, 3))
+    loss = float(sum(np.sum(a * x) for a, x in zip(w, xs)))
+    if not grads:
+        return loss
+    assert min(near) >= 10, near  # pairs within dhat in every step
+    return loss, rec.backward({k: w[k] for k in range(STEPS + 1)}), sim.num_vertices
+
+
+class _Null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *a):
+        pass
+
+
+def test_frictionless_surface_contact_gradients_match_central_differences():
+    _, g, n = _stacked(grads=True)
+    D = np.random.default_rng(4).standard_normal((n, 3))
+    checks = {"youngs_modulus[top]": (float(g["youngs_modulus"][0]), lambda h: _stacked(E=1e5 + h), 10.0),
+              "initial_velocities": (float(np.sum(g["initial_velocities"] * D)), lambda h: _stacked(dv=h * D), 1e-6),
+              "forces": (float(np.sum(g["forces"] * D)), lambda h: _stacked(dforce=h * D), 1e-4)}
+    errors = {}
+    for name, (an, f, h) in checks.items():
+        fd = (f(h) - f(-h)) / (2 * h)
+        errors[name] = abs(an - fd) / abs(fd)
+    print({k: f"{e:.1e}" for k, e in errors.items()})
+    assert max(errors.values()) <= 1e-5, errors

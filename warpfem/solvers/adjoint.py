@@ -120,10 +120,14 @@ def check_differentiable(sim):
             if c.stiffness is None:
                 raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): set its "
                                           "stiffness explicitly (the default follows E and the mass)")
-    if getattr(sim, "surface_contact", None) is not None:
-        raise NotImplementedError("gradients through surface contact (set_contact: body-body and self-contact) are "
-                                  "not supported: differentiable contact is against colliders (plane, sphere, box, "
-                                  "mesh; docs/gradients.md)")
+    sc = getattr(sim, "surface_contact", None)
+    if sc is not None:
+        if sc.friction != 0.0:
+            raise NotImplementedError("gradients through surface contact with friction (set_contact(friction=...)) are "
+                                      "not supported: frictionless surface contact and colliders with friction are")
+        if sc.kappa == sc.default_stiffness(sc.dhat):
+            raise NotImplementedError("gradients through surface contact: give set_contact a stiffness (the default "
+                                      "follows E and the mass)")
     if sim.damping_stiffness != 0.0:
         raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
                                   "supported: use damping_mass")
@@ -209,6 +213,14 @@ class StepRecord:
 
 def _host(a):
     return a.numpy().astype(np.float64)
+
+
+def _surface_kernels(sc):
+    """``warpfem.contact.surface_kernels`` through the surface contact's own module (warpfem.contact
+    imports warpfem.solvers, so an import from here would close a cycle of the layers' units)."""
+    import sys
+
+    return sys.modules[type(sc).__module__].SK
 
 
 class StepAdjoint:
@@ -373,6 +385,12 @@ class StepAdjoint:
         finally:
             sim.options.project_hessian = old
         return xd
+
+    def _follow_pattern(self):
+        """The block arrays on the simulator's current pattern (surface contact may have grown it)."""
+        pat = self.sim.pattern
+        if self._K.shape[0] != pat.nnz:
+            self._K, self._H = pat.new_values(), pat.new_values()
 
     def _mv(self, values, a_host):
         """values @ a (device block matrix, host vectors)."""
@@ -594,8 +612,14 @@ class StepAdjoint:
             ybar = ybar + hbar["a"] / s  # a_{n+1} = (y - v_hat) / s
             vhat_bar -= hbar["a"] / s
         # the implicit solve: H lambda = ybar on the free components
+        sc = getattr(sim, "surface_contact", None)
+        if sc is not None:  # its candidate pairs at x_{n+1} (the pattern may grow for them)
+            sc.update_pairs(self._upload(self._dev[5], rec.x_next))
+            self._follow_pattern()
         x_dev = self._assemble_K(rec.x_next)
         planes = self._add_contact_hessian(rec)
+        if sc is not None:  # the exact (unprojected) Hessian of every pair's barrier at x_{n+1}
+            sc.run(_surface_kernels(sc).MODE_HESSIAN_UNPROJECTED, x_dev, scale=1.0, values=self._K)
         cm, ck = 1.0 + s * alpha, s * s
         Hc = self._host_H(self._K, cm, ck)
 
