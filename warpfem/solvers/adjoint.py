@@ -66,8 +66,12 @@ steps together (default :data:`DEFAULT_FACTOR_BUDGET`, 1 GiB; 0 keeps none); its
 refines against the exact H with it instead of factorising again. Steps beyond the budget refine
 on the solver's current factorisation or prepare it on H. ``Recording.release()`` frees them.
 
+**Surface contact** (``set_contact``: bodies against each other, self contact), frictionless:
+the candidate pairs at x_{n+1} and every pair's exact barrier Hessian (the pair kernel's
+unprojected mode) enter H.
+
 Not supported (a clear ``NotImplementedError``): a default (E- and mass-dependent) barrier
-stiffness; surface contact (bodies against each other, self contact); stiffness-proportional
+stiffness (colliders and surface contact); friction in surface contact; stiffness-proportional
 damping (K(x_n) is SPD-projected at the step's start: its derivative in x_n would need third
 derivatives), other simulators (stiffness warping, reduced). Fixed sets, loads and material must
 stay as they were during a recording.
