@@ -38,7 +38,8 @@ def test_kept_factorisations_give_the_same_gradients_without_refactorising(backe
     sim0, rec0 = record(backend, 0)
     ref = rec0.backward(xg)
     assert all(r.factor is None for r in rec0.records)
-    assert rec0.adjoint.kept_solves == 0 and rec0.adjoint.prepares >= 1  # refinement on the last factorisation, refactorising when slow
+    # refinement on the last factorisation, refactorising when it contracts slowly
+    assert rec0.adjoint.kept_solves == 0 and rec0.adjoint.prepares >= 1
 
     sim, rec = record(backend, None)  # the default budget (1 GiB) holds them all
     kept = [r.factor is not None for r in rec.records]

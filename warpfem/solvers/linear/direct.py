@@ -92,7 +92,7 @@ class _Pardiso:
         self.current = False  # whether the current slot holds a factorisation
         self._ij = None  # (indptr, indices, their 1-based int32 copies) of the last matrix
 
-    def _call(self, phase, A, b, mnum=None):
+    def call(self, phase, A, b, mnum=None):
         """PARDISO through pypardiso's MKL handle, with our maxfct and slot (pypardiso passes 1, 1)."""
         import ctypes
 
@@ -105,7 +105,8 @@ class _Pardiso:
             ij = self._ij = (A.indptr, A.indices, A.indptr.astype(np.int32) + 1, A.indices.astype(np.int32) + 1)
         ia, ja = ij[2], ij[3]
         c = ctypes.c_int32
-        ps._mkl_pardiso(ps.pt.ctypes.data_as(ctypes.POINTER(ps._pt_type[0])), ctypes.byref(c(self.maxfct)),
+        handle = ps.pt.ctypes.data_as(ctypes.POINTER(np.ctypeslib.as_ctypes_type(ps.pt.dtype)))
+        ps._mkl_pardiso(handle, ctypes.byref(c(self.maxfct)),
                         ctypes.byref(c(self.mnum if mnum is None else mnum)), ctypes.byref(c(ps.mtype)),
                         ctypes.byref(c(phase)), ctypes.byref(c(A.shape[0])), A.data.ctypes.data_as(f64),
                         ia.ctypes.data_as(i32), ja.ctypes.data_as(i32), ps.perm.ctypes.data_as(i32),
@@ -120,16 +121,16 @@ class _Pardiso:
     def factor(self, A):
         z = np.zeros((A.shape[0], 1))
         if not self.analysed:
-            self._call(11, A, z)
+            self.call(11, A, z)
             self.analysed = True
             self.symbolic_count += 1
         self.current = False
-        self._call(22, A, z)
+        self.call(22, A, z)
         self.A = A
         self.current = True
 
     def solve(self, b):
-        return self._call(33, self.A, np.asfortranarray(b.reshape(-1, 1))).ravel()
+        return self.call(33, self.A, np.asfortranarray(b.reshape(-1, 1))).ravel()
 
     def factor_nbytes(self) -> int:
         """Bytes of one numeric factor (its nonzeros in float64; the analysis is shared)."""
@@ -157,16 +158,16 @@ class _Pardiso:
         analysis: with none handed out, everything is released and analysed again on the next
         factorisation)."""
         if self.analysed and not self.kept and self.maxfct < capacity + 1:
-            self._call(-1, self.A, np.zeros(0))
+            self.call(-1, self.A, np.zeros(0))
             self.maxfct = int(capacity) + 1
             self.free_slots = list(range(self.maxfct, 1, -1))
             self.mnum = 1
             self.analysed = False
             self.current = False
 
-    def _release_slot(self, mnum):
+    def release_slot(self, mnum):
         try:
-            self._call(0, self.A, np.zeros(0), mnum=mnum)
+            self.call(0, self.A, np.zeros(0), mnum=mnum)
         except Exception:  # noqa: BLE001 - nothing to free (already released with everything)
             pass
         self.free_slots.append(mnum)
@@ -175,7 +176,7 @@ class _Pardiso:
     def __del__(self):  # release MKL's factorisation memory with the solver
         try:
             if self.analysed:
-                self._call(-1, self.A, np.zeros(0))
+                self.call(-1, self.A, np.zeros(0))
         except Exception:  # noqa: BLE001 - interpreter shutdown or a failed init; nothing to free
             pass
 
@@ -193,7 +194,7 @@ class _KeptFactor:
             raise RuntimeError("this kept factorisation was released")
         be = self.backend
         if isinstance(be, _Pardiso):
-            return be._call(33, self.A, np.asfortranarray(np.asarray(b, dtype=np.float64).reshape(-1, 1)),
+            return be.call(33, self.A, np.asfortranarray(np.asarray(b, dtype=np.float64).reshape(-1, 1)),
                             mnum=self.handle).ravel()
         return self.handle.solve(np.asarray(b, dtype=np.float64))
 
@@ -202,7 +203,7 @@ class _KeptFactor:
             return
         self.released = True
         if isinstance(self.backend, _Pardiso):
-            self.backend._release_slot(self.handle)
+            self.backend.release_slot(self.handle)
         self.handle = None
         self.A = None
 
