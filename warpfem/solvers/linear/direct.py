@@ -91,6 +91,7 @@ class _Pardiso:
         self.kept = 0  # factors handed out (``detach``) and not released
         self.current = False  # whether the current slot holds a factorisation
         self._ij = None  # (indptr, indices, their 1-based int32 copies) of the last matrix
+        self._zero_data = None
 
     def call(self, phase, A, b, mnum=None):
         """PARDISO through pypardiso's MKL handle, with our maxfct and slot (pypardiso passes 1, 1)."""
@@ -147,7 +148,13 @@ class _Pardiso:
             self.factor(A)
         if not self.free_slots:
             return None  # full, and growing would drop the factors handed out
-        kept = _KeptFactor(self, self.A, self.mnum, self.factor_nbytes())
+        # the solve phase reads the factor, not the matrix's values (no iterative refinement,
+        # iparm[7] = 0): the kept handle holds the shared structure and one zero array, not A
+        z = self._zero_data
+        if z is None or len(z) != len(self.A.data):
+            z = self._zero_data = np.zeros(len(self.A.data))
+        structure = _Structure(z, self.A.indptr, self.A.indices, self.A.shape)
+        kept = _KeptFactor(self, structure, self.mnum, self.factor_nbytes())
         self.mnum = self.free_slots.pop()
         self.kept += 1
         self.current = False
@@ -179,6 +186,13 @@ class _Pardiso:
                 self.call(-1, self.A, np.zeros(0))
         except Exception:  # noqa: BLE001 - interpreter shutdown or a failed init; nothing to free
             pass
+
+
+class _Structure:
+    """A CSR matrix's arrays as PARDISO's solve phase takes them (values unused there)."""
+
+    def __init__(self, data, indptr, indices, shape):
+        self.data, self.indptr, self.indices, self.shape = data, indptr, indices, shape
 
 
 class _KeptFactor:
