@@ -236,11 +236,16 @@ class StepAdjoint:
     parameter gradients into :attr:`grads` (``zero_grad()`` clears them).
 
     Args:
-        sim: a :class:`~warpfem.simulator.Simulator` (backward Euler, BDF2 or Newmark; no contact).
+        sim: a :class:`~warpfem.simulator.Simulator` (backward Euler, BDF2 or Newmark; colliders,
+            frictionless surface contact).
         params: parameter names to accumulate (default: all of :data:`PARAMETERS`); the per-element
             contraction is done only when ``element_stiffness_scale`` is asked for.
         tol: relative residual of the adjoint solve (default 1e-12 in float64, 1e-6 in float32).
         max_refinements: cap on refinement rounds of the adjoint solve.
+        factor_budget: bytes of direct-solver factorisations the recorded steps may keep for their
+            reverse pass, all steps together (default :data:`DEFAULT_FACTOR_BUDGET`, 1 GiB; 0: none,
+            each reverse step refines on the solver's last factorisation or refactorises; measured
+            in docs/gradients.md, "Cost").
     """
 
     def __init__(self, sim, params=None, *, tol=None, max_refinements=40, factor_budget=None):
@@ -756,7 +761,11 @@ class Recording:
     ``backward(x_grads, v_grads)`` takes the adjoints of the positions / velocities of the states
     0..N of the recording (dicts: state index -> (n, 3); state k is the one after k recorded
     steps) and returns the gradients by parameter name (:data:`PARAMETERS`; ``targets`` by step
-    index; ``initial_history`` the adjoint of the first state's integrator history)."""
+    index; ``initial_history`` the adjoint of the first state's integrator history).
+
+    With the direct solver each recorded step keeps its factorisation within ``factor_budget``
+    bytes (:class:`StepAdjoint`); ``backward`` may be called again (another loss) and reuses them;
+    :meth:`release` frees them."""
 
     def __init__(self, sim, params=None, *, tol=None, factor_budget=None):
         self.sim = sim
