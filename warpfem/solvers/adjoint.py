@@ -432,6 +432,9 @@ class StepAdjoint:
         _, src, H = self._csr_map
         if self._mass_gathered is None:
             self._mass_gathered = self.sim.mass_values.numpy().reshape(-1)[src].astype(np.float64)
+            # the same mass entries as a matrix: M lambda consistent with H's (K lambda is taken from
+            # their difference, divided by s^2)
+            self._Mc = scipy.sparse.csr_matrix((self._mass_gathered, H.indices, H.indptr), shape=H.shape)
         v = values.numpy().reshape(-1)[src].astype(np.float64, copy=False)
         v *= scale
         v += mass_scale * self._mass_gathered
@@ -645,7 +648,7 @@ class StepAdjoint:
         self._last_Hlam = None
         lam = self._solve(H, ybar, P, Hmv, getattr(rec, "factor", None))
         if np.any(lam):
-            M_lam = (self._M @ lam.reshape(-1)).reshape(n, 3)
+            M_lam = (self._Mc @ lam.reshape(-1)).reshape(n, 3)  # the mass blocks of H (as the forward's)
             H_lam = Hmv(lam) if self._last_Hlam is None else self._last_Hlam  # the refinement's last product
             K_lam = (H_lam - cm * M_lam) / ck
         else:
