@@ -26,10 +26,6 @@ import numpy as np
 H_CS = 1e-30  # the complex step
 
 
-def _skew(w):
-    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-
-
 def _dot(a, b):
     return np.sum(a * b, axis=-1)
 
