@@ -5,9 +5,11 @@ is stepped ``--steps`` times with a gradient recording (:class:`warpfem.solvers.
 then the reverse pass of a loss on every state's positions runs. Reported per linear solver
 (direct: the forward's factorisation reused by the refinement; pcg) and integrator: forward ms per
 step (with the recording, and without it in a second run), backward ms per step, their ratio,
-adjoint refinements and re-preparations per step, and host memory per recorded step.
+adjoint refinements and re-preparations per step, and host memory per recorded step (the vectors,
+and the factorisations the direct solver keeps for the reverse pass within ``--budgets`` MiB;
+0 = none kept, the reverse pass refines on the solver's last factorisation or refactorises).
 
-    .venv/bin/python kernels_bench/bench_adjoint.py [--steps 20] [--device cpu] [--tol 1e-8] [--json out.json]
+    .venv/bin/python kernels_bench/bench_adjoint.py [--steps 20] [--device cpu] [--tol 1e-8] [--budgets 1024 0] [--json out.json]
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ SCENE = os.path.join(ROOT, "examples", "scenes", "cantilever.toml")
 
 
 def measure(solver: str, integrator: str, steps: int, device: str, tol: float, dt: float = 1.0 / 48.0,
-            cells=None) -> dict:
+            cells=None, factor_budget=None) -> dict:
     import numpy as np
     import warp as wp
 
@@ -57,7 +59,7 @@ def measure(solver: str, integrator: str, steps: int, device: str, tol: float, d
     plain = (time.perf_counter() - t) / steps
     sim = make()
     sim.step()
-    rec = Recording(sim, params=("youngs_modulus", "poisson_ratio", "density", "forces"))
+    rec = Recording(sim, params=("youngs_modulus", "poisson_ratio", "density", "forces"), factor_budget=factor_budget)
     newton = 0
     t = time.perf_counter()
     with rec:
@@ -67,16 +69,21 @@ def measure(solver: str, integrator: str, steps: int, device: str, tol: float, d
     rng = np.random.default_rng(0)
     xg = {k: rng.standard_normal((sim.num_vertices, 3)) for k in range(steps + 1)}
     adj = rec.adjoint
-    r0, p0 = adj.refinements, adj.prepares
+    r0, p0, k0 = adj.refinements, adj.prepares, adj.kept_solves
     t = time.perf_counter()
     g = rec.backward(xg)
     bwd = (time.perf_counter() - t) / steps
     assert np.isfinite(g["youngs_modulus"])
+    kept_bytes = rec.factor_nbytes
+    rec.release()
     return {"solver": solver, "integrator": integrator, "steps": steps, "newton_tol": tol,
             "newton_iterations_per_step": newton / steps, "forward_ms": 1e3 * plain, "forward_recorded_ms": 1e3 * fwd,
             "backward_ms": 1e3 * bwd, "ratio": bwd / fwd, "ratio_to_plain": bwd / plain,
             "refinements_per_step": (adj.refinements - r0) / steps, "prepares_per_step": (adj.prepares - p0) / steps,
-            "bytes_per_step": rec.nbytes / steps, "vertices": sim.num_vertices, "dt": dt}
+            "bytes_per_step": rec.nbytes / steps, "factor_bytes_per_step": kept_bytes / steps,
+            "kept_solves_per_step": (adj.kept_solves - k0) / steps,
+            "factor_budget": adj.factor_budget if solver == "direct" else None,
+            "backend": getattr(sim.linear_solver, "backend_name", None), "vertices": sim.num_vertices, "dt": dt}
 
 
 def main(argv=None):
@@ -88,20 +95,29 @@ def main(argv=None):
     ap.add_argument("--integrators", nargs="+", default=["backward_euler", "bdf2", "newmark"])
     ap.add_argument("--dt", type=float, default=1.0 / 48.0, help="time step (s); the scene's is 1/48")
     ap.add_argument("--cells", nargs=3, type=int, help="mesh cells of the cantilever (default the scene's 20 2 2)")
+    ap.add_argument("--budgets", nargs="+", type=float, default=[1024.0, 0.0],
+                    help="factor_budget values (MiB) to measure with the direct solver (0: refactorise)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
-    rows = [measure(s, i, args.steps, args.device, args.tol, args.dt, args.cells) for s in args.solvers
-            for i in args.integrators]
+    rows = []
+    for s in args.solvers:
+        for i in args.integrators:
+            for b in (args.budgets if s == "direct" else [0.0]):
+                rows.append(measure(s, i, args.steps, args.device, args.tol, args.dt, args.cells,
+                                    factor_budget=int(b * 2**20)))
     machine = f"{platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}"
     r0 = rows[0]
     print(f"cantilever ({r0['vertices']} vertices), {args.steps} steps of {args.dt:.4g} s, Newton tol {args.tol:g}, device {args.device} ({machine})")
-    print("| solver | integrator | Newton it./step | forward ms/step (recorded / plain) | backward ms/step | "
-          "backward / forward | refinements / prepares per step | KiB per recorded step |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| solver | factor_budget MiB | integrator | Newton it./step | forward ms/step (recorded / plain) | "
+          "backward ms/step | backward / forward | kept solves / refinements / prepares per step | "
+          "KiB per recorded step (vectors + factor) |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['solver']} | {r['integrator']} | {r['newton_iterations_per_step']:.1f} | "
-              f"{r['forward_recorded_ms']:.1f} / {r['forward_ms']:.1f} | {r['backward_ms']:.1f} | {r['ratio']:.2f} | "
-              f"{r['refinements_per_step']:.1f} / {r['prepares_per_step']:.2f} | {r['bytes_per_step'] / 1024:.1f} |")
+        fb = "-" if r["factor_budget"] is None else f"{r['factor_budget'] / 2**20:g}"
+        print(f"| {r['solver']} | {fb} | {r['integrator']} | {r['newton_iterations_per_step']:.1f} | "
+              f"{r['forward_recorded_ms']:.1f} / {r['forward_ms']:.1f} | {r['backward_ms']:.2f} | {r['ratio']:.3f} | "
+              f"{r['kept_solves_per_step']:.2f} / {r['refinements_per_step']:.1f} / {r['prepares_per_step']:.2f} | "
+              f"{r['bytes_per_step'] / 1024:.1f} + {r['factor_bytes_per_step'] / 1024:.1f} |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"machine": machine, "device": args.device, "rows": rows}, f, indent=2)

@@ -17,7 +17,7 @@ import warp as wp
 
 import warpfem as wf
 from warpfem.solvers.state import Control
-from warpfem.solvers.adjoint import Recording, set_element_stiffness_scale
+from warpfem.solvers.adjoint import Recording, set_element_stiffness_scale, set_material_parameters
 
 STEPS = 10
 MESH = wf.box_tet_mesh(size=(0.2, 0.1, 0.1), cells=(2, 1, 1))
@@ -147,20 +147,17 @@ def test_unsupported_runs_say_so():
     sim.add_collider(type="plane", point=(0.0, 0.0, -0.5), normal=(0.0, 0.0, 1.0))
     with pytest.raises(NotImplementedError, match="set its stiffness explicitly"):
         Recording(sim)
-    sim = wf.Simulator(model, dt=0.01, linear_solver="pcg")
-    sim.add_collider(type="box", box_min=(-1.0, -1.0, -2.0), box_max=(1.0, 1.0, -1.0), stiffness=1e4)
-    with pytest.raises(NotImplementedError, match="only planes and spheres"):
-        Recording(sim)
-    sim = wf.Simulator(model, dt=0.01, linear_solver="pcg")
-    sim.add_collider(type="sphere", center=(0.0, 0.0, -1.0), radius=0.5, stiffness=1e4, friction=0.3)
-    with pytest.raises(NotImplementedError, match="friction is supported on planes only"):
-        Recording(sim)
+    sim = wf.Simulator(model, dt=0.01, linear_solver="pcg")  # boxes, meshes and friction on every collider are
+    sim.add_collider(type="box", box_min=(-1.0, -1.0, -2.0), box_max=(1.0, 1.0, -1.0), stiffness=1e4, friction=0.3)
+    Recording(sim)  # differentiable (tests/test_adjoint_colliders.py)
     with pytest.raises(ValueError, match="unknown parameter"):
         Recording(wf.Simulator(model, dt=0.01, linear_solver="pcg"), params=["youngs"])
     mat = wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
     two = wf.Model.from_bodies([wf.Body(MESH, mat, name="a"), wf.Body(MESH, mat, name="b", offset=(5.0, 0.0, 0.0))])
-    with pytest.raises(NotImplementedError, match="model of 2 bodies"):
-        Recording(wf.Simulator(two, dt=0.01, linear_solver="pcg"))
+    sim2 = wf.Simulator(two, dt=0.01, linear_solver="pcg")
+    Recording(sim2)  # several bodies are differentiable (tests/test_adjoint_bodies.py), their materials
+    with pytest.raises(NotImplementedError, match="model of 2 bodies"):  # are not changed in place
+        set_material_parameters(sim2, youngs_modulus=2e5)
 
 
 def test_reduced_runs_say_gradients_are_not_supported():

@@ -20,7 +20,9 @@ ALLOWED = {
     ("kernels/generic.py", "kernel._add_normalized_overload"): (2, "Warp's overload lookup: no public API; "
                                                                    "guarded, falls back to the plain launch"),
     ("kernels/generic.py", "cmd.kernel._invoke_cache"): (1, "Warp's CPU entry-point cache (version-pinned direct call)"),
-    ("solvers/linear/direct.py", "self.ps._call_pardiso"): (1, "pypardiso has no public call for a chosen phase"),
+    ("solvers/linear/direct.py", "ps._mkl_pardiso"): (1, "pypardiso's MKL entry point: its _call_pardiso passes "
+                                                         "maxfct = mnum = 1, the kept factorisations need PARDISO's "
+                                                         "factor slots (and a chosen phase has no public call)"),
     ("solvers/adjoint.py", "wp._src"): (1, "Warp's runtime holds the active wp.Tape: no public call says whether a "
                                            "tape records or pauses it (steps on a tape record their own backward)"),
     ("tradeoff/cluster.py", "os._exit"): (1, "the standard library's exit without clean-up (a public function)"),

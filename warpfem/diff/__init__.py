@@ -18,7 +18,8 @@ Gradients (keys of :attr:`DiffResult.gradients`): ``youngs_modulus``, ``poisson_
 ``density`` (scalars), ``element_stiffness_scale`` (m,), ``forces`` (n, 3: the model's constant
 applied forces), ``gravity`` (3,), ``initial_positions`` / ``initial_velocities`` (n, 3),
 ``targets`` ({step: {vertex: (3,)}}: the kinematic handles' targets of each step),
-``collider_translations`` ({step: {collider: (3,)}}: frictionless planes and spheres).
+``collider_translations`` / ``collider_rotations`` ({step: {collider: (3,)}}: the poses of planes,
+spheres, boxes and meshes), ``collider_friction`` ({collider: mu}).
 """
 
 from __future__ import annotations
@@ -219,7 +220,10 @@ def _record_and_differentiate(sim, F, obs, vertices, frames, wanted, advance):
     t1 = time.perf_counter()
     positions = np.asarray(positions)
     loss, xg = positions_loss(positions, obs, vertices, frames)
-    grads = rec.backward({steps_at[f]: g for f, g in xg.items()})
+    try:
+        grads = rec.backward({steps_at[f]: g for f, g in xg.items()})
+    finally:
+        rec.release()  # the factorisations the steps kept for this reverse pass
     t2 = time.perf_counter()
     return DiffResult(loss=loss, gradients=grads, positions=positions, steps=rec.steps, recorded_bytes=rec.nbytes,
                       newton_iterations=newton, seconds_forward=t1 - t0, seconds_backward=t2 - t1)

@@ -46,19 +46,35 @@ function theorem holds at the solution, not at an early-stopped iterate.
 * ``initial_positions``, ``initial_velocities`` (n, 3): the state the recording started from (and
   the integrator's history of that state, ``initial_history``).
 * ``targets``: {step index: {vertex: (3,)}}, the kinematic targets of fixed vertices (control).
-* ``collider_translations``: {step index: {collider name: (3,)}}, the translation of each
-  collider's pose at the end of that step (key -1: at the recording's start; planes and spheres
-  with an explicit stiffness: the barrier's exact Hessian, curvature term included, enters H, and
-  d(grad E_c)/d(translation) = -that Hessian);
-* ``collider_friction``: {collider name: float}, the Coulomb coefficient of each plane. Friction
-  (planes) is lagged from the step's start: D = mu lam_n f0(|u|), u = P (x - x_n - w) with
-  lam_n = -kappa b'(d(x_n)) and w the plane's motion over the step, so its adjoint adds its exact
-  Hessian to H and terms in x_n, both poses and mu.
+* ``collider_translations``, ``collider_rotations``: {step index: {collider name: (3,)}}, a
+  translation and an axis-angle rotation (radians, about the collider's current centre) applied to
+  each collider's pose at the end of that step (key -1: at the recording's start); every collider
+  type (plane, sphere, box, mesh) with an explicit stiffness, moving or not. The contact terms
+  (barrier with its curvature term, lagged friction) enter H and the parameter, x_n and pose
+  derivatives through :mod:`warpfem.solvers.adjoint_contact` (complex-step derivatives of the
+  host contact gradient, exact to round-off);
+* ``collider_friction``: {collider name: float}, the Coulomb coefficient of each collider with
+  friction (lagged from the step's start: D = mu lam_n f0(|u|), u = P (x - x_n - w), lam_n and P
+  from x_n in the end pose, w the collider's motion of the point over the step).
+* Several bodies (``Model.from_bodies``): ``youngs_modulus``, ``poisson_ratio`` and ``density``
+  are arrays, one per body; ``element_stiffness_scale`` numbers the elements body after body.
 
-Not supported (a clear ``NotImplementedError``): boxes and mesh colliders, friction on spheres, a default (E- and mass-dependent) barrier stiffness,
-rotating planes; stiffness-proportional damping (K(x_n) is SPD-projected at the step's start: its
-derivative in x_n would need third derivatives), other simulators (stiffness warping, reduced).
-Fixed sets, loads and material must stay as they were during a recording.
+**Kept factorisations.** With the direct solver, each recorded step keeps the factorisation of its
+last Newton iteration's matrix (``DirectSolver.keep_factor``: a PARDISO factor slot of the same
+symbolic analysis, or the SuperLU / QDLDL factor object) within ``factor_budget`` bytes for all
+steps together (default :data:`DEFAULT_FACTOR_BUDGET`, 1 GiB; 0 keeps none); its reverse pass
+refines against the exact H with it instead of factorising again. Steps beyond the budget refine
+on the solver's current factorisation or prepare it on H. ``Recording.release()`` frees them.
+
+**Surface contact** (``set_contact``: bodies against each other, self contact), frictionless:
+the candidate pairs at x_{n+1} and every pair's exact barrier Hessian (the pair kernel's
+unprojected mode) enter H.
+
+Not supported (a clear ``NotImplementedError``): a default (E- and mass-dependent) barrier
+stiffness (colliders and surface contact); friction in surface contact; stiffness-proportional
+damping (K(x_n) is SPD-projected at the step's start: its derivative in x_n would need third
+derivatives), other simulators (stiffness warping, reduced). Fixed sets, loads and material must
+stay as they were during a recording.
 
 All vector algebra of the reverse pass is on the host in float64 (numpy); the device does the
 Hessian assembly, the force and stress kernels and the linear solves.
@@ -73,6 +89,7 @@ from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.kernels.structs import material_params
+from warpfem.solvers.adjoint_contact import collider_terms
 
 __all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
            "set_material_parameters", "set_density", "material_set_parameters", "check_differentiable", "Recording",
@@ -80,9 +97,14 @@ __all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_eleme
 
 #: the parameter names the adjoint can differentiate
 PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_scale", "forces", "gravity",
-              "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_friction")
+              "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_rotations",
+              "collider_friction")
 
 _KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
+
+#: default memory for the factorisations that recorded steps keep for their reverse pass (direct
+#: solver; docs/gradients.md, "Cost"): 1 GiB
+DEFAULT_FACTOR_BUDGET = 1 << 30
 
 
 class AdjointError(RuntimeError):
@@ -99,23 +121,20 @@ def check_differentiable(sim):
     contact = getattr(sim, "contact", None)
     if contact is not None and len(contact):
         for c in contact.colliders:
-            why = ("only planes and spheres are supported" if getattr(c, "type_name", "") not in ("plane", "sphere") else
-                   "friction is supported on planes only" if (c.friction != 0.0 and c.type_name != "plane") else
-                   "set its stiffness explicitly (the default follows E and the mass)" if c.stiffness is None else
-                   "rotating colliders are not supported" if (c.rotation_axis is not None and c.rotation_angle != 0.0)
-                   else "")
-            if why:
-                raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): {why}; "
-                                          "differentiable contact is frictionless planes and spheres with a given stiffness")
-    if getattr(sim, "surface_contact", None) is not None:
-        raise NotImplementedError("gradients through surface contact (set_contact: body-body and self-contact) are "
-                                  "not supported: differentiable contact is frictionless planes and spheres")
+            if c.stiffness is None:
+                raise NotImplementedError(f"gradients with contact: collider {c.name!r} ({c.type_name}): set its "
+                                          "stiffness explicitly (the default follows E and the mass)")
+    sc = getattr(sim, "surface_contact", None)
+    if sc is not None:
+        if sc.friction != 0.0:
+            raise NotImplementedError("gradients through surface contact with friction (set_contact(friction=...)) are "
+                                      "not supported: frictionless surface contact and colliders with friction are")
+        if sc.kappa == sc.default_stiffness(sc.dhat):
+            raise NotImplementedError("gradients through surface contact: give set_contact a stiffness (the default "
+                                      "follows E and the mass)")
     if sim.damping_stiffness != 0.0:
         raise NotImplementedError("gradients with stiffness-proportional damping (damping_stiffness > 0) are not "
                                   "supported: use damping_mass")
-    if getattr(sim.model, "num_bodies", 1) > 1:
-        raise NotImplementedError(f"gradients of a model of {sim.model.num_bodies} bodies are not supported yet "
-                                  "(one body per model)")
 
 
 def material_set_parameters(material, E, nu, volumetric_integration="full", has_volumetric_set=False):
@@ -130,37 +149,39 @@ def material_set_parameters(material, E, nu, volumetric_integration="full", has_
     return [(m.kernel_mu, m.kernel_lam)]
 
 
-def _set_arrays(model, name, dtype=None):
-    """One quadrature-point array (``qp_weight``, ``qp_element``, ``qp_dNdX``) of each point set of
-    ``model``'s body: the main rule, then the volumetric rule of selective reduced integration."""
-    qd = model.quadrature
-    sets = [qd] + ([qd.volumetric] if getattr(qd, "volumetric", None) is not None else [])
-    return [np.asarray(getattr(q, name), dtype=dtype) for q in sets]
+def _point_sets(model):
+    """The quadrature-point sets of ``model`` in the simulator's order (``Simulator.quadrature_sets``):
+    per body its main rule, then the volumetric rule of selective reduced integration. Each a dict:
+    ``body``, ``element`` (the point's element, numbered over every body), ``weight``, ``dNdX``
+    (float64), ``conn`` (the body's connectivity, global vertex indices)."""
+    quads = list(getattr(model, "quadratures", None) or [model.quadrature])
+    out, e0 = [], 0
+    for b, qd in enumerate(quads):
+        conn = np.asarray(qd.elements).reshape(-1, qd.nodes_per_element)
+        for q in [qd] + ([qd.volumetric] if getattr(qd, "volumetric", None) is not None else []):
+            out.append({"body": b, "element": np.asarray(q.qp_element, dtype=np.int64) + e0,
+                        "weight": np.asarray(q.qp_weight, dtype=np.float64),
+                        "dNdX": np.asarray(q.qp_dNdX, dtype=np.float64), "conn": conn, "e0": e0})
+        e0 += conn.shape[0]
+    return out
 
 
-def _base_weights(model):
-    return _set_arrays(model, "qp_weight", np.float64)
-
-
-def _set_elements(model):
-    return _set_arrays(model, "qp_element")
-
-
-def _set_dNdX(model):
-    return _set_arrays(model, "qp_dNdX", np.float64)
+def _body_materials(model):
+    return list(getattr(model, "materials", None) or [model.material])
 
 
 def set_element_stiffness_scale(sim, scale):
     """Scale the elastic energy of element e by ``scale[e]`` (> 0; an element-wise Young's modulus
     factor) in every later step of ``sim``: the quadrature weights of the element kernels become
-    w_q scale[e(q)] (the mass is not changed). ``None`` restores 1."""
+    w_q scale[e(q)] (the mass is not changed). ``None`` restores 1. With several bodies the
+    elements are numbered body after body."""
     m = sim.model.mesh.num_elements
     c = np.ones(m) if scale is None else np.asarray(scale, dtype=np.float64).reshape(-1)
     if c.shape != (m,) or not np.all(np.isfinite(c)) or np.any(c <= 0):
         raise ValueError(f"element_stiffness_scale must be {m} finite positive numbers (one per element), "
                          f"got shape {np.shape(scale)}")
-    for qs, w0, el in zip(sim.quadrature_sets, _base_weights(sim.model), _set_elements(sim.model)):
-        qs.points.weight.assign((w0 * c[el]).astype(sim.numpy_dtype))
+    for qs, ps in zip(sim.quadrature_sets, _point_sets(sim.model)):
+        qs.points.weight.assign((ps["weight"] * c[ps["element"]]).astype(sim.numpy_dtype))
     sim.element_stiffness_scale = c
 
 
@@ -176,6 +197,17 @@ class StepRecord:
         self.targets = {int(i): np.array(p, dtype=np.float64) for i, p in targets.items()}
         self.load_scale = float(load_scale)
         self.y = self.x_next = self.v_hat = None
+        self.factor = None  # the direct solver's factorisation of the step's last Newton matrix, when kept
+
+    @property
+    def factor_nbytes(self) -> int:
+        return 0 if self.factor is None else int(self.factor.nbytes)
+
+    def release(self):
+        """Free the kept factorisation (the reverse pass then refactorises this step)."""
+        if self.factor is not None:
+            self.factor.release()
+            self.factor = None
 
     @property
     def nbytes(self) -> int:
@@ -187,6 +219,14 @@ def _host(a):
     return a.numpy().astype(np.float64)
 
 
+def _surface_kernels(sc):
+    """``warpfem.contact.surface_kernels`` through the surface contact's own module (warpfem.contact
+    imports warpfem.solvers, so an import from here would close a cycle of the layers' units)."""
+    import sys
+
+    return sys.modules[type(sc).__module__].SK
+
+
 class StepAdjoint:
     """The reverse pass of ``sim``'s steps (see the module docstring).
 
@@ -196,14 +236,19 @@ class StepAdjoint:
     parameter gradients into :attr:`grads` (``zero_grad()`` clears them).
 
     Args:
-        sim: a :class:`~warpfem.simulator.Simulator` (backward Euler, BDF2 or Newmark; no contact).
+        sim: a :class:`~warpfem.simulator.Simulator` (backward Euler, BDF2 or Newmark; colliders,
+            frictionless surface contact).
         params: parameter names to accumulate (default: all of :data:`PARAMETERS`); the per-element
             contraction is done only when ``element_stiffness_scale`` is asked for.
         tol: relative residual of the adjoint solve (default 1e-12 in float64, 1e-6 in float32).
         max_refinements: cap on refinement rounds of the adjoint solve.
+        factor_budget: bytes of direct-solver factorisations the recorded steps may keep for their
+            reverse pass, all steps together (default :data:`DEFAULT_FACTOR_BUDGET`, 1 GiB; 0: none,
+            each reverse step refines on the solver's last factorisation or refactorises; measured
+            in docs/gradients.md, "Cost").
     """
 
-    def __init__(self, sim, params=None, *, tol=None, max_refinements=40):
+    def __init__(self, sim, params=None, *, tol=None, max_refinements=40, factor_budget=None):
         check_differentiable(sim)
         self.sim = sim
         params = PARAMETERS if params is None else tuple(params)
@@ -217,22 +262,31 @@ class StepAdjoint:
         self.n = n = sim.num_vertices
         self.kind_name = _KINDS[sim.integrator.name]
         self._M = sim.mass_matrix().tocsr()
-        rho = float(model.material.density)
-        self._rho = rho
-        self._fgrav_unit = (model.gravity_mass[:, None] * model.gravity[None, :]) / rho  # gravity per unit density
+        mats = _body_materials(model)
+        self._mats = mats
+        self.bodies = len(mats)
+        offs = np.asarray(getattr(model, "body_offsets", [0, n]), dtype=np.int64)
+        self._vertex_body = np.repeat(np.arange(self.bodies), np.diff(offs))
+        self._rho_v = np.array([float(m.density) for m in mats])[self._vertex_body]  # density of each vertex
+        # gravity per unit density (each vertex's body's)
+        self._fgrav_unit = (model.gravity_mass[:, None] * model.gravity[None, :]) / self._rho_v[:, None]
         self._fext = model.external_forces()
         self._sets = sim.quadrature_sets
-        mat = model.material
-        self._kind = int(mat.kind)
         S = sim.scalar_type
-        self._unit = (material_params(S, self._kind, 1.0, 0.0), material_params(S, self._kind, 0.0, 1.0))
-        self._set_elem, self._set_dNdX, self._set_w0 = _set_elements(model), _set_dNdX(model), _base_weights(model)
-        self._conn = np.asarray(model.quadrature.elements).reshape(-1, model.quadrature.nodes_per_element)
+        self._psets = _point_sets(model)
+        self._unit = [(material_params(S, int(mats[ps["body"]].kind), 1.0, 0.0),
+                       material_params(S, int(mats[ps["body"]].kind), 0.0, 1.0)) for ps in self._psets]
         self._param_jac = self._material_jacobian()
         pat = sim.pattern
         self._K = pat.new_values()
         self._H = pat.new_values()
         self._dev = [sim.new_vector() for _ in range(6)]  # b, r, dl, lam, tmp, x
+        self._csr_map = None
+        self._mass_gathered = None
+        #: bytes of factorisations the direct solver may keep for the reverse pass (all recorded
+        #: steps together; beyond it a step's reverse pass refactorises)
+        self.factor_budget = int(DEFAULT_FACTOR_BUDGET if factor_budget is None else factor_budget)
+        self.kept_solves = 0  # adjoint solves done with a factorisation kept by the forward step
         self.solves = 0  # adjoint solves done
         self.refinements = 0  # refinement rounds (inner solves) done
         self.prepares = 0  # times the solver was prepared on the exact Hessian
@@ -241,36 +295,47 @@ class StepAdjoint:
 
     # -- parameters -------------------------------------------------------------------------------------
     def _material_jacobian(self):
-        """d(mu_s, lam_s)/d(E, nu) of every point set: (sets, 2 [mu, lam], 2 [E, nu])."""
-        model, mat = self.sim.model, self.sim.model.material
-        E, nu = float(mat.youngs_modulus), float(mat.poisson_ratio)
-        vi = getattr(model, "volumetric_integration", "full")
-        has_vol = len(self._sets) > 1
+        """d(mu_s, lam_s)/d(E_b, nu_b) of every point set s (of body b): (sets, 2 [mu, lam], 2 [E, nu])."""
+        model = self.sim.model
+        vis = getattr(model, "volumetric_integration", "full")
+        rows = []
+        for b, mat in enumerate(self._mats):
+            vi = vis[b] if isinstance(vis, (list, tuple)) else vis
+            has_vol = sum(ps["body"] == b for ps in self._psets) > 1
+            E, nu = float(mat.youngs_modulus), float(mat.poisson_ratio)
 
-        def f(E_, nu_):
-            return np.asarray(material_set_parameters(mat, E_, nu_, vi, has_vol), dtype=np.float64)
+            def f(E_, nu_):
+                return np.asarray(material_set_parameters(mat, E_, nu_, vi, has_vol), dtype=np.float64)
 
-        J = np.zeros((len(self._sets), 2, 2))
-        hE, hn = 1e-6 * E, 1e-6 * max(abs(nu), 0.1)
-        J[:, :, 0] = (f(E + hE, nu) - f(E - hE, nu)) / (2 * hE)
-        J[:, :, 1] = (f(E, nu + hn) - f(E, nu - hn)) / (2 * hn)
-        return J
+            hE, hn = 1e-6 * E, 1e-6 * max(abs(nu), 0.1)
+            J = np.zeros((2 if has_vol else 1, 2, 2))
+            J[:, :, 0] = (f(E + hE, nu) - f(E - hE, nu)) / (2 * hE)
+            J[:, :, 1] = (f(E, nu + hn) - f(E, nu - hn)) / (2 * hn)
+            rows.append(J)
+        return np.concatenate(rows)
 
     def zero_grad(self):
         """Clear the accumulated parameter gradients."""
         m = self.sim.model.mesh.num_elements
         self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
+        self._mass_gathered = None  # the mass's CSR entries (gathered again: set_density may have changed it)
         self._mulam_bar = np.zeros((len(self._sets), 2))
-        self.grads = {"density": 0.0, "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
-                      "targets": {}, "collider_translations": {}, "collider_friction": {}}
+        self.grads = {"density": np.zeros(self.bodies), "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
+                      "targets": {}, "collider_translations": {}, "collider_rotations": {}, "collider_friction": {}}
 
     def parameter_gradients(self) -> dict:
         """The accumulated gradients by parameter name (numpy; see the module docstring)."""
         g = dict(self.grads)
-        EN = np.einsum("sk,skp->p", self._mulam_bar, self._param_jac)
-        g["youngs_modulus"], g["poisson_ratio"] = float(EN[0]), float(EN[1])
+        EN = np.einsum("sk,skp->sp", self._mulam_bar, self._param_jac)  # per point set
+        body = np.array([ps["body"] for ps in self._psets])
+        EN = np.stack([EN[body == b].sum(axis=0) for b in range(self.bodies)])  # (bodies, 2)
         g["gravity"] = self.sim.model.gravity_mass @ g["forces"]
-        g["density"] = float(g["density"])
+        if self.bodies == 1:
+            g["youngs_modulus"], g["poisson_ratio"] = float(EN[0, 0]), float(EN[0, 1])
+            g["density"] = float(g["density"][0])
+        else:  # several bodies: one per body (Model.from_bodies order)
+            g["youngs_modulus"], g["poisson_ratio"] = EN[:, 0].copy(), EN[:, 1].copy()
+            g["density"] = np.array(g["density"], dtype=np.float64)
         return {k: v for k, v in g.items() if k in self.params or k in ("youngs_modulus", "poisson_ratio")}
 
     # -- recording ------------------------------------------------------------------------------------------
@@ -294,12 +359,20 @@ class StepAdjoint:
         rec = StepRecord(kind, dt, s, _host(state_in.x), _host(state_in.v), h, _host(self.sim.free_mask),
                          control.targets, control.load_scale)
         rec.t0 = float(state_in.time)
+        solver = self.sim.linear_solver
+        if self.factor_budget > 0 and hasattr(solver, "reserve_factors"):
+            solver.reserve_factors(self.factor_budget - solver.kept_bytes)
         return rec
 
     def record_after(self, rec: StepRecord, state_out):
         """Complete ``rec`` with the converged step written into ``state_out``."""
         rec.y = _host(state_out.v)
         rec.x_next = _host(state_out.x)
+        solver = self.sim.linear_solver
+        if self.factor_budget > 0 and hasattr(solver, "keep_factor"):
+            # the factorisation of the step's last Newton iteration, solved with in the reverse pass
+            # (refined against the exact Hessian) instead of factorising again
+            rec.factor = solver.keep_factor(self.factor_budget - solver.kept_bytes)
         if rec.kind.startswith("newmark"):
             rec.v_hat = rec.y - rec.s * _host(state_out.history["a"])  # a_{n+1} = (y - v_hat) / s
         return rec
@@ -322,6 +395,12 @@ class StepAdjoint:
             sim.options.project_hessian = old
         return xd
 
+    def _follow_pattern(self):
+        """The block arrays on the simulator's current pattern (surface contact may have grown it)."""
+        pat = self.sim.pattern
+        if self._K.shape[0] != pat.nnz:
+            self._K, self._H = pat.new_values(), pat.new_values()
+
     def _mv(self, values, a_host):
         """values @ a (device block matrix, host vectors)."""
         sim = self.sim
@@ -332,9 +411,65 @@ class StepAdjoint:
         launch(LK.bsr_mv_kernel, pt.num_rows, [pt.offsets, pt.columns, values, a, sim.scalar_type(1.0), out], sim.device)
         return _host(out)
 
-    def _solve(self, H, b_host, mask):
-        """lambda with (P H P + I - P) lambda = P b, to self.tol, by refinement on the solver's
-        prepared matrix (prepared on H when that contracts slowly)."""
+    def _host_H(self, values, mass_scale, scale):
+        """The float64 scalar CSR matrix (3n x 3n, full) of ``scale`` x the device block values
+        plus ``mass_scale`` x the mass blocks, in the current pattern. One matrix object is kept and
+        its data replaced (no construction per step); the mass's entries are gathered once per
+        reverse pass (:meth:`zero_grad`) and pattern."""
+        import scipy.sparse
+
+        pt = self.sim.pattern
+        if self._csr_map is None or self._csr_map[0] is not pt:
+            n = pt.num_rows
+            offsets = pt.offsets.numpy()[: n + 1].astype(np.int64)
+            idx = np.arange(9 * pt.nnz, dtype=np.float64).reshape(pt.nnz, 3, 3) + 1.0  # +1: no explicit zero
+            A = scipy.sparse.bsr_matrix((idx, pt.cols_np, offsets), shape=(3 * n, 3 * n)).tocsr()
+            A.sort_indices()
+            src = (A.data - 1.0).astype(np.int64)
+            H = scipy.sparse.csr_matrix((np.zeros(len(src)), A.indices.copy(), A.indptr.copy()), shape=A.shape)
+            self._csr_map = (pt, src, H)
+            self._mass_gathered = None
+        _, src, H = self._csr_map
+        if self._mass_gathered is None:
+            self._mass_gathered = self.sim.mass_values.numpy().reshape(-1)[src].astype(np.float64)
+            # the same mass entries as a matrix: M lambda consistent with H's (K lambda is taken from
+            # their difference, divided by s^2)
+            self._Mc = scipy.sparse.csr_matrix((self._mass_gathered, H.indices, H.indptr), shape=H.shape)
+        v = values.numpy().reshape(-1)[src].astype(np.float64, copy=False)
+        v *= scale
+        v += mass_scale * self._mass_gathered
+        H.data = v
+        return H
+
+    def _solve_kept(self, factor, Hmv, b, bn, mask):
+        """lambda by refinement against the exact H with a factorisation the forward step kept (of
+        its last Newton iteration's matrix); None when that contracts slowly (then the caller
+        prepares the solver on H)."""
+        lam = np.zeros_like(b)
+        r = b
+        prev = bn
+        for _ in range(self.max_refinements):
+            self.refinements += 1
+            d = factor.solve(r.reshape(-1)).reshape(-1, 3) * mask
+            if not np.all(np.isfinite(d)):
+                return None
+            lam = lam + d
+            Hl = Hmv(lam)
+            r = b - mask * Hl
+            rn = float(np.linalg.norm(r))
+            if rn <= self.tol * bn:
+                self.kept_solves += 1
+                self._last_Hlam = Hl
+                return lam
+            if not np.isfinite(rn) or rn > 0.2 * prev:
+                return None
+            prev = rn
+        return None
+
+    def _solve(self, H, b_host, mask, Hmv, factor=None):
+        """lambda with (P H P + I - P) lambda = P b, to self.tol, by refinement on a factorisation
+        the step kept (``factor``), or on the solver's prepared matrix (prepared on H when that
+        contracts slowly). ``H()`` gives the device values of H, ``Hmv(a)`` its host product."""
         sim = self.sim
         solver = sim.linear_solver
         b = mask * b_host
@@ -342,6 +477,11 @@ class StepAdjoint:
         if bn == 0.0:
             return np.zeros_like(b)
         self.solves += 1
+        if factor is not None:
+            lam = self._solve_kept(factor, Hmv, b, bn, mask)
+            if lam is not None:
+                return lam
+        H = H()
         mask_d = sim.free_mask
         rd, dl = self._dev[1], self._dev[2]
         direct = getattr(solver, "name", "") == "direct"
@@ -350,7 +490,7 @@ class StepAdjoint:
         inner = 0.5 if direct else 0.1 * self.tol
         maxiter = max(sim.options.max_cg_iters, 10 * sim.num_vertices)
         prepared = False
-        if not direct or not self._stale_ok:
+        if not direct or not self._stale_ok or not getattr(solver, "has_factor", True):
             solver.prepare(H, mask_d)
             self.prepares += 1
             prepared = True
@@ -374,7 +514,7 @@ class StepAdjoint:
                 prepared = True
                 continue
             lam_new = lam + d
-            r_new = b - mask * self._mv(H, lam_new)
+            r_new = b - mask * Hmv(lam_new)
             rn = float(np.linalg.norm(r_new))
             if rn < prev or not prepared:
                 lam, r = lam_new, r_new
@@ -390,7 +530,7 @@ class StepAdjoint:
             elif prepared and rn >= prev:
                 break
             prev = min(prev, rn)
-        rel = float(np.linalg.norm(b - mask * self._mv(H, lam)) / bn)
+        rel = float(np.linalg.norm(b - mask * Hmv(lam)) / bn)
         if rel <= max(100.0 * self.tol, 1e-9 if sim.precision == "float64" else 1e-4):
             return lam
         raise AdjointError(f"the adjoint solve did not converge (relative residual {rel:.2e} > {self.tol:.1e}); "
@@ -402,7 +542,7 @@ class StepAdjoint:
         f = self._dev[4]
         out = np.zeros((len(self._sets), 2))
         for i, qs in enumerate(self._sets):
-            for j, unit in enumerate(self._unit):
+            for j, unit in enumerate(self._unit[i]):
                 f.zero_()
                 launch(FK.qp_force_kernel, qs.count, [x_dev, qs.points, unit, sim.scalar_type(1.0), f], sim.device)
                 out[i, j] = -float(np.sum(_host(f) * w_host))  # the kernel adds -grad V
@@ -413,58 +553,35 @@ class StepAdjoint:
         sim = self.sim
         m = sim.model.mesh.num_elements
         out = np.zeros(m)
-        k = self._conn.shape[1]
-        for qs, el, dN, w0 in zip(self._sets, self._set_elem, self._set_dNdX, self._set_w0):
+        for qs, ps in zip(self._sets, self._psets):
             P = wp.zeros(qs.count, dtype=self._mat_type(), device=sim.device)
             launch(FK.qp_stress_kernel, qs.count, [x_dev, qs.points, qs.material, P], sim.device)
             Ph = P.numpy().astype(np.float64)
-            wn = w_host[self._conn[el]]  # (Q, k, 3)
-            G = np.einsum("qai,qaj->qij", wn, dN.reshape(-1, k, 3))
-            out += np.bincount(el, weights=w0 * np.einsum("qij,qij->q", Ph, G), minlength=m)
+            conn = ps["conn"]
+            k = conn.shape[1]
+            wn = w_host[conn[ps["element"] - ps["e0"]]]  # (Q, k, 3)
+            G = np.einsum("qai,qaj->qij", wn, ps["dNdX"].reshape(-1, k, 3))
+            out += np.bincount(ps["element"], weights=ps["weight"] * np.einsum("qij,qij->q", Ph, G), minlength=m)
         return out
 
     def _add_contact_hessian(self, rec):
-        """Add the barrier's exact Hessian of every collider at x_{n+1} (poses at the step's end)
-        into self._K; returns {collider name: (vertices in range, their 3x3 blocks)} or None.
-        Plane: kappa b''(d) n n^T (the distance is linear); sphere: plus kappa b'(d) (I - n n^T) / L,
-        the curvature term the forward's projected Hessian leaves out."""
+        """Add the exact Hessian of every collider's contact (barrier with its curvature term, lagged
+        friction) at x_{n+1} into self._K (diagonal blocks); returns [(collider, ColliderTerms)] of
+        the colliders in contact (``adjoint_contact``: complex-step derivatives) or None."""
         contact = getattr(self.sim, "contact", None)
         if contact is None or not len(contact):
             return None
         surf = np.asarray(contact.surface)
-        xs = rec.x_next[surf]
-        t1 = rec.t0 + rec.dt
-        out = {}
+        t0, t1 = rec.t0, rec.t0 + rec.dt
+        out = []
         blocks = np.zeros((self.n, 3, 3))
         for j, c in enumerate(contact.colliders):
-            R, trans = c.pose(t1)
-            p = np.einsum("ji,vj->vi", R, xs - trans)  # R^T (x - t): the collider's frame
-            if c.type_name == "plane":
-                d = (p - c.point) @ c.normal
-                nl = np.broadcast_to(c.normal, p.shape)
-                L = None
-            else:  # sphere (check_differentiable lets nothing else through)
-                r = p - c.center()
-                L = np.linalg.norm(r, axis=1)
-                d = L - c.radius
-                nl = r / np.where(L > 0, L, 1.0)[:, None]
-            dh, kappa = float(contact.dhat[j]), float(contact.kappa[j])
-            near = (d > 0.0) & (d < dh)
-            dd, n = d[near], nl[near] @ R.T
-            t = dd - dh
-            lg = np.log(dd / dh)
-            b1 = -2.0 * t * lg - t * t / dd
-            b2 = -2.0 * lg - 4.0 * t / dd + t * t / (dd * dd)
-            nn = np.einsum("vi,vj->vij", n, n)
-            B = (kappa * b2)[:, None, None] * nn
-            if L is not None:
-                B = B + (kappa * b1 / L[near])[:, None, None] * (np.eye(3)[None] - nn)
-            verts = surf[near]
-            np.add.at(blocks, verts, B)
-            fr = self._plane_friction(rec, c, j, surf, R, trans) if c.friction != 0.0 else None
-            if fr is not None:
-                np.add.at(blocks, fr[0], fr[1])
-            out[c.name] = (verts, B, fr)
+            terms = collider_terms(c, surf, rec.x_next, rec.x, c.pose(t1), c.pose(t0), float(contact.kappa[j]),
+                                   float(contact.dhat[j]), float(contact.epsv[j]) * rec.dt)
+            if terms is None:
+                continue
+            np.add.at(blocks, terms.verts, terms.H)
+            out.append((c, terms))
         touched = np.flatnonzero(np.abs(blocks).sum(axis=(1, 2)) > 0)
         if len(touched):
             K = self._K.numpy()
@@ -472,41 +589,6 @@ class StepAdjoint:
             K[diag[touched]] += blocks[touched].astype(K.dtype)
             self._K.assign(K)
         return out
-
-    def _plane_friction(self, rec, c, j, surf, R, trans):
-        """Lagged friction of a plane (translating, R = I): D = mu lam_n f0(|u|), u = P (x - x_n - w),
-        lam_n = -kappa b'(d(x_n)) at the step's end pose, w = t1 - t0. Returns (vertices, the
-        exact Hessian blocks d2D/dx2, f1 u, mu kappa b''(d_n), lam_n, u) of the pairs with
-        lam_n > 0, or None."""
-        contact = self.sim.contact
-        dh, kappa, mu = float(contact.dhat[j]), float(contact.kappa[j]), float(c.friction)
-        eps = float(contact.epsv[j]) * rec.dt
-        n = c.normal
-        xn = rec.x[surf]
-        dn = (xn - trans - c.point) @ n
-        act = (dn > 0.0) & (dn < dh)
-        if not np.any(act):
-            return None
-        dd = dn[act]
-        t = dd - dh
-        lg = np.log(dd / dh)
-        b1 = -2.0 * t * lg - t * t / dd
-        b2 = -2.0 * lg - 4.0 * t / dd + t * t / (dd * dd)
-        lam_n = -kappa * b1
-        _, t0 = c.pose(rec.t0)
-        w = trans - t0
-        P = np.eye(3) - np.outer(n, n)
-        verts = surf[act]
-        u = (rec.x_next[verts] - rec.x[verts] - w) @ P
-        yv = np.linalg.norm(u, axis=1)
-        big = yv >= eps
-        f1 = np.where(big, 1.0 / np.where(yv > 0, yv, 1.0), 2.0 / eps - yv / (eps * eps))
-        f1p_over_y = np.where(big, -1.0 / np.where(yv > 0, yv, 1.0) ** 3,
-                              -1.0 / (eps * eps * np.where(yv > 0, yv, 1.0)))
-        f1p_over_y = np.where(yv > 0, f1p_over_y, 0.0)
-        cc = mu * lam_n
-        Hf = cc[:, None, None] * (f1[:, None, None] * P[None] + f1p_over_y[:, None, None] * np.einsum("vi,vj->vij", u, u))
-        return verts, Hf, f1[:, None] * u, mu * kappa * b2, lam_n, u
 
     def _mat_type(self):
         return wp.mat33d if self.sim.precision == "float64" else wp.mat33
@@ -542,17 +624,33 @@ class StepAdjoint:
             ybar = ybar + hbar["a"] / s  # a_{n+1} = (y - v_hat) / s
             vhat_bar -= hbar["a"] / s
         # the implicit solve: H lambda = ybar on the free components
+        sc = getattr(sim, "surface_contact", None)
+        if sc is not None:  # its candidate pairs at x_{n+1} (the pattern may grow for them)
+            sc.update_pairs(self._upload(self._dev[5], rec.x_next))
+            self._follow_pattern()
         x_dev = self._assemble_K(rec.x_next)
         planes = self._add_contact_hessian(rec)
-        pt = sim.pattern
-        self._H.zero_()
-        launch(LK.add_scaled_kernel, pt.nnz, [sim.mass_values, sim.scalar_type(1.0 + s * alpha), self._H], sim.device)
-        launch(LK.add_scaled_kernel, pt.nnz, [self._K, sim.scalar_type(s * s), self._H], sim.device)
-        lam = self._solve(self._H, ybar, P)
+        if sc is not None:  # the exact (unprojected) Hessian of every pair's barrier at x_{n+1}
+            sc.run(_surface_kernels(sc).MODE_HESSIAN_UNPROJECTED, x_dev, scale=1.0, values=self._K)
+        cm, ck = 1.0 + s * alpha, s * s
+        Hc = self._host_H(self._K, cm, ck)
+
+        def Hmv(a):
+            return (Hc @ a.reshape(-1)).reshape(-1, 3)
+
+        def H():  # the device values of H (only when the solver must be prepared on it)
+            pt = sim.pattern
+            self._H.zero_()
+            launch(LK.add_scaled_kernel, pt.nnz, [sim.mass_values, sim.scalar_type(cm), self._H], sim.device)
+            launch(LK.add_scaled_kernel, pt.nnz, [self._K, sim.scalar_type(ck), self._H], sim.device)
+            return self._H
+
+        self._last_Hlam = None
+        lam = self._solve(H, ybar, P, Hmv, getattr(rec, "factor", None))
         if np.any(lam):
-            M_lam = (self._M @ lam.reshape(-1)).reshape(n, 3)
-            K_lam = self._mv(self._K, lam)
-            H_lam = (1.0 + s * alpha) * M_lam + s * s * K_lam
+            M_lam = (self._Mc @ lam.reshape(-1)).reshape(n, 3)  # the mass blocks of H (as the forward's)
+            H_lam = Hmv(lam) if self._last_Hlam is None else self._last_Hlam  # the refinement's last product
+            K_lam = (H_lam - cm * M_lam) / ck
         else:
             M_lam = K_lam = H_lam = np.zeros((n, 3))
         yc_bar = (1.0 - P) * (ybar - H_lam)
@@ -570,24 +668,19 @@ class StepAdjoint:
                 for i in idx.tolist():
                     store[i] = store.get(i, 0.0) + p_bar[i]
         xn_bar[~tgt] += p_bar[~tgt]
-        if planes is not None and np.any(lam):  # d(grad E_c)/d(translation) = -K_c: tbar = s K_c lambda per plane
-            store = self.grads["collider_translations"].setdefault(step_index, {})
-            for ci, (name, (verts, B, fr)) in enumerate(planes.items()):
-                t_bar = s * np.einsum("vij,vj->i", B, lam[verts])
-                if fr is not None:  # lagged friction: through lam_n(x_n; t1), u(x_n, w = t1 - t0)
-                    fv, Hf, f1u, mkb2, lam_n, u = fr
-                    n = self.sim.contact.colliders[ci].normal
-                    Hl = np.einsum("vij,vj->vi", Hf, lam[fv])
-                    coef = mkb2 * np.einsum("vi,vi->v", f1u, lam[fv])
-                    # x_n explicitly: -s lambda^T d(grad D)/dx_n, d(grad D)/dx_n = -Hf - mu kappa b''(d_n) f1 u n^T
-                    np.add.at(xn_bar, fv, s * Hl + s * coef[:, None] * n[None])
-                    t_bar = t_bar + s * Hl.sum(axis=0) - s * coef.sum() * n  # the end pose (t1)
-                    start = self.grads["collider_translations"].setdefault(
-                        -1 if step_index is None else step_index - 1, {})
-                    start[name] = start.get(name, 0.0) - s * Hl.sum(axis=0)  # the start pose (t0): u has +t0
-                    fb = self.grads["collider_friction"]
-                    fb[name] = fb.get(name, 0.0) - s * float(np.sum(lam_n * np.einsum("vi,vi->v", f1u, lam[fv])))
-                store[name] = store.get(name, 0.0) + t_bar
+        if planes and np.any(lam):  # -s lambda^T d(grad E_c)/d(x_n, poses, mu), per collider in contact
+            G = self.grads
+            end = G["collider_translations"].setdefault(step_index, {}), G["collider_rotations"].setdefault(step_index, {})
+            k0 = -1 if step_index is None else step_index - 1
+            start = G["collider_translations"].setdefault(k0, {}), G["collider_rotations"].setdefault(k0, {})
+            for col, tm in planes:
+                lv = lam[tm.verts]
+                np.add.at(xn_bar, tm.verts, -s * np.einsum("vik,vi->vk", tm.D_xn, lv))
+                par = -s * np.einsum("vip,vi->p", tm.D_par, lv)
+                for store, sl in ((end[0], par[0:3]), (end[1], par[3:6]), (start[0], par[6:9]), (start[1], par[9:12])):
+                    store[col.name] = store.get(col.name, 0.0) + sl
+                if col.friction != 0.0:
+                    G["collider_friction"][col.name] = G["collider_friction"].get(col.name, 0.0) + float(par[12])
         # parameters at the converged step
         if np.any(lam):
             self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha)
@@ -614,13 +707,19 @@ class StepAdjoint:
         self._mulam_bar += sign * self._forces_unit(x_dev, w)
         if "element_stiffness_scale" in self.params:
             self.grads["element_stiffness_scale"] += sign * self._element_contraction(x_dev, w)
-        M1 = lambda a: (self._M @ a.reshape(-1)).reshape(self.n, 3) / self._rho  # noqa: E731
+        # dM/d(rho_b): the body's rows of M over rho_b (M is block diagonal over the bodies)
+        M1 = lambda a: (self._M @ a.reshape(-1)).reshape(self.n, 3) / self._rho_v[:, None]  # noqa: E731
+        nb = self.bodies
+
+        def per_body(t):  # sum of w . t over each body's vertices
+            return np.bincount(self._vertex_body, weights=np.sum(w * t, axis=1), minlength=nb)
+
         if a0 is None:  # the step: g = M (y - v_hat) + s alpha M y + s grad V - s c f_ext
             self.grads["forces"] += (-sign) * c * w  # sign = -s: s c w
-            self.grads["density"] += -float(np.sum(w * (M1(y - v_hat) + s * alpha * M1(y) - s * c * self._fgrav_unit)))
+            self.grads["density"] -= per_body(M1(y - v_hat) + s * alpha * M1(y) - s * c * self._fgrav_unit)
         else:  # a_0: R = M a_0 + grad V(x_n) - c f_ext + alpha M v_n
             self.grads["forces"] += c * w
-            self.grads["density"] += -float(np.sum(w * (M1(a0) - c * self._fgrav_unit + alpha * M1(v_n))))
+            self.grads["density"] -= per_body(M1(a0) - c * self._fgrav_unit + alpha * M1(v_n))
 
     def _a0_backward(self, rec, a_bar, xn_bar, vn_bar, v_hat):
         n, P = self.n, rec.mask
@@ -665,11 +764,15 @@ class Recording:
     ``backward(x_grads, v_grads)`` takes the adjoints of the positions / velocities of the states
     0..N of the recording (dicts: state index -> (n, 3); state k is the one after k recorded
     steps) and returns the gradients by parameter name (:data:`PARAMETERS`; ``targets`` by step
-    index; ``initial_history`` the adjoint of the first state's integrator history)."""
+    index; ``initial_history`` the adjoint of the first state's integrator history).
 
-    def __init__(self, sim, params=None, *, tol=None):
+    With the direct solver each recorded step keeps its factorisation within ``factor_budget``
+    bytes (:class:`StepAdjoint`); ``backward`` may be called again (another loss) and reuses them;
+    :meth:`release` frees them."""
+
+    def __init__(self, sim, params=None, *, tol=None, factor_budget=None):
         self.sim = sim
-        self.adjoint = StepAdjoint(sim, params, tol=tol)
+        self.adjoint = StepAdjoint(sim, params, tol=tol, factor_budget=factor_budget)
         self.records = []
         self.stats = []
 
@@ -688,8 +791,18 @@ class Recording:
 
     @property
     def nbytes(self) -> int:
-        """Host memory the recorded steps hold (bytes)."""
+        """Host memory the recorded steps' vectors hold (bytes; kept factorisations: :attr:`factor_nbytes`)."""
         return int(sum(r.nbytes for r in self.records))
+
+    @property
+    def factor_nbytes(self) -> int:
+        """Memory of the factorisations the recorded steps keep (bytes; direct solver, ``factor_budget``)."""
+        return int(sum(r.factor_nbytes for r in self.records))
+
+    def release(self):
+        """Free the kept factorisations (later ``backward`` calls refactorise; the records stay)."""
+        for r in self.records:
+            r.release()
 
     def record(self, run, state_in, state_out, control, dt):
         """Run one step (``run()``) and keep its record."""
@@ -788,6 +901,9 @@ def set_material_parameters(sim, youngs_modulus=None, poisson_ratio=None):
     kernel parameters of every point set; ``sim.model.material`` becomes a material of the same
     class with the new values), for runs that differentiate or fit them without rebuilding."""
     model = sim.model
+    if getattr(model, "num_bodies", 1) > 1:
+        raise NotImplementedError(f"set_material_parameters: a model of {model.num_bodies} bodies has a material per body; "
+                                  "change a body's material and build the simulator again")
     old = model.material
     E = float(old.youngs_modulus if youngs_modulus is None else youngs_modulus)
     nu = float(old.poisson_ratio if poisson_ratio is None else poisson_ratio)
@@ -807,6 +923,9 @@ def set_density(sim, density):
     """Change the density of a built ``sim`` in place: the model's mass matrices and gravity (all
     proportional to it), the simulator's mass blocks and external forces (``sync_model``)."""
     model = sim.model
+    if getattr(model, "num_bodies", 1) > 1:
+        raise NotImplementedError(f"set_density: a model of {model.num_bodies} bodies has a material per body; "
+                                  "change a body's material and build the simulator again")
     old = model.material
     rho = float(density)
     if not (np.isfinite(rho) and rho > 0):

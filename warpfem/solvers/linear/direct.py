@@ -60,6 +60,9 @@ NULL_TOLERANCE = 1e-10
 #: vectors of the block inverse iteration that finds the near-null space: the six rigid motions of a
 #: free body and three more, whose smallest Ritz value estimates the smallest positive curvature
 NULL_PROBES = 9
+#: the most factorisations ``keep_factor`` keeps at once with PARDISO (its factor slots: ~4 bytes per
+#: equation each, allocated with the analysis)
+MAX_KEPT_FACTORS = 2048
 
 
 class _NotPositiveDefinite(RuntimeError):
@@ -76,37 +79,152 @@ class _Pardiso:
         self.ps.set_iparm(1, 1)  # non-default iparms follow
         self.ps.set_iparm(2, 2)  # nested dissection ordering (METIS)
         self.ps.set_iparm(10, 8)  # pivot perturbation 1e-8 (only used by indefinite types)
+        self.ps.set_iparm(18, -1)  # report the number of nonzeros of the factor (after the analysis)
         self.ps.set_iparm(21, 0)
         self.analysed = False
         self.symbolic_count = 0
+        # factors kept in memory at once (PARDISO's maxfct: every factor shares the one symbolic
+        # analysis), the slot the next factorisation writes (mnum) and the free slots
+        self.maxfct = 1
+        self.mnum = 1
+        self.free_slots = []
+        self.kept = 0  # factors handed out (``detach``) and not released
+        self.current = False  # whether the current slot holds a factorisation
+        self._ij = None  # (indptr, indices, their 1-based int32 copies) of the last matrix
+        self._zero_data = None
 
-    def _call(self, phase, A, b):
-        self.ps.set_phase(phase)
-        try:
-            return self.ps._call_pardiso(A, b)
-        except self.mod.pardiso_wrapper.PyPardisoError as e:
-            code = getattr(e, "value", None)
-            if phase == 22 and code == -4:
-                raise _NotPositiveDefinite("PARDISO found a non-positive pivot (matrix not positive definite)") from e
-            raise
+    def call(self, phase, A, b, mnum=None):
+        """PARDISO through pypardiso's MKL handle, with our maxfct and slot (pypardiso passes 1, 1)."""
+        import ctypes
+
+        ps = self.ps
+        x = np.zeros_like(b)
+        err = ctypes.c_int32(0)
+        i32, f64 = ctypes.POINTER(ctypes.c_int32), ctypes.POINTER(ctypes.c_double)
+        ij = self._ij
+        if ij is None or ij[0] is not A.indptr or ij[1] is not A.indices:  # 1-based index arrays, once per pattern
+            ij = self._ij = (A.indptr, A.indices, A.indptr.astype(np.int32) + 1, A.indices.astype(np.int32) + 1)
+        ia, ja = ij[2], ij[3]
+        c = ctypes.c_int32
+        handle = ps.pt.ctypes.data_as(ctypes.POINTER(np.ctypeslib.as_ctypes_type(ps.pt.dtype)))
+        ps._mkl_pardiso(handle, ctypes.byref(c(self.maxfct)),
+                        ctypes.byref(c(self.mnum if mnum is None else mnum)), ctypes.byref(c(ps.mtype)),
+                        ctypes.byref(c(phase)), ctypes.byref(c(A.shape[0])), A.data.ctypes.data_as(f64),
+                        ia.ctypes.data_as(i32), ja.ctypes.data_as(i32), ps.perm.ctypes.data_as(i32),
+                        ctypes.byref(c(1 if b.ndim == 1 else b.shape[1])), ps.iparm.ctypes.data_as(i32),
+                        ctypes.byref(c(0)), b.ctypes.data_as(f64), x.ctypes.data_as(f64), ctypes.byref(err))
+        if err.value != 0:
+            if phase == 22 and err.value == -4:
+                raise _NotPositiveDefinite("PARDISO found a non-positive pivot (matrix not positive definite)")
+            raise self.mod.pardiso_wrapper.PyPardisoError(err.value)
+        return x
 
     def factor(self, A):
         z = np.zeros((A.shape[0], 1))
         if not self.analysed:
-            self._call(11, A, z)
+            self.call(11, A, z)
             self.analysed = True
             self.symbolic_count += 1
-        self._call(22, A, z)
+        self.current = False
+        self.call(22, A, z)
         self.A = A
+        self.current = True
 
     def solve(self, b):
-        return self._call(33, self.A, np.asfortranarray(b.reshape(-1, 1))).ravel()
+        return self.call(33, self.A, np.asfortranarray(b.reshape(-1, 1))).ravel()
+
+    def factor_nbytes(self) -> int:
+        """Bytes of one numeric factor (its nonzeros in float64; the analysis is shared)."""
+        return 8 * int(max(self.ps.iparm[17], 0))
+
+    def detach(self, capacity):
+        """The current factor as a kept one (its slot stays allocated until released); the next
+        factorisation goes to a free slot. With no free slot and none handed out, the analysis is
+        redone for ``capacity`` more slots and the current matrix factorised again (once per
+        recording that starts on a solver without the room, :meth:`reserve`)."""
+        if not self.free_slots and self.maxfct < capacity + 1 and not self.kept:
+            A = self.A
+            self.reserve(capacity)
+            self.factor(A)
+        if not self.free_slots:
+            return None  # full, and growing would drop the factors handed out
+        # the solve phase reads the factor, not the matrix's values (no iterative refinement,
+        # iparm[7] = 0): the kept handle holds the shared structure and one zero array, not A
+        z = self._zero_data
+        if z is None or len(z) != len(self.A.data):
+            z = self._zero_data = np.zeros(len(self.A.data))
+        structure = _Structure(z, self.A.indptr, self.A.indices, self.A.shape)
+        kept = _KeptFactor(self, structure, self.mnum, self.factor_nbytes())
+        self.mnum = self.free_slots.pop()
+        self.kept += 1
+        self.current = False
+        return kept
+
+    def reserve(self, capacity):
+        """Room for ``capacity`` kept factors besides the current one (PARDISO's maxfct is set by the
+        analysis: with none handed out, everything is released and analysed again on the next
+        factorisation)."""
+        if self.analysed and not self.kept and self.maxfct < capacity + 1:
+            self.call(-1, self.A, np.zeros(0))
+            self.maxfct = int(capacity) + 1
+            self.free_slots = list(range(self.maxfct, 1, -1))
+            self.mnum = 1
+            self.analysed = False
+            self.current = False
+
+    def release_slot(self, mnum):
+        try:
+            self.call(0, self.A, np.zeros(0), mnum=mnum)
+        except Exception:  # noqa: BLE001 - nothing to free (already released with everything)
+            pass
+        self.free_slots.append(mnum)
+        self.kept -= 1
 
     def __del__(self):  # release MKL's factorisation memory with the solver
         try:
             if self.analysed:
-                self.ps.free_memory(everything=True)
+                self.call(-1, self.A, np.zeros(0))
         except Exception:  # noqa: BLE001 - interpreter shutdown or a failed init; nothing to free
+            pass
+
+
+class _Structure:
+    """A CSR matrix's arrays as PARDISO's solve phase takes them (values unused there)."""
+
+    def __init__(self, data, indptr, indices, shape):
+        self.data, self.indptr, self.indices, self.shape = data, indptr, indices, shape
+
+
+class _KeptFactor:
+    """A factorisation handed over by the direct solver (``DirectSolver.keep_factor``): ``solve(b)``
+    on the host (float64, the solver's DOF order), ``nbytes``, ``release()`` (also on deletion)."""
+
+    def __init__(self, backend, A, handle, nbytes):
+        self.backend, self.A, self.handle, self.nbytes = backend, A, handle, int(nbytes)
+        self.released = False
+
+    def solve(self, b):
+        if self.released:
+            raise RuntimeError("this kept factorisation was released")
+        be = self.backend
+        if isinstance(be, _Pardiso):
+            return be.call(33, self.A, np.asfortranarray(np.asarray(b, dtype=np.float64).reshape(-1, 1)),
+                            mnum=self.handle).ravel()
+        return self.handle.solve(np.asarray(b, dtype=np.float64))
+
+    def release(self):
+        if self.released:
+            return
+        self.released = True
+        if isinstance(self.backend, _Pardiso):
+            self.backend.release_slot(self.handle)
+        self.handle = None
+        self.A = None
+
+    def __del__(self):
+        try:
+            self.release()
+        except Exception:  # noqa: BLE001 - interpreter shutdown
             pass
 
 
@@ -118,11 +236,13 @@ class _QDLDL:
         self.solver = None
         self.symbolic_count = 0
         self.check_definite = check_definite
+        self.current = False
 
     def factor(self, A):
         import scipy.sparse
 
         U = scipy.sparse.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)
+        self.current = False
         if self.solver is None:
             self.solver = self.mod.Solver(U, upper=True)
             self.symbolic_count += 1
@@ -133,9 +253,24 @@ class _QDLDL:
             if not np.all(D > 0.0):
                 raise _NotPositiveDefinite(f"QDLDL found {int(np.sum(~(D > 0.0)))} non-positive pivot(s) "
                                            "(matrix not positive definite)")
+        self.current = True
 
     def solve(self, b):
         return self.solver.solve(b)
+
+    def factor_nbytes(self) -> int:
+        if getattr(self, "_nnz", None) is None:
+            L, _, _ = self.solver.factors()
+            self._nnz = int(L.nnz) + L.shape[0]
+        return 12 * self._nnz
+
+    def detach(self, capacity):
+        """The current factor as a kept one; the next factorisation builds a new QDLDL solver
+        (its ordering and elimination tree again: QDLDL updates in place)."""
+        kept = _KeptFactor(self, None, self.solver, self.factor_nbytes())
+        self.solver = None
+        self.current = False
+        return kept
 
 
 class _SuperLU:
@@ -144,12 +279,14 @@ class _SuperLU:
     def __init__(self):
         self.symbolic_count = 0  # SuperLU redoes the ordering every factorisation (no reuse)
         self.lu = None
+        self.current = False
 
     def factor(self, A):
         import scipy.sparse
         import scipy.sparse.linalg as spla
 
         C = scipy.sparse.csc_matrix((A.data, A.indices, A.indptr), shape=A.shape)  # symmetric: CSR == CSC
+        self.current = False
         try:
             self.lu = spla.splu(C, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                                 options={"SymmetricMode": True})
@@ -160,9 +297,20 @@ class _SuperLU:
         if not np.all(d > 0.0):
             raise _NotPositiveDefinite(f"SuperLU found {int(np.sum(~(d > 0.0)))} non-positive pivot(s) "
                                        "(matrix not positive definite)")
+        self.current = True
 
     def solve(self, b):
         return self.lu.solve(b)
+
+    def factor_nbytes(self) -> int:
+        return 12 * int(self.lu.L.nnz + self.lu.U.nnz)
+
+    def detach(self, capacity):
+        """The current factor as a kept one (SuperLU makes a new one per factorisation anyway)."""
+        kept = _KeptFactor(self, None, self.lu, self.factor_nbytes())
+        self.lu = None
+        self.current = False
+        return kept
 
 
 def _make_backend(name):
@@ -219,6 +367,9 @@ class DirectSolver(HostLinearSolver):
         #: set by project-on-demand Newton while it tries the exact Hessian: a non-positive pivot
         #: then fails the solve at once (no shifted retries), and the Newton loop projects
         self.definite_only = False
+        import weakref
+
+        self._kept = weakref.WeakSet()  # factorisations handed over by keep_factor
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     @property
@@ -231,6 +382,46 @@ class DirectSolver(HostLinearSolver):
         if self.analyse_count > 1:  # a grown pattern: a fresh backend, analysed on its next factorisation
             self._symbolic_before = self.symbolic_count
             self.backend = _make_backend(self.backend_name)
+
+    @property
+    def has_factor(self) -> bool:
+        """Whether the solver holds a usable factorisation of the last prepared matrix (not after
+        :meth:`keep_factor` handed it over, nor after a factorisation that failed)."""
+        return bool(getattr(self.backend, "current", False)) and not self._failure
+
+    @property
+    def kept_bytes(self) -> int:
+        """Bytes of the factorisations handed over by :meth:`keep_factor` and not yet released."""
+        return int(sum(k.nbytes for k in list(self._kept) if not k.released))
+
+    def keep_factor(self, budget_bytes):
+        """Hand over the factorisation of the last prepared matrix, for a later solve with it (the
+        reverse pass of a recorded step, :mod:`warpfem.solvers.adjoint`), when it fits in
+        ``budget_bytes``. Returns a kept factor (``solve(b)``: host float64 in the masked system's
+        DOF order, ``nbytes``, ``shift``, ``release()``, also done when it is deleted) or None (no
+        factorisation, it does not fit, or no PARDISO factor slot is left); the next ``prepare``
+        factorises into new storage. Costs the forward nothing with PARDISO (a factor slot of the
+        same analysis; :meth:`reserve_factors` makes the slots before a recording) and SuperLU; with
+        QDLDL the next factorisation redoes its ordering."""
+        if not self.has_factor:
+            return None
+        nb = self.backend.factor_nbytes()
+        if nb <= 0 or nb > budget_bytes:
+            return None
+        kf = self.backend.detach(capacity=min(int(budget_bytes // nb), MAX_KEPT_FACTORS))
+        if kf is not None:
+            kf.shift = self._shift
+            self._kept.add(kf)
+        return kf
+
+    def reserve_factors(self, budget_bytes):
+        """Before a recording: room for the factorisations that ``budget_bytes`` allows (PARDISO's
+        factor slots; the current factorisation is dropped when they grow, so call it before a step)."""
+        reserve = getattr(self.backend, "reserve", None)
+        if reserve is not None and getattr(self.backend, "analysed", False):
+            nb = self.backend.factor_nbytes()
+            if 0 < nb <= budget_bytes:
+                reserve(min(int(budget_bytes // nb), MAX_KEPT_FACTORS))
 
     @property
     def failure(self) -> str:
