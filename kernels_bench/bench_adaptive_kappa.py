@@ -124,7 +124,7 @@ def run_scene(name, frames, mode, precision):
     return rows, frames_out
 
 
-def run_collider_drop(steps, mode, precision, friction=0.3):
+def run_collider_drop(steps, mode, precision, friction=0.3, friction_velocity=None):
     import ipctk
 
     mesh = wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(6, 6, 6))
@@ -133,7 +133,8 @@ def run_collider_drop(steps, mode, precision, friction=0.3):
     sim = wf.Simulator(model, dt=1 / 240, integrator="newmark", precision=precision, max_iters=100)
     x = sim.positions()
     floor_y = float(x[:, 1].min()) - 5e-4
-    sim.add_collider(wf.Plane(point=(0.0, floor_y, 0.0), normal=(0.0, 1.0, 0.0), friction=friction, name="floor"))
+    sim.add_collider(wf.Plane(point=(0.0, floor_y, 0.0), normal=(0.0, 1.0, 0.0), friction=friction, name="floor",
+                             friction_velocity=friction_velocity))
     _set_stiffness(sim, "auto" if mode == "auto" else None)
     sim.set_velocities(np.tile([0.3, -1.4, 0.0], (len(x), 1)))
     rows = []
@@ -172,15 +173,18 @@ def main():
     ap.add_argument("--frames", type=int, default=12, help="frames (scenes) or steps (collider_drop)")
     ap.add_argument("--precision", default="float64")
     ap.add_argument("--friction", type=float, default=0.3, help="collider_drop: the floor's friction")
+    ap.add_argument("--friction-velocity", type=float, default=None, help="collider_drop: eps_v (m/s; default 1e-3 "
+                                                                             "body diagonals per second)")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     load0 = os.getloadavg()[0]
     if a.case == "collider_drop":
-        rows, frames = run_collider_drop(a.frames, a.mode, a.precision, a.friction)
+        rows, frames = run_collider_drop(a.frames, a.mode, a.precision, a.friction, a.friction_velocity)
     else:
         rows, frames = run_scene(a.case, a.frames, a.mode, a.precision)
     s = summary(rows)
-    res = {"case": a.case, "mode": a.mode, "friction": a.friction if a.case == "collider_drop" else "scene's", "precision": a.precision, "frames": a.frames,
+    res = {"case": a.case, "mode": a.mode, "friction": a.friction if a.case == "collider_drop" else "scene's",
+           "friction_velocity": a.friction_velocity if a.case == "collider_drop" else "scene's", "precision": a.precision, "frames": a.frames,
            "device": f"cpu ({platform.processor() or platform.machine()}), 2 cores shared with other sessions",
            "load_average": [load0, os.getloadavg()[0]], "summary": s,
            "frames_intersecting": sum(f["intersects"] for f in frames), "steps": rows, "frame_checks": frames}

@@ -211,7 +211,7 @@ class Simulator(SimulatorBase):
         continuous-collision bound on every line search. Keys (those of a scene's ``[contact]``):
         ``bodies`` (different connected components / bodies; default True when the model has two
         or more), ``self`` (within one; default False), ``friction`` (mu), ``dhat`` (m),
-        ``stiffness`` (kappa of the squared-distance barrier, N/m^3), ``friction_velocity`` (m/s).
+        ``stiffness`` (kappa of the squared-distance barrier, N/m^3; ``"auto"``: adaptive), ``friction_velocity`` (m/s).
         ``sim.set_contact(bodies=False)`` (and no ``self``) turns it off. Returns the
         :class:`warpfem.contact.SurfaceContact` (or None when off). Raises
         :class:`warpfem.contact.CollisionError` naming a pair when surface primitives touch now."""

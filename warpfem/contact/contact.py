@@ -364,9 +364,10 @@ class ContactForm(LaggedFrictionForm):
                 c.run(CK.MODE_LAG, c.step_start)
         return changed
 
-    def after_iteration(self, x) -> bool:
-        """After an accepted Newton iteration at x: double an adaptive kappa whose collider's
-        smallest distance keeps shrinking below a fraction of dhat. Returns whether one changed."""
+    def after_iteration(self, x, alpha=1.0) -> bool:
+        """After an accepted Newton iteration at x (step length alpha): an adaptive kappa whose
+        collider's smallest distance keeps shrinking below a fraction of dhat doubles. Returns
+        whether a kappa changed."""
         c = self.contact
         if not c.adaptive():
             return False

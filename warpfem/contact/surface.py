@@ -560,9 +560,10 @@ class SurfaceContactForm(LaggedFrictionForm):
             c.lag(c.step_start)
         return c.kappa != before
 
-    def after_iteration(self, x) -> bool:
-        """After an accepted Newton iteration at x: double kappa when the smallest pair distance
-        keeps shrinking below a fraction of dhat. Returns whether it changed."""
+    def after_iteration(self, x, alpha=1.0) -> bool:
+        """After an accepted Newton iteration at x (step length alpha): an adaptive kappa doubles
+        when the smallest pair distance keeps shrinking below a fraction of dhat. Returns whether
+        kappa changed."""
         c = self.contact
         if c.stiffness is None:
             return False

@@ -568,14 +568,15 @@ class IncrementalPotential:
             changed = f.begin_stiffness(self, y, g_rest) or changed
         return changed
 
-    def after_iteration(self, y) -> bool:
-        """After an accepted Newton iteration (``newton_solve``'s hook): forms that adapt update
-        their parameters at y; True when the potential changed (the loop evaluates it again)."""
+    def after_iteration(self, y, alpha=1.0) -> bool:
+        """After an accepted Newton iteration of step length alpha (``newton_solve``'s hook): forms
+        with an ``after_iteration(x, alpha)`` update what they adapt at y; True when the potential
+        changed (the loop evaluates it again)."""
         changed = False
         for f in self.forms:
             hook = getattr(f, "after_iteration", None)
-            if hook is not None and getattr(f, "adaptive_stiffness", lambda: False)():
-                changed = hook(self._x_of(y)) or changed
+            if hook is not None:
+                changed = hook(self._x_of(y), alpha) or changed
         return changed
 
     def bounds_step(self) -> bool:

@@ -154,7 +154,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
       the next ``solve_newton_system`` evaluates it afresh), and the loop tries again;
     * optionally ``max_step(y, d) -> alpha_max``: the line search starts at min(1, alpha_max)
       (contact's continuous-collision bound: no step crosses a collider);
-    * optionally ``after_iteration(y) -> bool``: called after each accepted iteration; True when
+    * optionally ``after_iteration(y, alpha) -> bool``: called after each accepted iteration (alpha:
+      its step length); True when
       the potential itself changed there (contact's adaptive barrier stiffness doubled), and its
       energy and gradient at y are evaluated again (``evaluate``);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
@@ -330,7 +331,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             gmag, gnorm = problem.gradient(y, g)
         # a problem whose terms adapt (contact's barrier stiffness) may change its potential here:
         # its energy and gradient at y are evaluated again (the line search compares like with like)
-        if after_iteration is not None and after_iteration(y):
+        if after_iteration is not None and after_iteration(y, alpha):
             E, mag, gmag, gnorm = problem.evaluate(y, g)
             st.adaptations += 1
         st.newton_iterations += 1
