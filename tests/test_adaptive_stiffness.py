@@ -158,3 +158,26 @@ def test_scene_stiffness_auto_reaches_both_contacts_and_bad_values_are_named(tmp
     p.write_text(_SCENE.format(collider='"soft"', contact='"auto"'))
     with pytest.raises(SceneError, match="stiffness"):
         load_scene(str(p))
+
+
+def test_a_failed_step_leaves_the_adaptive_stiffness_as_it_was():
+    from warpfem.solvers.nonlinear import SolveFailed
+
+    L = 0.1
+    mesh = wf.box_tet_mesh(size=(L, L, L), cells=(2, 2, 2), origin=(0.0, 0.008, 0.0))
+    m = wf.Model(mesh, wf.make_material("stable_neo_hookean", youngs_modulus=1e6, poisson_ratio=0.3, density=20000.0),
+                 gravity=(0.0, -9.81, 0.0))
+    sim = wf.Simulator(m, dt=0.01, damping_mass=20.0, max_iters=100, require_convergence=True)
+    sim.add_collider(wf.Plane(point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0), stiffness="auto", name="floor"))
+    a = sim.contact.stiffness[0]
+    for _ in range(4):
+        sim.step()
+    before, x0, k0 = a.state(), sim.positions(), float(sim.contact.kappa[0])
+    sim.options.max_iters = 2  # the landing step (kappa doubles in it) cannot converge
+    with pytest.raises(SolveFailed):
+        sim.step()
+    assert a.doublings >= 1  # it doubled during the failed solve ...
+    assert a.state() == before and float(sim.contact.kappa[0]) == k0  # ... and was restored with the state
+    assert np.array_equal(sim.positions(), x0)
+    sim.options.max_iters = 100
+    assert sim.step().adaptations == 1 and sim.contact.kappa[0] == 2.0 * k0

@@ -569,14 +569,16 @@ class IncrementalPotential:
         return changed
 
     def after_iteration(self, y, alpha=1.0) -> bool:
-        """After an accepted Newton iteration of step length alpha (``newton_solve``'s hook): forms
-        with an ``after_iteration(x, alpha)`` update what they adapt at y; True when the potential
-        changed (the loop evaluates it again)."""
+        """After an accepted Newton iteration of step length alpha (``newton_solve``'s hook): the
+        adaptive forms' ``after_iteration(x, alpha)`` update what they adapt at y; True when the
+        potential changed (the loop evaluates it again)."""
+        forms = [f for f in self.adaptive_forms() if hasattr(f, "after_iteration")]
+        if not forms:  # nothing adapts (a fixed barrier stiffness): no work
+            return False
+        x = self._x_of(y)
         changed = False
-        for f in self.forms:
-            hook = getattr(f, "after_iteration", None)
-            if hook is not None:
-                changed = hook(self._x_of(y), alpha) or changed
+        for f in forms:
+            changed = f.after_iteration(x, alpha) or changed
         return changed
 
     def bounds_step(self) -> bool:
