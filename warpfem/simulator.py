@@ -211,7 +211,7 @@ class Simulator(SimulatorBase):
         continuous-collision bound on every line search. Keys (those of a scene's ``[contact]``):
         ``bodies`` (different connected components / bodies; default True when the model has two
         or more), ``self`` (within one; default False), ``friction`` (mu), ``dhat`` (m),
-        ``stiffness`` (kappa of the squared-distance barrier, N/m^3), ``friction_velocity`` (m/s).
+        ``stiffness`` (kappa of the squared-distance barrier, N/m^3; ``"auto"``: adaptive), ``friction_velocity`` (m/s).
         ``sim.set_contact(bodies=False)`` (and no ``self``) turns it off. Returns the
         :class:`warpfem.contact.SurfaceContact` (or None when off). Raises
         :class:`warpfem.contact.CollisionError` naming a pair when surface primitives touch now."""
@@ -454,12 +454,21 @@ class Simulator(SimulatorBase):
             alpha = min(1.0, pot.max_step(self._contact_start, y))
             launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self._contact_start, self._s(alpha), y, y],
                    device=self.device)
+        # adaptive barrier stiffness (contact without a given stiffness): kept to be restored if the step fails
+        kept = [(f, f.stiffness_state()) for f in pot.adaptive_forms()] if contact else []
+        if kept:
+            pot.begin_adaptive(y)
         stats = newton_solve(pot, y, self.options)
         if contact and stats.converged and self.friction_iterations and not self._differentiating():
             self._friction_lag_iterations(pot, xb, s, y, stats)
         stats.newton_syncs = pot.host_syncs - syncs0
         stats.launches = COUNTERS["launches"] - launches0
-        self._finish(stats, t0, f"step {self.step_count}")
+        try:
+            self._finish(stats, t0, f"step {self.step_count}")
+        except Exception:
+            for f, state in kept:  # a failed step leaves the stiffness as it was, with the state
+                f.restore_stiffness(state)
+            raise
         keep = state_out.history.get("guess_v_prev")  # the buffer, kept across the integrator's clear()
         self.integrator.advance(state_in, y, prediction, dt, ops, state_out)
         if self.initial_guess == "extrapolated":
@@ -508,6 +517,7 @@ class Simulator(SimulatorBase):
             stats.cg_iterations += again.cg_iterations
             stats.linear_iterations += again.linear_iterations
             stats.line_search_steps += again.line_search_steps
+            stats.adaptations += again.adaptations
             stats.host_syncs += again.host_syncs
             stats.converged, stats.reason = again.converged, again.reason
             stats.energy, stats.gradient_norm = again.energy, again.gradient_norm

@@ -14,6 +14,8 @@ import math
 
 import numpy as np
 
+from warpfem.contact.stiffness import parse_stiffness
+
 __all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider", "COLLIDER_TYPES"]
 
 COLLIDER_TYPES = ("plane", "sphere", "box", "mesh")
@@ -37,7 +39,7 @@ class Collider:
     """Base class. Args (keyword): ``friction`` (Coulomb mu >= 0), ``dhat`` (contact distance, m;
     None: a tenth of the body's mean surface edge length), ``stiffness`` (barrier kappa, N/m;
     None: Young's modulus x the mean surface edge, at least the weight under 1 g per surface vertex
-    per dhat),
+    per dhat; ``"auto"``: adaptive, :mod:`warpfem.contact.stiffness`),
     ``friction_velocity`` (m/s, below which friction is smoothed into sticking; None: 1e-3 body
     diagonals per second), the motion ``translation``, ``rotation_axis``, ``rotation_angle``
     (degrees), ``rotation_center``, ``ramp_time`` (s; required when it moves), and ``name``."""
@@ -51,12 +53,12 @@ class Collider:
         self.friction = float(friction)
         if not (np.isfinite(self.friction) and self.friction >= 0.0):
             raise ValueError(f"collider {self.name!r}: friction must be >= 0, got {friction!r}")
-        for key, v in (("dhat", dhat), ("stiffness", stiffness), ("friction_velocity", friction_velocity),
-                       ("ramp_time", ramp_time)):
+        for key, v in (("dhat", dhat), ("friction_velocity", friction_velocity), ("ramp_time", ramp_time)):
             if v is not None and not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f"collider {self.name!r}: {key} must be > 0, got {v!r}")
         self.dhat = None if dhat is None else float(dhat)
-        self.stiffness = None if stiffness is None else float(stiffness)
+        #: the given barrier stiffness (N/m; None: the default, or adaptive with ``adaptive_stiffness``)
+        self.adaptive_stiffness, self.stiffness = parse_stiffness(stiffness, f"collider {self.name!r}: stiffness")
         self.friction_velocity = None if friction_velocity is None else float(friction_velocity)
         self.translation = np.zeros(3) if translation is None else _vec3(translation, f"collider {self.name!r}: translation")
         self.rotation_axis = None if rotation_axis is None else _vec3(rotation_axis, f"collider {self.name!r}: rotation_axis")

@@ -16,6 +16,7 @@ import warp as wp
 
 from warpfem.contact import kernels as CK
 from warpfem.contact.colliders import Collider
+from warpfem.contact.stiffness import AdaptiveStiffness
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import Form
 
@@ -69,16 +70,19 @@ class ContactSet:
 
     # -- set-up ---------------------------------------------------------------------------------------
     def defaults(self, c: Collider):
-        """(dhat, kappa, eps_v) of a collider with the body-based defaults filled in."""
+        """(dhat, kappa, eps_v) of a collider with the body-based defaults filled in; kappa is None
+        when it is adaptive (``stiffness="auto"``: :mod:`warpfem.contact.stiffness`)."""
         dhat = c.dhat if c.dhat is not None else 0.1 * self.mean_edge
-        kappa = c.stiffness if c.stiffness is not None else self.default_stiffness(dhat)
+        kappa = c.stiffness if c.stiffness is not None else (
+            None if getattr(c, "adaptive_stiffness", False) else self.default_stiffness(dhat))
         epsv = c.friction_velocity if c.friction_velocity is not None else 1e-3 * self.diagonal
         return dhat, kappa, epsv
 
     def default_stiffness(self, dhat):
-        """Barrier stiffness kappa (N/m): as stiff as the material over a surface edge (E x mean edge,
-        so an impact is stopped within a fraction of dhat rather than at a float32-unresolvable
-        gap), and at least the weight under 1 g spread over the surface vertices, per dhat."""
+        """The default barrier stiffness kappa (N/m): as stiff as the material over a surface edge
+        (E x mean edge, so an impact is stopped within a fraction of dhat rather than at a
+        float32-unresolvable gap), and at least the weight under 1 g spread over the surface
+        vertices, per dhat."""
         E = float(getattr(self.sim.model.material, "youngs_modulus", 0.0) or 0.0)
         return max(E * self.mean_edge, self.total_mass * 9.81 / (len(self.surface) * dhat))
 
@@ -119,7 +123,23 @@ class ContactSet:
         pars = [c.params() for c in cs]
         d = [self.defaults(c) for c in cs]
         self.dhat = np.array([x[0] for x in d])
-        self.kappa = np.array([x[1] for x in d])
+        # an adaptive kappa per collider without a given stiffness (kept when the colliders are uploaded again)
+        prev = {id(c): a for c, a in zip(getattr(self, "_stiffness_of", ()), getattr(self, "stiffness", ()))}
+        mean_mass = self.total_mass / max(int(self.sim.num_vertices), 1)
+        h = float(getattr(self.sim, "dt", 1.0) or 1.0)
+        self.stiffness, kappa = [], []  # per collider: its AdaptiveStiffness (or None: fixed)
+        for c, (dh, k, _) in zip(cs, d):
+            a = None
+            if k is None:
+                a = prev.get(id(c))
+                if a is None or a.dhat != dh:
+                    a = AdaptiveStiffness(mean_mass, self.diagonal, dh, squared=False)
+                    a.initial(h)
+                k = a.kappa
+            self.stiffness.append(a)
+            kappa.append(k)
+        self._stiffness_of = list(cs)
+        self.kappa = np.array(kappa, dtype=np.float64)
         self.epsv = np.array([x[2] for x in d])
         S, V, M = ops.scalar, ops.vec, ops.mat
         npt = ops.np_dtype
@@ -160,19 +180,41 @@ class ContactSet:
 
     # -- kernel launch --------------------------------------------------------------------------------
     def run(self, mode, x, *, scale=1.0, g=None, values=None, acc=None, slot=0, lam=None, y=None, sy=1.0, dbase=None,
-            friction=True):
+            friction=True, kappa=None):
         """Launch the contact kernel in ``mode`` (``kernels.MODE_*``) at positions x; friction's step
-        displacement is dbase + sy * y (default: x - x_n); ``friction=False`` evaluates the barrier alone."""
+        displacement is dbase + sy * y (default: x - x_n); ``friction=False`` evaluates the barrier
+        alone; ``kappa``: a device array of per-collider stiffnesses to use instead."""
         ops = self.ops
         if y is None:
             y, sy, dbase = x, 1.0, self._neg_x0
         launch(CK.contact_kernel, len(self.surface), [
             x, self._surf, self.nc, self._kinds, self._R1, self._t1, self._R0, self._t0, self._pa, self._pb,
-            self._tri_start, self._tri_count, self._tris, self._kappa, self._dhat, self._mu if friction else self._mu_zero,
+            self._tri_start, self._tri_count, self._tris, self._kappa if kappa is None else kappa, self._dhat, self._mu if friction else self._mu_zero,
             self._epsf, self._lam if lam is None else lam, self._nrm, self._w, dbase, y, ops.scalar(sy),
             ops.scalar(STEP_ETA), ops.scalar(scale), int(mode), ops.zero if g is None else g, self._diag,
             self.system.hessian_values if values is None else values, self._acc if acc is None else acc, int(slot)],
             self.sim.device)
+
+    # -- adaptive stiffness (warpfem.contact.stiffness) ----------------------------------------------
+    def adaptive(self) -> bool:
+        """Whether a collider's kappa is adaptive (no ``stiffness`` given)."""
+        return any(a is not None for a in self.stiffness)
+
+    def sync_kappa(self):
+        """The adaptive stiffnesses' current values onto the device."""
+        self.kappa = np.array([k if a is None else a.kappa for k, a in zip(self.kappa, self.stiffness)], dtype=np.float64)
+        self._kappa.assign(self.kappa.astype(self.ops.np_dtype))
+
+    def unit_kappa(self, j):
+        """A device array of per-collider stiffnesses: 1 for collider j, 0 for the others."""
+        cache = getattr(self, "_unit", None)
+        if cache is None or len(cache) != self.nc:
+            cache = self._unit = [None] * self.nc
+        if cache[j] is None:
+            e = np.zeros(self.nc, dtype=self.ops.np_dtype)
+            e[j] = 1.0
+            cache[j] = wp.array(e, dtype=self.ops.scalar, device=self.sim.device)
+        return cache[j]
 
     def distances(self, x=None) -> np.ndarray:
         """(surface vertices, colliders) distances (m) at x (default: the current positions), with
@@ -291,3 +333,58 @@ class ContactForm(LaggedFrictionForm):
         """Largest alpha <= 1 with no vertex crossing (or coming closer than STEP_ETA of its distance
         to) a collider along x + alpha s d (into acc[slot + 3], initialised by the caller)."""
         self.contact.run(CK.MODE_MAX_STEP, x, scale=s, g=d, acc=acc, slot=self.acc_slot)
+
+    # -- adaptive stiffness (warpfem.contact.stiffness) ----------------------------------------------
+    def adaptive_stiffness(self) -> bool:
+        return self.contact.adaptive()
+
+    def begin_stiffness(self, pot, y, g_rest) -> bool:
+        """Each adaptive collider's kappa at the step's start y (``g_rest``: the gradient of the other
+        forms there, masked, flat): balanced against its barrier's gradient when a vertex is within
+        its dhat; friction is lagged again with it. Returns whether a kappa changed."""
+        c = self.contact
+        x = pot.x_of(y)
+        D = c.distances(x)
+        scale = pot.scales(self)[0]
+        changed = False
+        for j, a in enumerate(c.stiffness):
+            if a is None:
+                continue
+            dmin = float(D[:, j].min()) if len(D) else float("inf")
+            gb = None
+            if dmin < c.dhat[j]:
+                gb = pot.masked_gradient(y, add=lambda x, g, acc, j=j: c.run(
+                    CK.MODE_GRADIENT, x, scale=scale, g=g, friction=False, kappa=c.unit_kappa(j)))
+            before = a.kappa
+            a.begin_step(pot.s, dmin, g_rest, gb)
+            changed = changed or a.kappa != before
+        if changed:
+            c.sync_kappa()
+            if c.has_friction():
+                c.run(CK.MODE_LAG, c.step_start)
+        return changed
+
+    def after_iteration(self, x, alpha=1.0) -> bool:
+        """After an accepted Newton iteration at x (step length alpha): an adaptive kappa whose
+        collider's smallest distance keeps shrinking below a fraction of dhat doubles. Returns
+        whether a kappa changed."""
+        c = self.contact
+        if not c.adaptive():
+            return False
+        D = c.distances(x)
+        changed = False
+        for j, a in enumerate(c.stiffness):
+            if a is not None and len(D) and a.update(float(D[:, j].min())):
+                changed = True
+        if changed:
+            c.sync_kappa()
+        return changed
+
+    def stiffness_state(self):
+        return [None if a is None else a.state() for a in self.contact.stiffness]
+
+    def restore_stiffness(self, state):
+        for a, st in zip(self.contact.stiffness, state):
+            if a is not None and st is not None:
+                a.restore(st)
+        self.contact.sync_kappa()

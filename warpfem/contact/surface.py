@@ -25,6 +25,7 @@ import warp as wp
 
 from warpfem.contact import surface_kernels as SK
 from warpfem.contact.contact import CollisionError, LaggedFrictionForm
+from warpfem.contact.stiffness import AdaptiveStiffness, parse_stiffness
 from warpfem.kernels.generic import launch
 
 log = logging.getLogger(__name__)
@@ -147,7 +148,7 @@ class SurfaceContact:
     True when the model has two or more), ``self`` (contact within a group, default False),
     ``friction`` (mu), ``dhat`` (m, default 0.1 x the mean surface edge), ``stiffness`` (kappa of
     the squared-distance barrier, N/m^3; default: the barrier's force at dhat / 2 is the collider
-    default's there, :meth:`default_stiffness`), ``friction_velocity`` (m/s, default 1e-3 body
+    default's there, :meth:`default_stiffness`; ``"auto"``: adaptive, :mod:`warpfem.contact.stiffness`), ``friction_velocity`` (m/s, default 1e-3 body
     diagonals per second). ``body``: optional (n,) body id per vertex (default from
     ``model.body_offsets`` when the model has two or more bodies)."""
 
@@ -180,14 +181,21 @@ class SurfaceContact:
         self.mean_edge = mean_edge
         self.diagonal = float(np.linalg.norm(np.ptp(X, axis=0)))
         self.nv, self.nt, self.ne = len(surf.vertices), len(surf.triangles), len(surf.edges)
-        for key, v in (("dhat", dhat), ("stiffness", stiffness), ("friction_velocity", friction_velocity)):
+        for key, v in (("dhat", dhat), ("friction_velocity", friction_velocity)):
             if v is not None and not (np.isfinite(v) and v > 0.0):
                 raise ValueError(f"set_contact: {key} must be > 0, got {v!r}")
+        adaptive, kappa = parse_stiffness(stiffness, "set_contact: stiffness")
         if not (np.isfinite(friction) and friction >= 0.0):
             raise ValueError(f"set_contact: friction must be >= 0, got {friction!r}")
         self.friction = float(friction)
         self.dhat = 0.1 * mean_edge if dhat is None else float(dhat)
-        self.kappa = self.default_stiffness(self.dhat) if stiffness is None else float(stiffness)
+        #: the adaptive kappa (stiffness "auto"; warpfem.contact.stiffness), else None
+        self.stiffness = None
+        self._kappa = self.default_stiffness(self.dhat) if kappa is None and not adaptive else kappa
+        if adaptive:
+            mean_mass = float(model.total_mass) / max(int(model.num_vertices), 1)
+            self.stiffness = AdaptiveStiffness(mean_mass, self.diagonal, self.dhat, squared=True)
+            self.stiffness.initial(float(getattr(sim, "dt", 1.0) or 1.0))
         self.friction_velocity = 1e-3 * self.diagonal if friction_velocity is None else float(friction_velocity)
         dev = sim.device
         self.device = dev
@@ -234,6 +242,15 @@ class SurfaceContact:
                         self.pairs_np[k].tolist(), "; with self contact, give a dhat below the mesh's smallest gap "
                         "between primitives that are not neighbours" if self.self_contact else "")
 
+    @property
+    def kappa(self) -> float:
+        """The barrier stiffness now (N/m^3): the given one, or the adaptive one's current value."""
+        return self.stiffness.kappa if self.stiffness is not None else self._kappa
+
+    @property
+    def adaptive(self) -> bool:
+        return self.stiffness is not None
+
     def _bodies_of(self, k):
         """' between bodies 'a' and 'b'' for candidate pair k of a multi-body model, else ''."""
         offsets, names = getattr(self.sim.model, "body_offsets", None), getattr(self.sim.model, "body_names", None)
@@ -244,9 +261,9 @@ class SurfaceContact:
         return f" between bodies {names[b[0]]!r} and {names[b[1]]!r}" if b[0] != b[1] else f" in body {names[b[0]]!r}"
 
     def default_stiffness(self, dhat):
-        """kappa (N/m^3) of the squared-distance barrier: its force at d = dhat / 2 (2 d kappa |b'(d^2)|)
-        equals that of the collider barrier's default kappa (E x mean surface edge, at least the
-        weight under 1 g per surface vertex per dhat; docs/contact.md) there."""
+        """The default kappa (N/m^3) of the squared-distance barrier: its force at d = dhat / 2
+        (2 d kappa |b'(d^2)|) equals that of the collider barrier's default kappa (E x mean surface
+        edge, at least the weight under 1 g per surface vertex per dhat; docs/contact.md) there."""
         E = float(getattr(self.sim.model.material, "youngs_modulus", 0.0) or 0.0)
         k_lin = max(E * self.mean_edge, float(self.sim.model.total_mass) * 9.81 / (max(self.nv, 1) * dhat))
         return k_lin * abs(_barrier_slope(0.5 * dhat, dhat)) / (dhat * abs(_barrier_slope(0.25 * dhat * dhat, dhat * dhat)))
@@ -358,12 +375,13 @@ class SurfaceContact:
             self._f_blocks = self._block_positions(self._f_pairs_np, self._f_cap, self._f_blocks)
 
     # -- pair kernel ---------------------------------------------------------------------------------
-    def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0):
+    def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0, kappa=None):
         ops = self.ops
         if self.num_pairs == 0:
             return
+        kappa = self.kappa if kappa is None else kappa
         launch(SK.pair_kernel, self.capacity, [
-            x, self._rest, self._pairs, self._kinds, self._count, ops.scalar(self.dhat ** 2), ops.scalar(self.kappa),
+            x, self._rest, self._pairs, self._kinds, self._count, ops.scalar(self.dhat ** 2), ops.scalar(kappa),
             int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA),
             ops.zero if g is None else g, self._blocks, self.system.hessian_values if values is None else values,
             self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot),
@@ -381,6 +399,14 @@ class SurfaceContact:
         self.update_pairs(x)
         self.run(SK.MODE_DISTANCE, x)
         return self._dist.numpy()[:self.num_pairs].astype(np.float64)
+
+    def pair_min_distance(self, x) -> float:
+        """Smallest distance (m) of the current candidate pairs at x, without a broad phase (inf
+        without pairs): the adaptive stiffness's measure after each Newton iteration."""
+        if self.num_pairs == 0:
+            return float("inf")
+        self.run(SK.MODE_DISTANCE, x)
+        return float(self._dist.numpy()[:self.num_pairs].min())
 
     def min_distance(self, x=None) -> float:
         d = self.distances(x)
@@ -511,3 +537,42 @@ class SurfaceContactForm(LaggedFrictionForm):
         c = self.contact
         c.update_pairs(x, d, s)
         c.run(SK.MODE_MAX_STEP, x, scale=s, d=d, acc=acc, slot=self.acc_slot)
+
+    # -- adaptive stiffness (warpfem.contact.stiffness) ----------------------------------------------
+    def adaptive_stiffness(self) -> bool:
+        return self.contact.stiffness is not None
+
+    def begin_stiffness(self, pot, y, g_rest) -> bool:
+        """The adaptive kappa at the step's start y (``g_rest``: the gradient of the other forms
+        there, masked, flat): balanced against the barrier's gradient when a pair is within dhat;
+        friction is lagged again with it. Returns whether kappa changed."""
+        c = self.contact
+        x = pot.x_of(y)
+        c.update_pairs(x)
+        dmin = c.pair_min_distance(x)
+        gb = None
+        if dmin < c.dhat:
+            scale = pot.scales(self)[0]
+            gb = pot.masked_gradient(y, add=lambda x, g, acc: c.run(SK.MODE_GRADIENT, x, scale=scale, g=g, kappa=1.0))
+        before = c.kappa
+        c.stiffness.begin_step(pot.s, dmin, g_rest, gb)
+        if c.kappa != before and c.has_friction():
+            c.lag(c.step_start)
+        return c.kappa != before
+
+    def after_iteration(self, x, alpha=1.0) -> bool:
+        """After an accepted Newton iteration at x (step length alpha): an adaptive kappa doubles
+        when the smallest pair distance keeps shrinking below a fraction of dhat. Returns whether
+        kappa changed."""
+        c = self.contact
+        if c.stiffness is None:
+            return False
+        return c.stiffness.update(c.pair_min_distance(x))
+
+    def stiffness_state(self):
+        s = self.contact.stiffness
+        return None if s is None else s.state()
+
+    def restore_stiffness(self, state):
+        if self.contact.stiffness is not None and state is not None:
+            self.contact.stiffness.restore(state)

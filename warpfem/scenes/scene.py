@@ -499,13 +499,15 @@ class Scene(_SceneBodies):
         out = []
         for i, c in enumerate(sp.collider):
             dhat = c["dhat"] if c.get("dhat") is not None else 0.1 * mean_edge
-            kappa = c["stiffness"] if c.get("stiffness") is not None else max(E * mean_edge, mass * 9.81 / (surface * dhat))
+            auto = c.get("stiffness") == "auto"  # adaptive (warpfem.contact.stiffness): set per step
+            kappa = (c["stiffness"] if c.get("stiffness") is not None and not auto
+                     else max(E * mean_edge, mass * 9.81 / (surface * dhat)))
             epsv = c["friction_velocity"] if c.get("friction_velocity") is not None else 1e-3 * diagonal
             geo = {k: (list(c[k]) if isinstance(c[k], tuple) else c[k]) for k in geometry[c["type"]] if c.get(k) is not None}
             moves = any(c.get("translation") or ()) or bool(c.get("rotation_angle"))
             d = {"type": c["type"], "name": c.get("name") or f"{c['type']}{i + 1}", **geo,
                  "friction": float(c["friction"]), "dhat": float(dhat), "dhat_default": c.get("dhat") is None,
-                 "stiffness": float(kappa), "stiffness_default": c.get("stiffness") is None,
+                 "stiffness": "auto" if auto else float(kappa), "stiffness_default": c.get("stiffness") is None,
                  "friction_velocity": float(epsv), "moving": moves}
             if moves:
                 d.update(translation=list(c["translation"]), rotation_angle=float(c["rotation_angle"] or 0.0),
@@ -514,7 +516,8 @@ class Scene(_SceneBodies):
             text = (f"{d['type']} {d['name']!r}, " + ", ".join(f"{k} {v}" for k, v in geo.items())
                     + f", friction {d['friction']:g}"
                     + f", dhat {dhat:.4g} m{' (default: 0.1 x mean boundary edge)' if d['dhat_default'] else ''}"
-                    + f", barrier stiffness {kappa:.4g} N/m{' (default)' if d['stiffness_default'] else ''}"
+                    + (", barrier stiffness adaptive" if auto else
+                       f", barrier stiffness {kappa:.4g} N/m{' (default)' if d['stiffness_default'] else ''}")
                     + (f", moves by {list(c['translation'])} m" if any(c.get("translation") or ()) else "")
                     + (f", turns {c['rotation_angle']:g} deg" if c.get("rotation_angle") else "")
                     + (f" over {c['ramp_time']:g} s" if moves and c.get("ramp_time") else " over the run" if moves else ""))

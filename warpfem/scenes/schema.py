@@ -38,7 +38,7 @@ class SceneError(ValueError):
 class Key:
     """One allowed key: its kind, default and range check.
 
-    kind: "float", "int", "bool", "str", "vec3", "int3", "path", "choice".
+    kind: "float", "int", "bool", "str", "vec3", "int3", "path", "choice", "stiffness" (a number or "auto").
     check: optional ``f(value) -> str | None`` returning a problem description.
     """
 
@@ -174,7 +174,8 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "name": Key("str", default=None, doc="USD prim / message name (default: the type)"),
         "friction": Key("float", default=0.0, check=_non_negative, doc="Coulomb coefficient mu"),
         "dhat": Key("float", default=None, check=_positive, doc="contact distance (m); default 0.1 x mean surface edge"),
-        "stiffness": Key("float", default=None, check=_positive, doc="barrier stiffness kappa (N/m); default from the weight"),
+        "stiffness": Key("stiffness", default=None, check=_positive,
+                         doc='barrier stiffness kappa (N/m); default from E and the weight; "auto": adaptive'),
         "friction_velocity": Key("float", default=None, check=_positive, doc="m/s below which friction sticks (smoothing)"),
         "point": Key("vec3", default=(0.0, 0.0, 0.0), doc="plane: a point on it (m)"),
         "normal": Key("vec3", default=(0.0, 1.0, 0.0), doc="plane: normal towards the body"),
@@ -199,8 +200,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "self": Key("bool", default=False, doc="contact of a body with itself"),
         "friction": Key("float", default=0.0, check=_non_negative, doc="Coulomb coefficient mu of the surface pairs"),
         "dhat": Key("float", default=None, check=_positive, doc="contact distance (m); default 0.1 x mean surface edge"),
-        "stiffness": Key("float", default=None, check=_positive,
-                         doc="barrier kappa of the squared-distance barrier (N/m^3); default from Young's modulus"),
+        "stiffness": Key("stiffness", default=None, check=_positive,
+                         doc="barrier kappa of the squared-distance barrier (N/m^3); default from Young's modulus; "
+                             '"auto": adaptive'),
         "friction_velocity": Key("float", default=None, check=_positive, doc="m/s below which friction sticks (smoothing)"),
         "friction_iterations": Key("int", default=1, check=_non_negative,
                                    doc="re-solves of a step with friction lagged from its end (colliders too); 0 = "
@@ -378,6 +380,10 @@ def _is_number(v):
 
 def _convert(ctx, where, key: Key, value):
     kind = key.kind
+    if kind == "stiffness":  # a barrier stiffness: a number, or "auto" (adaptive, docs/contact.md)
+        if isinstance(value, str) and value == "auto":
+            return value
+        kind = "float"
     if kind == "float":
         if not _is_number(value):
             ctx.fail(where, f"expected a number, got {_typename(value)} {value!r}")

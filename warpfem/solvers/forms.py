@@ -352,6 +352,10 @@ class IncrementalPotential:
         self._x_of_y = y
         return x
 
+    def x_of(self, y):
+        """x = x_b + s y (in the work buffer; y itself when x is the unknown)."""
+        return self._x_of(y)
+
     def trial(self, y, alpha, d, out):
         self.ops.lincomb(1.0, y, alpha, d, out)
         if self._x_of_y is out:
@@ -524,6 +528,58 @@ class IncrementalPotential:
         for f in self.forms:
             f.hessian(y, x, self.scales(f)[1], values)
         return values
+
+    # -- forms that adapt during a solve (contact's barrier stiffness) -----------------------------------
+    def masked_gradient(self, y, forms=(), add=None):
+        """P g at y as a flat float64 numpy array, g the gradient (in y) of ``forms`` plus whatever
+        ``add(x, g, acc)`` launches into g (already scaled): one read-back. For tools such as
+        the adaptive barrier stiffness; the loop's own vectors are untouched."""
+        g = getattr(self, "_g_aux", None)
+        if g is None or g.shape[0] != self.n:
+            g = self._g_aux = self.ops.new_vector()
+        acc = self._acc_g
+        acc.zero_()
+        g.zero_()
+        x = self._x_of(y)
+        for f in forms:
+            f.gradient(y, x, self.scales(f)[0], g, acc)
+        if add is not None:
+            add(x, g, acc)
+        launch(LK.gradient_finish_kernel, self.n, [g, self.ops.zero, self.ops.scalar(0.0), self.mask, acc, _G_NORM],
+               self.ops.device)
+        self.host_syncs += 1
+        return g.numpy().astype(np.float64).ravel()
+
+    def adaptive_forms(self):
+        """The forms whose own parameters adapt during a solve (``adaptive_stiffness()`` true)."""
+        return [f for f in self.forms if getattr(f, "adaptive_stiffness", None) is not None and f.adaptive_stiffness()]
+
+    def begin_adaptive(self, y) -> bool:
+        """At a solve's start y: each adaptive form sets its parameters from the gradient of the
+        other forms there (``begin_stiffness(potential, y, g_rest)``). Returns whether one changed."""
+        forms = self.adaptive_forms()
+        if not forms:
+            return False
+        adaptive = set(map(id, forms))
+        rest = [f for f in self.forms if id(f) not in adaptive and not hasattr(f, "adaptive_stiffness")]
+        g_rest = self.masked_gradient(y, rest)
+        changed = False
+        for f in forms:
+            changed = f.begin_stiffness(self, y, g_rest) or changed
+        return changed
+
+    def after_iteration(self, y, alpha=1.0) -> bool:
+        """After an accepted Newton iteration of step length alpha (``newton_solve``'s hook): the
+        adaptive forms' ``after_iteration(x, alpha)`` update what they adapt at y; True when the
+        potential changed (the loop evaluates it again)."""
+        forms = [f for f in self.adaptive_forms() if hasattr(f, "after_iteration")]
+        if not forms:  # nothing adapts (a fixed barrier stiffness): no work
+            return False
+        x = self._x_of(y)
+        changed = False
+        for f in forms:
+            changed = f.after_iteration(x, alpha) or changed
+        return changed
 
     def bounds_step(self) -> bool:
         """Whether a form bounds the line search's step (then :meth:`max_step` reads it back)."""

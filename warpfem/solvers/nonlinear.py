@@ -113,6 +113,7 @@ class SolveStats:
     singular_solves: int = 0  # Newton systems a direct solve found singular or indefinite (shifted and/or deflated)
     friction_iterations: int = 0  # extra solves of a step with friction lagged again from its end (Simulator)
     projected_retries: int = 0  # hessian_projection="on_demand": Newton systems solved again with the projected Hessian
+    adaptations: int = 0  # Newton iterations after which the potential changed (an adaptive barrier stiffness doubled)
     history: list = field(default_factory=list)
 
     def as_dict(self) -> dict:
@@ -153,6 +154,10 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
       the next ``solve_newton_system`` evaluates it afresh), and the loop tries again;
     * optionally ``max_step(y, d) -> alpha_max``: the line search starts at min(1, alpha_max)
       (contact's continuous-collision bound: no step crosses a collider);
+    * optionally ``after_iteration(y, alpha) -> bool``: called after each accepted iteration (alpha:
+      its step length); True when
+      the potential itself changed there (contact's adaptive barrier stiffness doubled), and its
+      energy and gradient at y are evaluated again (``evaluate``);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
       step changes the energy, or the Newton model predicts it to change (|g.d|), by less than that
       fraction of its magnitude (below what the energy sum resolves), the step is accepted if it
@@ -174,6 +179,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     fused = hasattr(problem, "trial_step") and hasattr(problem, "work")
     g_try = problem.work.g_try if fused else None
     eps_mach = problem.eps
+    after_iteration = getattr(problem, "after_iteration", None)
 
     # with newton_step, the start's energy and gradient are read with the first iteration's numbers
     # inexact Newton's forcing terms (None: every solve to cg_tol); the first solve's tolerance is
@@ -323,6 +329,11 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             gmag, gnorm = g_new
         else:
             gmag, gnorm = problem.gradient(y, g)
+        # a problem whose terms adapt (contact's barrier stiffness) may change its potential here:
+        # its energy and gradient at y are evaluated again (the line search compares like with like)
+        if after_iteration is not None and after_iteration(y, alpha):
+            E, mag, gmag, gnorm = problem.evaluate(y, g)
+            st.adaptations += 1
         st.newton_iterations += 1
         st.history.append((E, gnorm, alpha, iterations))
         if not np.isfinite(gnorm):
