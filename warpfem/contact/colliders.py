@@ -41,7 +41,7 @@ class Collider:
     None: Young's modulus x the mean surface edge, at least the weight under 1 g per surface vertex
     per dhat; ``"auto"``: adaptive, :mod:`warpfem.contact.stiffness`),
     ``friction_velocity`` (m/s, below which friction is smoothed into sticking; None: 1e-3 body
-    diagonals per second), the motion ``translation``, ``rotation_axis``, ``rotation_angle``
+    diagonals per second, 1e-2 in float32), the motion ``translation``, ``rotation_axis``, ``rotation_angle``
     (degrees), ``rotation_center``, ``ramp_time`` (s; required when it moves), and ``name``."""
 
     kind = -1

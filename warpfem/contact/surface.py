@@ -24,7 +24,7 @@ import scipy.sparse.csgraph
 import warp as wp
 
 from warpfem.contact import surface_kernels as SK
-from warpfem.contact.contact import CollisionError, LaggedFrictionForm
+from warpfem.contact.contact import CollisionError, LaggedFrictionForm, default_friction_velocity
 from warpfem.contact.stiffness import AdaptiveStiffness, parse_stiffness
 from warpfem.kernels.generic import launch
 
@@ -149,7 +149,7 @@ class SurfaceContact:
     ``friction`` (mu), ``dhat`` (m, default 0.1 x the mean surface edge), ``stiffness`` (kappa of
     the squared-distance barrier, N/m^3; default: the barrier's force at dhat / 2 is the collider
     default's there, :meth:`default_stiffness`; ``"auto"``: adaptive, :mod:`warpfem.contact.stiffness`), ``friction_velocity`` (m/s, default 1e-3 body
-    diagonals per second). ``body``: optional (n,) body id per vertex (default from
+    diagonals per second, 1e-2 in float32). ``body``: optional (n,) body id per vertex (default from
     ``model.body_offsets`` when the model has two or more bodies)."""
 
     def __init__(self, sim, /, *, bodies=None, friction=0.0, dhat=None, stiffness=None, friction_velocity=None,
@@ -196,7 +196,8 @@ class SurfaceContact:
             mean_mass = float(model.total_mass) / max(int(model.num_vertices), 1)
             self.stiffness = AdaptiveStiffness(mean_mass, self.diagonal, self.dhat, squared=True)
             self.stiffness.initial(float(getattr(sim, "dt", 1.0) or 1.0))
-        self.friction_velocity = 1e-3 * self.diagonal if friction_velocity is None else float(friction_velocity)
+        self.friction_velocity = (default_friction_velocity(self.diagonal, sim.precision) if friction_velocity is None
+                                  else float(friction_velocity))
         dev = sim.device
         self.device = dev
         i32 = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.int32).ravel(), dtype=wp.int32, device=dev)  # noqa: E731

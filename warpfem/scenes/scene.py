@@ -411,7 +411,7 @@ class Scene(_SceneBodies):
                                               if ls["name"] == "auto" else "") + ":")
             lines.append(f"    cpu: {ls['cpu']}")
             lines.append(f"    cuda: {ls['cuda']}")
-        for i, c in enumerate(self.collider_plan()):
+        for i, c in enumerate(self.collider_plan(precision)):
             lines.append(f"collider #{i + 1}: {c['text']}")
         lines += self._contact_lines()
         for extra in section_entries(self):  # e.g. [subspace]: the reduced run (warpfem.reduced.scene)
@@ -474,11 +474,14 @@ class Scene(_SceneBodies):
             return {"name": "dense (reduced r x r)", "training_run": plan}
         return plan
 
-    def collider_plan(self) -> list:
+    def collider_plan(self, precision: str = "float64") -> list:
         """The ``[[collider]]`` entries as they will run: type, name, geometry, motion, friction and
         the contact distance / barrier stiffness with the body-based defaults filled in (as
         :class:`warpfem.contact.contact.ContactSet` fills them: dhat 0.1 x mean boundary edge, kappa
-        max(E x mean edge, weight / (surface vertices x dhat)), friction velocity 1e-3 x diagonal)."""
+        max(E x mean edge, weight / (surface vertices x dhat)), friction velocity 1e-3 x diagonal per
+        second, 1e-2 in float32)."""
+        from warpfem.contact.contact import default_friction_velocity
+
         sp = self.spec
         if not sp.collider:
             return []
@@ -502,7 +505,8 @@ class Scene(_SceneBodies):
             auto = c.get("stiffness") == "auto"  # adaptive (warpfem.contact.stiffness): set per step
             kappa = (c["stiffness"] if c.get("stiffness") is not None and not auto
                      else max(E * mean_edge, mass * 9.81 / (surface * dhat)))
-            epsv = c["friction_velocity"] if c.get("friction_velocity") is not None else 1e-3 * diagonal
+            epsv = (c["friction_velocity"] if c.get("friction_velocity") is not None
+                    else default_friction_velocity(diagonal, precision))
             geo = {k: (list(c[k]) if isinstance(c[k], tuple) else c[k]) for k in geometry[c["type"]] if c.get(k) is not None}
             moves = any(c.get("translation") or ()) or bool(c.get("rotation_angle"))
             d = {"type": c["type"], "name": c.get("name") or f"{c['type']}{i + 1}", **geo,
