@@ -390,3 +390,43 @@ def test_bodies_of_a_multi_body_model_collide_without_intersecting():
     with pytest.raises(CollisionError, match="touch now between bodies 'high' and 'low'|touch now between bodies 'low' "
                                              "and 'high'"):
         Simulator(touching, dt=0.01).set_contact()
+
+
+def test_a_start_through_itself_is_refused_naming_the_body_and_the_crossing():
+    """The U's right arm pushed 0.13 m left through the left arm (positions set before set_contact):
+    with self contact the start is refused, naming the body and an edge / triangle that ipctk agrees
+    cross; the same U at rest is accepted, and without self contact nothing is checked."""
+    import warpfem.mesh.intersect as I
+    from warpfem.contact import CollisionError
+
+    mesh = _u_shape()
+    X = np.asarray(mesh.vertices)
+    mat = make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    x = X.copy()
+    x[(X[:, 0] > 0.15) & (X[:, 1] > 0.15)] += (-0.13, 0.013, 0.01)  # off the grid: crossings inside triangles
+    faces = np.asarray(mesh.boundary_faces(), dtype=np.int64)
+    assert ipctk.has_intersections(_collision_mesh(mesh), np.asfortranarray(x))
+    c = I.self_crossing(x, faces)
+    assert c is not None and not set(c.edge) & set(c.triangle)
+    assert ipctk.is_edge_intersecting_triangle(x[c.edge[0]], x[c.edge[1]], *x[list(c.triangle)])
+    assert sorted(faces[c.triangle_index]) == sorted(c.triangle)
+    assert I.self_crossing(X, faces) is None
+    m = Model(mesh, mat, gravity=(0.0, 0.0, 0.0))
+    sim = Simulator(m, dt=0.01)
+    sim.set_positions(x)
+    with pytest.raises(CollisionError, match=re.escape(f"passes through itself: its edge {list(c.edge)}") + ".*"
+                       + re.escape(f"crosses its triangle {c.triangle_index} {list(c.triangle)}")):
+        sim.set_contact(**{"self": True})
+    assert sim.surface_contact is None and not sim.system.listeners
+    # two bodies, the second through itself: named, its own vertex indices
+    from warpfem.model import Body
+
+    two = Model.from_bodies([Body(mesh, mat, name="left", offset=(-1.0, 0.0, 0.0)), Body(mesh, mat, name="right")],
+                            gravity=(0.0, 0.0, 0.0))
+    sim2 = Simulator(two, dt=0.01)
+    x2 = np.asarray(two.rest_positions).copy()
+    x2[len(X):] = x
+    sim2.set_positions(x2)
+    with pytest.raises(CollisionError, match=r"body 'right' passes through itself: its edge " + re.escape(str(list(c.edge)))):
+        sim2.set_contact(**{"self": True})
+    assert sim2.set_contact() is not None  # bodies only: no self check

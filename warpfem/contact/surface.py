@@ -39,6 +39,9 @@ JACOBI_TOL = {np.dtype(np.float64): 1e-22, np.dtype(np.float32): 1e-11}
 #: the broad phase's candidates are the pairs within this many dhat over the segment (the margin
 #: lets later line searches whose boxes fit in these reuse them, and the pattern grow less often)
 QUERY_MARGIN = 2.0
+#: self pairs closer than this many dhat in the rest shape get no barrier (only the step bound):
+#: features that are close but not neighbours at rest (short edges, slivers) are not pushed apart
+REST_GAP = 1.0
 
 
 @dataclass
@@ -205,6 +208,12 @@ class SurfaceContact:
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._alloc(_capacity(4 * (self.nv + self.ne)))
         self.num_pairs = 0
+        # self pairs closer than rest_gap at rest: no barrier, the step bound only (docs/contact.md)
+        self.rest_gap = REST_GAP * self.dhat if self_on else 0.0
+        self._rest32 = wp.array(X.astype(np.float32), dtype=wp.vec3, device=dev)
+        self._ccd_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._alloc_ccd(256)
+        self.num_ccd_pairs = 0
         self.pairs_np = np.zeros((0, 4), dtype=np.int64)
         # friction lagged at the step start
         self.num_friction = 0
@@ -218,6 +227,14 @@ class SurfaceContact:
         self.reused = 0  # broad phases answered by the last query's pairs
         self._valid = False  # whether the last query's boxes and pairs stand (see update_pairs)
         self._misses = wp.zeros(1, dtype=wp.int32, device=dev)
+        if self_on:  # a body already through itself: its crossing pairs have a positive distance, so check
+            from warpfem.mesh.intersect import first_self_crossing
+
+            problem = first_self_crossing(sim.positions(), surf.triangles, getattr(model, "body_offsets", None),
+                                          getattr(model, "body_names", None))
+            if problem:
+                self.detach()
+                raise CollisionError(f"set_contact: {problem}; self contact needs a start that does not")
         d = self.distances()
         if len(d) and d.min() <= 0.0:
             self.detach()
@@ -261,6 +278,11 @@ class SurfaceContact:
         self._fw = wp.zeros(cap, dtype=wp.vec4d if ops.np_dtype == np.float64 else wp.vec4, device=dev)
         self._fn = wp.zeros(cap, dtype=ops.vec, device=dev)
         self._flam = wp.zeros(cap, dtype=ops.scalar, device=dev)
+
+    def _alloc_ccd(self, cap):
+        self.ccd_capacity = cap
+        self._ccd_pairs = wp.zeros(cap, dtype=wp.vec4i, device=self.device)
+        self._ccd_kinds = wp.zeros(cap, dtype=wp.int32, device=self.device)
 
     # -- broad phase ---------------------------------------------------------------------------------
     def _boxes(self, x, d, scale, margin=1.0):
@@ -316,17 +338,29 @@ class SurfaceContact:
         self.queries += 1
         while True:
             self._count.zero_()
+            self._ccd_count.zero_()
             launch(SK.broad_phase_kernel, self.nv + self.ne, [
                 self._tbvh.id, self._ebvh.id, self._vbox[0], self._vbox[1], self._ebox[0], self._ebox[1], self._verts,
                 self._tris, self._edges, self._group, int(self.self_contact), int(self.bodies), self.nv, self._pairs,
-                self._kinds, self._count, self.capacity], self.device)
+                self._kinds, self._count, self.capacity, self._rest32, float(self.rest_gap), self._ccd_pairs,
+                self._ccd_kinds, self._ccd_count, self.ccd_capacity], self.device)
             n = int(self._count.numpy()[0])
-            if n <= self.capacity:
+            nc = int(self._ccd_count.numpy()[0])
+            if n <= self.capacity and nc <= self.ccd_capacity:
+                self.num_ccd_pairs = nc
                 return n
-            self._alloc(_capacity(2 * n))
+            if n > self.capacity:
+                self._alloc(_capacity(2 * n))
+            if nc > self.ccd_capacity:
+                self._alloc_ccd(_capacity(2 * nc))
 
     def _ensure(self, quads):
-        self.system.ensure_blocks(self._quad_pairs(quads))
+        p = self._quad_pairs(quads)
+        p = p[self.system.pattern.pair_index(p) < 0]  # only the missing blocks: growing sorts what it is given
+        if len(p):
+            n = self.system.pattern.num_rows
+            k = np.unique(p[:, 0] * n + p[:, 1])
+            self.system.ensure_blocks(np.stack([k // n, k % n], axis=1))
 
     def _block_positions(self, quads, cap, out=None):
         """Device int32 (16 cap,): the pattern positions of the 4 x 4 vertex blocks of each quad."""
@@ -367,6 +401,17 @@ class SurfaceContact:
             int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA),
             ops.zero if g is None else g, self._blocks, self.system.hessian_values if values is None else values,
             self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot),
+            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)])], self.device)
+
+    def run_ccd(self, x, *, scale, d, acc, slot=0):
+        """The step bound (additive CCD) of the CCD-only pairs (self pairs closer than rest_gap at rest)."""
+        if self.num_ccd_pairs == 0:
+            return
+        ops = self.ops
+        launch(SK.pair_kernel, self.ccd_capacity, [
+            x, self._rest, self._ccd_pairs, self._ccd_kinds, self._ccd_count, ops.scalar(self.dhat ** 2),
+            ops.scalar(self.kappa), int(SK.MODE_MAX_STEP), ops.scalar(scale), d, ops.scalar(STEP_ETA), ops.zero,
+            self._blocks, self.system.hessian_values, self._dist, self._fw, self._fn, self._flam, acc, int(slot),
             ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)])], self.device)
 
     def _acc_default(self):
@@ -511,3 +556,4 @@ class SurfaceContactForm(LaggedFrictionForm):
         c = self.contact
         c.update_pairs(x, d, s)
         c.run(SK.MODE_MAX_STEP, x, scale=s, d=d, acc=acc, slot=self.acc_slot)
+        c.run_ccd(x, scale=s, d=d, acc=acc, slot=self.acc_slot)

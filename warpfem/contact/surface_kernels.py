@@ -448,12 +448,26 @@ def _keep(group: wp.array(dtype=wp.int32), a: int, b: int, self_on: int, bodies_
     return bodies_on != 0
 
 
+@wp.func
+def _append(pairs: wp.array(dtype=wp.vec4i), kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+            capacity: int, q: wp.vec4i, kind: int):
+    slot = wp.atomic_add(count, 0, 1)
+    if slot < capacity:
+        pairs[slot] = q
+        kinds[slot] = kind
+
+
 @wp.kernel
 def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dtype=wp.vec3), vhi: wp.array(dtype=wp.vec3),
                        elo: wp.array(dtype=wp.vec3), ehi: wp.array(dtype=wp.vec3), verts: wp.array(dtype=wp.int32),
                        tris: wp.array(dtype=wp.int32), edges: wp.array(dtype=wp.int32), group: wp.array(dtype=wp.int32),
                        self_on: int, bodies_on: int, num_verts: int, pairs: wp.array(dtype=wp.vec4i),
-                       kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), capacity: int):
+                       kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), capacity: int,
+                       rest: wp.array(dtype=wp.vec3), rest_gap: float, ccd_pairs: wp.array(dtype=wp.vec4i),
+                       ccd_kinds: wp.array(dtype=wp.int32), ccd_count: wp.array(dtype=wp.int32), ccd_capacity: int):
+    """Candidate pairs of the boxes' overlaps. A self pair (same group) whose distance in the rest
+    shape (``rest``, float32) is below ``rest_gap`` goes to the CCD-only list (``ccd_*``: step
+    bound, no barrier) instead, and one at distance 0 there (touching at rest) to neither."""
     i = wp.tid()
     t = int(0)
     if i < num_verts:
@@ -465,10 +479,14 @@ def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dt
             c = tris[3 * t + 2]
             if v != a and v != b and v != c:
                 if _keep(group, v, a, self_on, bodies_on):
-                    slot = wp.atomic_add(count, 0, 1)
-                    if slot < capacity:
-                        pairs[slot] = wp.vec4i(v, a, b, c)
-                        kinds[slot] = 0
+                    q = wp.vec4i(v, a, b, c)
+                    dr = rest_gap
+                    if rest_gap > 0.0 and group[v] == group[a]:
+                        dr = pair_distance(0, rest[v], rest[a], rest[b], rest[c])
+                    if dr >= rest_gap:
+                        _append(pairs, kinds, count, capacity, q, 0)
+                    elif dr > 0.0:
+                        _append(ccd_pairs, ccd_kinds, ccd_count, ccd_capacity, q, 0)
     else:
         e = i - num_verts
         a0 = edges[2 * e]
@@ -480,10 +498,14 @@ def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dt
                 b1 = edges[2 * t + 1]
                 if a0 != b0 and a0 != b1 and a1 != b0 and a1 != b1:
                     if _keep(group, a0, b0, self_on, bodies_on):
-                        slot = wp.atomic_add(count, 0, 1)
-                        if slot < capacity:
-                            pairs[slot] = wp.vec4i(a0, a1, b0, b1)
-                            kinds[slot] = 1
+                        q = wp.vec4i(a0, a1, b0, b1)
+                        dr = rest_gap
+                        if rest_gap > 0.0 and group[a0] == group[b0]:
+                            dr = pair_distance(1, rest[a0], rest[a1], rest[b0], rest[b1])
+                        if dr >= rest_gap:
+                            _append(pairs, kinds, count, capacity, q, 1)
+                        elif dr > 0.0:
+                            _append(ccd_pairs, ccd_kinds, ccd_count, ccd_capacity, q, 1)
 
 
 @wp.func
