@@ -551,6 +551,63 @@ def pair_accd(kind: int, x0: Any, x1: Any, x2: Any, x3: Any, p0: Any, p1: Any, p
     return t
 
 
+@wp.func
+def _add_pair_hessian(values: wp.array(dtype=Any), blocks: wp.array(dtype=wp.int32), p: int, scale: Any, mode: int,
+                      kind: int, x0: Any, x1: Any, x2: Any, x3: Any, w: Any, c0: Any, c1: Any, k: int, r: Any, u: Any,
+                      v: Any, m: Any, m1: Any, m2: Any, b0: Any, b1: Any, b2: Any, gc0: Any, gc1: Any, gc2: Any,
+                      gc3: Any, kappa: Any, jtol: Any):
+    """Hessian of kappa m b(s): m b'' gs gs^T + m b' Hs + b' (gm gs^T + gs gm^T) + b Hm (mode 2: its PSD
+    projection) into pair p's 16 vertex blocks of values, times scale."""
+    zero = kappa - kappa
+    one = zero + type(kappa)(1.0)
+    two = one + one
+    J0 = c0[0] * x0 + c0[1] * x1 + c0[2] * x2 + c0[3] * x3
+    J1 = c1[0] * x0 + c1[1] * x1 + c1[2] * x2 + c1[3] * x3
+    g00 = two * wp.dot(J0, J0)
+    g01 = two * wp.dot(J0, J1)
+    g11 = two * wp.dot(J1, J1)
+    i00 = zero
+    i01 = zero
+    i11 = zero
+    if k == 1 and g00 > zero:
+        i00 = one / g00
+    elif k == 2:
+        det = g00 * g11 - g01 * g01
+        if det > zero:
+            i00 = g11 / det
+            i01 = -g01 / det
+            i11 = g00 / det
+    H = _empty12(zero)
+    I3 = wp.identity(3, type(kappa))
+    rr = wp.outer(r, r)
+    for i in range(4):
+        Bi0 = two * (c0[i] * r + w[i] * J0)
+        Bi1 = two * (c1[i] * r + w[i] * J1)
+        gci = _pick(i, gc0, gc1, gc2, gc3)
+        gsi = (two * w[i]) * r
+        for j in range(4):
+            Bj0 = two * (c0[j] * r + w[j] * J0)
+            Bj1 = two * (c1[j] * r + w[j] * J1)
+            hs = (two * w[i] * w[j]) * I3 - i00 * wp.outer(Bi0, Bj0) - i01 * (wp.outer(Bi0, Bj1) + wp.outer(Bi1, Bj0)) \
+                - i11 * wp.outer(Bi1, Bj1)
+            blk = (m * b2 * two * two * w[i] * w[j]) * rr + (m * b1) * hs
+            if kind == 1:
+                gcj = _pick(j, gc0, gc1, gc2, gc3)
+                gsj = (two * w[j]) * r
+                blk = blk + (b1 * m1) * (wp.outer(gci, gsj) + wp.outer(gsi, gcj)) + (b0 * m2) * wp.outer(gci, gcj) \
+                    + (b0 * m1) * _hc_block(i, j, u, v, one)
+            H = add_block(H, i, j, kappa * blk)
+    if mode == 2:
+        H = psd_project_pair(H, kind, w, jtol)
+    for i in range(4):
+        for j in range(4):
+            M = rr - rr
+            for a in range(3):
+                for b in range(3):
+                    M[a, b] = H[3 * i + a, 3 * j + b]
+            wp.atomic_add(values, blocks[16 * p + 4 * i + j], scale * M)
+
+
 @both_precisions(x="v[]", rest="v[]", dx="v[]", dhat2="s", kappa="s", eta="s", scale="s", g="v[]", values="m[]",
                  out="s[]", f_w="v4[]", f_n="v[]", f_lam="s[]", jtol="s")
 @wp.kernel
@@ -638,52 +695,9 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
             gsq += wp.float64(wp.dot(gi, gi))
         wp.atomic_add(acc, slot + 2, gsq * wp.float64(scale * scale))
         return
-    # modes 2, 6: Hessian of kappa m b(s): m b'' gs gs^T + m b' Hs + b' (gm gs^T + gs gm^T) + b Hm
-    J0 = c0[0] * x0 + c0[1] * x1 + c0[2] * x2 + c0[3] * x3
-    J1 = c1[0] * x0 + c1[1] * x1 + c1[2] * x2 + c1[3] * x3
-    g00 = two * wp.dot(J0, J0)
-    g01 = two * wp.dot(J0, J1)
-    g11 = two * wp.dot(J1, J1)
-    i00 = zero
-    i01 = zero
-    i11 = zero
-    if k == 1 and g00 > zero:
-        i00 = one / g00
-    elif k == 2:
-        det = g00 * g11 - g01 * g01
-        if det > zero:
-            i00 = g11 / det
-            i01 = -g01 / det
-            i11 = g00 / det
-    H = _empty12(zero)
-    I3 = wp.identity(3, type(kappa))
-    rr = wp.outer(r, r)
-    for i in range(4):
-        Bi0 = two * (c0[i] * r + w[i] * J0)
-        Bi1 = two * (c1[i] * r + w[i] * J1)
-        gci = _pick(i, gc0, gc1, gc2, gc3)
-        gsi = (two * w[i]) * r
-        for j in range(4):
-            Bj0 = two * (c0[j] * r + w[j] * J0)
-            Bj1 = two * (c1[j] * r + w[j] * J1)
-            hs = (two * w[i] * w[j]) * I3 - i00 * wp.outer(Bi0, Bj0) - i01 * (wp.outer(Bi0, Bj1) + wp.outer(Bi1, Bj0)) \
-                - i11 * wp.outer(Bi1, Bj1)
-            blk = (m * b2 * two * two * w[i] * w[j]) * rr + (m * b1) * hs
-            if kind == 1:
-                gcj = _pick(j, gc0, gc1, gc2, gc3)
-                gsj = (two * w[j]) * r
-                blk = blk + (b1 * m1) * (wp.outer(gci, gsj) + wp.outer(gsi, gcj)) + (b0 * m2) * wp.outer(gci, gcj) \
-                    + (b0 * m1) * _hc_block(i, j, u, v, one)
-            H = add_block(H, i, j, kappa * blk)
-    if mode == 2:
-        H = psd_project_pair(H, kind, w, jtol)
-    for i in range(4):
-        for j in range(4):
-            M = rr - rr
-            for a in range(3):
-                for b in range(3):
-                    M[a, b] = H[3 * i + a, 3 * j + b]
-            wp.atomic_add(values, blocks[16 * p + 4 * i + j], scale * M)
+    # modes 2, 6 (a function: its 12 x 12 locals are only set up for the pairs within dhat)
+    _add_pair_hessian(values, blocks, p, scale, mode, kind, x0, x1, x2, x3, w, c0, c1, k, r, u, v, m, m1, m2, b0, b1, b2,
+                      gc0, gc1, gc2, gc3, kappa, jtol)
 
 
 @both_precisions(dbase="v[]", ydisp="v[]", sy="s", f_w="v4[]", f_n="v[]", f_lam="s[]", mu="s", eps="s", scale="s",
