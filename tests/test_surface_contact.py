@@ -430,3 +430,43 @@ def test_a_start_through_itself_is_refused_naming_the_body_and_the_crossing():
     with pytest.raises(CollisionError, match=r"body 'right' passes through itself: its edge " + re.escape(str(list(c.edge)))):
         sim2.set_contact(**{"self": True})
     assert sim2.set_contact() is not None  # bodies only: no self check
+
+
+def test_self_pairs_closer_than_dhat_at_rest_get_the_step_bound_but_no_barrier(monkeypatch):
+    """The U's arms are 0.1 apart; with dhat = 0.12 every pair across the slot starts inside dhat.
+    Those self pairs get no barrier (energy 0 at rest, every barrier pair >= dhat apart), but the
+    step bound still holds them: moving the right arm 0.15 through the left one is cut to a step
+    with no intersection (ipctk), where the barrier pairs' bound alone is not. Without the rule
+    (REST_GAP = 0) the same start has barrier energy: the rest shape would be pushed apart."""
+    import warp as wp
+
+    import warpfem.contact.surface as S
+    from warpfem.contact import surface_kernels as SK
+
+    mesh = _u_shape()
+    X = np.asarray(mesh.vertices)
+    mat = make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    sim = Simulator(Model(mesh, mat, gravity=(0.0, 0.0, 0.0)), dt=0.01)
+    sc = sim.set_contact(**{"self": True}, dhat=0.12)
+    assert sc.rest_gap == 0.12 and sc.num_ccd_pairs > 0
+    assert sc.min_distance() >= 0.12 and sc.barrier_energy() == 0.0
+    d = np.zeros_like(X)
+    d[(X[:, 0] > 0.15) & (X[:, 1] > 0.15)] = (-0.15, 0.0, 0.013)
+    dv = sim.ops.new_vector()
+    dv.assign(d.astype(sim.ops.np_dtype))
+    sc.update_pairs(sim.x, dv, 1.0)
+    acc = wp.zeros(4, dtype=wp.float64)
+    acc.fill_(1.0)
+    sc.run(SK.MODE_MAX_STEP, sim.x, scale=1.0, d=dv, acc=acc)
+    a_barrier = float(acc.numpy()[3])
+    sc.run_ccd(sim.x, scale=1.0, d=dv, acc=acc)
+    alpha = float(acc.numpy()[3])
+    cm = _collision_mesh(mesh)
+    assert ipctk.has_intersections(cm, np.asfortranarray(X + d))
+    # the barrier pairs' bound alone (measured 0.71) lets the arm through; with the CCD-only pairs
+    # (0.53; ipctk's collision-free step, tight-inclusion CCD: 0.67) it stays out
+    assert ipctk.has_intersections(cm, np.asfortranarray(X + a_barrier * d))
+    assert 0.3 < alpha < a_barrier and not ipctk.has_intersections(cm, np.asfortranarray(X + alpha * d))
+    monkeypatch.setattr(S, "REST_GAP", 0.0)
+    sc0 = sim.set_contact(**{"self": True}, dhat=0.12)
+    assert sc0.num_ccd_pairs == 0 and sc0.min_distance() < 0.05 and sc0.barrier_energy() > 0.0  # 0.033: not only the slot
