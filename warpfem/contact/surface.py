@@ -302,15 +302,37 @@ class SurfaceContact:
         One read-back (the misses, or the pairs)."""
         if self._valid and self._fits(x, d, scale):
             self.reused += 1
+            self._grow_near(x, d, scale)
             return self.num_pairs
         n = self._query(x, d, scale, QUERY_MARGIN)
         self.num_pairs = n
         self.pairs_np = self._pairs.numpy()[:n].astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
-        if n and not self._contains(self.pairs_np):
-            self._ensure(self.pairs_np)
         self._update_blocks()
+        self._grow_near(x, d, scale)
         self._valid = True
         return n
+
+    def _grow_near(self, x, d, scale):
+        """Grow the Hessian's pattern for the candidate pairs without blocks that can come within dhat
+        on x -> x + scale d: distance at x minus the largest displacements of the pair's two
+        primitives relative to the pair's mean displacement (the additive CCD's bound) below dhat.
+        Every iterate whose Hessian is assembled lies on such a segment, so every pair within dhat
+        there has its blocks; the others (most candidates) never enter the pattern."""
+        n = self.num_pairs
+        if n == 0 or self._has_blocks.all():
+            return
+        self.run(SK.MODE_DISTANCE, x)
+        lb = self._dist.numpy()[:n].astype(np.float64)
+        if d is not None:
+            q = float(scale) * d.numpy().astype(np.float64)[self.pairs_np]  # (n, 4, 3)
+            q -= q.mean(axis=1, keepdims=True)
+            ln = np.linalg.norm(q, axis=2)
+            pt = self._kinds.numpy()[:n] == SK.PT
+            lb -= np.where(pt, ln[:, 0] + ln[:, 1:].max(axis=1),
+                           np.maximum(ln[:, 0], ln[:, 1]) + np.maximum(ln[:, 2], ln[:, 3]))
+        need = (lb < 1.01 * self.dhat) & ~self._has_blocks
+        if need.any():
+            self._ensure(self.pairs_np[need])  # the pattern listener updates the block positions
 
     def _fits(self, x, d, scale):
         ops, dev = self.ops, self.device
@@ -327,9 +349,6 @@ class SurfaceContact:
         b = np.tile(quads, (1, 4)).reshape(-1)
         p = np.stack([a, b], axis=1)
         return p[p[:, 0] != p[:, 1]]
-
-    def _contains(self, quads):
-        return self.system.pattern.contains(self._quad_pairs(quads))
 
     def _query(self, x, d, scale, margin):
         self._boxes(x, d, scale, margin)
@@ -362,23 +381,29 @@ class SurfaceContact:
             k = np.unique(p[:, 0] * n + p[:, 1])
             self.system.ensure_blocks(np.stack([k // n, k % n], axis=1))
 
-    def _block_positions(self, quads, cap, out=None):
-        """Device int32 (16 cap,): the pattern positions of the 4 x 4 vertex blocks of each quad."""
+    def _block_positions(self, quads, cap, out=None, missing_ok=False):
+        """Device int32 (16 cap,): the pattern positions of the 4 x 4 vertex blocks of each quad
+        (``missing_ok``: all 16 are -1 for a quad that lacks one, and ``_has_blocks`` says which)."""
         full = np.zeros(16 * cap, dtype=np.int32)
         if len(quads):
             a = np.repeat(quads, 4, axis=1).reshape(-1)
             b = np.tile(quads, (1, 4)).reshape(-1)
-            pos = self.system.pattern.pair_index(np.stack([a, b], axis=1))
-            if np.any(pos < 0):
+            pos = self.system.pattern.pair_index(np.stack([a, b], axis=1)).reshape(-1, 16)
+            has = np.all(pos >= 0, axis=1)
+            if missing_ok:
+                self._has_blocks = has
+                pos[~has] = -1
+            elif not has.all():
                 raise RuntimeError("surface contact: a pair's Hessian block is missing from the pattern")
-            full[:len(pos)] = pos
+            full[:pos.size] = pos.reshape(-1)
         if out is None or out.shape[0] != len(full):
             return wp.array(full, dtype=wp.int32, device=self.device)
         out.assign(full)
         return out
 
     def _update_blocks(self):
-        self._blocks = self._block_positions(self.pairs_np, self.capacity, self._blocks)
+        self._has_blocks = np.zeros(self.num_pairs, dtype=bool)
+        self._blocks = self._block_positions(self.pairs_np, self.capacity, self._blocks, missing_ok=True)
 
     def detach(self):
         """Stop following the Hessian's pattern (the simulator dropped this contact)."""

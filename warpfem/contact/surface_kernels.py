@@ -557,7 +557,10 @@ def _add_pair_hessian(values: wp.array(dtype=Any), blocks: wp.array(dtype=wp.int
                       v: Any, m: Any, m1: Any, m2: Any, b0: Any, b1: Any, b2: Any, gc0: Any, gc1: Any, gc2: Any,
                       gc3: Any, kappa: Any, jtol: Any):
     """Hessian of kappa m b(s): m b'' gs gs^T + m b' Hs + b' (gm gs^T + gs gm^T) + b Hm (mode 2: its PSD
-    projection) into pair p's 16 vertex blocks of values, times scale."""
+    projection) into pair p's 16 vertex blocks of values, times scale (none when the pattern has
+    no blocks for it, -1: not reached, a pair within dhat has them)."""
+    if blocks[16 * p] < 0:
+        return
     zero = kappa - kappa
     one = zero + type(kappa)(1.0)
     two = one + one
