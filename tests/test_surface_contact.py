@@ -470,3 +470,44 @@ def test_self_pairs_closer_than_dhat_at_rest_get_the_step_bound_but_no_barrier(m
     monkeypatch.setattr(S, "REST_GAP", 0.0)
     sc0 = sim.set_contact(**{"self": True}, dhat=0.12)
     assert sc0.num_ccd_pairs == 0 and sc0.min_distance() < 0.05 and sc0.barrier_energy() > 0.0  # 0.033: not only the slot
+
+
+def test_the_pattern_grows_only_for_pairs_that_can_come_within_dhat(monkeypatch):
+    """Two boxes colliding (Newmark, direct solver): at every Hessian evaluation each pair within
+    dhat has its blocks in the pattern; some candidates never get blocks; the motion equals that of
+    a run whose pattern takes every candidate's blocks (the former growth) to 1e-9 m."""
+    import warpfem.contact.surface as S
+    from warpfem.contact import surface_kernels as SK
+
+    def run(eager):
+        mesh, na = _two_boxes(cells=3)
+        m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),
+                  gravity=(0.0, 0.0, 0.0))
+        sim = Simulator(m, dt=0.01, integrator="newmark", linear_solver="direct", tol=1e-10, max_iters=100)
+        sc = sim.set_contact()
+        if eager:
+            monkeypatch.setattr(sc, "_grow_near", lambda x, d, s: sc._ensure(sc.pairs_np) if sc.num_pairs else None)
+        active = []
+        hess = S.SurfaceContactForm.hessian
+
+        def checked(form, y, x, scale, values):
+            form.contact.run(SK.MODE_DISTANCE, x)
+            near = form.contact._dist.numpy()[:form.contact.num_pairs] < form.contact.dhat
+            assert form.contact._has_blocks[near].all()
+            active.append(int(near.sum()))
+            return hess(form, y, x, scale, values)
+
+        monkeypatch.setattr(S.SurfaceContactForm, "hessian", checked)
+        v = np.zeros((m.num_vertices, 3))
+        v[na:, 1] = -1.5
+        sim.set_velocities(v)
+        for _ in range(5):
+            assert sim.step().converged
+        monkeypatch.setattr(S.SurfaceContactForm, "hessian", hess)
+        return sim.positions(), sc, max(active)
+
+    x_lazy, sc, most = run(False)
+    assert most > 0 and not sc._has_blocks.all()  # in contact, and some candidates without blocks
+    x_eager, sc_e, _ = run(True)
+    assert sc_e._has_blocks.all() and sc_e.sim.pattern.nnz > sc.sim.pattern.nnz
+    assert np.abs(x_lazy - x_eager).max() <= 1e-9
