@@ -390,3 +390,124 @@ def test_bodies_of_a_multi_body_model_collide_without_intersecting():
     with pytest.raises(CollisionError, match="touch now between bodies 'high' and 'low'|touch now between bodies 'low' "
                                              "and 'high'"):
         Simulator(touching, dt=0.01).set_contact()
+
+
+def test_a_start_through_itself_is_refused_naming_the_body_and_the_crossing():
+    """The U's right arm pushed 0.13 m left through the left arm (positions set before set_contact):
+    with self contact the start is refused, naming the body and an edge / triangle that ipctk agrees
+    cross; the same U at rest is accepted, and without self contact nothing is checked."""
+    import warpfem.mesh.intersect as I
+    from warpfem.contact import CollisionError
+
+    mesh = _u_shape()
+    X = np.asarray(mesh.vertices)
+    mat = make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    x = X.copy()
+    x[(X[:, 0] > 0.15) & (X[:, 1] > 0.15)] += (-0.13, 0.013, 0.01)  # off the grid: crossings inside triangles
+    faces = np.asarray(mesh.boundary_faces(), dtype=np.int64)
+    assert ipctk.has_intersections(_collision_mesh(mesh), np.asfortranarray(x))
+    c = I.self_crossing(x, faces)
+    assert c is not None and not set(c.edge) & set(c.triangle)
+    assert ipctk.is_edge_intersecting_triangle(x[c.edge[0]], x[c.edge[1]], *x[list(c.triangle)])
+    assert sorted(faces[c.triangle_index]) == sorted(c.triangle)
+    assert I.self_crossing(X, faces) is None
+    m = Model(mesh, mat, gravity=(0.0, 0.0, 0.0))
+    sim = Simulator(m, dt=0.01)
+    sim.set_positions(x)
+    with pytest.raises(CollisionError, match=re.escape(f"passes through itself: its edge {list(c.edge)}") + ".*"
+                       + re.escape(f"crosses its triangle {c.triangle_index} {list(c.triangle)}")):
+        sim.set_contact(**{"self": True})
+    assert sim.surface_contact is None and not sim.system.listeners
+    # two bodies, the second through itself: named, its own vertex indices
+    from warpfem.model import Body
+
+    two = Model.from_bodies([Body(mesh, mat, name="left", offset=(-1.0, 0.0, 0.0)), Body(mesh, mat, name="right")],
+                            gravity=(0.0, 0.0, 0.0))
+    sim2 = Simulator(two, dt=0.01)
+    x2 = np.asarray(two.rest_positions).copy()
+    x2[len(X):] = x
+    sim2.set_positions(x2)
+    with pytest.raises(CollisionError, match=r"body 'right' passes through itself: its edge " + re.escape(str(list(c.edge)))):
+        sim2.set_contact(**{"self": True})
+    assert sim2.set_contact() is not None  # bodies only: no self check
+
+
+def test_self_pairs_closer_than_dhat_at_rest_get_the_step_bound_but_no_barrier(monkeypatch):
+    """The U's arms are 0.1 apart; with dhat = 0.12 every pair across the slot starts inside dhat.
+    Those self pairs get no barrier (energy 0 at rest, every barrier pair >= dhat apart), but the
+    step bound still holds them: moving the right arm 0.15 through the left one is cut to a step
+    with no intersection (ipctk), where the barrier pairs' bound alone is not. Without the rule
+    (REST_GAP = 0) the same start has barrier energy: the rest shape would be pushed apart."""
+    import warp as wp
+
+    import warpfem.contact.surface as S
+    from warpfem.contact import surface_kernels as SK
+
+    mesh = _u_shape()
+    X = np.asarray(mesh.vertices)
+    mat = make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    sim = Simulator(Model(mesh, mat, gravity=(0.0, 0.0, 0.0)), dt=0.01)
+    sc = sim.set_contact(**{"self": True}, dhat=0.12)
+    assert sc.rest_gap == 0.12 and sc.num_ccd_pairs > 0
+    assert sc.min_distance() >= 0.12 and sc.barrier_energy() == 0.0
+    d = np.zeros_like(X)
+    d[(X[:, 0] > 0.15) & (X[:, 1] > 0.15)] = (-0.15, 0.0, 0.013)
+    dv = sim.ops.new_vector()
+    dv.assign(d.astype(sim.ops.np_dtype))
+    sc.update_pairs(sim.x, dv, 1.0)
+    acc = wp.zeros(4, dtype=wp.float64)
+    acc.fill_(1.0)
+    sc.run(SK.MODE_MAX_STEP, sim.x, scale=1.0, d=dv, acc=acc)
+    a_barrier = float(acc.numpy()[3])
+    sc.run_ccd(sim.x, scale=1.0, d=dv, acc=acc)
+    alpha = float(acc.numpy()[3])
+    cm = _collision_mesh(mesh)
+    assert ipctk.has_intersections(cm, np.asfortranarray(X + d))
+    # the barrier pairs' bound alone (measured 0.71) lets the arm through; with the CCD-only pairs
+    # (0.53; ipctk's collision-free step, tight-inclusion CCD: 0.67) it stays out
+    assert ipctk.has_intersections(cm, np.asfortranarray(X + a_barrier * d))
+    assert 0.3 < alpha < a_barrier and not ipctk.has_intersections(cm, np.asfortranarray(X + alpha * d))
+    monkeypatch.setattr(S, "REST_GAP", 0.0)
+    sc0 = sim.set_contact(**{"self": True}, dhat=0.12)
+    assert sc0.num_ccd_pairs == 0 and sc0.min_distance() < 0.05 and sc0.barrier_energy() > 0.0  # 0.033: not only the slot
+
+
+def test_the_pattern_grows_only_for_pairs_that_can_come_within_dhat(monkeypatch):
+    """Two boxes colliding (Newmark, direct solver): at every Hessian evaluation each pair within
+    dhat has its blocks in the pattern; some candidates never get blocks; the motion equals that of
+    a run whose pattern takes every candidate's blocks (the former growth) to 1e-9 m."""
+    import warpfem.contact.surface as S
+    from warpfem.contact import surface_kernels as SK
+
+    def run(eager):
+        mesh, na = _two_boxes(cells=3)
+        m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),
+                  gravity=(0.0, 0.0, 0.0))
+        sim = Simulator(m, dt=0.01, integrator="newmark", linear_solver="direct", tol=1e-10, max_iters=100)
+        sc = sim.set_contact()
+        if eager:
+            monkeypatch.setattr(sc, "_grow_near", lambda x, d, s: sc._ensure(sc.pairs_np) if sc.num_pairs else None)
+        active = []
+        hess = S.SurfaceContactForm.hessian
+
+        def checked(form, y, x, scale, values):
+            form.contact.run(SK.MODE_DISTANCE, x)
+            near = form.contact._dist.numpy()[:form.contact.num_pairs] < form.contact.dhat
+            assert form.contact._has_blocks[near].all()
+            active.append(int(near.sum()))
+            return hess(form, y, x, scale, values)
+
+        monkeypatch.setattr(S.SurfaceContactForm, "hessian", checked)
+        v = np.zeros((m.num_vertices, 3))
+        v[na:, 1] = -1.5
+        sim.set_velocities(v)
+        for _ in range(5):
+            assert sim.step().converged
+        monkeypatch.setattr(S.SurfaceContactForm, "hessian", hess)
+        return sim.positions(), sc, max(active)
+
+    x_lazy, sc, most = run(False)
+    assert most > 0 and not sc._has_blocks.all()  # in contact, and some candidates without blocks
+    x_eager, sc_e, _ = run(True)
+    assert sc_e._has_blocks.all() and sc_e.sim.pattern.nnz > sc.sim.pattern.nnz
+    assert np.abs(x_lazy - x_eager).max() <= 1e-9

@@ -40,6 +40,9 @@ JACOBI_TOL = {np.dtype(np.float64): 1e-22, np.dtype(np.float32): 1e-11}
 #: the broad phase's candidates are the pairs within this many dhat over the segment (the margin
 #: lets later line searches whose boxes fit in these reuse them, and the pattern grow less often)
 QUERY_MARGIN = 2.0
+#: self pairs closer than this many dhat in the rest shape get no barrier (only the step bound):
+#: features that are close but not neighbours at rest (short edges, slivers) are not pushed apart
+REST_GAP = 1.0
 
 
 @dataclass
@@ -214,6 +217,12 @@ class SurfaceContact:
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._alloc(_capacity(4 * (self.nv + self.ne)))
         self.num_pairs = 0
+        # self pairs closer than rest_gap at rest: no barrier, the step bound only (docs/contact.md)
+        self.rest_gap = REST_GAP * self.dhat if self_on else 0.0
+        self._rest32 = wp.array(X.astype(np.float32), dtype=wp.vec3, device=dev)
+        self._ccd_count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._alloc_ccd(256)
+        self.num_ccd_pairs = 0
         self.pairs_np = np.zeros((0, 4), dtype=np.int64)
         # friction lagged at the step start
         self.num_friction = 0
@@ -227,6 +236,14 @@ class SurfaceContact:
         self.reused = 0  # broad phases answered by the last query's pairs
         self._valid = False  # whether the last query's boxes and pairs stand (see update_pairs)
         self._misses = wp.zeros(1, dtype=wp.int32, device=dev)
+        if self_on:  # a body already through itself: its crossing pairs have a positive distance, so check
+            from warpfem.mesh.intersect import first_self_crossing
+
+            problem = first_self_crossing(sim.positions(), surf.triangles, getattr(model, "body_offsets", None),
+                                          getattr(model, "body_names", None))
+            if problem:
+                self.detach()
+                raise CollisionError(f"set_contact: {problem}; self contact needs a start that does not")
         d = self.distances()
         if len(d) and d.min() <= 0.0:
             self.detach()
@@ -280,6 +297,11 @@ class SurfaceContact:
         self._fn = wp.zeros(cap, dtype=ops.vec, device=dev)
         self._flam = wp.zeros(cap, dtype=ops.scalar, device=dev)
 
+    def _alloc_ccd(self, cap):
+        self.ccd_capacity = cap
+        self._ccd_pairs = wp.zeros(cap, dtype=wp.vec4i, device=self.device)
+        self._ccd_kinds = wp.zeros(cap, dtype=wp.int32, device=self.device)
+
     # -- broad phase ---------------------------------------------------------------------------------
     def _boxes(self, x, d, scale, margin=1.0):
         ops, dev = self.ops, self.device
@@ -298,15 +320,37 @@ class SurfaceContact:
         One read-back (the misses, or the pairs)."""
         if self._valid and self._fits(x, d, scale):
             self.reused += 1
+            self._grow_near(x, d, scale)
             return self.num_pairs
         n = self._query(x, d, scale, QUERY_MARGIN)
         self.num_pairs = n
         self.pairs_np = self._pairs.numpy()[:n].astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
-        if n and not self._contains(self.pairs_np):
-            self._ensure(self.pairs_np)
         self._update_blocks()
+        self._grow_near(x, d, scale)
         self._valid = True
         return n
+
+    def _grow_near(self, x, d, scale):
+        """Grow the Hessian's pattern for the candidate pairs without blocks that can come within dhat
+        on x -> x + scale d: distance at x minus the largest displacements of the pair's two
+        primitives relative to the pair's mean displacement (the additive CCD's bound) below dhat.
+        Every iterate whose Hessian is assembled lies on such a segment, so every pair within dhat
+        there has its blocks; the others (most candidates) never enter the pattern."""
+        n = self.num_pairs
+        if n == 0 or self._has_blocks.all():
+            return
+        self.run(SK.MODE_DISTANCE, x)
+        lb = self._dist.numpy()[:n].astype(np.float64)
+        if d is not None:
+            q = float(scale) * d.numpy().astype(np.float64)[self.pairs_np]  # (n, 4, 3)
+            q -= q.mean(axis=1, keepdims=True)
+            ln = np.linalg.norm(q, axis=2)
+            pt = self._kinds.numpy()[:n] == SK.PT
+            lb -= np.where(pt, ln[:, 0] + ln[:, 1:].max(axis=1),
+                           np.maximum(ln[:, 0], ln[:, 1]) + np.maximum(ln[:, 2], ln[:, 3]))
+        need = (lb < 1.01 * self.dhat) & ~self._has_blocks
+        if need.any():
+            self._ensure(self.pairs_np[need])  # the pattern listener updates the block positions
 
     def _fits(self, x, d, scale):
         ops, dev = self.ops, self.device
@@ -324,9 +368,6 @@ class SurfaceContact:
         p = np.stack([a, b], axis=1)
         return p[p[:, 0] != p[:, 1]]
 
-    def _contains(self, quads):
-        return self.system.pattern.contains(self._quad_pairs(quads))
-
     def _query(self, x, d, scale, margin):
         self._boxes(x, d, scale, margin)
         self._tbvh.refit()
@@ -334,35 +375,53 @@ class SurfaceContact:
         self.queries += 1
         while True:
             self._count.zero_()
+            self._ccd_count.zero_()
             launch(SK.broad_phase_kernel, self.nv + self.ne, [
                 self._tbvh.id, self._ebvh.id, self._vbox[0], self._vbox[1], self._ebox[0], self._ebox[1], self._verts,
                 self._tris, self._edges, self._group, int(self.self_contact), int(self.bodies), self.nv, self._pairs,
-                self._kinds, self._count, self.capacity], self.device)
+                self._kinds, self._count, self.capacity, self._rest32, float(self.rest_gap), self._ccd_pairs,
+                self._ccd_kinds, self._ccd_count, self.ccd_capacity], self.device)
             n = int(self._count.numpy()[0])
-            if n <= self.capacity:
+            nc = int(self._ccd_count.numpy()[0])
+            if n <= self.capacity and nc <= self.ccd_capacity:
+                self.num_ccd_pairs = nc
                 return n
-            self._alloc(_capacity(2 * n))
+            if n > self.capacity:
+                self._alloc(_capacity(2 * n))
+            if nc > self.ccd_capacity:
+                self._alloc_ccd(_capacity(2 * nc))
 
     def _ensure(self, quads):
-        self.system.ensure_blocks(self._quad_pairs(quads))
+        p = self._quad_pairs(quads)
+        p = p[self.system.pattern.pair_index(p) < 0]  # only the missing blocks: growing sorts what it is given
+        if len(p):
+            n = self.system.pattern.num_rows
+            k = np.unique(p[:, 0] * n + p[:, 1])
+            self.system.ensure_blocks(np.stack([k // n, k % n], axis=1))
 
-    def _block_positions(self, quads, cap, out=None):
-        """Device int32 (16 cap,): the pattern positions of the 4 x 4 vertex blocks of each quad."""
+    def _block_positions(self, quads, cap, out=None, missing_ok=False):
+        """Device int32 (16 cap,): the pattern positions of the 4 x 4 vertex blocks of each quad
+        (``missing_ok``: all 16 are -1 for a quad that lacks one, and ``_has_blocks`` says which)."""
         full = np.zeros(16 * cap, dtype=np.int32)
         if len(quads):
             a = np.repeat(quads, 4, axis=1).reshape(-1)
             b = np.tile(quads, (1, 4)).reshape(-1)
-            pos = self.system.pattern.pair_index(np.stack([a, b], axis=1))
-            if np.any(pos < 0):
+            pos = self.system.pattern.pair_index(np.stack([a, b], axis=1)).reshape(-1, 16)
+            has = np.all(pos >= 0, axis=1)
+            if missing_ok:
+                self._has_blocks = has
+                pos[~has] = -1
+            elif not has.all():
                 raise RuntimeError("surface contact: a pair's Hessian block is missing from the pattern")
-            full[:len(pos)] = pos
+            full[:pos.size] = pos.reshape(-1)
         if out is None or out.shape[0] != len(full):
             return wp.array(full, dtype=wp.int32, device=self.device)
         out.assign(full)
         return out
 
     def _update_blocks(self):
-        self._blocks = self._block_positions(self.pairs_np, self.capacity, self._blocks)
+        self._has_blocks = np.zeros(self.num_pairs, dtype=bool)
+        self._blocks = self._block_positions(self.pairs_np, self.capacity, self._blocks, missing_ok=True)
 
     def detach(self):
         """Stop following the Hessian's pattern (the simulator dropped this contact)."""
@@ -386,6 +445,17 @@ class SurfaceContact:
             int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA),
             ops.zero if g is None else g, self._blocks, self.system.hessian_values if values is None else values,
             self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot),
+            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)])], self.device)
+
+    def run_ccd(self, x, *, scale, d, acc, slot=0):
+        """The step bound (additive CCD) of the CCD-only pairs (self pairs closer than rest_gap at rest)."""
+        if self.num_ccd_pairs == 0:
+            return
+        ops = self.ops
+        launch(SK.pair_kernel, self.ccd_capacity, [
+            x, self._rest, self._ccd_pairs, self._ccd_kinds, self._ccd_count, ops.scalar(self.dhat ** 2),
+            ops.scalar(self.kappa), int(SK.MODE_MAX_STEP), ops.scalar(scale), d, ops.scalar(STEP_ETA), ops.zero,
+            self._blocks, self.system.hessian_values, self._dist, self._fw, self._fn, self._flam, acc, int(slot),
             ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)])], self.device)
 
     def _acc_default(self):
@@ -538,6 +608,7 @@ class SurfaceContactForm(LaggedFrictionForm):
         c = self.contact
         c.update_pairs(x, d, s)
         c.run(SK.MODE_MAX_STEP, x, scale=s, d=d, acc=acc, slot=self.acc_slot)
+        c.run_ccd(x, scale=s, d=d, acc=acc, slot=self.acc_slot)
 
     # -- adaptive stiffness (warpfem.contact.stiffness) ----------------------------------------------
     def adaptive_stiffness(self) -> bool:

@@ -448,12 +448,26 @@ def _keep(group: wp.array(dtype=wp.int32), a: int, b: int, self_on: int, bodies_
     return bodies_on != 0
 
 
+@wp.func
+def _append(pairs: wp.array(dtype=wp.vec4i), kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+            capacity: int, q: wp.vec4i, kind: int):
+    slot = wp.atomic_add(count, 0, 1)
+    if slot < capacity:
+        pairs[slot] = q
+        kinds[slot] = kind
+
+
 @wp.kernel
 def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dtype=wp.vec3), vhi: wp.array(dtype=wp.vec3),
                        elo: wp.array(dtype=wp.vec3), ehi: wp.array(dtype=wp.vec3), verts: wp.array(dtype=wp.int32),
                        tris: wp.array(dtype=wp.int32), edges: wp.array(dtype=wp.int32), group: wp.array(dtype=wp.int32),
                        self_on: int, bodies_on: int, num_verts: int, pairs: wp.array(dtype=wp.vec4i),
-                       kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), capacity: int):
+                       kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), capacity: int,
+                       rest: wp.array(dtype=wp.vec3), rest_gap: float, ccd_pairs: wp.array(dtype=wp.vec4i),
+                       ccd_kinds: wp.array(dtype=wp.int32), ccd_count: wp.array(dtype=wp.int32), ccd_capacity: int):
+    """Candidate pairs of the boxes' overlaps. A self pair (same group) whose distance in the rest
+    shape (``rest``, float32) is below ``rest_gap`` goes to the CCD-only list (``ccd_*``: step
+    bound, no barrier) instead, and one at distance 0 there (touching at rest) to neither."""
     i = wp.tid()
     t = int(0)
     if i < num_verts:
@@ -465,10 +479,14 @@ def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dt
             c = tris[3 * t + 2]
             if v != a and v != b and v != c:
                 if _keep(group, v, a, self_on, bodies_on):
-                    slot = wp.atomic_add(count, 0, 1)
-                    if slot < capacity:
-                        pairs[slot] = wp.vec4i(v, a, b, c)
-                        kinds[slot] = 0
+                    q = wp.vec4i(v, a, b, c)
+                    dr = rest_gap
+                    if rest_gap > 0.0 and group[v] == group[a]:
+                        dr = pair_distance(0, rest[v], rest[a], rest[b], rest[c])
+                    if dr >= rest_gap:
+                        _append(pairs, kinds, count, capacity, q, 0)
+                    elif dr > 0.0:
+                        _append(ccd_pairs, ccd_kinds, ccd_count, ccd_capacity, q, 0)
     else:
         e = i - num_verts
         a0 = edges[2 * e]
@@ -480,10 +498,14 @@ def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dt
                 b1 = edges[2 * t + 1]
                 if a0 != b0 and a0 != b1 and a1 != b0 and a1 != b1:
                     if _keep(group, a0, b0, self_on, bodies_on):
-                        slot = wp.atomic_add(count, 0, 1)
-                        if slot < capacity:
-                            pairs[slot] = wp.vec4i(a0, a1, b0, b1)
-                            kinds[slot] = 1
+                        q = wp.vec4i(a0, a1, b0, b1)
+                        dr = rest_gap
+                        if rest_gap > 0.0 and group[a0] == group[b0]:
+                            dr = pair_distance(1, rest[a0], rest[a1], rest[b0], rest[b1])
+                        if dr >= rest_gap:
+                            _append(pairs, kinds, count, capacity, q, 1)
+                        elif dr > 0.0:
+                            _append(ccd_pairs, ccd_kinds, ccd_count, ccd_capacity, q, 1)
 
 
 @wp.func
@@ -527,6 +549,66 @@ def pair_accd(kind: int, x0: Any, x1: Any, x2: Any, x3: Any, p0: Any, p1: Any, p
             return one
         tl = type(eta)(0.9) * d / lp
     return t
+
+
+@wp.func
+def _add_pair_hessian(values: wp.array(dtype=Any), blocks: wp.array(dtype=wp.int32), p: int, scale: Any, mode: int,
+                      kind: int, x0: Any, x1: Any, x2: Any, x3: Any, w: Any, c0: Any, c1: Any, k: int, r: Any, u: Any,
+                      v: Any, m: Any, m1: Any, m2: Any, b0: Any, b1: Any, b2: Any, gc0: Any, gc1: Any, gc2: Any,
+                      gc3: Any, kappa: Any, jtol: Any):
+    """Hessian of kappa m b(s): m b'' gs gs^T + m b' Hs + b' (gm gs^T + gs gm^T) + b Hm (mode 2: its PSD
+    projection) into pair p's 16 vertex blocks of values, times scale (none when the pattern has
+    no blocks for it, -1: not reached, a pair within dhat has them)."""
+    if blocks[16 * p] < 0:
+        return
+    zero = kappa - kappa
+    one = zero + type(kappa)(1.0)
+    two = one + one
+    J0 = c0[0] * x0 + c0[1] * x1 + c0[2] * x2 + c0[3] * x3
+    J1 = c1[0] * x0 + c1[1] * x1 + c1[2] * x2 + c1[3] * x3
+    g00 = two * wp.dot(J0, J0)
+    g01 = two * wp.dot(J0, J1)
+    g11 = two * wp.dot(J1, J1)
+    i00 = zero
+    i01 = zero
+    i11 = zero
+    if k == 1 and g00 > zero:
+        i00 = one / g00
+    elif k == 2:
+        det = g00 * g11 - g01 * g01
+        if det > zero:
+            i00 = g11 / det
+            i01 = -g01 / det
+            i11 = g00 / det
+    H = _empty12(zero)
+    I3 = wp.identity(3, type(kappa))
+    rr = wp.outer(r, r)
+    for i in range(4):
+        Bi0 = two * (c0[i] * r + w[i] * J0)
+        Bi1 = two * (c1[i] * r + w[i] * J1)
+        gci = _pick(i, gc0, gc1, gc2, gc3)
+        gsi = (two * w[i]) * r
+        for j in range(4):
+            Bj0 = two * (c0[j] * r + w[j] * J0)
+            Bj1 = two * (c1[j] * r + w[j] * J1)
+            hs = (two * w[i] * w[j]) * I3 - i00 * wp.outer(Bi0, Bj0) - i01 * (wp.outer(Bi0, Bj1) + wp.outer(Bi1, Bj0)) \
+                - i11 * wp.outer(Bi1, Bj1)
+            blk = (m * b2 * two * two * w[i] * w[j]) * rr + (m * b1) * hs
+            if kind == 1:
+                gcj = _pick(j, gc0, gc1, gc2, gc3)
+                gsj = (two * w[j]) * r
+                blk = blk + (b1 * m1) * (wp.outer(gci, gsj) + wp.outer(gsi, gcj)) + (b0 * m2) * wp.outer(gci, gcj) \
+                    + (b0 * m1) * _hc_block(i, j, u, v, one)
+            H = add_block(H, i, j, kappa * blk)
+    if mode == 2:
+        H = psd_project_pair(H, kind, w, jtol)
+    for i in range(4):
+        for j in range(4):
+            M = rr - rr
+            for a in range(3):
+                for b in range(3):
+                    M[a, b] = H[3 * i + a, 3 * j + b]
+            wp.atomic_add(values, blocks[16 * p + 4 * i + j], scale * M)
 
 
 @both_precisions(x="v[]", rest="v[]", dx="v[]", dhat2="s", kappa="s", eta="s", scale="s", g="v[]", values="m[]",
@@ -616,52 +698,9 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
             gsq += wp.float64(wp.dot(gi, gi))
         wp.atomic_add(acc, slot + 2, gsq * wp.float64(scale * scale))
         return
-    # modes 2, 6: Hessian of kappa m b(s): m b'' gs gs^T + m b' Hs + b' (gm gs^T + gs gm^T) + b Hm
-    J0 = c0[0] * x0 + c0[1] * x1 + c0[2] * x2 + c0[3] * x3
-    J1 = c1[0] * x0 + c1[1] * x1 + c1[2] * x2 + c1[3] * x3
-    g00 = two * wp.dot(J0, J0)
-    g01 = two * wp.dot(J0, J1)
-    g11 = two * wp.dot(J1, J1)
-    i00 = zero
-    i01 = zero
-    i11 = zero
-    if k == 1 and g00 > zero:
-        i00 = one / g00
-    elif k == 2:
-        det = g00 * g11 - g01 * g01
-        if det > zero:
-            i00 = g11 / det
-            i01 = -g01 / det
-            i11 = g00 / det
-    H = _empty12(zero)
-    I3 = wp.identity(3, type(kappa))
-    rr = wp.outer(r, r)
-    for i in range(4):
-        Bi0 = two * (c0[i] * r + w[i] * J0)
-        Bi1 = two * (c1[i] * r + w[i] * J1)
-        gci = _pick(i, gc0, gc1, gc2, gc3)
-        gsi = (two * w[i]) * r
-        for j in range(4):
-            Bj0 = two * (c0[j] * r + w[j] * J0)
-            Bj1 = two * (c1[j] * r + w[j] * J1)
-            hs = (two * w[i] * w[j]) * I3 - i00 * wp.outer(Bi0, Bj0) - i01 * (wp.outer(Bi0, Bj1) + wp.outer(Bi1, Bj0)) \
-                - i11 * wp.outer(Bi1, Bj1)
-            blk = (m * b2 * two * two * w[i] * w[j]) * rr + (m * b1) * hs
-            if kind == 1:
-                gcj = _pick(j, gc0, gc1, gc2, gc3)
-                gsj = (two * w[j]) * r
-                blk = blk + (b1 * m1) * (wp.outer(gci, gsj) + wp.outer(gsi, gcj)) + (b0 * m2) * wp.outer(gci, gcj) \
-                    + (b0 * m1) * _hc_block(i, j, u, v, one)
-            H = add_block(H, i, j, kappa * blk)
-    if mode == 2:
-        H = psd_project_pair(H, kind, w, jtol)
-    for i in range(4):
-        for j in range(4):
-            M = rr - rr
-            for a in range(3):
-                for b in range(3):
-                    M[a, b] = H[3 * i + a, 3 * j + b]
-            wp.atomic_add(values, blocks[16 * p + 4 * i + j], scale * M)
+    # modes 2, 6 (a function: its 12 x 12 locals are only set up for the pairs within dhat)
+    _add_pair_hessian(values, blocks, p, scale, mode, kind, x0, x1, x2, x3, w, c0, c1, k, r, u, v, m, m1, m2, b0, b1, b2,
+                      gc0, gc1, gc2, gc3, kappa, jtol)
 
 
 @both_precisions(dbase="v[]", ydisp="v[]", sy="s", f_w="v4[]", f_n="v[]", f_lam="s[]", mu="s", eps="s", scale="s",

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["BodyOverlapError", "SurfaceCrossing", "surface_crossing", "winding_number", "first_body_overlap"]
+__all__ = ["BodyOverlapError", "SurfaceCrossing", "surface_crossing", "self_crossing", "winding_number",
+           "first_body_overlap", "first_self_crossing"]
 
 
 class BodyOverlapError(ValueError):
@@ -68,9 +69,11 @@ def _segment_hits(P0, P1, A, B, C, eps=1e-12):
     return hit, t
 
 
-def surface_crossing(points_a, faces_a, points_b, faces_b, *, chunk: int = 200_000):
+def surface_crossing(points_a, faces_a, points_b, faces_b, *, chunk: int = 200_000, skip_shared: bool = False):
     """The first edge of surface A (in sorted edge order) that crosses a triangle of surface B, as
-    a :class:`SurfaceCrossing` (vertex indices of each surface's own points), or None."""
+    a :class:`SurfaceCrossing` (vertex indices of each surface's own points), or None.
+    ``skip_shared``: A and B index the same points (one surface against itself) and an edge is not
+    tested against a triangle it shares a vertex with."""
     from scipy.spatial import cKDTree
 
     Pa, Pb = np.asarray(points_a, dtype=np.float64), np.asarray(points_b, dtype=np.float64)
@@ -101,6 +104,11 @@ def surface_crossing(points_a, faces_a, points_b, faces_b, *, chunk: int = 200_0
         return None
     ei = np.repeat(np.arange(len(Ea)), counts)
     fi = np.fromiter((j for c in lists for j in c), dtype=np.int64, count=int(counts.sum()))
+    if skip_shared:
+        shared = np.zeros(len(ei), dtype=bool)
+        for a_end in (0, 1):
+            shared |= np.any(Fb[fi] == Ea[ei, a_end][:, None], axis=1)
+        ei, fi = ei[~shared], fi[~shared]
     for a in range(0, len(ei), chunk):  # edges in order: the first hit is the first crossing edge
         e, f = ei[a:a + chunk], fi[a:a + chunk]
         p0, p1 = Pa[Ea[e, 0]], Pa[Ea[e, 1]]
@@ -110,6 +118,18 @@ def surface_crossing(points_a, faces_a, points_b, faces_b, *, chunk: int = 200_0
             point = p0[k] + t[k] * (p1[k] - p0[k])
             return SurfaceCrossing(Ea[e[k]], Fb[f[k]], point, np.stack([p0[k], p1[k]]))
     return None
+
+
+def self_crossing(points, faces, **kw):
+    """The first edge of the surface (``points``, ``faces``) through one of its own triangles that
+    does not share a vertex with it (:class:`SurfaceCrossing`; its ``triangle`` holds the three
+    vertex indices and ``triangle_index`` the row of ``faces``), or None."""
+    F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    c = surface_crossing(points, F, points, F, skip_shared=True, **kw)
+    if c is not None:
+        hit = np.all(np.sort(F, axis=1) == np.sort(np.asarray(c.triangle))[None, :], axis=1)
+        c.triangle_index = int(np.nonzero(hit)[0][0])
+    return c
 
 
 def winding_number(points, vertices, faces) -> np.ndarray:
@@ -173,4 +193,31 @@ def first_body_overlap(meshes, names):
                     return (f"bodies {A} and {B} overlap at t = 0: {how} at {_fmt(Vp[k])} is inside {Q} (winding number "
                             f"{float(w[inside[0]]):.3g} with respect to {Q}'s surface; vertex indices of each body's own "
                             "mesh; move a body with its offset)")
+    return ""
+
+
+def first_self_crossing(points, faces, body_offsets=None, names=None):
+    """A message naming the first body whose surface passes through itself, with the first crossing:
+    an edge of the body through one of its own triangles that shares no vertex with it (vertex
+    indices of the body's own mesh, the triangle's row among the body's boundary triangles, the
+    point in m); '' when none does. ``points`` (n, 3) and ``faces`` (m, 3) are global; a triangle
+    belongs to the body of its first vertex (``body_offsets``: the first vertex of each body, then
+    the total; default one body)."""
+    P = np.asarray(points, dtype=np.float64)
+    F = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    offsets = np.asarray([0, len(P)] if body_offsets is None or len(body_offsets) < 2 else body_offsets, dtype=np.int64)
+    body_of = np.searchsorted(offsets, F[:, 0], side="right") - 1
+    for b in range(len(offsets) - 1):
+        Fb = F[body_of == b]
+        if not len(Fb):
+            continue
+        c = self_crossing(P, Fb)
+        if c is None:
+            continue
+        o = int(offsets[b])
+        name = repr(names[b]) if names is not None and b < len(names) else f"#{b + 1}"
+        return (f"body {name} passes through itself: its edge {[i - o for i in c.edge]} "
+                f"{_fmt(c.edge_points[0])} - {_fmt(c.edge_points[1])} crosses its triangle {c.triangle_index} "
+                f"{[i - o for i in c.triangle]} at {_fmt(c.point)} (vertex indices of the body's own mesh, the "
+                "triangle's row among its boundary triangles)")
     return ""

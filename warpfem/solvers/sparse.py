@@ -56,7 +56,8 @@ class BlockPattern:
         extra = np.zeros((0, 2), dtype=np.int64) if extra_pairs is None else np.asarray(extra_pairs, dtype=np.int64).reshape(-1, 2)
         if extra.size and (extra.min() < 0 or extra.max() >= n):
             raise IndexError(f"extra block pair out of range [0, {n}): {extra[(extra < 0).any(1) | (extra >= n).any(1)][0]}")
-        extra = np.unique(np.concatenate([extra, extra[:, ::-1]]), axis=0)  # symmetric
+        ek = np.unique(np.concatenate([extra[:, 0] * n + extra[:, 1], extra[:, 1] * n + extra[:, 0]]))  # symmetric
+        extra = np.stack([ek // n, ek % n], axis=1)  # (unique by int64 keys: np.unique(axis=0) is ~20x slower)
         self.extra_pairs = extra
         keys = np.concatenate([rows * n + cols, diag * n + diag, extra[:, 0] * n + extra[:, 1]])
         uniq, inverse = np.unique(keys, return_inverse=True)

@@ -40,6 +40,7 @@ would avoid that; not implemented).
 from __future__ import annotations
 
 import logging
+import os
 
 import numpy as np
 import warp as wp
@@ -69,13 +70,22 @@ class _NotPositiveDefinite(RuntimeError):
     pass
 
 
+_MKL_RT = None  # the path of the MKL library pypardiso loaded first
+
+
 class _Pardiso:
     triangle = "upper"
 
     def __init__(self):
         pypardiso = require("pypardiso", "direct", "direct linear solver's 'pardiso' backend")
         self.mod = pypardiso
+        global _MKL_RT
+        # pypardiso looks for MKL's library on every solver it makes (a recursive glob of the
+        # environment when find_library fails: ~0.5 s, at every pattern growth); once found, say where
+        if _MKL_RT and not os.environ.get("PYPARDISO_MKL_RT"):
+            os.environ["PYPARDISO_MKL_RT"] = _MKL_RT
         self.ps = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
+        _MKL_RT = _MKL_RT or getattr(getattr(self.ps, "libmkl", None), "_name", None)
         self.ps.set_iparm(1, 1)  # non-default iparms follow
         self.ps.set_iparm(2, 2)  # nested dissection ordering (METIS)
         self.ps.set_iparm(10, 8)  # pivot perturbation 1e-8 (only used by indefinite types)
