@@ -16,7 +16,7 @@ The device and the load average at start and end are recorded: on a shared machi
 ratios, not absolutes.
 
     .venv/bin/python kernels_bench/bench_scale.py [--quick] [--sizes 8 13 16] [--nus 0.3 0.49]
-        [--solvers pcg amg multigrid direct auto] [--bunny] [--octopus] [--steps 2] [--device cpu] [--out PATH]
+        [--solvers pcg amg multigrid multigrid@legacy direct auto] [--bunny] [--octopus] [--steps 2] [--device cpu] [--out PATH]
 
 ``--quick``: boxes c = 8 and 13 only, one timed step.
 """
@@ -45,21 +45,48 @@ import warpfem as wf  # noqa: E402
 from kernels_bench.bench_linear_solvers import step_recorder  # noqa: E402
 
 
+#: ``--solvers multigrid@NAME``: the multigrid with these options (compared in the same run)
+MG_VARIANTS = {
+    # the defaults before the spectral estimate and the block-weighted prolongation smoothing
+    "legacy": dict(upper=1.0, smooth=("jacobi", {"omega": 4.0 / 3.0})),
+    "coarse6": dict(degree=(3, 6)),  # degree 6 below the finest level
+    "coarse4": dict(degree=(3, 4)),
+    "degree4": dict(degree=4),
+}
+
+
+def solver_and_options(solver):
+    """'multigrid@NAME' -> ('multigrid', MG_VARIANTS[NAME]); any other name -> (name, None)."""
+    if "@" not in solver:
+        return solver, None
+    name, variant = solver.split("@", 1)
+    return name, dict(MG_VARIANTS[variant])
+
+
 def box_sim(c, *, nu, solver, device, precision):
     cells = (4 * c, c, c)
     mesh = wf.box_tet_mesh(size=(2.0, 0.5, 0.5), cells=cells)
     mat = wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=nu, density=1000.0)
     model = wf.Model(mesh, mat, gravity=(0.0, -9.81, 0.0))
     model.fix(np.nonzero(mesh.vertices[:, 0] < 1e-9)[0])
-    return wf.Simulator(model, device=device, dt=1.0 / 60.0, linear_solver=solver, precision=precision), 6 * int(np.prod(cells))
+    solver, options = solver_and_options(solver)
+    return wf.Simulator(model, device=device, dt=1.0 / 60.0, linear_solver=solver, linear_solver_options=options,
+                        precision=precision), 6 * int(np.prod(cells))
 
 
 def scene_sim(name, *, solver, device, precision):
     from warpfem.scenes import load_scene
 
+    solver, options = solver_and_options(solver)
     scene = load_scene(ROOT / "examples" / "scenes" / f"{name}.toml")
     scene.spec.integrator["linear_solver"] = solver
     run = scene.build(device=device, precision=precision)
+    if options is not None:  # the variant in place of the scene's solver (before its first step)
+        from warpfem.solvers.linear import make_linear_solver
+
+        sim = run.sim
+        sim.linear_solver = make_linear_solver(solver, sim.pattern, vec_type=sim.vector_type, scalar=sim.scalar_type,
+                                               positions=sim.model.mesh.vertices, **options)
     return run, run.model.mesh.num_elements
 
 
@@ -96,7 +123,8 @@ def run_one(make, steps):
     timed = [r for r in rows if not r["warmup"]]
     newton = float(np.sum([r["newton"] for r in timed]))
     ls = sim.linear_solver
-    return sim, tets, dict(
+    levels = [lv.size for lv in ls.levels] if getattr(ls, "levels", None) else None
+    return sim, tets, dict(levels=levels, spectra=getattr(ls, "_spectra", None),
         solver=ls.name, chose=getattr(ls, "active", None), auto_costs=getattr(ls, "costs", None),
         auto_explorations=getattr(ls, "explorations", None), vertices=sim.num_vertices, tets=tets, build_seconds=build,
         warmup_seconds=float(sum(r["seconds"] for r in rows if r["warmup"])),
@@ -143,6 +171,8 @@ def main(argv=None):
             if f"{solver}:{case}" in args.skip:
                 continue
             sim, tets, r = run_one(lambda s=solver: make_for(s), steps)
+            if "@" in solver:
+                r["solver"] = solver
             if hess is None:
                 hess = hessian_seconds(sim)
             r.update(case=case, nu=nu, hessian_seconds=hess, step_per_hessian=r["step_seconds"] / hess,
@@ -150,7 +180,7 @@ def main(argv=None):
             results.append(r)
             print(f"{case:>6} nu={nu} {r['solver'] + (':' + r['chose'] if r.get('chose') else ''):9s} tets {tets:7d}  {r['step_seconds']:7.2f} s/step "
                   f"({r['step_per_hessian']:6.0f} Hessians)  Newton {r['newton_per_step']:4.1f}  "
-                  f"CG/Newton {r['linear_per_newton']:6.1f}  converged {r['all_converged']}  load {r['load']:.1f}",
+                  f"CG/Newton {r['linear_per_newton']:6.1f}  converged {r['all_converged']}  load {r['load']:.1f}  levels {r['levels']}",
                   flush=True)
             del sim
 

@@ -301,6 +301,7 @@ class _Level:
         self.P = self.R = None
         self.AP = None  # A P, in the structure computed at set-up
         self.Minv = None  # the coarsest level's dense inverse
+        self.cheb = None  # (c0, [(c1, c2)]): the smoother's Chebyshev coefficients
 
 
 class MultigridPCG(LinearSolver):
@@ -331,12 +332,15 @@ class MultigridPCG(LinearSolver):
     def __init__(self, pattern, *, vec_type, scalar, positions=None, max_coarse: int = 300, max_levels: int = 10,
                  degree: int = 3, lower: float = 0.03, check_every: int | None = None, rebuild_factor: float = 3.0,
                  coarse_update: str = "lagged", lag_factor: float = 1.5, strength="symmetric", aggregate="standard",
-                 smooth=("jacobi", {"omega": 4.0 / 3.0}), improve_candidates=None):
+                 smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "block"}), improve_candidates=None, upper="estimate",
+                 safety: float = 1.1):
         self.pyamg = require("pyamg", "amg", "'multigrid' linear solver")
-        if int(degree) != degree or degree < 1:
-            raise ValueError(f"degree must be a positive integer, got {degree!r}")
-        if not (0.0 < lower < 1.0):
-            raise ValueError(f"lower must be in (0, 1), got {lower!r}")
+        degrees = tuple(degree) if isinstance(degree, (tuple, list)) else (degree,)
+        if not degrees or any(int(g) != g or g < 1 for g in degrees):
+            raise ValueError(f"degree must be a positive integer (or one per level), got {degree!r}")
+        lowers = tuple(lower) if isinstance(lower, (tuple, list)) else (lower,)
+        if not lowers or not all(0.0 < g < 1.0 for g in lowers):
+            raise ValueError(f"lower must be in (0, 1) (or one per level), got {lower!r}")
         if int(max_coarse) != max_coarse or max_coarse < 6:
             raise ValueError(f"max_coarse must be an integer >= 6, got {max_coarse!r}")
         if int(max_levels) != max_levels or max_levels < 2:
@@ -347,7 +351,10 @@ class MultigridPCG(LinearSolver):
             check_every = 4 if pattern.device.is_cuda else 1
         if int(check_every) != check_every or check_every < 1:
             raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
-        self.degree, self.lower = int(degree), float(lower)
+        self.degree, self.lower = tuple(int(g) for g in degrees), tuple(float(g) for g in lowers)
+        if not (upper == "estimate" or (isinstance(upper, (int, float)) and 0.0 < upper <= 1.0)):
+            raise ValueError(f"upper must be 'estimate' or in (0, 1], got {upper!r}")
+        self.upper, self.safety = upper, float(safety)
         self.max_coarse, self.max_levels = int(max_coarse), int(max_levels)
         self.check_every = int(check_every)
         self.rebuild_factor = float(rebuild_factor)
@@ -395,7 +402,6 @@ class MultigridPCG(LinearSolver):
         self._cols = wp.array(pattern.cols_np, dtype=wp.int32, device=dev)
         self._diag = wp.array(np.asarray(pattern.diag_index, dtype=np.int32), dtype=wp.int32, device=dev)
         self._A0 = wsp.bsr_copy(pattern.matrix)  # the pattern's topology; values set every prepare
-        self._cheb = _chebyshev_coefficients(self.degree, self.lower)
         self._tiny = self.scalar(1e-10 if self.scalar == wp.float64 else 1e-5)
         self._cmds = None
         self.levels = None  # the hierarchy is built for this pattern (again when a form grew it)
@@ -444,9 +450,62 @@ class MultigridPCG(LinearSolver):
             levels.append(_Level(nxt_A, P.shape[1], s, dev))
         self.levels = levels
         self._cmds = None
+        self._spectra = None  # estimated at the first re-formation of this hierarchy
         self.setup_count += 1
         self._base_iters, self._stale = None, False
         log.debug("multigrid: %d levels, unknowns %s", len(levels), [lv.size for lv in levels])
+
+    def _set_intervals(self, mask):
+        """Each level's Chebyshev coefficients on [lower u, u]: u = 1 (the l1 bound) or, with
+        ``upper="estimate"``, ``safety`` times the largest eigenvalue of D^-1 A on the free DOFs
+        (Lanczos on D^-1/2 A D^-1/2, host, once per hierarchy), capped at 1."""
+        est = []
+        for l, lv in enumerate(self.levels[:-1]):
+            u = 1.0
+            if self.upper == "estimate":
+                lam = self._largest_eigenvalue(lv, mask.numpy().reshape(-1) if l == 0 else None)
+                u = min(1.0, self.safety * lam)
+            elif self.upper != "estimate":
+                u = float(self.upper)
+            est.append(u)
+            lo = self.lower[min(l, len(self.lower) - 1)]
+            lv.cheb = _chebyshev_coefficients(self.degree[min(l, len(self.degree) - 1)], lo * u, u)
+        self._spectra = est
+        self._cmds = None
+        log.debug("multigrid: Chebyshev upper bounds %s", est)
+
+    def _largest_eigenvalue(self, lv, free):
+        import scipy.sparse
+        import scipy.sparse.linalg
+
+        A = self._scipy(lv.A).tocsr()
+        b = lv.block
+        Di = lv.dinv.numpy().astype(np.float64).reshape(-1, b, b)
+        Di = 0.5 * (Di + Di.transpose(0, 2, 1))
+        w, V = np.linalg.eigh(Di)
+        S = np.einsum("nij,nj,nkj->nik", V, np.sqrt(np.maximum(w, 0.0)), V)  # Dinv^(1/2) blocks
+        if free is not None:
+            S = S * free.reshape(-1, 1, b)  # zero columns at fixed DOFs (and rows, by symmetry below)
+            S = S * free.reshape(-1, b, 1)
+        nb = S.shape[0]
+        H = scipy.sparse.bsr_matrix((S, np.arange(nb), np.arange(nb + 1)), shape=A.shape).tocsr()
+        op = scipy.sparse.linalg.LinearOperator(A.shape, matvec=lambda v: H @ (A @ (H @ v)), dtype=np.float64)
+        v0 = np.random.default_rng(0).standard_normal(A.shape[0])
+        lam = scipy.sparse.linalg.eigsh(op, k=1, which="LA", v0=v0, ncv=min(12, A.shape[0] - 1), tol=1e-2,
+                                        return_eigenvectors=False, maxiter=200)
+        self.host_syncs += 2
+        return float(lam[0])
+
+    @staticmethod
+    def _scipy(A):
+        import scipy.sparse
+
+        bi, bj = A.block_shape
+        nnz = A.nnz_sync()
+        off = A.offsets.numpy()[: A.nrow + 1]
+        cols = A.columns.numpy()[:nnz]
+        vals = A.values.numpy()[:nnz].astype(np.float64).reshape(nnz, bi, bj)
+        return scipy.sparse.bsr_matrix((vals, cols, off), shape=(A.nrow * bi, A.ncol * bj))
 
     @staticmethod
     def _structure(M):
@@ -562,6 +621,8 @@ class MultigridPCG(LinearSolver):
             self._build(values, mask)
         coarse = built or self.coarse_update == "every" or self._refresh_coarse
         self._galerkin(values, mask, coarse=coarse)
+        if built or (coarse and self.coarse_update == "lagged"):
+            self._set_intervals(mask)  # the smoothers' intervals follow each re-formation
         if coarse:
             self._refresh_coarse, self._galerkin_iters = False, None
 
@@ -593,12 +654,12 @@ class MultigridPCG(LinearSolver):
                                                      self._rz, j, 0]),
                 R(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz, self._rr, self._pap,
                                              self._bb, self._tol2, self._maxiter, self._report, j])))
-        c0, steps = self._cheb
         s = self.scalar
         for l, lv in enumerate(self.levels):
             if lv.Minv is not None:
                 lv.cmd_coarse = R(_dense_mv_kernel, lv.size, [lv.Minv, lv.f, lv.x])
                 continue
+            c0, steps = lv.cheb
             nb, bv = lv.size // lv.block, self._blocks
             r, t, d, x = bv(lv.r, lv.block), bv(lv.t, lv.block), bv(lv.d, lv.block), bv(lv.x, lv.block)
             lv.cmd_start_pre = R(_cheb_start_kernel, nb, [r, lv.dinv, d, s(c0)])
