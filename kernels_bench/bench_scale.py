@@ -4,7 +4,9 @@ Cases: the clamped box 2 x 0.5 x 0.5 m of issue 22 (stable neo-Hookean, E 1e5, d
 gravity, backward Euler, dt 1/60, 4c x c x c hex cells of 6 tets: c = 8, 13, 16, 25 give 12k,
 53k, 98k, 375k tets), at poisson_ratio 0.3 and 0.49, and the bunny scene
 (examples/scenes/bunny.toml, 22.9k tets, its own nu 0.4 and dt 1/24) and the octopus scene
-(``--octopus``, examples/scenes/octopus.toml, 1.1k tets, nu 0.35). For every (case, solver):
+(``--octopus``, examples/scenes/octopus.toml, 1.1k tets, nu 0.35) and ``--bunny-fine`` (bunny.off
+meshed at max_edge_length 0.004, ~190k tets, dt 1/24). ``multigrid@NAME`` runs the multigrid with
+the options MG_VARIANTS[NAME] (``legacy``: the defaults before the spectral estimate). For every (case, solver):
 build the simulator, one warm-up step (kernel loads, the solver's set-up: a factorisation's
 symbolic analysis, the multigrid hierarchy), then ``--steps`` timed steps. Recorded per step: wall
 seconds, Newton iterations, linear iterations per Newton solve (CG iterations; 1 per direct solve),
@@ -52,6 +54,7 @@ MG_VARIANTS = {
     "coarse6": dict(degree=(3, 6)),  # degree 6 below the finest level
     "coarse4": dict(degree=(3, 4)),
     "degree4": dict(degree=4),
+    "estfine": dict(estimate_finest=True),  # the finest level's interval estimated too
 }
 
 
@@ -72,6 +75,24 @@ def box_sim(c, *, nu, solver, device, precision):
     solver, options = solver_and_options(solver)
     return wf.Simulator(model, device=device, dt=1.0 / 60.0, linear_solver=solver, linear_solver_options=options,
                         precision=precision), 6 * int(np.prod(cells))
+
+
+_FINE_MESH = {}
+
+
+def bunny_fine_sim(*, solver, device, precision):
+    """examples/meshes/bunny.off tetrahedralised at max_edge_length 0.004 (TetGen: ~190k tets, a
+    scanned-statue-sized mesh; meshed once per run), E 5e4, nu 0.4, base fixed, dt 1/24 (as
+    kernels_bench/bench_projection.py's ``bunny_fine``)."""
+    if "mesh" not in _FINE_MESH:
+        _FINE_MESH["mesh"] = wf.load_mesh(ROOT / "examples" / "meshes" / "bunny.off", max_edge_length=0.004)
+    mesh = _FINE_MESH["mesh"]
+    mat = wf.make_material("stable_neo_hookean", youngs_modulus=5e4, poisson_ratio=0.4, density=1000.0)
+    model = wf.Model(mesh, mat, gravity=(0.0, -9.81, 0.0))
+    model.fix(wf.select_vertices_in_box(mesh, (-1, -1, -1), (1, 0.038, 1)))
+    solver, options = solver_and_options(solver)
+    return wf.Simulator(model, device=device, dt=1.0 / 24.0, linear_solver=solver, linear_solver_options=options,
+                        precision=precision), mesh.num_elements
 
 
 def scene_sim(name, *, solver, device, precision):
@@ -124,7 +145,7 @@ def run_one(make, steps):
     newton = float(np.sum([r["newton"] for r in timed]))
     ls = sim.linear_solver
     levels = [lv.size for lv in ls.levels] if getattr(ls, "levels", None) else None
-    return sim, tets, dict(levels=levels, spectra=getattr(ls, "_spectra", None),
+    return sim, tets, dict(levels=levels, intervals=getattr(ls, "intervals", None),
         solver=ls.name, chose=getattr(ls, "active", None), auto_costs=getattr(ls, "costs", None),
         auto_explorations=getattr(ls, "explorations", None), vertices=sim.num_vertices, tets=tets, build_seconds=build,
         warmup_seconds=float(sum(r["seconds"] for r in rows if r["warmup"])),
@@ -151,6 +172,7 @@ def main(argv=None):
     p.add_argument("--skip", nargs="*", default=[], help="solver:c pairs not to run (e.g. direct:25)")
     p.add_argument("--bunny", action="store_true", help="also the bunny scene")
     p.add_argument("--octopus", action="store_true", help="also the octopus scene")
+    p.add_argument("--bunny-fine", action="store_true", help="also bunny.off meshed at max_edge_length 0.004 (~190k tets)")
     p.add_argument("--steps", type=int, default=None)
     p.add_argument("--device", default="cpu")
     p.add_argument("--precision", default="float64")
@@ -192,12 +214,14 @@ def main(argv=None):
         record("bunny", 0.4, lambda s: scene_sim("bunny", solver=s, device=args.device, precision=args.precision))
     if args.octopus:
         record("octopus", 0.35, lambda s: scene_sim("octopus", solver=s, device=args.device, precision=args.precision))
+    if args.bunny_fine:
+        record("bunny_fine", 0.4, lambda s: bunny_fine_sim(solver=s, device=args.device, precision=args.precision))
 
     slopes = {}
     for solver in args.solvers:
         for nu in args.nus:
             pts = [(r["tets"], r["step_seconds"]) for r in results
-                   if r["solver"] == solver and r["nu"] == nu and r["case"] not in ("bunny", "octopus")]
+                   if r["solver"] == solver and r["nu"] == nu and r["case"] not in ("bunny", "octopus", "bunny_fine")]
             slopes[f"{solver} nu={nu}"] = slope(pts)
     meta = dict(device=device_name, warp=wp.__version__, precision=args.precision, steps=steps, sizes=sizes,
                 load_average_start=load_start, load_average_end=os.getloadavg(), cores=os.cpu_count())
@@ -210,7 +234,7 @@ def main(argv=None):
              "|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         name = r["solver"] + (f" ({r['chose']})" if r.get("chose") else "")
-        lines.append(f"| {r['case'] if r['case'] in ('bunny', 'octopus') else 'box'} | {r['nu']} | {r['tets']} | {name} | "
+        lines.append(f"| {r['case'] if r['case'] in ('bunny', 'octopus', 'bunny_fine') else 'box'} | {r['nu']} | {r['tets']} | {name} | "
                      f"{r['step_seconds']:.2f} | {r['step_per_hessian']:.0f} | {r['newton_per_step']:.1f} | "
                      f"{r['linear_per_newton']:.1f} | {r['all_converged']} |")
     lines += ["", "| solver | slope of log(s/step) vs log(tets), boxes |", "|---|---|"]

@@ -19,7 +19,10 @@ re-formation (the V-cycle stays SPD with older coarse operators).
 Per CG iteration one V-cycle: on every level a Chebyshev polynomial smoother in the l1-Jacobi
 preconditioned operator D^-1 A, D the block diagonal plus the absolute off-diagonal row sums
 ("Multigrid smoothers for ultraparallel computing", Baker, Falgout, Kolev, Yang: rho(D^-1 A) <= 1
-for any SPD A, so the Chebyshev interval [lower, 1] needs no eigenvalue estimate), restriction by
+for any SPD A, so the finest level's interval [lower, 1] needs no eigenvalue estimate and holds for
+every Newton matrix; the coarse levels, whose operators change only when they are re-formed, use
+[lower u, u] with u from a Lanczos estimate of rho(D^-1 A) at each re-formation, about 0.75 on the
+6x6-block levels of the elastic boxes, which makes their smoothing stronger), restriction by
 R_l, the coarsest level by its dense inverse, prolongation by P_l, the same smoother after. Chebyshev recurrence as in
 Saad, "Iterative Methods for Sparse Linear Systems", Algorithm 12.1 (block l1 diagonals: 3x3 on
 the finest level, 6x6 below, inverted in the kernel). The V-cycle is symmetric and, the l1
@@ -312,8 +315,20 @@ class MultigridPCG(LinearSolver):
         max_coarse: at most about this many unknowns on the coarsest level (its dense inverse is
             formed on the host when the coarse operators are re-formed and applied on the device).
         max_levels: cap on the number of levels.
-        degree: Chebyshev polynomial degree of each smoothing (matrix products per pre- or post-smoothing).
-        lower: the Chebyshev interval is [lower, 1] of the l1-Jacobi preconditioned spectrum.
+        degree: Chebyshev polynomial degree of each smoothing (matrix products per pre- or
+            post-smoothing); a sequence gives one per level (the last repeats below).
+        lower: the Chebyshev interval is [lower u, u] of the l1-Jacobi preconditioned spectrum
+            (a sequence: one per level, as ``degree``).
+        upper: u on the coarse levels: "estimate" (default): ``safety`` times the largest
+            eigenvalue of D^-1 A estimated by Lanczos (host) whenever the coarse operators are
+            re-formed, capped at 1; a number in (0, 1]: that bound. The finest level uses u = 1,
+            the l1 bound that holds for every matrix, unless ``estimate_finest``.
+        safety: factor on the estimated eigenvalue (>= 1; the Chebyshev polynomial still damps
+            eigenvalues up to u + lower u).
+        estimate_finest: estimate u on the finest level too, from the matrix of the prepare that
+            re-forms the coarse operators. Later matrices (the lagged ones, contact blocks that
+            couple vertices stiffly) may have eigenvalues above it, where the smoother amplifies:
+            off by default (measured effect in docs/linear_solvers.md).
         check_every: CG iterations between host read-backs of the residual (default 1 on the CPU,
             where a read-back costs microseconds and an extra V-cycle does not; 4 on CUDA).
         coarse_update: "every": the coarse operators are re-formed (Galerkin products) at every
@@ -324,7 +339,8 @@ class MultigridPCG(LinearSolver):
         rebuild_factor: rebuild the hierarchy (from the matrix of the next prepare) when a solve
             needs more than this times the iterations of the first solve after the last build (+5).
         strength, aggregate, smooth, improve_candidates: passed to pyamg's
-            ``smoothed_aggregation_solver`` for the set-up.
+            ``smoothed_aggregation_solver`` for the set-up (``smooth``: one Jacobi step of the
+            tentative prolongator, weighted by the inverse 3x3 / 6x6 block diagonal).
     """
 
     name = "multigrid"
@@ -333,7 +349,7 @@ class MultigridPCG(LinearSolver):
                  degree: int = 3, lower: float = 0.03, check_every: int | None = None, rebuild_factor: float = 3.0,
                  coarse_update: str = "lagged", lag_factor: float = 1.5, strength="symmetric", aggregate="standard",
                  smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "block"}), improve_candidates=None, upper="estimate",
-                 safety: float = 1.1):
+                 safety: float = 1.1, estimate_finest: bool = False):
         self.pyamg = require("pyamg", "amg", "'multigrid' linear solver")
         degrees = tuple(degree) if isinstance(degree, (tuple, list)) else (degree,)
         if not degrees or any(int(g) != g or g < 1 for g in degrees):
@@ -354,7 +370,9 @@ class MultigridPCG(LinearSolver):
         self.degree, self.lower = tuple(int(g) for g in degrees), tuple(float(g) for g in lowers)
         if not (upper == "estimate" or (isinstance(upper, (int, float)) and 0.0 < upper <= 1.0)):
             raise ValueError(f"upper must be 'estimate' or in (0, 1], got {upper!r}")
-        self.upper, self.safety = upper, float(safety)
+        if not (np.isfinite(safety) and safety >= 1.0):
+            raise ValueError(f"safety must be >= 1, got {safety!r}")
+        self.upper, self.safety, self.estimate_finest = upper, float(safety), bool(estimate_finest)
         self.max_coarse, self.max_levels = int(max_coarse), int(max_levels)
         self.check_every = int(check_every)
         self.rebuild_factor = float(rebuild_factor)
@@ -450,27 +468,29 @@ class MultigridPCG(LinearSolver):
             levels.append(_Level(nxt_A, P.shape[1], s, dev))
         self.levels = levels
         self._cmds = None
-        self._spectra = None  # estimated at the first re-formation of this hierarchy
+        self.intervals = None  # the levels' Chebyshev upper bounds, set at each re-formation
         self.setup_count += 1
         self._base_iters, self._stale = None, False
         log.debug("multigrid: %d levels, unknowns %s", len(levels), [lv.size for lv in levels])
 
     def _set_intervals(self, mask):
-        """Each level's Chebyshev coefficients on [lower u, u]: u = 1 (the l1 bound) or, with
-        ``upper="estimate"``, ``safety`` times the largest eigenvalue of D^-1 A on the free DOFs
-        (Lanczos on D^-1/2 A D^-1/2, host, once per hierarchy), capped at 1."""
+        """Each level's Chebyshev coefficients on [lower u, u]. The finest level: u = 1, the l1
+        bound that holds for any matrix of a Newton solve (with ``estimate_finest``, as below
+        from the matrix of this prepare). Coarse levels, whose operators change only here: with
+        ``upper="estimate"``, u = ``safety`` times the largest eigenvalue of D^-1 A (Lanczos on
+        D^-1/2 A D^-1/2, host), capped at 1; a number: u = that number."""
         est = []
         for l, lv in enumerate(self.levels[:-1]):
-            u = 1.0
-            if self.upper == "estimate":
-                lam = self._largest_eigenvalue(lv, mask.numpy().reshape(-1) if l == 0 else None)
-                u = min(1.0, self.safety * lam)
-            elif self.upper != "estimate":
+            if l == 0 and not self.estimate_finest:
+                u = 1.0
+            elif self.upper == "estimate":
+                u = min(1.0, self.safety * self._largest_eigenvalue(lv, mask.numpy().reshape(-1) if l == 0 else None))
+            else:
                 u = float(self.upper)
             est.append(u)
             lo = self.lower[min(l, len(self.lower) - 1)]
             lv.cheb = _chebyshev_coefficients(self.degree[min(l, len(self.degree) - 1)], lo * u, u)
-        self._spectra = est
+        self.intervals = est
         self._cmds = None
         log.debug("multigrid: Chebyshev upper bounds %s", est)
 
@@ -621,8 +641,8 @@ class MultigridPCG(LinearSolver):
             self._build(values, mask)
         coarse = built or self.coarse_update == "every" or self._refresh_coarse
         self._galerkin(values, mask, coarse=coarse)
-        if built or (coarse and self.coarse_update == "lagged"):
-            self._set_intervals(mask)  # the smoothers' intervals follow each re-formation
+        if coarse:
+            self._set_intervals(mask)  # the coarse smoothers' intervals follow each re-formation
         if coarse:
             self._refresh_coarse, self._galerkin_iters = False, None
 
