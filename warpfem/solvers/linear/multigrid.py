@@ -21,8 +21,8 @@ preconditioned operator D^-1 A, D the block diagonal plus the absolute off-diago
 ("Multigrid smoothers for ultraparallel computing", Baker, Falgout, Kolev, Yang: rho(D^-1 A) <= 1
 for any SPD A, so the finest level's interval [lower, 1] needs no eigenvalue estimate and holds for
 every Newton matrix; the coarse levels, whose operators change only when they are re-formed, use
-[lower u, u] with u from a Lanczos estimate of rho(D^-1 A) at each re-formation, about 0.75 on the
-6x6-block levels of the elastic boxes, which makes their smoothing stronger), restriction by
+[lower u, u] with u from a Lanczos estimate of rho(D^-1 A) at each re-formation: rho is 0.68-0.88
+on the 6x6-block levels of the boxes and bunnies measured, so the smoothing gets stronger), restriction by
 R_l, the coarsest level by its dense inverse, prolongation by P_l, the same smoother after. Chebyshev recurrence as in
 Saad, "Iterative Methods for Sparse Linear Systems", Algorithm 12.1 (block l1 diagonals: 3x3 on
 the finest level, 6x6 below, inverted in the kernel). The V-cycle is symmetric and, the l1
