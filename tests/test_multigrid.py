@@ -185,6 +185,10 @@ def test_scene_key_and_bad_options(tmp_path):
         _make("multigrid", sim, model, degree=0)
     with pytest.raises(ValueError, match="lower"):
         _make("multigrid", sim, model, lower=1.5)
+    with pytest.raises(ValueError, match="degree"):
+        _make("multigrid", sim, model, degree=(3, 0))
+    with pytest.raises(ValueError, match="lower"):
+        _make("multigrid", sim, model, lower=(0.03, 1.0))
     with pytest.raises(ValueError, match="upper"):
         _make("multigrid", sim, model, upper=1.5)
     with pytest.raises(ValueError, match="safety"):
