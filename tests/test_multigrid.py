@@ -110,7 +110,8 @@ def test_coarse_intervals_are_the_estimated_spectrum_and_save_iterations():
     sim, model, vals, b, Am = _system(cells=(24, 4, 4), nu=0.49, h2=1.0, mass_scale=1e-6)
     bd = sim._vec_array(b)
     its = {}
-    for name, opts in (("new", {}), ("old", dict(upper=1.0, smooth=("jacobi", {"omega": 4.0 / 3.0})))):
+    for name, opts in (("new", {}), ("old", dict(upper=1.0, smooth=("jacobi", {"omega": 4.0 / 3.0}))),
+                       ("coarse6", dict(degree=(3, 6)))):
         solver = _make("multigrid", sim, model, max_coarse=30, **opts)
         solver.dense_estimate_below = 0  # the Lanczos estimate that the large levels get
         xd = sim._vec_array()
@@ -120,6 +121,7 @@ def test_coarse_intervals_are_the_estimated_spectrum_and_save_iterations():
         its[name] = r.iterations
         if name == "old":
             assert solver.intervals == [1.0] * (len(solver.levels) - 1)
+        if name != "new":
             continue
         assert solver.intervals[0] == 1.0
         for lv, u in zip(solver.levels[1:-1], solver.intervals[1:]):
@@ -130,6 +132,7 @@ def test_coarse_intervals_are_the_estimated_spectrum_and_save_iterations():
             lam = np.linalg.eigvals(DA).real.max()
             assert 0.3 < lam < 0.95 and abs(u - 1.1 * lam) <= 0.02 * u, (u, lam)
     assert its["new"] <= 0.9 * its["old"], its
+    assert its["coarse6"] < its["new"], its  # degree 6 below the finest level: a stronger cycle
 
 
 def test_changed_mask_between_solves():
