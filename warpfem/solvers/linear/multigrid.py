@@ -607,16 +607,9 @@ class MultigridPCG(LinearSolver):
         else:
             last.Minv.assign(Minv.astype(last.Minv.numpy().dtype))
 
-    @staticmethod
-    def _dense(A) -> np.ndarray:
-        import scipy.sparse
-
-        bi, bj = A.block_shape
-        nnz = A.nnz_sync()
-        offsets = A.offsets.numpy()[: A.nrow + 1]
-        cols = A.columns.numpy()[:nnz]
-        vals = A.values.numpy()[:nnz].astype(np.float64).reshape(nnz, bi, bj)
-        return scipy.sparse.bsr_matrix((vals, cols, offsets), shape=(A.nrow * bi, A.ncol * bj)).toarray()
+    @classmethod
+    def _dense(cls, A) -> np.ndarray:
+        return cls._scipy(A).toarray()
 
     @staticmethod
     def _pinv(A) -> np.ndarray:
