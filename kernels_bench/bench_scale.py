@@ -4,7 +4,9 @@ Cases: the clamped box 2 x 0.5 x 0.5 m of issue 22 (stable neo-Hookean, E 1e5, d
 gravity, backward Euler, dt 1/60, 4c x c x c hex cells of 6 tets: c = 8, 13, 16, 25 give 12k,
 53k, 98k, 375k tets), at poisson_ratio 0.3 and 0.49, and the bunny scene
 (examples/scenes/bunny.toml, 22.9k tets, its own nu 0.4 and dt 1/24) and the octopus scene
-(``--octopus``, examples/scenes/octopus.toml, 1.1k tets, nu 0.35). For every (case, solver):
+(``--octopus``, examples/scenes/octopus.toml, 1.1k tets, nu 0.35) and ``--bunny-fine`` (bunny.off
+meshed at max_edge_length 0.004, ~190k tets, dt 1/24). ``multigrid@NAME`` runs the multigrid with
+the options MG_VARIANTS[NAME] (``legacy``: the defaults before the spectral estimate). For every (case, solver):
 build the simulator, one warm-up step (kernel loads, the solver's set-up: a factorisation's
 symbolic analysis, the multigrid hierarchy), then ``--steps`` timed steps. Recorded per step: wall
 seconds, Newton iterations, linear iterations per Newton solve (CG iterations; 1 per direct solve),
@@ -16,7 +18,7 @@ The device and the load average at start and end are recorded: on a shared machi
 ratios, not absolutes.
 
     .venv/bin/python kernels_bench/bench_scale.py [--quick] [--sizes 8 13 16] [--nus 0.3 0.49]
-        [--solvers pcg amg multigrid direct auto] [--bunny] [--octopus] [--steps 2] [--device cpu] [--out PATH]
+        [--solvers pcg amg multigrid multigrid@legacy direct auto] [--bunny] [--octopus] [--steps 2] [--device cpu] [--out PATH]
 
 ``--quick``: boxes c = 8 and 13 only, one timed step.
 """
@@ -45,21 +47,67 @@ import warpfem as wf  # noqa: E402
 from kernels_bench.bench_linear_solvers import step_recorder  # noqa: E402
 
 
+#: ``--solvers multigrid@NAME``: the multigrid with these options (compared in the same run)
+MG_VARIANTS = {
+    # the defaults before the spectral estimate and the block-weighted prolongation smoothing
+    "legacy": dict(upper=1.0, smooth=("jacobi", {"omega": 4.0 / 3.0})),
+    "coarse6": dict(degree=(3, 6)),  # degree 6 below the finest level
+    "coarse4": dict(degree=(3, 4)),
+    "degree4": dict(degree=4),
+    "estfine": dict(estimate_finest=True),  # the finest level's interval estimated too
+}
+
+
+def solver_and_options(solver):
+    """'multigrid@NAME' -> ('multigrid', MG_VARIANTS[NAME]); any other name -> (name, None)."""
+    if "@" not in solver:
+        return solver, None
+    name, variant = solver.split("@", 1)
+    return name, dict(MG_VARIANTS[variant])
+
+
 def box_sim(c, *, nu, solver, device, precision):
     cells = (4 * c, c, c)
     mesh = wf.box_tet_mesh(size=(2.0, 0.5, 0.5), cells=cells)
     mat = wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=nu, density=1000.0)
     model = wf.Model(mesh, mat, gravity=(0.0, -9.81, 0.0))
     model.fix(np.nonzero(mesh.vertices[:, 0] < 1e-9)[0])
-    return wf.Simulator(model, device=device, dt=1.0 / 60.0, linear_solver=solver, precision=precision), 6 * int(np.prod(cells))
+    solver, options = solver_and_options(solver)
+    return wf.Simulator(model, device=device, dt=1.0 / 60.0, linear_solver=solver, linear_solver_options=options,
+                        precision=precision), 6 * int(np.prod(cells))
+
+
+_FINE_MESH = {}
+
+
+def bunny_fine_sim(*, solver, device, precision):
+    """examples/meshes/bunny.off tetrahedralised at max_edge_length 0.004 (TetGen: ~190k tets, a
+    scanned-statue-sized mesh; meshed once per run), E 5e4, nu 0.4, base fixed, dt 1/24 (as
+    kernels_bench/bench_projection.py's ``bunny_fine``)."""
+    if "mesh" not in _FINE_MESH:
+        _FINE_MESH["mesh"] = wf.load_mesh(ROOT / "examples" / "meshes" / "bunny.off", max_edge_length=0.004)
+    mesh = _FINE_MESH["mesh"]
+    mat = wf.make_material("stable_neo_hookean", youngs_modulus=5e4, poisson_ratio=0.4, density=1000.0)
+    model = wf.Model(mesh, mat, gravity=(0.0, -9.81, 0.0))
+    model.fix(wf.select_vertices_in_box(mesh, (-1, -1, -1), (1, 0.038, 1)))
+    solver, options = solver_and_options(solver)
+    return wf.Simulator(model, device=device, dt=1.0 / 24.0, linear_solver=solver, linear_solver_options=options,
+                        precision=precision), mesh.num_elements
 
 
 def scene_sim(name, *, solver, device, precision):
     from warpfem.scenes import load_scene
 
+    solver, options = solver_and_options(solver)
     scene = load_scene(ROOT / "examples" / "scenes" / f"{name}.toml")
     scene.spec.integrator["linear_solver"] = solver
     run = scene.build(device=device, precision=precision)
+    if options is not None:  # the variant in place of the scene's solver (before its first step)
+        from warpfem.solvers.linear import make_linear_solver
+
+        sim = run.sim
+        sim.linear_solver = make_linear_solver(solver, sim.pattern, vec_type=sim.vector_type, scalar=sim.scalar_type,
+                                               positions=sim.model.mesh.vertices, **options)
     return run, run.model.mesh.num_elements
 
 
@@ -96,7 +144,8 @@ def run_one(make, steps):
     timed = [r for r in rows if not r["warmup"]]
     newton = float(np.sum([r["newton"] for r in timed]))
     ls = sim.linear_solver
-    return sim, tets, dict(
+    levels = [lv.size for lv in ls.levels] if getattr(ls, "levels", None) else None
+    return sim, tets, dict(levels=levels, intervals=getattr(ls, "intervals", None),
         solver=ls.name, chose=getattr(ls, "active", None), auto_costs=getattr(ls, "costs", None),
         auto_explorations=getattr(ls, "explorations", None), vertices=sim.num_vertices, tets=tets, build_seconds=build,
         warmup_seconds=float(sum(r["seconds"] for r in rows if r["warmup"])),
@@ -123,6 +172,7 @@ def main(argv=None):
     p.add_argument("--skip", nargs="*", default=[], help="solver:c pairs not to run (e.g. direct:25)")
     p.add_argument("--bunny", action="store_true", help="also the bunny scene")
     p.add_argument("--octopus", action="store_true", help="also the octopus scene")
+    p.add_argument("--bunny-fine", action="store_true", help="also bunny.off meshed at max_edge_length 0.004 (~190k tets)")
     p.add_argument("--steps", type=int, default=None)
     p.add_argument("--device", default="cpu")
     p.add_argument("--precision", default="float64")
@@ -143,6 +193,8 @@ def main(argv=None):
             if f"{solver}:{case}" in args.skip:
                 continue
             sim, tets, r = run_one(lambda s=solver: make_for(s), steps)
+            if "@" in solver:
+                r["solver"] = solver
             if hess is None:
                 hess = hessian_seconds(sim)
             r.update(case=case, nu=nu, hessian_seconds=hess, step_per_hessian=r["step_seconds"] / hess,
@@ -150,7 +202,7 @@ def main(argv=None):
             results.append(r)
             print(f"{case:>6} nu={nu} {r['solver'] + (':' + r['chose'] if r.get('chose') else ''):9s} tets {tets:7d}  {r['step_seconds']:7.2f} s/step "
                   f"({r['step_per_hessian']:6.0f} Hessians)  Newton {r['newton_per_step']:4.1f}  "
-                  f"CG/Newton {r['linear_per_newton']:6.1f}  converged {r['all_converged']}  load {r['load']:.1f}",
+                  f"CG/Newton {r['linear_per_newton']:6.1f}  converged {r['all_converged']}  load {r['load']:.1f}  levels {r['levels']}",
                   flush=True)
             del sim
 
@@ -162,12 +214,14 @@ def main(argv=None):
         record("bunny", 0.4, lambda s: scene_sim("bunny", solver=s, device=args.device, precision=args.precision))
     if args.octopus:
         record("octopus", 0.35, lambda s: scene_sim("octopus", solver=s, device=args.device, precision=args.precision))
+    if args.bunny_fine:
+        record("bunny_fine", 0.4, lambda s: bunny_fine_sim(solver=s, device=args.device, precision=args.precision))
 
     slopes = {}
     for solver in args.solvers:
         for nu in args.nus:
             pts = [(r["tets"], r["step_seconds"]) for r in results
-                   if r["solver"] == solver and r["nu"] == nu and r["case"] not in ("bunny", "octopus")]
+                   if r["solver"] == solver and r["nu"] == nu and r["case"] not in ("bunny", "octopus", "bunny_fine")]
             slopes[f"{solver} nu={nu}"] = slope(pts)
     meta = dict(device=device_name, warp=wp.__version__, precision=args.precision, steps=steps, sizes=sizes,
                 load_average_start=load_start, load_average_end=os.getloadavg(), cores=os.cpu_count())
@@ -180,7 +234,7 @@ def main(argv=None):
              "|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         name = r["solver"] + (f" ({r['chose']})" if r.get("chose") else "")
-        lines.append(f"| {r['case'] if r['case'] in ('bunny', 'octopus') else 'box'} | {r['nu']} | {r['tets']} | {name} | "
+        lines.append(f"| {r['case'] if r['case'] in ('bunny', 'octopus', 'bunny_fine') else 'box'} | {r['nu']} | {r['tets']} | {name} | "
                      f"{r['step_seconds']:.2f} | {r['step_per_hessian']:.0f} | {r['newton_per_step']:.1f} | "
                      f"{r['linear_per_newton']:.1f} | {r['all_converged']} |")
     lines += ["", "| solver | slope of log(s/step) vs log(tets), boxes |", "|---|---|"]

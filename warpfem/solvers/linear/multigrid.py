@@ -19,7 +19,10 @@ re-formation (the V-cycle stays SPD with older coarse operators).
 Per CG iteration one V-cycle: on every level a Chebyshev polynomial smoother in the l1-Jacobi
 preconditioned operator D^-1 A, D the block diagonal plus the absolute off-diagonal row sums
 ("Multigrid smoothers for ultraparallel computing", Baker, Falgout, Kolev, Yang: rho(D^-1 A) <= 1
-for any SPD A, so the Chebyshev interval [lower, 1] needs no eigenvalue estimate), restriction by
+for any SPD A, so the finest level's interval [lower, 1] needs no eigenvalue estimate and holds for
+every Newton matrix; the coarse levels, whose operators change only when they are re-formed, use
+[lower u, u] with u from a Lanczos estimate of rho(D^-1 A) at each re-formation: rho is 0.68-0.88
+on the 6x6-block levels of the boxes and bunnies measured, so the smoothing gets stronger), restriction by
 R_l, the coarsest level by its dense inverse, prolongation by P_l, the same smoother after. Chebyshev recurrence as in
 Saad, "Iterative Methods for Sparse Linear Systems", Algorithm 12.1 (block l1 diagonals: 3x3 on
 the finest level, 6x6 below, inverted in the kernel). The V-cycle is symmetric and, the l1
@@ -301,6 +304,7 @@ class _Level:
         self.P = self.R = None
         self.AP = None  # A P, in the structure computed at set-up
         self.Minv = None  # the coarsest level's dense inverse
+        self.cheb = None  # (c0, [(c1, c2)]): the smoother's Chebyshev coefficients
 
 
 class MultigridPCG(LinearSolver):
@@ -311,8 +315,20 @@ class MultigridPCG(LinearSolver):
         max_coarse: at most about this many unknowns on the coarsest level (its dense inverse is
             formed on the host when the coarse operators are re-formed and applied on the device).
         max_levels: cap on the number of levels.
-        degree: Chebyshev polynomial degree of each smoothing (matrix products per pre- or post-smoothing).
-        lower: the Chebyshev interval is [lower, 1] of the l1-Jacobi preconditioned spectrum.
+        degree: Chebyshev polynomial degree of each smoothing (matrix products per pre- or
+            post-smoothing); a sequence gives one per level (the last repeats below).
+        lower: the Chebyshev interval is [lower u, u] of the l1-Jacobi preconditioned spectrum
+            (a sequence: one per level, as ``degree``).
+        upper: u on the coarse levels: "estimate" (default): ``safety`` times the largest
+            eigenvalue of D^-1 A estimated by Lanczos (host) whenever the coarse operators are
+            re-formed, capped at 1; a number in (0, 1]: that bound. The finest level uses u = 1,
+            the l1 bound that holds for every matrix, unless ``estimate_finest``.
+        safety: factor on the estimated eigenvalue (>= 1; the Chebyshev polynomial still damps
+            eigenvalues up to u + lower u).
+        estimate_finest: estimate u on the finest level too, from the matrix of the prepare that
+            re-forms the coarse operators. Later matrices (the lagged ones, contact blocks that
+            couple vertices stiffly) may have eigenvalues above it, where the smoother amplifies:
+            off by default (measured effect in docs/linear_solvers.md).
         check_every: CG iterations between host read-backs of the residual (default 1 on the CPU,
             where a read-back costs microseconds and an extra V-cycle does not; 4 on CUDA).
         coarse_update: "every": the coarse operators are re-formed (Galerkin products) at every
@@ -323,20 +339,25 @@ class MultigridPCG(LinearSolver):
         rebuild_factor: rebuild the hierarchy (from the matrix of the next prepare) when a solve
             needs more than this times the iterations of the first solve after the last build (+5).
         strength, aggregate, smooth, improve_candidates: passed to pyamg's
-            ``smoothed_aggregation_solver`` for the set-up.
+            ``smoothed_aggregation_solver`` for the set-up (``smooth``: one Jacobi step of the
+            tentative prolongator, weighted by the inverse 3x3 / 6x6 block diagonal).
     """
 
     name = "multigrid"
+    dense_estimate_below = 300  # levels with fewer unknowns get their rho(D^-1 A) by a dense eigensolve
 
     def __init__(self, pattern, *, vec_type, scalar, positions=None, max_coarse: int = 300, max_levels: int = 10,
                  degree: int = 3, lower: float = 0.03, check_every: int | None = None, rebuild_factor: float = 3.0,
                  coarse_update: str = "lagged", lag_factor: float = 1.5, strength="symmetric", aggregate="standard",
-                 smooth=("jacobi", {"omega": 4.0 / 3.0}), improve_candidates=None):
+                 smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "block"}), improve_candidates=None, upper="estimate",
+                 safety: float = 1.1, estimate_finest: bool = False):
         self.pyamg = require("pyamg", "amg", "'multigrid' linear solver")
-        if int(degree) != degree or degree < 1:
-            raise ValueError(f"degree must be a positive integer, got {degree!r}")
-        if not (0.0 < lower < 1.0):
-            raise ValueError(f"lower must be in (0, 1), got {lower!r}")
+        degrees = tuple(degree) if isinstance(degree, (tuple, list)) else (degree,)
+        if not degrees or any(int(g) != g or g < 1 for g in degrees):
+            raise ValueError(f"degree must be a positive integer (or one per level), got {degree!r}")
+        lowers = tuple(lower) if isinstance(lower, (tuple, list)) else (lower,)
+        if not lowers or not all(0.0 < g < 1.0 for g in lowers):
+            raise ValueError(f"lower must be in (0, 1) (or one per level), got {lower!r}")
         if int(max_coarse) != max_coarse or max_coarse < 6:
             raise ValueError(f"max_coarse must be an integer >= 6, got {max_coarse!r}")
         if int(max_levels) != max_levels or max_levels < 2:
@@ -347,7 +368,12 @@ class MultigridPCG(LinearSolver):
             check_every = 4 if pattern.device.is_cuda else 1
         if int(check_every) != check_every or check_every < 1:
             raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
-        self.degree, self.lower = int(degree), float(lower)
+        self.degree, self.lower = tuple(int(g) for g in degrees), tuple(float(g) for g in lowers)
+        if not (upper == "estimate" or (isinstance(upper, (int, float)) and 0.0 < upper <= 1.0)):
+            raise ValueError(f"upper must be 'estimate' or in (0, 1], got {upper!r}")
+        if not (np.isfinite(safety) and safety >= 1.0):
+            raise ValueError(f"safety must be >= 1, got {safety!r}")
+        self.upper, self.safety, self.estimate_finest = upper, float(safety), bool(estimate_finest)
         self.max_coarse, self.max_levels = int(max_coarse), int(max_levels)
         self.check_every = int(check_every)
         self.rebuild_factor = float(rebuild_factor)
@@ -395,7 +421,6 @@ class MultigridPCG(LinearSolver):
         self._cols = wp.array(pattern.cols_np, dtype=wp.int32, device=dev)
         self._diag = wp.array(np.asarray(pattern.diag_index, dtype=np.int32), dtype=wp.int32, device=dev)
         self._A0 = wsp.bsr_copy(pattern.matrix)  # the pattern's topology; values set every prepare
-        self._cheb = _chebyshev_coefficients(self.degree, self.lower)
         self._tiny = self.scalar(1e-10 if self.scalar == wp.float64 else 1e-5)
         self._cmds = None
         self.levels = None  # the hierarchy is built for this pattern (again when a form grew it)
@@ -444,9 +469,75 @@ class MultigridPCG(LinearSolver):
             levels.append(_Level(nxt_A, P.shape[1], s, dev))
         self.levels = levels
         self._cmds = None
+        self.intervals = None  # the levels' Chebyshev upper bounds, set at each re-formation
         self.setup_count += 1
         self._base_iters, self._stale = None, False
         log.debug("multigrid: %d levels, unknowns %s", len(levels), [lv.size for lv in levels])
+
+    def _set_intervals(self, mask):
+        """Each level's Chebyshev coefficients on [lower u, u]. The finest level: u = 1, the l1
+        bound that holds for any matrix of a Newton solve (with ``estimate_finest``, as below
+        from the matrix of this prepare). Coarse levels, whose operators change only here: with
+        ``upper="estimate"``, u = ``safety`` times the largest eigenvalue of D^-1 A (Lanczos on
+        D^-1/2 A D^-1/2, host), capped at 1; a number: u = that number."""
+        est = []
+        for l, lv in enumerate(self.levels[:-1]):
+            if l == 0 and not self.estimate_finest:
+                u = 1.0
+            elif self.upper == "estimate":
+                u = min(1.0, self.safety * self._largest_eigenvalue(lv, mask.numpy().reshape(-1) if l == 0 else None))
+            else:
+                u = float(self.upper)
+            est.append(u)
+            lo = self.lower[min(l, len(self.lower) - 1)]
+            lv.cheb = _chebyshev_coefficients(self.degree[min(l, len(self.degree) - 1)], lo * u, u)
+        self.intervals = est
+        self._cmds = None
+        log.debug("multigrid: Chebyshev upper bounds %s", est)
+
+    def _largest_eigenvalue(self, lv, free):
+        """rho(D^-1 A) of a level (D^-1 its l1-Jacobi inverse blocks; ``free`` the finest level's
+        mask: fixed DOFs left out) as the largest eigenvalue of D^-1/2 A D^-1/2: Lanczos (eigsh,
+        tolerance 1e-2), dense below 300 unknowns. Returns 1 (the l1 bound) where no estimate
+        comes out (no convergence, a zero or non-finite matrix)."""
+        import scipy.sparse
+        import scipy.sparse.linalg
+
+        A = self._scipy(lv.A).tocsr()
+        b = lv.block
+        Di = lv.dinv.numpy().astype(np.float64).reshape(-1, b, b)
+        Di = 0.5 * (Di + Di.transpose(0, 2, 1))
+        w, V = np.linalg.eigh(Di)
+        S = np.einsum("nij,nj,nkj->nik", V, np.sqrt(np.maximum(w, 0.0)), V)  # Dinv^(1/2) blocks
+        if free is not None:
+            S = S * free.reshape(-1, 1, b)  # zero columns at fixed DOFs (and rows, by symmetry below)
+            S = S * free.reshape(-1, b, 1)
+        nb = S.shape[0]
+        H = scipy.sparse.bsr_matrix((S, np.arange(nb), np.arange(nb + 1)), shape=A.shape).tocsr()
+        self.host_syncs += 2
+        try:
+            if A.shape[0] < self.dense_estimate_below:
+                Sd = (H @ A @ H).toarray()
+                lam = float(np.linalg.eigvalsh(0.5 * (Sd + Sd.T))[-1])
+            else:
+                op = scipy.sparse.linalg.LinearOperator(A.shape, matvec=lambda v: H @ (A @ (H @ v)), dtype=np.float64)
+                v0 = np.random.default_rng(0).standard_normal(A.shape[0])
+                lam = float(scipy.sparse.linalg.eigsh(op, k=1, which="LA", v0=v0, ncv=min(12, A.shape[0] - 1),
+                                                      tol=1e-2, return_eigenvectors=False, maxiter=200)[0])
+        except (scipy.sparse.linalg.ArpackNoConvergence, np.linalg.LinAlgError, ValueError):
+            return 1.0
+        return lam if np.isfinite(lam) and lam > 0.0 else 1.0
+
+    @staticmethod
+    def _scipy(A):
+        import scipy.sparse
+
+        bi, bj = A.block_shape
+        nnz = A.nnz_sync()
+        off = A.offsets.numpy()[: A.nrow + 1]
+        cols = A.columns.numpy()[:nnz]
+        vals = A.values.numpy()[:nnz].astype(np.float64).reshape(nnz, bi, bj)
+        return scipy.sparse.bsr_matrix((vals, cols, off), shape=(A.nrow * bi, A.ncol * bj))
 
     @staticmethod
     def _structure(M):
@@ -516,16 +607,9 @@ class MultigridPCG(LinearSolver):
         else:
             last.Minv.assign(Minv.astype(last.Minv.numpy().dtype))
 
-    @staticmethod
-    def _dense(A) -> np.ndarray:
-        import scipy.sparse
-
-        bi, bj = A.block_shape
-        nnz = A.nnz_sync()
-        offsets = A.offsets.numpy()[: A.nrow + 1]
-        cols = A.columns.numpy()[:nnz]
-        vals = A.values.numpy()[:nnz].astype(np.float64).reshape(nnz, bi, bj)
-        return scipy.sparse.bsr_matrix((vals, cols, offsets), shape=(A.nrow * bi, A.ncol * bj)).toarray()
+    @classmethod
+    def _dense(cls, A) -> np.ndarray:
+        return cls._scipy(A).toarray()
 
     @staticmethod
     def _pinv(A) -> np.ndarray:
@@ -563,6 +647,8 @@ class MultigridPCG(LinearSolver):
         coarse = built or self.coarse_update == "every" or self._refresh_coarse
         self._galerkin(values, mask, coarse=coarse)
         if coarse:
+            self._set_intervals(mask)  # the coarse smoothers' intervals follow each re-formation
+        if coarse:
             self._refresh_coarse, self._galerkin_iters = False, None
 
     def _commands(self):
@@ -593,12 +679,12 @@ class MultigridPCG(LinearSolver):
                                                      self._rz, j, 0]),
                 R(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz, self._rr, self._pap,
                                              self._bb, self._tol2, self._maxiter, self._report, j])))
-        c0, steps = self._cheb
         s = self.scalar
         for l, lv in enumerate(self.levels):
             if lv.Minv is not None:
                 lv.cmd_coarse = R(_dense_mv_kernel, lv.size, [lv.Minv, lv.f, lv.x])
                 continue
+            c0, steps = lv.cheb
             nb, bv = lv.size // lv.block, self._blocks
             r, t, d, x = bv(lv.r, lv.block), bv(lv.t, lv.block), bv(lv.d, lv.block), bv(lv.x, lv.block)
             lv.cmd_start_pre = R(_cheb_start_kernel, nb, [r, lv.dinv, d, s(c0)])
