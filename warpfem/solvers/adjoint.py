@@ -428,30 +428,27 @@ class StepAdjoint:
         return _host(out)
 
     def _host_H(self, values, mass_scale, scale):
-        """The float64 scalar CSR matrix (3n x 3n, full) of ``scale`` x the device block values
-        plus ``mass_scale`` x the mass blocks, in the current pattern. One matrix object is kept and
-        its data replaced (no construction per step); the mass's entries are gathered once per
-        reverse pass (:meth:`zero_grad`) and pattern."""
+        """The float64 host matrix (3n x 3n, full; scipy BSR of 3 x 3 blocks in the simulator's
+        current pattern) of ``scale`` x the device block values plus ``mass_scale`` x the mass
+        blocks. One matrix object is kept per pattern and its blocks replaced (no construction, no
+        gather per step); the mass blocks are read once per reverse pass (:meth:`zero_grad`)."""
         import scipy.sparse
 
         pt = self.sim.pattern
         if self._csr_map is None or self._csr_map[0] is not pt:
             n = pt.num_rows
             offsets = pt.offsets.numpy()[: n + 1].astype(np.int64)
-            idx = np.arange(9 * pt.nnz, dtype=np.float64).reshape(pt.nnz, 3, 3) + 1.0  # +1: no explicit zero
-            A = scipy.sparse.bsr_matrix((idx, pt.cols_np, offsets), shape=(3 * n, 3 * n)).tocsr()
-            A.sort_indices()
-            src = (A.data - 1.0).astype(np.int64)
-            H = scipy.sparse.csr_matrix((np.zeros(len(src)), A.indices.copy(), A.indptr.copy()), shape=A.shape)
-            self._csr_map = (pt, src, H)
+            cols = np.asarray(pt.cols_np, dtype=np.int64)
+            H = scipy.sparse.bsr_matrix((np.zeros((pt.nnz, 3, 3)), cols, offsets), shape=(3 * n, 3 * n))
+            self._csr_map = (pt, H)
             self._mass_gathered = None
-        _, src, H = self._csr_map
+        _, H = self._csr_map
         if self._mass_gathered is None:
-            self._mass_gathered = self.sim.mass_values.numpy().reshape(-1)[src].astype(np.float64)
-            # the same mass entries as a matrix: M lambda consistent with H's (K lambda is taken from
+            self._mass_gathered = self.sim.mass_values.numpy().reshape(-1, 3, 3)[: pt.nnz].astype(np.float64)
+            # the same mass blocks as a matrix: M lambda consistent with H's (K lambda is taken from
             # their difference, divided by s^2)
-            self._Mc = scipy.sparse.csr_matrix((self._mass_gathered, H.indices, H.indptr), shape=H.shape)
-        v = values.numpy().reshape(-1)[src].astype(np.float64, copy=False)
+            self._Mc = scipy.sparse.bsr_matrix((self._mass_gathered, H.indices, H.indptr), shape=H.shape)
+        v = values.numpy().reshape(-1, 3, 3)[: pt.nnz].astype(np.float64)  # a copy (float64 or float32 blocks)
         v *= scale
         v += mass_scale * self._mass_gathered
         H.data = v
@@ -503,7 +500,6 @@ class StepAdjoint:
         direct = getattr(solver, "name", "") == "direct"
         # a factorisation is worth reusing (refinement against H) while that converges fast; a
         # preconditioner (PCG, AMG, multigrid) is cheap to set up on H itself, then solved to tol
-        inner = 0.5 if direct else 0.1 * self.tol
         maxiter = max(sim.options.max_cg_iters, 10 * sim.num_vertices)
         prepared = False
         if not direct or not self._stale_ok or not getattr(solver, "has_factor", True):
@@ -514,6 +510,9 @@ class StepAdjoint:
         r = b.copy()
         prev = np.inf
         for _ in range(self.max_refinements):
+            rn0 = float(np.linalg.norm(r))
+            # an iterative solver is asked for the outer tolerance relative to b (not to r)
+            inner = 0.5 if direct else min(0.5, 0.5 * self.tol * bn / max(rn0, 1e-300))
             self._upload(rd, r)
             self.refinements += 1
             try:
