@@ -22,8 +22,9 @@ solver last prepared (the direct solver's factorisation, PCG's preconditioned ma
 inner solve of an iterative refinement against the exact H (residuals r = ybar - H lambda with
 the exact matrix); it prepares the solver on the exact H only when the refinement contracts
 slowly (the prepared matrix is too far from H: another step's Hessian, or projection that clipped
-much). The refinement runs to ``tol`` (relative residual, 1e-12 in float64), so the gradients
-are as accurate as the forward solve's convergence allows: the forward Newton solve must be
+much). The refinement runs to ``tol`` (relative residual; default :func:`default_adjoint_tol`,
+the forward's Newton tolerance clipped to [1e-12, 1e-8] in float64), so the gradients are as
+accurate as the forward solve's convergence allows: the forward Newton solve must be
 converged tightly (``tol`` of the simulator; the FD tests use 1e-12) because the implicit
 function theorem holds at the solution, not at an early-stopped iterate.
 
