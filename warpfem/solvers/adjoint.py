@@ -22,8 +22,9 @@ solver last prepared (the direct solver's factorisation, PCG's preconditioned ma
 inner solve of an iterative refinement against the exact H (residuals r = ybar - H lambda with
 the exact matrix); it prepares the solver on the exact H only when the refinement contracts
 slowly (the prepared matrix is too far from H: another step's Hessian, or projection that clipped
-much). The refinement runs to ``tol`` (relative residual, 1e-12 in float64), so the gradients
-are as accurate as the forward solve's convergence allows: the forward Newton solve must be
+much). The refinement runs to ``tol`` (relative residual; default :func:`default_adjoint_tol`,
+the forward's Newton tolerance clipped to [1e-12, 1e-8] in float64), so the gradients are as
+accurate as the forward solve's convergence allows: the forward Newton solve must be
 converged tightly (``tol`` of the simulator; the FD tests use 1e-12) because the implicit
 function theorem holds at the solution, not at an early-stopped iterate.
 
@@ -91,7 +92,7 @@ from warpfem.kernels.generic import launch
 from warpfem.kernels.structs import material_params
 from warpfem.solvers.adjoint_contact import collider_terms
 
-__all__ = ["StepAdjoint", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
+__all__ = ["StepAdjoint", "default_adjoint_tol", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
            "set_material_parameters", "set_density", "material_set_parameters", "check_differentiable", "Recording",
            "recorded_step", "active_tape", "tape_adjoint"]
 
@@ -105,6 +106,19 @@ _KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
 #: default memory for the factorisations that recorded steps keep for their reverse pass (direct
 #: solver; docs/gradients.md, "Cost"): 1 GiB
 DEFAULT_FACTOR_BUDGET = 1 << 30
+
+
+def default_adjoint_tol(sim) -> float:
+    """The adjoint solve's default relative residual: in float64 the forward Newton tolerance
+    (``sim.options.tol``) clipped to [1e-12, 1e-8], in float32 1e-6. A gradient is no more accurate
+    than the forward solve it differentiates, so solving the adjoint far past it buys nothing;
+    measured in docs/gradients.md ("Cost"): relative gradient errors of 1e-9 at 1e-8, against
+    1e-12 at 1e-12, while the step's own error is 1e-12 (Newton's last iteration overshoots its
+    tolerance quadratically), so 1e-8 is the loosest default."""
+    if sim.precision != "float64":
+        return 1e-6
+    ftol = float(getattr(getattr(sim, "options", None), "tol", 1e-12))
+    return float(min(max(ftol, 1e-12), 1e-8))
 
 
 class AdjointError(RuntimeError):
@@ -240,7 +254,8 @@ class StepAdjoint:
             frictionless surface contact).
         params: parameter names to accumulate (default: all of :data:`PARAMETERS`); the per-element
             contraction is done only when ``element_stiffness_scale`` is asked for.
-        tol: relative residual of the adjoint solve (default 1e-12 in float64, 1e-6 in float32).
+        tol: relative residual of the adjoint solve (default :func:`default_adjoint_tol`: the
+            forward Newton tolerance clipped to [1e-12, 1e-8] in float64, 1e-6 in float32).
         max_refinements: cap on refinement rounds of the adjoint solve.
         factor_budget: bytes of direct-solver factorisations the recorded steps may keep for their
             reverse pass, all steps together (default :data:`DEFAULT_FACTOR_BUDGET`, 1 GiB; 0: none,
@@ -256,7 +271,7 @@ class StepAdjoint:
         if unknown:
             raise ValueError(f"unknown parameter(s) {unknown}; known: {', '.join(PARAMETERS)}")
         self.params = params
-        self.tol = float(tol) if tol is not None else (1e-12 if sim.precision == "float64" else 1e-6)
+        self.tol = float(tol) if tol is not None else default_adjoint_tol(sim)
         self.max_refinements = int(max_refinements)
         model = sim.model
         self.n = n = sim.num_vertices
@@ -319,6 +334,8 @@ class StepAdjoint:
         m = self.sim.model.mesh.num_elements
         self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
         self._mass_gathered = None  # the mass's CSR entries (gathered again: set_density may have changed it)
+        # the density of each vertex's body now (M_w is of the current mass; self._M and _rho_v of the first)
+        self._rho_now = np.array([float(m.density) for m in _body_materials(self.sim.model)])[self._vertex_body]
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": np.zeros(self.bodies), "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
                       "targets": {}, "collider_translations": {}, "collider_rotations": {}, "collider_friction": {}}
@@ -412,30 +429,27 @@ class StepAdjoint:
         return _host(out)
 
     def _host_H(self, values, mass_scale, scale):
-        """The float64 scalar CSR matrix (3n x 3n, full) of ``scale`` x the device block values
-        plus ``mass_scale`` x the mass blocks, in the current pattern. One matrix object is kept and
-        its data replaced (no construction per step); the mass's entries are gathered once per
-        reverse pass (:meth:`zero_grad`) and pattern."""
+        """The float64 host matrix (3n x 3n, full; scipy BSR of 3 x 3 blocks in the simulator's
+        current pattern) of ``scale`` x the device block values plus ``mass_scale`` x the mass
+        blocks. One matrix object is kept per pattern and its blocks replaced (no construction, no
+        gather per step); the mass blocks are read once per reverse pass (:meth:`zero_grad`)."""
         import scipy.sparse
 
         pt = self.sim.pattern
         if self._csr_map is None or self._csr_map[0] is not pt:
             n = pt.num_rows
             offsets = pt.offsets.numpy()[: n + 1].astype(np.int64)
-            idx = np.arange(9 * pt.nnz, dtype=np.float64).reshape(pt.nnz, 3, 3) + 1.0  # +1: no explicit zero
-            A = scipy.sparse.bsr_matrix((idx, pt.cols_np, offsets), shape=(3 * n, 3 * n)).tocsr()
-            A.sort_indices()
-            src = (A.data - 1.0).astype(np.int64)
-            H = scipy.sparse.csr_matrix((np.zeros(len(src)), A.indices.copy(), A.indptr.copy()), shape=A.shape)
-            self._csr_map = (pt, src, H)
+            cols = np.asarray(pt.cols_np, dtype=np.int64)
+            H = scipy.sparse.bsr_matrix((np.zeros((pt.nnz, 3, 3)), cols, offsets), shape=(3 * n, 3 * n))
+            self._csr_map = (pt, H)
             self._mass_gathered = None
-        _, src, H = self._csr_map
+        _, H = self._csr_map
         if self._mass_gathered is None:
-            self._mass_gathered = self.sim.mass_values.numpy().reshape(-1)[src].astype(np.float64)
-            # the same mass entries as a matrix: M lambda consistent with H's (K lambda is taken from
+            self._mass_gathered = self.sim.mass_values.numpy().reshape(-1, 3, 3)[: pt.nnz].astype(np.float64)
+            # the same mass blocks as a matrix: M lambda consistent with H's (K lambda is taken from
             # their difference, divided by s^2)
-            self._Mc = scipy.sparse.csr_matrix((self._mass_gathered, H.indices, H.indptr), shape=H.shape)
-        v = values.numpy().reshape(-1)[src].astype(np.float64, copy=False)
+            self._Mc = scipy.sparse.bsr_matrix((self._mass_gathered, H.indices, H.indptr), shape=H.shape)
+        v = values.numpy().reshape(-1, 3, 3)[: pt.nnz].astype(np.float64)  # a copy (float64 or float32 blocks)
         v *= scale
         v += mass_scale * self._mass_gathered
         H.data = v
@@ -487,7 +501,6 @@ class StepAdjoint:
         direct = getattr(solver, "name", "") == "direct"
         # a factorisation is worth reusing (refinement against H) while that converges fast; a
         # preconditioner (PCG, AMG, multigrid) is cheap to set up on H itself, then solved to tol
-        inner = 0.5 if direct else 0.1 * self.tol
         maxiter = max(sim.options.max_cg_iters, 10 * sim.num_vertices)
         prepared = False
         if not direct or not self._stale_ok or not getattr(solver, "has_factor", True):
@@ -498,6 +511,9 @@ class StepAdjoint:
         r = b.copy()
         prev = np.inf
         for _ in range(self.max_refinements):
+            rn0 = float(np.linalg.norm(r))
+            # an iterative solver is asked for the outer tolerance relative to b (not to r)
+            inner = 0.5 if direct else min(0.5, 0.5 * self.tol * bn / max(rn0, 1e-300))
             self._upload(rd, r)
             self.refinements += 1
             try:
@@ -683,7 +699,7 @@ class StepAdjoint:
                     G["collider_friction"][col.name] = G["collider_friction"].get(col.name, 0.0) + float(par[12])
         # parameters at the converged step
         if np.any(lam):
-            self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha)
+            self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha, M_w=M_lam)
         # the prediction (x_b, v_hat) from (x_n, v_n, history)
         if kind in ("be", "bdf2_first"):
             xn_bar += xb_bar
@@ -702,8 +718,11 @@ class StepAdjoint:
                 self._a0_backward(rec, a_bar, xn_bar, vn_bar, v_hat)
         return xn_bar, vn_bar, h_in
 
-    def _accumulate_params(self, x_dev, w, sign, *, y=None, v_hat=None, s=1.0, c=1.0, alpha=0.0, a0=None, v_n=None):
-        """Parameter gradients of sign * w . dR/dtheta terms shared by the step and Newmark's a_0."""
+    def _accumulate_params(self, x_dev, w, sign, *, y=None, v_hat=None, s=1.0, c=1.0, alpha=0.0, a0=None, v_n=None,
+                           M_w=None):
+        """Parameter gradients of sign * w . dR/dtheta terms shared by the step and Newmark's a_0
+        (``M_w``: M w when the caller has it; M is symmetric and block diagonal over the bodies, so
+        each body's w . M u is its (M w) . u: no product with M here)."""
         self._mulam_bar += sign * self._forces_unit(x_dev, w)
         if "element_stiffness_scale" in self.params:
             self.grads["element_stiffness_scale"] += sign * self._element_contraction(x_dev, w)
@@ -716,7 +735,12 @@ class StepAdjoint:
 
         if a0 is None:  # the step: g = M (y - v_hat) + s alpha M y + s grad V - s c f_ext
             self.grads["forces"] += (-sign) * c * w  # sign = -s: s c w
-            self.grads["density"] -= per_body(M1(y - v_hat) + s * alpha * M1(y) - s * c * self._fgrav_unit)
+            if M_w is None:
+                self.grads["density"] -= per_body(M1((1.0 + s * alpha) * y - v_hat) - s * c * self._fgrav_unit)
+            else:  # w . M1(u) = (M w / rho) . u per body
+                u = ((1.0 + s * alpha) * y - v_hat) / self._rho_now[:, None]
+                self.grads["density"] -= np.bincount(self._vertex_body, weights=np.sum(M_w * u, axis=1), minlength=nb)
+                self.grads["density"] -= per_body(-s * c * self._fgrav_unit)
         else:  # a_0: R = M a_0 + grad V(x_n) - c f_ext + alpha M v_n
             self.grads["forces"] += c * w
             self.grads["density"] -= per_body(M1(a0) - c * self._fgrav_unit + alpha * M1(v_n))
