@@ -457,6 +457,23 @@ def _append(pairs: wp.array(dtype=wp.vec4i), kinds: wp.array(dtype=wp.int32), co
         kinds[slot] = kind
 
 
+@wp.func
+def _sort_pair(kind: int, q: wp.vec4i, group: wp.array(dtype=wp.int32), rest: wp.array(dtype=wp.vec3), rest_gap: float,
+               pairs: wp.array(dtype=wp.vec4i), kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+               capacity: int, ccd_pairs: wp.array(dtype=wp.vec4i), ccd_kinds: wp.array(dtype=wp.int32),
+               ccd_count: wp.array(dtype=wp.int32), ccd_capacity: int):
+    """A candidate ``q`` of ``kind`` (0 point-triangle: q[0] the point; 1 edge-edge: q[0], q[2] the
+    edges' first ends) into the barrier list, or, for a self pair closer than ``rest_gap`` in the
+    rest shape, the CCD-only list; a self pair touching at rest into neither."""
+    dr = rest_gap
+    if rest_gap > 0.0 and group[q[0]] == group[q[2 - kind]]:
+        dr = pair_distance(kind, rest[q[0]], rest[q[1]], rest[q[2]], rest[q[3]])
+    if dr >= rest_gap:
+        _append(pairs, kinds, count, capacity, q, kind)
+    elif dr > 0.0:
+        _append(ccd_pairs, ccd_kinds, ccd_count, ccd_capacity, q, kind)
+
+
 @wp.kernel
 def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dtype=wp.vec3), vhi: wp.array(dtype=wp.vec3),
                        elo: wp.array(dtype=wp.vec3), ehi: wp.array(dtype=wp.vec3), verts: wp.array(dtype=wp.int32),
@@ -479,14 +496,8 @@ def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dt
             c = tris[3 * t + 2]
             if v != a and v != b and v != c:
                 if _keep(group, v, a, self_on, bodies_on):
-                    q = wp.vec4i(v, a, b, c)
-                    dr = rest_gap
-                    if rest_gap > 0.0 and group[v] == group[a]:
-                        dr = pair_distance(0, rest[v], rest[a], rest[b], rest[c])
-                    if dr >= rest_gap:
-                        _append(pairs, kinds, count, capacity, q, 0)
-                    elif dr > 0.0:
-                        _append(ccd_pairs, ccd_kinds, ccd_count, ccd_capacity, q, 0)
+                    _sort_pair(0, wp.vec4i(v, a, b, c), group, rest, rest_gap, pairs, kinds, count, capacity,
+                               ccd_pairs, ccd_kinds, ccd_count, ccd_capacity)
     else:
         e = i - num_verts
         a0 = edges[2 * e]
@@ -498,14 +509,8 @@ def broad_phase_kernel(tri_bvh: wp.uint64, edge_bvh: wp.uint64, vlo: wp.array(dt
                 b1 = edges[2 * t + 1]
                 if a0 != b0 and a0 != b1 and a1 != b0 and a1 != b1:
                     if _keep(group, a0, b0, self_on, bodies_on):
-                        q = wp.vec4i(a0, a1, b0, b1)
-                        dr = rest_gap
-                        if rest_gap > 0.0 and group[a0] == group[b0]:
-                            dr = pair_distance(1, rest[a0], rest[a1], rest[b0], rest[b1])
-                        if dr >= rest_gap:
-                            _append(pairs, kinds, count, capacity, q, 1)
-                        elif dr > 0.0:
-                            _append(ccd_pairs, ccd_kinds, ccd_count, ccd_capacity, q, 1)
+                        _sort_pair(1, wp.vec4i(a0, a1, b0, b1), group, rest, rest_gap, pairs, kinds, count, capacity,
+                                   ccd_pairs, ccd_kinds, ccd_count, ccd_capacity)
 
 
 @wp.func
