@@ -196,8 +196,33 @@ def test_scene_key_and_bad_options(tmp_path):
         _make("multigrid", sim, model, upper=1.5)
     with pytest.raises(ValueError, match="safety"):
         _make("multigrid", sim, model, safety=0.5)
+    with pytest.raises(ValueError, match="preconditioner_precision"):
+        _make("multigrid", sim, model, preconditioner_precision="float16")
     with pytest.raises(TypeError, match="unknown option"):
         _make("multigrid", sim, model, rebuild_every=2)
+
+
+def test_float32_vcycle_in_a_float64_solve_keeps_the_answer_and_the_iterations():
+    # quasi-static nu 0.49 beam, three levels: the V-cycle in float32 (matrices, l1 inverses,
+    # transfers, coarsest inverse), CG in float64; same solution to the CG tolerance, +-1 iteration
+    sim, model, vals, b, Am = _system(cells=(24, 4, 4), nu=0.49, h2=1.0, mass_scale=1e-6)
+    bd, tol = sim._vec_array(b), 1e-8
+    x_ref = spla.spsolve(Am, b.ravel())
+    out = {}
+    for pp in ("same", "float32"):
+        solver = _make("multigrid", sim, model, max_coarse=30, preconditioner_precision=pp)
+        xd = sim._vec_array()
+        r = solver.solve(vals, sim._mask, bd, xd, tol=tol, maxiter=500)
+        assert r.converged and len(solver.levels) >= 3, (r, [lv.size for lv in solver.levels])
+        x = xd.numpy().ravel()
+        assert x.dtype == np.float64
+        assert np.linalg.norm(Am @ x - b.ravel()) <= 4 * tol * np.linalg.norm(b)
+        assert np.linalg.norm(x - x_ref) <= 100 * tol * np.linalg.norm(x_ref)
+        assert np.all(x.reshape(-1, 3)[model.fixed] == 0.0)
+        want = wp.float32 if pp == "float32" else wp.float64
+        assert all(lv.A.scalar_type == want and lv.x.dtype == want for lv in solver.levels)
+        out[pp] = r.iterations
+    assert out["float32"] <= out["same"] + 1, out
 
 
 
