@@ -55,6 +55,8 @@ MG_VARIANTS = {
     "coarse4": dict(degree=(3, 4)),
     "degree4": dict(degree=4),
     "estfine": dict(estimate_finest=True),  # the finest level's interval estimated too
+    "mp32": dict(preconditioner_precision="float32"),  # float32 V-cycle inside the float64 CG
+    "mpsame": dict(preconditioner_precision="same"),  # the V-cycle in the solver's precision
 }
 
 

@@ -41,7 +41,8 @@ def test_multigrid_matches_spsolve_and_keeps_fixed_dofs_zero(precision):
 
 def test_coarse_operators_are_the_galerkin_products_of_the_masked_matrix():
     sim, model, vals, b, Am = _system(cells=(12, 3, 3), h2=1e-2)
-    solver = _make("multigrid", sim, model, max_coarse=30, coarse_update="every")
+    # the V-cycle in float64 here, to compare the products to 1e-9 (float32 ones: test_float32_vcycle_*)
+    solver = _make("multigrid", sim, model, max_coarse=30, coarse_update="every", preconditioner_precision="same")
     v = wp.clone(vals)
     for scale in (1.0, 3.0):  # re-formed on the device at every prepare, with the same prolongators
         wp.launch(LK.scale_copy_kernel, dim=len(v), inputs=[vals, sim._s(scale), v])
@@ -196,8 +197,37 @@ def test_scene_key_and_bad_options(tmp_path):
         _make("multigrid", sim, model, upper=1.5)
     with pytest.raises(ValueError, match="safety"):
         _make("multigrid", sim, model, safety=0.5)
+    with pytest.raises(ValueError, match="preconditioner_precision"):
+        _make("multigrid", sim, model, preconditioner_precision="float16")
     with pytest.raises(TypeError, match="unknown option"):
         _make("multigrid", sim, model, rebuild_every=2)
+
+
+def test_float32_vcycle_in_a_float64_solve_keeps_the_answer_and_the_iterations():
+    # quasi-static nu 0.49 beam, three levels: the V-cycle in float32 (matrices, l1 inverses,
+    # transfers, coarsest inverse), CG in float64; same solution to the CG tolerance, +-1 iteration
+    sim, model, vals, b, Am = _system(cells=(24, 4, 4), nu=0.49, h2=1.0, mass_scale=1e-6)
+    bd, tol = sim._vec_array(b), 1e-8
+    x_ref = spla.spsolve(Am, b.ravel())
+    out, A0 = {}, {}
+    for pp in ("same", "float32"):
+        solver = _make("multigrid", sim, model, max_coarse=30, preconditioner_precision=pp)
+        xd = sim._vec_array()
+        np.random.seed(0)  # pyamg's spectral radius estimate (prolongation smoothing) starts at random
+        r = solver.solve(vals, sim._mask, bd, xd, tol=tol, maxiter=500)
+        assert r.converged and len(solver.levels) >= 3, (r, [lv.size for lv in solver.levels])
+        x = xd.numpy().ravel()
+        assert x.dtype == np.float64
+        assert np.linalg.norm(Am @ x - b.ravel()) <= 4 * tol * np.linalg.norm(b)
+        assert np.linalg.norm(x - x_ref) <= 100 * tol * np.linalg.norm(x_ref)
+        assert np.all(x.reshape(-1, 3)[model.fixed] == 0.0)
+        want = wp.float32 if pp == "float32" else wp.float64
+        assert all(lv.A.scalar_type == want and lv.x.dtype == want for lv in solver.levels)
+        out[pp] = r.iterations
+        A0[pp] = [solver._dense(lv.A) for lv in solver.levels]
+    assert out["float32"] <= out["same"] + 1, out
+    for a, b in zip(A0["float32"], A0["same"]):  # the float32 Galerkin products: float64's to rounding
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-5 * np.abs(b).max())
 
 
 

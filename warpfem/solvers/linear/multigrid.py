@@ -34,6 +34,11 @@ The right-hand side is zero at fixed DOFs, so r, p, x stay exactly zero there (t
 (P H P + I - P) decouples them); on the free DOFs the V-cycle is the exact Galerkin cycle of the
 free system (rows of P_0 at fixed DOFs only meet the identity block, which does not couple back).
 
+Mixed precision (``preconditioner_precision="float32"``, the default): in a float64 solve the
+whole V-cycle (matrices, inverse blocks, vectors, transfers, coarsest inverse) runs in float32
+between a conversion of r at its entry and of z at its exit; float32 rounding is far below the
+preconditioner's own approximation error, and CG itself stays float64.
+
 CG is the device-scalar loop of :mod:`warpfem.solvers.linear.pcg` (its start, matvec, carry and
 direction kernels) with the block-Jacobi step replaced by the V-cycle; the host reads the 4-number
 report every ``check_every`` iterations.
@@ -204,6 +209,18 @@ def _block_overloads():
 _block_overloads()
 
 
+@wp.kernel
+def _convert_kernel(src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
+    """dst = src in dst's precision (the mixed-precision V-cycle's entry and exit)."""
+    t = wp.tid()
+    d = dst[t]
+    dst[t] = type(d)(src[t])
+
+
+wp.overload(_convert_kernel, {"src": wp.array(dtype=wp.float64), "dst": wp.array(dtype=wp.float32)})
+wp.overload(_convert_kernel, {"src": wp.array(dtype=wp.float32), "dst": wp.array(dtype=wp.float64)})
+
+
 @both_precisions(M="s[,]", x="s[]", y="s[]")
 @wp.kernel
 def _dense_mv_kernel(M: wp.array2d(dtype=Any), x: wp.array(dtype=Any), y: wp.array(dtype=Any)):
@@ -338,6 +355,12 @@ class MultigridPCG(LinearSolver):
             operators, so CG stays valid; measured effect in docs/linear_solvers.md).
         rebuild_factor: rebuild the hierarchy (from the matrix of the next prepare) when a solve
             needs more than this times the iterations of the first solve after the last build (+5).
+        preconditioner_precision: "float32" (default; in a float32 solve the same as "same"): in a
+            float64 solve every level's matrix, the l1-Jacobi inverses, the transfers, the smoother
+            vectors and the coarsest inverse are float32, r is converted at the V-cycle's entry and
+            z at its exit, and CG (products, residuals, dot products, the convergence test) stays
+            float64: the same iterations, 0.8x the step time on the 98k-tet box (measured in
+            docs/linear_solvers.md); "same": the V-cycle in the solver's precision.
         strength, aggregate, smooth, improve_candidates: passed to pyamg's
             ``smoothed_aggregation_solver`` for the set-up (``smooth``: one Jacobi step of the
             tentative prolongator, weighted by the inverse 3x3 / 6x6 block diagonal).
@@ -350,7 +373,7 @@ class MultigridPCG(LinearSolver):
                  degree: int = 3, lower: float = 0.03, check_every: int | None = None, rebuild_factor: float = 3.0,
                  coarse_update: str = "lagged", lag_factor: float = 1.5, strength="symmetric", aggregate="standard",
                  smooth=("jacobi", {"omega": 4.0 / 3.0, "weighting": "block"}), improve_candidates=None, upper="estimate",
-                 safety: float = 1.1, estimate_finest: bool = False):
+                 safety: float = 1.1, estimate_finest: bool = False, preconditioner_precision: str = "float32"):
         self.pyamg = require("pyamg", "amg", "'multigrid' linear solver")
         degrees = tuple(degree) if isinstance(degree, (tuple, list)) else (degree,)
         if not degrees or any(int(g) != g or g < 1 for g in degrees):
@@ -382,6 +405,9 @@ class MultigridPCG(LinearSolver):
         if not (np.isfinite(lag_factor) and lag_factor >= 1.0):
             raise ValueError(f"lag_factor must be >= 1, got {lag_factor!r}")
         self.coarse_update, self.lag_factor = coarse_update, float(lag_factor)
+        if preconditioner_precision not in ("same", "float32"):
+            raise ValueError(f"preconditioner_precision must be 'same' or 'float32', got {preconditioner_precision!r}")
+        self.preconditioner_precision = preconditioner_precision
         self.sa_options = dict(strength=strength, aggregate=aggregate, smooth=smooth,
                                improve_candidates=improve_candidates)
         n = pattern.num_rows
@@ -420,8 +446,14 @@ class MultigridPCG(LinearSolver):
         self._rows = wp.array(pattern.rows_np, dtype=wp.int32, device=dev)
         self._cols = wp.array(pattern.cols_np, dtype=wp.int32, device=dev)
         self._diag = wp.array(np.asarray(pattern.diag_index, dtype=np.int32), dtype=wp.int32, device=dev)
-        self._A0 = wsp.bsr_copy(pattern.matrix)  # the pattern's topology; values set every prepare
-        self._tiny = self.scalar(1e-10 if self.scalar == wp.float64 else 1e-5)
+        # the V-cycle's scalar: float32 with preconditioner_precision "float32", else the solver's
+        vs = wp.float32 if self.preconditioner_precision == "float32" else self.scalar
+        self.vscalar, self._mixed = vs, vs != self.scalar
+        # the pattern's topology; values set every prepare
+        self._A0 = wsp.bsr_copy(pattern.matrix, scalar_type=vs, structure_only=True) if self._mixed else \
+            wsp.bsr_copy(pattern.matrix)
+        self._mask_v = wp.zeros(n, dtype=wp.types.vector(3, vs), device=dev) if self._mixed else None
+        self._tiny = vs(1e-10 if vs == wp.float64 else 1e-5)
         self._cmds = None
         self.levels = None  # the hierarchy is built for this pattern (again when a form grew it)
 
@@ -445,9 +477,10 @@ class MultigridPCG(LinearSolver):
             scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
             max_coarse=max(1, self.max_coarse // self._B0.shape[1]),  # pyamg counts aggregates (blocks)
             max_levels=self.max_levels, keep=False, coarse_solver="pinv", **self.sa_options)
-        dev, s = self.device, self.scalar
+        dev, s = self.device, self.vscalar
         levels = [_Level(self._A0, 3 * self.num_rows, s, dev)]
-        levels[0].f, levels[0].x = self._rf, self._zf  # the V-cycle reads CG's r and writes its z
+        if not self._mixed:
+            levels[0].f, levels[0].x = self._rf, self._zf  # the V-cycle reads CG's r and writes its z
         for lvl in ml.levels[:-1]:
             P = lvl.P
             bi = levels[-1].A.block_shape[0]
@@ -561,14 +594,15 @@ class MultigridPCG(LinearSolver):
         return out
 
     def _block_type(self, bi, bj):
-        return self.scalar if (bi, bj) == (1, 1) else wp.types.matrix(shape=(bi, bj), dtype=self.scalar)
+        s = self.vscalar
+        return s if (bi, bj) == (1, 1) else wp.types.matrix(shape=(bi, bj), dtype=s)
 
     def _bsr_from_scipy(self, M, block):
         M.sort_indices()
         bi, bj = block
         nr, nc = M.shape[0] // bi, M.shape[1] // bj
         rows = np.repeat(np.arange(nr, dtype=np.int32), np.diff(M.indptr))
-        np_t = np.float32 if self.scalar == wp.float32 else np.float64
+        np_t = np.float32 if self.vscalar == wp.float32 else np.float64
         dev = self.device
         data = M.data.astype(np_t).reshape(-1, bi, bj)
         out = wsp.bsr_zeros(nr, nc, block_type=self._block_type(bi, bj), device=dev)
@@ -584,6 +618,13 @@ class MultigridPCG(LinearSolver):
         operators of an earlier matrix are kept)."""
         pt, dev = self.pattern, self.device
         A0 = self._A0
+        if self._mixed:  # the Newton matrix and the mask in the V-cycle's precision, then masked in place
+            flat = lambda a, s: a.view(s).flatten()  # noqa: E731
+            wp.launch(_convert_kernel, dim=9 * pt.nnz, inputs=[flat(values[: pt.nnz], self.scalar),
+                                                               flat(A0.values[: pt.nnz], self.vscalar)], device=dev)
+            wp.launch(_convert_kernel, dim=3 * pt.num_rows, inputs=[flat(mask, self.scalar),
+                                                                    flat(self._mask_v, self.vscalar)], device=dev)
+            values, mask = A0.values, self._mask_v
         wp.launch(_mask_values_kernel, dim=pt.nnz, inputs=[values, mask, self._rows, self._cols, A0.values], device=dev)
         if coarse:
             for cur, nxt in zip(self.levels[:-1], self.levels[1:]):
@@ -602,7 +643,7 @@ class MultigridPCG(LinearSolver):
         self.host_syncs += 1
         Minv = self._pinv(Ac)
         if last.Minv is None or last.Minv.shape != Minv.shape:
-            last.Minv = wp.array(Minv, dtype=self.scalar, device=dev)
+            last.Minv = wp.array(Minv, dtype=self.vscalar, device=dev)
             self._cmds = None
         else:
             last.Minv.assign(Minv.astype(last.Minv.numpy().dtype))
@@ -679,7 +720,11 @@ class MultigridPCG(LinearSolver):
                                                      self._rz, j, 0]),
                 R(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz, self._rr, self._pap,
                                              self._bb, self._tol2, self._maxiter, self._report, j])))
-        s = self.scalar
+        if self._mixed:
+            lv0 = self.levels[0]
+            cmds["to_vcycle"] = R(_convert_kernel, 3 * n, [self._rf, lv0.f])
+            cmds["from_vcycle"] = R(_convert_kernel, 3 * n, [lv0.x, self._zf])
+        s = self.vscalar
         for l, lv in enumerate(self.levels):
             if lv.Minv is not None:
                 lv.cmd_coarse = R(_dense_mv_kernel, lv.size, [lv.Minv, lv.f, lv.x])
@@ -703,11 +748,11 @@ class MultigridPCG(LinearSolver):
 
     def _blocks(self, v, b):
         """The flat vector v viewed as an array of b-vectors (no copy)."""
-        return v.reshape((v.shape[0] // b, b)).view(wp.types.vector(b, self.scalar))
+        return v.reshape((v.shape[0] // b, b)).view(wp.types.vector(b, self.vscalar))
 
     def _mv(self, A, x, alpha, f, beta, y):
         """A recorded y = alpha A x + beta f (flat vectors, viewed as the blocks' vectors)."""
-        s = self.scalar
+        s = self.vscalar
         br, bc = A.block_shape
         blocks = self._blocks
         return RecordedLaunch(_bsr_block_mv_kernel, A.nrow, [A.offsets, A.columns, A.values, blocks(x, bc), s(alpha),
@@ -743,7 +788,13 @@ class MultigridPCG(LinearSolver):
             self._smooth(lv, False)
 
     def _precondition(self):
-        self._vcycle()
+        if self._mixed:
+            cmds = self._cmds[1]
+            cmds["to_vcycle"]()
+            self._vcycle()
+            cmds["from_vcycle"]()
+        else:
+            self._vcycle()
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         if maxiter < 1:
