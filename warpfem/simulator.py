@@ -513,12 +513,7 @@ class Simulator(SimulatorBase):
                 break
             again = newton_solve(pot, y, self.options)
             stats.friction_iterations += 1
-            stats.newton_iterations += again.newton_iterations
-            stats.cg_iterations += again.cg_iterations
-            stats.linear_iterations += again.linear_iterations
-            stats.line_search_steps += again.line_search_steps
-            stats.adaptations += again.adaptations
-            stats.host_syncs += again.host_syncs
+            stats.add_counts(again)
             stats.converged, stats.reason = again.converged, again.reason
             stats.energy, stats.gradient_norm = again.energy, again.gradient_norm
             if not again.converged:
@@ -611,12 +606,7 @@ class Simulator(SimulatorBase):
             launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
             pot.begin(None, 1.0, {"elastic": 1.0, "load": frac * self.load_scale})
             st = newton_solve(pot, y, self.options)
-            total.newton_iterations += st.newton_iterations
-            total.cg_iterations += st.cg_iterations
-            total.line_search_steps += st.line_search_steps
-            total.singular_solves += st.singular_solves
-            total.host_syncs += st.host_syncs
-            total.newton_syncs += st.newton_syncs
+            total.add_counts(st)
             total.residual, total.gradient_norm, total.energy = st.residual, st.gradient_norm, st.energy
             total.reason = st.reason
             if not st.converged:

@@ -116,6 +116,15 @@ class SolveStats:
     adaptations: int = 0  # Newton iterations after which the potential changed (an adaptive barrier stiffness doubled)
     history: list = field(default_factory=list)
 
+    #: the work counters a step made of several solves (load steps, friction re-solves) sums
+    COUNTS = ("newton_iterations", "cg_iterations", "line_search_steps", "linear_iterations", "host_syncs",
+              "newton_syncs", "hessian_evaluations", "singular_solves", "projected_retries", "adaptations")
+
+    def add_counts(self, other: "SolveStats") -> None:
+        """Add ``other``'s work counters (``COUNTS``) to this one's."""
+        for name in self.COUNTS:
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
         d.pop("history")
