@@ -390,13 +390,10 @@ def psd_project_pair(H: Any, kind: int, w: Any, tol: Any):
     return R
 
 
-@both_precisions(x="v[]", dx="v[]", scale="s", pad="s")
-@wp.kernel
-def boxes_kernel(x: wp.array(dtype=Any), dx: wp.array(dtype=Any), scale: Any, prims: wp.array(dtype=wp.int32),
-                 k: int, pad: Any, lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
-    """Box of primitive i (vertices prims[k i : k i + k]) over x -> x + scale dx, padded by pad
-    (and by a float32 rounding margin)."""
-    i = wp.tid()
+@wp.func
+def _swept_box(x: wp.array(dtype=Any), dx: wp.array(dtype=Any), scale: Any, prims: wp.array(dtype=wp.int32), k: int,
+               i: int):
+    """(lower, upper, largest |coordinate|) of primitive i's vertices over x -> x + scale dx."""
     v = prims[k * i]
     lo = x[v]
     hi = x[v]
@@ -407,6 +404,17 @@ def boxes_kernel(x: wp.array(dtype=Any), dx: wp.array(dtype=Any), scale: Any, pr
         lo = wp.min(lo, wp.min(p, q))
         hi = wp.max(hi, wp.max(p, q))
     m = wp.max(wp.max(wp.abs(lo[0]), wp.abs(lo[1])), wp.max(wp.abs(lo[2]), wp.max(wp.abs(hi[0]), wp.max(wp.abs(hi[1]), wp.abs(hi[2])))))
+    return lo, hi, m
+
+
+@both_precisions(x="v[]", dx="v[]", scale="s", pad="s")
+@wp.kernel
+def boxes_kernel(x: wp.array(dtype=Any), dx: wp.array(dtype=Any), scale: Any, prims: wp.array(dtype=wp.int32),
+                 k: int, pad: Any, lowers: wp.array(dtype=wp.vec3), uppers: wp.array(dtype=wp.vec3)):
+    """Box of primitive i (vertices prims[k i : k i + k]) over x -> x + scale dx, padded by pad
+    (and by a float32 rounding margin)."""
+    i = wp.tid()
+    lo, hi, m = _swept_box(x, dx, scale, prims, k, i)
     r = wp.float32(pad) + wp.float32(1e-6) * wp.float32(m)
     lowers[i] = wp.vec3(wp.float32(lo[0]) - r, wp.float32(lo[1]) - r, wp.float32(lo[2]) - r)
     uppers[i] = wp.vec3(wp.float32(hi[0]) + r, wp.float32(hi[1]) + r, wp.float32(hi[2]) + r)
@@ -420,16 +428,7 @@ def boxes_fit_kernel(x: wp.array(dtype=Any), dx: wp.array(dtype=Any), scale: Any
     """misses[0] += 1 for each primitive whose box over x -> x + scale dx, padded by pad, is not
     inside its box of the last query (then the candidate pairs of that query may miss a pair)."""
     i = wp.tid()
-    v = prims[k * i]
-    lo = x[v]
-    hi = x[v]
-    for j in range(k):
-        u = prims[k * i + j]
-        p = x[u]
-        q = p + scale * dx[u]
-        lo = wp.min(lo, wp.min(p, q))
-        hi = wp.max(hi, wp.max(p, q))
-    m = wp.max(wp.max(wp.abs(lo[0]), wp.abs(lo[1])), wp.max(wp.abs(lo[2]), wp.max(wp.abs(hi[0]), wp.max(wp.abs(hi[1]), wp.abs(hi[2])))))
+    lo, hi, m = _swept_box(x, dx, scale, prims, k, i)
     r = wp.float32(pad) + wp.float32(2e-6) * wp.float32(m)
     L = lowers[i]
     U = uppers[i]
