@@ -40,6 +40,15 @@ _FRAME_RE = re.compile(r"^frame_\d{6}\.vtu$")
 _META_RE = re.compile(r"<!--\s*warpfem\s+(\{.*?\})\s*-->", re.S)
 
 
+
+def _write_text_atomic(path, text):
+    """Write ``text`` to ``path`` through ``path.partial`` and a rename: a reader never sees half a file."""
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    tmp = path + ".partial"
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
 class VtuWriterError(ValueError):
     """Bad input to :class:`VtuSeriesWriter` (path, shapes, closed writer)."""
 
@@ -241,11 +250,7 @@ class VtuSeriesWriter:
                  "  <Collection>"]
         lines += [f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f)}/>' for t, f in self.entries]
         lines += ["  </Collection>", "</VTKFile>", ""]
-        os.makedirs(os.path.dirname(os.path.abspath(self.path)), exist_ok=True)
-        tmp = self.path + ".partial"
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write("\n".join(lines))
-        os.replace(tmp, self.path)
+        _write_text_atomic(self.path, "\n".join(lines))
 
     def close(self, *, complete: bool = True, reason: str = ""):
         """Mark the collection complete (or not, with ``reason``). Idempotent."""
@@ -343,11 +348,7 @@ class VtuBodiesWriter:
                 lines.append(f'    <DataSet timestep="{t!r}" group="" part="{part}" name={quoteattr(name)} '
                              f'file={quoteattr(rel)}/>')
         lines += ["  </Collection>", "</VTKFile>", ""]
-        os.makedirs(base, exist_ok=True)
-        tmp = self.path + ".partial"
-        with open(tmp, "w", encoding="utf-8") as f:
-            f.write("\n".join(lines))
-        os.replace(tmp, self.path)
+        _write_text_atomic(self.path, "\n".join(lines))
 
     def close(self, *, complete: bool = True, reason: str = ""):
         """Mark the collection (and each body's) complete, or not with ``reason``. Idempotent."""
