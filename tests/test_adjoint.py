@@ -32,6 +32,21 @@ BASE = dict(E=1e5, nu=0.3, rho=1000.0, scale=np.ones(MESH.num_elements), x0=MESH
 SOLVER = dict(linear_solver="direct", linear_solver_options={"backend": "superlu"}, tol=1e-13, max_iters=50)
 
 
+def recorded_run(sim, grads, before_step=None):
+    """Step ``sim`` STEPS times (recorded for gradients when ``grads``; ``before_step(k)`` first):
+    (positions per state, the WEIGHTS loss, its gradients or None)."""
+    xs = [sim.positions()]
+    rec = Recording(sim)
+    with rec if grads else _null():
+        for k in range(STEPS):
+            if before_step is not None:
+                before_step(k)
+            assert sim.step().converged
+            xs.append(sim.positions())
+    loss = float(sum(np.sum(w * x) for w, x in zip(WEIGHTS, xs)))
+    return xs, loss, (rec.backward({k: WEIGHTS[k] for k in range(STEPS + 1)}) if grads else None)
+
+
 def run(integrator, p, grads=False):
     mat = wf.StableNeoHookean(youngs_modulus=p["E"], poisson_ratio=p["nu"], density=p["rho"])
     model = wf.Model(MESH, mat, gravity=(0.0, 0.0, -9.81))
@@ -41,17 +56,8 @@ def run(integrator, p, grads=False):
     set_element_stiffness_scale(sim, p["scale"])
     sim.set_positions(p["x0"])
     sim.set_velocities(p["v0"])
-    xs = [sim.positions()]
-    rec = Recording(sim)
-    with rec if grads else _null():
-        for k in range(STEPS):
-            sim.set_targets([DRIVEN], p["targets"][k][None])
-            assert sim.step().converged
-            xs.append(sim.positions())
-    loss = float(sum(np.sum(w * x) for w, x in zip(WEIGHTS, xs)))
-    if not grads:
-        return loss
-    return loss, rec.backward({k: WEIGHTS[k] for k in range(STEPS + 1)})
+    _, loss, g = recorded_run(sim, grads, lambda k: sim.set_targets([DRIVEN], p["targets"][k][None]))
+    return (loss, g) if grads else loss
 
 
 class _null:
@@ -286,15 +292,9 @@ def _contact_run(integrator, E=1e5, shift=np.zeros(3), v0=None, x0=None, grads=F
     sim.set_velocities(np.tile([0.0, 0.0, -0.5], (N, 1)) if v0 is None else v0)
     sim.add_collider(type="plane", point=tuple(np.array([0.0, 0.0, -0.01]) + shift), normal=(0.0, 0.0, 1.0),
                      stiffness=1e4, dhat=0.01)
-    xs = [sim.positions()]
-    rec = Recording(sim)
-    with rec if grads else _null():
-        for _ in range(STEPS):
-            assert sim.step().converged
-            xs.append(sim.positions())
+    xs, loss, g = recorded_run(sim, grads)
     assert min(x[:, 2].min() for x in xs) < -0.01 + 0.01  # within dhat of the plane: the barrier acts
-    loss = float(sum(np.sum(w * x) for w, x in zip(WEIGHTS, xs)))
-    return (loss, rec.backward({k: WEIGHTS[k] for k in range(STEPS + 1)})) if grads else loss
+    return (loss, g) if grads else loss
 
 
 @pytest.mark.parametrize("integrator", ["backward_euler", "bdf2", "newmark"])
@@ -335,17 +335,11 @@ def test_gradients_through_sphere_contact():
         sim = wf.Simulator(model, dt=0.01, **{**SOLVER, "tol": 1e-11, "max_iters": 300})
         sim.set_velocities(np.tile([0.0, 0.0, -0.5], (N, 1)))
         sim.add_collider(type="sphere", center=tuple(center + shift), radius=0.2, stiffness=1e4, dhat=0.01)
-        xs = [sim.positions()]
-        rec = Recording(sim)
-        with rec if grads else _null():
-            for _ in range(STEPS):
-                assert sim.step().converged
-                xs.append(sim.positions())
-        loss = float(sum(np.sum(w * x) for w, x in zip(WEIGHTS, xs)))
+        xs, loss, g = recorded_run(sim, grads)
         if grads:
             gap = min(np.linalg.norm(x - center, axis=1).min() for x in xs) - 0.2
             assert 0.0 < gap < 0.01  # inside the barrier's range
-        return (loss, rec.backward({k: WEIGHTS[k] for k in range(STEPS + 1)})) if grads else loss
+        return (loss, g) if grads else loss
 
     _, g = go(np.zeros(3), grads=True)
     d = np.array([0.3, -0.2, 1.0])
@@ -375,14 +369,8 @@ def test_gradients_through_plane_friction(integrator):
         sim.set_velocities(v)
         sim.add_collider(type="plane", point=tuple(np.array([0.0, 0.0, -0.012]) + shift), normal=(0.0, 0.0, 1.0),
                          stiffness=1e4, dhat=0.01, friction=mu)
-        xs = [sim.positions()]
-        rec = Recording(sim)
-        with rec if grads else _null():
-            for _ in range(STEPS):
-                assert sim.step().converged
-                xs.append(sim.positions())
-        loss = float(sum(np.sum(w * x) for w, x in zip(WEIGHTS, xs)))
-        return (loss, rec.backward({k: WEIGHTS[k] for k in range(STEPS + 1)})) if grads else loss
+        _, loss, g = recorded_run(sim, grads)
+        return (loss, g) if grads else loss
 
     _, g = go(grads=True)
     d3, D = np.array([0.3, -0.2, 1.0]), RNG.standard_normal((N, 3))
