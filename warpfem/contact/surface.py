@@ -435,6 +435,11 @@ class SurfaceContact:
             self._f_blocks = self._block_positions(self._f_pairs_np, self._f_cap, self._f_blocks)
 
     # -- pair kernel ---------------------------------------------------------------------------------
+    def exact_hessian(self, x, values, scale=1.0):
+        """Add the candidate pairs' barrier Hessian at x, without the per-pair PSD projection, times
+        ``scale`` into ``values`` (the adjoint solve's exact Hessian, warpfem.solvers.adjoint)."""
+        self.run(SK.MODE_HESSIAN_UNPROJECTED, x, scale=scale, values=values)
+
     def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0, kappa=None):
         ops = self.ops
         if self.num_pairs == 0:

@@ -233,14 +233,6 @@ def _host(a):
     return a.numpy().astype(np.float64)
 
 
-def _surface_kernels(sc):
-    """``warpfem.contact.surface_kernels`` through the surface contact's own module (warpfem.contact
-    imports warpfem.solvers, so an import from here would close a cycle of the layers' units)."""
-    import sys
-
-    return sys.modules[type(sc).__module__].SK
-
-
 class StepAdjoint:
     """The reverse pass of ``sim``'s steps (see the module docstring).
 
@@ -647,7 +639,7 @@ class StepAdjoint:
         x_dev = self._assemble_K(rec.x_next)
         planes = self._add_contact_hessian(rec)
         if sc is not None:  # the exact (unprojected) Hessian of every pair's barrier at x_{n+1}
-            sc.run(_surface_kernels(sc).MODE_HESSIAN_UNPROJECTED, x_dev, scale=1.0, values=self._K)
+            sc.exact_hessian(x_dev, self._K)
         cm, ck = 1.0 + s * alpha, s * s
         Hc = self._host_H(self._K, cm, ck)
 
