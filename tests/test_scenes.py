@@ -378,3 +378,24 @@ def test_states_npz_streams_and_matches_run(tmp_path):
     np.testing.assert_array_equal(d["positions"][-1], run.sim.positions())
     assert sorted(os.listdir(tmp_path / "o")) == ["s.clips", "s.npz", "s.stats.jsonl", "s.usda"]  # no temporaries left
     assert sorted(os.listdir(tmp_path / "o" / "s.clips")) == ["clip_000000.usdc", "clip_000001.usdc", "manifest.usda"]
+
+
+def test_rebase_scene_paths_covers_bodies_tractions_and_colliders():
+    """A scene written to another folder (fit --out, tune's winner) keeps reading the same files:
+    relative paths re-anchored, absolute ones and non-path keys kept."""
+    import os
+
+    from warpfem.scenes.schema import rebase_scene_paths
+
+    src, out = os.path.join("a", "scenes"), os.path.join("a", "results", "fits")
+    absolute = os.path.abspath("bowl.obj")
+    doc = {"mesh": {"path": "../meshes/m.obj", "cells": [1, 1, 1]},
+           "traction": [{"indices_file": "ids.txt"}], "collider": [{"type": "mesh", "path": absolute}],
+           "body": [{"mesh": {"path": "ball.obj"}, "fixed": [{"indices_file": "fix.txt"}]}]}
+    rebase_scene_paths(doc, src, out)
+    expect = lambda p: os.path.relpath(os.path.join(src, p), out)  # noqa: E731
+    assert doc["mesh"]["path"] == expect("../meshes/m.obj") == os.path.join("..", "..", "meshes", "m.obj")
+    assert doc["traction"][0]["indices_file"] == expect("ids.txt")
+    assert doc["collider"][0]["path"] == absolute and doc["mesh"]["cells"] == [1, 1, 1]
+    assert doc["body"][0]["mesh"]["path"] == expect("ball.obj")
+    assert doc["body"][0]["fixed"][0]["indices_file"] == expect("fix.txt")

@@ -219,28 +219,20 @@ def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices
                      frames=len(frames), vertices=int(len(vertices)), bounds={p: list(bnds[p]) for p in params})
 
 
-_PATH_KEYS = {"mesh": ("path",), "surface": ("path",), "output": ("usd", "states", "stats", "vtu"),
-              "subspace": ("cache",), "fixed": ("indices_file",), "handle": ("indices_file",),
-              "force": ("indices_file",), "traction": ("indices_file",), "collider": ("path",)}
 
 
 def write_fitted_scene(scene_path, fitted: dict, out_path, header=None) -> str:
     """Write ``scene_path``'s document with ``[material]`` values replaced by ``fitted`` to
     ``out_path`` (relative paths re-anchored to the new folder)."""
     from warpfem.scenes import SceneError
-    from warpfem.scenes.schema import read_toml
+    from warpfem.scenes.schema import read_toml, rebase_scene_paths
     from warpfem.tradeoff.tune import toml_dumps
 
     doc = read_toml(scene_path, SceneError, what="scene file")
     doc.setdefault("material", {}).update({k: float(v) for k, v in fitted.items()})
     src_dir = os.path.dirname(os.path.abspath(scene_path))
     out_dir = os.path.dirname(os.path.abspath(out_path))
-    for sec, keys in _PATH_KEYS.items():
-        items = doc.get(sec)
-        for item in (items if isinstance(items, list) else [items] if isinstance(items, dict) else []):
-            for k in keys:
-                if isinstance(item.get(k), str) and not os.path.isabs(item[k]):
-                    item[k] = os.path.relpath(os.path.join(src_dir, item[k]), out_dir)
+    rebase_scene_paths(doc, src_dir, out_dir)
     os.makedirs(out_dir, exist_ok=True)
     with open(out_path, "w") as f:
         if header:

@@ -740,6 +740,28 @@ def _check_collider(ctx, i, c, raw, itype, subspace):
                         f"[integrator].type is {itype!r}")
 
 
+#: the keys of a scene document that hold file paths (relative to the scene file), by section
+SCENE_PATH_KEYS = {"mesh": ("path",), "surface": ("path",), "output": ("usd", "states", "stats", "vtu"),
+                   "subspace": ("cache",), "fixed": ("indices_file",), "handle": ("indices_file",),
+                   "force": ("indices_file",), "traction": ("indices_file",), "collider": ("path",)}
+
+
+def rebase_scene_paths(doc: dict, src_dir: str, out_dir: str) -> dict:
+    """Rewrite ``doc``'s relative file paths (``SCENE_PATH_KEYS``, also inside each ``[[body]]``),
+    written relative to ``src_dir``, to be relative to ``out_dir`` (a scene written elsewhere
+    keeps reading the same files). In place; returns ``doc``."""
+    for sec, keys in SCENE_PATH_KEYS.items():
+        items = doc.get(sec)
+        for item in (items if isinstance(items, list) else [items] if isinstance(items, dict) else []):
+            for k in keys:
+                if isinstance(item.get(k), str) and not os.path.isabs(item[k]):
+                    item[k] = os.path.relpath(os.path.join(src_dir, item[k]), out_dir)
+    for body in doc.get("body") or []:
+        if isinstance(body, dict):
+            rebase_scene_paths(body, src_dir, out_dir)
+    return doc
+
+
 def read_toml(path, error: type[Exception], *, what: str) -> dict:
     """Read a TOML file; a missing file or a syntax error raises ``error`` naming the file."""
     if not os.path.isfile(path):

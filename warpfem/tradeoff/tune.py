@@ -509,13 +509,11 @@ def toml_dumps(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-_PATH_KEYS = {"mesh": ("path",), "surface": ("path",), "output": ("usd", "states", "stats", "vtu"),
-              "subspace": ("cache",), "fixed": ("indices_file",), "handle": ("indices_file",), "force": ("indices_file",)}
-
-
 def write_scene(result: TuneResult, path) -> str:
     """Write the winner as a scene file (relative paths re-anchored to its new location; outputs
     kept; a reduced winner's cache is left to ``warpfem train``)."""
+    from warpfem.scenes.schema import rebase_scene_paths
+
     cfg = result.winner_config()
     if cfg is None:
         raise ValueError("no winner to write")
@@ -526,12 +524,7 @@ def write_scene(result: TuneResult, path) -> str:
     if d.get("subspace") is not None:
         d["subspace"].pop("cache", None)
     d["integrator"] = {"type": d["integrator"]["type"], **d["integrator"]}  # type first
-    for sec, keys in _PATH_KEYS.items():
-        items = d.get(sec)
-        for item in (items if isinstance(items, list) else [items] if isinstance(items, dict) else []):
-            for k in keys:
-                if isinstance(item.get(k), str) and not os.path.isabs(item[k]):
-                    item[k] = os.path.relpath(os.path.join(src_dir, item[k]), out_dir)
+    rebase_scene_paths(d, src_dir, out_dir)
     w = result.winner
     head = [f"# Tuned by `warpfem tune` from {os.path.relpath(scene_file, out_dir)}: the cheapest configuration found",
             f"# with {result.quantity} error <= {result.max_error:g} against the converged reference "
