@@ -35,6 +35,7 @@ __all__ = [
     "qp_hessian_kernel",
     "qp_energy_sum_kernel",
     "qp_force_and_abs_kernel",
+    "qp_parameter_work_kernel",
 ]
 
 wp.set_module_options({"enable_backward": False})
@@ -220,3 +221,25 @@ def qp_force_and_abs_kernel(
         node = points.elements[e * k + a]
         wp.atomic_add(f, node, -v)
         wp.atomic_add(f_abs, node, type(v)(wp.abs(v[0]), wp.abs(v[1]), wp.abs(v[2])))
+
+
+@both_precisions(x="v[]", points="qp", material="mat", w="v[]", out="s[,]")
+@wp.kernel
+def qp_parameter_work_kernel(x: wp.array(dtype=Any), points: Any, material: Any, w: wp.array(dtype=Any),
+                             out: wp.array2d(dtype=Any)):
+    """out[q] = (P(F; 1, 0) : G, P(F; 0, 1) : G), G = sum_a w_a (dN_a/dX)^T: the work of the two
+    unit-parameter stresses on the field w at point q (unweighted). Every material's stress is
+    linear in its kernel parameters, P = mu P(F; 1, 0) + lam P(F; 0, 1), so w . dV/dmu and
+    w . dV/dlam are sums of weight x these, and P(F) : G their combination (the adjoint's
+    parameter gradients, ``warpfem.solvers.adjoint``: one pass, no atomics)."""
+    q = wp.tid()
+    k = points.k
+    e = points.element[q]
+    F = point_deformation_gradient(x, points, q)
+    G = F - F
+    for a in range(k):
+        G = G + wp.outer(w[points.elements[e * k + a]], points.dNdX[q * k + a])
+    one = type(material.mu)(1.0)
+    zero = material.mu - material.mu
+    out[q, 0] = wp.ddot(material_pk1(material.kind, F, one, zero), G)
+    out[q, 1] = wp.ddot(material_pk1(material.kind, F, zero, one), G)

@@ -89,7 +89,6 @@ import warp as wp
 from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
-from warpfem.kernels.structs import material_params
 from warpfem.solvers.adjoint_contact import collider_terms
 
 __all__ = ["StepAdjoint", "default_adjoint_tol", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
@@ -279,10 +278,8 @@ class StepAdjoint:
         self._fgrav_unit = (model.gravity_mass[:, None] * model.gravity[None, :]) / self._rho_v[:, None]
         self._fext = model.external_forces()
         self._sets = sim.quadrature_sets
-        S = sim.scalar_type
         self._psets = _point_sets(model)
-        self._unit = [(material_params(S, int(mats[ps["body"]].kind), 1.0, 0.0),
-                       material_params(S, int(mats[ps["body"]].kind), 0.0, 1.0)) for ps in self._psets]
+        self._work_bufs = [None] * len(self._sets)  # (Q, 2) outputs of qp_parameter_work_kernel, per set
         self._param_jac = self._material_jacobian()
         pat = sim.pattern
         self._K = pat.new_values()
@@ -544,33 +541,30 @@ class StepAdjoint:
         raise AdjointError(f"the adjoint solve did not converge (relative residual {rel:.2e} > {self.tol:.1e}); "
                            "the step's exact Hessian may be singular or indefinite")
 
-    def _forces_unit(self, x_dev, w_host):
-        """(sets, 2): w . grad_x V_s(x; mu=1, lam=0) and (0, 1) for every point set."""
+    def _parameter_work(self, x_dev, w_host, per_element):
+        """(sets, 2): w . grad_x V_s(x; mu=1, lam=0) and (0, 1) for every point set s, and with
+        ``per_element`` (m,): sum over each element's points of w0_q P(F_q) : grad(w)_q (d/dc_e of
+        w . grad V), else None. One launch per set (``qp_parameter_work_kernel``: the two
+        unit-parameter stresses' work on w per point), the sums on the host."""
         sim = self.sim
-        f = self._dev[4]
+        wd = self._upload(self._dev[3], w_host)
         out = np.zeros((len(self._sets), 2))
-        for i, qs in enumerate(self._sets):
-            for j, unit in enumerate(self._unit[i]):
-                f.zero_()
-                launch(FK.qp_force_kernel, qs.count, [x_dev, qs.points, unit, sim.scalar_type(1.0), f], sim.device)
-                out[i, j] = -float(np.sum(_host(f) * w_host))  # the kernel adds -grad V
-        return out
-
-    def _element_contraction(self, x_dev, w_host):
-        """(m,): sum over each element's points of w0_q P(F_q) : grad(w)_q (d/dc_e of w . grad V)."""
-        sim = self.sim
         m = sim.model.mesh.num_elements
-        out = np.zeros(m)
-        for qs, ps in zip(self._sets, self._psets):
-            P = wp.zeros(qs.count, dtype=self._mat_type(), device=sim.device)
-            launch(FK.qp_stress_kernel, qs.count, [x_dev, qs.points, qs.material, P], sim.device)
-            Ph = P.numpy().astype(np.float64)
-            conn = ps["conn"]
-            k = conn.shape[1]
-            wn = w_host[conn[ps["element"] - ps["e0"]]]  # (Q, k, 3)
-            G = np.einsum("qai,qaj->qij", wn, ps["dNdX"].reshape(-1, k, 3))
-            out += np.bincount(ps["element"], weights=ps["weight"] * np.einsum("qij,qij->q", Ph, G), minlength=m)
-        return out
+        elem = np.zeros(m) if per_element else None
+        c = getattr(sim, "element_stiffness_scale", None)
+        bufs = self._work_bufs
+        for i, (qs, ps) in enumerate(zip(self._sets, self._psets)):
+            if bufs[i] is None:
+                bufs[i] = wp.zeros((qs.count, 2), dtype=sim.scalar_type, device=sim.device)
+            launch(FK.qp_parameter_work_kernel, qs.count, [x_dev, qs.points, qs.material, wd, bufs[i]], sim.device)
+            ab = bufs[i].numpy().astype(np.float64)  # (Q, 2) unweighted works
+            w0 = ps["weight"]
+            wq = w0 if c is None else w0 * c[ps["element"]]  # the kernels' weights (element scale included)
+            out[i] = wq @ ab
+            if per_element:  # P = mu P(F; 1, 0) + lam P(F; 0, 1)
+                mu, lam = float(qs.material.mu), float(qs.material.lam)
+                elem += np.bincount(ps["element"], weights=w0 * (mu * ab[:, 0] + lam * ab[:, 1]), minlength=m)
+        return out, elem
 
     def _add_contact_hessian(self, rec):
         """Add the exact Hessian of every collider's contact (barrier with its curvature term, lagged
@@ -597,9 +591,6 @@ class StepAdjoint:
             K[diag[touched]] += blocks[touched].astype(K.dtype)
             self._K.assign(K)
         return out
-
-    def _mat_type(self):
-        return wp.mat33d if self.sim.precision == "float64" else wp.mat33
 
     # -- the reverse pass of one step -------------------------------------------------------------------------
     def backward(self, rec: StepRecord, xbar, vbar, hbar=None, step_index=None):
@@ -715,9 +706,11 @@ class StepAdjoint:
         """Parameter gradients of sign * w . dR/dtheta terms shared by the step and Newmark's a_0
         (``M_w``: M w when the caller has it; M is symmetric and block diagonal over the bodies, so
         each body's w . M u is its (M w) . u: no product with M here)."""
-        self._mulam_bar += sign * self._forces_unit(x_dev, w)
-        if "element_stiffness_scale" in self.params:
-            self.grads["element_stiffness_scale"] += sign * self._element_contraction(x_dev, w)
+        per_element = "element_stiffness_scale" in self.params
+        work, elem = self._parameter_work(x_dev, w, per_element)
+        self._mulam_bar += sign * work
+        if per_element:
+            self.grads["element_stiffness_scale"] += sign * elem
         # dM/d(rho_b): the body's rows of M over rho_b (M is block diagonal over the bodies)
         M1 = lambda a: (self._M @ a.reshape(-1)).reshape(self.n, 3) / self._rho_v[:, None]  # noqa: E731
         nb = self.bodies
