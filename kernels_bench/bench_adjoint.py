@@ -84,6 +84,7 @@ def measure(solver: str, integrator: str, steps: int, device: str, tol: float, d
         fwd, bwd = min(fwd, f), min(bwd, b)
         ratios.append(b / f)
         kept_bytes = rec.factor_nbytes
+        parts = _breakdown(rec, sim, np) if solver == "direct" and rec.records[-1].factor is not None else None
         rec.release()
     return {"solver": solver, "integrator": integrator, "steps": steps, "newton_tol": tol,
             "newton_iterations_per_step": newton / steps, "forward_ms": 1e3 * plain, "forward_recorded_ms": 1e3 * fwd,
@@ -93,7 +94,34 @@ def measure(solver: str, integrator: str, steps: int, device: str, tol: float, d
             "bytes_per_step": rec.nbytes / steps, "factor_bytes_per_step": kept_bytes / steps,
             "kept_solves_per_step": (adj.kept_solves - k0) / steps,
             "factor_budget": adj.factor_budget if solver == "direct" else None,
-            "backend": getattr(sim.linear_solver, "backend_name", None), "vertices": sim.num_vertices, "dt": dt}
+            "backend": getattr(sim.linear_solver, "backend_name", None), "vertices": sim.num_vertices, "dt": dt,
+            "breakdown_ms": parts}
+
+
+def _breakdown(rec, sim, np, reps: int = 20) -> dict:
+    """ms of each device and solver stage of one reverse step (the last recorded one), each timed
+    alone ``reps`` times, fastest kept: the exact Hessian's assembly, one triangular solve pair
+    with the kept factor, one product with the host H, the parameter-work launch (E / nu / element
+    gradients). Their sum with the measured refinement count is the floor of a reverse step
+    without any Python or host vector algebra."""
+    adj, r = rec.adjoint, rec.records[-1]
+    w = np.random.default_rng(1).standard_normal((sim.num_vertices, 3))
+
+    def best(f):
+        f()
+        t = np.inf
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            f()
+            t = min(t, time.perf_counter() - t0)
+        return 1e3 * t
+
+    x_dev = adj._assemble_K(r.x_next)
+    H = adj._host_H(adj._K, 1.0, r.s * r.s)
+    b = w.reshape(-1)
+    return {"assembly": best(lambda: adj._assemble_K(r.x_next)), "kept_solve": best(lambda: r.factor.solve(b)),
+            "host_product": best(lambda: H @ b), "host_matrix": best(lambda: adj._host_H(adj._K, 1.0, r.s * r.s)),
+            "parameter_work": best(lambda: adj._parameter_work(x_dev, w, False))}
 
 
 def main(argv=None):
@@ -133,6 +161,18 @@ def main(argv=None):
               f"{r['forward_recorded_ms']:.1f} / {r['forward_ms']:.1f} | {r['backward_ms']:.2f} | {r['ratio']:.3f} | "
               f"{r['kept_solves_per_step']:.2f} / {r['refinements_per_step']:.1f} / {r['prepares_per_step']:.2f} | "
               f"{r['bytes_per_step'] / 1024:.1f} + {r['factor_bytes_per_step'] / 1024:.1f} |")
+    parts = [r for r in rows if r["breakdown_ms"]]
+    if parts:
+        print("\nStages of one reverse step (direct, kept factor; each timed alone, fastest of 20), ms and / forward ms; "
+              "floor = assembly + refinements x (solve + product) + parameter work")
+        print("| integrator | assembly | kept solve | product with H | parameter work | host H | floor / forward | measured / forward |")
+        print("|---|---|---|---|---|---|---|---|")
+        for r in parts:
+            b, f = r["breakdown_ms"], r["forward_recorded_ms"]
+            floor = b["assembly"] + r["refinements_per_step"] * (b["kept_solve"] + b["host_product"]) + b["parameter_work"]
+            r["floor_ratio"] = floor / f
+            print(f"| {r['integrator']} | {b['assembly']:.3f} | {b['kept_solve']:.3f} | {b['host_product']:.3f} | "
+                  f"{b['parameter_work']:.3f} | {b['host_matrix']:.3f} | {floor / f:.3f} | {r['ratio']:.3f} |")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"machine": machine, "device": args.device, "rows": rows}, f, indent=2)

@@ -385,7 +385,10 @@ class StepAdjoint:
 
     # -- device helpers ---------------------------------------------------------------------------------------
     def _upload(self, buf, a):
-        buf.assign(np.ascontiguousarray(a, dtype=self.sim.numpy_dtype))
+        if buf.device.is_cpu:  # the host array is the device array's memory: copy into it
+            np.copyto(buf.numpy(), np.asarray(a).reshape(buf.shape[0], -1), casting="same_kind")
+        else:
+            buf.assign(np.ascontiguousarray(a, dtype=self.sim.numpy_dtype))
         return buf
 
     def _assemble_K(self, x_host):
@@ -454,9 +457,7 @@ class StepAdjoint:
         for _ in range(self.max_refinements):
             self.refinements += 1
             d = factor.solve(r.reshape(-1)).reshape(-1, 3) * mask
-            if not np.all(np.isfinite(d)):
-                return None
-            lam = lam + d
+            lam = lam + d  # (a non-finite d makes the residual's norm non-finite: caught below)
             Hl = Hmv(lam)
             r = b - mask * Hl
             rn = float(np.linalg.norm(r))
