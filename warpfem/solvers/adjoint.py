@@ -91,6 +91,7 @@ from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.kernels.structs import material_params
 from warpfem.solvers.adjoint_contact import collider_terms
+from warpfem.solvers.adjoint_surface import surface_friction_terms
 
 __all__ = ["StepAdjoint", "default_adjoint_tol", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
            "set_material_parameters", "set_density", "material_set_parameters", "check_differentiable", "Recording",
@@ -99,7 +100,7 @@ __all__ = ["StepAdjoint", "default_adjoint_tol", "StepRecord", "AdjointError", "
 #: the parameter names the adjoint can differentiate
 PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_scale", "forces", "gravity",
               "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_rotations",
-              "collider_friction")
+              "collider_friction", "contact_friction")
 
 _KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
 
@@ -140,9 +141,9 @@ def check_differentiable(sim):
                                           "stiffness explicitly (the default follows E and the mass)")
     sc = getattr(sim, "surface_contact", None)
     if sc is not None:
-        if sc.friction != 0.0:
-            raise NotImplementedError("gradients through surface contact with friction (set_contact(friction=...)) are "
-                                      "not supported: frictionless surface contact and colliders with friction are")
+        if sc.adaptive:
+            raise NotImplementedError("gradients through surface contact with an adaptive stiffness (set_contact("
+                                      "stiffness='auto')) are not supported: give set_contact a stiffness in N/m^3")
         if sc.kappa == sc.default_stiffness(sc.dhat):
             raise NotImplementedError("gradients through surface contact: give set_contact a stiffness (the default "
                                       "follows E and the mass)")
@@ -330,7 +331,8 @@ class StepAdjoint:
         self._rho_now = np.array([float(m.density) for m in _body_materials(self.sim.model)])[self._vertex_body]
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": np.zeros(self.bodies), "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
-                      "targets": {}, "collider_translations": {}, "collider_rotations": {}, "collider_friction": {}}
+                      "targets": {}, "collider_translations": {}, "collider_rotations": {}, "collider_friction": {},
+                      "contact_friction": 0.0}
 
     def parameter_gradients(self) -> dict:
         """The accumulated gradients by parameter name (numpy; see the module docstring)."""
@@ -598,6 +600,15 @@ class StepAdjoint:
             self._K.assign(K)
         return out
 
+    def _surface_friction(self, rec, sc):
+        """Surface friction's complex-step terms of the step (``adjoint_surface``) from its pairs
+        lagged at x_n (the surface contact's candidates there), or None."""
+        if sc is None or not sc.has_friction():
+            return None
+        pairs, kinds = sc.candidates(self._upload(self._dev[5], rec.x))
+        return surface_friction_terms(pairs, kinds, rec.x_next, rec.x, self.sim.model.rest_positions, kappa=sc.kappa,
+                                      dhat=sc.dhat, mu=sc.friction, eps=sc.friction_velocity * rec.dt)
+
     def _mat_type(self):
         return wp.mat33d if self.sim.precision == "float64" else wp.mat33
 
@@ -633,6 +644,7 @@ class StepAdjoint:
             vhat_bar -= hbar["a"] / s
         # the implicit solve: H lambda = ybar on the free components
         sc = getattr(sim, "surface_contact", None)
+        sfric = self._surface_friction(rec, sc)  # lagged at x_n: its broad phase there first
         if sc is not None:  # its candidate pairs at x_{n+1} (the pattern may grow for them)
             sc.update_pairs(self._upload(self._dev[5], rec.x_next))
             self._follow_pattern()
@@ -640,6 +652,10 @@ class StepAdjoint:
         planes = self._add_contact_hessian(rec)
         if sc is not None:  # the exact (unprojected) Hessian of every pair's barrier at x_{n+1}
             sc.exact_hessian(x_dev, self._K)
+        if sfric is not None:  # surface friction's exact Hessian blocks at x_{n+1}
+            K = self._K.numpy()
+            sfric.add_hessian(K, sim.pattern)
+            self._K.assign(K)
         cm, ck = 1.0 + s * alpha, s * s
         Hc = self._host_H(self._K, cm, ck)
 
@@ -689,6 +705,9 @@ class StepAdjoint:
                     store[col.name] = store.get(col.name, 0.0) + sl
                 if col.friction != 0.0:
                     G["collider_friction"][col.name] = G["collider_friction"].get(col.name, 0.0) + float(par[12])
+        if sfric is not None and np.any(lam):  # -s lambda^T d(grad D)/d(x_n, mu) of surface friction
+            xn_bar -= s * sfric.xn_product(lam)
+            self.grads["contact_friction"] -= s * sfric.mu_product(lam)
         # parameters at the converged step
         if np.any(lam):
             self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha, M_w=M_lam)
