@@ -13,6 +13,7 @@ import pytest
 import warp as wp
 
 import warpfem as wf
+from warpfem.contact import surface_kernels as SK
 from warpfem.solvers import adjoint_surface as AS
 from warpfem.solvers.adjoint import Recording
 
@@ -129,7 +130,8 @@ def test_host_lag_and_friction_hessian_match_the_kernels():
         lam_host = dict(zip(map(tuple, pairs[keep]), lam[keep]))
         assert set(lam_host) == set(lam_dev) and len(lam_dev) > 5
         assert max(abs(lam_host[q] - lam_dev[q]) for q in lam_dev) <= 1e-12 * max(lam_dev.values())
-        assert sorted(set(kinds[keep].tolist())) == [0, 1]  # point-triangle and edge-edge pairs
+        assert (AS.PT, AS.EE) == (SK.PT, SK.EE)
+        assert sorted(set(kinds[keep].tolist())) == [SK.PT, SK.EE]  # point-triangle and edge-edge pairs
     # friction Hessian of the last step at x1: the kernel (lagged at xn) and the host
     eps = sc.friction_velocity * sim.dt
     terms = AS.surface_friction_terms(pairs, kinds, x1, xn, rest, kappa=sc.kappa, dhat=sc.dhat, mu=sc.friction, eps=eps)

@@ -28,7 +28,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from warpfem.contact.surface_kernels import EE, PT
+#: the pair kinds of ``warpfem.contact.surface_kernels`` (PT point-triangle, EE edge-edge; not imported:
+#: warpfem.contact imports warpfem.solvers, tests/test_import_layers.py)
+PT, EE = 0, 1
 
 __all__ = ["SurfaceFrictionTerms", "surface_friction_terms", "lag_host", "friction_gradient_host"]
 
