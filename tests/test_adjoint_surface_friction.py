@@ -72,7 +72,7 @@ def test_surface_friction_gradients_match_central_differences(monkeypatch):
     _, _, _, xs0 = run(mu=0.0)
     slide, slide0 = (np.mean(x[:TOP.num_vertices, 0] - x_[:TOP.num_vertices, 0]) for x, x_ in
                      ((xs[-1], xs[0]), (xs0[-1], xs0[0])))
-    assert slide < 0.8 * slide0, (slide, slide0)
+    assert slide < 0.5 * slide0, (slide, slide0)  # measured 0.23
     g = _grads(rec)
     D = np.random.default_rng(4).standard_normal((N, 3))
     checks = {"youngs_modulus[top]": (lambda g: float(g["youngs_modulus"][0]), lambda h: run(E=1e5 + h), 10.0),

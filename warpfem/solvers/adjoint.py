@@ -57,6 +57,7 @@ function theorem holds at the solution, not at an early-stopped iterate.
 * ``collider_friction``: {collider name: float}, the Coulomb coefficient of each collider with
   friction (lagged from the step's start: D = mu lam_n f0(|u|), u = P (x - x_n - w), lam_n and P
   from x_n in the end pose, w the collider's motion of the point over the step).
+* ``contact_friction``: float, the Coulomb coefficient of surface contact (``set_contact(friction=...)``).
 * Several bodies (``Model.from_bodies``): ``youngs_modulus``, ``poisson_ratio`` and ``density``
   are arrays, one per body; ``element_stiffness_scale`` numbers the elements body after body.
 
@@ -67,12 +68,17 @@ steps together (default :data:`DEFAULT_FACTOR_BUDGET`, 1 GiB; 0 keeps none); its
 refines against the exact H with it instead of factorising again. Steps beyond the budget refine
 on the solver's current factorisation or prepare it on H. ``Recording.release()`` frees them.
 
-**Surface contact** (``set_contact``: bodies against each other, self contact), frictionless:
-the candidate pairs at x_{n+1} and every pair's exact barrier Hessian (the pair kernel's
-unprojected mode) enter H.
+**Surface contact** (``set_contact``: bodies against each other, self contact): the candidate
+pairs at x_{n+1} and every pair's exact barrier Hessian (the pair kernel's unprojected mode) enter
+H. With friction (:mod:`warpfem.solvers.adjoint_surface`), the pairs lagged at x_n (the candidates
+there within dhat) give, by complex step on a host copy of the lag and of the friction gradient,
+the exact friction Hessian blocks at x_{n+1} (into H), the derivative in x_n through the lagged
+normal forces, closest-point weights and normals and the explicit -x^n, and the one in mu. A
+recorded step lags friction once from x_n (colliders and surface pairs alike: the simulator skips
+its ``friction_iterations`` while recording).
 
-Not supported (a clear ``NotImplementedError``): a default (E- and mass-dependent) barrier
-stiffness (colliders and surface contact); friction in surface contact; stiffness-proportional
+Not supported (a clear ``NotImplementedError``): a default (E- and mass-dependent) or adaptive
+(``"auto"``) barrier stiffness (colliders and surface contact); stiffness-proportional
 damping (K(x_n) is SPD-projected at the step's start: its derivative in x_n would need third
 derivatives), other simulators (stiffness warping, reduced). Fixed sets, loads and material must
 stay as they were during a recording.
@@ -244,7 +250,7 @@ class StepAdjoint:
 
     Args:
         sim: a :class:`~warpfem.simulator.Simulator` (backward Euler, BDF2 or Newmark; colliders,
-            frictionless surface contact).
+            surface contact, with or without friction).
         params: parameter names to accumulate (default: all of :data:`PARAMETERS`); the per-element
             contraction is done only when ``element_stiffness_scale`` is asked for.
         tol: relative residual of the adjoint solve (default :func:`default_adjoint_tol`: the
