@@ -154,3 +154,70 @@ def test_host_lag_and_friction_hessian_match_the_kernels():
     gh = np.zeros((N, 3))
     np.add.at(gh, terms.pairs, terms.g)
     assert np.abs(gh - g.numpy()).max() <= 1e-10 * np.abs(gh).max()
+
+
+def _c_shape():
+    """A Tet4 'C' of one body: a 20 x 5 cm arm 1.5 cm above another (3 cm thick, its bottom
+    clamped), joined at x < 5 cm (4 x 1 x 3 cells, the middle layer's three outer cells removed)."""
+    box = wf.box_tet_mesh(size=(0.2, 0.05, 0.09), cells=(4, 1, 3))
+    V = np.array(box.vertices, dtype=np.float64)
+    V[:, 2] = np.array([0.0, 0.03, 0.045, 0.075])[np.rint(V[:, 2] / 0.03).astype(int)]
+    T = np.asarray(box.elements).reshape(-1, 4)
+    cell = np.arange(len(T)) // 6
+    return wf.VolumeMesh(V, T[~((cell // 4 == 1) & (cell % 4 >= 1))], "tet4")
+
+
+C_SHAPE = _c_shape()
+NC = C_SHAPE.num_vertices
+C_JITTER = 2e-4 * np.random.default_rng(3).standard_normal((NC, 3))
+C_W = np.random.default_rng(6).standard_normal((STEPS + 1, NC, 3))
+
+
+def run_self(E=5e4, mu=MU, dv=None, dx=None, record=False):
+    """The C's upper arm swung down (up to 0.45 m/s) and sideways (0.15 m/s) onto the lower one:
+    self contact with friction (kappa 1e5 N/m^3, dhat 1 cm)."""
+    model = wf.Model(C_SHAPE, wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=0.3, density=1000.0),
+                     gravity=(0.0, 0.0, -9.81))
+    X = model.rest_positions
+    model.fix(np.flatnonzero(X[:, 2] < 1e-9))
+    sim = wf.Simulator(model, dt=0.01, linear_solver="direct", friction_iterations=0,
+                       linear_solver_options={"backend": "superlu"}, tol=1e-12, max_iters=300)
+    sc = sim.set_contact(bodies=False, self=True, dhat=0.01, stiffness=1e5, friction=mu)
+    sim.set_positions(sim.positions() + C_JITTER + (0.0 if dx is None else dx))
+    v = np.zeros((NC, 3))
+    arm = X[:, 2] > 0.04
+    reach = np.maximum(X[arm, 0] - 0.05, 0.0)
+    v[arm, 2], v[arm, 1] = -3.0 * reach, reach
+    sim.set_velocities(v if dv is None else v + dv)
+    xs, lagged = [sim.positions()], []
+    rec = Recording(sim)
+    if record:
+        rec.__enter__()
+    try:
+        for _ in range(STEPS):
+            assert sim.step().converged
+            xs.append(sim.positions())
+            lagged.append(sc.num_friction)
+    finally:
+        if record:
+            rec.__exit__(None, None, None)
+    return float(sum(np.sum(a * x) for a, x in zip(C_W, xs))), rec, lagged
+
+
+def test_self_contact_friction_gradients_match_central_differences():
+    _, rec, lagged = run_self(record=True)
+    assert sum(k > 0 for k in lagged) >= 8 and max(lagged) >= 100, lagged  # self pairs lagged in most steps
+    g = rec.backward({k: C_W[k] for k in range(STEPS + 1)})
+    D = np.random.default_rng(8).standard_normal((NC, 3))
+    # x_0's step is 3e-8 m: friction sticks below eps_v h = 2.3e-6 m of sliding, so the loss bends
+    # sharply in x_0 (measured: a 1e-7 m step is 2.4e-5 off, 8e-8 with a 10x friction_velocity)
+    checks = {"youngs_modulus": (float(g["youngs_modulus"]), lambda h: run_self(E=5e4 + h), 5.0),
+              "initial_velocities": (float(np.sum(g["initial_velocities"] * D)), lambda h: run_self(dv=h * D), 1e-6),
+              "initial_positions": (float(np.sum(g["initial_positions"] * D)), lambda h: run_self(dx=h * D), 3e-8),
+              "contact_friction": (float(g["contact_friction"]), lambda h: run_self(mu=MU + h), 1e-5)}
+    err = {}
+    for k, (an, f, h) in checks.items():
+        fd = (f(h)[0] - f(-h)[0]) / (2 * h)
+        err[k] = abs(an - fd) / abs(fd)
+    print({k: f"{e:.1e}" for k, e in err.items()})
+    assert max(err.values()) <= 1e-5, err
