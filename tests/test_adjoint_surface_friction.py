@@ -76,7 +76,8 @@ def test_surface_friction_gradients_match_central_differences(monkeypatch):
     g = _grads(rec)
     D = np.random.default_rng(4).standard_normal((N, 3))
     checks = {"youngs_modulus[top]": (lambda g: float(g["youngs_modulus"][0]), lambda h: run(E=1e5 + h), 10.0),
-              "initial_velocities": (lambda g: float(np.sum(g["initial_velocities"] * D)), lambda h: run(dv=h * D), 1e-6),
+              "initial_velocities": (lambda g: float(np.sum(g["initial_velocities"] * D)), lambda h: run(dv=h * D),
+                                     1e-6),
               "initial_positions": (lambda g: float(np.sum(g["initial_positions"] * D)), lambda h: run(dx=h * D), 1e-7),
               "contact_friction": (lambda g: float(g["contact_friction"]), lambda h: run(mu=MU + h), 1e-5)}
     fd = {k: (f(h)[0] - f(-h)[0]) / (2 * h) for k, (_, f, h) in checks.items()}
@@ -97,8 +98,8 @@ def test_surface_friction_gradients_match_central_differences(monkeypatch):
         no_xn = errors(_grads(rec))
     _, rec0, _, _ = run(mu=0.0, record=True)
     frictionless = errors(_grads(rec0))
-    print("no Hessian", {k: f"{e:.1e}" for k, e in no_h.items()}, "no x_n term", {k: f"{e:.1e}" for k, e in no_xn.items()},
-          "frictionless", {k: f"{e:.1e}" for k, e in frictionless.items()})
+    for what, e in (("no Hessian", no_h), ("no x_n term", no_xn), ("frictionless", frictionless)):
+        print(what, {k: f"{v:.1e}" for k, v in e.items()})
     assert no_h["initial_velocities"] > 1e-2 and no_h["initial_positions"] > 1e-2, no_h
     assert no_xn["initial_positions"] > 1e-2 and no_xn["initial_velocities"] > 1e-3, no_xn
     assert frictionless["initial_velocities"] > 1e-1, frictionless
