@@ -76,7 +76,7 @@ def test_several_bodies_gradients_match_central_differences(integrator):
     assert max(errors.values()) <= 1e-5, errors
 
 
-def test_surface_contact_with_friction_or_a_default_stiffness_is_refused_with_a_reason():
+def test_surface_contact_with_a_default_or_adaptive_stiffness_is_refused_with_a_reason():
     bodies = [wf.Body(TET, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0), name="tet"),
               wf.Body(HEX, wf.Corotated(youngs_modulus=3e5, poisson_ratio=0.2, density=600.0), name="hex",
                       offset=OFFSET)]
@@ -84,9 +84,11 @@ def test_surface_contact_with_friction_or_a_default_stiffness_is_refused_with_a_
     sim.set_contact(bodies=True)
     with pytest.raises(NotImplementedError, match="surface contact: give set_contact a stiffness"):
         Recording(sim)
-    sim.set_contact(bodies=True, stiffness=1e5, friction=0.3)
-    with pytest.raises(NotImplementedError, match="surface contact with friction"):
+    sim.set_contact(bodies=True, stiffness="auto", friction=0.3)
+    with pytest.raises(NotImplementedError, match="adaptive stiffness"):
         Recording(sim)
+    sim.set_contact(bodies=True, stiffness=1e5, friction=0.3)
+    Recording(sim)  # friction is differentiable (tests/test_adjoint_surface_friction.py)
 
 
 def _stacked(E=1e5, dv=None, dforce=None, grads=False):

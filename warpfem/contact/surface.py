@@ -468,6 +468,14 @@ class SurfaceContact:
             self._acc = wp.zeros(4, dtype=wp.float64, device=self.device)
         return self._acc
 
+    def candidates(self, x):
+        """(pairs (k, 4), kinds (k,): ``surface_kernels.PT`` / ``EE``) of the candidate pairs at the
+        device positions x after a broad phase there (host int64 copies; the pairs that ``lag``
+        would take friction from are those of them within dhat)."""
+        self.update_pairs(x)
+        k = self.num_pairs
+        return self.pairs_np[:k].copy(), self._kinds.numpy()[:k].astype(np.int64)
+
     def distances(self, x=None) -> np.ndarray:
         """Distances (m) of the current candidate pairs at x (default: the current positions),
         after a broad phase at x."""

@@ -19,7 +19,8 @@ Gradients (keys of :attr:`DiffResult.gradients`): ``youngs_modulus``, ``poisson_
 applied forces), ``gravity`` (3,), ``initial_positions`` / ``initial_velocities`` (n, 3),
 ``targets`` ({step: {vertex: (3,)}}: the kinematic handles' targets of each step),
 ``collider_translations`` / ``collider_rotations`` ({step: {collider: (3,)}}: the poses of planes,
-spheres, boxes and meshes), ``collider_friction`` ({collider: mu}).
+spheres, boxes and meshes), ``collider_friction`` ({collider: mu}), ``contact_friction`` (mu of
+surface contact).
 """
 
 from __future__ import annotations

@@ -57,6 +57,7 @@ function theorem holds at the solution, not at an early-stopped iterate.
 * ``collider_friction``: {collider name: float}, the Coulomb coefficient of each collider with
   friction (lagged from the step's start: D = mu lam_n f0(|u|), u = P (x - x_n - w), lam_n and P
   from x_n in the end pose, w the collider's motion of the point over the step).
+* ``contact_friction``: float, the Coulomb coefficient of surface contact (``set_contact(friction=...)``).
 * Several bodies (``Model.from_bodies``): ``youngs_modulus``, ``poisson_ratio`` and ``density``
   are arrays, one per body; ``element_stiffness_scale`` numbers the elements body after body.
 
@@ -67,12 +68,17 @@ steps together (default :data:`DEFAULT_FACTOR_BUDGET`, 1 GiB; 0 keeps none); its
 refines against the exact H with it instead of factorising again. Steps beyond the budget refine
 on the solver's current factorisation or prepare it on H. ``Recording.release()`` frees them.
 
-**Surface contact** (``set_contact``: bodies against each other, self contact), frictionless:
-the candidate pairs at x_{n+1} and every pair's exact barrier Hessian (the pair kernel's
-unprojected mode) enter H.
+**Surface contact** (``set_contact``: bodies against each other, self contact): the candidate
+pairs at x_{n+1} and every pair's exact barrier Hessian (the pair kernel's unprojected mode) enter
+H. With friction (:mod:`warpfem.solvers.adjoint_surface`), the pairs lagged at x_n (the candidates
+there within dhat) give, by complex step on a host copy of the lag and of the friction gradient,
+the exact friction Hessian blocks at x_{n+1} (into H), the derivative in x_n through the lagged
+normal forces, closest-point weights and normals and the explicit -x^n, and the one in mu. A
+recorded step lags friction once from x_n (colliders and surface pairs alike: the simulator skips
+its ``friction_iterations`` while recording).
 
-Not supported (a clear ``NotImplementedError``): a default (E- and mass-dependent) barrier
-stiffness (colliders and surface contact); friction in surface contact; stiffness-proportional
+Not supported (a clear ``NotImplementedError``): a default (E- and mass-dependent) or adaptive
+(``"auto"``) barrier stiffness (colliders and surface contact); stiffness-proportional
 damping (K(x_n) is SPD-projected at the step's start: its derivative in x_n would need third
 derivatives), other simulators (stiffness warping, reduced). Fixed sets, loads and material must
 stay as they were during a recording.
@@ -90,6 +96,7 @@ from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.solvers.adjoint_contact import collider_terms
+from warpfem.solvers.adjoint_surface import surface_friction_terms
 
 __all__ = ["StepAdjoint", "default_adjoint_tol", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
            "set_material_parameters", "set_density", "material_set_parameters", "check_differentiable", "Recording",
@@ -98,7 +105,7 @@ __all__ = ["StepAdjoint", "default_adjoint_tol", "StepRecord", "AdjointError", "
 #: the parameter names the adjoint can differentiate
 PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_scale", "forces", "gravity",
               "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_rotations",
-              "collider_friction")
+              "collider_friction", "contact_friction")
 
 _KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
 
@@ -139,9 +146,9 @@ def check_differentiable(sim):
                                           "stiffness explicitly (the default follows E and the mass)")
     sc = getattr(sim, "surface_contact", None)
     if sc is not None:
-        if sc.friction != 0.0:
-            raise NotImplementedError("gradients through surface contact with friction (set_contact(friction=...)) are "
-                                      "not supported: frictionless surface contact and colliders with friction are")
+        if sc.adaptive:
+            raise NotImplementedError("gradients through surface contact with an adaptive stiffness (set_contact("
+                                      "stiffness='auto')) are not supported: give set_contact a stiffness in N/m^3")
         if sc.kappa == sc.default_stiffness(sc.dhat):
             raise NotImplementedError("gradients through surface contact: give set_contact a stiffness (the default "
                                       "follows E and the mass)")
@@ -242,7 +249,7 @@ class StepAdjoint:
 
     Args:
         sim: a :class:`~warpfem.simulator.Simulator` (backward Euler, BDF2 or Newmark; colliders,
-            frictionless surface contact).
+            surface contact, with or without friction).
         params: parameter names to accumulate (default: all of :data:`PARAMETERS`); the per-element
             contraction is done only when ``element_stiffness_scale`` is asked for.
         tol: relative residual of the adjoint solve (default :func:`default_adjoint_tol`: the
@@ -327,7 +334,8 @@ class StepAdjoint:
         self._rho_now = np.array([float(m.density) for m in _body_materials(self.sim.model)])[self._vertex_body]
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": np.zeros(self.bodies), "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
-                      "targets": {}, "collider_translations": {}, "collider_rotations": {}, "collider_friction": {}}
+                      "targets": {}, "collider_translations": {}, "collider_rotations": {}, "collider_friction": {},
+                      "contact_friction": 0.0}
 
     def parameter_gradients(self) -> dict:
         """The accumulated gradients by parameter name (numpy; see the module docstring)."""
@@ -593,6 +601,15 @@ class StepAdjoint:
             self._K.assign(K)
         return out
 
+    def _surface_friction(self, rec, sc):
+        """Surface friction's complex-step terms of the step (``adjoint_surface``) from its pairs
+        lagged at x_n (the surface contact's candidates there), or None."""
+        if sc is None or not sc.has_friction():
+            return None
+        pairs, kinds = sc.candidates(self._upload(self._dev[5], rec.x))
+        return surface_friction_terms(pairs, kinds, rec.x_next, rec.x, self.sim.model.rest_positions, kappa=sc.kappa,
+                                      dhat=sc.dhat, mu=sc.friction, eps=sc.friction_velocity * rec.dt)
+
     # -- the reverse pass of one step -------------------------------------------------------------------------
     def backward(self, rec: StepRecord, xbar, vbar, hbar=None, step_index=None):
         """Adjoints (xbar_n, vbar_n, hbar_n) of a step's input from those of its output (x_{n+1},
@@ -625,6 +642,7 @@ class StepAdjoint:
             vhat_bar -= hbar["a"] / s
         # the implicit solve: H lambda = ybar on the free components
         sc = getattr(sim, "surface_contact", None)
+        sfric = self._surface_friction(rec, sc)  # lagged at x_n: its broad phase there first
         if sc is not None:  # its candidate pairs at x_{n+1} (the pattern may grow for them)
             sc.update_pairs(self._upload(self._dev[5], rec.x_next))
             self._follow_pattern()
@@ -632,6 +650,10 @@ class StepAdjoint:
         planes = self._add_contact_hessian(rec)
         if sc is not None:  # the exact (unprojected) Hessian of every pair's barrier at x_{n+1}
             sc.exact_hessian(x_dev, self._K)
+        if sfric is not None:  # surface friction's exact Hessian blocks at x_{n+1}
+            K = self._K.numpy()
+            sfric.add_hessian(K, sim.pattern)
+            self._K.assign(K)
         cm, ck = 1.0 + s * alpha, s * s
         Hc = self._host_H(self._K, cm, ck)
 
@@ -681,6 +703,9 @@ class StepAdjoint:
                     store[col.name] = store.get(col.name, 0.0) + sl
                 if col.friction != 0.0:
                     G["collider_friction"][col.name] = G["collider_friction"].get(col.name, 0.0) + float(par[12])
+        if sfric is not None and np.any(lam):  # -s lambda^T d(grad D)/d(x_n, mu) of surface friction
+            xn_bar -= s * sfric.xn_product(lam)
+            self.grads["contact_friction"] -= s * sfric.mu_product(lam)
         # parameters at the converged step
         if np.any(lam):
             self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha, M_w=M_lam)
