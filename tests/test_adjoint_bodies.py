@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import warpfem as wf
+from tiny_scenes import beam_on_block_model
 from warpfem.solvers.adjoint import Recording, set_element_stiffness_scale
 
 STEPS = 10
@@ -95,17 +96,8 @@ def _stacked(E=1e5, dv=None, dforce=None, grads=False):
     """A Tet4 beam pushed (0.5 N per vertex, gravity) onto a clamped Hex8 block 9 mm below it,
     frictionless surface contact (kappa 1e5 N/m^3, dhat 1 cm): point-triangle and edge-edge pairs
     within dhat in every step (asserted)."""
-    top = wf.box_tet_mesh(size=(0.2, 0.05, 0.05), cells=(2, 1, 1))
-    base = wf.box_hex_mesh(size=(0.3, 0.1, 0.05), cells=(2, 1, 1))
-    bodies = [wf.Body(top, wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=0.3, density=1000.0), name="top"),
-              wf.Body(base, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0), name="base",
-                      offset=(-0.05, -0.025, -0.059))]
-    model = wf.Model.from_bodies(bodies, gravity=(0.0, 0.0, -9.81))
-    n0 = top.num_vertices
-    model.forces[:n0] = (0.0, 0.0, -0.5)
-    if dforce is not None:
-        model.forces[:] += dforce
-    model.fix(np.flatnonzero(model.rest_positions[:, 2] < -0.1))
+    model = beam_on_block_model(E, dforce)
+    n0 = int(model.body_offsets[1])
     sim = wf.Simulator(model, dt=0.01, integrator="backward_euler", linear_solver="direct",
                        linear_solver_options={"backend": "superlu"}, tol=1e-12, max_iters=300)
     sc = sim.set_contact(bodies=True, dhat=0.01, stiffness=1e5)

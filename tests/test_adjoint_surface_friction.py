@@ -15,6 +15,7 @@ import warp as wp
 import warpfem as wf
 from warpfem.contact import surface_kernels as SK
 from warpfem.solvers import adjoint_surface as AS
+from tiny_scenes import beam_on_block_model
 from warpfem.solvers.adjoint import Recording
 
 STEPS = 10
@@ -29,22 +30,9 @@ W = RNG.standard_normal((STEPS + 1, N, 3))
 MU = 0.4
 
 
-def run(E=1e5, mu=MU, dv=None, dx=None, integrator="backward_euler", record=False):
-    bodies = [wf.Body(TOP, wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=0.3, density=1000.0), name="top"),
-              wf.Body(BASE, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0), name="base",
-                      offset=(-0.05, -0.025, -0.059))]
-    model = wf.Model.from_bodies(bodies, gravity=(0.0, 0.0, -9.81))
-    n0 = TOP.num_vertices
-    model.forces[:n0] = (0.0, 0.0, -0.5)
-    model.fix(np.flatnonzero(model.rest_positions[:, 2] < -0.05))  # the block's bottom
-    # friction_iterations=0: friction lagged once from the step start, as recorded steps do
-    sim = wf.Simulator(model, dt=0.01, integrator=integrator, linear_solver="direct", friction_iterations=0,
-                       linear_solver_options={"backend": "superlu"}, tol=1e-12, max_iters=300)
-    sc = sim.set_contact(bodies=True, dhat=0.01, stiffness=1e5, friction=mu)
-    sim.set_positions(sim.positions() + JITTER + (0.0 if dx is None else dx))
-    v = np.zeros((N, 3))
-    v[:n0] = (0.3, 0.1, -0.3)
-    sim.set_velocities(v if dv is None else v + dv)
+def _stepped(sim, sc, weights, record):
+    """STEPS converged steps of ``sim`` (recorded when ``record``): (the loss sum_k weights_k . x_k,
+    the recording, the lagged friction pairs of each step, the positions)."""
     xs, lagged = [sim.positions()], []
     rec = Recording(sim)
     if record:
@@ -57,8 +45,21 @@ def run(E=1e5, mu=MU, dv=None, dx=None, integrator="backward_euler", record=Fals
     finally:
         if record:
             rec.__exit__(None, None, None)
-    loss = float(sum(np.sum(a * x) for a, x in zip(W, xs)))
-    return loss, rec, lagged, xs
+    return float(sum(np.sum(a * x) for a, x in zip(weights, xs))), rec, lagged, xs
+
+
+def run(E=1e5, mu=MU, dv=None, dx=None, integrator="backward_euler", record=False):
+    model = beam_on_block_model(E)
+    n0 = TOP.num_vertices
+    # friction_iterations=0: friction lagged once from the step start, as recorded steps do
+    sim = wf.Simulator(model, dt=0.01, integrator=integrator, linear_solver="direct", friction_iterations=0,
+                       linear_solver_options={"backend": "superlu"}, tol=1e-12, max_iters=300)
+    sc = sim.set_contact(bodies=True, dhat=0.01, stiffness=1e5, friction=mu)
+    sim.set_positions(sim.positions() + JITTER + (0.0 if dx is None else dx))
+    v = np.zeros((N, 3))
+    v[:n0] = (0.3, 0.1, -0.3)
+    sim.set_velocities(v if dv is None else v + dv)
+    return _stepped(sim, sc, W, record)
 
 
 def _grads(rec):
@@ -190,19 +191,8 @@ def run_self(E=5e4, mu=MU, dv=None, dx=None, record=False):
     reach = np.maximum(X[arm, 0] - 0.05, 0.0)
     v[arm, 2], v[arm, 1] = -3.0 * reach, reach
     sim.set_velocities(v if dv is None else v + dv)
-    xs, lagged = [sim.positions()], []
-    rec = Recording(sim)
-    if record:
-        rec.__enter__()
-    try:
-        for _ in range(STEPS):
-            assert sim.step().converged
-            xs.append(sim.positions())
-            lagged.append(sc.num_friction)
-    finally:
-        if record:
-            rec.__exit__(None, None, None)
-    return float(sum(np.sum(a * x) for a, x in zip(C_W, xs))), rec, lagged
+    loss, rec, lagged, _ = _stepped(sim, sc, C_W, record)
+    return loss, rec, lagged
 
 
 def test_self_contact_friction_gradients_match_central_differences():

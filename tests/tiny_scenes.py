@@ -140,3 +140,26 @@ def reduced_beam_model(gravity=(0.0, 0.0, -9.81)):
     model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e6, poisson_ratio=0.3, density=100.0), gravity=gravity)
     model.fix(wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1e-6, 2, 2)))
     return model
+
+
+def beam_on_block_model(E: float = 1e5, dforce=None):
+    """Two bodies for the surface-contact gradient tests: a Tet4 beam (0.2 x 0.05 x 0.05 m, 2 x 1 x 1
+    cells, E ``E``) pushed down by 0.5 N per vertex and gravity onto a Hex8 block (0.3 x 0.1 x
+    0.05 m, E 1e5) 9 mm below it whose bottom face is clamped; stable neo-Hookean, nu 0.3, 1000
+    kg/m^3. ``dforce`` (n, 3) is added to the applied forces. Returns the model (the beam's
+    vertices first)."""
+    import numpy as np
+
+    import warpfem as wf
+
+    top = wf.box_tet_mesh(size=(0.2, 0.05, 0.05), cells=(2, 1, 1))
+    base = wf.box_hex_mesh(size=(0.3, 0.1, 0.05), cells=(2, 1, 1))
+    bodies = [wf.Body(top, wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=0.3, density=1000.0), name="top"),
+              wf.Body(base, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0), name="base",
+                      offset=(-0.05, -0.025, -0.059))]
+    model = wf.Model.from_bodies(bodies, gravity=(0.0, 0.0, -9.81))
+    model.forces[:top.num_vertices] = (0.0, 0.0, -0.5)
+    if dforce is not None:
+        model.forces[:] += dforce
+    model.fix(np.flatnonzero(model.rest_positions[:, 2] < -0.05))  # the block's bottom face
+    return model
