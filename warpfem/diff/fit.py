@@ -253,6 +253,8 @@ def write_fitted_scene(scene_path, fitted: dict, out_path, header=None) -> str:
             if name not in names:
                 raise DiffInputError(f"{scene_path}: no [[collider]] named {name!r} to write {k} into")
             cols[names.index(name)]["friction"] = float(v)
+        elif doc.get("body"):  # a one-body [[body]] scene (fit takes no material parameter of several)
+            doc["body"][0].setdefault("material", {})[k] = float(v)
         else:
             doc.setdefault("material", {})[k] = float(v)
     src_dir = os.path.dirname(os.path.abspath(scene_path))
