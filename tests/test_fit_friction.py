@@ -211,7 +211,8 @@ def test_fit_recovers_a_floors_friction_from_a_noisy_recording(tmp_path, capsys)
     assert "fitted friction:floor" in capsys.readouterr().out
 
 
-@pytest.mark.parametrize("case", ["collider", "no_collider", "no_contact", "unknown", "bounds", "negative_bound"])
+@pytest.mark.parametrize("case", ["collider", "no_collider", "no_contact", "contact_off", "unknown", "bounds",
+                                  "negative_bound"])
 def test_bad_friction_parameters_are_one_line_and_exit_2(tmp_path, case, capsys):
     path = tmp_path / "slide.toml"
     text = SLIDE.replace("MU", "0.3")
@@ -223,6 +224,8 @@ def test_bad_friction_parameters_are_one_line_and_exit_2(tmp_path, case, capsys)
         params = ["friction:floor"]
     elif case == "no_contact":
         text = text.replace("[contact]\nfriction_iterations = 0\n", "")
+        params = ["contact_friction"]
+    elif case == "contact_off":  # one body, [contact] without self = true: no surface contact
         params = ["contact_friction"]
     elif case == "unknown":
         params = ["friction"]
@@ -239,6 +242,7 @@ def test_bad_friction_parameters_are_one_line_and_exit_2(tmp_path, case, capsys)
     assert len(err.splitlines()) == 1 and err.startswith("warpfem: error:"), err
     expect = {"collider": "no collider named 'flor' (its colliders are 'floor', 'sphere2')",
               "no_collider": "it has no [[collider]]", "no_contact": "no [contact] table",
+              "contact_off": "surface contact is off",
               "unknown": "unknown parameter 'friction'", "bounds": "bounds given for 'friction:wall'",
               "negative_bound": "must be >= 0"}[case]
     assert expect in err, err

@@ -259,12 +259,11 @@ class SceneProblem:
             self._run = scene_with_parameters(self.scene, params).build(device=self.device, precision=self.precision)
             sim = self._run.sim
             self._initial = (sim.positions(), sim.velocities())
-            if CONTACT_FRICTION in params and sim.surface_contact is None:
-                raise DiffInputError("contact_friction: the scene's surface contact is off ([contact] with bodies = false "
-                                     "and no self contact, or a single body without self = true)")
             self._applied = dict(values)
-            return self._run
         sim = self._run.sim
+        if CONTACT_FRICTION in params and sim.surface_contact is None:
+            raise DiffInputError("contact_friction: the scene's surface contact is off (a single body without "
+                                 "[contact] self = true, or bodies = false): it has no surface friction")
         changed = {k for k, v in values.items() if self._applied.get(k) != v}
         if changed & {"youngs_modulus", "poisson_ratio"}:
             set_material_parameters(sim, values["youngs_modulus"], values["poisson_ratio"])
