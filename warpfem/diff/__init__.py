@@ -193,8 +193,11 @@ def scene_with_parameters(scene, params=None, *, newton_tol=None):
     ``newton_tol`` (gradients hold at the converged solution)."""
     params = dict(params or {})
     check_parameter_names(scene, params)
-    sc = copy.copy(scene)
-    sc.spec = copy.deepcopy(scene.spec)
+    if scene.spec.bodies:  # a [[body]] scene caches its bodies' scenes (and their materials): a new one
+        sc = type(scene)(copy.deepcopy(scene.spec))
+    else:  # the same mesh (loaded once)
+        sc = copy.copy(scene)
+        sc.spec = copy.deepcopy(scene.spec)
     cols = _collider_names(sc.spec)
     for k, v in params.items():
         v = float(v)
