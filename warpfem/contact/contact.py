@@ -260,6 +260,24 @@ class ContactSet:
     def has_friction(self) -> bool:
         return any(c.friction > 0.0 for c in self.colliders)
 
+    def collider(self, name) -> Collider:
+        """The collider named ``name``; a ``KeyError`` listing the names otherwise."""
+        for c in self.colliders:
+            if c.name == name:
+                return c
+        raise KeyError(f"no collider named {name!r}; the colliders are "
+                       f"{', '.join(repr(c.name) for c in self.colliders) or 'none'}")
+
+    def set_friction(self, name, mu):
+        """Change the Coulomb coefficient of the collider named ``name`` in place (the collider's
+        ``friction`` and the device array the contact kernel reads), without uploading the colliders
+        again: for runs that differentiate or fit it (``warpfem.diff``)."""
+        mu = float(mu)
+        if not (np.isfinite(mu) and mu >= 0.0):
+            raise ValueError(f"collider {name!r}: friction must be >= 0, got {mu!r}")
+        self.collider(name).friction = mu
+        self._mu.assign(np.array([c.friction for c in self.colliders], dtype=self.ops.np_dtype))
+
     def relag(self, x) -> np.ndarray:
         """Friction's normal forces and normals lagged again, from the positions x (the step's
         last iterate; the step start and the collider motion stay): one fixed-point iteration of

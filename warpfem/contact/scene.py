@@ -14,17 +14,33 @@ _COMMON = ("name", "friction", "dhat", "stiffness", "friction_velocity", "transl
            "rotation_angle", "rotation_center", "ramp_time")
 
 
+def scene_collider_names(entries) -> list:
+    """The names the colliders of ``[[collider]]`` ``entries`` (a scene spec's ``collider`` list)
+    get on the simulator: their ``name``, default ``<type><position>`` (``plane1``, ``box2``, ...),
+    a repeated name numbered from 2 on as ``ContactSet.add`` does (``floor``, ``floor2``)."""
+    names = []
+    for i, c in enumerate(entries):
+        base = c.get("name") or f"{c['type']}{i + 1}"
+        name, k = base, 2
+        while name in names:
+            name, k = f"{base}{k}", k + 1
+        names.append(name)
+    return names
+
+
 def add_scene_colliders(scene, sim, *, duration):
-    """Add the scene's ``[[collider]]`` entries to ``sim`` (ramp_time default: ``duration``)."""
+    """Add the scene's ``[[collider]]`` entries to ``sim`` (ramp_time default: ``duration``), named
+    by :func:`scene_collider_names`."""
     if not hasattr(sim, "add_collider"):
         scene.fail("[[collider]] #1", f"{type(sim).__name__} does not handle colliders")
+    names = scene_collider_names(scene.spec.collider)
     for i, c in enumerate(scene.spec.collider):
         kw = {k: c[k] for k in _GEOMETRY[c["type"]] + _COMMON if c.get(k) is not None}
         if c["type"] == "sphere":
             kw["center"] = tuple(kw["center"])
         if kw.get("ramp_time") is None:
             kw["ramp_time"] = duration
-        kw.setdefault("name", f"{c['type']}{i + 1}")
+        kw["name"] = names[i]
         try:
             col = make_collider(c["type"], **kw)
             sim.add_collider(col)

@@ -519,6 +519,15 @@ class SurfaceContact:
     def has_friction(self) -> bool:
         return self.friction > 0.0
 
+    def set_friction(self, mu):
+        """Change the Coulomb coefficient mu in place (the friction kernel reads it at every launch;
+        the next step's :meth:`begin_step` lags the pairs with it): for runs that differentiate or
+        fit it (``warpfem.diff``)."""
+        mu = float(mu)
+        if not (np.isfinite(mu) and mu >= 0.0):
+            raise ValueError(f"set_contact: friction must be >= 0, got {mu!r}")
+        self.friction = mu
+
     def normal_forces(self) -> np.ndarray:
         """The lagged normal forces (N) of the friction pairs."""
         if not self.num_friction:

@@ -20,7 +20,13 @@ applied forces), ``gravity`` (3,), ``initial_positions`` / ``initial_velocities`
 ``targets`` ({step: {vertex: (3,)}}: the kinematic handles' targets of each step),
 ``collider_translations`` / ``collider_rotations`` ({step: {collider: (3,)}}: the poses of planes,
 spheres, boxes and meshes), ``collider_friction`` ({collider: mu}), ``contact_friction`` (mu of
-surface contact).
+surface contact). A scene's run also gives each collider friction as ``friction:<collider name>``.
+
+A scene's gradient run sets (:func:`scene_parameters_of`) ``youngs_modulus``, ``poisson_ratio``,
+``density`` (``[material]``), ``contact_friction`` (``[contact] friction``: surface contact
+between bodies, self contact) and ``friction:<name>`` (that ``[[collider]]``'s ``friction``; the
+name as the scene gives it, default ``<type><position>``: ``plane1``). A friction of 0 is run as
+:data:`FRICTION_FLOOR` (at mu = 0 the simulator drops friction, and with it the gradient in mu).
 """
 
 from __future__ import annotations
@@ -31,13 +37,25 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["loss_and_gradients", "SceneProblem", "DiffResult", "positions_loss", "SCENE_PARAMETERS", "scene_with_parameters",
-           "DiffInputError", "check_observation"]
+           "DiffInputError", "check_observation", "MATERIAL_PARAMETERS", "CONTACT_FRICTION", "FRICTION_PREFIX",
+           "FRICTION_FLOOR", "scene_parameters_of", "scene_parameter_values", "check_parameter_names"]
 
 #: the tightest Newton tolerance a float32 gradient run asks for (below it float32 round-off stalls Newton)
 FLOAT32_NEWTON_TOL = 1e-5
 
-#: the parameters a scene's gradient run can set (and ``warpfem fit`` identify)
-SCENE_PARAMETERS = ("youngs_modulus", "poisson_ratio", "density")
+#: the ``[material]`` parameters of a (one-body) scene's gradient run
+MATERIAL_PARAMETERS = ("youngs_modulus", "poisson_ratio", "density")
+#: ``[contact] friction``: mu of surface contact (between bodies, self contact)
+CONTACT_FRICTION = "contact_friction"
+#: ``friction:<collider name>``: the ``friction`` of that ``[[collider]]``
+FRICTION_PREFIX = "friction:"
+#: the parameters a scene's gradient run can set (and ``warpfem fit`` identify); the names a given
+#: scene takes: :func:`scene_parameters_of`
+SCENE_PARAMETERS = MATERIAL_PARAMETERS + (CONTACT_FRICTION, FRICTION_PREFIX + "<collider>")
+#: a friction parameter of 0 runs as this mu: the simulator lags friction only where mu > 0 (and the
+#: adjoint differentiates it only there), so mu = 0 would give no gradient in mu; the loss differs
+#: from mu = 0's by FRICTION_FLOOR x its slope
+FRICTION_FLOOR = 1e-9
 
 
 class DiffInputError(ValueError):
@@ -104,22 +122,94 @@ def positions_loss(positions, observed, vertices, frames):
     return loss, grads
 
 
+def _collider_names(spec):
+    from warpfem.contact.scene import scene_collider_names
+
+    return scene_collider_names(spec.collider or [])
+
+
+def scene_parameters_of(scene) -> tuple:
+    """The parameter names ``scene``'s gradient run takes: :data:`MATERIAL_PARAMETERS` (a one-body
+    scene), ``contact_friction`` (a scene with ``[contact]``) and ``friction:<name>`` for each
+    ``[[collider]]``."""
+    spec = scene.spec
+    names = MATERIAL_PARAMETERS if len(spec.bodies or ()) <= 1 else ()
+    if spec.contact is not None:
+        names += (CONTACT_FRICTION,)
+    return names + tuple(FRICTION_PREFIX + n for n in _collider_names(spec))
+
+
+def check_parameter_names(scene, names, what="a scene's gradient run"):
+    """Raise :class:`DiffInputError` (one line: what is wrong, what the scene has) for a name that
+    ``scene`` does not take (:func:`scene_parameters_of`)."""
+    known = scene_parameters_of(scene)
+    spec = scene.spec
+    for k in names:
+        if k in known:
+            continue
+        if not isinstance(k, str):
+            raise DiffInputError(f"parameter names are strings, got {k!r}")
+        if k.startswith(FRICTION_PREFIX):
+            cols = _collider_names(spec)
+            have = ("its colliders are " + ", ".join(map(repr, cols))) if cols else "it has no [[collider]]"
+            raise DiffInputError(f"{k!r}: the scene has no collider named {k[len(FRICTION_PREFIX):]!r} ({have})")
+        if k == CONTACT_FRICTION:
+            raise DiffInputError(f"{k!r}: the scene has no [contact] table (surface contact's friction lives there; "
+                                 f"add [contact] with friction = ...); it takes {', '.join(known)}")
+        if k in MATERIAL_PARAMETERS:
+            raise DiffInputError(f"{k!r}: a scene of {len(spec.bodies)} [[body]] tables has a material per body, which "
+                                 f"a gradient run does not set; it takes {', '.join(known) or 'nothing'}")
+        raise DiffInputError(f"unknown parameter {k!r}; {what} takes {', '.join(known)}")
+
+
+def scene_parameter_values(scene, names) -> dict:
+    """The values of ``names`` (:func:`scene_parameters_of`) in ``scene``'s spec."""
+    check_parameter_names(scene, names)
+    spec, out = scene.spec, {}
+    cols = _collider_names(spec)
+    for k in names:
+        if k == CONTACT_FRICTION:
+            out[k] = float(spec.contact.get("friction") or 0.0)
+        elif k.startswith(FRICTION_PREFIX):
+            out[k] = float(spec.collider[cols.index(k[len(FRICTION_PREFIX):])].get("friction") or 0.0)
+        else:
+            out[k] = float(spec.material[k])
+    return out
+
+
+def _run_value(name, value):
+    """The value a run uses for ``name``: frictions >= :data:`FRICTION_FLOOR`."""
+    if name == CONTACT_FRICTION or name.startswith(FRICTION_PREFIX):
+        if value < 0.0:
+            raise DiffInputError(f"{name} must be >= 0, got {value!r}")
+        return max(value, FRICTION_FLOOR)
+    return value
+
+
 def scene_with_parameters(scene, params=None, *, newton_tol=None):
-    """A copy of ``scene`` (a :class:`~warpfem.scenes.Scene`) with ``[material]`` values replaced by
-    ``params`` (names of :data:`SCENE_PARAMETERS`) and the Newton tolerance tightened to
+    """A copy of ``scene`` (a :class:`~warpfem.scenes.Scene`) with ``params`` (names of
+    :func:`scene_parameters_of`: ``[material]`` values, ``[contact] friction``, a
+    ``[[collider]]``'s ``friction``) written in and the Newton tolerance tightened to
     ``newton_tol`` (gradients hold at the converged solution)."""
     params = dict(params or {})
-    unknown = [k for k in params if k not in SCENE_PARAMETERS]
-    if unknown:
-        raise DiffInputError(f"unknown parameter(s) {', '.join(map(repr, unknown))}; a scene's gradient run "
-                             f"takes {', '.join(SCENE_PARAMETERS)}")
-    sc = copy.copy(scene)
-    sc.spec = copy.deepcopy(scene.spec)
+    check_parameter_names(scene, params)
+    if scene.spec.bodies:  # a [[body]] scene caches its bodies' scenes (and their materials): a new one
+        sc = type(scene)(copy.deepcopy(scene.spec))
+    else:  # the same mesh (loaded once)
+        sc = copy.copy(scene)
+        sc.spec = copy.deepcopy(scene.spec)
+    cols = _collider_names(sc.spec)
     for k, v in params.items():
         v = float(v)
         if not np.isfinite(v):
             raise DiffInputError(f"{k} must be finite, got {v!r}")
-        sc.spec.material[k] = v
+        v = _run_value(k, v)
+        if k == CONTACT_FRICTION:
+            sc.spec.contact["friction"] = v
+        elif k.startswith(FRICTION_PREFIX):
+            sc.spec.collider[cols.index(k[len(FRICTION_PREFIX):])]["friction"] = v
+        else:
+            sc.spec.material[k] = v
     if newton_tol is not None:
         sc.spec.integrator["tol"] = min(float(sc.spec.integrator.get("tol", 1e-6)), float(newton_tol))
         sc.spec.integrator["atol"] = 0.0
@@ -136,8 +226,9 @@ def _scene(source):
 
 class SceneProblem:
     """A scene's gradient runs against one observation, built once: every :meth:`evaluate` changes
-    Young's modulus, Poisson ratio and density in place (``set_material_parameters``,
-    ``set_density``) and restarts from the initial state."""
+    Young's modulus, Poisson ratio and density (``set_material_parameters``, ``set_density``) and
+    the frictions (``ContactSet.set_friction``, ``SurfaceContact.set_friction``) in place and
+    restarts from the initial state."""
 
     def __init__(self, scene, observed, *, vertices=None, frames=None, device="cpu", precision="float64",
                  newton_tol=1e-10, run_frames=None):
@@ -164,16 +255,29 @@ class SceneProblem:
     def _prepare(self, params):
         from warpfem.solvers.adjoint import set_density, set_material_parameters
 
-        mat = self.scene.spec.material
+        names = scene_parameters_of(self.scene)
+        values = {k: _run_value(k, float(params[k])) if k in params else v
+                  for k, v in scene_parameter_values(self.scene, names).items()}
         if self._run is None:
             self._run = scene_with_parameters(self.scene, params).build(device=self.device, precision=self.precision)
             sim = self._run.sim
             self._initial = (sim.positions(), sim.velocities())
-            return self._run
+            self._applied = dict(values)
         sim = self._run.sim
-        set_material_parameters(sim, params.get("youngs_modulus", mat["youngs_modulus"]),
-                                params.get("poisson_ratio", mat["poisson_ratio"]))
-        set_density(sim, params.get("density", mat["density"]))
+        if CONTACT_FRICTION in params and sim.surface_contact is None:
+            raise DiffInputError("contact_friction: the scene's surface contact is off (a single body without "
+                                 "[contact] self = true, or bodies = false): it has no surface friction")
+        changed = {k for k, v in values.items() if self._applied.get(k) != v}
+        if changed & {"youngs_modulus", "poisson_ratio"}:
+            set_material_parameters(sim, values["youngs_modulus"], values["poisson_ratio"])
+        if "density" in changed:
+            set_density(sim, values["density"])
+        for k in changed:
+            if k == CONTACT_FRICTION and sim.surface_contact is not None:
+                sim.surface_contact.set_friction(values[k])
+            elif k.startswith(FRICTION_PREFIX):
+                sim.contact.set_friction(k[len(FRICTION_PREFIX):], values[k])
+        self._applied = dict(values)
         sim.set_positions(self._initial[0])  # clears the integrator's history
         sim.set_velocities(self._initial[1])
         sim.time = 0.0
@@ -183,14 +287,19 @@ class SceneProblem:
         return self._run
 
     def evaluate(self, params=None, wanted=None, element_stiffness_scale=None, last_frame=None) -> DiffResult:
-        """Loss and gradients at ``params`` (names of :data:`SCENE_PARAMETERS`; others keep the
+        """Loss and gradients at ``params`` (names of :func:`scene_parameters_of`; others keep the
         scene's) and the per-element stiffness factors (default 1). ``last_frame``: run only up to
         that frame, the loss over the chosen frames up to it (the handles still ramp as in the
-        whole run)."""
+        whole run). ``wanted``: the gradients to compute (names of the adjoint's ``PARAMETERS`` or
+        of the scene's; default all); each collider friction's gradient also comes as
+        ``friction:<name>``."""
         from warpfem.solvers.adjoint import set_element_stiffness_scale
 
         params = dict(params or {})
         scene_with_parameters(self.scene, params)  # validates the names and values
+        if wanted is not None:
+            wanted = list(dict.fromkeys("collider_friction" if str(w).startswith(FRICTION_PREFIX) else w
+                                        for w in wanted))
         run = self._prepare(params)
         set_element_stiffness_scale(run.sim, element_stiffness_scale)
         F = self.observed.shape[0]
@@ -198,8 +307,13 @@ class SceneProblem:
         if not 1 <= last <= F - 1:
             raise DiffInputError(f"last_frame must be in 1..{F - 1}, got {last_frame!r}")
         frames = [f for f in self.frames if f <= last]
-        return _record_and_differentiate(run.sim, last + 1, self.observed, self.vertices, frames, wanted,
-                                         lambda f: run.step_frame(total_frames=F - 1))
+        res = _record_and_differentiate(run.sim, last + 1, self.observed, self.vertices, frames, wanted,
+                                        lambda f: run.step_frame(total_frames=F - 1))
+        cf = res.gradients.get("collider_friction")
+        if cf is not None:  # every collider's, 0 where no vertex came within its dhat
+            for name in _collider_names(self.scene.spec):
+                res.gradients[FRICTION_PREFIX + name] = float(cf.get(name, 0.0))
+        return res
 
 
 def _record_and_differentiate(sim, F, obs, vertices, frames, wanted, advance):
@@ -243,7 +357,8 @@ def loss_and_gradients(source, observed, *, vertices=None, frames=None, params=N
         observed: (frames, n or len(vertices), 3) positions (m); frame 0 is the initial state.
         vertices: indices of the observed vertices (default all).
         frames: the frames in the loss (default all).
-        params: scene parameters (:data:`SCENE_PARAMETERS`) for a scene source.
+        params: scene parameters (:func:`scene_parameters_of`: ``[material]`` values,
+            ``contact_friction``, ``friction:<collider name>``) for a scene source.
         steps_per_frame: time steps per frame of a simulator source (a scene uses its substeps).
         targets: for a simulator source, ``targets(step) -> {vertex: (3,)}`` (kinematic handles) or None.
         element_stiffness_scale: (m,) per-element stiffness factors applied before the run.

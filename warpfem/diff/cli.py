@@ -1,5 +1,6 @@
 """``warpfem fit SCENE --observed OBS.npz --params youngs_modulus poisson_ratio``: identify material
-parameters from a recorded trajectory (:func:`warpfem.diff.fit.fit`; docs/gradients.md).
+parameters and friction coefficients (``contact_friction``, ``friction:<collider name>``) from a
+recorded trajectory (:func:`warpfem.diff.fit.fit`; docs/gradients.md).
 
 Listed in :data:`warpfem.cli.COMMANDS`. Exit codes as in :mod:`warpfem.cli`: 0 fitted, 1 a run
 failed (a step diverged), 2 bad input (scene, observation, vertices, parameters, bounds, output
@@ -17,7 +18,8 @@ def _bounds(items):
         name, sep, rng = it.partition("=")
         lo, sep2, hi = rng.partition(",")
         if not sep or not sep2:
-            raise ValueError(f"--bounds {it!r}: write NAME=LOWER,UPPER (e.g. youngs_modulus=1e4,1e8)")
+            raise ValueError(f"--bounds {it!r}: write NAME=LOWER,UPPER (e.g. youngs_modulus=1e4,1e8 or "
+                             f"friction:floor=0,1.5)")
         out[name] = (float(lo), float(hi))
     return out
 
@@ -87,17 +89,22 @@ def _cmd_fit(args) -> int:
 
 
 def register(subparsers):
-    from warpfem.diff import SCENE_PARAMETERS
+    from warpfem.diff import CONTACT_FRICTION, FRICTION_PREFIX, MATERIAL_PARAMETERS
 
-    p = subparsers.add_parser("fit", help="identify material parameters from a recorded trajectory (adjoint "
-                                          "gradients + L-BFGS-B)")
-    p.add_argument("scene", help="TOML scene file (dynamic integrator); its [material] values are the start")
+    p = subparsers.add_parser("fit", help="identify material parameters and friction coefficients from a recorded "
+                                          "trajectory (adjoint gradients + L-BFGS-B)")
+    p.add_argument("scene", help="TOML scene file (dynamic integrator); its values are the start")
     p.add_argument("--observed", required=True, help="npz with 'positions' (frames, n, 3), as [output] states writes")
     p.add_argument("--params", nargs="+", default=["youngs_modulus", "poisson_ratio"],
-                   metavar="NAME", help=f"parameters to fit: {', '.join(SCENE_PARAMETERS)} (default E and nu)")
+                   metavar="NAME", help="parameters to fit (default youngs_modulus poisson_ratio): "
+                                        f"{', '.join(MATERIAL_PARAMETERS)} ([material]); {CONTACT_FRICTION} ([contact] "
+                                        f"friction: surface contact); {FRICTION_PREFIX}NAME (the friction of the "
+                                        "[[collider]] named NAME; default names <type><position>, e.g. plane1)")
     p.add_argument("--vertices", help="file of observed vertex indices (text or .npy); the observation holds "
                                       "those vertices, or all of them")
-    p.add_argument("--bounds", nargs="*", metavar="NAME=LO,HI", help="search bounds (SI units)")
+    p.add_argument("--bounds", nargs="*", metavar="NAME=LO,HI",
+                   help="search bounds (SI units; defaults E 10..1e13 Pa, nu 0..0.495, density 0.1..1e5 kg/m^3, "
+                        "frictions 0..2), e.g. youngs_modulus=1e4,1e8 friction:floor=0,1.5")
     p.add_argument("--frames", type=int, help="frames of the recorded run, as `warpfem run --frames` (default the "
                                               "scene's [output] frames); the observation has one more")
     p.add_argument("--max-iterations", type=int, default=50, help="L-BFGS-B iterations (default 50)")

@@ -2,9 +2,10 @@
 
 :func:`fit` minimises the squared-distance loss of :func:`warpfem.diff.loss_and_gradients` between a
 scene's run and observed positions (the ``positions`` of an ``[output] states`` npz) over chosen
-material parameters, by L-BFGS-B (scipy) on the adjoint gradients, within bounds. The optimiser
-works on log E and log density (positive, wide ranges) and on nu itself, with the loss divided by
-its value at the start (so its tolerances do not depend on units or noise level).
+material parameters and friction coefficients (``contact_friction``, ``friction:<collider>``), by
+L-BFGS-B (scipy) on the adjoint gradients, within bounds. The optimiser works on log E and log
+density (positive, wide ranges) and on nu and the frictions themselves (mu may go to 0), with the
+loss divided by its value at the start (so its tolerances do not depend on units or noise level).
 """
 
 from __future__ import annotations
@@ -17,13 +18,22 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from warpfem.diff import SCENE_PARAMETERS, DiffInputError, scene_with_parameters
+from warpfem.diff import (CONTACT_FRICTION, FRICTION_PREFIX, SCENE_PARAMETERS, DiffInputError, check_parameter_names,
+                          scene_parameter_values)
 
 __all__ = ["fit", "FitResult", "DEFAULT_BOUNDS", "load_observation", "load_vertices", "write_fitted_scene"]
 
-#: parameter -> (lower, upper) bounds of the search (SI units)
-DEFAULT_BOUNDS = {"youngs_modulus": (1e1, 1e13), "poisson_ratio": (0.0, 0.495), "density": (1e-1, 1e5)}
-_LOG = {"youngs_modulus": True, "poisson_ratio": False, "density": True}
+#: parameter -> (lower, upper) bounds of the search (SI units); "friction": every friction coefficient
+#: (``contact_friction``, ``friction:<collider>``)
+DEFAULT_BOUNDS = {"youngs_modulus": (1e1, 1e13), "poisson_ratio": (0.0, 0.495), "density": (1e-1, 1e5),
+                  "friction": (0.0, 2.0)}
+#: whether the optimiser works on the parameter's logarithm (by DEFAULT_BOUNDS key)
+_LOG = {"youngs_modulus": True, "poisson_ratio": False, "density": True, "friction": False}
+
+
+def _kind(p):
+    """The DEFAULT_BOUNDS / _LOG key of parameter ``p``."""
+    return "friction" if p == CONTACT_FRICTION or p.startswith(FRICTION_PREFIX) else p
 
 
 @dataclass
@@ -88,14 +98,11 @@ def load_vertices(path):
     return v
 
 
-def _check_params(params):
+def _check_params(params, scene):
     params = list(params)
     if not params:
         raise DiffInputError("no parameters to fit (choose from " + ", ".join(SCENE_PARAMETERS) + ")")
-    unknown = [p for p in params if p not in SCENE_PARAMETERS]
-    if unknown:
-        raise DiffInputError(f"unknown parameter(s) {', '.join(map(repr, unknown))}; fit takes "
-                             f"{', '.join(SCENE_PARAMETERS)}")
+    check_parameter_names(scene, params, what="fit")
     if len(set(params)) != len(params):
         raise DiffInputError(f"a parameter is named twice: {params}")
     return params
@@ -119,33 +126,38 @@ def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices
 
     from warpfem.diff import SceneProblem
 
-    params = _check_params(params)
     problem = SceneProblem(scene, observed, vertices=vertices, frames=frames, device=device, precision=precision,
                            newton_tol=newton_tol, run_frames=run_frames)
     sc, obs, vertices, frames = problem.scene, problem.observed, problem.vertices, problem.frames
-    bnds = dict(DEFAULT_BOUNDS)
+    params = _check_params(params, sc)
+    bnds = {p: DEFAULT_BOUNDS[_kind(p)] for p in params}
     for k, b in (bounds or {}).items():
-        if k not in SCENE_PARAMETERS:
-            raise DiffInputError(f"bounds given for unknown parameter {k!r}")
+        try:
+            check_parameter_names(sc, [k], what="fit")
+        except DiffInputError as e:
+            raise DiffInputError(f"bounds given for {e}") from None
         lo, hi = float(b[0]), float(b[1])
         if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
             raise DiffInputError(f"bounds of {k} must be finite with lower < upper, got {b!r}")
+        if _kind(k) == "friction" and lo < 0:
+            raise DiffInputError(f"the lower bound of {k} must be >= 0 (a friction coefficient), got {lo}")
         bnds[k] = (lo, hi)
-    start = {p: float(sc.spec.material[p]) for p in params}
+    log = {p: _LOG[_kind(p)] for p in params}
+    start = scene_parameter_values(sc, params)
     start.update({k: float(v) for k, v in (initial or {}).items() if k in params})
     for p in params:
         lo, hi = bnds[p]
-        if _LOG[p] and lo <= 0:
+        if log[p] and lo <= 0:
             raise DiffInputError(f"the lower bound of {p} must be > 0, got {lo}")
         start[p] = min(max(start[p], lo), hi)
 
     def to_z(vals):
-        return np.array([math.log(vals[p]) if _LOG[p] else vals[p] for p in params])
+        return np.array([math.log(vals[p]) if log[p] else vals[p] for p in params])
 
     def from_z(z):
-        return {p: (math.exp(v) if _LOG[p] else float(v)) for p, v in zip(params, z)}
+        return {p: (math.exp(v) if log[p] else float(v)) for p, v in zip(params, z)}
 
-    zb = [((math.log(bnds[p][0]), math.log(bnds[p][1])) if _LOG[p] else bnds[p]) for p in params]
+    zb = [((math.log(bnds[p][0]), math.log(bnds[p][1])) if log[p] else bnds[p]) for p in params]
     evals, history = [0], []
     t0 = time.perf_counter()
     F = obs.shape[0]
@@ -172,7 +184,7 @@ def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices
             evals[0] += 1
             if L0[0] is None:
                 L0[0] = res.loss if res.loss > 0 else 1.0
-            g = np.array([res.gradients[p] * (vals[p] if _LOG[p] else 1.0) for p in params])
+            g = np.array([res.gradients[p] * (vals[p] if log[p] else 1.0) for p in params])
             out = (res.loss / L0[0], g / L0[0], res.loss)
             if not (np.isfinite(out[0]) and np.all(np.isfinite(out[1]))):
                 raise RuntimeError(f"the loss or its gradient is not finite at {vals}")
@@ -222,14 +234,29 @@ def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices
 
 
 def write_fitted_scene(scene_path, fitted: dict, out_path, header=None) -> str:
-    """Write ``scene_path``'s document with ``[material]`` values replaced by ``fitted`` to
-    ``out_path`` (relative paths re-anchored to the new folder)."""
+    """Write ``scene_path``'s document with ``fitted`` values written in (``[material]`` values,
+    ``[contact] friction`` for ``contact_friction``, the ``friction`` of the ``[[collider]]`` that
+    ``friction:<name>`` names) to ``out_path`` (relative paths re-anchored to the new folder)."""
+    from warpfem.contact.scene import scene_collider_names
     from warpfem.scenes import SceneError
     from warpfem.scenes.schema import read_toml, rebase_scene_paths
     from warpfem.tradeoff.tune import toml_dumps
 
     doc = read_toml(scene_path, SceneError, what="scene file")
-    doc.setdefault("material", {}).update({k: float(v) for k, v in fitted.items()})
+    cols = doc.get("collider") or []
+    names = scene_collider_names(cols)
+    for k, v in fitted.items():
+        if k == CONTACT_FRICTION:
+            doc.setdefault("contact", {})["friction"] = float(v)
+        elif k.startswith(FRICTION_PREFIX):
+            name = k[len(FRICTION_PREFIX):]
+            if name not in names:
+                raise DiffInputError(f"{scene_path}: no [[collider]] named {name!r} to write {k} into")
+            cols[names.index(name)]["friction"] = float(v)
+        elif doc.get("body"):  # a one-body [[body]] scene (fit takes no material parameter of several)
+            doc["body"][0].setdefault("material", {})[k] = float(v)
+        else:
+            doc.setdefault("material", {})[k] = float(v)
     src_dir = os.path.dirname(os.path.abspath(scene_path))
     out_dir = os.path.dirname(os.path.abspath(out_path))
     rebase_scene_paths(doc, src_dir, out_dir)
@@ -243,4 +270,4 @@ def write_fitted_scene(scene_path, fitted: dict, out_path, header=None) -> str:
 
 def scene_parameters(scene, names):
     """The scene's current values of ``names``."""
-    return {p: float(scene_with_parameters(scene).spec.material[p]) for p in names}
+    return scene_parameter_values(scene, names)

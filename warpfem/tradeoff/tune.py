@@ -494,18 +494,32 @@ def _toml_value(v) -> str:
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
-def toml_dumps(doc: dict) -> str:
-    """TOML text of a scene document (scalars, arrays, tables, arrays of tables)."""
-    lines = []
-    for k, v in doc.items():
-        if not isinstance(v, dict) and not (isinstance(v, list) and v and all(isinstance(x, dict) for x in v)):
+def _is_table_array(v) -> bool:
+    return isinstance(v, list) and bool(v) and all(isinstance(x, dict) for x in v)
+
+
+def _toml_table(lines, prefix, table, header):
+    """Append ``table``'s lines: its ``header`` (none at the top level), its values, then its
+    tables ``[prefix.key]`` and arrays of tables ``[[prefix.key]]`` (a [[body]]'s [body.mesh])."""
+    if header:
+        lines += ["", header]
+    for k, v in table.items():
+        if v is not None and not isinstance(v, dict) and not _is_table_array(v):
             lines.append(f"{k} = {_toml_value(v)}")
-    for k, v in doc.items():
+    for k, v in table.items():
+        name = f"{prefix}.{k}" if prefix else k
         if isinstance(v, dict):
-            lines += ["", f"[{k}]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in v.items() if vv is not None]
-        elif isinstance(v, list) and v and all(isinstance(x, dict) for x in v):
+            _toml_table(lines, name, v, f"[{name}]")
+        elif _is_table_array(v):
             for item in v:
-                lines += ["", f"[[{k}]]"] + [f"{kk} = {_toml_value(vv)}" for kk, vv in item.items() if vv is not None]
+                _toml_table(lines, name, item, f"[[{name}]]")
+
+
+def toml_dumps(doc: dict) -> str:
+    """TOML text of a scene document (scalars, arrays, tables, arrays of tables, and tables within
+    them)."""
+    lines = []
+    _toml_table(lines, "", doc, None)
     return "\n".join(lines) + "\n"
 
 
