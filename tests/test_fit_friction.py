@@ -19,25 +19,32 @@ from warpfem.cli import main
 from warpfem.diff import FRICTION_FLOOR, DiffInputError, SceneProblem, scene_with_parameters
 from warpfem.scenes import load_scene
 
+
+def _box_body(name, offset, size, extra="", element=""):
+    """A ``[[body]]`` table: a box mesh of 2 x 1 x 1 cells of ``size`` (m) at ``offset``, stable
+    neo-Hookean E 1e5, nu 0.3, 1000 kg/m^3; ``extra`` lines after the offset (initial velocity),
+    ``element`` a mesh line (e.g. 'element = "hex8"')."""
+    return (f'[[body]]\nname = "{name}"\noffset = {list(offset)}\n{extra}[body.mesh]\ngenerator = "box"\n'
+            f'size = {list(size)}\ncells = [2, 1, 1]\n{element}[body.material]\nmodel = "stable_neo_hookean"\n'
+            'youngs_modulus = 1e5\npoisson_ratio = 0.3\ndensity = 1000.0\n')
+
+
+# both scenes' run: 10 frames of one backward Euler step of 10 ms
+_RUN = """[integrator]
+type = "backward_euler"
+dt = 0.01
+max_iters = 300
+[output]
+fps = 100
+frames = 10
+"""
+
 # a 10 cm box (2 x 1 x 1 Tet4 cells) resting in the barrier's range (9.2 mm above the plane, dhat
 # 1 cm), thrown sideways at 0.4 m/s: it slides on the floor with friction in every step and comes
 # to rest in the last one
 SLIDE = """name = "slide"
 gravity = [0.0, 0.0, -9.81]
-[[body]]
-name = "box"
-offset = [0.0, 0.0, 0.0092]
-initial_velocity = [0.4, 0.1, -0.02]
-[body.mesh]
-generator = "box"
-size = [0.1, 0.05, 0.05]
-cells = [2, 1, 1]
-[body.material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-density = 1000.0
-[[collider]]
+""" + _box_body("box", (0.0, 0.0, 0.0092), (0.1, 0.05, 0.05), "initial_velocity = [0.4, 0.1, -0.02]\n") + """[[collider]]
 type = "plane"
 name = "floor"
 point = [0.0, 0.0, 0.0]
@@ -53,51 +60,18 @@ friction = 0.2
 stiffness = 1e4
 [contact]
 friction_iterations = 0
-[integrator]
-type = "backward_euler"
-dt = 0.01
-max_iters = 300
-[output]
-fps = 100
-frames = 10
-"""
+""" + _RUN
 
 # two bodies in frictional surface contact: a Tet4 beam thrown sideways and down onto a Hex8 block
 # whose bottom is clamped (the beam's offset is not a multiple of the cells: no vertex of it right
 # above an edge of the block, where the lagged closest-point weights are only continuous)
 BEAM_ON_BLOCK = """name = "beam_on_block"
 gravity = [0.0, 0.0, -9.81]
-[[body]]
-name = "top"
-offset = [0.0123, 0.0071, 0.0]
-initial_velocity = [0.3, 0.1, -0.3]
-[body.mesh]
-generator = "box"
-size = [0.2, 0.05, 0.05]
-cells = [2, 1, 1]
-[body.material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-density = 1000.0
-[[body.force]]
+""" + _box_body("top", (0.0123, 0.0071, 0.0), (0.2, 0.05, 0.05), "initial_velocity = [0.3, 0.1, -0.3]\n") + """[[body.force]]
 box_min = [-1.0, -1.0, -0.001]
 box_max = [1.0, 1.0, 1.0]
 force = [0.0, 0.0, -0.5]
-[[body]]
-name = "base"
-offset = [-0.05, -0.025, -0.059]
-[body.mesh]
-generator = "box"
-size = [0.3, 0.1, 0.05]
-cells = [2, 1, 1]
-element = "hex8"
-[body.material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-density = 1000.0
-[[body.fixed]]
+""" + _box_body("base", (-0.05, -0.025, -0.059), (0.3, 0.1, 0.05), element='element = "hex8"\n') + """[[body.fixed]]
 box_min = [-1.0, -1.0, -1.0]
 box_max = [1.0, 1.0, -0.05]
 [contact]
@@ -106,14 +80,7 @@ friction = 0.4
 stiffness = 1e5
 dhat = 0.01
 friction_iterations = 0
-[integrator]
-type = "backward_euler"
-dt = 0.01
-max_iters = 300
-[output]
-fps = 100
-frames = 10
-"""
+""" + _RUN
 
 
 def _positions(scene, active):
