@@ -39,7 +39,7 @@ INITIAL_GUESSES = ("previous", "extrapolated")
 
 
 class QuadratureSet(NamedTuple):
-    """One set of quadrature points the element kernels run over (``Simulator._qp_sets``).
+    """One set of quadrature points the element kernels run over (``Simulator.quadrature_sets``).
 
     count: number of points (the launch dimension); points: its ``QuadraturePoints32/64`` struct
     (rest positions, connectivity, nodes per element k, point -> element, weights, dN/dX);

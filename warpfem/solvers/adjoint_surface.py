@@ -21,7 +21,7 @@ through lam_p, w_p, n_p and the explicit -x^n, and d g / d mu = g / mu.
 The pairs are the surface contact's candidates at x_n (its broad phase: body and self filters,
 the rest-gap rule of self contact) within dhat with lam_p > 0, as ``SurfaceContact.lag`` keeps
 them. A recorded step lags once, from x_n: the simulator does not run its ``friction_iterations``
-while recording (``Simulator._differentiating``), for colliders and surface pairs alike.
+while a recording or a tape is active, for colliders and surface pairs alike.
 """
 
 from __future__ import annotations
