@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import warpfem as wf
+from tiny_scenes import soft_box_toml
 from warpfem.contact.stiffness import (MAX_FACTOR, SHRINK_FRACTION, AdaptiveStiffness, barrier_second_derivative,
                                        min_stiffness, parse_stiffness)
 
@@ -118,18 +119,7 @@ def test_two_boxes_collide_with_adaptive_stiffness_never_intersecting():
     assert sim.velocities()[:na, 1].mean() < -0.3  # they collided
 
 
-_SCENE = """
-gravity = [0.0, -9.81, 0.0]
-[mesh]
-generator = "box"
-size = [0.1, 0.1, 0.1]
-cells = [1, 1, 1]
-origin = [0.0, 0.01, 0.0]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-[[collider]]
+_SCENE = soft_box_toml(origin=(0.0, 0.01, 0.0)) + """[[collider]]
 type = "plane"
 name = "floor"
 normal = [0.0, 1.0, 0.0]

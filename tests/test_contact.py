@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from tiny_scenes import soft_box_toml
 from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
 from warpfem.contact import kernels as CK
 from warpfem.materials import make_material
@@ -188,18 +189,7 @@ def test_mesh_collider_from_file_and_moving_plane(tmp_path):
     assert sim.positions()[:, 1].min() > 0.02
 
 
-SCENE = """
-gravity = [0.0, -9.81, 0.0]
-[mesh]
-generator = "box"
-size = [0.1, 0.1, 0.1]
-cells = [2, 2, 2]
-origin = [0.0, 0.01, 0.0]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-[integrator]
+SCENE = soft_box_toml(cells=2, origin=(0.0, 0.01, 0.0)) + """[integrator]
 type = "{integrator}"
 dt = 0.01
 [output]

@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pytest
 
+from tiny_scenes import soft_box_toml
 from warpfem.contact import Plane
 from warpfem.contact.surface import pair_terms
 from warpfem.materials import make_material
@@ -321,17 +322,7 @@ def test_block_on_slab_friction_sticks_and_slides_with_coulomb_acceleration():
     assert a == pytest.approx(9.81 * (np.sin(theta) - mu * np.cos(theta)), rel=0.02)
 
 
-_SCENE = """
-gravity = [0.0, -9.81, 0.0]
-[mesh]
-generator = "box"
-size = [0.1, 0.1, 0.1]
-cells = [1, 1, 1]
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-[integrator]
+_SCENE = soft_box_toml() + """[integrator]
 type = "{integrator}"
 [output]
 frames = 1

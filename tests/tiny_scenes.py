@@ -163,3 +163,12 @@ def beam_on_block_model(E: float = 1e5, dforce=None):
         model.forces[:] += dforce
     model.fix(np.flatnonzero(model.rest_positions[:, 2] < -0.05))  # the block's bottom face
     return model
+
+
+def soft_box_toml(*, cells: int = 1, origin=None) -> str:
+    """The head of the contact tests' scenes: gravity along -y and a 10 cm stable neo-Hookean box
+    (E 1e5, nu 0.3) of ``cells``^3 Tet4 cells with its corner at ``origin`` (default 0)."""
+    at = "" if origin is None else f"origin = {list(map(float, origin))}\n"
+    return (f'gravity = [0.0, -9.81, 0.0]\n[mesh]\ngenerator = "box"\nsize = [0.1, 0.1, 0.1]\n'
+            f'cells = [{cells}, {cells}, {cells}]\n{at}[material]\nmodel = "stable_neo_hookean"\n'
+            'youngs_modulus = 1e5\npoisson_ratio = 0.3\n')
