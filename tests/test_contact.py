@@ -100,6 +100,19 @@ def test_energy_never_grows_in_undamped_drop_backward_euler():
     assert sim.positions()[:, 1].min() < 0.01  # it hit the floor
 
 
+def test_repeated_collider_names_are_numbered_alike_by_the_simulator_and_the_scene():
+    from warpfem.contact.scene import scene_collider_names
+
+    sim = Simulator(block_model(), dt=0.01)
+    for _ in range(3):
+        sim.add_collider(Plane(point=(0, -1, 0), normal=(0, 1, 0), name="floor"))
+    sim.add_collider(Plane(point=(0, -2, 0), normal=(0, 1, 0)))
+    names = [c.name for c in sim.contact.colliders]
+    assert names[:3] == ["floor", "floor2", "floor3"]
+    entries = [{"type": "plane", "name": "floor"}] * 3 + [{"type": "plane"}]
+    assert scene_collider_names(entries) == ["floor", "floor2", "floor3", "plane4"]
+
+
 def test_collider_starting_inside_is_rejected_with_its_name():
     sim = Simulator(block_model(), dt=0.01)
     with pytest.raises(CollisionError, match="'cutter'"):

@@ -36,6 +36,16 @@ STEP_ETA = 0.2
 FRICTION_VELOCITY = {"float64": 1e-3, "float32": 1e-2}
 
 
+def unique_name(name: str, taken) -> str:
+    """``name``, or ``name`` numbered from 2 on (``floor2``, ``floor3``, ...) when ``taken`` has it: the
+    name a collider gets among those already added."""
+    k = 2
+    out = name
+    while out in taken:
+        out, k = f"{name}{k}", k + 1
+    return out
+
+
 def default_friction_velocity(diagonal, precision):
     """eps_v (m/s) for a body of bounding-box ``diagonal`` (m) simulated in ``precision``."""
     return FRICTION_VELOCITY.get(str(precision), 1e-3) * float(diagonal)
@@ -103,12 +113,7 @@ class ContactSet:
     def add(self, collider: Collider):
         if not isinstance(collider, Collider):
             raise TypeError(f"add_collider expects a warpfem collider (Plane, Sphere, Box, MeshCollider), got {collider!r}")
-        names = {c.name for c in self.colliders}
-        if collider.name in names:
-            k = 2
-            while f"{collider.name}{k}" in names:
-                k += 1
-            collider.name = f"{collider.name}{k}"
+        collider.name = unique_name(collider.name, {c.name for c in self.colliders})
         self.colliders.append(collider)
         self._ready = False
         self._upload()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from warpfem.contact.colliders import make_collider
-from warpfem.contact.contact import CollisionError
+from warpfem.contact.contact import CollisionError, unique_name
 
 _GEOMETRY = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "box": ("box_min", "box_max"),
              "mesh": ("path", "scale", "offset")}
@@ -20,11 +20,7 @@ def scene_collider_names(entries) -> list:
     a repeated name numbered from 2 on as ``ContactSet.add`` does (``floor``, ``floor2``)."""
     names = []
     for i, c in enumerate(entries):
-        base = c.get("name") or f"{c['type']}{i + 1}"
-        name, k = base, 2
-        while name in names:
-            name, k = f"{base}{k}", k + 1
-        names.append(name)
+        names.append(unique_name(c.get("name") or f"{c['type']}{i + 1}", names))
     return names
 
 
