@@ -266,8 +266,3 @@ def write_fitted_scene(scene_path, fitted: dict, out_path, header=None) -> str:
             f.write("".join(f"# {line}\n" for line in header))
         f.write(toml_dumps(doc))
     return out_path
-
-
-def scene_parameters(scene, names):
-    """The scene's current values of ``names``."""
-    return scene_parameter_values(scene, names)
