@@ -412,6 +412,12 @@ class StepAdjoint:
             sim.options.project_hessian = old
         return xd
 
+    def _store_K(self, K):
+        """Write host blocks ``K`` (from ``self._K.numpy()``, changed) back to the device: on the CPU
+        that array is the device memory itself, nothing to copy."""
+        if not self._K.device.is_cpu:
+            self._K.assign(K)
+
     def _follow_pattern(self):
         """The block arrays on the simulator's current pattern (surface contact may have grown it)."""
         pat = self.sim.pattern
@@ -598,7 +604,7 @@ class StepAdjoint:
             K = self._K.numpy()
             diag = np.asarray(self.sim.pattern.diag_index)
             K[diag[touched]] += blocks[touched].astype(K.dtype)
-            self._K.assign(K)
+            self._store_K(K)
         return out
 
     def _surface_friction(self, rec, sc):
@@ -653,7 +659,7 @@ class StepAdjoint:
         if sfric is not None:  # surface friction's exact Hessian blocks at x_{n+1}
             K = self._K.numpy()
             sfric.add_hessian(K, sim.pattern)
-            self._K.assign(K)
+            self._store_K(K)
         cm, ck = 1.0 + s * alpha, s * s
         Hc = self._host_H(self._K, cm, ck)
 
