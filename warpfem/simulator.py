@@ -29,7 +29,8 @@ from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import COUNTERS, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.model import static_supports_error
-from warpfem.solvers.forms import DampingForm, ElasticForm, IncrementalPotential, InertiaForm, LoadForm, Workspace
+from warpfem.solvers.forms import (DampingForm, ElasticForm, IncrementalPotential, InertiaForm, InfeasibleStart, LoadForm,
+                                   StepContext, Workspace)
 from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.state import SimulatorBase, check_simulator_options, newton_options_from
 from warpfem.solvers.sparse import PatternView
@@ -85,6 +86,7 @@ class Simulator(SimulatorBase):
             re-solve a converged step with the normal forces and normals lagged again from its end,
             at most this many times, while they change by more than ``friction_tol`` of the
             largest (0: lagged once from the step start; steps recorded for gradients lag once).
+            Any form that lags a quantity (``Form.update_lagging``) is iterated the same way.
             Measured effect: docs/contact.md.
     """
 
@@ -171,18 +173,18 @@ class Simulator(SimulatorBase):
             forms.append(DampingForm(ops, pattern, lambda: system.values["mass"], self.damping_mass,
                                      lambda: system.values["kn"], self.damping_stiffness))
         forms += [self._elastic, self._load]
+        self._builtin_forms = forms  # the potential's own terms; add_form's come after (self._forms)
+        self._forms = []
         self._work = Workspace(ops)
         self._y = ops.new_vector()  # the unknown of the step's Newton solve
         self._fixed_v = ops.new_vector()
-        self._contact_start = ops.new_vector()
+        self._start = ops.new_vector()  # the feasible start of a step whose forms bound it
         self._prediction_work = {}  # the integrator's prediction buffers (made on first use)
         self._potential = IncrementalPotential(ops, forms, system=system, mask=self._mask,
                                                linear_solve=lambda *a, **kw: self._linear_solve(*a, **kw), work=self._work)
         self._static_potential = None
-        self.contact = None  # warpfem.contact.ContactSet once a collider is added
-        self._contact_form = None
-        self.surface_contact = None  # warpfem.contact.SurfaceContact after set_contact(...)
-        self._surface_form = None
+        self._contact_form = None  # the colliders' ContactForm (its ContactSet: self.contact)
+        self._surface_form = None  # the SurfaceContactForm of set_contact(...)
         for c in colliders or ():
             self.add_collider(c)
 
@@ -191,19 +193,30 @@ class Simulator(SimulatorBase):
         ``MeshCollider``, or ``type="plane"`` and its keywords): barrier + friction contact with the
         body's surface vertices in every step (docs/contact.md). Raises
         :class:`warpfem.contact.CollisionError` naming it if it intersects the body now."""
-        from warpfem.contact import ContactForm, ContactSet, make_collider
+        from warpfem.contact import ContactSet, make_collider
 
         if collider is None:
             collider = make_collider(**kw)
         elif kw:
             raise TypeError("add_collider takes a collider object or keywords, not both")
         if self.contact is None:
-            self.contact = ContactSet(self)
-            self._contact_form = ContactForm(self.contact)
-        elif self._contact_form is None or self._contact_form.contact is not self.contact:
-            self._contact_form = ContactForm(self.contact)
+            self.contact = ContactSet(self)  # its form joins the potential once it holds a collider
         self.contact.add(collider)
         return collider
+
+    @property
+    def contact(self):
+        """The colliders (:class:`warpfem.contact.ContactSet`), None before the first ``add_collider``.
+        Assignable (None drops the colliders' form from the potential)."""
+        return None if self._contact_form is None else self._contact_form.contact
+
+    @contact.setter
+    def contact(self, contact_set):
+        from warpfem.contact import ContactForm
+
+        new = None if contact_set is None else ContactForm(contact_set)
+        self._replace_form(self._contact_form, new)
+        self._contact_form = new
 
     def set_contact(self, /, *, bodies=None, friction=0.0, dhat=None, stiffness=None, friction_velocity=None, **flags):
         """Contact between the model's bodies and of each with itself (docs/contact.md): a barrier
@@ -215,47 +228,71 @@ class Simulator(SimulatorBase):
         ``sim.set_contact(bodies=False)`` (and no ``self``) turns it off. Returns the
         :class:`warpfem.contact.SurfaceContact` (or None when off). Raises
         :class:`warpfem.contact.CollisionError` naming a pair when surface primitives touch now."""
-        from warpfem.contact.surface import SurfaceContact, SurfaceContactForm
+        from warpfem.contact.surface import SurfaceContact
 
         sc = SurfaceContact(self, bodies=bodies, friction=friction, dhat=dhat, stiffness=stiffness,
                             friction_velocity=friction_velocity, **flags)
-        if self.surface_contact is not None:
-            self.surface_contact.detach()
         if not (sc.bodies or sc.self_contact):
             sc.detach()
-            self.surface_contact, self._surface_form = None, None
-            return None
-        self.surface_contact, self._surface_form = sc, SurfaceContactForm(sc)
+            sc = None
+        self.surface_contact = sc
         return sc
+
+    @property
+    def surface_contact(self):
+        """The :class:`warpfem.contact.SurfaceContact` of ``set_contact`` (None when off)."""
+        return None if self._surface_form is None else self._surface_form.contact
+
+    @surface_contact.setter
+    def surface_contact(self, surface_contact):
+        from warpfem.contact.surface import SurfaceContactForm
+
+        old = self._surface_form
+        if old is not None and old.contact is not surface_contact:
+            old.contact.detach()
+        new = None if surface_contact is None else SurfaceContactForm(surface_contact)
+        self._replace_form(old, new)
+        self._surface_form = new
 
     @property
     def surface_contact_form(self):
         """The form of the surface contact in the potential (None when off)."""
         return self._surface_form
 
-    def _sync_contact_form(self):
-        """The contact forms are in the potential exactly when colliders act (``contact`` may be
-        replaced or emptied from outside) or surface contact is on (``set_contact``)."""
-        active = self.contact is not None and len(self.contact) > 0
-        if active and (self._contact_form is None or self._contact_form.contact is not self.contact):
-            from warpfem.contact import ContactForm
-
-            self._contact_form = ContactForm(self.contact)
-        surface = self.surface_contact is not None and self._surface_form is not None
-        forms = self._potential.forms
-        want = [f for f in forms if f.name not in ("contact", "surface_contact")]
-        # before the load: its gradient (a constant vector) is added last, as before the forms list
-        at = next((k for k, f in enumerate(want) if f.name == "load"), len(want))
-        want[at:at] = ([self._contact_form] if active else []) + ([self._surface_form] if surface else [])
-        if want != forms:
-            self._potential.set_forms(want)
-        return active or surface
-
     def add_form(self, form):
-        """Append a term (a :class:`warpfem.solvers.forms.Form`) to the incremental potential of every
-        later step (weight ``form.weight``; a form of x gets the chain factors s, s^2)."""
-        self._potential.add_form(form)
+        """Add a term (a :class:`warpfem.solvers.forms.Form`) to the incremental potential of every
+        later step (weight ``form.weight``; a form of x gets the chain factors s, s^2), placed by
+        its ``order``. Its life-cycle hooks (``enabled``, ``begin_step``, ``check_start``,
+        ``max_step``, ``update_lagging``, ``static_error``: warpfem.solvers.forms) are called
+        like those of the built-in contact forms."""
+        if all(f is not form for f in self._forms):
+            self._forms.append(form)
+        self._sync_forms()
         return form
+
+    def remove_form(self, form):
+        """Remove a term that ``add_form`` added (nothing if it is not there)."""
+        self._replace_form(form, None)
+
+    @property
+    def forms(self):
+        """The terms added to the potential (``add_form``, the contact forms), enabled or not."""
+        return list(self._forms)
+
+    def _replace_form(self, old, new):
+        """``new`` in place of ``old`` among the added forms (either may be None)."""
+        forms = [new if f is old else f for f in self._forms] if old is not None else list(self._forms)
+        if new is not None and all(f is not new for f in forms):
+            forms.append(new)
+        self._forms = [f for f in forms if f is not None]
+        self._sync_forms()
+
+    def _sync_forms(self):
+        """The potential holds its own forms and the added forms that are enabled now (a form may
+        switch itself on or off: the colliders' form without colliders is off)."""
+        want = IncrementalPotential.ordered(self._builtin_forms + [f for f in self._forms if f.enabled()])
+        if want != self._potential.forms:
+            self._potential.set_forms(want)
 
     # -- stages (each a function that can be timed) ------------------------------------------------
     @property
@@ -428,7 +465,13 @@ class Simulator(SimulatorBase):
             self._assemble_stiffness(state.x, 1.0, self._kn_values)
         xb, vh, s = self.integrator.predict(state, dt, self.ops, self._prediction_work)
         self._inertia.set_prediction(vh)
-        return self._potential.begin(xb, s, self._weights(s, control))
+        self._sync_forms()
+        pot = self._potential.begin(xb, s, self._weights(s, control))
+        fixed_v = self._prescribed_velocity(state, xb, s, control, self._fixed_v)
+        ctx = self._step_context(state, dt, xb, s, fixed_v)
+        for f in pot.forms:
+            f.begin_step(ctx)
+        return pot
 
     def _step(self, state_in, state_out, control, dt) -> SolveStats:
         t0 = time.perf_counter()
@@ -446,21 +489,16 @@ class Simulator(SimulatorBase):
         launch(LK.select_kernel, dim=n, inputs=[self._mask, self._guess(state_in, dt), fixed_v, y],
                device=self.device)
         self._inertia.set_prediction(vh)
-        contact = self._sync_contact_form()
+        self._sync_forms()
         pot = self._potential.begin(xb, s, self._weights(s, control))
-        if contact:
-            self._begin_contact_step(state_in, xb, s, fixed_v, y, dt)
-            # start where no vertex is inside a collider (the previous velocity, cut)
-            alpha = min(1.0, pot.max_step(self._contact_start, y))
-            launch(LK.lincomb_kernel, dim=n, inputs=[self._s(1.0), self._contact_start, self._s(alpha), y, y],
-                   device=self.device)
-        # adaptive barrier stiffness (contact without a given stiffness): kept to be restored if the step fails
-        kept = [(f, f.stiffness_state()) for f in pot.adaptive_forms()] if contact else []
+        self._begin_forms(pot, self._step_context(state_in, dt, xb, s, fixed_v), y)
+        # adaptive parameters (a barrier stiffness "auto"): kept to be restored if the step fails
+        kept = [(f, f.stiffness_state()) for f in pot.adaptive_forms()]
         if kept:
             pot.begin_adaptive(y)
         stats = newton_solve(pot, y, self.options)
-        if contact and stats.converged and self.friction_iterations and not self._differentiating():
-            self._friction_lag_iterations(pot, xb, s, y, stats)
+        if stats.converged and self.friction_iterations and not self._differentiating():
+            self._lagging_iterations(pot, xb, s, y, stats)
         stats.newton_syncs = pot.host_syncs - syncs0
         stats.launches = COUNTERS["launches"] - launches0
         try:
@@ -485,30 +523,24 @@ class Simulator(SimulatorBase):
 
         return getattr(self, "step_recorder", None) is not None or active_tape() is not None
 
-    def _friction_lag_iterations(self, pot, xb, s, y, stats):
-        """Fixed-point iterations of friction's lagging: the normal forces and normals (and the
-        surface pairs' closest points) taken again from the converged end of the step, then the
-        step solved again from there, until the normal forces change by less than
-        ``friction_tol`` of their largest (at most ``friction_iterations`` times). Lagged once
-        from the step start only, a landing body slides with the normal force of before the
-        impact (docs/contact.md, measured there)."""
-        parts = [c for c in (self.contact, self.surface_contact) if c is not None and len(getattr(c, "colliders", [0]))
-                 and c.has_friction()]
-        if not parts:
+    def _lagging_iterations(self, pot, xb, s, y, stats):
+        """Fixed-point iterations of the forms' lagging (friction's normal forces and normals, the
+        surface pairs' closest points): taken again from the converged end of the step
+        (``Form.update_lagging``), then the step solved again from there, until they change by
+        less than ``friction_tol`` of their largest (at most ``friction_iterations`` times).
+        Lagged once from the step start only, a landing body slides with the normal force of
+        before the impact (docs/contact.md, measured there)."""
+        forms = [f for f in pot.forms if f.uses_lagging()]
+        if not forms:
             return
         x = self._work.tmp
         stats.friction_iterations = 0
         for _ in range(self.friction_iterations):
             self.ops.lincomb(1.0, xb, s, y, x)
             change, scale = 0.0, 0.0
-            for c in parts:
-                before = c.relag(x)
-                after = c.normal_forces()
-                scale = max(scale, float(np.abs(after).max(initial=0.0)), float(np.abs(before).max(initial=0.0)))
-                if before.shape != after.shape:
-                    change = float("inf")
-                elif len(after):
-                    change = max(change, float(np.abs(after - before).max()))
+            for f in forms:
+                c, m = f.update_lagging(x)
+                change, scale = max(change, c), max(scale, m)
             if change <= self.friction_tol * scale:
                 break
             again = newton_solve(pot, y, self.options)
@@ -537,37 +569,44 @@ class Simulator(SimulatorBase):
             return state.v
         return out
 
-    def _begin_contact_step(self, state_in, xb, s, fixed_v, y, dt):
-        """Contact data of the coming step; ``y`` becomes the direction from a feasible start."""
-        from warpfem.contact.contact import CollisionError
+    def _step_context(self, state_in, dt, xb, s, fixed):
+        """The :class:`~warpfem.solvers.forms.StepContext` of a step of dt from ``state_in``."""
+        t = state_in.time
+        return StepContext(state=state_in, t0=t, t1=t + dt, dt=dt, xb=xb, s=s, fixed=fixed, mask=self._mask, ops=self.ops,
+                           label=f"step {self.step_count}")
 
-        ops, t = self.ops, state_in.time
-        colliders = self.contact is not None and len(self.contact) > 0
-        if colliders:
-            self.contact.begin_step(t, t + dt, dt, x0=state_in.x)
-        if self._surface_form is not None:
-            self.surface_contact.begin_step(state_in.x, dt)
-        # the unknown that keeps every vertex where it is (fixed ones at their targets): feasible
-        # unless a collider moved into the body
-        y0 = self._contact_start
-        ops.lincomb(1.0, state_in.x, -1.0, xb, y0)
+    def _begin_forms(self, pot, ctx, y):
+        """Every form's ``begin_step``; when a form bounds the step, ``y`` (the initial guess)
+        becomes a feasible start: the unknown that keeps every vertex where it is (fixed ones at
+        their targets), checked by the forms' ``check_start``, moved towards the guess as far as
+        ``max_step`` allows."""
+        for f in pot.forms:
+            f.begin_step(ctx)
+        if not pot.bounds_step():
+            return
+        ops, xb, s = self.ops, ctx.xb, ctx.s
+        y0 = self._start
+        ops.lincomb(1.0, ctx.state.x, -1.0, xb, y0)
         ops.lincomb(1.0 / s, y0, 0.0, y0, y0)
-        launch(LK.select_kernel, dim=self.num_vertices, inputs=[self._mask, y0, fixed_v, y0], device=self.device)
+        launch(LK.select_kernel, dim=self.num_vertices, inputs=[self._mask, y0, ctx.fixed, y0], device=self.device)
         x0 = self._work.x
         ops.lincomb(1.0, xb, s, y0, x0)
-        if colliders:
-            try:
-                self.contact.check(x0, t + dt, what="moved into the body within one step (reduce dt or "
-                                   "slow the collider)")
-            except CollisionError as e:
-                raise SolveFailed(f"step {self.step_count}: {e}; state left unchanged",
-                                  SolveStats(reason="collider intersects the body")) from e
-            self.contact.set_poses(t, t + dt)
-            self._contact_form.begin(xb, s)
-        if self._surface_form is not None:
-            self._surface_form.begin(xb, s)
-        # y := y - y0 (the direction from the feasible start), cut by the step bound in _step()
+        self._check_start(pot, x0, ctx)
+        # y := y0 + alpha (y - y0), alpha the step bound along the direction from the feasible start
         ops.lincomb(1.0, y, -1.0, y0, y)
+        alpha = min(1.0, pot.max_step(y0, y))
+        launch(LK.lincomb_kernel, dim=self.num_vertices, inputs=[self._s(1.0), y0, self._s(alpha), y, y],
+               device=self.device)
+
+    @staticmethod
+    def _check_start(pot, x0, ctx):
+        """The forms' ``check_start`` at the start positions x0: an infeasible start fails the
+        step (``SolveFailed``, before anything is written)."""
+        for f in pot.forms:
+            try:
+                f.check_start(x0, ctx)
+            except InfeasibleStart as e:
+                raise SolveFailed(f"{ctx.label}: {e}; state left unchanged", SolveStats(reason=e.reason)) from e
 
     def solve_static(self, *, load_steps: int = 1) -> SolveStats:
         """Quasi-static equilibrium: minimise V(x) - x^T f_ext with the fixed components held.
@@ -575,12 +614,10 @@ class Simulator(SimulatorBase):
         Loads and prescribed targets are ramped linearly over ``load_steps`` Newton solves
         (more steps: more robust for large deformation). Velocities are set to zero.
         """
-        if self.surface_contact is not None:
-            raise ValueError("solve_static does not handle surface contact (set_contact); use a damped time "
-                             "integration to reach rest")
-        if self.contact is not None and len(self.contact):
-            raise ValueError("solve_static does not handle colliders (contact is a dynamic term here); "
-                             "use a damped time integration to reach rest on a collider")
+        extra = [f for f in self._forms if f.enabled()]
+        problems = [p for p in (f.static_error() for f in extra) if p]
+        if problems:
+            raise ValueError("; ".join(problems))
         if int(load_steps) != load_steps or load_steps < 1:
             raise ValueError(f"load_steps must be a positive integer, got {load_steps!r}")
         problem = static_supports_error(self.model, "model.fix(...)")
@@ -593,27 +630,41 @@ class Simulator(SimulatorBase):
         y = self._vec_array(x_start)
         total = SolveStats(converged=True)
         if self._static_potential is None:
+            self._static_forms = [ElasticForm(self.ops, self._qp_sets, PatternView(self.system), self.options),
+                                  LoadForm(self.ops, self._fext, self._fext_norm)]
             self._static_potential = IncrementalPotential(
-                self.ops, [ElasticForm(self.ops, self._qp_sets, PatternView(self.system), self.options),
-                           LoadForm(self.ops, self._fext, self._fext_norm)], system=self.system, mask=self._mask,
+                self.ops, self._static_forms, system=self.system, mask=self._mask,
                 linear_solve=lambda *a, **kw: self._linear_solve(*a, **kw), work=self._work)
         pot = self._static_potential
+        want = IncrementalPotential.ordered(self._static_forms + extra)  # the added forms that allow it
+        if want != pot.forms:
+            pot.set_forms(want)
         pot.form("load").norm = self._fext_norm
-        for step in range(1, int(load_steps) + 1):
-            frac = step / load_steps
-            self._targets = {i: x_start[i] + frac * (p - x_start[i]) for i, p in targets.items()}
-            fixed_x = self._vec_array(self._prescribed(self._vec_array(x_start), 0.0))
-            launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
-            pot.begin(None, 1.0, {"elastic": 1.0, "load": frac * self.load_scale})
-            st = newton_solve(pot, y, self.options)
-            total.add_counts(st)
-            total.residual, total.gradient_norm, total.energy = st.residual, st.gradient_norm, st.energy
-            total.reason = st.reason
-            if not st.converged:
-                total.converged = False
-                total.reason = f"load step {step}/{load_steps}: {st.reason}"
-                break
-        self._targets = targets
+        try:
+            for step in range(1, int(load_steps) + 1):
+                frac = step / load_steps
+                self._targets = {i: x_start[i] + frac * (p - x_start[i]) for i, p in targets.items()}
+                fixed_x = self._vec_array(self._prescribed(self._vec_array(x_start), 0.0))
+                launch(LK.select_kernel, dim=n, inputs=[self._mask, y, fixed_x, y], device=self.device)
+                pot.begin(None, 1.0, {"elastic": 1.0, "load": frac * self.load_scale})
+                if extra:  # the added forms' life cycle: x = y, the start is y itself
+                    t = self.state.time
+                    ctx = StepContext(state=self.state, t0=t, t1=t, dt=0.0, xb=None, s=1.0, fixed=fixed_x, mask=self._mask,
+                                      ops=self.ops, static=True, label=f"static solve, load step {step}/{load_steps}")
+                    for f in pot.forms:
+                        f.begin_step(ctx)
+                    if pot.bounds_step():
+                        self._check_start(pot, y, ctx)
+                st = newton_solve(pot, y, self.options)
+                total.add_counts(st)
+                total.residual, total.gradient_norm, total.energy = st.residual, st.gradient_norm, st.energy
+                total.reason = st.reason
+                if not st.converged:
+                    total.converged = False
+                    total.reason = f"load step {step}/{load_steps}: {st.reason}"
+                    break
+        finally:
+            self._targets = targets
         self._finish(total, t0, "static solve", stacklevel=4)
         wp.copy(self.state.x, y)
         self.state.v.zero_()

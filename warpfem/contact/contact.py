@@ -4,7 +4,12 @@
 the end of the current step, the friction data lagged from its start); :class:`ContactForm` is the
 form of :mod:`warpfem.solvers.forms` that adds their energy, gradient and (SPD-projected, vertex-
 diagonal: colliders are kinematic) Hessian blocks to the potential and bounds the line search's
-step (continuous collision: no surface vertex crosses a collider along y + alpha d).
+step (continuous collision: no surface vertex crosses a collider along y + alpha d). Its life cycle
+(the hooks of ``warpfem.solvers.forms.Form``, called by the simulator for every form): on while the
+set holds a collider (``enabled``), the colliders' poses and friction lagged at each step start
+(``begin_step``), a collider that moved into the body fails the step (``check_start``), friction
+lagged again from a converged step's end (``update_lagging``), refused by the static solve
+(``static_error``).
 """
 
 from __future__ import annotations
@@ -18,7 +23,7 @@ from warpfem.contact import kernels as CK
 from warpfem.contact.colliders import Collider
 from warpfem.contact.stiffness import AdaptiveStiffness
 from warpfem.kernels.generic import launch
-from warpfem.solvers.forms import Form
+from warpfem.solvers.forms import Form, InfeasibleStart, lagged_change
 
 log = logging.getLogger(__name__)
 
@@ -318,8 +323,9 @@ class ContactSet:
 
 class LaggedFrictionForm(Form):
     """What the collider and the surface contact forms share: the step's x_b and s, and the
-    displacement base x_b - x_n of lagged friction (x - x_n = (x_b - x_n) + s y). ``contact`` has
-    ``ops`` and ``step_start`` (x_n)."""
+    displacement base x_b - x_n of lagged friction (x - x_n = (x_b - x_n) + s y); friction's
+    lagging taken again from a step's end (``update_lagging``). ``contact`` has ``ops``,
+    ``step_start`` (x_n), ``has_friction()``, ``relag(x)`` and ``normal_forces()``."""
 
     variable = "x"
 
@@ -336,6 +342,18 @@ class LaggedFrictionForm(Form):
         if xb is not None:
             self.contact.ops.lincomb(1.0, xb, -1.0, self.contact.step_start, self._dbase)
 
+    def begin_step(self, ctx):
+        """The step's x_b and s (a subclass lags its contact's friction first)."""
+        self.begin(ctx.xb, ctx.s)
+
+    def uses_lagging(self) -> bool:
+        return self.contact.has_friction()
+
+    def update_lagging(self, x):
+        """Friction's normal forces and normals lagged again from x: (change, scale) of the normal forces."""
+        before = self.contact.relag(x)
+        return lagged_change(before, self.contact.normal_forces())
+
 
 class ContactForm(LaggedFrictionForm):
     """Barrier + lagged friction of a :class:`ContactSet`, as a form of the positions x = x_b + s y
@@ -344,6 +362,28 @@ class ContactForm(LaggedFrictionForm):
     and reads the line-search bound from :meth:`max_step`."""
 
     name = "contact"
+    order = 10  # after the elastic form, before the load
+
+    def enabled(self) -> bool:
+        return len(self.contact) > 0
+
+    def begin_step(self, ctx):
+        """The colliders' poses over [t0, t1] and friction lagged from the step's start x_n."""
+        self.contact.begin_step(ctx.t0, ctx.t1, ctx.dt, x0=ctx.state.x)
+        super().begin_step(ctx)
+
+    def check_start(self, x, ctx):
+        """Raise :class:`InfeasibleStart` naming the collider when a surface vertex of the start x
+        is inside a collider at its end-of-step pose (it moved into the body within the step)."""
+        try:
+            self.contact.check(x, ctx.t1, what="moved into the body within one step (reduce dt or slow the collider)")
+        except CollisionError as e:
+            raise InfeasibleStart(str(e), reason="collider intersects the body") from e
+        self.contact.set_poses(ctx.t0, ctx.t1)  # check() posed the colliders at t1 only
+
+    def static_error(self):
+        return ("solve_static does not handle colliders (contact is a dynamic term here); use a damped time "
+                "integration to reach rest on a collider")
 
     def _disp(self, y):
         if not self._use_dbase or y is None:

@@ -595,6 +595,15 @@ class SurfaceContactForm(LaggedFrictionForm):
     bounds it by additive CCD."""
 
     name = "surface_contact"
+    order = 20  # after the colliders' contact, before the load
+
+    def begin_step(self, ctx):
+        """Broad phase and friction lagged at the step's start x_n, then the step's x_b and s."""
+        self.contact.begin_step(ctx.state.x, ctx.dt)
+        super().begin_step(ctx)
+
+    def static_error(self):
+        return "solve_static does not handle surface contact (set_contact); use a damped time integration to reach rest"
 
     def _friction(self, mode, y, x, **kw):
         c = self.contact

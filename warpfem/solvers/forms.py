@@ -9,29 +9,68 @@ of y itself (``variable = "y"``) or of the positions x (``variable = "x"``); for
 chain rule's factors s (gradient) and s^2 (Hessian) are applied here, in
 :meth:`IncrementalPotential.scales`, the one place where s enters. The weights w_f are set per step
 from the integrator's prediction (:meth:`IncrementalPotential.begin`; the simulator's
-``_weights``: inertia 1, damping s, load s x load scale, elasticity and contact 1).
+``_weights``: inertia 1, damping s, load s x load scale, elasticity 1; forms not named there keep
+their own ``weight``, 1 by default).
 
 * :class:`InertiaForm`      1/2 (y - y_hat)^T M (y - y_hat)            (y)
 * :class:`DampingForm`      1/2 y^T (alpha M + beta K_n) y             (y; Rayleigh, K_n frozen at the step start)
 * :class:`LoadForm`         -y^T f_ext                                 (y; gravity, applied forces, tractions)
 * :class:`ElasticForm`      V(x) over the quadrature-point sets        (x)
-* ``warpfem.contact.ContactForm``  barrier + lagged friction           (x; bounds the line search)
+* ``warpfem.contact.ContactForm``, ``SurfaceContactForm``: barrier + lagged friction (x; bound the line search)
 
-A form provides ``energy(y, x, acc)`` (its unweighted value into its row of the potential's float64
-accumulator), ``gradient(y, x, scale, g, acc)`` (g += scale dE_f/d(variable)), ``hessian(y, x,
-scale, values)`` (blocks added in the pattern), optionally ``max_step(x, d, scale, acc)`` (the
-largest step along y + alpha d it allows), ``read(row) -> (E, |E|, feasible)`` and
-``gradient_magnitude(row, scale)`` (the size of its gradient terms: the scale of their round-off),
-and ``extra_blocks()`` (off-diagonal vertex pairs its Hessian adds beyond the mesh's pattern, or
-None). Forms whose gradient is summed into one magnitude (the quadratic ones: ``joint = True``) are
-evaluated first. To add a term: write a class with these methods and append it to the potential's
-list (``Simulator.add_form``); no slot, no constant to reserve.
+**Evaluation.** A form provides ``energy(y, x, acc)`` (its unweighted value into its row of the
+potential's float64 accumulator), ``gradient(y, x, scale, g, acc)`` (g += scale dE_f/d(variable)),
+``hessian(y, x, scale, values)`` (blocks added in the pattern), optionally ``max_step(x, d, scale,
+acc)`` (the largest step along y + alpha d it allows, into ``acc[acc_slot + 3]``: the form then
+*bounds the step*), ``read(row) -> (E, |E|, feasible)`` (``feasible`` False rejects a trial point
+outside the form's domain: the line search halves), ``gradient_magnitude(row, scale)`` (the size of
+its gradient terms: the scale of their round-off), and ``extra_blocks()`` (off-diagonal vertex
+pairs its Hessian adds beyond the mesh's pattern, or None).
+
+**Place.** Forms whose gradient is summed into one magnitude (the quadratic ones: ``joint = True``)
+are evaluated first; the others in increasing ``order`` (elastic 0, collider contact 10, surface
+contact 20, the load and, by default, a user's form 100), forms of equal order in the order they
+were added.
+
+**Life cycle** (the simulator calls these for every form of the potential; the base class's
+defaults do nothing, so a form overrides only what it needs, and ``Simulator.add_form`` plugs it
+in without the simulator knowing what it is; PolyFEM's ``init_lagging`` / ``update_lagging`` /
+``max_step_size`` / ``is_step_valid`` are the model):
+
+1. ``enabled()``: whether the form is in the potential now (asked at each step start; e.g. the
+   collider contact without colliders is not).
+2. ``begin_step(ctx)`` at each step start (and each static load step), with a :class:`StepContext`:
+   the state the step starts from, t0, t1, dt, x_b, s, the prescribed values of the unknown, the
+   mask and the vector algebra. Lagged quantities (friction's normal forces), poses of moving
+   obstacles and the like are set here.
+3. ``check_start(x, ctx)``: only when some form bounds the step, the step starts from the unknown
+   that keeps every free vertex where it is (fixed ones at their targets; positions ``x``), cut
+   towards the initial guess by :meth:`IncrementalPotential.max_step`. A form raises
+   :class:`InfeasibleStart` when that start is outside its domain (a collider moved into the body
+   within the step): the simulator raises ``SolveFailed`` with its message and the state is left
+   unchanged.
+4. The Newton loop: evaluation as above, ``max_step`` before each line search, ``read``'s
+   ``feasible`` on each trial; forms with an adaptive parameter (``adaptive_stiffness()`` true)
+   also get ``begin_stiffness`` at the start and ``after_iteration`` after each accepted
+   iteration, and keep ``stiffness_state()`` / ``restore_stiffness(state)`` for a failed step.
+5. ``uses_lagging()`` / ``update_lagging(x) -> (change, scale)``: after a converged step, forms that
+   lag a quantity take it again from the step's end x; while the largest ``change`` exceeds
+   ``friction_tol`` x the largest ``scale`` the step is solved again (at most
+   ``friction_iterations`` times; :func:`lagged_change` measures two arrays).
+6. ``static_error()``: None when the form may join a quasi-static solve (x = y, s = 1; its
+   ``begin_step`` gets a context with ``static`` True), else the sentence ``solve_static`` refuses
+   with. Default: a form of x may, a form of y (the velocity) may not.
+
+To add a term: write a class with these methods and give it to ``Simulator.add_form``; no slot, no
+constant to reserve, nothing to edit in the simulator.
 
 The potential reads its accumulator back once per evaluation; :meth:`IncrementalPotential.trial_step`
 evaluates the direction check, the energy and the gradient of a full Newton step with one read-back.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -41,7 +80,7 @@ from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import CapturedSequences, launch
 
 __all__ = ["Form", "InertiaForm", "DampingForm", "ElasticForm", "LoadForm", "IncrementalPotential",
-           "FullSpacePotential", "Workspace"]
+           "FullSpacePotential", "Workspace", "StepContext", "InfeasibleStart", "lagged_change"]
 
 ROW = 4  # accumulator slots per form
 # the potential's own row: joint gradient magnitude^2, ||P g||^2, then the direction check (g.d, max|d|, max|y|, max|x|)
@@ -63,13 +102,59 @@ class Workspace:
         self.inv_diag = None  # block-Jacobi inverse for the fallback direction, allocated on first use
 
 
+@dataclass
+class StepContext:
+    """What a form's ``begin_step`` is told about the coming step (or static load step).
+
+    state: the :class:`~warpfem.solvers.state.State` the step starts from (x, v, time, history);
+    t0, t1, dt: the step's start and end time and its length (static: t0 = t1, dt = 0);
+    xb, s: x = x_b + s y (static: ``xb`` None, s = 1); fixed: the prescribed values of the unknown
+    (only their fixed components count: velocities, or positions in a static solve); mask: the
+    free-component mask; ops: the vector algebra (:class:`~warpfem.solvers.state.DeviceVectors`);
+    static: a quasi-static solve; label: how failures name the step ("step 3")."""
+
+    state: object
+    t0: float
+    t1: float
+    dt: float
+    xb: object
+    s: float
+    fixed: object
+    mask: object
+    ops: object
+    static: bool = False
+    label: str = "step"
+
+
+class InfeasibleStart(ValueError):
+    """Raised by a form's ``check_start`` when the step's start is outside its domain; ``reason``
+    is the short reason the failed step's ``SolveStats`` reports."""
+
+    def __init__(self, message, reason="infeasible start"):
+        super().__init__(message)
+        self.reason = reason
+
+
+def lagged_change(before, after):
+    """(change, scale) of a lagged array updated from ``before`` to ``after`` (numpy arrays): the
+    largest absolute change (inf when the sizes differ: other pairs) and the largest magnitude of
+    either; what ``Form.update_lagging`` returns."""
+    before, after = np.asarray(before, dtype=np.float64), np.asarray(after, dtype=np.float64)
+    scale = max(float(np.abs(after).max(initial=0.0)), float(np.abs(before).max(initial=0.0)))
+    if before.shape != after.shape:
+        return float("inf"), scale
+    return (float(np.abs(after - before).max()) if after.size else 0.0), scale
+
+
 class Form:
-    """Base class of a term of the incremental potential (see the module docstring)."""
+    """Base class of a term of the incremental potential (see the module docstring: evaluation,
+    place and life cycle; every life-cycle hook here does nothing)."""
 
     name = "form"
     variable = "y"  # "y": a function of the unknown; "x": of the positions x = x_b + s y
     joint = False  # gradient measured jointly with the other joint forms (the quadratic terms)
     weight = 1.0
+    order = 100  # place among the non-joint forms (elastic 0, contact 10 / 20, load 100)
 
     def energy(self, y, x, acc):
         pass
@@ -102,6 +187,36 @@ class Form:
         back (then the Newton iteration's launches are not captured as a graph). A form returns a
         key only when equal keys mean identical launches (the same arrays, scalars and structs)."""
         return None
+
+    # -- life cycle (called by the simulator; defaults: nothing) ----------------------------------------
+    def enabled(self) -> bool:
+        """Whether the form is in the potential of the coming step."""
+        return True
+
+    def begin_step(self, ctx: StepContext):
+        """A step (or static load step) begins (:class:`StepContext`): set what the form lags or
+        moves over the step."""
+
+    def check_start(self, x, ctx: StepContext):
+        """Raise :class:`InfeasibleStart` when the positions ``x`` the step starts from are outside
+        the form's domain (called only when a form bounds the step)."""
+
+    def uses_lagging(self) -> bool:
+        """Whether the form lags a quantity that :meth:`update_lagging` can take again."""
+        return False
+
+    def update_lagging(self, x):
+        """Take the lagged quantities again from the positions x (a converged step's end); returns
+        (change, scale) (:func:`lagged_change`)."""
+        return 0.0, 0.0
+
+    def static_error(self):
+        """None when the form may join a quasi-static solve, else why not (the message of
+        ``solve_static``'s ValueError). Default: forms of x may, forms of y (a velocity) not."""
+        if self.variable == "x":
+            return None
+        return (f"solve_static does not handle the form {self.name!r}: it is a function of the step's velocity "
+                "(variable 'y')")
 
 
 class _QuadraticForm(Form):
@@ -163,6 +278,7 @@ class LoadForm(Form):
     external forces (updated in place by the simulator's ``sync_model``), ``norm`` its 2-norm."""
 
     name = "load"
+    order = 100  # last: a constant vector added after the other gradients
 
     def __init__(self, ops, fext, norm=0.0):
         self.ops, self.fext, self.norm = ops, fext, float(norm)
@@ -187,6 +303,7 @@ class ElasticForm(Form):
 
     name = "elastic"
     variable = "x"
+    order = 0
 
     def __init__(self, ops, qp_sets, pattern, options):
         self.ops, self.qp_sets, self.pattern, self.options = ops, qp_sets, pattern, options
@@ -279,8 +396,8 @@ class IncrementalPotential:
 
     # -- forms --------------------------------------------------------------------------------------
     def set_forms(self, forms):
-        """Replace the list of forms (joint forms first); the accumulator grows to fit."""
-        forms = [f for f in forms if f.joint] + [f for f in forms if not f.joint]
+        """Replace the list of forms (:meth:`ordered`); the accumulator grows to fit."""
+        forms = self.ordered(forms)
         self.forms = forms
         size = _HEAD + ROW * len(forms)
         # five sections (energy, gradient, direction of the trial; energy, gradient of the start)
@@ -292,6 +409,14 @@ class IncrementalPotential:
         self._report_at = 5 * size
         for i, f in enumerate(forms):
             f.bind(self.acc, _HEAD + ROW * i)
+
+    @staticmethod
+    def ordered(forms):
+        """The forms in evaluation order: joint forms first, then the others by ``order`` (a form
+        without one: 100), each group in the given order."""
+        forms = list(forms)
+        return [f for f in forms if f.joint] + sorted((f for f in forms if not f.joint),
+                                                      key=lambda f: getattr(f, "order", 100))
 
     def set_projection(self, on: bool):
         """Project-on-demand Newton (``NewtonOptions.hessian_projection = "on_demand"``): with
@@ -318,6 +443,9 @@ class IncrementalPotential:
         the pattern make it grow here (the linear solver re-analyses it)."""
         self.xb, self.s = xb, float(s)
         self._x_of_y = None
+        for i, f in enumerate(self.forms):  # a form may serve another potential too (the static one)
+            if getattr(f, "acc_slot", None) != _HEAD + ROW * i:
+                f.bind(self.acc, _HEAD + ROW * i)
         for f in self.forms:
             if weights and f.name in weights:
                 f.weight = float(weights[f.name])

@@ -471,8 +471,9 @@ class SimulatorBase(SimulatorState, StepperBase):
     # -- the step ---------------------------------------------------------------------------------------
     def _weights(self, s, control):
         """The forms' weights for a step of scale s (the one place the integrator's s enters the
-        weights; the chain factors of the forms of x are the potential's)."""
-        return {"inertia": 1.0, "damping": s, "elastic": 1.0, "load": s * control.load_scale, "contact": 1.0}
+        weights; the chain factors of the forms of x are the potential's; forms not named keep
+        their own weight)."""
+        return {"inertia": 1.0, "damping": s, "elastic": 1.0, "load": s * control.load_scale}
 
     def _prescribed_velocity(self, state, xb, s, control, out):
         """``out`` := the end-of-step velocity that puts fixed components at their target (or keeps

@@ -93,6 +93,7 @@ class WarpedElasticForm(Form):
 
     name = "elastic"
     variable = "x"
+    order = 0
     joint = True  # a quadratic: its gradient is measured with the other quadratic terms
 
     def __init__(self, ops, pattern, stiffness, force):
