@@ -144,6 +144,31 @@ def _contact_eval(sim, x_np):
 
 
 @pytest.mark.parametrize("kind", ["plane", "sphere", "box", "mesh"])
+def test_each_collider_host_distance_is_its_kernel_distance(kind):
+    """A collider's numpy ``local_distances`` (the adjoint's complex-step copy) and the contact
+    kernel's distance agree, in a turned and moved pose."""
+    m = block_model(origin=(0.0, 0.0, 0.0), cells=2, gravity=(0.0, 0.0, 0.0))
+    sim = Simulator(m, dt=0.01)
+    motion = dict(translation=(0.01, -0.02, 0.005), rotation_axis=(0.3, 0.2, 1.0), rotation_angle=12.0, ramp_time=1.0)
+    col = {"plane": Plane(point=(0, -0.02, 0), normal=(0.1, 1.0, 0.05), **motion),
+           "sphere": Sphere(center=(0.05, -0.3, 0.04), radius=0.26, **motion),
+           "box": Box(box_min=(-0.3, -0.3, -0.3), box_max=(0.2, -0.03, 0.3), **motion),
+           "mesh": MeshCollider(vertices=[[-0.1, -0.03, -0.1], [0.3, -0.04, -0.1], [-0.1, -0.02, 0.3], [0.3, -0.05, 0.3]],
+                                triangles=[[0, 2, 1], [1, 2, 3]], **motion)}[kind]
+    sim.add_collider(col)
+    rng = np.random.default_rng(5)
+    x = m.rest_positions + 0.01 * rng.standard_normal(m.rest_positions.shape)
+    t = 0.5
+    sim.contact.set_poses(t, t)
+    D = sim.contact.distances(sim._vec_array(x))[:, 0]
+    R, p = col.pose(t)
+    d, n = col.local_distances((x[sim.contact.surface] - p) @ R)
+    assert D.min() > 0.0 and D.min() < 0.1  # near the collider, outside it
+    np.testing.assert_allclose(d.min(axis=1), D, rtol=0, atol=1e-13)
+    assert np.allclose(np.linalg.norm(n, axis=-1), 1.0)
+
+
+@pytest.mark.parametrize("kind", ["plane", "sphere", "box", "mesh"])
 def test_barrier_and_friction_derivatives_match_finite_differences(kind):
     m = block_model(origin=(0.0, 0.0, 0.0), cells=2)
     sim = Simulator(m, dt=0.01)

@@ -6,6 +6,15 @@ kinematic handle (docs/scenes.md, ``[[handle]]``): at time t, with f = min(t / r
     x(t) = c + R(f * rotation_angle about rotation_axis) (X - c) + f * translation,
 
 X the collider's point at t = 0 and c the rotation centre (default: the collider's centre).
+
+Each collider class owns what is particular to its type: its kernel ``kind`` (the branch of
+``warpfem.contact.kernels.primitive_distance``, or the mesh's triangles), its scene keys
+(``scene_keys``: required and optional ``[[collider]]`` keys, read by ``warpfem.scenes.schema``
+and the scene builder), its kernel parameters (``params``, ``triangles``) and the host (numpy,
+complex-safe) counterpart of its Warp distance (``local_distances``: the adjoint's complex-step
+derivatives). The body-based defaults of every contact barrier (colliders and surface contact)
+are the functions :func:`default_dhat`, :func:`default_stiffness` and
+:func:`default_friction_velocity`; :func:`contact_parameters` fills them in for a collider.
 """
 
 from __future__ import annotations
@@ -16,9 +25,89 @@ import numpy as np
 
 from warpfem.contact.stiffness import parse_stiffness
 
-__all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider", "COLLIDER_TYPES"]
+__all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider", "COLLIDER_TYPES", "collider_class",
+           "collider_scene_keys", "default_dhat", "default_stiffness", "default_friction_velocity", "contact_parameters",
+           "FRICTION_VELOCITY"]
 
 COLLIDER_TYPES = ("plane", "sphere", "box", "mesh")
+
+#: Default friction velocity eps_v (below it friction is smoothed into sticking), in body diagonals
+#: per second, by precision. float32 gets 10x: with 1e-3 the sticking force's round-off
+#: (about eps_32 |x - x_n| / (eps_v h)) is above the Newton loop's floor at impacts and 3 of 20
+#: steps of a collider drop stopped at max_iters; with 1e-2 every step converges (30 Newton
+#: iterations per impact step), a mu = 0.8 block on a 30 degree incline creeps 0.45 mm in 0.5 s
+#: instead of 0.09 mm, and sliding keeps the Coulomb acceleration to 0.001 % (docs/contact.md).
+FRICTION_VELOCITY = {"float64": 1e-3, "float32": 1e-2}
+
+
+# -- the body-based defaults of a contact barrier (colliders, surface contact, scene descriptions) --------
+def default_dhat(mean_edge):
+    """The default contact distance dhat (m): a tenth of the body's mean surface edge."""
+    return 0.1 * mean_edge
+
+
+def default_stiffness(youngs_modulus, mean_edge, total_mass, surface_vertices, dhat):
+    """The default barrier stiffness kappa (N/m): as stiff as the material over a surface edge
+    (E x mean edge, so an impact is stopped within a fraction of dhat rather than at a
+    float32-unresolvable gap), and at least the weight under 1 g spread over the surface
+    vertices, per dhat."""
+    return max(youngs_modulus * mean_edge, total_mass * 9.81 / (max(int(surface_vertices), 1) * dhat))
+
+
+def default_friction_velocity(diagonal, precision):
+    """eps_v (m/s) for a body of bounding-box ``diagonal`` (m) simulated in ``precision``."""
+    return FRICTION_VELOCITY.get(str(precision), 1e-3) * float(diagonal)
+
+
+def contact_parameters(dhat, stiffness, friction_velocity, *, adaptive=False, mean_edge, diagonal, total_mass,
+                       surface_vertices, youngs_modulus, precision):
+    """(dhat, kappa, eps_v) of a collider given its own values (None: the default) and the body's
+    measures; kappa is None when it is adaptive (``stiffness="auto"``: warpfem.contact.stiffness)."""
+    dhat = dhat if dhat is not None else default_dhat(mean_edge)
+    kappa = stiffness if stiffness is not None else (
+        None if adaptive else default_stiffness(youngs_modulus, mean_edge, total_mass, surface_vertices, dhat))
+    epsv = friction_velocity if friction_velocity is not None else default_friction_velocity(diagonal, precision)
+    return dhat, kappa, epsv
+
+
+def _dot(a, b):
+    return np.sum(a * b, axis=-1)
+
+
+def closest_on_triangles(p, A, B, C):
+    """Closest points of p (m, 3) to triangles (T, 3) each: (m, T, 3), the host counterpart of
+    ``kernels.closest_on_triangle`` (Ericson's regions, chosen on real parts; complex-safe)."""
+    p = p[:, None, :]
+    ab, ac, ap = B - A, C - A, p - A
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    bp = p - B
+    d3, d4 = _dot(ab, bp), _dot(ac, bp)
+    cp = p - C
+    d5, d6 = _dot(ab, cp), _dot(ac, cp)
+    vc = d1 * d4 - d3 * d2
+    vb = d5 * d2 - d1 * d6
+    va = d3 * d6 - d5 * d4
+    R = np.real
+    one = np.ones_like(d1)
+
+    def safe(x):
+        return np.where(R(x) == 0.0, one, x)
+
+    den = safe(va + vb + vc)
+    q = A + ab * (vb / den)[..., None] + ac * (vc / den)[..., None]  # interior
+    # the edge and vertex regions, in reverse order of Ericson's tests so the first test wins
+    reg = [
+        ((R(va) <= 0) & (R(d4 - d3) >= 0) & (R(d5 - d6) >= 0),
+         B + (C - B) * ((d4 - d3) / safe((d4 - d3) + (d5 - d6)))[..., None]),
+        ((R(vb) <= 0) & (R(d2) >= 0) & (R(d6) <= 0), A + ac * (d2 / safe(d2 - d6))[..., None]),
+        ((R(d6) >= 0) & (R(d5) <= R(d6)), np.broadcast_to(C, q.shape)),
+        ((R(vc) <= 0) & (R(d1) >= 0) & (R(d3) <= 0), A + ab * (d1 / safe(d1 - d3))[..., None]),
+        ((R(d3) >= 0) & (R(d4) <= R(d3)), np.broadcast_to(B, q.shape)),
+        ((R(d1) <= 0) & (R(d2) <= 0), np.broadcast_to(A, q.shape)),
+    ]
+    for mask, val in reg:
+        q = np.where(mask[..., None], val, q)
+    return q
 
 
 def _rotation(axis, angle):
@@ -46,6 +135,8 @@ class Collider:
 
     kind = -1
     type_name = ""
+    #: the ``[[collider]]`` keys of this type: (required, optional), besides the common ones
+    scene_keys = ((), ())
 
     def __init__(self, *, friction=0.0, dhat=None, stiffness=None, friction_velocity=None, translation=None,
                  rotation_axis=None, rotation_angle=0.0, rotation_center=None, ramp_time=None, name=None):
@@ -95,6 +186,20 @@ class Collider:
     def triangles(self) -> np.ndarray:
         return np.zeros((0, 3, 3))
 
+    @classmethod
+    def geometry_keys(cls):
+        """The type's own ``[[collider]]`` keys, required then optional."""
+        return tuple(cls.scene_keys[0]) + tuple(cls.scene_keys[1])
+
+    def local_distances(self, p):
+        """(d (m, P), n (m, P, 3)): signed distances of points p (m, 3) in the collider's t = 0 frame
+        to its P primitives (1; a mesh: its triangles) and their unit gradients, in numpy and
+        complex-safe (branches on real parts): the host counterpart of the contact kernel's
+        distance (``kernels.primitive_distance`` / ``closest_on_triangle``) for the adjoint's
+        complex-step derivatives (``warpfem.solvers.adjoint_contact``). Inside a solid the
+        distance is <= 0 (never a contact term), its gradient unspecified."""
+        raise NotImplementedError
+
     def surface(self, extent: float):
         """(vertices (k, 3), triangles (m, 3)) of the collider at t = 0 for output; ``extent`` sizes
         an infinite plane."""
@@ -108,6 +213,7 @@ class Plane(Collider):
     """The half-space n.(x - point) >= 0 (the body stays on the side n points to)."""
 
     kind, type_name = 0, "plane"
+    scene_keys = ((), ("point", "normal"))
 
     def __init__(self, point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0), **kw):
         self.point = _vec3(point, "plane point")
@@ -123,6 +229,10 @@ class Plane(Collider):
     def params(self):
         return self.point, self.normal
 
+    def local_distances(self, p):
+        n = np.broadcast_to(self.normal, p.shape)
+        return _dot(p - self.point, self.normal)[:, None], n[:, None, :]
+
     def surface(self, extent):
         n = self.normal
         t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 0.0, 1.0])
@@ -137,6 +247,7 @@ class Sphere(Collider):
     """A solid ball of ``radius`` around ``center``."""
 
     kind, type_name = 1, "sphere"
+    scene_keys = (("center", "radius"), ())
 
     def __init__(self, center=(0.0, 0.0, 0.0), radius=1.0, **kw):
         self.center_ = _vec3(center, "sphere center")
@@ -150,6 +261,12 @@ class Sphere(Collider):
 
     def params(self):
         return self.center_, np.array([self.radius, 0.0, 0.0])
+
+    def local_distances(self, p):
+        r = p - self.center()
+        L = np.sqrt(_dot(r, r))
+        L = np.where(np.real(L) > 0, L, 1.0)
+        return (L - self.radius)[:, None], (r / L[:, None])[:, None, :]
 
     def surface(self, extent):
         u, v = np.meshgrid(np.linspace(0, np.pi, 13), np.linspace(0, 2 * np.pi, 25), indexing="ij")
@@ -167,6 +284,7 @@ class Box(Collider):
     """A solid axis-aligned box (at t = 0) from ``box_min`` to ``box_max``."""
 
     kind, type_name = 2, "box"
+    scene_keys = (("box_min", "box_max"), ())
 
     def __init__(self, box_min=(-1.0, -1.0, -1.0), box_max=(1.0, 1.0, 1.0), **kw):
         lo, hi = _vec3(box_min, "box_min"), _vec3(box_max, "box_max")
@@ -181,6 +299,19 @@ class Box(Collider):
     def params(self):
         return self.center(), 0.5 * (self.hi - self.lo)
 
+    def local_distances(self, p):
+        R = np.real
+        ctr, half = self.params()
+        r = p - ctr
+        sg = np.where(R(r) < 0, -1.0, 1.0)
+        q = sg * r - half
+        m = np.where(R(q) > 0, q, 0.0)
+        L = np.sqrt(_dot(m, m))
+        outside = R(L) > 0
+        Ls = np.where(outside, L, 1.0)
+        d = np.where(outside, L, np.max(R(q), axis=1))  # inside: negative (never an active pair)
+        return d[:, None], (sg * m / Ls[:, None])[:, None, :]
+
     def surface(self, extent):
         c = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64)
         v = self.lo + c * (self.hi - self.lo)
@@ -194,6 +325,7 @@ class MeshCollider(Collider):
     (point-triangle distances, brute force over the triangles: meant for small meshes)."""
 
     kind, type_name = 3, "mesh"
+    scene_keys = (("path",), ("scale", "offset"))
 
     def __init__(self, path=None, *, vertices=None, triangles=None, scale=1.0, offset=(0.0, 0.0, 0.0), **kw):
         if path is not None:
@@ -222,6 +354,14 @@ class MeshCollider(Collider):
     def triangles(self):
         return self.vertices[self.faces]
 
+    def local_distances(self, p):
+        tri = self.triangles()  # (T, 3, 3) in the t = 0 frame
+        Q = closest_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
+        r = p[:, None, :] - Q
+        d = np.sqrt(_dot(r, r))
+        ds = np.where(np.real(d) > 0, d, 1.0)
+        return d, r / ds[..., None]
+
     def surface(self, extent):
         return self.vertices, self.faces
 
@@ -229,8 +369,18 @@ class MeshCollider(Collider):
 _BY_TYPE = {"plane": Plane, "sphere": Sphere, "box": Box, "mesh": MeshCollider}
 
 
-def make_collider(type: str, **kw) -> Collider:
-    """A collider from a type name ("plane", "sphere", "box", "mesh") and its keywords."""
+def collider_class(type: str):
+    """The collider class of a type name ("plane", "sphere", "box", "mesh")."""
     if type not in _BY_TYPE:
         raise ValueError(f"collider type must be one of {COLLIDER_TYPES}, got {type!r}")
-    return _BY_TYPE[type](**kw)
+    return _BY_TYPE[type]
+
+
+def collider_scene_keys() -> dict:
+    """{type: (required keys, optional keys)} of the ``[[collider]]`` types, from their classes."""
+    return {t: cls.scene_keys for t, cls in _BY_TYPE.items()}
+
+
+def make_collider(type: str, **kw) -> Collider:
+    """A collider from a type name ("plane", "sphere", "box", "mesh") and its keywords."""
+    return collider_class(type)(**kw)

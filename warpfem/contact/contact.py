@@ -20,7 +20,9 @@ import numpy as np
 import warp as wp
 
 from warpfem.contact import kernels as CK
-from warpfem.contact.colliders import Collider
+from warpfem.contact.colliders import (FRICTION_VELOCITY, Collider, contact_parameters,  # noqa: F401 (re-exported)
+                                       default_friction_velocity)
+from warpfem.contact.colliders import default_stiffness as _default_stiffness
 from warpfem.contact.stiffness import AdaptiveStiffness
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import Form, InfeasibleStart, lagged_change
@@ -32,15 +34,6 @@ __all__ = ["ContactSet", "ContactForm", "CollisionError"]
 # the line search may take a vertex at most this close (fraction of its current distance) to a collider
 STEP_ETA = 0.2
 
-#: Default friction velocity eps_v (below it friction is smoothed into sticking), in body diagonals
-#: per second, by precision. float32 gets 10x: with 1e-3 the sticking force's round-off
-#: (about eps_32 |x - x_n| / (eps_v h)) is above the Newton loop's floor at impacts and 3 of 20
-#: steps of a collider drop stopped at max_iters; with 1e-2 every step converges (30 Newton
-#: iterations per impact step), a mu = 0.8 block on a 30 degree incline creeps 0.45 mm in 0.5 s
-#: instead of 0.09 mm, and sliding keeps the Coulomb acceleration to 0.001 % (docs/contact.md).
-FRICTION_VELOCITY = {"float64": 1e-3, "float32": 1e-2}
-
-
 def unique_name(name: str, taken) -> str:
     """``name``, or ``name`` numbered from 2 on (``floor2``, ``floor3``, ...) when ``taken`` has it: the
     name a collider gets among those already added."""
@@ -49,11 +42,6 @@ def unique_name(name: str, taken) -> str:
     while out in taken:
         out, k = f"{name}{k}", k + 1
     return out
-
-
-def default_friction_velocity(diagonal, precision):
-    """eps_v (m/s) for a body of bounding-box ``diagonal`` (m) simulated in ``precision``."""
-    return FRICTION_VELOCITY.get(str(precision), 1e-3) * float(diagonal)
 
 
 class CollisionError(ValueError):
@@ -99,21 +87,23 @@ class ContactSet:
     # -- set-up ---------------------------------------------------------------------------------------
     def defaults(self, c: Collider):
         """(dhat, kappa, eps_v) of a collider with the body-based defaults filled in; kappa is None
-        when it is adaptive (``stiffness="auto"``: :mod:`warpfem.contact.stiffness`)."""
-        dhat = c.dhat if c.dhat is not None else 0.1 * self.mean_edge
-        kappa = c.stiffness if c.stiffness is not None else (
-            None if getattr(c, "adaptive_stiffness", False) else self.default_stiffness(dhat))
-        epsv = (c.friction_velocity if c.friction_velocity is not None
-                else default_friction_velocity(self.diagonal, self.sim.precision))
-        return dhat, kappa, epsv
+        when it is adaptive (``stiffness="auto"``: :mod:`warpfem.contact.stiffness`); the one
+        formula: :func:`warpfem.contact.colliders.contact_parameters`."""
+        return contact_parameters(c.dhat, c.stiffness, c.friction_velocity,
+                                  adaptive=bool(getattr(c, "adaptive_stiffness", False)), **self.body_measures())
+
+    def body_measures(self) -> dict:
+        """The body's measures the default contact parameters follow (keywords of
+        :func:`~warpfem.contact.colliders.contact_parameters`)."""
+        E = float(getattr(self.sim.model.material, "youngs_modulus", 0.0) or 0.0)
+        return dict(mean_edge=self.mean_edge, diagonal=self.diagonal, total_mass=self.total_mass,
+                    surface_vertices=len(self.surface), youngs_modulus=E, precision=self.sim.precision)
 
     def default_stiffness(self, dhat):
-        """The default barrier stiffness kappa (N/m): as stiff as the material over a surface edge
-        (E x mean edge, so an impact is stopped within a fraction of dhat rather than at a
-        float32-unresolvable gap), and at least the weight under 1 g spread over the surface
-        vertices, per dhat."""
-        E = float(getattr(self.sim.model.material, "youngs_modulus", 0.0) or 0.0)
-        return max(E * self.mean_edge, self.total_mass * 9.81 / (len(self.surface) * dhat))
+        """The default barrier stiffness kappa (N/m) at ``dhat``
+        (:func:`warpfem.contact.colliders.default_stiffness`)."""
+        m = self.body_measures()
+        return _default_stiffness(m["youngs_modulus"], m["mean_edge"], m["total_mass"], m["surface_vertices"], dhat)
 
     def add(self, collider: Collider):
         if not isinstance(collider, Collider):

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from warpfem.contact.colliders import make_collider
+from warpfem.contact.colliders import collider_class, make_collider
 from warpfem.contact.contact import CollisionError, unique_name
 
-_GEOMETRY = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "box": ("box_min", "box_max"),
-             "mesh": ("path", "scale", "offset")}
 _COMMON = ("name", "friction", "dhat", "stiffness", "friction_velocity", "translation", "rotation_axis",
            "rotation_angle", "rotation_center", "ramp_time")
 
@@ -31,7 +29,7 @@ def add_scene_colliders(scene, sim, *, duration):
         scene.fail("[[collider]] #1", f"{type(sim).__name__} does not handle colliders")
     names = scene_collider_names(scene.spec.collider)
     for i, c in enumerate(scene.spec.collider):
-        kw = {k: c[k] for k in _GEOMETRY[c["type"]] + _COMMON if c.get(k) is not None}
+        kw = {k: c[k] for k in collider_class(c["type"]).geometry_keys() + _COMMON if c.get(k) is not None}
         if c["type"] == "sphere":
             kw["center"] = tuple(kw["center"])
         if kw.get("ramp_time") is None:

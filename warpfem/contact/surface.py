@@ -24,6 +24,8 @@ import scipy.sparse.csgraph
 import warp as wp
 
 from warpfem.contact import surface_kernels as SK
+from warpfem.contact.colliders import default_dhat
+from warpfem.contact.colliders import default_stiffness as _default_stiffness
 from warpfem.contact.contact import CollisionError, LaggedFrictionForm, default_friction_velocity
 from warpfem.contact.stiffness import AdaptiveStiffness, parse_stiffness
 from warpfem.kernels.generic import launch
@@ -191,7 +193,7 @@ class SurfaceContact:
         if not (np.isfinite(friction) and friction >= 0.0):
             raise ValueError(f"set_contact: friction must be >= 0, got {friction!r}")
         self.friction = float(friction)
-        self.dhat = 0.1 * mean_edge if dhat is None else float(dhat)
+        self.dhat = default_dhat(mean_edge) if dhat is None else float(dhat)
         #: the adaptive kappa (stiffness "auto"; warpfem.contact.stiffness), else None
         self.stiffness = None
         self._kappa = self.default_stiffness(self.dhat) if kappa is None and not adaptive else kappa
@@ -283,7 +285,7 @@ class SurfaceContact:
         (2 d kappa |b'(d^2)|) equals that of the collider barrier's default kappa (E x mean surface
         edge, at least the weight under 1 g per surface vertex per dhat; docs/contact.md) there."""
         E = float(getattr(self.sim.model.material, "youngs_modulus", 0.0) or 0.0)
-        k_lin = max(E * self.mean_edge, float(self.sim.model.total_mass) * 9.81 / (max(self.nv, 1) * dhat))
+        k_lin = _default_stiffness(E, self.mean_edge, float(self.sim.model.total_mass), self.nv, dhat)
         return k_lin * abs(_barrier_slope(0.5 * dhat, dhat)) / (dhat * abs(_barrier_slope(0.25 * dhat * dhat, dhat * dhat)))
 
     def _alloc(self, cap):

@@ -477,10 +477,11 @@ class Scene(_SceneBodies):
     def collider_plan(self, precision: str = "float64") -> list:
         """The ``[[collider]]`` entries as they will run: type, name, geometry, motion, friction and
         the contact distance / barrier stiffness with the body-based defaults filled in (as
-        :class:`warpfem.contact.contact.ContactSet` fills them: dhat 0.1 x mean boundary edge, kappa
+        :class:`warpfem.contact.contact.ContactSet` fills them, with the one formula
+        :func:`warpfem.contact.colliders.contact_parameters`: dhat 0.1 x mean boundary edge, kappa
         max(E x mean edge, weight / (surface vertices x dhat)), friction velocity 1e-3 x diagonal per
         second, 1e-2 in float32)."""
-        from warpfem.contact.contact import default_friction_velocity
+        from warpfem.contact.colliders import collider_class, contact_parameters
 
         sp = self.spec
         if not sp.collider:
@@ -497,17 +498,14 @@ class Scene(_SceneBodies):
         if sp.bodies:  # as the model: every body's mass, the stiffest body's E
             mass = sum(float(b.spec.material["density"]) * b.mesh().total_volume() for b in self.bodies)
             E = max(float(b.spec.material.get("youngs_modulus") or 0.0) for b in self.bodies)
-        geometry = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "box": ("box_min", "box_max"),
-                    "mesh": ("path", "scale", "offset")}
         out = []
         for i, c in enumerate(sp.collider):
-            dhat = c["dhat"] if c.get("dhat") is not None else 0.1 * mean_edge
             auto = c.get("stiffness") == "auto"  # adaptive (warpfem.contact.stiffness): set per step
-            kappa = (c["stiffness"] if c.get("stiffness") is not None and not auto
-                     else max(E * mean_edge, mass * 9.81 / (surface * dhat)))
-            epsv = (c["friction_velocity"] if c.get("friction_velocity") is not None
-                    else default_friction_velocity(diagonal, precision))
-            geo = {k: (list(c[k]) if isinstance(c[k], tuple) else c[k]) for k in geometry[c["type"]] if c.get(k) is not None}
+            dhat, kappa, epsv = contact_parameters(
+                c.get("dhat"), None if auto else c.get("stiffness"), c.get("friction_velocity"), mean_edge=mean_edge,
+                diagonal=diagonal, total_mass=mass, surface_vertices=surface, youngs_modulus=E, precision=precision)
+            geo = {k: (list(c[k]) if isinstance(c[k], tuple) else c[k]) for k in collider_class(c["type"]).geometry_keys()
+                   if c.get(k) is not None}
             moves = any(c.get("translation") or ()) or bool(c.get("rotation_angle"))
             d = {"type": c["type"], "name": c.get("name") or f"{c['type']}{i + 1}", **geo,
                  "friction": float(c["friction"]), "dhat": float(dhat), "dhat_default": c.get("dhat") is None,

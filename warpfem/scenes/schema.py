@@ -23,6 +23,7 @@ try:  # Python 3.11+
 except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib
 
+from warpfem.contact.colliders import COLLIDER_TYPES, collider_scene_keys
 from warpfem.materials import MATERIAL_TYPES  # importing the package registers every material
 
 __all__ = ["SceneError", "Key", "SCHEMA", "SceneSpec", "parse_scene_file", "parse_scene_dict",
@@ -170,7 +171,7 @@ SCHEMA: dict[str, dict[str, Key]] = {
     "force": {**_SELECTION, "force": Key("vec3", required=True, doc="N on each selected vertex")},
     # kinematic colliders (warpfem.contact, docs/contact.md): keys per type in COLLIDER_TYPE_KEYS
     "collider": {
-        "type": Key("choice", required=True, choices=("plane", "sphere", "box", "mesh")),
+        "type": Key("choice", required=True, choices=COLLIDER_TYPES),
         "name": Key("str", default=None, doc="USD prim / message name (default: the type)"),
         "friction": Key("float", default=0.0, check=_non_negative, doc="Coulomb coefficient mu"),
         "dhat": Key("float", default=None, check=_positive, doc="contact distance (m); default 0.1 x mean surface edge"),
@@ -301,9 +302,9 @@ BODY_SECTIONS = ("mesh", "material", "fixed", "handle", "force", "traction", "su
 # integrator types (and sections) that simulate one body only
 SINGLE_BODY_INTEGRATORS = ("stiffness_warping",)
 
-# [[collider]]: the keys each type needs (required) and the keys only some types take
-COLLIDER_TYPE_KEYS = {"plane": ((), ("point", "normal")), "sphere": (("center", "radius"), ()),
-                      "box": (("box_min", "box_max"), ()), "mesh": (("path",), ("scale", "offset"))}
+# [[collider]]: the keys each type needs (required) and the keys only some types take, as each
+# collider class declares them (``scene_keys``, warpfem.contact.colliders)
+COLLIDER_TYPE_KEYS = collider_scene_keys()
 
 # Newton/time-stepping keys shared by the built-in integrators (integrators list which they accept).
 INTEGRATOR_KEYS: dict[str, Key] = {

@@ -9,7 +9,9 @@ w the collider's motion of the point over the step (start pose -> end pose). Eac
 one vertex, so every derivative is per vertex.
 
 The gradient g_i = de/dx_i is written here on the host in numpy, complex-safe (branches on real
-parts, lengths as sqrt(r . r), no abs), and differentiated by the **complex step**
+parts, lengths as sqrt(r . r), no abs; each collider's distance is its own ``local_distances``,
+the host counterpart of its kernel distance, in ``warpfem.contact.colliders``: not imported here,
+the solvers layer sits below contact), and differentiated by the **complex step**
 (Im g(z + i h e) / h with h = 1e-30): exact to round-off, with no finite-difference step to choose.
 It gives, per contact vertex, the exact Hessian block d g_i / dx_i (the barrier's curvature term
 included, which the forward's SPD-projected Hessian leaves out) and the derivatives of g_i in x_n,i
@@ -35,78 +37,11 @@ def _barrier_b1(d, dh):
     return -2.0 * t * np.log(d / dh) - t * t / d
 
 
-def _closest_on_triangles(p, A, B, C):
-    """Closest points of p (m, 3) to triangles (T, 3) each: (m, T, 3) (Ericson's regions, chosen
-    on real parts; complex-safe)."""
-    p = p[:, None, :]
-    ab, ac, ap = B - A, C - A, p - A
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    bp = p - B
-    d3, d4 = _dot(ab, bp), _dot(ac, bp)
-    cp = p - C
-    d5, d6 = _dot(ab, cp), _dot(ac, cp)
-    vc = d1 * d4 - d3 * d2
-    vb = d5 * d2 - d1 * d6
-    va = d3 * d6 - d5 * d4
-    R = np.real
-    one = np.ones_like(d1)
-
-    def safe(x):
-        return np.where(R(x) == 0.0, one, x)
-
-    den = safe(va + vb + vc)
-    q = A + ab * (vb / den)[..., None] + ac * (vc / den)[..., None]  # interior
-    # the edge and vertex regions, in reverse order of Ericson's tests so the first test wins
-    reg = [
-        ((R(va) <= 0) & (R(d4 - d3) >= 0) & (R(d5 - d6) >= 0),
-         B + (C - B) * ((d4 - d3) / safe((d4 - d3) + (d5 - d6)))[..., None]),
-        ((R(vb) <= 0) & (R(d2) >= 0) & (R(d6) <= 0), A + ac * (d2 / safe(d2 - d6))[..., None]),
-        ((R(d6) >= 0) & (R(d5) <= R(d6)), np.broadcast_to(C, q.shape)),
-        ((R(vc) <= 0) & (R(d1) >= 0) & (R(d3) <= 0), A + ab * (d1 / safe(d1 - d3))[..., None]),
-        ((R(d3) >= 0) & (R(d4) <= R(d3)), np.broadcast_to(B, q.shape)),
-        ((R(d1) <= 0) & (R(d2) <= 0), np.broadcast_to(A, q.shape)),
-    ]
-    for mask, val in reg:
-        q = np.where(mask[..., None], val, q)
-    return q
-
-
-def _distances(c, p):
-    """(d (m, P), n_local (m, P, 3)) of local points p (m, 3) to collider c's primitives (P = 1,
-    or a mesh's triangles)."""
-    R = np.real
-    if c.type_name == "plane":
-        n = np.broadcast_to(c.normal, p.shape)
-        return _dot(p - c.point, c.normal)[:, None], n[:, None, :]
-    if c.type_name == "sphere":
-        r = p - c.center()
-        L = np.sqrt(_dot(r, r))
-        L = np.where(R(L) > 0, L, 1.0)
-        return (L - c.radius)[:, None], (r / L[:, None])[:, None, :]
-    if c.type_name == "box":
-        ctr, half = c.params()
-        r = p - ctr
-        sg = np.where(R(r) < 0, -1.0, 1.0)
-        q = sg * r - half
-        m = np.where(R(q) > 0, q, 0.0)
-        L = np.sqrt(_dot(m, m))
-        outside = R(L) > 0
-        Ls = np.where(outside, L, 1.0)
-        d = np.where(outside, L, np.max(R(q), axis=1))  # inside: negative (never an active pair)
-        return d[:, None], (sg * m / Ls[:, None])[:, None, :]
-    tri = c.triangles()  # mesh: (T, 3, 3) in the t = 0 frame
-    Q = _closest_on_triangles(p, tri[:, 0], tri[:, 1], tri[:, 2])
-    r = p[:, None, :] - Q
-    d = np.sqrt(_dot(r, r))
-    ds = np.where(R(d) > 0, d, 1.0)
-    return d, r / ds[..., None]
-
-
 def _barrier_sum(c, x, R1, p1, kappa, dh):
     """At world points x with the pose (R1, p1): (sum over the primitives within dhat of kappa b'(d) n,
     sum of -kappa b'(d) (the lagged normal force), whether any is within dhat)."""
     pl = (x - p1) @ R1  # R1^T (x - p1) row-wise
-    d, nl = _distances(c, pl)
+    d, nl = c.local_distances(pl)  # the collider's host distance (warpfem.contact.colliders)
     act = (np.real(d) > 0) & (np.real(d) < dh)
     ds = np.where(act, d, dh)
     b1 = np.where(act, _barrier_b1(ds, dh), 0.0)
