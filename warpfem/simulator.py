@@ -497,7 +497,7 @@ class Simulator(SimulatorBase):
         if kept:
             pot.begin_adaptive(y)
         stats = newton_solve(pot, y, self.options)
-        if stats.converged and self.friction_iterations and not self._differentiating():
+        if stats.converged and self.friction_iterations:
             self._lagging_iterations(pot, xb, s, y, stats)
         stats.newton_syncs = pot.host_syncs - syncs0
         stats.launches = COUNTERS["launches"] - launches0
@@ -529,9 +529,9 @@ class Simulator(SimulatorBase):
         (``Form.update_lagging``), then the step solved again from there, until they change by
         less than ``friction_tol`` of their largest (at most ``friction_iterations`` times).
         Lagged once from the step start only, a landing body slides with the normal force of
-        before the impact (docs/contact.md, measured there)."""
+        before the impact (docs/contact.md, measured there). Steps recorded for gradients lag once."""
         forms = [f for f in pot.forms if f.uses_lagging()]
-        if not forms:
+        if not forms or self._differentiating():
             return
         x = self._work.tmp
         stats.friction_iterations = 0

@@ -24,9 +24,9 @@ import scipy.sparse.csgraph
 import warp as wp
 
 from warpfem.contact import surface_kernels as SK
-from warpfem.contact.colliders import default_dhat
+from warpfem.contact.colliders import default_dhat, default_friction_velocity
 from warpfem.contact.colliders import default_stiffness as _default_stiffness
-from warpfem.contact.contact import CollisionError, LaggedFrictionForm, default_friction_velocity
+from warpfem.contact.contact import CollisionError, LaggedFrictionForm
 from warpfem.contact.stiffness import AdaptiveStiffness, parse_stiffness
 from warpfem.kernels.generic import launch
 
