@@ -104,7 +104,8 @@ def plan(args, out: Path):
               + (["--quick"] if q else []), j, m))
     j, m = out / "contact_cost.json", out / "contact_cost.md"
     P.append(("contact-cost", py + [str(HERE / "bench_contact_cost.py"), *dev, "--json", str(j), "--md", str(m)]
-              + (["--cases", "box_drop,stack", "--frames", "box_drop=15,stack=6", "--precision", "float64"] if q else []),
+              + (["--cases", "box_drop,stack", "--frames", "box_drop=15,stack=6", "--precision", "float64", "--repeats", "2"]
+                 if q else []),
               j, m))
     return P
 
