@@ -56,6 +56,10 @@ class NewtonOptions:
             solvers for incremental potentials", project-on-demand Newton). The projection's
             clamping makes projected Newton converge linearly; on demand keeps Newton's quadratic
             convergence where the exact Hessian is definite (measured in docs/integrators.md).
+        friction_filter: with lagged friction in the potential, cut each contact's tangential step
+            where the Newton step would carry it across its sticking zone (stick/slip-aware steps,
+            :mod:`warpfem.contact.friction`). Changes the path to the step's solution, not the
+            solution; off: the plain Newton direction (measured effect in docs/contact.md).
     """
 
     tol: float = 1e-6
@@ -68,6 +72,7 @@ class NewtonOptions:
     project_hessian: bool = True
     forcing: str = "fixed"
     hessian_projection: str = "on_demand"
+    friction_filter: bool = True
 
     def validate(self):
         for name in ("tol", "cg_tol"):
@@ -115,6 +120,7 @@ class SolveStats:
     projected_retries: int = 0  # hessian_projection="on_demand": Newton systems solved again with the projected Hessian
     adaptations: int = 0  # Newton iterations after which the potential changed (an adaptive barrier stiffness doubled)
     history: list = field(default_factory=list)
+    reference_gradient: float = 0.0
 
     #: the work counters a step made of several solves (load steps, friction re-solves) sums
     COUNTS = ("newton_iterations", "cg_iterations", "line_search_steps", "linear_iterations", "host_syncs",
@@ -142,7 +148,7 @@ class SolveFailed(RuntimeError):
         self.stats = stats
 
 
-def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
+def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
     """Minimise ``problem``'s potential over ``y`` (updated in place): Newton with a backtracking
     Armijo line search, one loop for every simulator.
 
@@ -163,8 +169,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
       the next ``solve_newton_system`` evaluates it afresh), and the loop tries again;
     * optionally ``max_step(y, d) -> alpha_max``: the line search starts at min(1, alpha_max)
       (contact's continuous-collision bound: no step crosses a collider);
-    * optionally ``after_iteration(y, alpha) -> bool``: called after each accepted iteration (alpha:
-      its step length); True when
+    * optionally ``after_iteration(y, alpha, residual=r) -> bool``: called after each accepted
+      iteration (alpha: its step length, r: the gradient norm relative to the reference); True when
       the potential itself changed there (contact's adaptive barrier stiffness doubled), and its
       energy and gradient at y are evaluated again (``evaluate``);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
@@ -207,6 +213,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     # Below this the gradient is round-off of its own terms: no precision can reduce it further.
     floor_factor = 64.0 * eps_mach
     st.energy, st.gradient_norm = E, gnorm0
+    gref = gnorm0 if reference is None else float(reference)
+    st.reference_gradient = gref
 
     def finish():
         if on_demand:
@@ -218,7 +226,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     if not (np.isfinite(E) and np.isfinite(gnorm0)):
         st.reason = "non-finite energy or gradient at the start"
         return finish()
-    if gnorm0 <= opts.atol or gnorm0 <= floor_factor * gmag:
+    if gnorm0 <= opts.atol or gnorm0 <= floor_factor * gmag or (reference is not None and gnorm0 <= opts.tol * gref):
         st.converged, st.reason = True, "already at equilibrium"
         return finish()
     gnorm = gnorm0
@@ -340,7 +348,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             gmag, gnorm = problem.gradient(y, g)
         # a problem whose terms adapt (contact's barrier stiffness) may change its potential here:
         # its energy and gradient at y are evaluated again (the line search compares like with like)
-        if after_iteration is not None and after_iteration(y, alpha):
+        if after_iteration is not None and after_iteration(y, alpha, residual=gnorm / gref):
             E, mag, gmag, gnorm = problem.evaluate(y, g)
             st.adaptations += 1
         st.newton_iterations += 1
@@ -348,7 +356,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
         if not np.isfinite(gnorm):
             st.reason = "non-finite gradient"
             break
-        if gnorm <= opts.tol * gnorm0 or gnorm <= opts.atol:
+        if gnorm <= opts.tol * gref or gnorm <= opts.atol:
             st.converged, st.reason = True, "gradient below tolerance"
             break
         if gnorm <= floor_factor * gmag:
@@ -356,5 +364,5 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             break
     else:
         st.reason = f"reached max_iters={opts.max_iters}"
-    st.energy, st.gradient_norm, st.residual = E, gnorm, gnorm / gnorm0
+    st.energy, st.gradient_norm, st.residual = E, gnorm, gnorm / gref
     return finish()
