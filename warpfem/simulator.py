@@ -70,7 +70,10 @@ class Simulator(SimulatorBase):
             instance from :mod:`warpfem.integrators` (see there and docs/integrators.md).
         damping_mass, damping_stiffness: Rayleigh coefficients alpha (1/s) and beta (s).
         require_convergence: raise :class:`SolveFailed` (state untouched) instead of accepting a
-            non-converged step. NaN/inf always raises and never touches the state.
+            non-converged step. NaN/inf always raises and never touches the state. Without it a
+            non-converged step is kept, warned about (``NotConvergedWarning``, a RuntimeWarning
+            with the reason and the relative gradient against ``tol``) and counted in
+            ``sim.unconverged_steps``.
         linear_solver: "auto", "pcg", "direct", "amg" or "multigrid": the solver of each Newton system
             (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
@@ -491,7 +494,9 @@ class Simulator(SimulatorBase):
         step solved again from there, until the normal forces change by less than
         ``friction_tol`` of their largest (at most ``friction_iterations`` times). Lagged once
         from the step start only, a landing body slides with the normal force of before the
-        impact (docs/contact.md, measured there)."""
+        impact (docs/contact.md, measured there). Each re-solve is held to the step's tolerance,
+        relative to the gradient at the start of the step (``stats.initial_gradient``), and its
+        result (converged, reason, residual) becomes the step's."""
         parts = [c for c in (self.contact, self.surface_contact) if c is not None and len(getattr(c, "colliders", [0]))
                  and c.has_friction()]
         if not parts:
@@ -511,12 +516,15 @@ class Simulator(SimulatorBase):
                     change = max(change, float(np.abs(after - before).max()))
             if change <= self.friction_tol * scale:
                 break
-            again = newton_solve(pot, y, self.options)
+            # held to the step's tolerance: relative to the gradient at the step's start, not at
+            # this almost converged re-start
+            again = newton_solve(pot, y, self.options, reference=stats.initial_gradient)
             stats.friction_iterations += 1
             stats.add_counts(again)
             stats.converged, stats.reason = again.converged, again.reason
-            stats.energy, stats.gradient_norm = again.energy, again.gradient_norm
+            stats.energy, stats.gradient_norm, stats.residual = again.energy, again.gradient_norm, again.residual
             if not again.converged:
+                stats.reason = f"friction re-solve {stats.friction_iterations}: {again.reason}"
                 break
 
     def _guess(self, state, dt):
@@ -608,6 +616,7 @@ class Simulator(SimulatorBase):
             st = newton_solve(pot, y, self.options)
             total.add_counts(st)
             total.residual, total.gradient_norm, total.energy = st.residual, st.gradient_norm, st.energy
+            total.initial_gradient, total.tolerance = st.initial_gradient, st.tolerance  # each load step its own
             total.reason = st.reason
             if not st.converged:
                 total.converged = False
