@@ -5,9 +5,10 @@ The potential is E(y) over unknowns y (per-vertex vec3 device arrays with some c
 a mask, or a reduced coordinate vector), given as a ``problem`` (``warpfem.solvers.forms``
 for the full space, ``warpfem.reduced.simulator`` for subspaces) that also solves its Newton
 systems H d = -g (sparse on the device, or dense). The loop runs *while* the gradient norm is above
-the tolerance (||P g|| <= tol * ||P g_ref||, g_ref the gradient at the start of the solve or a given
-reference: the start of the time step a friction re-solve belongs to), and a step length a is accepted when E(y + a d) <= E(y) + c a d^T g (Nocedal & Wright,
-"Numerical Optimization", ch. 3, backtracking with the Armijo condition).
+the tolerance (converged: ||P g|| <= tol * ||P g_ref||, g_ref the gradient at the start of the solve
+or a given reference, e.g. the start of the time step a friction re-solve belongs to), and a step
+length a is accepted when E(y + a d) <= E(y) + c a d^T g (Nocedal & Wright, "Numerical
+Optimization", ch. 3, backtracking with the Armijo condition).
 """
 
 from __future__ import annotations
@@ -277,7 +278,8 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
         return finish()
     if gnorm0 <= opts.tol * ref:  # only with a reference (tol < 1): a re-solve's start within the tolerance
         st.converged = True
-        st.reason = f"start already within tolerance (relative gradient {relative(gnorm0):.2e} <= tol {opts.tol:.1e})"
+        st.reason = (f"start already within tolerance (relative gradient {relative(gnorm0):.2e} "
+                     f"<= tol {opts.tol:.1e})")
         return finish()
     gnorm = gnorm0
     if forcing is not None:
