@@ -97,12 +97,13 @@ def test_filter_keeps_the_steps_and_removes_the_halvings():
 @pytest.mark.parametrize("precision", ["float64", "float32"])
 def test_incline_30_degrees_sticks_within_half_a_millimetre_and_slides_within_1_percent(precision):
     """A block dropped 1 cm onto a 30 degree incline (h = 0.01 s): with mu 0.8 its centre of mass
-    moves < 0.5 mm in the 0.3 s after the landing step, with mu 0.2 it slides with
-    g (sin - mu cos) within 1 % (defaults: friction filter on, one friction re-solve)."""
+    moves < 0.5 mm in the 0.3 s after the landing step (measured: 0.07 mm in float64, 0.36 mm in
+    float32, whose default friction velocity is 10x), with mu 0.2 it slides with g (sin - mu cos)
+    within 1 % (defaults: friction filter on, one lag update inside the solve)."""
     theta = math.radians(30.0)
     p, _, land = _incline_drop(0.8, theta, 36, precision=precision)
     assert land is not None and land < 6
-    assert abs(p[land + 30] - p[land]) < 5e-4
+    assert abs(p[land + 31] - p[land + 1]) < 5e-4  # from the end of the landing step
     mu = 0.2
     _, v, land = _incline_drop(mu, theta, 40, precision=precision)
     a = (v[land + 30] - v[land + 10]) / (20 * 0.01)

@@ -70,7 +70,10 @@ class Simulator(SimulatorBase):
             instance from :mod:`warpfem.integrators` (see there and docs/integrators.md).
         damping_mass, damping_stiffness: Rayleigh coefficients alpha (1/s) and beta (s).
         require_convergence: raise :class:`SolveFailed` (state untouched) instead of accepting a
-            non-converged step. NaN/inf always raises and never touches the state.
+            non-converged step. NaN/inf always raises and never touches the state. Without it a
+            non-converged step is kept, warned about (``NotConvergedWarning``, a RuntimeWarning
+            with the reason and the relative gradient against ``tol``) and counted in
+            ``sim.unconverged_steps``.
         linear_solver: "auto", "pcg", "direct", "amg" or "multigrid": the solver of each Newton system
             (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
@@ -578,6 +581,7 @@ class Simulator(SimulatorBase):
             st = newton_solve(pot, y, self.options)
             total.add_counts(st)
             total.residual, total.gradient_norm, total.energy = st.residual, st.gradient_norm, st.energy
+            total.initial_gradient, total.tolerance = st.initial_gradient, st.tolerance  # each load step its own
             total.reason = st.reason
             if not st.converged:
                 total.converged = False
