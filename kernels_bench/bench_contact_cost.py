@@ -1,6 +1,8 @@
 """What contact with friction costs against free motion: Newton iterations and seconds per frame in
 free fall and in contact, on a collider drop and the example contact scenes, under named solver
-configurations run one after the other in the same process ("before" and "after" in one run).
+configurations run one after the other ("before" and "after" in one run): settings of the working
+tree's code (run in this process), or the code of a git revision (each run a subprocess importing
+that revision's warpfem, extracted into a temporary folder).
 
 Cases (``--cases``; each runs from its start, default frame counts chosen to include the free fall
 and the impact within a few minutes on 2 CPU cores; ``--frames N`` or ``--frames case=N,...``):
@@ -35,8 +37,17 @@ with surface contact (``ipctk``, the test extra, imported only then), and for ev
 whether a surface vertex is at distance <= 0 from it (``sim.contact.distances()``). Process CPU
 times are recorded next to the wall times (a shared machine inflates them less).
 
-Configurations (``--configs``) are the entries of ``CONFIGS`` below; every second and further
-configuration is also reported as a ratio against the first (the baseline of the same run).
+Configurations (``--configs``; default before,after) are the entries of ``CONFIGS`` below: "before",
+the code of e18de72 (the last commit before the friction solver changes: no stick/slip-aware Newton
+step, friction re-solves), "after", the working tree, "after_no_filter", the working tree with
+``friction_filter=False``. A configuration with a "revision" runs in workers: ``git archive REV`` of
+this repository extracted into a temporary folder (git needed), each case and precision then the
+hidden ``--_worker OUT.json`` of this script with that folder first on PYTHONPATH; the worker checks
+that ``warpfem.__file__`` is in that folder, and the outputs record per configuration the code that
+ran (revision and commit, or "working tree" and its HEAD) and the warpfem path. Warp's kernel cache is
+the default, shared one (the revision's kernels compile once). Every second and further
+configuration is also reported as a ratio against the first (the baseline of the same run): Newton
+iterations per contact and free frame, line-search halvings, seconds per frame.
 ``--repeats N`` runs each case, configuration and precision N times (configurations interleaved) and
 keeps each frame's smallest time: on a shared machine identical configurations differ by 20-30 %
 in a single run.
@@ -55,7 +66,10 @@ import json
 import math
 import os
 import platform
+import shutil
+import subprocess
 import sys
+import tempfile
 import time
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
@@ -64,23 +78,42 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, ROOT)
+# a worker (``--_worker``, a configuration with a "revision") imports warpfem from the extracted tree
+# that its PYTHONPATH puts first, never from this one
+_WORKER = "--_worker" in sys.argv[1:]
+if not _WORKER:
+    sys.path.insert(0, ROOT)
 
 import warp as wp  # noqa: E402
 
 import warpfem as wf  # noqa: E402
 from warpfem.solvers.nonlinear import NewtonOptions  # noqa: E402
 
-# Named solver configurations, each applied to the built simulator before its first step. A key
-# that is a NewtonOptions field (tol, max_iters, max_line_search, hessian_projection, ...) is set on
-# ``sim.options`` (validated); any other key must be an existing attribute of the simulator (e.g.
+# Named solver configurations, each applied to the built simulator before its first step. The key
+# "revision" (a git revision of this repository) runs the configuration on that revision's code: the
+# revision is extracted into a temporary folder (``git archive``) and each of the configuration's
+# runs is a subprocess of this script with that folder first on its PYTHONPATH, so that ``import
+# warpfem`` there imports the old code (checked, and recorded with each run); without "revision" the
+# runs are in this process, on the working tree. A key that is a NewtonOptions field (tol,
+# max_iters, max_line_search, hessian_projection, friction_filter, ...) is set on ``sim.options``
+# (validated); any other key must be an existing attribute of the simulator (e.g.
 # ``friction_iterations``, ``friction_tol``, ``initial_guess``) and is set on ``sim``; an unknown key
-# raises. "before": the defaults as they are today; "after": the solver change under test (fill in
-# its keys, e.g. {"friction_iterations": 2}).
+# raises, except that under a "revision" a key the working tree knows but that revision's code does
+# not is skipped, with a note in the results.
 CONFIGS: dict[str, dict] = {
-    "before": {},
+    # the code before the friction solver changes (stick/slip-aware Newton step, linear-spring
+    # sticking zone, friction lag updated inside the solve): e18de72, the last commit before them
+    "before": {"revision": "e18de72"},
+    # the working tree with its defaults (friction_filter on, friction lagged again inside the solve)
     "after": {},
+    # the working tree without the stick/slip-aware Newton step for collider friction
+    "after_no_filter": {"friction_filter": False},
 }
+
+#: where the example scenes are read: this tree's, or in a worker the extracted revision's
+SCENE_DIR = os.path.join(ROOT, "examples", "scenes")
+#: which code runs in this process: "working tree", or in a worker "revision REV (COMMIT)"
+TREE = "working tree"
 
 SCENES = {name: f"{name}.toml" for name in ("bunny_drop", "stack", "ball_bowl", "twisted_bar", "bunny_octopus")}
 #: default frames per case (free fall and impact; a few minutes each on 2 CPU cores)
@@ -93,18 +126,25 @@ IPCTK_MISSING = ("IPC Toolkit (the Python package 'ipctk', the test extra) is no
                  "intersections of the scenes with surface contact: pip install ipctk")
 
 
-def apply_config(sim, config: dict) -> dict:
+def apply_config(sim, config: dict, skipped: dict | None = None) -> dict:
     """Apply ``config`` to ``sim`` (NewtonOptions fields to ``sim.options``, other keys to existing
-    attributes of ``sim``); returns {key: (where, value)}. Raises KeyError on an unknown key."""
+    attributes of ``sim``; "revision" is not a setting); returns {key: (where, value)}. Raises
+    KeyError on an unknown key, unless ``skipped`` is a dict: then the key is skipped and ``skipped``
+    gets {key: note} (a worker on an old revision, whose code lacks a newer key)."""
     fields = {f.name for f in dataclasses.fields(NewtonOptions)}
     applied = {}
     for key, value in config.items():
+        if key == "revision":
+            continue
         if key in fields:
             setattr(sim.options, key, value)
             applied[key] = ("options", value)
         elif hasattr(sim, key) and not callable(getattr(sim, key)):
             setattr(sim, key, value)
             applied[key] = ("sim", value)
+        elif skipped is not None:
+            skipped[key] = (f"skipped: {key!r} = {value!r} is neither a NewtonOptions field nor an attribute of "
+                            f"{type(sim).__name__} in {TREE}")
         else:
             raise KeyError(f"configuration key {key!r} is neither a NewtonOptions field ({', '.join(sorted(fields))}) "
                            f"nor an attribute of {type(sim).__name__}")
@@ -143,7 +183,7 @@ def build_box_drop(precision, device):
 def build_scene(name, precision, device):
     from warpfem.scenes import load_scene
 
-    scene = load_scene(os.path.join(ROOT, "examples", "scenes", SCENES[name]))
+    scene = load_scene(os.path.join(SCENE_DIR, SCENES[name]))
     run = scene.build(device=device, precision=precision)
     integ = scene.spec.integrator
     return CaseRun(run.sim, run.model, run.step_frame, int(integ.get("substeps", 1)), run.fps,
@@ -221,12 +261,14 @@ def time_hessian(sim, batches=5, repeats=5):
     return wall, cpu
 
 
-def run_one(case, config_name, precision, frames, device, log=print):
-    """Run one case under one configuration and precision; the per-frame records and the summary."""
+def run_one(case, config_name, precision, frames, device, log=print, skip_unknown=False):
+    """Run one case under one configuration and precision, in this process; the per-frame records
+    and the summary. ``skip_unknown``: configuration keys this code lacks are skipped (noted)."""
     gc.collect()  # not in the timed steps
     run = build_case(case, precision, device)
     sim = run.sim
-    applied = apply_config(sim, CONFIGS[config_name])
+    skipped = {} if skip_unknown else None
+    applied = apply_config(sim, CONFIGS[config_name], skipped)
     check = IntersectionCheck(run)
     steps = []
     step = sim.step  # the bound method; the wrapper below shadows it on the instance
@@ -273,13 +315,102 @@ def run_one(case, config_name, precision, frames, device, log=print):
         rec["wall_over_hessian"] = rec["wall"] / hess_wall
         rec["cpu_over_hessian"] = rec["cpu"] / hess_cpu
     return dict(case=case, config=config_name, config_keys=CONFIGS[config_name],
-                applied={k: f"{w}.{k} = {v!r}" for k, (w, v) in applied.items()}, precision=precision,
+                applied={k: f"{w}.{k} = {v!r}" for k, (w, v) in applied.items()}, skipped=skipped or {},
+                tree=TREE, warpfem_path=os.path.dirname(os.path.abspath(wf.__file__)), precision=precision,
                 description=run.description, frames_requested=frames, steps_per_frame=run.steps_per_frame,
                 fps=run.fps, dt=float(sim.dt), tets=int(getattr(run.model.mesh, "num_tets", 0) or 0),
                 vertices=int(sim.num_vertices), newton_options=dataclasses.asdict(sim.options),
                 friction_iterations_option=int(getattr(sim, "friction_iterations", 0)),
                 intersection_check=check.method, error=error,
                 hessian_seconds=dict(wall=hess_wall, cpu=hess_cpu), summary=summarize(records), frames=records)
+
+
+def _git(*args) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", "-C", ROOT, *args], capture_output=True, text=True)
+
+
+def working_tree_commit() -> str | None:
+    """HEAD of this repository, "+dirty" when tracked files differ from it (None without git)."""
+    if shutil.which("git") is None:
+        return None
+    head = _git("rev-parse", "HEAD")
+    if head.returncode:
+        return None
+    dirty = _git("status", "--porcelain", "--untracked-files=no").stdout.strip()
+    return head.stdout.strip() + ("+dirty" if dirty else "")
+
+
+def extract_revision(revision: str, into: str) -> str:
+    """``git archive REVISION`` of this repository extracted into the folder ``into``; returns the
+    commit. Exits with a message when git, the repository or the revision is missing."""
+    if shutil.which("git") is None:
+        raise SystemExit(f"revision {revision!r}: git is not on PATH; it is needed to extract that revision")
+    if shutil.which("tar") is None:
+        raise SystemExit(f"revision {revision!r}: tar is not on PATH; it is needed to extract that revision")
+    if _git("rev-parse", "--git-dir").returncode:
+        raise SystemExit(f"revision {revision!r}: {ROOT} is not a git repository")
+    res = _git("rev-parse", "--verify", "--quiet", f"{revision}^{{commit}}")
+    if res.returncode:
+        raise SystemExit(f"revision {revision!r}: no such commit in the repository {ROOT}")
+    commit = res.stdout.strip()
+    archive = subprocess.run(["git", "-C", ROOT, "archive", commit], capture_output=True)
+    if archive.returncode:
+        raise SystemExit(f"revision {revision!r}: git archive failed: {archive.stderr.decode(errors='replace').strip()}")
+    untar = subprocess.run(["tar", "-x", "-C", into], input=archive.stdout, capture_output=True)
+    if untar.returncode:
+        raise SystemExit(f"revision {revision!r}: tar -x failed: {untar.stderr.decode(errors='replace').strip()}")
+    if not os.path.isfile(os.path.join(into, "warpfem", "__init__.py")):
+        raise SystemExit(f"revision {revision!r} ({commit}) has no warpfem package")
+    return commit
+
+
+def run_in_worker(case, config_name, precision, frames, device, tree: dict) -> dict:
+    """``run_one`` in a subprocess of this script whose PYTHONPATH starts with the extracted tree
+    ``tree["path"]`` (the configuration's revision); its log goes to this process's stdout."""
+    with tempfile.TemporaryDirectory(prefix="contact_cost_worker_") as tmp:
+        out = os.path.join(tmp, "result.json")
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join([tree["path"], *filter(None, [env.get("PYTHONPATH")])])
+        cmd = [sys.executable, os.path.abspath(__file__), "--_worker", out, "--_tree", tree["path"],
+               "--_tree-label", tree["label"], "--cases", case, "--configs", config_name, "--precision", precision,
+               "--frames", str(frames), "--device", device]
+        sys.stdout.flush()
+        rc = subprocess.run(cmd, env=env, cwd=tree["path"]).returncode
+        if rc or not os.path.isfile(out):
+            raise SystemExit(f"the worker for {case} {config_name} {precision} ({tree['label']}) failed "
+                             f"(exit status {rc}): {' '.join(cmd)}")
+        with open(out) as fh:
+            return json.load(fh)
+
+
+def worker(a) -> int:
+    """``--_worker OUT``: one case, configuration and precision on the code first on sys.path (an
+    extracted revision, ``--_tree``); the result JSON written to OUT."""
+    global SCENE_DIR, TREE
+    tree = os.path.realpath(a._tree)
+    here = os.path.realpath(os.path.dirname(wf.__file__))
+    if os.path.commonpath([tree, here]) != tree:
+        raise SystemExit(f"worker: warpfem was imported from {here}, not from the extracted tree {tree} "
+                         "(PYTHONPATH must start with it)")
+    SCENE_DIR = os.path.join(a._tree, "examples", "scenes")
+    TREE = a._tree_label
+    case, config_name, prec = a.cases, a.configs, a.precision
+    wp.config.quiet = True
+    wp.init()
+    import warpfem.contact.kernels  # noqa: F401
+    import warpfem.contact.surface_kernels  # noqa: F401
+    import warpfem.scenes  # noqa: F401
+
+    wp.force_load(device=a.device)
+    w = build_case(case, prec, a.device)  # warm-up (discarded), as in the main process
+    w.sim.step()
+    del w
+    r = run_one(case, config_name, prec, int(a.frames), a.device, log=lambda s: print(s, flush=True), skip_unknown=True)
+    for key, note in r["skipped"].items():
+        print(f"  {case} {config_name} {prec}: configuration key {key!r} {note}", flush=True)
+    with open(a._worker, "w") as fh:
+        json.dump(r, fh)
+    return 0
 
 
 def print_summary(r, what=""):
@@ -289,7 +420,8 @@ def print_summary(r, what=""):
           f"{_f(s['newton']['contact']['mean'])} (x{_f(s['newton']['contact_over_free'], '.2f')}); s/frame free "
           f"{_f(s['wall']['free']['mean'], '.3f')} contact {_f(s['wall']['contact']['mean'], '.3f')} "
           f"(x{_f(s['wall']['contact_over_free'], '.2f')}, {_f(s['contact_wall_over_hessian']['mean'], '.0f')} Hessians); "
-          f"not converged steps {s['not_converged_steps']}; intersecting frames {s['intersecting_frames']}", flush=True)
+          f"line-search halvings {s['line_search_total']}; not converged steps {s['not_converged_steps']}; "
+          f"intersecting frames {s['intersecting_frames']}; {r.get('tree', 'working tree')}", flush=True)
 
 
 def merge_repeats(runs):
@@ -390,7 +522,7 @@ def markdown(result):
          "best of 5x5.", "",
          "| case | config | precision | frames free/contact | Newton/frame free mean (max) | contact mean (max) | "
          "Newton contact/free | s/frame free | s/frame contact | time contact/free | contact frame / Hessian mean (max) | "
-         "Hessian ms | line search | not converged steps | friction re-solves | intersecting frames |",
+         "Hessian ms | line-search halvings | not converged steps | friction re-solves (lag updates since 5531463) | intersecting frames |",
          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["runs"]:
         s = r["summary"]
@@ -410,13 +542,23 @@ def markdown(result):
     cmp_rows = result.get("against_baseline") or []
     if cmp_rows:
         L += ["", f"Against the baseline configuration `{result['baseline']}` of this run (ratio config / baseline):", "",
-              "| case | precision | config | Newton/contact frame | s/contact frame wall (cpu) | Newton/free frame | "
-              "s/free frame wall (cpu) |",
-              "|---|---|---|---|---|---|---|"]
+              "| case | precision | config | Newton/contact frame | line-search halvings | s/contact frame wall (cpu) | "
+              "Newton/free frame | s/free frame wall (cpu) |",
+              "|---|---|---|---|---|---|---|---|"]
         for c in cmp_rows:
             L.append(f"| {c['case']} | {c['precision']} | {c['config']} | {_f(c['newton_contact'], '.2f')} | "
+                     f"{_f(c['line_search'], '.2f')} | "
                      f"{_f(c['wall_contact'], '.2f')} ({_f(c['cpu_contact'], '.2f')}) | {_f(c['newton_free'], '.2f')} | "
                      f"{_f(c['wall_free'], '.2f')} ({_f(c['cpu_free'], '.2f')}) |")
+    trees = result.get("trees") or {}
+    if trees:
+        L += ["", "Configurations: the code each ran and its settings:", "",
+              "| config | keys | code | commit | warpfem imported from | keys skipped |", "|---|---|---|---|---|---|"]
+        for name, t in trees.items():
+            skipped = sorted({k for r in result["runs"] if r["config"] == name for k in r.get("skipped", {})})
+            paths = sorted({r["warpfem_path"] for r in result["runs"] if r["config"] == name and r.get("warpfem_path")})
+            L.append(f"| {name} | `{json.dumps(result['configs'][name])}` | {t['tree']} | {t.get('commit') or '-'} | "
+                     f"{', '.join(f'`{p}`' for p in paths) or '-'} | {', '.join(skipped) or '-'} |")
     return "\n".join(L) + "\n"
 
 
@@ -430,6 +572,8 @@ def against_baseline(runs, baseline):
         s, t = r["summary"], b["summary"]
         out.append(dict(case=r["case"], precision=r["precision"], config=r["config"],
                         newton_contact=_ratio(s["newton"]["contact"]["mean"], t["newton"]["contact"]["mean"]),
+                        line_search=_ratio(s["line_search_total"], t["line_search_total"]),
+                        not_converged=_ratio(s["not_converged_steps"], t["not_converged_steps"]),
                         wall_contact=_ratio(s["wall"]["contact"]["mean"], t["wall"]["contact"]["mean"]),
                         newton_free=_ratio(s["newton"]["free"]["mean"], t["newton"]["free"]["mean"]),
                         wall_free=_ratio(s["wall"]["free"]["mean"], t["wall"]["free"]["mean"]),
@@ -473,7 +617,14 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--json", default=None)
     ap.add_argument("--md", default=None)
+    ap.add_argument("--_worker", default=None, help=argparse.SUPPRESS)  # OUT.json: run one case/config/precision
+    ap.add_argument("--_tree", default=None, help=argparse.SUPPRESS)  # the extracted tree the worker must import
+    ap.add_argument("--_tree-label", default="", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a._worker:
+        if not a._tree:
+            raise SystemExit("--_worker needs --_tree")
+        return worker(a)
     cases, precisions, configs = _split(a.cases), _split(a.precision), _split(a.configs)
     for kind, names, known in (("case", cases, CASES), ("precision", precisions, ("float32", "float64")),
                                ("configuration", configs, list(CONFIGS))):
@@ -503,42 +654,74 @@ def main(argv=None):
     import warpfem.scenes  # noqa: F401
 
     wp.force_load(device=a.device)
-    probe = build_box_drop("float64", a.device).sim  # every selected configuration's keys checked before any run
+    # every in-process configuration's keys checked before any run (a revision's, in its worker:
+    # keys its code lacks are skipped there, with a note)
+    probe = build_box_drop("float64", a.device).sim
     for name in configs:
+        if "revision" in CONFIGS[name]:
+            continue
         try:
             apply_config(probe, CONFIGS[name])
         except (KeyError, ValueError, TypeError) as exc:
             raise SystemExit(f"configuration {name!r}: {exc}") from exc
     del probe
-    load_before = loadavg()
-    t_all = time.perf_counter()
-    runs = []
-    for case in cases:
-        for prec in precisions:
-            # warm-up (discarded): Warp's module loading and first-call allocations out of frame 1's time
-            w = build_case(case, prec, a.device)
-            w.sim.step()
-            del w
-            done = {cfg: [] for cfg in configs}
-            for rep in range(a.repeats):  # the configurations one after the other, repeats interleaved
+    with tempfile.TemporaryDirectory(prefix="contact_cost_trees_") as tmp_trees:
+        # the code each configuration runs: a revision extracted once (its runs are workers), or this tree
+        trees, extracted = {}, {}
+        for name in configs:
+            rev = CONFIGS[name].get("revision")
+            if rev is None:
+                trees[name] = dict(tree="working tree", revision=None, commit=working_tree_commit(), path=None,
+                                   warpfem_path=os.path.dirname(os.path.abspath(wf.__file__)))
+                continue
+            if rev not in extracted:
+                path = os.path.join(tmp_trees, f"rev{len(extracted)}")
+                os.makedirs(path)
+                commit = extract_revision(str(rev), path)
+                extracted[rev] = dict(path=path, commit=commit, label=f"revision {rev} ({commit[:12]})")
+                print(f"revision {rev} ({commit}) extracted into {path}", flush=True)
+            e = extracted[rev]
+            trees[name] = dict(tree=e["label"], revision=str(rev), commit=e["commit"], path=e["path"], label=e["label"])
+        load_before = loadavg()
+        t_all = time.perf_counter()
+        runs = []
+        for case in cases:
+            for prec in precisions:
+                # warm-up (discarded): Warp's module loading and first-call allocations out of frame 1's time
+                # (a worker does its own)
+                if any(trees[cfg]["path"] is None for cfg in configs):
+                    w = build_case(case, prec, a.device)
+                    w.sim.step()
+                    del w
+                done = {cfg: [] for cfg in configs}
+                for rep in range(a.repeats):  # the configurations one after the other, repeats interleaved
+                    for cfg in configs:
+                        t = trees[cfg]
+                        print(f"{case} {cfg} {prec}: {frames[case]} frames, {t['tree']}"
+                              + (f" (repeat {rep + 1})" if a.repeats > 1 else ""), flush=True)
+                        if t["path"] is None:
+                            r = run_one(case, cfg, prec, frames[case], a.device, log=lambda s: print(s, flush=True))
+                        else:
+                            r = run_in_worker(case, cfg, prec, frames[case], a.device, t)
+                        done[cfg].append(r)
+                        print_summary(r)
                 for cfg in configs:
-                    print(f"{case} {cfg} {prec}: {frames[case]} frames" + (f" (repeat {rep + 1})" if a.repeats > 1 else ""),
-                          flush=True)
-                    r = run_one(case, cfg, prec, frames[case], a.device, log=lambda s: print(s, flush=True))
-                    done[cfg].append(r)
-                    print_summary(r)
-            for cfg in configs:
-                r = merge_repeats(done[cfg])
-                if a.repeats > 1:
-                    print_summary(r, "best of repeats")
-                runs.append(r)
+                    r = merge_repeats(done[cfg])
+                    if a.repeats > 1:
+                        print_summary(r, "best of repeats")
+                    runs.append(r)
+    for name, t in trees.items():  # the temporary paths are gone; the paths each run imported stay in the runs
+        t.pop("path", None)
+        t.pop("label", None)
+        t["warpfem_path"] = sorted({r["warpfem_path"] for r in runs if r["config"] == name})
     meta = dict(device=str(a.device), cpu=cpu_model(), platform=platform.platform(), cores=os.cpu_count(),
                 warp=wp.__version__, warpfem=getattr(wf, "__version__", None), python=platform.python_version(),
                 date=datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="minutes"),
                 load_before=load_before, load_after=loadavg(), seconds=round(time.perf_counter() - t_all, 1),
                 clock="wall (perf_counter) per step, process CPU time next to it", repeats=a.repeats,
                 argv=sys.argv[1:] if argv is None else list(argv))
-    result = dict(meta=meta, configs={c: CONFIGS[c] for c in configs}, baseline=configs[0], frames=frames, runs=runs,
+    result = dict(meta=meta, configs={c: CONFIGS[c] for c in configs}, trees=trees, baseline=configs[0], frames=frames,
+                  runs=runs,
                   against_baseline=against_baseline(runs, configs[0]))
     md = markdown(result)
     print(md)
