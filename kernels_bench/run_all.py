@@ -15,7 +15,8 @@ Warp kernel cache is shared, so only the first run of a module compiles it), its
   solver-overhead                   bench_solver_overhead.py  launches / read-backs / ms per Newton step vs a baseline
   peer-vbd                          bench_peer_vbd.py  warpfem vs newton's VBD on the cantilever (skips without newton)
   contact-cost                      bench_contact_cost.py  Newton iterations and seconds per free vs contact frame,
-                                    configurations before/after (skips without ipctk; quick: box_drop and stack, few frames)
+                                    before = e18de72's code (git archive, a subprocess) / after = the working tree
+                                    (needs git; skips without ipctk; quick: box_drop and stack, few frames)
 
 ``--quick`` shrinks every benchmark (about 5 minutes on 2 idle CPU cores); ``--only`` / ``--skip`` take
 comma-separated names (with ``--only`` the other entries of an existing summary of the same mode and
