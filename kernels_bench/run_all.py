@@ -14,6 +14,9 @@ Warp kernel cache is shared, so only the first run of a module compiles it), its
   integrators                       bench_integrators.py  error vs dt and wall time per time integrator
   solver-overhead                   bench_solver_overhead.py  launches / read-backs / ms per Newton step vs a baseline
   peer-vbd                          bench_peer_vbd.py  warpfem vs newton's VBD on the cantilever (skips without newton)
+  contact-cost                      bench_contact_cost.py  Newton iterations and seconds per free vs contact frame,
+                                    before = e18de72's code (git archive, a subprocess) / after = the working tree
+                                    (needs git; skips without ipctk; quick: box_drop and stack, few frames)
 
 ``--quick`` shrinks every benchmark (about 5 minutes on 2 idle CPU cores); ``--only`` / ``--skip`` take
 comma-separated names (with ``--only`` the other entries of an existing summary of the same mode and
@@ -100,6 +103,11 @@ def plan(args, out: Path):
     j, m = out / "peer_vbd.json", out / "peer_vbd.md"
     P.append(("peer-vbd", py + [str(HERE / "bench_peer_vbd.py"), *dev, "--json", str(j), "--markdown", str(m)]
               + (["--quick"] if q else []), j, m))
+    j, m = out / "contact_cost.json", out / "contact_cost.md"
+    P.append(("contact-cost", py + [str(HERE / "bench_contact_cost.py"), *dev, "--json", str(j), "--md", str(m)]
+              + (["--cases", "box_drop,stack", "--frames", "box_drop=15,stack=6", "--precision", "float64", "--repeats", "2"]
+                 if q else []),
+              j, m))
     return P
 
 

@@ -9,7 +9,8 @@ subcommand is one module with a ``register`` function plus one line in :data:`CO
 Subcommand modules use the public helpers here: :func:`error`, :func:`check_device`,
 :func:`init_warp`, :func:`load` and the exit codes.
 
-Exit codes: 0 success, 1 a step diverged / failed to converge (with ``require_convergence``) or
+Exit codes: 0 success (``run``: non-converged steps are counted on the final line), 1 a step
+diverged / failed to converge (with ``require_convergence`` or ``--require-convergence``) or
 another runtime error, 2 invalid command line, scene or output path, 130 interrupted (Ctrl-C), 143
 terminated (SIGTERM; ``run`` records it in the USD as it does Ctrl-C).
 """
@@ -248,6 +249,8 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
         error(f"{args.scene}: cannot build the scene: {e}")
         return EXIT_FAILED
     frames = args.frames if args.frames is not None else run.frames
+    if getattr(args, "require_convergence", False):  # as the scene's [integrator] require_convergence = true
+        run.sim.require_convergence = True
     if not args.quiet:
         print(f"{scene.name}: {scene.mesh().num_elements} elements, {scene.mesh().num_vertices} vertices, "
               f"{frames} frames on {args.device} ({args.precision})", flush=True)
@@ -257,12 +260,10 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
     bar = Progress(frames, unit="frame", enabled=not args.quiet)
     shown["bar"] = bar
 
-    def progress(fs):
+    def progress(fs):  # a frame with non-converged steps also has its warning line (SceneRun.run's log)
         flag = "" if fs.converged else "  NOT CONVERGED"
         bar.update(fs.frame, f"t = {fs.time:.4f} s  newton {fs.newton_iterations}  cg {fs.cg_iterations}  "
                              f"{fs.step_seconds:.3f} s{flag}")
-        if flag and bar.drawing_bar:
-            bar.note(f"frame {fs.frame}/{frames}: NOT CONVERGED ({fs.reason})")
 
     on_frame, recorder = progress, None
     if getattr(args, "preview", None) is not None:  # keep the render surface at a few frames for the picture
@@ -278,7 +279,7 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
 
     try:
         with bar, terminate_on_sigterm():
-            run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
+            history = run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
     except SolveFailed as e:
         error(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
         return EXIT_FAILED
@@ -295,8 +296,20 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
         outs = [p for p in (usd, stats, scene.spec.output["states"], scene.spec.output.get("vtu"),
                             getattr(args, "preview", None)) if p]
         built = f"; kernels compiled in {watch.seconds:.1f} s (cached for later runs)" if watch.modules else ""
-        print(f"done: {frames} frames" + (f"; wrote {', '.join(outs)}" if outs else "") + built, flush=True)
+        print(f"done: {frames} frames ({_convergence_report(run.convergence_summary(history))})"
+              + (f"; wrote {', '.join(outs)}" if outs else "") + built, flush=True)
     return EXIT_OK
+
+
+def _convergence_report(summary, most=10) -> str:
+    """``192 steps, all converged`` or ``192 steps, 3 not converged: frames 9, 17, 18`` (the first
+    ``most`` frames, then how many more)."""
+    n, bad, frames = summary["steps"], summary["unconverged_steps"], summary["unconverged_frames"]
+    steps = f"{n} step{'s' if n != 1 else ''}"
+    if not bad:
+        return f"{steps}, all converged"
+    shown = ", ".join(str(f) for f in frames[:most]) + (f" and {len(frames) - most} more" if len(frames) > most else "")
+    return f"{steps}, {bad} not converged: frame{'s' if len(frames) != 1 else ''} {shown}"
 
 
 def _register_run(subparsers):
@@ -310,6 +323,9 @@ def _register_run(subparsers):
                    help="after the run, draw 4 evenly spaced frames of the render surface to this PNG (needs the plot extra)")
     p.add_argument("--quiet", action="store_true", help="no progress lines (a bar with ETA on a terminal, else a line per frame)")
     p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages (and debug logging)")
+    p.add_argument("--require-convergence", action="store_true",
+                   help="a step that does not converge is an error (exit 1, outputs kept marked incomplete), "
+                        "as the scene's [integrator] require_convergence = true")
     p.set_defaults(func=_cmd_run)
 
 

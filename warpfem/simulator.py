@@ -71,7 +71,10 @@ class Simulator(SimulatorBase):
             instance from :mod:`warpfem.integrators` (see there and docs/integrators.md).
         damping_mass, damping_stiffness: Rayleigh coefficients alpha (1/s) and beta (s).
         require_convergence: raise :class:`SolveFailed` (state untouched) instead of accepting a
-            non-converged step. NaN/inf always raises and never touches the state.
+            non-converged step. NaN/inf always raises and never touches the state. Without it a
+            non-converged step is kept, warned about (``NotConvergedWarning``, a RuntimeWarning
+            with the reason and the relative gradient against ``tol``) and counted in
+            ``sim.unconverged_steps``.
         linear_solver: "auto", "pcg", "direct", "amg" or "multigrid": the solver of each Newton system
             (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
@@ -83,10 +86,12 @@ class Simulator(SimulatorBase):
             (Newmark: v_n + h a_n); the first step after a state change starts at v_n. Converges
             to the same step; the measured effect on Newton iterations is in docs/integrators.md.
         friction_iterations, friction_tol: with friction in contact (colliders or ``set_contact``),
-            re-solve a converged step with the normal forces and normals lagged again from its end,
-            at most this many times, while they change by more than ``friction_tol`` of the
-            largest (0: lagged once from the step start; steps recorded for gradients lag once).
-            Any form that lags a quantity (``Form.update_lagging``) is iterated the same way.
+            take the normal forces and normals again from the step's iterate, inside its Newton
+            solve, at most this many times: after an iteration whose full Newton step brought the
+            gradient below 1e-2 of its start (``forms.LAG_BELOW``), while they change by more than
+            ``friction_tol`` of the largest; the solve then goes on to the tolerance with them (0:
+            lagged once from the step start; steps recorded for gradients lag once). Any form that
+            lags a quantity (``Form.uses_lagging`` / ``update_lagging``) is updated the same way.
             Measured effect: docs/contact.md.
     """
 
@@ -496,9 +501,13 @@ class Simulator(SimulatorBase):
         kept = [(f, f.stiffness_state()) for f in pot.adaptive_forms()]
         if kept:
             pot.begin_adaptive(y)
+        # the forms' lagged quantities (friction) taken again inside the solve, near its solution
+        lags = any(f.uses_lagging() for f in pot.forms)
+        pot.set_lag_updates(self.friction_iterations if lags and not self._differentiating() else 0,
+                            self.friction_tol)
         stats = newton_solve(pot, y, self.options)
-        if stats.converged and self.friction_iterations:
-            self._lagging_iterations(pot, xb, s, y, stats)
+        stats.friction_iterations = pot.lag_updates
+        pot.set_lag_updates(0, self.friction_tol)
         stats.newton_syncs = pot.host_syncs - syncs0
         stats.launches = COUNTERS["launches"] - launches0
         try:
@@ -522,34 +531,6 @@ class Simulator(SimulatorBase):
         from warpfem.solvers.adjoint import active_tape
 
         return getattr(self, "step_recorder", None) is not None or active_tape() is not None
-
-    def _lagging_iterations(self, pot, xb, s, y, stats):
-        """Fixed-point iterations of the forms' lagging (friction's normal forces and normals, the
-        surface pairs' closest points): taken again from the converged end of the step
-        (``Form.update_lagging``), then the step solved again from there, until they change by
-        less than ``friction_tol`` of their largest (at most ``friction_iterations`` times).
-        Lagged once from the step start only, a landing body slides with the normal force of
-        before the impact (docs/contact.md, measured there). Steps recorded for gradients lag once."""
-        forms = [f for f in pot.forms if f.uses_lagging()]
-        if not forms or self._differentiating():
-            return
-        x = self._work.tmp
-        stats.friction_iterations = 0
-        for _ in range(self.friction_iterations):
-            self.ops.lincomb(1.0, xb, s, y, x)
-            change, scale = 0.0, 0.0
-            for f in forms:
-                c, m = f.update_lagging(x)
-                change, scale = max(change, c), max(scale, m)
-            if change <= self.friction_tol * scale:
-                break
-            again = newton_solve(pot, y, self.options)
-            stats.friction_iterations += 1
-            stats.add_counts(again)
-            stats.converged, stats.reason = again.converged, again.reason
-            stats.energy, stats.gradient_norm = again.energy, again.gradient_norm
-            if not again.converged:
-                break
 
     def _guess(self, state, dt):
         """The free components of the Newton solve's start: v_n ("previous"), or v_n extrapolated
@@ -658,6 +639,7 @@ class Simulator(SimulatorBase):
                 st = newton_solve(pot, y, self.options)
                 total.add_counts(st)
                 total.residual, total.gradient_norm, total.energy = st.residual, st.gradient_norm, st.energy
+                total.initial_gradient, total.tolerance = st.initial_gradient, st.tolerance  # each load step its own
                 total.reason = st.reason
                 if not st.converged:
                     total.converged = False

@@ -19,6 +19,7 @@ import logging
 import numpy as np
 import warp as wp
 
+from warpfem.contact import friction as FR
 from warpfem.contact import kernels as CK
 from warpfem.contact.colliders import (FRICTION_VELOCITY, Collider, contact_parameters,  # noqa: F401 (re-exported)
                                        default_friction_velocity)
@@ -73,6 +74,7 @@ class ContactSet:
         self._diag = None
         self._pattern_changed(self.system.pattern)
         self.system.listeners.append(self._pattern_changed)
+        self._cuts = wp.zeros(1, dtype=wp.int32, device=dev)  # contacts cut by the friction filter this step
         self._x0 = ops.new_vector()  # positions at the start of the step (friction's lag)
         self._neg_x0 = ops.new_vector()
         self._ready = False
@@ -256,9 +258,24 @@ class ContactSet:
         wp.copy(self._x0, self.sim.x if x0 is None else x0)
         self.ops.lincomb(-1.0, self._x0, 0.0, self._x0, self._neg_x0)
         self.run(CK.MODE_LAG, self._x0)
+        self._cuts.zero_()
 
     def has_friction(self) -> bool:
         return any(c.friction > 0.0 for c in self.colliders)
+
+    def filter_direction(self, dbase, y, sy, d):
+        """The stick/slip-aware step (:mod:`warpfem.contact.friction`): d's tangential part cut at
+        the vertices whose frictional contact the step would carry across its sticking zone, with
+        the step displacement x - x_n = dbase + sy y. Counts the cut contacts in
+        :attr:`filtered_contacts` (since the step start)."""
+        launch(FR.collider_filter_kernel, len(self.surface), [
+            self._surf, self.nc, self._lam, self._nrm, self._w, dbase, y, self.ops.scalar(sy), self._epsf, self._mu,
+            d, self._cuts], self.sim.device)
+
+    @property
+    def filtered_contacts(self) -> int:
+        """Contacts whose tangential step the friction filter cut since the start of the step."""
+        return int(self._cuts.numpy()[0])
 
     def collider(self, name) -> Collider:
         """The collider named ``name``; a ``KeyError`` listing the names otherwise."""
@@ -337,10 +354,15 @@ class LaggedFrictionForm(Form):
         self.begin(ctx.xb, ctx.s)
 
     def uses_lagging(self) -> bool:
-        return self.contact.has_friction()
+        c = self.contact
+        return c.has_friction() and bool(len(getattr(c, "colliders", [0])))
 
     def update_lagging(self, x):
-        """Friction's normal forces and normals lagged again from x: (change, scale) of the normal forces."""
+        """Friction's normal forces and normals lagged again from the positions x (an iterate of
+        the step; the step start and the colliders' motion stay): (largest change of a normal
+        force, largest normal force before or after), or None without friction."""
+        if not self.uses_lagging():
+            return None
         before = self.contact.relag(x)
         return lagged_change(before, self.contact.normal_forces())
 
@@ -395,6 +417,18 @@ class ContactForm(LaggedFrictionForm):
 
     def hessian(self, y, x, scale, values):
         self.contact.run(CK.MODE_HESSIAN, x, scale=scale, values=values, **self._disp(y))
+
+    def filter_direction(self, y, x, d):
+        """Cut the tangential step of each frictional contact that the Newton step ``d`` (in y)
+        would carry across its sticking zone (:mod:`warpfem.contact.friction`), in place."""
+        c = self.contact
+        if not c.has_friction():
+            return
+        if self._use_dbase and y is not None:
+            dbase, yv, sy = self._dbase, y, self.s
+        else:  # static: x is the unknown
+            dbase, yv, sy = c._neg_x0, x, 1.0
+        c.filter_direction(dbase, yv, sy, d)
 
     def max_step(self, x, d, s, acc):
         """Largest alpha <= 1 with no vertex crossing (or coming closer than STEP_ETA of its distance

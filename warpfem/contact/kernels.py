@@ -25,7 +25,7 @@ gives the step bound d(x + a dx) >= d(x) + a n.dx used by ``MODE_MAX_STEP``.
 Friction (same paper, lagged): D = mu lambda f0(|u|), u = P (x - x_n - w), x - x_n passed as
 x0 + sy * ydisp (x_b - x_n plus s y in a step's potential), P = I - n n^T with the
 normal n and normal force lambda from the start of the step, w the collider's motion at the contact
-point, f0 the C1 smoothing of |u| over eps = eps_v h (static/dynamic transition).
+point, f0 the C1 smoothing of |u| over eps = eps_v h (``friction_f0``: a linear spring below eps).
 """
 
 from __future__ import annotations
@@ -126,9 +126,13 @@ def barrier(d: Any, dhat: Any):
 
 @wp.func
 def friction_f0(y: Any, eps: Any):
+    """The smoothed |u| of lagged friction: y beyond eps (sliding, force mu lambda), a linear spring
+    y^2 / (2 eps) + eps / 2 below it (sticking, force mu lambda y / eps): C1, the half-space friction
+    of Li et al. 2020's code. Inside the zone the friction energy is quadratic, so a Newton step
+    that lands in it is exact there (docs/contact.md, "Why frictional steps crawl")."""
     if y >= eps:
         return y
-    return -y * y * y / (type(y)(3.0) * eps * eps) + y * y / eps + eps / type(y)(3.0)
+    return y * y / (type(y)(2.0) * eps) + eps / type(y)(2.0)
 
 
 @both_precisions(x="v[]", rots="m[]", trans="v[]", rots0="m[]", trans0="v[]", pa="v[]", pb="v[]", tris="v[]",
@@ -259,14 +263,12 @@ def contact_kernel(
                     if y >= eps:
                         grad += (c / y) * u
                     else:
-                        grad += (c * (type(eta)(2.0) / eps - y / (eps * eps))) * u
+                        grad += (c / eps) * u
                 else:
                     if y >= eps:
                         hess += (c / y) * (Pm - wp.outer(u, u) / (y * y))
                     else:
-                        hess += (c * (type(eta)(2.0) / eps - y / (eps * eps))) * Pm
-                        if y > zero:
-                            hess += (-c / (eps * eps * y)) * wp.outer(u, u)
+                        hess += (c / eps) * Pm
     if mode == 0:
         wp.atomic_add(acc, slot, energy)
         if bad > 0:

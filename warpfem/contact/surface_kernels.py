@@ -734,17 +734,12 @@ def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: 
     u = Pm * rel
     y = wp.length(u)
     c = mu * lam
-    two = type(mu)(2.0)
     if mode == 0:
         wp.atomic_add(acc, slot, wp.float64(c * friction_f0(y, eps)))
         return
-    f1y = c / eps  # f1(y) / y times c, y -> 0
+    f1y = c / eps  # f1(y) / y times c: 1 / eps in the sticking zone (a linear spring), 1 / y beyond
     if y >= eps:
         f1y = c / y
-    elif y > zero:
-        f1y = c * (two / eps - y / (eps * eps))
-    else:
-        f1y = c * two / eps
     if mode == 1:
         gsq = wp.float64(0.0)
         for i in range(4):
@@ -756,8 +751,6 @@ def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: 
     Hu = f1y * Pm
     if y >= eps:
         Hu = (c / y) * (Pm - wp.outer(u, u) / (y * y))
-    elif y > zero:
-        Hu = Hu + (-c / (eps * eps * y)) * wp.outer(u, u)
     for i in range(4):
         for j in range(4):
             wp.atomic_add(values, blocks[16 * p + 4 * i + j], (scale * w[i] * w[j]) * Hu)

@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import time
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -14,10 +16,16 @@ from .loads import boundary_surface, handle_targets
 
 __all__ = ["SceneRun", "FrameStats"]
 
+_logger = logging.getLogger(__name__)
+
 
 @dataclass
 class FrameStats:
-    """Statistics of one output frame (sums over its steps)."""
+    """Statistics of one output frame (sums over its steps).
+
+    ``residual`` is the last step's relative gradient; ``converged`` is False when any step of
+    the frame did not converge, ``unconverged_steps`` counts them and ``reason`` names each
+    ("step 12: reached max_iters=30 (relative gradient 3.10e-04 > tol 1.0e-06)", joined by "; ")."""
 
     frame: int
     time: float
@@ -29,9 +37,23 @@ class FrameStats:
     energy: float
     converged: bool
     reason: str = ""
+    unconverged_steps: int = 0
 
     def as_dict(self):
         return dict(self.__dict__)
+
+
+def _step_note(stats, what: str) -> str:
+    """``"step 12: <reason> (relative gradient 3.10e-04 > tol 1.0e-06)"``: a non-converged step
+    in a frame's ``reason``."""
+    tol = f" > tol {stats.tolerance:.1e}" if getattr(stats, "tolerance", 0.0) > 0.0 else ""
+    return f"{what}: {stats.reason} (relative gradient {stats.residual:.2e}{tol})"
+
+
+def log_not_converged(fs: FrameStats) -> None:
+    """The one warning line of a frame with non-converged steps."""
+    _logger.warning(f"frame {fs.frame}: {fs.unconverged_steps} of {fs.steps} step{'s' if fs.steps != 1 else ''} "
+                f"not converged: {fs.reason}")
 
 
 def _incomplete_reason(e: BaseException, frame: int) -> str:
@@ -187,13 +209,14 @@ class SceneRun:
             for _ in range(steps):
                 t_next = sim.time + sim.dt
                 self.set_handles(lambda h: t_next / (h["ramp_time"] or T))
+                index = getattr(sim, "step_count", None)
                 st = sim.step()
                 newton += st.newton_iterations
                 cg += st.cg_iterations
                 residual, energy = st.residual, st.energy
                 if not st.converged:
                     converged = False
-                    reasons.append(st.reason)
+                    reasons.append(_step_note(st, "step" if index is None else f"step {index}"))
             t = sim.time
         else:
             steps = 1
@@ -208,11 +231,12 @@ class SceneRun:
             st = entry.static_solve(sim, integ)
             newton, cg, residual, energy = st.newton_iterations, st.cg_iterations, st.residual, st.energy
             converged = st.converged
-            reasons = [st.reason] if not st.converged else []
+            reasons = [_step_note(st, "static solve")] if not st.converged else []
             t = self.frame / self.fps
         return FrameStats(frame=self.frame, time=t, steps=steps, step_seconds=time.perf_counter() - t0,
                           newton_iterations=newton, cg_iterations=cg, residual=float(residual),
-                          energy=float(energy), converged=converged, reason="; ".join(reasons))
+                          energy=float(energy), converged=converged, reason="; ".join(reasons),
+                          unconverged_steps=len(reasons))
 
     def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None, vtu=None):
         """Run ``frames`` output frames (default: the scene's) writing the outputs.
@@ -224,7 +248,10 @@ class SceneRun:
         stats record carries ``warpfem_version``. ``progress(FrameStats)`` is called after each frame. On
         :class:`warpfem.SolveFailed` (or Ctrl-C) the USD is closed marked incomplete with the
         frames done so far, the npz/stats hold them too, and the exception propagates.
-        Returns the list of :class:`FrameStats`.
+        A step that does not converge (``require_convergence`` off) is not a Python warning here:
+        each frame with such steps logs one warning line on the ``warpfem.scenes.run`` logger
+        (``frame 9: 1 of 4 steps not converged: step 33: ...``); the frames' ``unconverged_steps``
+        count them. Returns the list of :class:`FrameStats`.
         """
         from warpfem.io import StatesWriter, UsdMeshWriter
 
@@ -296,7 +323,11 @@ class SceneRun:
                 log = open(stats, "w")
             for _ in range(total):
                 try:
-                    fs = self.step_frame(total_frames=total)
+                    with warnings.catch_warnings():  # reported below, one line per frame
+                        from warpfem.solvers.nonlinear import NotConvergedWarning
+
+                        warnings.simplefilter("ignore", NotConvergedWarning)
+                        fs = self.step_frame(total_frames=total)
                 except Exception as e:
                     if log is not None:
                         failed = getattr(e, "stats", None)
@@ -305,6 +336,8 @@ class SceneRun:
                                               "warpfem_version": version}) + "\n")
                     raise
                 history.append(fs)
+                if fs.unconverged_steps:
+                    log_not_converged(fs)
                 if log is not None:
                     log.write(json.dumps({**fs.as_dict(), "warpfem_version": version}) + "\n")
                     log.flush()
@@ -334,6 +367,14 @@ class SceneRun:
             if positions is not None:
                 positions.close()
         return history
+
+    @staticmethod
+    def convergence_summary(history) -> dict:
+        """What a run's frames say about convergence: ``steps`` (all), ``unconverged_steps`` and
+        ``unconverged_frames`` (the frame numbers with at least one)."""
+        return {"steps": int(sum(fs.steps for fs in history)),
+                "unconverged_steps": int(sum(fs.unconverged_steps for fs in history)),
+                "unconverged_frames": [fs.frame for fs in history if fs.unconverged_steps]}
 
     def _time(self):
         """Simulated time of the current state (s): the integrator's clock, or frame / fps (static)."""

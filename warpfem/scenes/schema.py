@@ -309,7 +309,9 @@ COLLIDER_TYPE_KEYS = collider_scene_keys()
 # Newton/time-stepping keys shared by the built-in integrators (integrators list which they accept).
 INTEGRATOR_KEYS: dict[str, Key] = {
     "dt": Key("float", default=None, check=_positive, doc="time step (s); default 1/fps"),
-    "tol": Key("float", default=1e-6, check=_unit_interval, doc="relative Newton gradient tolerance"),
+    "tol": Key("float", default=1e-6, check=_unit_interval,
+               doc="relative Newton gradient tolerance: converged when ||g|| <= tol ||g at the step's start|| "
+                   "(friction re-solves included; docs/integrators.md)"),
     "atol": Key("float", default=0.0, check=_non_negative),
     "cg_tol": Key("float", default=1e-4, check=_unit_interval, doc="relative PCG tolerance"),
     "max_iters": Key("int", default=30, check=_positive, doc="Newton iterations per solve"),
@@ -318,7 +320,9 @@ INTEGRATOR_KEYS: dict[str, Key] = {
     "hessian_projection": Key("choice", default="on_demand", choices=("always", "on_demand"),
                               doc="with project_hessian: project every Newton system, or only once the exact "
                                   "Hessian fails (docs/integrators.md)"),
-    "require_convergence": Key("bool", default=False, doc="fail the run on a non-converged step"),
+    "require_convergence": Key("bool", default=False,
+                               doc="fail the run on a non-converged step (exit 1, outputs kept marked incomplete); "
+                                   "off: such steps are counted and reported (docs/cli.md)"),
     "damping_mass": Key("float", default=0.0, check=_non_negative, doc="Rayleigh alpha (1/s)"),
     "damping_stiffness": Key("float", default=0.0, check=_non_negative, doc="Rayleigh beta (s)"),
     "load_steps": Key("int", default=1, check=_positive, doc="static: load ramp steps per frame"),

@@ -95,8 +95,8 @@ def collider_terms(c, surf, x1, xn, pose1, pose0, kappa, dh, eps) -> ColliderTer
             y2 = _dot(u, u)
             y = np.sqrt(np.where(np.real(y2) > 0, y2, 1.0))
             big = np.real(y) >= eps
-            f1 = np.where(big, 1.0 / y, 2.0 / eps - y / (eps * eps))
-            f1 = np.where(np.real(y2) > 0, f1, 2.0 / eps)
+            f1 = np.where(big, 1.0 / y, 1.0 / eps)
+            f1 = np.where(np.real(y2) > 0, f1, 1.0 / eps)
             g = g + np.where(has, mu_ * lam * f1, 0.0)[:, None] * u
         return g
 

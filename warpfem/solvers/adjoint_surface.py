@@ -157,8 +157,8 @@ def friction_gradient_host(X1, XN, kinds, rest, kappa, dhat, mu, eps):
     y2 = _dot(u, u)
     pos = np.real(y2) > 0.0
     y = np.sqrt(np.where(pos, y2, 1.0))
-    f1 = np.where(np.real(y) >= eps, 1.0 / y, 2.0 / eps - y / (eps * eps))
-    f1 = np.where(pos, f1, 2.0 / eps)
+    f1 = np.where(np.real(y) >= eps, 1.0 / y, 1.0 / eps)
+    f1 = np.where(pos, f1, 1.0 / eps)
     c = mu * lam * f1
     return c[:, None, None] * w[:, :, None] * u[:, None, :]
 

@@ -53,10 +53,12 @@ in without the simulator knowing what it is; PolyFEM's ``init_lagging`` / ``upda
    ``feasible`` on each trial; forms with an adaptive parameter (``adaptive_stiffness()`` true)
    also get ``begin_stiffness`` at the start and ``after_iteration`` after each accepted
    iteration, and keep ``stiffness_state()`` / ``restore_stiffness(state)`` for a failed step.
-5. ``uses_lagging()`` / ``update_lagging(x) -> (change, scale)``: after a converged step, forms that
-   lag a quantity take it again from the step's end x; while the largest ``change`` exceeds
-   ``friction_tol`` x the largest ``scale`` the step is solved again (at most
-   ``friction_iterations`` times; :func:`lagged_change` measures two arrays).
+5. ``uses_lagging()`` / ``update_lagging(x) -> (change, scale)``: forms that lag a quantity take it
+   again from an iterate near the solution (after an accepted iteration whose full Newton step
+   brought the gradient below ``LAG_BELOW`` of the start), at most ``friction_iterations`` times
+   per solve and while the largest ``change`` exceeds ``friction_tol`` x the largest ``scale``
+   (:meth:`IncrementalPotential.set_lag_updates`; :func:`lagged_change` measures two arrays);
+   the solve then goes on to its tolerance with them.
 6. ``static_error()``: None when the form may join a quasi-static solve (x = y, s = 1; its
    ``begin_step`` gets a context with ``static`` True), else the sentence ``solve_static`` refuses
    with. Default: a form of x may, a form of y (the velocity) may not.
@@ -87,6 +89,11 @@ ROW = 4  # accumulator slots per form
 _G_JOINT, _G_NORM, _D_GD = 0, 1, 2
 _HEAD = 8
 _F64_ONE = wp.float64(1.0)
+#: lagged quantities are taken again from an iterate whose gradient is below this fraction of the
+#: step's reference gradient (and that a full Newton step reached): near the solution. Measured
+#: (docs/contact.md): from the first iterate, an impact's overshoot into the barrier gives normal
+#: forces many times the converged ones (the stack's impact step then took 100 iterations).
+LAG_BELOW = 1e-2
 
 
 def _ptr(a):
@@ -206,9 +213,9 @@ class Form:
         return False
 
     def update_lagging(self, x):
-        """Take the lagged quantities again from the positions x (a converged step's end); returns
-        (change, scale) (:func:`lagged_change`)."""
-        return 0.0, 0.0
+        """Take the lagged quantities again from the positions x (an iterate near the step's
+        solution); returns (change, scale) (:func:`lagged_change`), or None when nothing was lagged."""
+        return None
 
     def static_error(self):
         """None when the form may join a quasi-static solve, else why not (the message of
@@ -696,17 +703,43 @@ class IncrementalPotential:
             changed = f.begin_stiffness(self, y, g_rest) or changed
         return changed
 
-    def after_iteration(self, y, alpha=1.0) -> bool:
+    def set_lag_updates(self, count, tol):
+        """Lagged quantities (friction's normal forces and normals) taken again from the iterate
+        after each of the first ``count`` accepted Newton iterations of the coming solve, by the
+        forms that lag (``uses_lagging()``, ``update_lagging(x) -> (change, scale)``, None when they
+        lag nothing), while the
+        change is above ``tol`` x scale (:attr:`lag_updates` counts them)."""
+        self._lag_left, self._lag_tol, self.lag_updates = int(count), float(tol), 0
+
+    def after_iteration(self, y, alpha=1.0, residual=0.0) -> bool:
         """After an accepted Newton iteration of step length alpha (``newton_solve``'s hook): the
-        adaptive forms' ``after_iteration(x, alpha)`` update what they adapt at y; True when the
-        potential changed (the loop evaluates it again)."""
+        adaptive forms' ``after_iteration(x, alpha)`` update what they adapt at y, and the lagging
+        forms lag again (:meth:`set_lag_updates`); True when the potential changed (the loop
+        evaluates it again, so its line searches compare like with like)."""
         forms = [f for f in self.adaptive_forms() if hasattr(f, "after_iteration")]
-        if not forms:  # nothing adapts (a fixed barrier stiffness): no work
+        # lag again only from an iterate the full Newton step reached (the quadratic model held there:
+        # near the solution); a shortened step (the collision bound, the line search) may be far off
+        lagging = ([f for f in self.forms if f.uses_lagging()]
+                   if getattr(self, "_lag_left", 0) > 0 and alpha >= 1.0 and residual <= LAG_BELOW else [])
+        if not forms and not lagging:  # nothing adapts (a fixed barrier stiffness) or lags: no work
             return False
         x = self._x_of(y)
         changed = False
         for f in forms:
             changed = f.after_iteration(x, alpha) or changed
+        if lagging:
+            self._lag_left -= 1
+            change, scale, updated = 0.0, 0.0, False
+            for f in lagging:
+                r = f.update_lagging(x)
+                if r is not None:
+                    updated = True
+                    change, scale = max(change, r[0]), max(scale, r[1])
+            if updated:
+                changed = True
+                self.lag_updates += 1
+                if change <= self._lag_tol * scale:  # consistent: no further updates in this solve
+                    self._lag_left = 0
         return changed
 
     def bounds_step(self) -> bool:
@@ -734,7 +767,20 @@ class IncrementalPotential:
         values = self.assemble_hessian(y, self.system.hessian_values)
         rhs = self.work.rhs
         launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
-        return self.linear_solve(values, rhs, d, opts)
+        lin = self.linear_solve(values, rhs, d, opts)
+        if getattr(opts, "friction_filter", False):
+            self.filter_direction(y, d)
+        return lin
+
+    def filter_direction(self, y, d):
+        """Let the forms that filter the Newton direction (``filter_direction(y, x, d)``: lagged
+        friction's stick/slip-aware step, :mod:`warpfem.contact.friction`) change d in place."""
+        filters = [f for f in self.forms if hasattr(f, "filter_direction")]
+        if not filters:
+            return
+        x = self._x_of(y)
+        for f in filters:
+            f.filter_direction(y, x, d)
 
     def fallback_direction(self, g, d):
         """d = -B^-1 g, B the (masked) block diagonal of the last Newton system: a descent direction

@@ -5,8 +5,10 @@ The potential is E(y) over unknowns y (per-vertex vec3 device arrays with some c
 a mask, or a reduced coordinate vector), given as a ``problem`` (``warpfem.solvers.forms``
 for the full space, ``warpfem.reduced.simulator`` for subspaces) that also solves its Newton
 systems H d = -g (sparse on the device, or dense). The loop runs *while* the gradient norm is above
-the tolerance, and a step length a is accepted when E(y + a d) <= E(y) + c a d^T g (Nocedal & Wright,
-"Numerical Optimization", ch. 3, backtracking with the Armijo condition).
+the tolerance (converged: ||P g|| <= tol * ||P g_ref||, g_ref the gradient at the start of the solve
+or a given reference, e.g. the start of the time step a friction re-solve belongs to), and a step
+length a is accepted when E(y + a d) <= E(y) + c a d^T g (Nocedal & Wright, "Numerical
+Optimization", ch. 3, backtracking with the Armijo condition).
 """
 
 from __future__ import annotations
@@ -35,9 +37,12 @@ class NewtonOptions:
     """Accuracy/speed knobs of the Newton solve (all keyword-settable on the simulator).
 
     Attributes:
-        tol: stop when ||P g|| <= tol * ||P g_0|| (relative gradient norm), P the free-DOF mask.
-        atol: absolute floor on ||P g|| (units of the potential's gradient); also declares a step
-            converged when its start is already at equilibrium.
+        tol: converged when ||P g|| <= tol * ||P g_ref|| (relative gradient norm), P the free-DOF
+            mask and g_ref the gradient at the start of the solve, or the ``reference`` given to
+            :func:`newton_solve` (the simulator's friction re-solves pass the step's own start
+            gradient, so a whole step has one tolerance).
+        atol: absolute floor on ||P g|| (units of the potential's gradient): ||P g|| <= atol is
+            converged too; also declares a step converged when its start is already at equilibrium.
         max_iters: cap on Newton iterations per solve.
         cg_tol: relative residual of each PCG solve (inexact Newton).
         max_cg_iters: cap on PCG iterations per Newton iteration.
@@ -56,6 +61,10 @@ class NewtonOptions:
             solvers for incremental potentials", project-on-demand Newton). The projection's
             clamping makes projected Newton converge linearly; on demand keeps Newton's quadratic
             convergence where the exact Hessian is definite (measured in docs/integrators.md).
+        friction_filter: with lagged friction in the potential, cut each contact's tangential step
+            where the Newton step would carry it across its sticking zone (stick/slip-aware steps,
+            :mod:`warpfem.contact.friction`). Changes the path to the step's solution, not the
+            solution; off: the plain Newton direction (measured effect in docs/contact.md).
     """
 
     tol: float = 1e-6
@@ -68,6 +77,7 @@ class NewtonOptions:
     project_hessian: bool = True
     forcing: str = "fixed"
     hessian_projection: str = "on_demand"
+    friction_filter: bool = True
 
     def validate(self):
         for name in ("tol", "cg_tol"):
@@ -92,8 +102,16 @@ class NewtonOptions:
 class SolveStats:
     """What one nonlinear solve (a time step or a static load step) did.
 
-    ``converged`` is False when an iteration cap was hit or the line search could not decrease
-    the energy; ``reason`` says which. ``residual`` is the final ||P g|| / ||P g_0||.
+    ``converged`` is True when the final gradient passes the tolerance test, ||P g|| <= tol *
+    ``initial_gradient`` (or <= atol), whatever stopped the loop, or when the solve stopped at
+    the precision limit of its arithmetic (``reason`` says so); it is False when an iteration cap
+    was hit, the line search could not decrease the energy or there was no descent direction with
+    the gradient above the tolerance; ``reason`` says which. ``residual`` is the final ||P g|| /
+    ``initial_gradient`` (the relative gradient), ``tolerance`` the ``tol`` it was tested against:
+    a solve with ``residual <= tolerance`` is never reported as not converged.
+    ``initial_gradient`` is the reference ||P g_ref||: the gradient norm at the start of the solve,
+    or the ``reference`` given to :func:`newton_solve` (for a time step with friction re-solves:
+    the gradient at the start of the step's first solve).
     """
 
     converged: bool = False
@@ -103,6 +121,8 @@ class SolveStats:
     line_search_steps: int = 0
     residual: float = 0.0
     gradient_norm: float = 0.0
+    initial_gradient: float = 0.0  # the reference ||P g_ref|| of the tolerance test (and of residual)
+    tolerance: float = 0.0  # the relative tolerance tol the solve was tested against
     energy: float = 0.0
     seconds: float = 0.0
     linear_iterations: int = 0  # iterations of the linear solver (CG iterations; 1 per direct solve)
@@ -142,9 +162,30 @@ class SolveFailed(RuntimeError):
         self.stats = stats
 
 
-def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
+class NotConvergedWarning(RuntimeWarning):
+    """A step (or static solve) was accepted without converging (``require_convergence`` off):
+    the warning of ``sim.step()``; its message states the reason, the relative gradient and the
+    tolerance. A :class:`RuntimeWarning`, so filters on that category keep working; a scene run
+    (``SceneRun.run``, ``warpfem run``) reports these as log lines instead."""
+
+
+def not_converged_message(stats: SolveStats, what: str) -> str:
+    """One line saying why ``what`` (e.g. "step 12") did not converge: its reason, and its relative
+    gradient against the tolerance it was tested with."""
+    tol = f" > tol {stats.tolerance:.1e}" if stats.tolerance > 0.0 else ""
+    return f"{what} did not converge: {stats.reason} (relative gradient {stats.residual:.2e}{tol})"
+
+
+def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
     """Minimise ``problem``'s potential over ``y`` (updated in place): Newton with a backtracking
     Armijo line search, one loop for every simulator.
+
+    The solve is converged when ||P g|| <= ``opts.tol`` * ref (or <= ``opts.atol``), ref the
+    gradient norm at ``y`` on entry, or ``reference`` when given (> 0): a solve that continues
+    another one (the simulator's friction re-solves, from an almost converged point of a slightly
+    changed potential) passes the first solve's ``initial_gradient``, so that both are held to the
+    same tolerance; a start already within it is converged without an iteration.
+    ``SolveStats.residual`` is ||P g|| / ref, ``SolveStats.initial_gradient`` is ref.
 
     ``problem`` provides (vectors are whatever it uses: device arrays, numpy arrays):
 
@@ -163,8 +204,8 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
       the next ``solve_newton_system`` evaluates it afresh), and the loop tries again;
     * optionally ``max_step(y, d) -> alpha_max``: the line search starts at min(1, alpha_max)
       (contact's continuous-collision bound: no step crosses a collider);
-    * optionally ``after_iteration(y, alpha) -> bool``: called after each accepted iteration (alpha:
-      its step length); True when
+    * optionally ``after_iteration(y, alpha, residual=r) -> bool``: called after each accepted
+      iteration (alpha: its step length, r: the gradient norm relative to the reference); True when
       the potential itself changed there (contact's adaptive barrier stiffness doubled), and its
       energy and gradient at y are evaluated again (``evaluate``);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
@@ -207,8 +248,27 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
     # Below this the gradient is round-off of its own terms: no precision can reduce it further.
     floor_factor = 64.0 * eps_mach
     st.energy, st.gradient_norm = E, gnorm0
+    # the reference of the tolerance test: the start's gradient, or the given one (a re-solve)
+    ref = float(reference) if reference is not None and np.isfinite(reference) and reference > 0.0 else gnorm0
+    st.initial_gradient, st.tolerance = ref, opts.tol
+
+    def relative(gn):
+        """||P g|| / ref (0 at an exact equilibrium; inf / nan when not finite)."""
+        if ref > 0.0 and np.isfinite(ref):
+            return gn / ref
+        return 0.0 if gn == 0.0 else float("nan")
+
+    def within_tolerance(gn):
+        return bool(np.isfinite(gn) and (gn <= opts.tol * ref or gn <= opts.atol))
 
     def finish():
+        st.residual = relative(st.gradient_norm)
+        if not st.converged and within_tolerance(st.gradient_norm) and np.isfinite(st.energy):
+            # whatever stopped the loop (max_iters, the line search, no descent direction), the
+            # gradient passes the tolerance test: the solve is converged, and says why it stopped
+            st.converged = True
+            st.reason = (f"gradient within tolerance (relative {st.residual:.2e} <= tol {opts.tol:.1e}) "
+                         f"when the solve stopped: {st.reason}")
         if on_demand:
             problem.set_projection(True)
         if syncs0 is not None:
@@ -220,6 +280,11 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
         return finish()
     if gnorm0 <= opts.atol or gnorm0 <= floor_factor * gmag:
         st.converged, st.reason = True, "already at equilibrium"
+        return finish()
+    if gnorm0 <= opts.tol * ref:  # only with a reference (tol < 1): a re-solve's start within the tolerance
+        st.converged = True
+        st.reason = (f"start already within tolerance (relative gradient {relative(gnorm0):.2e} "
+                     f"<= tol {opts.tol:.1e})")
         return finish()
     gnorm = gnorm0
     if forcing is not None:
@@ -340,7 +405,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             gmag, gnorm = problem.gradient(y, g)
         # a problem whose terms adapt (contact's barrier stiffness) may change its potential here:
         # its energy and gradient at y are evaluated again (the line search compares like with like)
-        if after_iteration is not None and after_iteration(y, alpha):
+        if after_iteration is not None and after_iteration(y, alpha, residual=relative(gnorm)):
             E, mag, gmag, gnorm = problem.evaluate(y, g)
             st.adaptations += 1
         st.newton_iterations += 1
@@ -348,7 +413,7 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
         if not np.isfinite(gnorm):
             st.reason = "non-finite gradient"
             break
-        if gnorm <= opts.tol * gnorm0 or gnorm <= opts.atol:
+        if gnorm <= opts.tol * ref or gnorm <= opts.atol:
             st.converged, st.reason = True, "gradient below tolerance"
             break
         if gnorm <= floor_factor * gmag:
@@ -356,5 +421,5 @@ def newton_solve(problem, y, opts: NewtonOptions) -> SolveStats:
             break
     else:
         st.reason = f"reached max_iters={opts.max_iters}"
-    st.energy, st.gradient_norm, st.residual = E, gnorm, gnorm / gnorm0
+    st.energy, st.gradient_norm = E, gnorm
     return finish()

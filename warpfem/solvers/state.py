@@ -237,20 +237,23 @@ class SimulatorState(ControlledSimulator):
         self._state_changed()
 
 
-def check_solve(stats, what: str, *, require_convergence: bool, finite: bool = True, stacklevel: int = 3):
+def check_solve(stats, what: str, *, require_convergence: bool, finite: bool = True, stacklevel: int = 3) -> bool:
     """The failure handling of every simulator's step: raise :class:`SolveFailed` (the caller has
     not written its state) on NaN/inf (``finite`` False, a non-finite energy or a "non-finite"
-    reason) or, with ``require_convergence``, on non-convergence; otherwise warn when not converged."""
-    from warpfem.solvers.nonlinear import SolveFailed
+    reason) or, with ``require_convergence``, on non-convergence; otherwise, when not converged,
+    warn (:class:`~warpfem.solvers.nonlinear.NotConvergedWarning`, a RuntimeWarning: the reason,
+    the relative gradient and the tolerance) and return False. Returns True for a converged solve."""
+    from warpfem.solvers.nonlinear import NotConvergedWarning, SolveFailed, not_converged_message
 
     if stats.converged:
-        return
+        return True
     if not finite or "non-finite" in stats.reason or not np.isfinite(stats.energy):
         raise SolveFailed(f"{what} diverged ({stats.reason}); state left unchanged", stats)
+    message = not_converged_message(stats, what)
     if require_convergence:
-        raise SolveFailed(f"{what} did not converge ({stats.reason}); state left unchanged", stats)
-    warnings.warn(f"{what} did not converge: {stats.reason} (relative gradient {stats.residual:.2e})", RuntimeWarning,
-                  stacklevel=stacklevel)
+        raise SolveFailed(f"{message}; state left unchanged", stats)
+    warnings.warn(message, NotConvergedWarning, stacklevel=stacklevel)
+    return False
 
 
 class StepperBase(ControlledSimulator):
@@ -259,6 +262,10 @@ class StepperBase(ControlledSimulator):
     forms of ``step`` (two states used in turn: no allocation per step), ``new_state``,
     ``predict``, the failure handling of a step (:meth:`_finish`, :func:`check_solve`) and the
     total energy (with the load scale).
+
+    ``unconverged_steps`` counts the steps (and static solves) accepted without converging (each
+    one also warned with a :class:`~warpfem.solvers.nonlinear.NotConvergedWarning`); with
+    ``require_convergence`` such a step raises instead and is not counted.
 
     A subclass calls :meth:`_setup_states` and provides ``_step(state_in, state_out, control, dt)
     -> SolveStats`` (reads ``state_in`` only, raises before writing ``state_out``), ``dt``,
@@ -279,6 +286,7 @@ class StepperBase(ControlledSimulator):
         self.damping_mass = float(damping_mass)
         self.damping_stiffness = float(damping_stiffness)
         self.require_convergence = bool(require_convergence)
+        self.unconverged_steps = 0  # steps (and static solves) accepted without converging
         self.num_vertices = model.num_vertices
 
     def _setup_states(self, state, spare):
@@ -369,7 +377,9 @@ class StepperBase(ControlledSimulator):
         """The end of every simulator's solve: its time, then :func:`check_solve` (raises before the
         caller writes any state; ``finite`` False: the solution has NaN/inf)."""
         stats.seconds = time.perf_counter() - t0
-        check_solve(stats, what, require_convergence=self.require_convergence, finite=finite, stacklevel=stacklevel)
+        if not check_solve(stats, what, require_convergence=self.require_convergence, finite=finite,
+                           stacklevel=stacklevel):
+            self.unconverged_steps = getattr(self, "unconverged_steps", 0) + 1
 
     def _own_states(self):
         return self.state, self._spare

@@ -349,6 +349,7 @@ class StiffnessWarpingSimulator(SimulatorBase):
         finite = bool(np.isfinite(stats.energy) and (lin is None or np.isfinite(lin.residual)))
         if lin is not None and stats.newton_iterations == 1:  # the Newton step was taken: the linear solve decides
             stats.converged, stats.residual = bool(lin.converged), float(lin.residual)
+            stats.tolerance = self.options.cg_tol  # what that residual is tested against
             stats.reason = ("linear solve converged" if lin.converged else
                             f"linear solve stopped at relative residual {lin.residual:.2e}")
         if not finite:

@@ -1,0 +1,81 @@
+"""The stick/slip-aware Newton step of lagged friction (a direction filter of the contact forms).
+
+Lagged friction adds mu lambda f0(|u|) per contact, u the tangential displacement over the step;
+f0 (IPC's C1 smoothing, ``kernels.friction_f0``) is quadratic in a sticking zone |u| < eps = eps_v h
+and linear (slope 1) beyond it. Outside the zone its Hessian has no curvature along u, so the
+Newton model of a contact that should stick sees the friction force as a constant and carries the
+contact straight across the zone: by the friction force over the stiffness of the rest of the
+system, typically tens to thousands of eps. A line search can only shorten the whole step with
+one length for every vertex, and halves it until the overshooting contacts land in their zones:
+measured, most of the extra Newton iterations and all the line-search halvings of frictional
+contact steps come from this (docs/contact.md, "Why frictional steps crawl").
+
+The filter acts per contact on the Newton direction d before the line search: with u(t) = u0 + t du
+the contact's tangential displacement along the step (du = s P d, P = I - n n^T), when the contact
+starts outside its sticking zone (|u0| >= eps) and the full step passes through the zone (the
+point of the segment closest to u = 0 lies at t* in (0, 1), within eps of 0), the tangential part
+of the vertex's step is cut to t* of itself: the contact lands where its friction energy is
+lowest along the step. Normal components, free vertices and contacts that keep sliding are left
+alone. The minimiser of the potential is unchanged (only the path to it), and the line search
+still checks sufficient decrease along the filtered direction, which the Newton loop uses as it
+is (its slope g.d is measured on it).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import warp as wp
+
+from warpfem.kernels.generic import both_precisions
+
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def crossing_fraction(u: Any, du: Any, eps: Any):
+    """t* in (0, 1) when the segment u + t du (t in [0, 1]) starts outside the ball |u| < eps and
+    passes through it (its closest point to 0 is inside the segment and within eps); 1 otherwise."""
+    zero = eps - eps
+    one = zero + type(eps)(1.0)
+    q = wp.dot(du, du)
+    if wp.length(u) < eps or q <= zero:
+        return one
+    t = -wp.dot(u, du) / q
+    if t <= zero or t >= one:
+        return one
+    if wp.length(u + t * du) >= eps:
+        return one
+    return t
+
+
+@both_precisions(lam="s[]", nrm="v[]", wdisp="v[]", dbase="v[]", y="v[]", sy="s", epsf="s[]", mu="s[]", d="v[]")
+@wp.kernel
+def collider_filter_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, lam: wp.array(dtype=Any),
+                           nrm: wp.array(dtype=Any), wdisp: wp.array(dtype=Any), dbase: wp.array(dtype=Any),
+                           y: wp.array(dtype=Any), sy: Any, epsf: wp.array(dtype=Any), mu: wp.array(dtype=Any),
+                           d: wp.array(dtype=Any), count: wp.array(dtype=wp.int32)):
+    """Per surface vertex: its step d (in y) with the tangential part cut where a frictional
+    collider contact would cross its sticking zone (module docstring). u = P (dbase + sy y - w)."""
+    i = wp.tid()
+    vi = surf[i]
+    di = d[vi]
+    zero = sy - sy
+    cut = int(0)
+    for j in range(num_colliders):
+        p = i * num_colliders + j
+        lm = lam[p]
+        if lm > zero and mu[j] > zero:
+            n = nrm[p]
+            r = dbase[vi] + sy * y[vi] - wdisp[p]
+            u = r - wp.dot(r, n) * n
+            dd = sy * di
+            du = dd - wp.dot(dd, n) * n
+            t = crossing_fraction(u, du, epsf[j])
+            if t < zero + type(sy)(1.0):
+                dn = wp.dot(di, n) * n
+                di = dn + t * (di - dn)
+                cut = cut + 1
+    if cut > 0:
+        d[vi] = di
+        wp.atomic_add(count, 0, cut)
