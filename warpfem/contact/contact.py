@@ -312,6 +312,11 @@ class ContactSet:
         """The positions the friction of the current step is lagged from (device array)."""
         return self._x0
 
+    @property
+    def negated_step_start(self):
+        """-x_n (device array): friction's displacement base x - x_n when x is the unknown (static)."""
+        return self._neg_x0
+
     def barrier_energy(self, x=None) -> float:
         """Barrier energy (J) of x (default: current positions) with the colliders at their current
         poses (friction excluded)."""
@@ -427,7 +432,7 @@ class ContactForm(LaggedFrictionForm):
         if self._use_dbase and y is not None:
             dbase, yv, sy = self._dbase, y, self.s
         else:  # static: x is the unknown
-            dbase, yv, sy = c._neg_x0, x, 1.0
+            dbase, yv, sy = c.negated_step_start, x, 1.0
         c.filter_direction(dbase, yv, sy, d)
 
     def max_step(self, x, d, s, acc):
