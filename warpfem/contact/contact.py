@@ -356,7 +356,8 @@ class LaggedFrictionForm(Form):
     def update_lagging(self, x):
         """Friction's normal forces and normals lagged again from the positions x (an iterate of
         the step; the step start and the colliders' motion stay): (largest change of a normal
-        force, largest normal force before or after), or None without friction."""
+        force, largest normal force before or after), or None when nothing changed (no friction, no
+        contact)."""
         c = self.contact
         if not c.has_friction() or not len(getattr(c, "colliders", [0])):
             return None
@@ -365,7 +366,8 @@ class LaggedFrictionForm(Form):
         scale = max(float(np.abs(after).max(initial=0.0)), float(np.abs(before).max(initial=0.0)))
         if before.shape != after.shape:
             return float("inf"), scale
-        return (float(np.abs(after - before).max()) if len(after) else 0.0), scale
+        change = float(np.abs(after - before).max()) if len(after) else 0.0
+        return None if change == 0.0 else (change, scale)  # None: nothing changed (e.g. no contact)
 
 
 class ContactForm(LaggedFrictionForm):
