@@ -365,11 +365,13 @@ class LaggedFrictionForm(Form):
     def update_lagging(self, x):
         """Friction's normal forces and normals lagged again from the positions x (an iterate of
         the step; the step start and the colliders' motion stay): (largest change of a normal
-        force, largest normal force before or after), or None without friction."""
+        force, largest normal force before or after), or None when nothing changed (no friction, no
+        contact)."""
         if not self.uses_lagging():
             return None
         before = self.contact.relag(x)
-        return lagged_change(before, self.contact.normal_forces())
+        change, scale = lagged_change(before, self.contact.normal_forces())
+        return None if change == 0.0 else (change, scale)  # None: nothing changed (e.g. no contact)
 
 
 class ContactForm(LaggedFrictionForm):
