@@ -214,7 +214,8 @@ class Form:
 
     def update_lagging(self, x):
         """Take the lagged quantities again from the positions x (an iterate near the step's
-        solution); returns (change, scale) (:func:`lagged_change`), or None when nothing was lagged."""
+        solution); returns (change, scale) (:func:`lagged_change`), or None when nothing was lagged
+        or nothing changed (then the potential is not evaluated again)."""
         return None
 
     def static_error(self):
