@@ -10,7 +10,9 @@ one length for every vertex, and halves it until the overshooting contacts land 
 measured, most of the extra Newton iterations and all the line-search halvings of frictional
 contact steps come from this (docs/contact.md, "Why frictional steps crawl").
 
-The filter acts per contact on the Newton direction d before the line search: with u(t) = u0 + t du
+The filter acts per collider contact (a surface vertex against a collider; surface pairs are not
+filtered: cutting the steps of both sides of a pair slowed the stack's impacts, docs/contact.md)
+on the Newton direction d before the line search: with u(t) = u0 + t du
 the contact's tangential displacement along the step (du = s P d, P = I - n n^T), when the contact
 starts outside its sticking zone (|u0| >= eps) and the full step passes through the zone (the
 point of the segment closest to u = 0 lies at t* in (0, 1), within eps of 0), the tangential part

@@ -206,10 +206,11 @@ SCHEMA: dict[str, dict[str, Key]] = {
                              '"auto": adaptive'),
         "friction_velocity": Key("float", default=None, check=_positive, doc="m/s below which friction sticks (smoothing)"),
         "friction_iterations": Key("int", default=1, check=_non_negative,
-                                   doc="re-solves of a step with friction lagged from its end (colliders too); 0 = "
-                                       "lagged once from the step start"),
+                                   doc="updates of friction's normal forces and normals from an iterate near the "
+                                       "solution, inside the step's Newton solve (colliders too); 0 = lagged once "
+                                       "from the step start"),
         "friction_tol": Key("float", default=0.01, check=_positive,
-                            doc="stop them when the normal forces change by less than this fraction"),
+                            doc="no further update when the normal forces change by less than this fraction"),
     },
     "traction": {
         "box_min": Key("vec3", required=True),
@@ -311,7 +312,7 @@ INTEGRATOR_KEYS: dict[str, Key] = {
     "dt": Key("float", default=None, check=_positive, doc="time step (s); default 1/fps"),
     "tol": Key("float", default=1e-6, check=_unit_interval,
                doc="relative Newton gradient tolerance: converged when ||g|| <= tol ||g at the step's start|| "
-                   "(friction re-solves included; docs/integrators.md)"),
+                   "(friction's lag updates included; docs/integrators.md)"),
     "atol": Key("float", default=0.0, check=_non_negative),
     "cg_tol": Key("float", default=1e-4, check=_unit_interval, doc="relative PCG tolerance"),
     "max_iters": Key("int", default=30, check=_positive, doc="Newton iterations per solve"),
