@@ -7,12 +7,15 @@ kinematic handle (docs/scenes.md, ``[[handle]]``): at time t, with f = min(t / r
 
 X the collider's point at t = 0 and c the rotation centre (default: the collider's centre).
 
-Each collider class owns what is particular to its type: its kernel ``kind`` (the branch of
-``warpfem.contact.kernels.primitive_distance``, or the mesh's triangles), its scene keys
-(``scene_keys``: required and optional ``[[collider]]`` keys, read by ``warpfem.scenes.schema``
-and the scene builder), its kernel parameters (``params``, ``triangles``) and the host (numpy,
-complex-safe) counterpart of its Warp distance (``local_distances``: the adjoint's complex-step
-derivatives). The body-based defaults of every contact barrier (colliders and surface contact)
+Each collider class owns what is particular to its type: its kernel ``kind`` (the int the contact
+kernel dispatches on), its scene keys (``scene_keys``: required and optional ``[[collider]]`` keys,
+read by ``warpfem.scenes.schema`` and the scene builder), its kernel parameters (``params``,
+``triangles``), its Warp distance (``distance_func``, a ``wp.func``, with ``distance_args`` saying
+what it is called with) and the host (numpy, complex-safe) counterpart of it (``local_distances``:
+the adjoint's complex-step derivatives). :func:`register_collider` adds a class to the registry
+the contact kernel's dispatch (``warpfem.contact.kernels.primitive_distance``) is generated from,
+so a new collider type is a class, registered, without editing the kernels (docs/contact.md,
+"Writing a collider type"). The body-based defaults of every contact barrier (colliders and surface contact)
 are the functions :func:`default_dhat`, :func:`default_stiffness` and
 :func:`default_friction_velocity`; :func:`contact_parameters` fills them in for a collider.
 """
@@ -20,15 +23,19 @@ are the functions :func:`default_dhat`, :func:`default_stiffness` and
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
+import warp as wp
 
 from warpfem.contact.stiffness import parse_stiffness
 
 __all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider", "COLLIDER_TYPES", "collider_class",
-           "collider_scene_keys", "default_dhat", "default_stiffness", "default_friction_velocity", "contact_parameters",
+           "collider_scene_keys", "register_collider", "unregister_collider", "registered_colliders",
+           "add_registry_listener", "default_dhat", "default_stiffness", "default_friction_velocity", "contact_parameters",
            "FRICTION_VELOCITY"]
 
+#: the built-in collider types (the ``[[collider]]`` types of scene files)
 COLLIDER_TYPES = ("plane", "sphere", "box", "mesh")
 
 #: Default friction velocity eps_v (below it friction is smoothed into sticking), in body diagonals
@@ -76,7 +83,7 @@ def _dot(a, b):
 
 def closest_on_triangles(p, A, B, C):
     """Closest points of p (m, 3) to triangles (T, 3) each: (m, T, 3), the host counterpart of
-    ``kernels.closest_on_triangle`` (Ericson's regions, chosen on real parts; complex-safe)."""
+    :func:`closest_on_triangle` (Ericson's regions, chosen on real parts; complex-safe)."""
     p = p[:, None, :]
     ab, ac, ap = B - A, C - A, p - A
     d1, d2 = _dot(ab, ap), _dot(ac, ap)
@@ -124,6 +131,100 @@ def _vec3(v, what):
     return a
 
 
+# -- the Warp distances of the built-in types (``distance_func`` of their classes) ------------------------
+# Signed distance of a point p in the collider's t = 0 frame and its gradient (unit normal), generic
+# over float32 / float64: every literal is typed through ``zero = p[0] - p[0]``.
+@wp.func
+def plane_distance(p: Any, a: Any, b: Any):
+    """Plane: point a, unit normal b."""
+    return wp.dot(b, p - a), b
+
+
+@wp.func
+def sphere_distance(p: Any, a: Any, b: Any):
+    """Sphere: centre a, radius b[0]; at the centre the normal is +y."""
+    zero = p[0] - p[0]
+    one = zero + type(zero)(1.0)
+    r = p - a
+    L = wp.length(r)
+    if L > zero:
+        return L - b[0], r / L
+    return -b[0], type(p)(zero, one, zero)
+
+
+@wp.func
+def box_distance(p: Any, a: Any, b: Any):
+    """Box: centre a, half extents b; inside, the (negative) largest face distance."""
+    zero = p[0] - p[0]
+    one = zero + type(zero)(1.0)
+    r = p - a
+    sg = type(p)(one, one, one)
+    for k in range(3):
+        if r[k] < zero:
+            sg[k] = -one
+    q = type(p)(wp.abs(r[0]) - b[0], wp.abs(r[1]) - b[1], wp.abs(r[2]) - b[2])
+    qmax = wp.max(wp.max(q[0], q[1]), q[2])
+    if qmax > zero:
+        m = type(p)(wp.max(q[0], zero), wp.max(q[1], zero), wp.max(q[2], zero))
+        L = wp.length(m)
+        return L, wp.cw_mul(sg, m) / L
+    n = type(p)(zero, zero, zero)
+    if q[0] >= q[1] and q[0] >= q[2]:
+        n[0] = sg[0]
+    elif q[1] >= q[2]:
+        n[1] = sg[1]
+    else:
+        n[2] = sg[2]
+    return qmax, n
+
+
+@wp.func
+def closest_on_triangle(p: Any, a: Any, b: Any, c: Any):
+    """Closest point to p on triangle abc (Ericson, "Real-Time Collision Detection", 5.1.5)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    zero = d1 - d1
+    if d1 <= zero and d2 <= zero:
+        return a
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= zero and d4 <= d3:
+        return b
+    vc = d1 * d4 - d3 * d2
+    if vc <= zero and d1 >= zero and d3 <= zero:
+        return a + ab * (d1 / (d1 - d3))
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= zero and d5 <= d6:
+        return c
+    vb = d5 * d2 - d1 * d6
+    if vb <= zero and d2 >= zero and d6 <= zero:
+        return a + ac * (d2 / (d2 - d6))
+    va = d3 * d6 - d5 * d4
+    if va <= zero and (d4 - d3) >= zero and (d5 - d6) >= zero:
+        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+    den = va + vb + vc
+    return a + ab * (vb / den) + ac * (vc / den)
+
+
+@wp.func
+def triangle_distance(p: Any, a: Any, b: Any, c: Any):
+    """Unsigned distance to triangle abc (a two-sided surface); the normal is 0 on the triangle."""
+    zero = p[0] - p[0]
+    q = closest_on_triangle(p, a, b, c)
+    r = p - q
+    d = wp.length(r)
+    nl = type(p)(zero, zero, zero)
+    if d > zero:
+        nl = r / d
+    return d, nl
+
+
 class Collider:
     """Base class. Args (keyword): ``friction`` (Coulomb mu >= 0), ``dhat`` (contact distance, m;
     None: a tenth of the body's mean surface edge length), ``stiffness`` (barrier kappa, N/m;
@@ -133,10 +234,18 @@ class Collider:
     diagonals per second, 1e-2 in float32), the motion ``translation``, ``rotation_axis``, ``rotation_angle``
     (degrees), ``rotation_center``, ``ramp_time`` (s; required when it moves), and ``name``."""
 
+    #: the int the contact kernel dispatches on (unique among the registered types; >= 0)
     kind = -1
     type_name = ""
     #: the ``[[collider]]`` keys of this type: (required, optional), besides the common ones
     scene_keys = ((), ())
+    #: the Warp distance of one primitive in the collider's t = 0 frame: a ``wp.func`` returning
+    #: (signed distance, unit normal), generic over float32 / float64 (literals typed through
+    #: ``zero = p[0] - p[0]``); called as ``distance_func(p, a, b)`` with (a, b) = ``params()``
+    #: (``distance_args = "params"``, one primitive), or ``distance_func(p, v0, v1, v2)`` once per
+    #: triangle of ``triangles()`` (``distance_args = "triangle"``)
+    distance_func = None
+    distance_args = "params"
 
     def __init__(self, *, friction=0.0, dhat=None, stiffness=None, friction_velocity=None, translation=None,
                  rotation_axis=None, rotation_angle=0.0, rotation_center=None, ramp_time=None, name=None):
@@ -186,6 +295,10 @@ class Collider:
     def triangles(self) -> np.ndarray:
         return np.zeros((0, 3, 3))
 
+    def num_primitives(self) -> int:
+        """How many primitives the kernel loops over: 1, or the triangles (``distance_args = "triangle"``)."""
+        return len(self.triangles()) if self.distance_args == "triangle" else 1
+
     @classmethod
     def geometry_keys(cls):
         """The type's own ``[[collider]]`` keys, required then optional."""
@@ -195,7 +308,7 @@ class Collider:
         """(d (m, P), n (m, P, 3)): signed distances of points p (m, 3) in the collider's t = 0 frame
         to its P primitives (1; a mesh: its triangles) and their unit gradients, in numpy and
         complex-safe (branches on real parts): the host counterpart of the contact kernel's
-        distance (``kernels.primitive_distance`` / ``closest_on_triangle``) for the adjoint's
+        distance (``distance_func``) for the adjoint's
         complex-step derivatives (``warpfem.solvers.adjoint_contact``). Inside a solid the
         distance is <= 0 (never a contact term), its gradient unspecified."""
         raise NotImplementedError
@@ -214,6 +327,7 @@ class Plane(Collider):
 
     kind, type_name = 0, "plane"
     scene_keys = ((), ("point", "normal"))
+    distance_func = plane_distance
 
     def __init__(self, point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0), **kw):
         self.point = _vec3(point, "plane point")
@@ -248,6 +362,7 @@ class Sphere(Collider):
 
     kind, type_name = 1, "sphere"
     scene_keys = (("center", "radius"), ())
+    distance_func = sphere_distance
 
     def __init__(self, center=(0.0, 0.0, 0.0), radius=1.0, **kw):
         self.center_ = _vec3(center, "sphere center")
@@ -285,6 +400,7 @@ class Box(Collider):
 
     kind, type_name = 2, "box"
     scene_keys = (("box_min", "box_max"), ())
+    distance_func = box_distance
 
     def __init__(self, box_min=(-1.0, -1.0, -1.0), box_max=(1.0, 1.0, 1.0), **kw):
         lo, hi = _vec3(box_min, "box_min"), _vec3(box_max, "box_max")
@@ -326,6 +442,7 @@ class MeshCollider(Collider):
 
     kind, type_name = 3, "mesh"
     scene_keys = (("path",), ("scale", "offset"))
+    distance_func, distance_args = triangle_distance, "triangle"
 
     def __init__(self, path=None, *, vertices=None, triangles=None, scale=1.0, offset=(0.0, 0.0, 0.0), **kw):
         if path is not None:
@@ -366,21 +483,80 @@ class MeshCollider(Collider):
         return self.vertices, self.faces
 
 
-_BY_TYPE = {"plane": Plane, "sphere": Sphere, "box": Box, "mesh": MeshCollider}
+# -- the registry ------------------------------------------------------------------------------------------
+#: type name -> class, in registration order (the kernel's dispatch tests kinds in this order)
+_BY_TYPE: dict = {}
+_LISTENERS: list = []
+
+
+def registered_colliders() -> tuple:
+    """The registered collider classes, in registration order."""
+    return tuple(_BY_TYPE.values())
+
+
+def add_registry_listener(fn):
+    """Call ``fn()`` after every change of the registry (the contact kernels regenerate their
+    dispatch through it)."""
+    _LISTENERS.append(fn)
+
+
+def _changed():
+    for fn in _LISTENERS:
+        fn()
+
+
+def register_collider(cls):
+    """Class decorator: register a collider type (a :class:`Collider` subclass with its ``kind``,
+    ``type_name``, ``scene_keys``, ``distance_func``, ``distance_args`` and ``local_distances``),
+    so the contact kernel's dispatch calls its ``distance_func`` for its kind. Kinds and type names
+    must be unique. The kernel module is built again (once) at its next launch."""
+    if not (isinstance(cls, type) and issubclass(cls, Collider)):
+        raise TypeError(f"register_collider takes a Collider subclass, got {cls!r}")
+    name, kind = cls.type_name, cls.kind
+    if not (isinstance(name, str) and name.isidentifier()):
+        raise ValueError(f"collider {cls.__name__}: type_name must be an identifier, got {name!r}")
+    if not (isinstance(kind, int) and kind >= 0):
+        raise ValueError(f"collider {name!r}: kind must be an int >= 0, got {kind!r}")
+    if name in _BY_TYPE:
+        raise ValueError(f"collider type {name!r} is already registered")
+    other = next((c for c in _BY_TYPE.values() if c.kind == kind), None)
+    if other is not None:
+        raise ValueError(f"collider kind {kind} of {name!r} is already used by {other.type_name!r}")
+    if not isinstance(cls.distance_func, wp.Function):
+        raise ValueError(f"collider {name!r}: distance_func must be a wp.func, got {cls.distance_func!r}")
+    if cls.distance_args not in ("params", "triangle"):
+        raise ValueError(f"collider {name!r}: distance_args must be 'params' or 'triangle', got {cls.distance_args!r}")
+    if cls.local_distances is Collider.local_distances:
+        raise ValueError(f"collider {name!r}: define local_distances (the host counterpart of distance_func)")
+    _BY_TYPE[name] = cls
+    _changed()
+    return cls
+
+
+def unregister_collider(type_name: str):
+    """Remove a registered collider type (a test's own type, when it is done with it)."""
+    if type_name not in _BY_TYPE:
+        raise ValueError(f"collider type {type_name!r} is not registered")
+    del _BY_TYPE[type_name]
+    _changed()
+
+
+for _cls in (Plane, Sphere, Box, MeshCollider):
+    register_collider(_cls)
 
 
 def collider_class(type: str):
-    """The collider class of a type name ("plane", "sphere", "box", "mesh")."""
+    """The collider class of a type name ("plane", "sphere", "box", "mesh", or a registered one)."""
     if type not in _BY_TYPE:
-        raise ValueError(f"collider type must be one of {COLLIDER_TYPES}, got {type!r}")
+        raise ValueError(f"collider type must be one of {tuple(_BY_TYPE)}, got {type!r}")
     return _BY_TYPE[type]
 
 
 def collider_scene_keys() -> dict:
     """{type: (required keys, optional keys)} of the ``[[collider]]`` types, from their classes."""
-    return {t: cls.scene_keys for t, cls in _BY_TYPE.items()}
+    return {t: _BY_TYPE[t].scene_keys for t in COLLIDER_TYPES}
 
 
 def make_collider(type: str, **kw) -> Collider:
-    """A collider from a type name ("plane", "sphere", "box", "mesh") and its keywords."""
+    """A collider from a type name ("plane", "sphere", "box", "mesh", or a registered one) and its keywords."""
     return collider_class(type)(**kw)

@@ -22,7 +22,7 @@ import warp as wp
 from warpfem.contact import friction as FR
 from warpfem.contact import kernels as CK
 from warpfem.contact.colliders import (FRICTION_VELOCITY, Collider, contact_parameters,  # noqa: F401 (re-exported)
-                                       default_friction_velocity)
+                                       default_friction_velocity, registered_colliders)
 from warpfem.contact.colliders import default_stiffness as _default_stiffness
 from warpfem.contact.stiffness import AdaptiveStiffness
 from warpfem.kernels.generic import launch
@@ -110,6 +110,9 @@ class ContactSet:
     def add(self, collider: Collider):
         if not isinstance(collider, Collider):
             raise TypeError(f"add_collider expects a warpfem collider (Plane, Sphere, Box, MeshCollider), got {collider!r}")
+        if not any(isinstance(collider, c) and collider.kind == c.kind for c in registered_colliders()):
+            raise TypeError(f"collider {collider.name!r}: its class {type(collider).__name__} (kind {collider.kind}) is "
+                            "not a registered collider type (warpfem.contact.colliders.register_collider)")
         collider.name = unique_name(collider.name, {c.name for c in self.colliders})
         self.colliders.append(collider)
         self._ready = False
@@ -132,7 +135,7 @@ class ContactSet:
         for c in cs:
             t = c.triangles()
             start.append(off)
-            count.append(len(t))
+            count.append(c.num_primitives())  # the kernel's loop over the collider's primitives
             off += len(t)
             tris.append(t.reshape(-1, 3))
         tri = np.concatenate(tris) if off else np.zeros((3, 3))

@@ -1,8 +1,9 @@
 """Warp kernels of the contact form: surface vertices against kinematic colliders.
 
 One kernel (``contact_kernel``) loops, per body surface vertex, over the colliders (and over the
-triangles of mesh colliders) and does one of several jobs chosen by ``mode`` (one module, two
-precision overloads, no variant per collider type):
+primitives of each: one, or a mesh collider's triangles), gets each distance from
+``primitive_distance`` (generated from the collider classes' Warp distances, below) and does one of
+several jobs chosen by ``mode`` (one module, two precision overloads, no variant per collider type):
 
 * ``MODE_ENERGY``: barrier + lagged friction energy into ``acc[slot]`` (float64), the number of
   pairs at distance <= 0 into ``acc[slot + 1]``;
@@ -30,86 +31,81 @@ point, f0 the C1 smoothing of |u| over eps = eps_v h (``friction_f0``: a linear 
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import warp as wp
 
+from warpfem.contact.colliders import add_registry_listener, registered_colliders
 from warpfem.kernels.generic import both_precisions
 
 wp.set_module_options({"enable_backward": False})
 
-PLANE, SPHERE, BOX, MESH = 0, 1, 2, 3
 MODE_ENERGY, MODE_GRADIENT, MODE_HESSIAN, MODE_MAX_STEP, MODE_LAG, MODE_DISTANCE = 0, 1, 2, 3, 4, 5
 
 
+# -- the distance dispatch, generated from the collider registry ----------------------------------------
+# ``primitive_distance(kind, p, a, b, tris, t0)`` is a chain of Warp funcs, one link per registered
+# collider class (warpfem.contact.colliders.register_collider), each testing its kind and calling the
+# class's ``distance_func`` -- with (a, b) (``distance_args = "params"``) or with triangle
+# tris[t0], tris[t0 + 1], tris[t0 + 2] (``"triangle"``) -- or the next link; an unknown kind gives
+# distance -1 (inside: the pair fails the step; Python validates kinds). The chain is generated again
+# when the registry changes, and ``contact_kernel`` resolves the name when its module is hashed and
+# built: each link is named after its type and kind, and Warp's module hash covers a func's name,
+# source, captured constants and the funcs it calls, so a new collider type rebuilds this module
+# once and a cached build for other types is never reused (as the material dispatch,
+# warpfem/materials/dispatch.py). One kernel module for every type: no variant per collider type.
 @wp.func
-def closest_on_triangle(p: Any, a: Any, b: Any, c: Any):
-    """Closest point to p on triangle abc (Ericson, "Real-Time Collision Detection", 5.1.5)."""
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d1 = wp.dot(ab, ap)
-    d2 = wp.dot(ac, ap)
-    zero = d1 - d1
-    if d1 <= zero and d2 <= zero:
-        return a
-    bp = p - b
-    d3 = wp.dot(ab, bp)
-    d4 = wp.dot(ac, bp)
-    if d3 >= zero and d4 <= d3:
-        return b
-    vc = d1 * d4 - d3 * d2
-    if vc <= zero and d1 >= zero and d3 <= zero:
-        return a + ab * (d1 / (d1 - d3))
-    cp = p - c
-    d5 = wp.dot(ab, cp)
-    d6 = wp.dot(ac, cp)
-    if d6 >= zero and d5 <= d6:
-        return c
-    vb = d5 * d2 - d1 * d6
-    if vb <= zero and d2 >= zero and d6 <= zero:
-        return a + ac * (d2 / (d2 - d6))
-    va = d3 * d6 - d5 * d4
-    if va <= zero and (d4 - d3) >= zero and (d5 - d6) >= zero:
-        return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
-    den = va + vb + vc
-    return a + ab * (vb / den) + ac * (vc / den)
-
-
-@wp.func
-def primitive_distance(kind: int, p: Any, a: Any, b: Any):
-    """Signed distance of a local-frame point p to a primitive and its gradient (unit normal).
-    plane: point a, unit normal b; sphere: centre a, radius b[0]; box: centre a, half extents b."""
+def _no_collider(kind: int, p: Any, a: Any, b: Any, tris: wp.array(dtype=Any), t0: int):
     zero = p[0] - p[0]
-    one = zero + type(zero)(1.0)
-    if kind == 0:
-        return wp.dot(b, p - a), b
-    if kind == 1:
-        r = p - a
-        L = wp.length(r)
-        if L > zero:
-            return L - b[0], r / L
-        return -b[0], type(p)(zero, one, zero)
-    # box
-    r = p - a
-    sg = type(p)(one, one, one)
-    for k in range(3):
-        if r[k] < zero:
-            sg[k] = -one
-    q = type(p)(wp.abs(r[0]) - b[0], wp.abs(r[1]) - b[1], wp.abs(r[2]) - b[2])
-    qmax = wp.max(wp.max(q[0], q[1]), q[2])
-    if qmax > zero:
-        m = type(p)(wp.max(q[0], zero), wp.max(q[1], zero), wp.max(q[2], zero))
-        L = wp.length(m)
-        return L, wp.cw_mul(sg, m) / L
-    n = type(p)(zero, zero, zero)
-    if q[0] >= q[1] and q[0] >= q[2]:
-        n[0] = sg[0]
-    elif q[1] >= q[2]:
-        n[1] = sg[1]
-    else:
-        n[2] = sg[2]
-    return qmax, n
+    return zero - (zero + type(zero)(1.0)), type(p)(zero, zero, zero)
+
+
+def _named(fn, cls):
+    fn.__name__ = fn.__qualname__ = f"primitive_distance__{re.sub(r'[^0-9A-Za-z_]', '_', cls.type_name)}_k{cls.kind}"
+    return wp.func(fn)
+
+
+def _link_params(cls, rest):
+    K, f = wp.constant(cls.kind), cls.distance_func
+
+    def params_link(kind: int, p: Any, a: Any, b: Any, tris: wp.array(dtype=Any), t0: int):
+        if kind == K:
+            d, n = f(p, a, b)
+            return d, n
+        d, n = rest(kind, p, a, b, tris, t0)
+        return d, n
+
+    return _named(params_link, cls)
+
+
+def _link_triangle(cls, rest):
+    K, f = wp.constant(cls.kind), cls.distance_func
+
+    def triangle_link(kind: int, p: Any, a: Any, b: Any, tris: wp.array(dtype=Any), t0: int):
+        if kind == K:
+            d, n = f(p, tris[t0], tris[t0 + 1], tris[t0 + 2])
+            return d, n
+        d, n = rest(kind, p, a, b, tris, t0)
+        return d, n
+
+    return _named(triangle_link, cls)
+
+
+def _build_dispatch():
+    """(Re)generate ``primitive_distance`` over the registered colliders; the first registered is
+    tested first."""
+    global primitive_distance
+    chain = _no_collider
+    for cls in reversed(registered_colliders()):
+        chain = (_link_triangle if cls.distance_args == "triangle" else _link_params)(cls, chain)
+    primitive_distance = chain
+    wp.get_module(__name__).mark_modified()  # contact_kernel resolves the new chain at its next build
+
+
+primitive_distance = _no_collider
+_build_dispatch()
+add_registry_listener(_build_dispatch)
 
 
 @wp.func
@@ -151,7 +147,7 @@ def contact_kernel(
     pa: wp.array(dtype=Any),
     pb: wp.array(dtype=Any),
     tri_start: wp.array(dtype=wp.int32),
-    tri_count: wp.array(dtype=wp.int32),
+    prim_count: wp.array(dtype=wp.int32),
     tris: wp.array(dtype=Any),
     kappa: wp.array(dtype=Any),
     dhat: wp.array(dtype=Any),
@@ -194,21 +190,8 @@ def contact_kernel(
         n_sum = grad - grad
         dmin = dh + dh + one
         kind = kinds[j]
-        count = int(1)
-        if kind == 3:
-            count = tri_count[j]
-        for k in range(count):
-            d = zero
-            nl = grad - grad
-            if kind == 3:
-                t0 = (tri_start[j] + k) * 3
-                q = closest_on_triangle(p, tris[t0], tris[t0 + 1], tris[t0 + 2])
-                r = p - q
-                d = wp.length(r)
-                if d > zero:
-                    nl = r / d
-            else:
-                d, nl = primitive_distance(kind, p, pa[j], pb[j])
+        for k in range(prim_count[j]):
+            d, nl = primitive_distance(kind, p, pa[j], pb[j], tris, (tri_start[j] + k) * 3)
             n = R * nl
             dmin = wp.min(dmin, d)
             if d <= zero:
