@@ -114,6 +114,19 @@ CONFIGS: dict[str, dict] = {
 SCENE_DIR = os.path.join(ROOT, "examples", "scenes")
 #: which code runs in this process: "working tree", or in a worker "revision REV (COMMIT)"
 TREE = "working tree"
+TREE_PATH = None  # the extracted revision's folder in a worker
+
+
+def portable_path(path):
+    """A path as the results record it (no absolute path of a machine): repository-relative for this
+    tree, "<revision>/..." inside an extracted revision."""
+    p = os.path.realpath(path)
+    if TREE_PATH is not None and os.path.commonpath([os.path.realpath(TREE_PATH), p]) == os.path.realpath(TREE_PATH):
+        return f"<{TREE}>/" + os.path.relpath(p, os.path.realpath(TREE_PATH))
+    root = os.path.realpath(ROOT)
+    if os.path.commonpath([root, p]) == root:
+        return os.path.relpath(p, root)
+    return os.path.basename(p)
 
 SCENES = {name: f"{name}.toml" for name in ("bunny_drop", "stack", "ball_bowl", "twisted_bar", "bunny_octopus")}
 #: default frames per case (free fall and impact; a few minutes each on 2 CPU cores)
@@ -316,7 +329,7 @@ def run_one(case, config_name, precision, frames, device, log=print, skip_unknow
         rec["cpu_over_hessian"] = rec["cpu"] / hess_cpu
     return dict(case=case, config=config_name, config_keys=CONFIGS[config_name],
                 applied={k: f"{w}.{k} = {v!r}" for k, (w, v) in applied.items()}, skipped=skipped or {},
-                tree=TREE, warpfem_path=os.path.dirname(os.path.abspath(wf.__file__)), precision=precision,
+                tree=TREE, warpfem_path=portable_path(os.path.dirname(os.path.abspath(wf.__file__))), precision=precision,
                 description=run.description, frames_requested=frames, steps_per_frame=run.steps_per_frame,
                 fps=run.fps, dt=float(sim.dt), tets=int(getattr(run.model.mesh, "num_tets", 0) or 0),
                 vertices=int(sim.num_vertices), newton_options=dataclasses.asdict(sim.options),
@@ -386,8 +399,9 @@ def run_in_worker(case, config_name, precision, frames, device, tree: dict) -> d
 def worker(a) -> int:
     """``--_worker OUT``: one case, configuration and precision on the code first on sys.path (an
     extracted revision, ``--_tree``); the result JSON written to OUT."""
-    global SCENE_DIR, TREE
+    global SCENE_DIR, TREE, TREE_PATH
     tree = os.path.realpath(a._tree)
+    TREE_PATH = tree
     here = os.path.realpath(os.path.dirname(wf.__file__))
     if os.path.commonpath([tree, here]) != tree:
         raise SystemExit(f"worker: warpfem was imported from {here}, not from the extracted tree {tree} "
@@ -672,14 +686,14 @@ def main(argv=None):
             rev = CONFIGS[name].get("revision")
             if rev is None:
                 trees[name] = dict(tree="working tree", revision=None, commit=working_tree_commit(), path=None,
-                                   warpfem_path=os.path.dirname(os.path.abspath(wf.__file__)))
+                                   warpfem_path=portable_path(os.path.dirname(os.path.abspath(wf.__file__))))
                 continue
             if rev not in extracted:
                 path = os.path.join(tmp_trees, f"rev{len(extracted)}")
                 os.makedirs(path)
                 commit = extract_revision(str(rev), path)
                 extracted[rev] = dict(path=path, commit=commit, label=f"revision {rev} ({commit[:12]})")
-                print(f"revision {rev} ({commit}) extracted into {path}", flush=True)
+                print(f"revision {rev} ({commit}) extracted into a temporary folder", flush=True)
             e = extracted[rev]
             trees[name] = dict(tree=e["label"], revision=str(rev), commit=e["commit"], path=e["path"], label=e["label"])
         load_before = loadavg()
