@@ -141,7 +141,7 @@ def test_run_counts_unconverged_steps_on_its_final_line(tmp_path, capsys):
     assert main(["run", scene, "--out", str(out)]) == 0
     captured = capsys.readouterr()
     final = captured.out.strip().splitlines()[-1]
-    assert final.startswith("done: 4 frames (8 steps, 4 not converged: frames 3, 4); wrote "), final
+    assert final.startswith("done: 4 frames (8 steps, 4 not converged: frames 3, 4; worst: frame "), final
     warned = [line for line in captured.err.splitlines() if "not converged" in line]
     assert len(warned) == 2 and warned[0].startswith("warning: frame 3: 2 of 2 steps not converged: step 4: "
                                                      "reached max_iters=1 (relative gradient ")
@@ -151,6 +151,10 @@ def test_run_counts_unconverged_steps_on_its_final_line(tmp_path, capsys):
     assert [r["unconverged_steps"] for r in log] == [0, 0, 2, 2]
     assert [r["converged"] for r in log] == [True, True, False, False]
     assert all(r["residual"] <= 0.015 for r in log[:2]) and all(r["residual"] > 0.015 for r in log[2:])
+    # the worst unconverged step named on the final line is the largest relative gradient of the log
+    worst = max(log, key=lambda r: r["worst_residual"])
+    assert [r["worst_residual"] for r in log[:2]] == [0.0, 0.0] and worst["worst_residual"] > 0.015
+    assert f"; worst: frame {worst['frame']}, relative gradient {worst['worst_residual']:.2e}); wrote " in final
 
 
 def test_require_convergence_stops_the_run_with_one_line_and_keeps_earlier_frames(tmp_path, capsys):
@@ -188,4 +192,7 @@ def test_scene_run_logs_one_line_per_frame_and_no_python_warning(tmp_path, caplo
     lines = [r.getMessage() for r in caplog.records if "not converged" in r.getMessage()]
     assert [ln.split(":")[0] for ln in lines] == ["frame 3", "frame 4"]
     assert run.sim.unconverged_steps == 4
-    assert run.convergence_summary(history) == {"steps": 8, "unconverged_steps": 4, "unconverged_frames": [3, 4]}
+    summary = run.convergence_summary(history)
+    worst = summary.pop("worst")
+    assert summary == {"steps": 8, "unconverged_steps": 4, "unconverged_frames": [3, 4]}
+    assert worst == (4, max(fs.worst_residual for fs in history)) and worst[1] > 0.015

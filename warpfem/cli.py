@@ -302,14 +302,17 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
 
 
 def _convergence_report(summary, most=10) -> str:
-    """``192 steps, all converged`` or ``192 steps, 3 not converged: frames 9, 17, 18`` (the first
-    ``most`` frames, then how many more)."""
+    """``192 steps, all converged`` or ``192 steps, 3 not converged: frames 9, 17, 18; worst: frame
+    17, relative gradient 3.10e-04`` (the first ``most`` frames, then how many more; the worst is
+    the unconverged step with the largest relative gradient)."""
     n, bad, frames = summary["steps"], summary["unconverged_steps"], summary["unconverged_frames"]
     steps = f"{n} step{'s' if n != 1 else ''}"
     if not bad:
         return f"{steps}, all converged"
     shown = ", ".join(str(f) for f in frames[:most]) + (f" and {len(frames) - most} more" if len(frames) > most else "")
-    return f"{steps}, {bad} not converged: frame{'s' if len(frames) != 1 else ''} {shown}"
+    worst = summary.get("worst")
+    tail = f"; worst: frame {worst[0]}, relative gradient {worst[1]:.2e}" if worst else ""
+    return f"{steps}, {bad} not converged: frame{'s' if len(frames) != 1 else ''} {shown}{tail}"
 
 
 def _register_run(subparsers):

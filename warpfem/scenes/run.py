@@ -38,6 +38,7 @@ class FrameStats:
     converged: bool
     reason: str = ""
     unconverged_steps: int = 0
+    worst_residual: float = 0.0  # the largest relative gradient of the frame's unconverged steps (0: none)
 
     def as_dict(self):
         return dict(self.__dict__)
@@ -202,6 +203,7 @@ class SceneRun:
         newton = cg = 0
         residual = energy = 0.0
         converged, reasons = True, []
+        worst = 0.0
         self.frame += 1
         if entry.dynamic:
             steps = integ["substeps"]
@@ -217,6 +219,7 @@ class SceneRun:
                 if not st.converged:
                     converged = False
                     reasons.append(_step_note(st, "step" if index is None else f"step {index}"))
+                    worst = max(worst, float(st.residual)) if st.residual == st.residual else float("nan")
             t = sim.time
         else:
             steps = 1
@@ -232,11 +235,12 @@ class SceneRun:
             newton, cg, residual, energy = st.newton_iterations, st.cg_iterations, st.residual, st.energy
             converged = st.converged
             reasons = [_step_note(st, "static solve")] if not st.converged else []
+            worst = float(st.residual) if not st.converged else 0.0
             t = self.frame / self.fps
         return FrameStats(frame=self.frame, time=t, steps=steps, step_seconds=time.perf_counter() - t0,
                           newton_iterations=newton, cg_iterations=cg, residual=float(residual),
                           energy=float(energy), converged=converged, reason="; ".join(reasons),
-                          unconverged_steps=len(reasons))
+                          unconverged_steps=len(reasons), worst_residual=worst)
 
     def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None, vtu=None):
         """Run ``frames`` output frames (default: the scene's) writing the outputs.
@@ -370,11 +374,17 @@ class SceneRun:
 
     @staticmethod
     def convergence_summary(history) -> dict:
-        """What a run's frames say about convergence: ``steps`` (all), ``unconverged_steps`` and
-        ``unconverged_frames`` (the frame numbers with at least one)."""
+        """What a run's frames say about convergence: ``steps`` (all), ``unconverged_steps``,
+        ``unconverged_frames`` (the frame numbers with at least one) and ``worst`` ((frame, relative
+        gradient) of the unconverged step farthest from the tolerance, or None)."""
+        bad = [fs for fs in history if fs.unconverged_steps]
+        worst = None
+        if bad:
+            fs = max(bad, key=lambda f: (f.worst_residual if f.worst_residual == f.worst_residual else float("inf")))
+            worst = (fs.frame, float(fs.worst_residual))
         return {"steps": int(sum(fs.steps for fs in history)),
                 "unconverged_steps": int(sum(fs.unconverged_steps for fs in history)),
-                "unconverged_frames": [fs.frame for fs in history if fs.unconverged_steps]}
+                "unconverged_frames": [fs.frame for fs in bad], "worst": worst}
 
     def _time(self):
         """Simulated time of the current state (s): the integrator's clock, or frame / fps (static)."""
