@@ -55,8 +55,9 @@ in without the simulator knowing what it is; PolyFEM's ``init_lagging`` / ``upda
    iteration, and keep ``stiffness_state()`` / ``restore_stiffness(state)`` for a failed step.
 5. ``uses_lagging()`` / ``update_lagging(x) -> (change, scale)``: forms that lag a quantity take it
    again from an iterate near the solution (after an accepted iteration whose full Newton step
-   brought the gradient below ``LAG_BELOW`` of the start), at most ``friction_iterations`` times
-   per solve and while the largest ``change`` exceeds ``friction_tol`` x the largest ``scale``
+   brought the gradient below the form's ``lag_below`` of the start: ``LAG_BELOW`` unless the form
+   says otherwise), at most ``friction_iterations`` times per solve and form, and while its
+   ``change`` exceeds ``friction_tol`` x its ``scale``
    (:meth:`IncrementalPotential.set_lag_updates`; :func:`lagged_change` measures two arrays);
    the solve then goes on to its tolerance with them.
 6. ``static_error()``: None when the form may join a quasi-static solve (x = y, s = 1; its
@@ -207,6 +208,10 @@ class Form:
     def check_start(self, x, ctx: StepContext):
         """Raise :class:`InfeasibleStart` when the positions ``x`` the step starts from are outside
         the form's domain (called only when a form bounds the step)."""
+
+    #: the form's lagged quantities are taken again only from an iterate whose relative gradient is at
+    #: most this (and that a full Newton step reached); default ``LAG_BELOW``
+    lag_below = LAG_BELOW
 
     def uses_lagging(self) -> bool:
         """Whether the form lags a quantity that :meth:`update_lagging` can take again."""
@@ -710,7 +715,8 @@ class IncrementalPotential:
         forms that lag (``uses_lagging()``, ``update_lagging(x) -> (change, scale)``, None when they
         lag nothing), while the
         change is above ``tol`` x scale (:attr:`lag_updates` counts them)."""
-        self._lag_left, self._lag_tol, self.lag_updates = int(count), float(tol), 0
+        self._lag_count, self._lag_tol, self.lag_updates = int(count), float(tol), 0
+        self._lag_left = {}  # per form: updates it may still make in this solve
 
     def after_iteration(self, y, alpha=1.0, residual=0.0) -> bool:
         """After an accepted Newton iteration of step length alpha (``newton_solve``'s hook): the
@@ -720,27 +726,27 @@ class IncrementalPotential:
         forms = [f for f in self.adaptive_forms() if hasattr(f, "after_iteration")]
         # lag again only from an iterate the full Newton step reached (the quadratic model held there:
         # near the solution); a shortened step (the collision bound, the line search) may be far off
-        lagging = ([f for f in self.forms if f.uses_lagging()]
-                   if getattr(self, "_lag_left", 0) > 0 and alpha >= 1.0 and residual <= LAG_BELOW else [])
+        left = getattr(self, "_lag_left", {})
+        lagging = ([f for f in self.forms if f.uses_lagging() and residual <= f.lag_below
+                    and left.setdefault(id(f), self._lag_count) > 0]
+                   if getattr(self, "_lag_count", 0) > 0 and alpha >= 1.0 else [])
         if not forms and not lagging:  # nothing adapts (a fixed barrier stiffness) or lags: no work
             return False
         x = self._x_of(y)
         changed = False
         for f in forms:
             changed = f.after_iteration(x, alpha) or changed
-        if lagging:
-            self._lag_left -= 1
-            change, scale, updated = 0.0, 0.0, False
-            for f in lagging:
-                r = f.update_lagging(x)
-                if r is not None:
-                    updated = True
-                    change, scale = max(change, r[0]), max(scale, r[1])
-            if updated:
-                changed = True
-                self.lag_updates += 1
-                if change <= self._lag_tol * scale:  # consistent: no further updates in this solve
-                    self._lag_left = 0
+        updated = False
+        for f in lagging:
+            left[id(f)] -= 1
+            r = f.update_lagging(x)
+            if r is not None:
+                updated = True
+                if r[0] <= self._lag_tol * r[1]:  # consistent: no further updates of this form in this solve
+                    left[id(f)] = 0
+        if updated:
+            changed = True
+            self.lag_updates += 1
         return changed
 
     def bounds_step(self) -> bool:
