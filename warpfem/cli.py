@@ -351,6 +351,9 @@ def _cmd_compare(args) -> int:
         return EXIT_INVALID
     print(format_comparison(result), flush=True)
     if args.json is not None:
+        import os
+
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         with open(args.json, "w") as f:
             json.dump(result, f, indent=2)
             f.write("\n")
