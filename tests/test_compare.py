@@ -169,7 +169,7 @@ def test_cli_prints_and_writes_json(tmp_path, capsys):
     lines = text.strip().splitlines()
     assert lines[0].startswith("A: ") and lines[1].startswith("B: ") and lines[2].startswith("times: 8 compared")
     assert any(ln.startswith("/Root/surface: 12 points") for ln in lines)
-    assert f"(frame {SPIKE_FRAME}), point {SPIKE_POINT}" in text and "RMS over time: " in text
+    assert f"(frame {SPIKE_FRAME} of A), point {SPIKE_POINT}" in text and "RMS over time: " in text
     assert "not compared: /Root/collider_floor: a collider; name it with --prim" in text
     assert lines[-1].startswith("verdict: small: ")
     saved = json.loads(out.read_text())

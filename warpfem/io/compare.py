@@ -294,21 +294,25 @@ def compare_runs(a, b, prim=None) -> dict:
 
     Returns
     -------
-    dict with ``a`` and ``b`` (path, kind, fps, frames, first/last time of the first compared item),
-    ``items``: one dict per compared prim / item with ``name``, ``points``, ``frames`` (compared),
-    ``bbox_diagonal`` (A at its first frame, m), ``rms``, ``max`` (m), ``rms_relative``,
-    ``max_relative`` (over the diagonal), ``max_time`` (s), ``max_frame`` (frame number in the run
-    whose times are compared), ``max_point`` (point index; the first frame, then the lowest index,
-    where the maximum occurs), ``series`` (5 evenly spaced
-    ``{time, frame, rms}``), ``times`` / ``frame_labels`` / ``rms_per_frame`` (every compared frame)
-    and ``matching`` (``sampled_at``: "A" or "B", whose times are used; ``interpolated``: the other;
-    ``interpolated_frames``: at how many of them it was interpolated linearly); ``skipped``:
-    prims of one file only and colliders not compared; ``verdict``: one line.
+    dict
+        ``a`` and ``b``: path, kind, fps, frames, first / last time (of the first compared item).
+        ``items``: one dict per compared prim / item with ``name``, ``points``, ``frames``
+        (compared), ``bbox_diagonal`` (A at its first frame, m), ``rms`` and ``max`` (m),
+        ``rms_relative`` and ``max_relative`` (over the diagonal), ``max_time`` (s), ``max_frame``
+        (frame number in the run whose times are compared), ``max_point`` (point index; the first
+        frame, then the lowest index, where the maximum occurs), ``series`` (5 evenly spaced
+        ``{time, frame, rms}``), ``times`` / ``frame_labels`` / ``rms_per_frame`` (every compared
+        frame) and ``matching`` (``sampled_at``: "A" or "B", whose times are used;
+        ``interpolated``: the other; ``interpolated_frames``: at how many of those times it was
+        interpolated linearly). ``skipped``: prims of one file only, and colliders not compared.
+        ``verdict``: one line (identical, negligible under 0.01 % of the diagonal, small under
+        1 %, else large).
 
     Raises
     ------
-    CompareError (a ValueError): a missing file, an unknown format, files of different kinds, a
-    named prim not in both, different point counts, no common time.
+    CompareError
+        (a ValueError) a missing file, an unknown format, files of different kinds, a named prim
+        not in both, different point counts, no common time.
     """
     a, b = os.fspath(a), os.fspath(b)
     ra, rb = _load(a), _load(b)
@@ -368,7 +372,7 @@ def format_comparison(result) -> str:
         lines.append(f"  RMS  {r['rms']:.3e} m  ({_pct(r['rms_relative'])} of the diagonal)")
         if r["max_time"] is not None:
             lines.append(f"  max  {r['max']:.3e} m  ({_pct(r['max_relative'])}) at t = {r['max_time']:.4g} s "
-                         f"(frame {r['max_frame']}), point {r['max_point']}")
+                         f"(frame {r['max_frame']} of {r['matching']['sampled_at']}), point {r['max_point']}")
         lines.append("  RMS over time: " + ", ".join(f"t = {s['time']:.4g} s: {s['rms']:.2e} m" for s in r["series"]))
     for s in result["skipped"]:
         lines.append(f"not compared: {s['name']}: {s['why'].replace('with prim', 'with --prim')}")
