@@ -59,7 +59,7 @@ def write_usd(path, traj, fps=FPS, collider_shift=0.0, clip_frames=3):
     return str(path)
 
 
-def expected(xa_frames, xb_frames, times):
+def expected(xa_frames, xb_frames):
     """The numbers computed directly: (rms, max, frame of max, point of max, diagonal, per-frame rms)."""
     d = np.stack([np.linalg.norm(np.asarray(b, np.float64) - np.asarray(a, np.float64), axis=1)
                   for a, b in zip(xa_frames, xb_frames)])
@@ -121,7 +121,7 @@ def test_usd_with_clips_colliders_excluded_unless_named(tmp_path):
     # USD points are float32: the expected numbers from the float32 values the files hold
     xa = [x.astype(np.float32) for _, x in ta]
     xb = [x.astype(np.float32) for _, x in tb]
-    rms, mx, k, p, diag, per_frame = expected(xa, xb, None)
+    rms, mx, k, p, diag, per_frame = expected(xa, xb)
     assert abs(it["rms"] - rms) < 1e-9 and abs(it["max"] - mx) < 1e-9
     assert abs(it["rms_relative"] - rms / diag) < 1e-9 and abs(it["max_relative"] - mx / diag) < 1e-9
     assert abs(it["bbox_diagonal"] - diag) < 1e-9
