@@ -1,4 +1,5 @@
-"""The ``warpfem`` command line: ``warpfem run SCENE``, ``warpfem describe SCENE``, ``--version``.
+"""The ``warpfem`` command line: ``warpfem run SCENE``, ``warpfem describe SCENE``, ``warpfem compare A B``,
+``--version``.
 
 The subcommands are listed in one table, :data:`COMMANDS` (name -> ``"module:function"``). Each
 function is ``register(subparsers)``: it adds its parser and must ``set_defaults(func=handler)``,
@@ -332,6 +333,47 @@ def _register_run(subparsers):
     p.set_defaults(func=_cmd_run)
 
 
+# ----------------------------------------------------------------------------- compare
+def _cmd_compare(args) -> int:
+    import json
+
+    from warpfem.io.compare import CompareError, compare_runs, format_comparison
+
+    if args.json is not None:
+        from warpfem.io.outputs import OutputPathError, check_output_paths
+
+        try:
+            check_output_paths({"--json": args.json})
+        except OutputPathError as e:
+            error(str(e))
+            return EXIT_INVALID
+    try:
+        result = compare_runs(args.a, args.b, prim=args.prim or None)
+    except CompareError as e:
+        error(str(e))
+        return EXIT_INVALID
+    print(format_comparison(result), flush=True)
+    if args.json is not None:
+        import os
+
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=2)
+            f.write("\n")
+    return EXIT_OK
+
+
+def _register_compare(subparsers):
+    p = subparsers.add_parser("compare", help="how far apart two runs are: RMS and max point distance over time")
+    p.add_argument("a", metavar="A", help="reference run: a states .npz or a USD file (.usda/.usd/.usdc) written by run")
+    p.add_argument("b", metavar="B", help="the other run, of the same kind as A")
+    p.add_argument("--prim", action="append", default=None, metavar="PATH",
+                   help="compare only this prim (USD path or name; states: positions or a body name); repeatable; "
+                        "default: every animated prim both have, colliders excluded")
+    p.add_argument("--json", default=None, metavar="OUT", help="also write the numbers to this JSON file")
+    p.set_defaults(func=_cmd_compare)
+
+
 # The command table: subcommand name -> "module:register function", in --help order.
 COMMANDS = {
     "run": "warpfem.cli:_register_run",
@@ -340,6 +382,7 @@ COMMANDS = {
     "tradeoff": "warpfem.tradeoff.cli:register",
     "tune": "warpfem.tradeoff.cli:register_tune",
     "fit": "warpfem.diff.cli:register",
+    "compare": "warpfem.cli:_register_compare",
 }
 
 # Names kept for modules written against the earlier API (subcommands registered on import).
