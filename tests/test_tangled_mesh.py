@@ -194,7 +194,7 @@ def test_tangled_file_is_refused_with_its_name(tmp_path, suffix):
     assert m.total_volume() == pytest.approx(1.0)
 
 
-def test_tangled_scene_mesh_is_refused(tmp_path):
+def test_tangled_scene_mesh_is_refused(tmp_path, capsys):
     import meshio
 
     from warpfem.scenes import SceneError, load_scene
@@ -222,3 +222,9 @@ def test_tangled_scene_mesh_is_refused(tmp_path):
     msg = str(e.value)
     assert msg.startswith(f"{scene}: [mesh]: {tmp_path / 'tangled.mesh'}: tangled mesh: 6 tets overlap"), msg
     assert named_elements(msg) == inverted.tolist() and f"around vertex {VERTEX}" in msg
+    # the command line: one error line, exit code 2
+    from warpfem.cli import main
+
+    assert main(["describe", str(scene)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "tangled mesh: 6 tets overlap" in err, err
