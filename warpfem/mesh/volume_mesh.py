@@ -119,8 +119,8 @@ def _tangled_elements(m, e1, e2, bad, sign):
     named = []
     for p in np.unique(part[np.concatenate([e1[bad], e2[bad]])]):
         members = np.flatnonzero(part == p)
-        ids, size = np.unique(patch[members], return_counts=True)
-        pos = np.array([(sign[members][patch[members] == i] > 0).sum() for i in ids])
+        ids, local, size = np.unique(patch[members], return_inverse=True, return_counts=True)
+        pos = np.bincount(local.ravel(), weights=sign[members] > 0, minlength=len(ids))
         keep = ids[np.lexsort((-pos, -size))[0]]
         named.append(members[patch[members] != keep])
     return np.concatenate(named)
