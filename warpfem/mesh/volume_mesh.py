@@ -65,6 +65,92 @@ def boundary_faces(mesh_or_tets):
     return np.ascontiguousarray(faces[once])
 
 
+def _shared_faces(element, t):
+    """The corner faces shared between elements: (e1, e2, same_order, nodes, crowded) with e1, e2 (p,)
+    the two elements of each face shared by exactly two, ``nodes`` (p, c) its sorted corners (-1
+    padded), ``same_order`` (p,) True where both list the
+    face's corners in the same cyclic order (each element lists its faces outward for det J > 0),
+    and ``crowded`` a list of the element ids of each face shared by more than two. None when the
+    element type has no face table."""
+    try:
+        tables = [np.asarray(c, dtype=np.int64) for c, _ in element.face_triangles()]
+    except NotImplementedError:
+        return None
+    m = t.shape[0]
+    width = max(len(c) for c in tables)
+    keys, succ, elem = [], [], []
+    rows = np.arange(m)[:, None]
+    for c in tables:
+        F = t[:, c]  # (m, k) corners in the element's cyclic order
+        k = len(c)
+        r = F.argmin(axis=1)
+        rolled = F[rows, (r[:, None] + np.arange(k)[None, :]) % k]  # smallest corner first
+        keys.append(np.pad(np.sort(F, axis=1), ((0, 0), (0, width - k)), constant_values=-1))
+        succ.append(rolled[:, 1])  # the corner after the smallest: tells the two cyclic orders apart
+        elem.append(np.arange(m))
+    keys = np.concatenate(keys)
+    succ = np.concatenate(succ)
+    elem = np.concatenate(elem)
+    order = np.lexsort(keys.T[::-1])  # rows sorted, equal faces adjacent
+    ks = keys[order]
+    starts = np.flatnonzero(np.concatenate([[True], (ks[1:] != ks[:-1]).any(axis=1)]))
+    counts = np.diff(np.append(starts, len(ks)))
+    uniq = ks[starts]
+    two = np.flatnonzero(counts == 2)
+    a, b = order[starts[two]], order[starts[two] + 1]
+    crowded = [sorted(set(elem[order[starts[g]:starts[g] + counts[g]]].tolist()))
+               for g in np.flatnonzero(counts > 2)]
+    return elem[a], elem[b], succ[a] == succ[b], uniq[two], crowded
+
+
+def _tangled_elements(m, e1, e2, bad, sign):
+    """The elements to name for overlapping faces: the shared faces that are fine join elements into
+    consistent patches; in each connected part with an overlap, every patch but the largest (on a
+    tie: the one with more positive elements) is named (a pushed vertex: its inverted tets)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    def comps(sel):
+        g = coo_matrix((np.ones(int(sel.sum())), (e1[sel], e2[sel])), shape=(m, m))
+        return connected_components(g, directed=False)[1]
+
+    part = comps(np.ones_like(bad))
+    patch = comps(~bad)
+    named = []
+    for p in np.unique(part[np.concatenate([e1[bad], e2[bad]])]):
+        members = np.flatnonzero(part == p)
+        ids, local, size = np.unique(patch[members], return_inverse=True, return_counts=True)
+        pos = np.bincount(local.ravel(), weights=sign[members] > 0, minlength=len(ids))
+        keep = ids[np.lexsort((-pos, -size))[0]]
+        named.append(members[patch[members] != keep])
+    return np.concatenate(named)
+
+
+def _tangle_vertex(element, x, t, named, e1, e2, nodes, limit=10000):
+    """The vertex to name for a tangle: a corner of an element at an overlapping face that lies
+    inside the element across that face (a vertex pushed through a face lies in the element beyond
+    it), the one found most often; else (and to break ties) the corner most common to the named
+    elements."""
+    count = np.bincount(t[named][:, element.corner_nodes].ravel(), minlength=len(x)).astype(np.float64)
+    hits = np.zeros(len(x))
+    sub = element.corner_tets
+    for a, b in ((e1[:limit], e2[:limit]), (e2[:limit], e1[:limit])):
+        corners = t[a][:, element.corner_nodes]  # (p, c): the corners of a off the face are its apexes
+        apex = ~(corners[:, :, None] == nodes[:limit][:, None, :]).any(axis=2)
+        rows, cols = np.nonzero(apex)
+        p = corners[rows, cols]  # apex vertices, element b each
+        T = x[t[b[rows]][:, sub]]  # (r, s, 4, 3) the sub-tets of b
+        A = np.moveaxis(T[:, :, 1:] - T[:, :, :1], 2, 3)  # (r, s, 3, 3) columns = edges
+        try:
+            lam = np.linalg.solve(A, (x[p][:, None, :] - T[:, :, 0])[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # a flat corner sub-tet (a warped hex): count only
+            continue
+        inside = ((lam > 0).all(axis=2) & (lam.sum(axis=2) < 1)).any(axis=1)
+        np.add.at(hits, p[inside], 1.0)
+    score = hits * (count.max() + 1) + count
+    return int(score.argmax())
+
+
 class VolumeMesh:
     """A validated volume mesh of one element type.
 
@@ -173,6 +259,9 @@ class VolumeMesh:
             raise MeshError(self._msg(
                 f"{tangled.size} {noun}s with det J changing sign inside (tangled rest shape or wrong node "
                 f"order): {noun}s {_fmt_list(tangled)}"))
+        # Elements overlapping their neighbours (a tangle: a vertex pushed through a face of its star)
+        # are refused; flipped elements that do not overlap anything are reoriented below.
+        self._check_overlaps(x, t, np.where((vol > 0).all(axis=1), 1, -1), np.flatnonzero(vmap >= 0))
         neg = np.flatnonzero((vol < 0).all(axis=1))
         self.reoriented_tets = neg
         if neg.size:
@@ -201,6 +290,50 @@ class VolumeMesh:
         self._boundary = None
 
     # ------------------------------------------------------------------ helpers
+    def _check_overlaps(self, x, t, sign, input_ids):
+        """Raise ``MeshError`` when elements sharing a face lie on the same side of it.
+
+        ``sign`` (m,) is each element's orientation (+1: det J > 0 at every point, -1: < 0);
+        ``input_ids`` the input index of each vertex (for the message). Across a
+        face shared by two elements, the two lie on opposite sides of it exactly when they list the
+        face's corners in opposite cyclic orders and have the same sign, or in the same order and
+        opposite signs (for a Tet4 this is the sign test of the two opposite vertices against the
+        face; curved and hex elements are judged by their det J sign and their corner faces). A
+        mesh, or a connected part of it, written with the other winding passes (every sign and every
+        order flipped), and so does any element stored with its own nodes mirrored. A face shared by
+        more than two elements is an overlap as well.
+        """
+        faces = _shared_faces(self.element, t)
+        if faces is None:
+            return
+        e1, e2, same_order, nodes, crowded = faces
+        bad = (sign[e1] == sign[e2]) == same_order
+        if not bad.any() and not crowded:
+            return
+        noun = self.element.noun
+        m = t.shape[0]
+        named = set()
+        if bad.any():
+            named.update(_tangled_elements(m, e1, e2, bad, sign).tolist())
+        for ids in crowded:
+            named.update(ids)
+        named = np.array(sorted(named), dtype=np.int64)
+        v = _tangle_vertex(self.element, x, t, named, e1[bad], e2[bad], nodes[bad])
+        where = ", ".join(f"{c:.6g}" for c in x[v])
+        v_in = int(input_ids[v])
+        parts = []
+        if bad.any():
+            parts.append(f"{int(bad.sum())} shared face(s) with both {noun}s on the same side")
+        if crowded:
+            parts.append(f"{len(crowded)} face(s) shared by more than two {noun}s (first: {noun}s "
+                         f"{_fmt_list(crowded[0])})")
+        raise MeshError(self._msg(
+            f"tangled mesh: {named.size} {noun}s overlap their neighbours ({'; '.join(parts)}): "
+            f"{noun}s {_fmt_list(named)}, around vertex {v_in} at ({where}); "
+            f"a vertex pushed through a face of its star, or elements that cross each other. "
+            f"Only elements that overlap nothing (a mesh or a connected part of it written with the "
+            f"other winding) are reoriented; fix the vertex positions"))
+
     def _msg(self, text):
         return f"{self.name}: {text}" if self.name else text
 
@@ -310,7 +443,7 @@ class VolumeMesh:
             width = max(len(c) for c, _ in tables)  # faces may differ in corner count (a prism: 3 and 4)
             keys = np.stack([np.pad(np.sort(e[:, c], axis=1), ((0, 0), (0, width - len(c))), constant_values=-1)
                              for c, _ in tables], axis=1).reshape(len(e) * nf, -1)
-            _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+            uniq, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
             once = np.flatnonzero(counts[inv.ravel()] == 1)  # (element * nf + face), ascending
             tris, order = [], []
             per_face = max(len(tri) for _, tri in tables)
