@@ -173,17 +173,19 @@ def preview_figure(snapshots, faces, *, colliders=(), up_axis: str = "Y", title:
         for axis, set_label, label in zip((ax.xaxis, ax.yaxis, ax.zaxis), (ax.set_xlabel, ax.set_ylabel, ax.set_zlabel),
                                           labels):
             axis.set_major_locator(MaxNLocator(nbins=3))
-            axis.set_tick_params(labelsize=6, pad=0)
-            set_label(label, fontsize=6, labelpad=-6)
+            axis.set_tick_params(labelsize=7, pad=1)
+            set_label(label, fontsize=7, labelpad=-2)
             axis.set_pane_color((0.97, 0.97, 0.97, 1.0))
+            # a space ahead of each value: the minus sign is not hidden under its tick mark
+            axis.set_major_formatter(FuncFormatter(lambda v, _: "  " + f"{v + 0.0:g}".replace("-", "\u2212")))
         if y_up:  # matplotlib's y is the scene's -z: ticks in scene z
-            ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{-v + 0.0:g}"))
+            ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: "  " + f"{-v + 0.0:g}".replace("-", "\u2212")))
         ax.grid(False)
-        ax.text2D(0.5, 0.96, f"frame {frame}, t = {t:.3g} s", transform=ax.transAxes, ha="center", fontsize=9)
+        ax.text2D(0.5, 1.0, f"frame {frame}, t = {t:.3g} s", transform=ax.transAxes, ha="center", va="bottom", fontsize=9)
         panels.append({"frame": int(frame), "time": float(t), "axes": ax, "body": body, "colliders": drawn})
     if title:
-        fig.suptitle(title, fontsize=10)
-    fig.subplots_adjust(left=0.0, right=1.0, bottom=0.0, top=0.92 if title else 1.0, wspace=0.0)
+        fig.suptitle(title, fontsize=10, y=0.995)
+    fig.subplots_adjust(left=0.0, right=0.98, bottom=0.06, top=0.86 if title else 0.92, wspace=0.0)
     return fig, {"limits": limits, "panels": panels}
 
 
