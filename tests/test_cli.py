@@ -216,6 +216,72 @@ def test_preview_png_and_version_in_stats(tmp_path, capsys):
     assert len(log) == 3 and all(r["warpfem_version"] == warpfem.__version__ for r in log)
 
 
+PREVIEW_COLLIDERS = """
+[[collider]]
+type = "plane"
+name = "floor"
+point = [0.0, -0.4, 0.0]
+[[collider]]
+type = "sphere"
+name = "ball"
+center = [0.5, 0.7, 0.1]
+radius = 0.1
+translation = [0.6, 0.0, 0.0]
+ramp_time = 0.15
+"""
+
+
+def test_preview_draws_colliders_at_one_scale(tmp_path, monkeypatch):
+    """A beam under a floor-plane and a moving sphere (both out of reach), previewed at frames 0..3: every
+    panel has the same limits, enclosing the body and both colliders, and the same view; each panel
+    holds the body and one artist per collider (drawn behind it); the sphere drawn in each panel is
+    its t = 0 mesh at its pose of that frame (it moves), the plane a square in y = -0.4."""
+    import warpfem.io.preview as preview
+    from warpfem.contact import Sphere
+
+    made = []
+    real = preview.preview_figure
+
+    def spy(*a, **kw):
+        made.append((real(*a, **kw), kw))
+        return made[-1][0]
+
+    monkeypatch.setattr(preview, "preview_figure", spy)
+    scene = write_scene(tmp_path, cli_beam_toml(frames=3) + PREVIEW_COLLIDERS)
+    png = tmp_path / "c.png"
+    assert main(["run", scene, "--frames", "3", "--out", str(tmp_path / "c.usda"), "--preview", str(png),
+                 "--quiet"]) == 0
+    assert png.stat().st_size > 5_000
+    (fig, drawn), kw = made[0]
+    panels = drawn["panels"]
+    assert [p["frame"] for p in panels] == [0, 1, 2, 3]
+    limits = [(p["axes"].get_xlim(), p["axes"].get_ylim(), p["axes"].get_zlim()) for p in panels]
+    assert all(np.allclose(lim, drawn["limits"]) for lim in limits)  # one scale for every frame
+    assert all((p["axes"].elev, p["axes"].azim) == (20.0, -60.0) for p in panels)
+    assert len({tuple(p["axes"].get_box_aspect()) for p in panels}) == 1
+    (x0, x1), (y0, y1), (z0, z1) = drawn["limits"]  # matplotlib's (x, y, z) = the scene's (x, -z, y)
+    assert z0 <= -0.4 and z1 >= 0.8 and x1 >= 0.5 + 0.6 + 0.1  # the floor, the ball's top and its last x
+    ball = next(c for c in kw["colliders"] if isinstance(c, Sphere))
+    V0, _ = ball.surface(1.0)
+    centres = []
+    for p in panels:
+        ax = p["axes"]
+        assert set(p["colliders"]) == {"floor", "ball"}
+        arts = [a for a in ax.collections if (a.get_gid() or "").startswith("collider:")]
+        assert len(arts) == 2 and p["body"] in ax.collections
+        assert all(a.get_zorder() < p["body"].get_zorder() for a in arts) and not ax.computed_zorder
+        art, verts = p["colliders"]["ball"]
+        assert art in arts
+        R, t = ball.pose(p["time"])
+        np.testing.assert_allclose(verts, V0 @ R.T + t, atol=1e-12)  # its pose of that frame
+        centres.append(verts.mean(axis=0))
+        floor = p["colliders"]["floor"][1]
+        np.testing.assert_allclose(floor[:, 1], -0.4, atol=1e-12)
+    np.testing.assert_allclose([c[0] - centres[0][0] for c in centres], [0.6 * min(p["time"] / 0.15, 1.0) for p in panels],
+                               atol=1e-9)
+    assert centres[-1][0] > centres[0][0] + 0.5  # the sphere moved
+
+
 def test_preview_needs_png_and_matplotlib(tmp_path, capsys, monkeypatch):
     scene = write_scene(tmp_path, SCENE.format(states=tmp_path / "q.npz"))
     assert main(["run", scene, "--preview", str(tmp_path / "q.jpg"), "--quiet"]) == 2

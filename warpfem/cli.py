@@ -291,8 +291,9 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
     if recorder is not None:
         from warpfem.io.preview import render_preview
 
+        contact = getattr(run.sim, "contact", None)
         render_preview(args.preview, recorder.snapshots, run.surface_faces, up_axis=scene.spec.output["up_axis"],
-                       title=scene.name)
+                       title=scene.name, colliders=list(getattr(contact, "colliders", ())))
     if not args.quiet:
         outs = [p for p in (usd, stats, scene.spec.output["states"], scene.spec.output.get("vtu"),
                             getattr(args, "preview", None)) if p]
@@ -324,7 +325,8 @@ def _register_run(subparsers):
     p.add_argument("--frames", type=int, default=None, help="number of frames (default: the scene's [output].frames)")
     p.add_argument("--out", default=None, help="USD file (.usda/.usd/.usdc); default: the scene's [output].usd")
     p.add_argument("--preview", default=None, metavar="PNG",
-                   help="after the run, draw 4 evenly spaced frames of the render surface to this PNG (needs the plot extra)")
+                   help="after the run, draw 4 evenly spaced frames of the render surface and the colliders to this PNG, "
+                        "one scale for all frames (needs the plot extra)")
     p.add_argument("--quiet", action="store_true", help="no progress lines (a bar with ETA on a terminal, else a line per frame)")
     p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages (and debug logging)")
     p.add_argument("--require-convergence", action="store_true",

@@ -56,9 +56,16 @@ def set_scene_contact(scene, sim, table=None):
         scene.fail("[contact]", str(e))
 
 
+def posed_points(collider, vertices, t):
+    """``vertices`` (k, 3) of ``collider`` in its t = 0 frame, moved by its pose at time ``t`` (s)."""
+    R, p = collider.pose(t)
+    return np.asarray(vertices, dtype=np.float64) @ R.T + p
+
+
 def collider_prims(sim, extent):
     """[(prim name, faces, points_at() -> (k, 3))] for the simulator's colliders (``extent``: half
-    size of the drawn floor square)."""
+    size of the drawn floor square); the points are each collider's :meth:`~Collider.surface` at its
+    pose at the simulator's time."""
     contact = getattr(sim, "contact", None)
     if contact is None:
         return []
@@ -67,8 +74,7 @@ def collider_prims(sim, extent):
         V, F = c.surface(extent)
 
         def points(c=c, V=V):
-            R, p = c.pose(sim.time)
-            return V @ R.T + p
+            return posed_points(c, V, sim.time)
 
         out.append((f"collider_{c.name}", np.asarray(F), points))
     return out
