@@ -88,8 +88,8 @@ class Simulator(SimulatorBase):
         friction_iterations, friction_tol: with friction in contact (colliders or ``set_contact``),
             take the normal forces and normals again from the step's iterate, inside its Newton
             solve, at most this many times: after an iteration whose full Newton step brought the
-            gradient below 1e-2 of its start for surface pairs (``forms.LAG_BELOW``), after the first
-            full Newton step for colliders (``ContactForm.lag_below``), while they change by more than
+            gradient below 1e-2 of its start (``forms.LAG_BELOW``, a form's ``lag_below``), while they
+            change by more than
             ``friction_tol`` of the largest; the solve then goes on to the tolerance with them (0:
             lagged once from the step start; steps recorded for gradients lag once). Any form that
             lags a quantity (``Form.uses_lagging`` / ``update_lagging``) is updated the same way.

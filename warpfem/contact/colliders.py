@@ -277,6 +277,11 @@ class Collider:
     def center(self) -> np.ndarray:
         raise NotImplementedError
 
+    def posed(self, vertices, t):
+        """``vertices`` (k, 3) in the collider's t = 0 frame, moved by its pose at time ``t`` (s)."""
+        R, p = self.pose(t)
+        return np.asarray(vertices, dtype=np.float64) @ R.T + p
+
     def pose(self, t: float):
         """(R, p): the collider maps its t = 0 point X to R X + p at time t."""
         if not self.moving:

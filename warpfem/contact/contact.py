@@ -384,10 +384,6 @@ class ContactForm(LaggedFrictionForm):
     and reads the line-search bound from :meth:`max_step`."""
 
     name = "contact"
-    # colliders lag again from the first iterate a full Newton step reached (measured: the box drop's
-    # contact frames 12.8 Newton iterations against 14.7 from 1e-2, the bunny impact's steps 428
-    # against 534; surface pairs keep LAG_BELOW: from the first iterate the stack's impact took 100)
-    lag_below = 1.0
     order = 10  # after the elastic form, before the load
 
     def enabled(self) -> bool:

@@ -58,8 +58,7 @@ def set_scene_contact(scene, sim, table=None):
 
 def posed_points(collider, vertices, t):
     """``vertices`` (k, 3) of ``collider`` in its t = 0 frame, moved by its pose at time ``t`` (s)."""
-    R, p = collider.pose(t)
-    return np.asarray(vertices, dtype=np.float64) @ R.T + p
+    return collider.posed(vertices, t)
 
 
 def collider_prims(sim, extent):

@@ -73,9 +73,6 @@ def _collider_meshes(colliders, snapshots, body_lo, body_hi):
     is a square of half size 0.6 x the body's largest extent over all frames (the USD's is 2 x the
     rest size), slid within its plane so that its centre is the point of the plane nearest the
     centre of the body's box over all frames."""
-    from warpfem.contact.colliders import Plane
-    from warpfem.contact.scene import posed_points
-
     centre = 0.5 * (body_lo + body_hi)
     extent = 0.6 * float(np.max(body_hi - body_lo)) + 1e-9
     out = []
@@ -85,11 +82,11 @@ def _collider_meshes(colliders, snapshots, body_lo, body_hi):
         per_frame = []
         for _, t, _ in snapshots:
             W = V
-            if isinstance(c, Plane):  # slide the square (its own t = 0 frame) under the body's centre
+            if getattr(c, "type_name", "") == "plane":  # slide the square (its own t = 0 frame) under the body's centre
                 R, p = c.pose(t)
                 local = R.T @ (centre - p) - c.point
                 W = V + local - np.dot(local, c.normal) * c.normal
-            per_frame.append(posed_points(c, W, t))
+            per_frame.append(c.posed(W, t))  # duck-typed: io does not import contact
         out.append((c.name, np.asarray(F, dtype=np.int64), per_frame))
     return out
 
