@@ -105,6 +105,19 @@ def test_bad_device_subprocess_exit_code(tmp_path):
     assert r.stderr.strip().count("\n") == 0, r.stderr  # Warp's "no CUDA driver" note is not shown
 
 
+def test_cuda_without_a_gpu_is_one_clean_line(tmp_path):
+    """``--device cuda`` where no CUDA device exists: one line naming the device and why, and not
+    Warp's native "no CUDA driver" note before it (on a machine with a GPU: the run starts)."""
+    if cuda_count() > 0:
+        pytest.skip("a CUDA device is present")
+    r = subprocess.run([sys.executable, "-m", "warpfem", "run", str(tmp_path / "x.toml"), "--device", "cuda"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and r.stdout == ""
+    err = r.stderr.strip()
+    assert err.count("\n") == 0 and "Warp CUDA warning" not in err, err
+    assert err.startswith("warpfem: error: device 'cuda' is not available: no CUDA device here") and "available: cpu" in err
+
+
 # ----------------------------------------------------------------------------- version, python -m
 def test_python_m_warpfem_version_is_the_package_version():
     r = subprocess.run([sys.executable, "-m", "warpfem", "--version"], capture_output=True, text=True, cwd=ROOT,

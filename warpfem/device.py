@@ -9,7 +9,7 @@ and ``device="gpu"`` fails at once with that list instead of deep inside Warp.
 Quiet by default: importing warpfem calls :func:`configure_warp`, so Warp's start-up banner and its
 ``Module ... load`` lines are not printed (warnings still are), and :func:`init_warp` (run by
 :func:`get_device` when Warp is not initialised yet) drops the native library's note that no CUDA
-driver was found when the device is the CPU. ``WARPFEM_VERBOSE=1`` in the environment (or
+driver was found (a CUDA device asked for on a machine without one gets a one-line error instead). ``WARPFEM_VERBOSE=1`` in the environment (or
 ``configure_warp(verbose=True)`` before Warp initialises) shows them, as ``warpfem --verbose`` does.
 """
 
@@ -51,15 +51,16 @@ def warp_initialized() -> bool:
 
 def init_warp(device="cpu", verbose: bool | None = None) -> None:
     """Initialise Warp now (nothing when it already is). Unless ``verbose`` (default:
-    ``WARPFEM_VERBOSE``) or a CUDA device is asked for, the native library's note that no CUDA
-    driver was found (printed by C code straight to file descriptor 2, not through Warp's log
-    level) is dropped; anything else it prints is passed on to stderr."""
+    ``WARPFEM_VERBOSE``), the native library's note that no CUDA driver was found (printed by C
+    code straight to file descriptor 2, not through Warp's log level) is dropped, also when a CUDA
+    device is asked for: :func:`resolve_device` then says in one line that there is none (no
+    NVIDIA driver or GPU); anything else it prints is passed on to stderr."""
     import warp as wp
 
     if warp_initialized():
         return
     verbose = _env_verbose() if verbose is None else bool(verbose)
-    if verbose or str(device).strip().lower().startswith("cuda"):  # a CUDA device asked for: the note matters
+    if verbose:
         wp.init()
         return
     import tempfile
