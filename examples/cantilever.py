@@ -21,6 +21,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 
 from warpfem.device import init_warp  # noqa: E402
 from warpfem.io import UsdMeshWriter  # noqa: E402
+from warpfem.progress import COMPILING_NOTICE, CompileWatch  # noqa: E402
 from warpfem.scenes import load_scene  # noqa: E402
 
 SCENE = os.path.join(os.path.dirname(os.path.abspath(__file__)), "scenes", "cantilever.toml")
@@ -75,7 +76,9 @@ def main(argv=None):
             parser.error(str(e))
 
     init_warp(args.device or "cpu")  # quiet: no banner, no CUDA-driver note on a CPU (WARPFEM_VERBOSE=1 shows them)
-    with wp.ScopedDevice(args.device):
+    # a kernel-cache miss (the first run) is announced, as `warpfem run` does
+    watch = CompileWatch(on_start=lambda: print(COMPILING_NOTICE, flush=True))
+    with watch, wp.ScopedDevice(args.device):
         example = Example(stage_path=args.stage_path, num_frames=args.num_frames, precision=args.precision,
                           device=args.device, scene_path=args.scene)
         example.render()  # frame 0: rest state
@@ -89,8 +92,11 @@ def main(argv=None):
             example.close(complete=False, reason=f"{type(e).__name__}: {e}")
             raise
         example.close()
+    built = f"; kernels compiled in {watch.seconds:.1f} s (cached for later runs)" if watch.modules else ""
     if args.stage_path:
-        print(f"wrote {args.stage_path} ({args.num_frames + 1} frames at {example.run.fps:g} fps)")
+        print(f"wrote {args.stage_path} ({args.num_frames + 1} frames at {example.run.fps:g} fps){built}")
+    elif built:
+        print(built[2:])
 
 
 if __name__ == "__main__":
