@@ -6,7 +6,7 @@ a mask, or a reduced coordinate vector), given as a ``problem`` (``warpfem.solve
 for the full space, ``warpfem.reduced.simulator`` for subspaces) that also solves its Newton
 systems H d = -g (sparse on the device, or dense). The loop runs *while* the gradient norm is above
 the tolerance (converged: ||P g|| <= tol * ||P g_ref||, g_ref the gradient at the start of the solve
-or a given reference, e.g. the start of the time step a friction re-solve belongs to), and a step
+or a given reference, e.g. the start of the time step a continuing solve belongs to), and a step
 length a is accepted when E(y + a d) <= E(y) + c a d^T g (Nocedal & Wright, "Numerical
 Optimization", ch. 3, backtracking with the Armijo condition).
 """
@@ -39,8 +39,9 @@ class NewtonOptions:
     Attributes:
         tol: converged when ||P g|| <= tol * ||P g_ref|| (relative gradient norm), P the free-DOF
             mask and g_ref the gradient at the start of the solve, or the ``reference`` given to
-            :func:`newton_solve` (the simulator's friction re-solves pass the step's own start
-            gradient, so a whole step has one tolerance).
+            :func:`newton_solve` (a solve that continues a step passes the step's own start
+            gradient, so a whole step has one tolerance; friction's lag updates happen inside the
+            one solve and keep its reference).
         atol: absolute floor on ||P g|| (units of the potential's gradient): ||P g|| <= atol is
             converged too; also declares a step converged when its start is already at equilibrium.
         max_iters: cap on Newton iterations per solve.
@@ -110,7 +111,7 @@ class SolveStats:
     ``initial_gradient`` (the relative gradient), ``tolerance`` the ``tol`` it was tested against:
     a solve with ``residual <= tolerance`` is never reported as not converged.
     ``initial_gradient`` is the reference ||P g_ref||: the gradient norm at the start of the solve,
-    or the ``reference`` given to :func:`newton_solve` (for a time step with friction re-solves:
+    or the ``reference`` given to :func:`newton_solve` (for a solve that continues a time step:
     the gradient at the start of the step's first solve).
     """
 
@@ -131,12 +132,12 @@ class SolveStats:
     launches: int = 0  # kernel launches of the step (kernels.generic.COUNTERS, recorded PCG launches included)
     hessian_evaluations: int = 0  # Newton matrices evaluated (counted by the reduced simulator, which keeps its matrix)
     singular_solves: int = 0  # Newton systems a direct solve found singular or indefinite (shifted and/or deflated)
-    friction_iterations: int = 0  # extra solves of a step with friction lagged again from its end (Simulator)
+    friction_iterations: int = 0  # updates of friction's lagged normal forces inside the solve (Simulator)
     projected_retries: int = 0  # hessian_projection="on_demand": Newton systems solved again with the projected Hessian
     adaptations: int = 0  # Newton iterations after which the potential changed (an adaptive barrier stiffness doubled)
     history: list = field(default_factory=list)
 
-    #: the work counters a step made of several solves (load steps, friction re-solves) sums
+    #: the work counters a step made of several solves (load steps) sums
     COUNTS = ("newton_iterations", "cg_iterations", "line_search_steps", "linear_iterations", "host_syncs",
               "newton_syncs", "hessian_evaluations", "singular_solves", "projected_retries", "adaptations")
 
@@ -182,9 +183,9 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
 
     The solve is converged when ||P g|| <= ``opts.tol`` * ref (or <= ``opts.atol``), ref the
     gradient norm at ``y`` on entry, or ``reference`` when given (> 0): a solve that continues
-    another one (the simulator's friction re-solves, from an almost converged point of a slightly
-    changed potential) passes the first solve's ``initial_gradient``, so that both are held to the
-    same tolerance; a start already within it is converged without an iteration.
+    another one (from an almost converged point of a slightly changed potential) passes the first
+    solve's ``initial_gradient``, so that both are held to the same tolerance; a start already
+    within it is converged without an iteration.
     ``SolveStats.residual`` is ||P g|| / ref, ``SolveStats.initial_gradient`` is ref.
 
     ``problem`` provides (vectors are whatever it uses: device arrays, numpy arrays):
