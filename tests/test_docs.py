@@ -36,7 +36,8 @@ def _env():
 # ---------------------------------------------------------------------------------------- the site
 def test_docs_site_builds_strict_with_every_page(tmp_path):
     """`mkdocs build --strict` (broken links, anchors, docstring references fail it) and every
-    docs/*.md page is in the site: the navigation is generated, so a new page needs no config edit."""
+    docs/*.md page is in the site (mkdocs.yml's `nav` lists them in reading order; a page left out
+    of it fails the strict build)."""
     site = tmp_path / "site"
     r = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--quiet", "-f", str(ROOT / "mkdocs.yml"),
                         "-d", str(site)], capture_output=True, text=True, cwd=ROOT, timeout=120)
