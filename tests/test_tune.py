@@ -219,3 +219,132 @@ def test_stage_eta_weighs_the_runs_left(monkeypatch):
     assert lines[0] == "reference: 4 run(s)"
     assert lines[1].endswith("1/4: finest  elapsed 0:00:08  ETA 0:00:08")
     assert lines[2].endswith("2/4: next  elapsed 0:00:10  ETA 0:00:03")
+
+
+CUBE_OBJ = "\n".join(["v 0 0 0", "v 1 0 0", "v 1 1 0", "v 0 1 0", "v 0 0 1", "v 1 0 1", "v 1 1 1", "v 0 1 1",
+                      "f 1 3 2", "f 1 4 3", "f 5 6 7", "f 5 7 8", "f 1 2 6", "f 1 6 5", "f 2 3 7", "f 2 7 6",
+                      "f 3 4 8", "f 3 8 7", "f 4 1 5", "f 4 5 8"]) + "\n"
+
+
+def _cube_scene(folder):
+    """A tiny scene read from a surface file (tetrahedralised through the cache) with a relative
+    USD output: scenes/cube.toml under ``folder``."""
+    scenes = folder / "scenes"
+    scenes.mkdir(parents=True)
+    (scenes / "cube.obj").write_text(CUBE_OBJ)
+    (scenes / "cube.toml").write_text("""name = "cube"
+gravity = [0.0, -9.81, 0.0]
+[mesh]
+path = "cube.obj"
+max_edge_length = 0.5
+[material]
+model = "stable_neo_hookean"
+youngs_modulus = 2.0e5
+poisson_ratio = 0.3
+density = 1000.0
+[[fixed]]
+box_min = [-1.0, -1.0, -1.0]
+box_max = [0.1, 2.0, 2.0]
+[integrator]
+type = "backward_euler"
+tol = 1e-6
+cg_tol = 1e-4
+[output]
+fps = 24
+frames = 2
+usd = "out/cube.usda"
+""")
+    return scenes / "cube.toml"
+
+
+def test_cli_report_label_paths_and_outputs(tmp_path, monkeypatch, capsys):
+    """`warpfem tune` run from one folder on a scene in another: backward Euler is named
+    backward_euler (not after its Newton solver), the tuned scene's path is printed as typed, its
+    input paths still find the scene's mesh, and its [output] paths, relative to the folder it is
+    run from like the original's, write where the original would (run from the folder tune ran in)."""
+    from warpfem.cli import main
+    from warpfem.scenes import load_scene
+
+    monkeypatch.setenv("WARPFEM_CACHE_DIR", str(tmp_path / "cache"))
+    scene = _cube_scene(tmp_path)
+    (tmp_path / "space.toml").write_text('integrator = ["backward_euler"]\nelement = ["tet4"]\nsubsteps = [1, 2]\n')
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    monkeypatch.chdir(run_dir)
+    code = main(["tune", os.path.join("..", "scenes", "cube.toml"), "--max-error", "0.5", "--space",
+                 os.path.join("..", "space.toml"), "--no-truth", "--cost", "work", "--quiet",
+                 "--out", os.path.join("tuned", "cube.tuned.toml")])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    assert "newton" not in out and "sub=1 backward_euler tet4" in out
+    assert f"wrote {os.path.join('tuned', 'cube.tuned.toml')}\n" in out  # as typed, not <tmp>/...
+    tuned = run_dir / "tuned" / "cube.tuned.toml"
+    with open(tuned, "rb") as f:
+        doc = tomllib.load(f)
+    assert doc["integrator"]["type"] == "backward_euler"
+    # the mesh (an input: relative to the scene file) is the original's
+    assert os.path.realpath(tuned.parent / doc["mesh"]["path"]) == os.path.realpath(scene.parent / "cube.obj")
+    # the outputs (relative to the folder it is run from): the original's, unchanged
+    assert doc["output"]["usd"] == "out/cube.usda"
+    assert os.path.realpath(load_scene(str(tuned)).spec.output["usd"]) == os.path.realpath(
+        load_scene(str(scene)).spec.output["usd"])
+    assert main(["run", os.path.join("tuned", "cube.tuned.toml"), "--frames", "1", "--quiet"]) == 0
+    assert (run_dir / "out" / "cube.usda").is_file()  # where `warpfem run ../scenes/cube.toml` writes
+    assert not (tmp_path / "scenes" / "out").exists() and not (run_dir / "tuned" / "out").exists()
+
+
+def test_cache_hit_line_once_with_a_count(tmp_path, monkeypatch, caplog):
+    """Every run of a search reads the scene's tetrahedralised mesh: the cache-hit line is logged
+    once per search (the first meshes the surface, a second identical one finds it cached), with
+    the number of reads from the cache."""
+    import logging
+
+    import warpfem.mesh.tetrahedralization as tetra
+
+    monkeypatch.setenv("WARPFEM_CACHE_DIR", str(tmp_path / "cache"))
+    read = tetra._read_cache
+    reads = []
+
+    def counted(entry):
+        hit = read(entry)
+        reads.append(hit is not None)
+        return hit
+
+    monkeypatch.setattr(tetra, "_read_cache", counted)
+    scene = str(_cube_scene(tmp_path))
+    cands = [_cfg(integrator="backward_euler", substeps=s, tol=1e-3) for s in (1, 2)]
+    caplog.set_level(logging.INFO, logger="warpfem")
+    for search in range(2):
+        caplog.clear()
+        reads.clear()
+        tune(scene, 0.5, candidates=cands, truth=None, keep=1, cost="work")
+        hits = [r.getMessage() for r in caplog.records if "cache hit" in r.getMessage()]
+        assert len(hits) == 1, hits
+        assert hits[0].endswith(f"({sum(reads)} times)")
+        assert sum(reads) >= 4  # the reference, prefix and full runs each read it
+        assert reads[0] == (search == 1)  # the first search meshed the surface, the second found it cached
+
+
+def test_runner_up_over_budget_is_marked(tmp_path):
+    """The table says what the budget was, and a runner-up whose full run missed it says so."""
+    import dataclasses
+
+    from tiny_scenes import tiny_beam_toml
+    from warpfem.tradeoff.tune import format_tune
+
+    path = tmp_path / "tiny.toml"
+    path.write_text(tiny_beam_toml("tiny", cells=2, frames=2))
+    cands = [_cfg(integrator="backward_euler", substeps=s, tol=1e-3) for s in (1, 2)]
+    res = tune(str(path), 0.5, candidates=cands, truth=None, keep=2, cost="work")
+    assert res.winner is not None and res.runners_up
+    over = dict(res.runners_up[0], error=0.75, name="over one")
+    text = format_tune(dataclasses.replace(res, runners_up=[over]))
+    header = next(ln for ln in text.splitlines() if ln.lstrip().startswith("configuration"))
+    assert header.rstrip().endswith("budget: tip err <= 0.5")
+    row = next(ln for ln in text.splitlines() if "over one" in ln)
+    assert "0.75" in row and row.rstrip().endswith("over budget")
+    assert next(ln for ln in text.splitlines() if ln.lstrip().startswith("winner")).rstrip().endswith("within")
+    # an absolute --out is printed absolute (the JSON keeps its portable form)
+    write_scene(res, str(tmp_path / "abs.tuned.toml"))
+    assert f"wrote {tmp_path / 'abs.tuned.toml'}" in format_tune(res).splitlines()
+    assert res.scene_out == "<tmp>/abs.tuned.toml"

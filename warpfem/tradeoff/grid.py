@@ -106,7 +106,9 @@ def _auto_name(d: dict) -> str:
         if d.get(k) is not None:
             parts.append(f"{short}={d[k]:g}")
     if d.get("integrator"):
-        parts.append({"stiffness_warping": "warping", "backward_euler": "newton"}.get(d["integrator"], d["integrator"]))
+        # the integrator as its scene key names it (backward_euler, not the Newton solver it uses);
+        # stiffness warping shortened
+        parts.append({"stiffness_warping": "warping"}.get(d["integrator"], d["integrator"]))
     if d.get("element"):
         parts.append(d["element"])
     if d.get("refine") not in (None, 1):

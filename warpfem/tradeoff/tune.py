@@ -194,10 +194,14 @@ class TuneResult:
     #: the scene file on this machine as the search read it (absolute): kept out of the JSON, which
     #: records ``scene`` relative to the repository root
     local_scene_file: str | None = field(default=None, repr=False, compare=False)
+    #: the tuned scene file as the caller gave it to write_scene (relative to the current folder, or
+    #: absolute): what the terminal report prints; kept out of the JSON (``scene_out`` there)
+    local_scene_out: str | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         d.pop("local_scene_file")
+        d.pop("local_scene_out")
         return _json_value(d)
 
     def to_json(self, path) -> str:
@@ -249,7 +253,49 @@ def tune(scene_path, max_error: float, *, quantity="tip", frames=None, device="c
     computed before (for these frames), reused instead of running it again. ``cost``: "time" or
     "work". ``executor``: serial (default) or :class:`warpfem.tradeoff.cluster.DaskExecutor`.
     ``log(line)`` gets, before any run, the number of runs of each stage (:func:`plan_runs`), then a
-    line per finished run with the stage's elapsed time and ETA."""
+    line per finished run with the stage's elapsed time and ETA. Every run reads the scene's mesh:
+    a surface mesh's "tetrahedralisation cache hit" line is logged once, after the search, with
+    the number of hits (:class:`_CacheHitLine`)."""
+    with _CacheHitLine():
+        return _tune(scene_path, max_error, quantity=quantity, frames=frames, device=device, axes=axes,
+                     candidates=candidates, truth=truth, reference_config=reference_config, reference=reference,
+                     cost=cost, eta=eta, keep=keep, executor=executor, log=log, tip_point=tip_point, space=space)
+
+
+class _CacheHitLine:
+    """Inside it, the tetrahedralisation cache's "cache hit" INFO lines (one per run of a search:
+    every run loads the scene) are counted, not logged; on leaving, one line per cache entry says
+    how many times it was read: ``PATH: tetrahedralisation cache hit ENTRY (N times)``."""
+
+    _MESSAGE = "%s: tetrahedralisation cache hit %s"
+
+    def __init__(self):
+        import logging
+
+        self.logger = logging.getLogger("warpfem.mesh.tetrahedralization")
+        self.hits = {}  # (surface path, cache entry) -> count, in order of the first hit
+
+    def filter(self, record) -> bool:
+        if record.msg == self._MESSAGE and len(record.args or ()) == 2:
+            key = tuple(str(a) for a in record.args)
+            self.hits[key] = self.hits.get(key, 0) + 1
+            return False
+        return True
+
+    def __enter__(self):
+        self.logger.addFilter(self)
+        return self
+
+    def __exit__(self, *exc):
+        self.logger.removeFilter(self)
+        for (path, entry), n in self.hits.items():
+            self.logger.info(self._MESSAGE + " (%d time%s)", path, entry, n, "" if n == 1 else "s")
+        return False
+
+
+def _tune(scene_path, max_error, *, quantity, frames, device, axes, candidates, truth, reference_config, reference,
+          cost, eta, keep, executor, log, tip_point, space) -> TuneResult:
+    """:func:`tune`'s search (its arguments, all given)."""
     from warpfem.scenes import load_scene
 
     if quantity not in QUANTITY_FIELDS:
@@ -524,8 +570,11 @@ def toml_dumps(doc: dict) -> str:
 
 
 def write_scene(result: TuneResult, path) -> str:
-    """Write the winner as a scene file (relative paths re-anchored to its new location; outputs
-    kept; a reduced winner's cache is left to ``warpfem train``)."""
+    """Write the winner as a scene file: its input paths (mesh, surface, index files: relative to
+    the scene file) re-anchored to its new location; its ``[output]`` paths kept as the scene has
+    them (they are relative to the folder a scene is run from, so the tuned scene run from the
+    folder ``tune`` was run in writes the files the original would); a reduced winner's cache is
+    left to ``warpfem train``. ``path`` is printed by :func:`format_tune` as given."""
     from warpfem.scenes.schema import rebase_scene_paths
 
     cfg = result.winner_config()
@@ -538,7 +587,10 @@ def write_scene(result: TuneResult, path) -> str:
     if d.get("subspace") is not None:
         d["subspace"].pop("cache", None)
     d["integrator"] = {"type": d["integrator"]["type"], **d["integrator"]}  # type first
+    output = dict(d.get("output") or {})
     rebase_scene_paths(d, src_dir, out_dir)
+    if output:  # outputs: relative to the current folder when run, not to the scene file
+        d["output"] = output
     w = result.winner
     head = [f"# Tuned by `warpfem tune` from {os.path.relpath(scene_file, out_dir)}: the cheapest configuration found",
             f"# with {result.quantity} error <= {result.max_error:g} against the converged reference "
@@ -546,11 +598,14 @@ def write_scene(result: TuneResult, path) -> str:
             f"# Measured: {result.quantity} error {w['error']:.3g} (discretisation {_fmt(w['discretisation_error'], '.3g')}, "
             f"solver/step {_fmt(w['solver_error'], '.3g')}), {w['seconds_per_sim_second']:.3g} s per simulated second "
             f"({result.device}), work {w['work']:.3g}.",
-            f"# Run it with: warpfem run {os.path.basename(path)} --precision {cfg.precision}"]
+            f"# Run it with: warpfem run {os.fspath(path)} --precision {cfg.precision}",
+            "# from the folder `warpfem tune` ran in: like the original's, its [output] paths are relative to the",
+            "# folder it is run from, so it then writes the files the original would."]
     os.makedirs(out_dir, exist_ok=True)
     with open(path, "w") as f:
         f.write("\n".join(head) + "\n" + toml_dumps(d))
     result.scene_out = portable_path(path)
+    result.local_scene_out = os.fspath(path)
     return path
 
 
@@ -566,15 +621,20 @@ def format_tune(result: TuneResult) -> str:
              f"{s['whole_grid_frame_runs']} for the whole grid; {s['seconds']:.0f} s in all"]
     rows = ([("winner", result.winner)] if result.winner else []) + [("", r) for r in result.runners_up]
     if rows:
-        lines.append(f"  {'':7}{'configuration':42} {q + ' err':>9} {'disc':>9} {'solver':>9} {'s/sim-s':>9} {'work/sim-s':>11}")
+        wid = max([len("configuration")] + [len(r["name"]) for _, r in rows])  # whole names (element last)
+        lines.append(f"  {'':7}{'configuration':{wid}} {q + ' err':>9} {'disc':>9} {'solver':>9} {'s/sim-s':>9} {'work/sim-s':>11}"
+                     f"  budget: {q} err <= {result.max_error:g}")
         for tag, r in rows:
-            err = _fmt(r["error"], ".3g") if r["status"] == "ok" else r["status"]
-            lines.append(f"  {tag:7}{r['name'][:42]:42} {err:>9} {_fmt(r['discretisation_error'], '.3g'):>9} "
+            ok = r["status"] == "ok"
+            err = _fmt(r["error"], ".3g") if ok else r["status"]
+            within = ok and r["error"] is not None and r["error"] <= result.max_error
+            mark = "within" if within else "over budget" if ok else "failed"
+            lines.append(f"  {tag:7}{r['name']:{wid}} {err:>9} {_fmt(r['discretisation_error'], '.3g'):>9} "
                          f"{_fmt(r['solver_error'], '.3g'):>9} {_fmt(r['seconds_per_sim_second'], '.3g'):>9} "
-                         f"{_fmt(r['work'], '.3g'):>11}")
+                         f"{_fmt(r['work'], '.3g'):>11}  {mark}")
     lines += [f"note: {n}" for n in result.notes]
-    if result.scene_out:
-        lines.append(f"wrote {result.scene_out}")
+    if result.scene_out:  # as the caller gave it (relative to the current folder, or absolute)
+        lines.append(f"wrote {result.local_scene_out or result.scene_out}")
     return "\n".join(lines)
 
 
