@@ -92,15 +92,15 @@ class _Pardiso:
     triangle = "upper"
 
     def __init__(self):
-        pypardiso = require("pypardiso", "direct", "direct linear solver's 'pardiso' backend")
-        self.mod = pypardiso
         global _MKL_RT
-        # pypardiso looks for MKL's library on every solver it makes (a recursive glob of the
-        # environment when find_library fails: ~0.5 s, at every pattern growth); once found, say where
+        # pypardiso looks for MKL's library on every solver it makes, one at its import (a recursive
+        # glob of the environment when find_library fails: ~0.5 s, at every pattern growth); say where
         if not os.environ.get("PYPARDISO_MKL_RT"):
             _MKL_RT = _MKL_RT or _environment_mkl_rt()
             if _MKL_RT:
                 os.environ["PYPARDISO_MKL_RT"] = _MKL_RT
+        pypardiso = require("pypardiso", "direct", "direct linear solver's 'pardiso' backend")
+        self.mod = pypardiso
         self.ps = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
         _MKL_RT = _MKL_RT or getattr(getattr(self.ps, "libmkl", None), "_name", None)
         self.ps.set_iparm(1, 1)  # non-default iparms follow
