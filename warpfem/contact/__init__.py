@@ -1,6 +1,14 @@
 """Contact with kinematic colliders (floor, spheres, boxes, triangle meshes) in the incremental
 potential: smooth barrier, continuous-collision step bound, lagged friction (docs/contact.md)."""
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the same names for type checkers and the API docs (read statically)
+    from warpfem.contact.colliders import (COLLIDER_TYPES, Box, Collider, MeshCollider, Plane, Sphere, make_collider,
+                                           register_collider, unregister_collider)
+    from warpfem.contact.contact import CollisionError, ContactForm, ContactSet
+    from warpfem.contact.surface import ContactSurface, SurfaceContact, SurfaceContactForm, contact_surface
+
 # name -> defining module, imported on first access (PEP 562): the scene schema reads the collider
 # registry without loading the contact forms and their kernels (a scene without contact never does).
 _LAZY = {

@@ -13,6 +13,22 @@ Scenes: a ``[subspace]`` section makes ``warpfem run`` reduced (``warpfem.reduce
 prescribed displacement field (``warpfem.reduced.lifting``).
 """
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the same names for type checkers and the API docs (read statically)
+    from warpfem.reduced.basis import Basis, build_basis, linear_modes, mass_pca, modal_derivatives
+    from warpfem.reduced.cubature import Cubature, relative_force_error, snapshot_poses, train_cubature, training_poses
+    from warpfem.reduced.lifting import Lifting, build_lifting
+    from warpfem.reduced.simulator import CubatureForces, ReducedSimulator
+    from warpfem.reduced.subspace import (
+        Subspace,
+        SubspaceMismatch,
+        format_report,
+        load_subspace,
+        mesh_hash,
+        train_subspace,
+    )
+
 # name -> defining module, imported on first access (PEP 562): the command line imports
 # warpfem.reduced.cli, and a plain scene's run never loads the reduced solver (scipy.optimize)
 _LAZY = {

@@ -12,6 +12,13 @@ cluster (:mod:`warpfem.tradeoff.cluster`). See :mod:`warpfem.tradeoff.study` for
 docs/tradeoff.md for results and docs/tune.md for ``tune``.
 """
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the same names for type checkers and the API docs (read statically)
+    from .study import (QUANTITIES, SCHEMA_VERSION, ConfigResult, GridError, StudyResult, TradeoffConfig, TradeoffGrid,
+                        TruthSpec, builtin_grid, format_markdown, format_table, load_grid, load_study, pareto_front,
+                        plot_pareto, run_study, scene_document, set_quantity, variant_scene, without_timings)
+
 # name -> defining module, imported on first access (PEP 562): the command line imports
 # warpfem.tradeoff.cli without the study
 _LAZY = {
