@@ -19,25 +19,62 @@ from warpfem.device import configure_warp as _configure_warp
 
 _configure_warp()  # quiet unless WARPFEM_VERBOSE; before any warpfem module can initialise Warp
 
-from warpfem.materials import (  # noqa: E402
-    Corotated,
-    LinearElastic,
-    StableNeoHookean,
-    StableNeoHookeanLog,
-    StVenantKirchhoff,
-    make_material,
-)
-from warpfem.mesh import (ElementMesh, MeshError, TetMesh, VolumeMesh, box_hex_mesh, box_tet_mesh,
-                          embed_points_in_elements, load_element_mesh, load_mesh, save_element_mesh, save_mesh,
-                          select_vertices_in_box, tet10_from_tet4)
-from warpfem.model import Body, Model
-from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
-from warpfem.simulator import Simulator
-from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats
-from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
-from warpfem.solvers.state import Control, State
-from warpfem.solvers.forms import Form
-from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
+from typing import TYPE_CHECKING  # noqa: E402
+
+if TYPE_CHECKING:  # the same names for type checkers and the API docs (mkdocstrings reads them statically)
+    from warpfem.materials import (
+        Corotated,
+        LinearElastic,
+        StableNeoHookean,
+        StableNeoHookeanLog,
+        StVenantKirchhoff,
+        make_material,
+    )
+    from warpfem.mesh import (ElementMesh, MeshError, TetMesh, VolumeMesh, box_hex_mesh, box_tet_mesh,
+                              embed_points_in_elements, load_element_mesh, load_mesh, save_element_mesh, save_mesh,
+                              select_vertices_in_box, tet10_from_tet4)
+    from warpfem.model import Body, Model
+    from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
+    from warpfem.simulator import Simulator
+    from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats
+    from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
+    from warpfem.solvers.state import Control, State
+    from warpfem.solvers.forms import Form
+    from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
+
+# name -> the module that defines it. Imported on first access (PEP 562), so ``import warpfem`` costs
+# Warp's import and little more; a scene loads only the solvers, contact and I/O modules it uses.
+_LAZY = {
+    **dict.fromkeys(["Corotated", "LinearElastic", "StableNeoHookean", "StableNeoHookeanLog", "StVenantKirchhoff",
+                     "make_material"], "warpfem.materials"),
+    **dict.fromkeys(["ElementMesh", "MeshError", "TetMesh", "VolumeMesh", "box_hex_mesh", "box_tet_mesh",
+                     "embed_points_in_elements", "load_element_mesh", "load_mesh", "save_element_mesh", "save_mesh",
+                     "select_vertices_in_box", "tet10_from_tet4"], "warpfem.mesh"),
+    **dict.fromkeys(["Body", "Model"], "warpfem.model"),
+    **dict.fromkeys(["BDF2", "BackwardEuler", "Integrator", "Newmark"], "warpfem.integrators"),
+    "Simulator": "warpfem.simulator",
+    **dict.fromkeys(["NewtonOptions", "SolveFailed", "SolveStats"], "warpfem.solvers.nonlinear"),
+    "StiffnessWarpingSimulator": "warpfem.solvers.stiffness_warping",
+    **dict.fromkeys(["Control", "State"], "warpfem.solvers.state"),
+    "Form": "warpfem.solvers.forms",
+    **dict.fromkeys(["Box", "CollisionError", "MeshCollider", "Plane", "Sphere"], "warpfem.contact"),
+}
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'warpfem' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # later lookups skip this function
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __version__ = "0.1.0"
 

@@ -1,12 +1,40 @@
 """Contact with kinematic colliders (floor, spheres, boxes, triangle meshes) in the incremental
 potential: smooth barrier, continuous-collision step bound, lagged friction (docs/contact.md)."""
 
-from warpfem.contact.colliders import (COLLIDER_TYPES, Box, Collider, MeshCollider, Plane, Sphere, make_collider,
-                                       register_collider, unregister_collider)
-from warpfem.contact.contact import CollisionError, ContactForm, ContactSet
-from warpfem.contact.surface import ContactSurface, SurfaceContact, SurfaceContactForm, contact_surface
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the same names for type checkers and the API docs (read statically)
+    from warpfem.contact.colliders import (COLLIDER_TYPES, Box, Collider, MeshCollider, Plane, Sphere, make_collider,
+                                           register_collider, unregister_collider)
+    from warpfem.contact.contact import CollisionError, ContactForm, ContactSet
+    from warpfem.contact.surface import ContactSurface, SurfaceContact, SurfaceContactForm, contact_surface
+
+# name -> defining module, imported on first access (PEP 562): the scene schema reads the collider
+# registry without loading the contact forms and their kernels (a scene without contact never does).
+_LAZY = {
+    **dict.fromkeys(["COLLIDER_TYPES", "Box", "Collider", "MeshCollider", "Plane", "Sphere", "make_collider",
+                     "register_collider", "unregister_collider"], "warpfem.contact.colliders"),
+    **dict.fromkeys(["CollisionError", "ContactForm", "ContactSet"], "warpfem.contact.contact"),
+    **dict.fromkeys(["ContactSurface", "SurfaceContact", "SurfaceContactForm", "contact_surface"],
+                    "warpfem.contact.surface"),
+}
 
 __all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider", "COLLIDER_TYPES",
            "register_collider", "unregister_collider",
            "ContactSet", "ContactForm", "CollisionError", "ContactSurface", "SurfaceContact", "SurfaceContactForm",
            "contact_surface"]
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'warpfem.contact' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

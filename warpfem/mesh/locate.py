@@ -23,8 +23,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse
-from scipy.spatial import cKDTree
+
+# scipy.sparse / scipy.spatial are imported by the functions that use them (~0.2 s at start-up)
 
 __all__ = ["Embedding", "embed_points", "embed_points_in_elements", "barycentric_coordinates", "point_tet_distance",
            "INSIDE_TOL"]
@@ -88,6 +88,8 @@ class Embedding:
 
     def matrix(self) -> scipy.sparse.csr_matrix:
         """The skinning matrix W (p x n, csr, k stored entries per row, rows sum to 1)."""
+        import scipy.sparse
+
         p, k = self.num_points, self.weights_per_point
         indptr = np.arange(0, k * p + 1, k, dtype=np.int64)
         return scipy.sparse.csr_matrix(
@@ -256,6 +258,8 @@ class _TetSearch:
     def __init__(self, centroids, radii):
         self.centroids = centroids
         self.radii = radii
+        from scipy.spatial import cKDTree
+
         r_min = max(float(radii.min()), 1e-300)
         level = np.floor(np.log2(np.maximum(radii, r_min) / r_min)).astype(np.int64)
         self.buckets = []
@@ -311,6 +315,8 @@ def embed_points(points, vertices, tets=None, *, k_nearest: int = 12) -> Embeddi
     X0, Dinv = X0_all[tet_ids], Dinv_all[tet_ids]
     centroids = X.mean(axis=1)
     radii = np.linalg.norm(X - centroids[:, None, :], axis=2).max(axis=1)
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(centroids)
     search = _TetSearch(centroids, radii)
 

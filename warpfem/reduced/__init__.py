@@ -13,18 +13,32 @@ Scenes: a ``[subspace]`` section makes ``warpfem run`` reduced (``warpfem.reduce
 prescribed displacement field (``warpfem.reduced.lifting``).
 """
 
-from warpfem.reduced.basis import Basis, build_basis, linear_modes, mass_pca, modal_derivatives
-from warpfem.reduced.cubature import Cubature, relative_force_error, snapshot_poses, train_cubature, training_poses
-from warpfem.reduced.lifting import Lifting, build_lifting
-from warpfem.reduced.simulator import CubatureForces, ReducedSimulator
-from warpfem.reduced.subspace import (
-    Subspace,
-    SubspaceMismatch,
-    format_report,
-    load_subspace,
-    mesh_hash,
-    train_subspace,
-)
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the same names for type checkers and the API docs (read statically)
+    from warpfem.reduced.basis import Basis, build_basis, linear_modes, mass_pca, modal_derivatives
+    from warpfem.reduced.cubature import Cubature, relative_force_error, snapshot_poses, train_cubature, training_poses
+    from warpfem.reduced.lifting import Lifting, build_lifting
+    from warpfem.reduced.simulator import CubatureForces, ReducedSimulator
+    from warpfem.reduced.subspace import (
+        Subspace,
+        SubspaceMismatch,
+        format_report,
+        load_subspace,
+        mesh_hash,
+        train_subspace,
+    )
+
+# name -> defining module, imported on first access (PEP 562): the command line imports
+# warpfem.reduced.cli, and a plain scene's run never loads the reduced solver (scipy.optimize)
+_LAZY = {
+    **dict.fromkeys(['Basis', 'build_basis', 'linear_modes', 'mass_pca', 'modal_derivatives'], 'warpfem.reduced.basis'),
+    **dict.fromkeys(['Cubature', 'relative_force_error', 'snapshot_poses', 'train_cubature', 'training_poses'], 'warpfem.reduced.cubature'),
+    **dict.fromkeys(['Lifting', 'build_lifting'], 'warpfem.reduced.lifting'),
+    **dict.fromkeys(['CubatureForces', 'ReducedSimulator'], 'warpfem.reduced.simulator'),
+    **dict.fromkeys(['Subspace', 'SubspaceMismatch', 'format_report', 'load_subspace', 'mesh_hash', 'train_subspace'],
+                    'warpfem.reduced.subspace'),
+}
 
 __all__ = [
     "Basis",
@@ -48,3 +62,18 @@ __all__ = [
     "train_subspace",
     "training_poses",
 ]
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'warpfem.reduced' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

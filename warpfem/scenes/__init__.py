@@ -60,14 +60,28 @@ SECTION_INTEGRATORS: dict[str, IntegratorType] = {}  # scene section -> the entr
 # Modules (above this package in the layers) that register integrator types when imported; loaded
 # on first use by integrator_entry, so scenes never import them itself.
 INTEGRATOR_MODULES = ["warpfem.reduced.scene"]
+# The scene sections such a module registers an integrator for: it is loaded for a scene that has
+# one of them (or whose [integrator].type is not registered yet), so a plain scene does not import
+# the reduced package (scipy.optimize, ...) at start-up. A module without an entry loads always.
+INTEGRATOR_MODULE_SECTIONS: dict[str, tuple] = {"warpfem.reduced.scene": ("subspace",)}
 _loaded_modules: set = set()
 
 
-def _load_integrator_modules() -> None:
+def _needed_by(name: str, scene) -> bool:
+    sections = INTEGRATOR_MODULE_SECTIONS.get(name)
+    if scene is None or sections is None:
+        return True
+    spec = getattr(scene, "spec", None)
+    if any(getattr(spec, s, None) is not None for s in sections):
+        return True
+    return getattr(scene, "integrator_type", None) not in INTEGRATORS
+
+
+def _load_integrator_modules(scene=None) -> None:
     import importlib
 
     for name in INTEGRATOR_MODULES:
-        if name in _loaded_modules:
+        if name in _loaded_modules or not _needed_by(name, scene):
             continue
         try:
             importlib.import_module(name)
@@ -80,7 +94,7 @@ def _load_integrator_modules() -> None:
 def integrator_entry(scene, *, full: bool = False) -> IntegratorType:
     """The registry entry that builds ``scene``'s simulator: the one registered for a section the
     scene has (``[subspace]``), else (or with ``full=True``) its ``[integrator].type``."""
-    _load_integrator_modules()
+    _load_integrator_modules(scene)
     if not full:
         for section, entry in SECTION_INTEGRATORS.items():
             if getattr(scene.spec, section, None) is not None:
@@ -90,7 +104,7 @@ def integrator_entry(scene, *, full: bool = False) -> IntegratorType:
 
 def section_entries(scene) -> list:
     """The section entries that apply to ``scene`` (for describe / summary)."""
-    _load_integrator_modules()
+    _load_integrator_modules(scene)
     return [e for s, e in SECTION_INTEGRATORS.items() if getattr(scene.spec, s, None) is not None]
 
 

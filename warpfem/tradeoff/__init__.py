@@ -12,10 +12,34 @@ cluster (:mod:`warpfem.tradeoff.cluster`). See :mod:`warpfem.tradeoff.study` for
 docs/tradeoff.md for results and docs/tune.md for ``tune``.
 """
 
-from .study import (QUANTITIES, SCHEMA_VERSION, ConfigResult, GridError, StudyResult, TradeoffConfig, TradeoffGrid,
-                    TruthSpec, builtin_grid, format_markdown, format_table, load_grid, load_study, pareto_front,
-                    plot_pareto, run_study, scene_document, set_quantity, variant_scene, without_timings)
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # the same names for type checkers and the API docs (read statically)
+    from .study import (QUANTITIES, SCHEMA_VERSION, ConfigResult, GridError, StudyResult, TradeoffConfig, TradeoffGrid,
+                        TruthSpec, builtin_grid, format_markdown, format_table, load_grid, load_study, pareto_front,
+                        plot_pareto, run_study, scene_document, set_quantity, variant_scene, without_timings)
+
+# name -> defining module, imported on first access (PEP 562): the command line imports
+# warpfem.tradeoff.cli without the study
+_LAZY = {
+    **dict.fromkeys(['QUANTITIES', 'SCHEMA_VERSION', 'ConfigResult', 'GridError', 'StudyResult', 'TradeoffConfig', 'TradeoffGrid', 'TruthSpec', 'builtin_grid', 'format_markdown', 'format_table', 'load_grid', 'load_study', 'pareto_front', 'plot_pareto', 'run_study', 'scene_document', 'set_quantity', 'variant_scene', 'without_timings'], 'warpfem.tradeoff.study'),
+}
 
 __all__ = ["QUANTITIES", "SCHEMA_VERSION", "ConfigResult", "GridError", "StudyResult", "TradeoffConfig", "TradeoffGrid",
            "TruthSpec", "builtin_grid", "format_markdown", "format_table", "load_grid", "load_study", "pareto_front",
            "plot_pareto", "run_study", "scene_document", "set_quantity", "variant_scene", "without_timings"]
+
+
+def __getattr__(name):
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module 'warpfem.tradeoff' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))

@@ -113,11 +113,9 @@ def _pardiso_available() -> bool:
 
 
 def _multigrid_available() -> bool:
-    try:
-        import pyamg  # noqa: F401
-    except ImportError:
-        return False
-    return True
+    import importlib.util
+
+    return importlib.util.find_spec("pyamg") is not None  # without importing it (~0.05 s at start-up)
 
 
 def direct_allowed(pattern) -> bool:

@@ -73,17 +73,34 @@ class _NotPositiveDefinite(RuntimeError):
 _MKL_RT = None  # the path of the MKL library pypardiso loaded first
 
 
+def _environment_mkl_rt():
+    """MKL's runtime library directly in the environment's ``lib*`` folder (where the ``mkl`` wheel
+    that pypardiso depends on puts it), shortest path first, or None. Without it pypardiso asks
+    ``find_library`` and then globs the whole environment recursively (~0.5 s at start-up)."""
+    import glob
+    import site
+    import sys
+
+    for base in (sys.prefix, site.USER_BASE):
+        hits = glob.glob(f"{base}/[Ll]ib*/*mkl_rt*") + glob.glob(f"{base}/Library/bin/*mkl_rt*")
+        if hits:
+            return sorted(hits, key=len)[0]
+    return None
+
+
 class _Pardiso:
     triangle = "upper"
 
     def __init__(self):
+        global _MKL_RT
+        # pypardiso looks for MKL's library on every solver it makes, one at its import (a recursive
+        # glob of the environment when find_library fails: ~0.5 s, at every pattern growth); say where
+        if not os.environ.get("PYPARDISO_MKL_RT"):
+            _MKL_RT = _MKL_RT or _environment_mkl_rt()
+            if _MKL_RT:
+                os.environ["PYPARDISO_MKL_RT"] = _MKL_RT
         pypardiso = require("pypardiso", "direct", "direct linear solver's 'pardiso' backend")
         self.mod = pypardiso
-        global _MKL_RT
-        # pypardiso looks for MKL's library on every solver it makes (a recursive glob of the
-        # environment when find_library fails: ~0.5 s, at every pattern growth); once found, say where
-        if _MKL_RT and not os.environ.get("PYPARDISO_MKL_RT"):
-            os.environ["PYPARDISO_MKL_RT"] = _MKL_RT
         self.ps = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
         _MKL_RT = _MKL_RT or getattr(getattr(self.ps, "libmkl", None), "_name", None)
         self.ps.set_iparm(1, 1)  # non-default iparms follow
