@@ -7,7 +7,7 @@ neo-Hookean, positions perturbed from rest, float32 and float64, on the device (
   hessian     ``values.zero_()`` + ``qp_hessian_kernel`` (what a Newton iteration pays)
   zero        ``values.zero_()`` alone (the BSR value array, nnz 3x3 blocks)
   kernel      ``qp_hessian_kernel`` alone (into values that are not re-zeroed)
-  svd         bench-local kernel: F + ``signed_svd`` (``wp.svd3``) per point (the Hessian's SVD before issue 21's point 4)
+  svd         bench-local kernel: F + ``signed_svd`` (``wp.svd3``) per point (the Hessian's SVD before the cheaper Jacobi SVD)
   svd_jacobi  bench-local kernel: F + ``jacobi_signed_svd`` per point (the SVD the Hessian kernels use now)
   parts       bench-local kernel: F + ``material_hessian_parts`` (SVD, scaling block A, twist/flip), no projection
   eigen       bench-local kernel: F + ``material_hessian_parts`` + ``hessian_point_prepare`` per point

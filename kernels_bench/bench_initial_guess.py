@@ -1,5 +1,5 @@
 """Newton iterations per step and step time with ``initial_guess = "previous"`` (v_n) against
-``"extrapolated"`` (constant acceleration from the history), issue 22 section 2.
+``"extrapolated"`` (constant acceleration from the history).
 
 Cases: a 2 x 0.5 x 0.5 m box of 12,288 tets (E 1e5, rho 1000, stable neo-Hookean, clamped at x = 0,
 gravity, dt 1/60, nu 0.3 and 0.49) and the bunny of examples/scenes/bunny_gravity.toml (its model,

@@ -5,7 +5,7 @@ x 0.2 m, 20x2x2 cells split into 6 tets each: 480 tets, 189 vertices), stable ne
 density 1000 kg/m^3 (total mass 40 kg), gravity 9.81 m/s^2 along -z, every vertex on the face
 x = 0 clamped, no damping, released from rest at t = 0; three materials (``--beams``): soft
 (E = 1e6 Pa, nu = 0.3), stiff (E = 1e8, nu = 0.3) and nearly incompressible (E = 1e6, nu = 0.48).
-``--beam-set 864``: issue 21's beams instead, 16x3x3 cells x 6 tets (864 tets, 272 vertices), soft
+``--beam-set 864``: the 864-tet beams instead, 16x3x3 cells x 6 tets (864 tets, 272 vertices), soft
 (E 1e6, nu 0.3), stiff (E 5e7, nu 0.3), nearly incompressible (E 1e6, nu 0.47).
 
 Both codes use the same energy: newton's VBD tet energy is the stable neo-Hookean of Smith, de Goes
@@ -29,7 +29,7 @@ kernel compiled by a warm-up run first); the targets and frontiers use CPU time 
 wall`` (on a machine shared with other jobs wall time depends on their load; both codes run
 single-threaded on the CPU). Targets, per beam: within the time of VBD's default setting (dt 1/60,
 10 iterations) warpfem's error is >= 10x lower (aim 100x), within half that time >= 100x lower
-(issue 21), and for every VBD point warpfem reaches its error in no more time.
+and for every VBD point warpfem reaches its error in no more time.
 
     .venv/bin/python kernels_bench/bench_peer_vbd.py [--device cpu] [--quick] [--beam-set 480|864] [--beams soft,stiff,incompressible]
         [--time cpu|wall] [--json PATH] [--markdown PATH]
@@ -199,7 +199,7 @@ def error_of(tip, ref, amp):
 BEAM_SETS = {  # name: (cells of the 1 x 0.2 x 0.2 m beam, each split into 6 tets; {beam: (Young's modulus, Poisson ratio)})
     # the `make demo` cantilever: 20x2x2 cells, 480 tets, 189 vertices
     "480": ((20, 2, 2), {"soft": (1.0e6, 0.3), "stiff": (1.0e8, 0.3), "incompressible": (1.0e6, 0.48)}),
-    # issue 21's three 864-tet cantilevers (soft E 1e6, stiff E 5e7, nu 0.47): 16x3x3 cells (the near-cubic
+    # the three 864-tet cantilevers (soft E 1e6, stiff E 5e7, nu 0.47): 16x3x3 cells (the near-cubic
     # subdivision of 144 cells: 0.0625 x 0.067 x 0.067 m), 864 tets, 272 vertices; soft and stiff at nu 0.3
     "864": ((16, 3, 3), {"soft": (1.0e6, 0.3), "stiff": (5.0e7, 0.3), "incompressible": (1.0e6, 0.47)}),
 }
@@ -208,7 +208,7 @@ BEAMS = BEAM_SETS["480"][1]
 
 def targets(wf_rows, vbd_rows):
     """The targets: (1) warpfem's best error within the time of VBD's default setting (dt 1/60,
-    10 iterations) is >= 10x lower than VBD's (aim 100x), and (issue 21) >= 100x lower within half
+    10 iterations) is >= 10x lower than VBD's (aim 100x), and >= 100x lower within half
     that time; (2) for every VBD point, warpfem reaches its error in no more time."""
     default = next(v for v in vbd_rows if v["dt"] == FRAME_DT and v["iterations"] == 10)
 
@@ -322,7 +322,7 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--quick", action="store_true", help="0.35 s of simulation and a smaller grid of settings")
     ap.add_argument("--beam-set", choices=tuple(BEAM_SETS), default="480",
-                    help="480: the make-demo cantilever (20x2x2 cells); 864: issue 21's beams (16x3x3 cells, E 1e6 / 5e7, nu 0.47)")
+                    help="480: the make-demo cantilever (20x2x2 cells); 864: the 864-tet beams (16x3x3 cells, E 1e6 / 5e7, nu 0.47)")
     ap.add_argument("--beams", default=",".join(BEAM_SETS["480"][1]),
                     help=f"comma-separated subset of {', '.join(BEAM_SETS['480'][1])}")
     ap.add_argument("--duration", type=float, default=None, help="simulated seconds (default 0.5; 0.35 with --quick: to the first peak)")

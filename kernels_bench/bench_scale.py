@@ -1,6 +1,6 @@
 """Step time against mesh size for each linear solver: boxes of increasing size and the bunny.
 
-Cases: the clamped box 2 x 0.5 x 0.5 m of issue 22 (stable neo-Hookean, E 1e5, density 1000,
+Cases: the clamped box 2 x 0.5 x 0.5 m (stable neo-Hookean, E 1e5, density 1000,
 gravity, backward Euler, dt 1/60, 4c x c x c hex cells of 6 tets: c = 8, 13, 16, 25 give 12k,
 53k, 98k, 375k tets), at poisson_ratio 0.3 and 0.49, and the bunny scene
 (examples/scenes/bunny.toml, 22.9k tets, its own nu 0.4 and dt 1/24) and the octopus scene

@@ -1,6 +1,6 @@
 """A scanned-statue-sized surface through a scene's ``[mesh] path``, at the default settings.
 
-Issue 22 measured a 43k-vertex scanned statue surface given as ``[mesh] path``: it became a
+A user measured a 43k-vertex scanned statue surface given as ``[mesh] path``: it became a
 71k-vertex simulation mesh, steps took 117-419 s and the third did not converge. The statue is
 not in this repository, so this benchmark makes a surface of that size from the bunny
 (``examples/meshes/bunny.off``, 3,485 vertices): ``--subdivisions`` midpoint subdivisions of every

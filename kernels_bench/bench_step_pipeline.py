@@ -1,4 +1,4 @@
-"""Cost of one time step and of one Newton iteration on the peer benchmark's beam (issue 21).
+"""Cost of one time step and of one Newton iteration on the peer benchmark's beam.
 
 The cantilever of ``kernels_bench/bench_peer_vbd.py`` (480 tets, 189 vertices; 1 m x 0.2 m x 0.2 m, stable neo-Hookean,
 E 1e6 Pa, nu 0.3, lumped mass, gravity, clamped at x = 0), backward Euler and Newmark at dt 1/60 s with
@@ -10,7 +10,7 @@ kernel launches and host read-backs per step and per Newton iteration (counted b
 are the launch calls made from Python, "kernels/newton" the kernel launches the step reports
 (``SolveStats.launches``, the launches inside replayed graphs included), "graphs/newton" the graph
 replays) and the tip displacement after the timed steps (both checkouts must agree).
-``--cells 16,3,3`` is issue 21's 864-tet beam (272 vertices), ``--precision float32`` the other precision.
+``--cells 16,3,3`` is the peer benchmark's 864-tet beam (272 vertices), ``--precision float32`` the other precision.
 
     .venv/bin/python kernels_bench/bench_step_pipeline.py [--baseline a3ec050] [--steps 30] [--device cpu] [--json PATH]
         [--cells 20,2,2] [--E 1e6] [--nu 0.3] [--precision float64]

@@ -336,7 +336,7 @@ def _incline_drop(mu, theta, steps, dt=0.01, **kw):
 
 
 def test_incline_30_degrees_landing_sticks_within_2_mm_and_slides_within_2_percent():
-    """Issue 24's friction targets: landing on a 30 degree incline, mu = 0.8 moves < 2 mm in the
+    """The friction targets: landing on a 30 degree incline, mu = 0.8 moves < 2 mm in the
     0.5 s after landing; mu = 0.3 slides with g (sin - mu cos) within 2 %. Lagged once from the
     step start (friction_iterations=0) the landing block moved 2.02 mm (docs/contact.md)."""
     theta = math.radians(30.0)

@@ -1,4 +1,4 @@
-"""Several bodies in contact as scenes and at rest (issue 24 section 3): the stack's rest heights from
+"""Several bodies in contact as scenes and at rest: the stack's rest heights from
 the weights, the [contact] table of a [[body]] scene reaching the simulator, the example scenes'
 contact set-up, and no intersection (IPC Toolkit as the independent judge)."""
 

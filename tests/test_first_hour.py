@@ -1,4 +1,4 @@
-"""A newcomer's first hour (issue 23, section 2): output paths checked before any work, SIGTERM
+"""A newcomer's first hour: output paths checked before any work, SIGTERM
 recorded like Ctrl-C, the "compiling kernels" notice with compile time out of the ETA, describe's
 tetrahedralisation line once, --quiet without the cache-hit line, "did you mean" in grid files."""
 

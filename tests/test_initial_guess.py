@@ -1,7 +1,7 @@
 """Simulator(initial_guess="extrapolated"): the Newton solve of a step starts from v_n extrapolated
 at constant acceleration (Newmark: v_n + h a_n) instead of v_n. Same converged steps, a start
 nearer the solution, fewer Newton iterations under an absolute stopping criterion; fixed
-components and kinematic targets exactly as with the old start (issue 22 section 2)."""
+components and kinematic targets exactly as with the old start."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""A Hessian pattern that grows (issue 21): a form coupling two vertices of different elements adds
+"""A Hessian pattern that grows: a form coupling two vertices of different elements adds
 off-diagonal blocks; the pattern, the value arrays and every linear solver follow.
 
 The coupling form here is a zero-length spring between two distant vertices, written on the host

@@ -1,4 +1,4 @@
-"""No module reads another object's private attributes (issue 21), checked on the syntax tree like
+"""No module reads another object's private attributes, checked on the syntax tree like
 the import layers (tests/test_import_layers.py).
 
 Every attribute access ``obj._name`` in ``warpfem/`` whose object is not ``self``, ``cls`` or

@@ -1,4 +1,4 @@
-"""The time step as a pipeline (issue 21): step(state_in, state_out, control, dt) reads its input
+"""The time step as a pipeline: step(state_in, state_out, control, dt) reads its input
 state only, a failed step writes nothing, a steady step allocates no device array, and a Newton
 iteration on the PCG path reads back from the device once (the start's energy and gradient ride
 with the first iteration's read-back)."""
