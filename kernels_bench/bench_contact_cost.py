@@ -66,7 +66,6 @@ import json
 import math
 import os
 import platform
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -87,6 +86,7 @@ if not _WORKER:
 import warp as wp  # noqa: E402
 
 import warpfem as wf  # noqa: E402
+from revisions import extract_revision, working_tree_commit  # noqa: E402  (kernels_bench/revisions.py)
 from warpfem.solvers.nonlinear import NewtonOptions  # noqa: E402
 
 # Named solver configurations, each applied to the built simulator before its first step. The key
@@ -338,45 +338,6 @@ def run_one(case, config_name, precision, frames, device, log=print, skip_unknow
                 hessian_seconds=dict(wall=hess_wall, cpu=hess_cpu), summary=summarize(records), frames=records)
 
 
-def _git(*args) -> subprocess.CompletedProcess:
-    return subprocess.run(["git", "-C", ROOT, *args], capture_output=True, text=True)
-
-
-def working_tree_commit() -> str | None:
-    """HEAD of this repository, "+dirty" when tracked files differ from it (None without git)."""
-    if shutil.which("git") is None:
-        return None
-    head = _git("rev-parse", "HEAD")
-    if head.returncode:
-        return None
-    dirty = _git("status", "--porcelain", "--untracked-files=no").stdout.strip()
-    return head.stdout.strip() + ("+dirty" if dirty else "")
-
-
-def extract_revision(revision: str, into: str) -> str:
-    """``git archive REVISION`` of this repository extracted into the folder ``into``; returns the
-    commit. Exits with a message when git, the repository or the revision is missing."""
-    if shutil.which("git") is None:
-        raise SystemExit(f"revision {revision!r}: git is not on PATH; it is needed to extract that revision")
-    if shutil.which("tar") is None:
-        raise SystemExit(f"revision {revision!r}: tar is not on PATH; it is needed to extract that revision")
-    if _git("rev-parse", "--git-dir").returncode:
-        raise SystemExit(f"revision {revision!r}: {ROOT} is not a git repository")
-    res = _git("rev-parse", "--verify", "--quiet", f"{revision}^{{commit}}")
-    if res.returncode:
-        raise SystemExit(f"revision {revision!r}: no such commit in the repository {ROOT}")
-    commit = res.stdout.strip()
-    archive = subprocess.run(["git", "-C", ROOT, "archive", commit], capture_output=True)
-    if archive.returncode:
-        raise SystemExit(f"revision {revision!r}: git archive failed: {archive.stderr.decode(errors='replace').strip()}")
-    untar = subprocess.run(["tar", "-x", "-C", into], input=archive.stdout, capture_output=True)
-    if untar.returncode:
-        raise SystemExit(f"revision {revision!r}: tar -x failed: {untar.stderr.decode(errors='replace').strip()}")
-    if not os.path.isfile(os.path.join(into, "warpfem", "__init__.py")):
-        raise SystemExit(f"revision {revision!r} ({commit}) has no warpfem package")
-    return commit
-
-
 def run_in_worker(case, config_name, precision, frames, device, tree: dict) -> dict:
     """``run_one`` in a subprocess of this script whose PYTHONPATH starts with the extracted tree
     ``tree["path"]`` (the configuration's revision); its log goes to this process's stdout."""
@@ -503,13 +464,7 @@ def summarize(records):
 
 
 def cpu_model():
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
+    """The processor as Python's ``platform`` names it."""
     return platform.processor() or platform.machine() or "unknown"
 
 

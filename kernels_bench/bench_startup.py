@@ -26,14 +26,14 @@ import argparse
 import json
 import os
 import platform
-import shutil
 import statistics
 import subprocess
 import sys
 import tempfile
 import time
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+from revisions import ROOT, extract_revision  # noqa: E402  (kernels_bench/revisions.py)
+
 DEFAULT_SCENE = os.path.join("examples", "scenes", "cantilever.toml")
 
 IMPORT_CODE = """
@@ -58,25 +58,8 @@ print({"import": t1 - t0, "build": t2 - t1, "step": t3 - t2, "first_step": t3 - 
 
 
 def cpu_name() -> str:
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
+    """The processor as Python's ``platform`` names it."""
     return platform.processor() or platform.machine()
-
-
-def extract_revision(revision: str, into: str) -> str:
-    """``git archive REVISION | tar -x -C into``; returns the commit."""
-    commit = subprocess.run(["git", "-C", ROOT, "rev-parse", "--verify", f"{revision}^{{commit}}"],
-                            capture_output=True, text=True)
-    if commit.returncode:
-        raise SystemExit(f"revision {revision!r}: no such commit")
-    archive = subprocess.run(["git", "-C", ROOT, "archive", commit.stdout.strip()], capture_output=True, check=True)
-    subprocess.run(["tar", "-x", "-C", into], input=archive.stdout, check=True)
-    return commit.stdout.strip()
 
 
 def child_env(tree: str) -> dict:
