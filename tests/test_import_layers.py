@@ -21,6 +21,7 @@ LAYERS = {
     "warpfem.device": 0,
     "warpfem.progress": 0,
     "warpfem.paths": 0,
+    "warpfem.lazy": 0,
     "warpfem.mesh": 1,
     "warpfem.materials": 1,
     "warpfem.integrators": 1,

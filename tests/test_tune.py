@@ -11,6 +11,7 @@ except ModuleNotFoundError:  # Python 3.10
 
 import pytest
 
+from tiny_scenes import tiny_beam_toml
 from warpfem.tradeoff import TradeoffConfig, TruthSpec, scene_document
 from warpfem.tradeoff.grid import _cfg, _REFERENCE
 from warpfem.tradeoff.study import finish_reference, make_job, plan_reference, run_job
@@ -175,7 +176,6 @@ def test_default_space_is_small_and_full_space_is_on_request():
 
 
 def test_run_count_up_front_and_progress_per_stage(tmp_path):
-    from tiny_scenes import tiny_beam_toml
     from warpfem.tradeoff.tune import format_plan, plan_runs
 
     # the cantilever's default search at 48 frames: 7 reference runs, 21 + 7 prefix runs, 3 full runs
@@ -232,28 +232,11 @@ def _cube_scene(folder):
     scenes = folder / "scenes"
     scenes.mkdir(parents=True)
     (scenes / "cube.obj").write_text(CUBE_OBJ)
-    (scenes / "cube.toml").write_text("""name = "cube"
-gravity = [0.0, -9.81, 0.0]
-[mesh]
-path = "cube.obj"
-max_edge_length = 0.5
-[material]
-model = "stable_neo_hookean"
-youngs_modulus = 2.0e5
-poisson_ratio = 0.3
-density = 1000.0
-[[fixed]]
-box_min = [-1.0, -1.0, -1.0]
-box_max = [0.1, 2.0, 2.0]
-[integrator]
-type = "backward_euler"
-tol = 1e-6
-cg_tol = 1e-4
-[output]
-fps = 24
-frames = 2
-usd = "out/cube.usda"
-""")
+    beam = tiny_beam_toml("cube", frames=2)  # the tiny beam's material, solver and output, the cube's mesh
+    text = (beam.replace('generator = "box"\nsize = [1.0, 0.2, 0.2]\ncells = [4, 1, 1]', 'path = "cube.obj"\nmax_edge_length = 0.5')
+            .replace("box_max = [0.0, 1.0, 1.0]", "box_max = [0.1, 2.0, 2.0]") + 'usd = "out/cube.usda"\n')
+    assert 'path = "cube.obj"' in text and "box_max = [0.1, 2.0, 2.0]" in text
+    (scenes / "cube.toml").write_text(text)
     return scenes / "cube.toml"
 
 
@@ -329,7 +312,6 @@ def test_runner_up_over_budget_is_marked(tmp_path):
     """The table says what the budget was, and a runner-up whose full run missed it says so."""
     import dataclasses
 
-    from tiny_scenes import tiny_beam_toml
     from warpfem.tradeoff.tune import format_tune
 
     path = tmp_path / "tiny.toml"

@@ -42,6 +42,8 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (mkdocstr
     from warpfem.solvers.forms import Form
     from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
 
+from warpfem.lazy import lazy_attributes  # noqa: E402
+
 # name -> the module that defines it. Imported on first access (PEP 562), so ``import warpfem`` costs
 # Warp's import and little more; a scene loads only the solvers, contact and I/O modules it uses.
 _LAZY = {
@@ -61,19 +63,7 @@ _LAZY = {
 }
 
 
-def __getattr__(name):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'warpfem' has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value  # later lookups skip this function
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)
 
 
 __version__ = "0.1.0"

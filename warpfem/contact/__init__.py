@@ -9,6 +9,8 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (read sta
     from warpfem.contact.contact import CollisionError, ContactForm, ContactSet
     from warpfem.contact.surface import ContactSurface, SurfaceContact, SurfaceContactForm, contact_surface
 
+from warpfem.lazy import lazy_attributes  # noqa: E402
+
 # name -> defining module, imported on first access (PEP 562): the scene schema reads the collider
 # registry without loading the contact forms and their kernels (a scene without contact never does).
 _LAZY = {
@@ -25,16 +27,4 @@ __all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider"
            "contact_surface"]
 
 
-def __getattr__(name):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'warpfem.contact' has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)

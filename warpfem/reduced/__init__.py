@@ -29,6 +29,8 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (read sta
         train_subspace,
     )
 
+from warpfem.lazy import lazy_attributes  # noqa: E402
+
 # name -> defining module, imported on first access (PEP 562): the command line imports
 # warpfem.reduced.cli, and a plain scene's run never loads the reduced solver (scipy.optimize)
 _LAZY = {
@@ -64,16 +66,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'warpfem.reduced' has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)

@@ -19,6 +19,8 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (read sta
                         TruthSpec, builtin_grid, format_markdown, format_table, load_grid, load_study, pareto_front,
                         plot_pareto, run_study, scene_document, set_quantity, variant_scene, without_timings)
 
+from warpfem.lazy import lazy_attributes  # noqa: E402
+
 # name -> defining module, imported on first access (PEP 562): the command line imports
 # warpfem.tradeoff.cli without the study
 _LAZY = {
@@ -30,16 +32,4 @@ __all__ = ["QUANTITIES", "SCHEMA_VERSION", "ConfigResult", "GridError", "StudyRe
            "plot_pareto", "run_study", "scene_document", "set_quantity", "variant_scene", "without_timings"]
 
 
-def __getattr__(name):
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module 'warpfem.tradeoff' has no attribute {name!r}")
-    import importlib
-
-    value = getattr(importlib.import_module(module), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_attributes(__name__, _LAZY)
