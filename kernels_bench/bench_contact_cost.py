@@ -108,6 +108,7 @@ CONFIGS: dict[str, dict] = {
     "after": {},
     # the working tree without the stick/slip-aware Newton step for collider friction
     "after_no_filter": {"friction_filter": False},
+    "after_no_extrapolation": {"extrapolate": False},
 }
 
 #: where the example scenes are read: this tree's, or in a worker the extracted revision's

@@ -88,6 +88,7 @@ __all__ = ["Form", "InertiaForm", "DampingForm", "ElasticForm", "LoadForm", "Inc
 ROW = 4  # accumulator slots per form
 # the potential's own row: joint gradient magnitude^2, ||P g||^2, then the direction check (g.d, max|d|, max|y|, max|x|)
 _G_JOINT, _G_NORM, _D_GD = 0, 1, 2
+_G_TD = 6  # in the trial's gradient section: g(y + alpha d) . d (the directional derivative there)
 _HEAD = 8
 _F64_ONE = wp.float64(1.0)
 #: lagged quantities are taken again from an iterate whose gradient is below this fraction of the
@@ -95,6 +96,11 @@ _F64_ONE = wp.float64(1.0)
 #: (docs/contact.md): from the first iterate, an impact's overshoot into the barrier gives normal
 #: forces many times the converged ones (the stack's impact step then took 100 iterations).
 LAG_BELOW = 1e-2
+#: extrapolation along an accepted full Newton step (``IncrementalPotential.extrapolate``): tried when
+#: the slope there is still below this fraction of the start's (the step fell at least this short)
+EXTRAPOLATE_BELOW = 0.5
+#: the longest extrapolated step, in Newton steps
+EXTRAPOLATE_MAX = 32.0
 
 
 def _ptr(a):
@@ -514,7 +520,8 @@ class IncrementalPotential:
         for f in self.forms:
             f.energy(y, x, acc)
 
-    def _launch_gradient(self, y, g, acc):
+    def _launch_gradient(self, y, g, acc, d=None):
+        """g = P grad E(y) with its norms into acc; with ``d``, also g . d into acc[_G_TD]."""
         acc.zero_()
         g.zero_()
         x = self._x_of(y)
@@ -529,6 +536,8 @@ class IncrementalPotential:
             launch(LK.dot_slot_kernel, self.n, [g, g, _F64_ONE, acc, _G_JOINT], self.ops.device)
         launch(LK.gradient_finish_kernel, self.n, [g, self.ops.zero, self.ops.scalar(0.0), self.mask, acc, _G_NORM],
                self.ops.device)
+        if d is not None:
+            launch(LK.dot_slot_kernel, self.n, [g, d, _F64_ONE, acc, _G_TD], self.ops.device)
 
     def _launch_direction(self, y, g, d, acc):
         acc.zero_()
@@ -590,14 +599,16 @@ class IncrementalPotential:
 
     def trial_step(self, y, g, d, alpha, y_try, g_try):
         """The direction check of d, then y_try = y + alpha d with its energy and gradient (into
-        g_try), all read back at once: (g.d, negligible, E, |E|, gradient magnitude, ||P g_try||)."""
+        g_try), all read back at once: (g.d, negligible, E, |E|, gradient magnitude, ||P g_try||,
+        g_try . d)."""
         self._launch_direction(y, g, d, self._acc_d)
         self.trial(y, alpha, d, y_try)
         self._launch_energy(y_try, self._acc_e)
-        self._launch_gradient(y_try, g_try, self._acc_g)
+        self._launch_gradient(y_try, g_try, self._acc_g, d)
         a = self._read(self.acc[:3 * self._size])
         s = self._size
-        return self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+        return (self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+                + (float(a[s + _G_TD]),))
 
     def newton_step(self, y, g, d, y_try, g_try, opts, start=False):
         """A Newton iteration's device work with one read-back: the Newton system's solve (a linear
@@ -636,12 +647,13 @@ class IncrementalPotential:
             self._launch_direction(y, g, d, self._acc_d)
             self.trial(y, 1.0, d, y_try)
             self._launch_energy(y_try, self._acc_e)
-            self._launch_gradient(y_try, g_try, self._acc_g)
+            self._launch_gradient(y_try, g_try, self._acc_g, d)
 
         self._captured(("trial",), (y, g, d, y_try, g_try), after_solve, y_try)
         a = self._read(self.acc)
         first = (self._energy_of(a[3 * s:4 * s]) + self._gradient_of(a[4 * s:5 * s])) if start else None
-        trial = self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+        trial = (self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+                 + (float(a[s + _G_TD]),))
         if deferred:
             lin, changed = solver.complete_deferred(a[r:r + 4])
             if changed:  # the solve needed more chunks than guessed: d is new, evaluate its step again
@@ -799,6 +811,39 @@ class IncrementalPotential:
                                                       w.inv_diag], dev)
         launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), w.rhs], dev)
         launch(LK.block_apply_kernel, self.n, [w.inv_diag, w.rhs, d], dev)
+
+    def extrapolate(self, y, d, gd0, gd1, E1, y_try, g_try):
+        """A longer step along d after an accepted full Newton step y_try = y + d (energy E1,
+        gradient g_try there): when the energy still falls steeply along d there (g_try . d =
+        ``gd1`` < ``EXTRAPOLATE_BELOW`` x g(y) . d = ``gd0``), the minimum of the secant model of
+        the slope along d, alpha = gd0 / (gd0 - gd1) (at most ``EXTRAPOLATE_MAX``, within the
+        forms' step bound), is tried; kept when its energy is below E1 (then y_try and g_try are
+        replaced). Returns (E, |E|, gradient magnitude, ||P g||, alpha) of the kept point, or None.
+
+        Why: SPD projection of a Hessian (per contact pair, per element) adds curvature the energy
+        does not have, so projected Newton's full steps fall short along the directions where the
+        projection added it and the iteration converges linearly (measured on self contact:
+        docs/contact.md, "Longer steps where the projection makes them short")."""
+        if not (gd0 < 0.0 and gd1 < EXTRAPOLATE_BELOW * gd0):
+            return None
+        a = min(gd0 / (gd0 - gd1), EXTRAPOLATE_MAX)
+        w = self.work
+        if self.bounds_step():
+            if getattr(w, "d_long", None) is None or w.d_long.shape[0] != self.n:
+                w.d_long = self.ops.new_vector()
+            launch(LK.scale_copy_kernel, self.n, [d, self.ops.scalar(a), w.d_long], self.ops.device)
+            a *= min(1.0, self.max_step(y, w.d_long))
+        if not a > 1.0 + 1e-3:
+            return None
+        if getattr(w, "y_long", None) is None or w.y_long.shape[0] != self.n:
+            w.y_long, w.g_long = self.ops.new_vector(), self.ops.new_vector()
+        self.trial(y, a, d, w.y_long)
+        E2, mag2, gmag2, gnorm2 = self.evaluate(w.y_long, w.g_long)
+        if not (np.isfinite(E2) and E2 < E1 and np.isfinite(gnorm2)):
+            return None
+        wp.copy(y_try, w.y_long)
+        wp.copy(g_try, w.g_long)
+        return E2, mag2, gmag2, gnorm2, a
 
     def direction_check(self, y, g, d):
         """(g . d, whether the step d is below the resolution of y and of x = x_b + s y): one read-back."""

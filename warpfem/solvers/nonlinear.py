@@ -66,6 +66,11 @@ class NewtonOptions:
             where the Newton step would carry it across its sticking zone (stick/slip-aware steps,
             :mod:`warpfem.contact.friction`). Changes the path to the step's solution, not the
             solution; off: the plain Newton direction (measured effect in docs/contact.md).
+        extrapolate: after a full Newton step that the line search accepted, when the energy
+            still falls steeply along the step (its slope there below half the start's), try the
+            secant model's longer step along it and keep it if the energy is lower: corrects the
+            short steps of projected Hessians (contact pairs, elements). Changes the path, not
+            the solution; one energy and gradient evaluation per try (measured in docs/contact.md).
     """
 
     tol: float = 1e-6
@@ -79,6 +84,7 @@ class NewtonOptions:
     forcing: str = "fixed"
     hessian_projection: str = "on_demand"
     friction_filter: bool = True
+    extrapolate: bool = True
 
     def validate(self):
         for name in ("tol", "cg_tol"):
@@ -135,11 +141,13 @@ class SolveStats:
     friction_iterations: int = 0  # updates of friction's lagged normal forces inside the solve (Simulator)
     projected_retries: int = 0  # hessian_projection="on_demand": Newton systems solved again with the projected Hessian
     adaptations: int = 0  # Newton iterations after which the potential changed (an adaptive barrier stiffness doubled)
+    extrapolations: int = 0  # Newton iterations whose accepted step was lengthened (NewtonOptions.extrapolate)
     history: list = field(default_factory=list)
 
     #: the work counters a step made of several solves (load steps) sums
     COUNTS = ("newton_iterations", "cg_iterations", "line_search_steps", "linear_iterations", "host_syncs",
-              "newton_syncs", "hessian_evaluations", "singular_solves", "projected_retries", "adaptations")
+              "newton_syncs", "hessian_evaluations", "singular_solves", "projected_retries", "adaptations",
+              "extrapolations")
 
     def add_counts(self, other: "SolveStats") -> None:
         """Add ``other``'s work counters (``COUNTS``) to this one's."""
@@ -397,6 +405,12 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
             else:
                 st.reason = "line search could not decrease the energy"
             break
+        if (opts.extrapolate and pre is not None and _ls == 0 and alpha >= 1.0 and g_new is not None and len(pre) > 6
+                and hasattr(problem, "extrapolate")):
+            longer = problem.extrapolate(y, d, gd, pre[6], E_try, y_try, g_try)
+            if longer is not None:
+                E_try, mag_try, g_new, alpha = longer[0], longer[1], longer[2:4], longer[4]
+                st.extrapolations += 1
         problem.assign(y, y_try)
         E, mag = E_try, mag_try
         if g_new is not None:  # the fused trial's gradient is the gradient at y: swap the buffers
