@@ -78,8 +78,8 @@ class Simulator(SimulatorBase):
         linear_solver: "auto", "pcg", "direct", "amg" or "multigrid": the solver of each Newton system
             (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
         Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
-            ``max_line_search``, ``armijo``, ``project_hessian``, ``hessian_projection``, ``forcing``
-            (see :class:`NewtonOptions`).
+            ``max_line_search``, ``armijo``, ``project_hessian``, ``hessian_projection``, ``forcing``,
+            ``friction_filter``, ``extrapolate`` (see :class:`NewtonOptions`).
         initial_guess: where each step's Newton solve starts (free components; fixed ones always
             start at their prescribed value). "previous" (default): the previous velocity v_n.
             "extrapolated": constant acceleration from the history, v_n + h (v_n - v_{n-1}) / h_prev
