@@ -23,7 +23,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.model import rigid_body_modes
-from warpfem.solvers.linear.base import HostLinearSolver, LinearSolveResult, require
+from warpfem.solvers.linear.base import HostLinearSolver, LinearSolveResult, numpy_global_seed, require
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +97,8 @@ class AMGSolver(HostLinearSolver):
                 or (self.rebuild_every > 1 and self._since_build > self.rebuild_every)):
             B = self._B0 * self._mask_host[:, None]
             Ab = scipy.sparse.bsr_matrix(A, blocksize=(3, 3))
-            self.ml = self.pyamg.smoothed_aggregation_solver(Ab, B=B, symmetry="hermitian", **self.sa_options)
+            with numpy_global_seed():
+                self.ml = self.pyamg.smoothed_aggregation_solver(Ab, B=B, symmetry="hermitian", **self.sa_options)
             self._M = self.ml.aspreconditioner(cycle="V")
             self.setup_count += 1
             self._since_build, self._base_iters, self._stale = 1, None, False

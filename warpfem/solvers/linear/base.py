@@ -20,6 +20,8 @@ prepared matrix, Newton's fallback direction), ``device`` and ``scalar``.
 
 from __future__ import annotations
 
+import contextlib
+
 import logging
 from dataclasses import dataclass
 
@@ -30,6 +32,20 @@ from warpfem.kernels import linalg as K
 from warpfem.kernels.generic import launch
 
 log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def numpy_global_seed(seed: int = 0):
+    """NumPy's global random state seeded inside the block and restored after it: pyamg's set-up
+    draws its spectral-radius estimates (the prolongator smoothing weight) from ``np.random``, so
+    without this two builds of the same hierarchy differ in the last bits, and so does every
+    solve with it."""
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(state)
 
 
 @dataclass

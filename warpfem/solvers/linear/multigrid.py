@@ -55,7 +55,7 @@ import warp.sparse as wsp
 
 from warpfem.kernels.generic import RecordedLaunch, both_precisions
 from warpfem.model import rigid_body_modes
-from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult, require
+from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult, numpy_global_seed, require
 from warpfem.solvers.linear.pcg import (_NEGATIVE, _NONFINITE, _RUNNING, _pcg_carry_kernel, _pcg_direction_kernel,
                                         _pcg_matvec_kernel, _pcg_start_kernel)
 
@@ -473,10 +473,11 @@ class MultigridPCG(LinearSolver):
         import scipy.sparse
 
         A, m = self._host_matrix(values, mask)
-        ml = self.pyamg.smoothed_aggregation_solver(
-            scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
-            max_coarse=max(1, self.max_coarse // self._B0.shape[1]),  # pyamg counts aggregates (blocks)
-            max_levels=self.max_levels, keep=False, coarse_solver="pinv", **self.sa_options)
+        with numpy_global_seed():  # the same hierarchy, bit for bit, every run
+            ml = self.pyamg.smoothed_aggregation_solver(
+                scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
+                max_coarse=max(1, self.max_coarse // self._B0.shape[1]),  # pyamg counts aggregates (blocks)
+                max_levels=self.max_levels, keep=False, coarse_solver="pinv", **self.sa_options)
         dev, s = self.device, self.vscalar
         levels = [_Level(self._A0, 3 * self.num_rows, s, dev)]
         if not self._mixed:
