@@ -13,13 +13,15 @@ docs/linear_solvers.md):
   solver is built by a simulator (``initial="size"``, the simulators' default; one factorisation
   of such a system costs less than the launches of a few dozen PCG iterations,
   kernels_bench/bench_auto_crossover.py).
-* Larger systems (and every CUDA system above that size): ``multigrid`` when it is a candidate
-  (the cheapest per step from 12k tets on, at nu 0.3 and 0.49, on the boxes and the bunny
-  measured), else ``pcg``.
-* Without multigrid, on the CPU, ``pcg`` hands every later system to ``direct`` (where allowed) once
-  one of its solves needs more than DIRECT_AFTER_ITERATIONS x (unknowns / 8000) ** 0.6 CG
-  iterations (direct's cost grows faster with the size than a CG iteration's, so the crossover
-  count grows with it). An iteration count is a property of the system, not of the machine's load.
+* Above MULTIGRID_MIN_DOFS unknowns (CPU and CUDA): ``multigrid`` when it is a candidate (the
+  cheapest per step from 12k tets on, at nu 0.3 and 0.49, on the boxes and the bunny measured).
+* Otherwise ``pcg``; on the CPU it hands every later system to ``direct`` (where allowed) once one
+  of its solves needs more than DIRECT_AFTER_ITERATIONS x (unknowns / 8000) ** 0.8 CG iterations
+  (:func:`direct_after_iterations`; a factorisation's cost grows faster with the size than a CG
+  iteration's, so the crossover count grows with it). A soft material at a loose tolerance stays
+  with PCG, a stiff one or a tight tolerance goes direct after its first Newton system
+  (kernels_bench/bench_auto_rule.py). An iteration count is a property of the system, not of the
+  machine's load.
 * A factorisation that meets a non-positive pivot is retried with a small diagonal shift by the
   direct solver itself (a semi-definite projected Hessian); only a matrix that no shift makes
   positive definite (an unprojected Hessian far from convex) sends that system and all later ones
@@ -47,7 +49,8 @@ log = logging.getLogger(__name__)
 
 DIRECT_MAX_DOFS_CPU = 200_000
 SUPERLU_MAX_DOFS_CPU = 20_000
-SMALL_DIRECT_DOFS_CPU = 10_000  # crossover measured in kernels_bench/bench_auto_crossover.py
+#: CPU systems of at most this many unknowns run direct from the first solve (``initial="size"``)
+SMALL_DIRECT_DOFS_CPU = 3_000
 EXPLORE_SECONDS = 0.02
 #: systems with at most this many unknowns are never timed against the other candidates: their
 #: solver is the starting one, so small runs (tests, studies compared bit for bit, a serial and a
@@ -57,16 +60,16 @@ INITIAL_CHOICES = ("pcg", "size")
 CANDIDATES = ("pcg", "multigrid", "direct")
 RULES = ("model", "measured")
 #: ``rule="model"``: systems above this many unknowns run multigrid when it is a candidate
-MULTIGRID_MIN_DOFS = SMALL_DIRECT_DOFS_CPU
-#: ``rule="model"`` without multigrid (CPU): CG iterations of one solve, at 8000 unknowns, past which
-#: the later systems go to the direct solver (scaled by (unknowns / 8000) ** 0.6)
-DIRECT_AFTER_ITERATIONS = 140
+MULTIGRID_MIN_DOFS = 10_000
+#: ``rule="model"``, PCG on the CPU: CG iterations of one solve, at 8000 unknowns, past which the
+#: later systems go to the direct solver (scaled by (unknowns / 8000) ** 0.8)
+DIRECT_AFTER_ITERATIONS = 100
 
 
 def direct_after_iterations(num_dofs: int) -> int:
     """``rule="model"`` without multigrid: the CG iterations of one PCG solve past which the later
     systems of ``num_dofs`` unknowns go to the direct solver."""
-    return int(round(DIRECT_AFTER_ITERATIONS * (max(num_dofs, 1) / 8000.0) ** 0.6))
+    return int(round(DIRECT_AFTER_ITERATIONS * (max(num_dofs, 1) / 8000.0) ** 0.8))
 
 
 def starts_direct(pattern) -> bool:
@@ -82,21 +85,20 @@ def describe_choice(num_dofs: int) -> dict:
 
     backend = available_backends()[0]
     limit = DIRECT_MAX_DOFS_CPU if backend == "pardiso" else SUPERLU_MAX_DOFS_CPU
-    mg = _multigrid_available()
-    big = num_dofs > MULTIGRID_MIN_DOFS
-    mg_text = (f"multigrid-preconditioned CG ({num_dofs:,} unknowns > {MULTIGRID_MIN_DOFS:,}, pyamg installed)")
+    mg = _multigrid_available() and num_dofs > MULTIGRID_MIN_DOFS
+    mg_text = f"multigrid-preconditioned CG ({num_dofs:,} unknowns > {MULTIGRID_MIN_DOFS:,}, pyamg installed)"
     if num_dofs <= SMALL_DIRECT_DOFS_CPU:
         cpu = (f"direct (sparse Cholesky, {backend}) from the first solve: {num_dofs:,} unknowns <= "
                f"{SMALL_DIRECT_DOFS_CPU:,}; block-Jacobi PCG if a factorisation finds the matrix not "
                f"positive definite")
-    elif mg and big:
+    elif mg:
         cpu = mg_text
     elif num_dofs <= limit:
-        cpu = (f"block-Jacobi PCG; direct (sparse Cholesky, {backend}) from the first solve that needs more than "
-               f"{direct_after_iterations(num_dofs)} CG iterations ({num_dofs:,} unknowns, no pyamg)")
+        cpu = (f"block-Jacobi PCG; direct (sparse Cholesky, {backend}) from the Newton system after the first "
+               f"PCG solve that needs more than {direct_after_iterations(num_dofs)} CG iterations ({num_dofs:,} unknowns)")
     else:
-        cpu = f"block-Jacobi PCG ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend}, no pyamg)"
-    cuda = (mg_text if mg and big else "block-Jacobi PCG") + " (the data stay on the device)"
+        cpu = f"block-Jacobi PCG ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})"
+    cuda = (mg_text if mg else "block-Jacobi PCG") + " (the data stay on the device)"
     return {"cpu": cpu, "cuda": cuda}
 
 
@@ -207,7 +209,7 @@ class AutoSolver(LinearSolver):
         elif self.rule == "model" and "multigrid" in self.candidates and n > MULTIGRID_MIN_DOFS:
             self.active = "multigrid"
             log.debug("linear solver auto: %d unknowns; multigrid", n)
-        elif self.rule == "model" and "direct" in self.candidates and "multigrid" not in self.candidates:
+        elif self.rule == "model" and "direct" in self.candidates:
             self.switch_iterations = direct_after_iterations(n)
         self.costs = {}  # seconds per Newton system (prepare + solve) of each measured candidate
         self.setup_seconds = {}  # one-time set-up of each candidate (not in ``costs``)
