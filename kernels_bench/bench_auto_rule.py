@@ -2,10 +2,11 @@
 (``rule="measured"``) on the cases that measured the rules: the cantilevers of
 bench_auto_crossover.py above EXPLORE_MIN_DOFS unknowns (below it both rules keep their starting
 solver: the same code path, not measured again) and the 98k-tet box of bench_scale.py at nu 0.49.
-Per case: the two rules alternate (model, measured, model, measured), each run a new simulator,
-``--warmup`` steps (the measured rule's timings and set-ups happen there), then ``--steps`` timed
-steps; the faster of the two runs of each rule is kept. Recorded: ms per step, what each run chose,
-and whether the two runs of a rule ended at bit-identical positions.
+Per case: the two rules and the three candidates named (pcg, direct, multigrid; direct not on the
+box) alternate for ``--rounds`` rounds, each run a new simulator, ``--warmup`` steps (the measured
+rule's timings and set-ups happen there), then ``--steps`` timed steps; the fastest run of each
+configuration is kept. Recorded: ms per step, what each run chose, whether the runs of a
+configuration ended at bit-identical positions, and each rule's time over the best named solver's.
 
     .venv/bin/python kernels_bench/bench_auto_rule.py [--steps 4] [--warmup 2] [--no-box] [--json PATH]
 """
@@ -32,7 +33,16 @@ import warp as wp  # noqa: E402
 import warpfem as wf  # noqa: E402
 from warpfem.solvers.linear.auto import EXPLORE_MIN_DOFS  # noqa: E402
 
+RULES = ("model", "measured")
+NAMED = ("pcg", "direct", "multigrid")  # the candidates, named: what the best choice would have cost
 CANTILEVER_CELLS = [(30, 5, 5), (40, 6, 6), (50, 8, 8)]  # bench_auto_crossover's sizes above EXPLORE_MIN_DOFS
+
+
+def _solver(rule):
+    """'model' / 'measured': auto with that rule; any other name: that solver, named."""
+    if rule in ("model", "measured"):
+        return dict(linear_solver="auto", linear_solver_options={"rule": rule})
+    return dict(linear_solver=rule)
 
 
 def cantilever(cells, E, tol, cg, rule):
@@ -40,8 +50,7 @@ def cantilever(cells, E, tol, cg, rule):
     mat = wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=0.3, density=1000.0)
     model = wf.Model(mesh, mat, gravity=(0.0, 0.0, -9.81), mass_matrix="lumped")
     model.fix(np.flatnonzero(mesh.vertices[:, 0] < 1e-9))
-    return wf.Simulator(model, dt=1 / 60, integrator="newmark", tol=tol, cg_tol=cg, linear_solver="auto",
-                        linear_solver_options={"rule": rule}, max_cg_iters=5000)
+    return wf.Simulator(model, dt=1 / 60, integrator="newmark", tol=tol, cg_tol=cg, max_cg_iters=5000, **_solver(rule))
 
 
 def box98k(rule):
@@ -50,7 +59,7 @@ def box98k(rule):
     mat = wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.49, density=1000.0)
     model = wf.Model(mesh, mat, gravity=(0.0, -9.81, 0.0))
     model.fix(np.nonzero(mesh.vertices[:, 0] < 1e-9)[0])
-    return wf.Simulator(model, dt=1.0 / 60.0, linear_solver="auto", linear_solver_options={"rule": rule})
+    return wf.Simulator(model, dt=1.0 / 60.0, **_solver(rule))
 
 
 def run(make, warmup, steps):
@@ -71,6 +80,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=4)
     ap.add_argument("--warmup", type=int, default=2)
+    ap.add_argument("--rounds", type=int, default=2, help="runs of each configuration (the fastest kept)")
     ap.add_argument("--no-box", action="store_true", help="leave out the 98k-tet box")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
@@ -82,26 +92,32 @@ def main(argv=None):
                 cases.append((f"cantilever {cells} E {E:.0e} tol {tol:g}/{cg:g}",
                               lambda rule, cells=cells, E=E, tol=tol, cg=cg: cantilever(cells, E, tol, cg, rule)))
     if not args.no_box:
-        cases.append(("box 98k tets nu 0.49", box98k))
+        cases.append(("box 98k tets nu 0.49", box98k))  # (direct: 5-7 s per step there, not run)
     load0 = os.getloadavg()[0]
     print(f"cpu ({platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {load0:.1f}); "
           f"cantilevers above {EXPLORE_MIN_DOFS} unknowns")
     rows = []
     for name, make in cases:
-        res = {"model": [], "measured": []}
-        for rule in ("model", "measured", "model", "measured"):
-            res[rule].append(run(lambda: make(rule), args.warmup, args.steps))
+        configs = RULES + tuple(n for n in NAMED if not (n == "direct" and name.startswith("box")))
+        res = {c: [] for c in configs}
+        for _ in range(args.rounds):  # interleaved: each configuration once per round
+            for c in configs:
+                res[c].append(run(lambda: make(c), args.warmup, args.steps))
         row = dict(case=name)
-        for rule, rs in res.items():
-            row[f"{rule}_ms"] = min(r[0] for r in rs)
-            row[f"{rule}_chose"] = [r[1] for r in rs]
-            row[f"{rule}_same_bits"] = rs[0][2] == rs[1][2]
+        for c, rs in res.items():
+            row[f"{c}_ms"] = min(r[0] for r in rs)
+            row[f"{c}_chose"] = [r[1] for r in rs]
+            row[f"{c}_same_bits"] = all(r[2] == rs[0][2] for r in rs)
+        best = min(row[f"{n}_ms"] for n in configs if n not in RULES)
         row["model_over_measured"] = row["model_ms"] / row["measured_ms"]
+        row["model_over_best_named"] = row["model_ms"] / best
+        row["measured_over_best_named"] = row["measured_ms"] / best
         rows.append(row)
-        print(f"{name:45s} model {row['model_ms']:8.1f} ms {'/'.join(row['model_chose']):17s} "
-              f"measured {row['measured_ms']:8.1f} ms {'/'.join(row['measured_chose']):17s} "
-              f"ratio {row['model_over_measured']:.2f}  same bits: {row['model_same_bits']} / {row['measured_same_bits']}",
-              flush=True)
+        named = "  ".join(f"{n} {row[f'{n}_ms']:.0f}" for n in configs if n not in RULES)
+        print(f"{name:45s} model {row['model_ms']:7.1f} ms ({'/'.join(row['model_chose'])}) "
+              f"measured {row['measured_ms']:7.1f} ms ({'/'.join(row['measured_chose'])})  named: {named}  "
+              f"model/measured {row['model_over_measured']:.2f}  bits repeat: {row['model_same_bits']} / "
+              f"{row['measured_same_bits']}", flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump(dict(device="cpu", machine=platform.machine(), cores=os.cpu_count(), load_start=load0,

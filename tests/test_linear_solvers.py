@@ -370,7 +370,7 @@ def test_auto_rule_model_is_a_function_of_the_problem_not_of_the_clock(monkeypat
         return s, chosen, xs
 
     # without multigrid: PCG, then direct once a solve passes the iteration count of its size
-    assert auto.direct_after_iterations(n) < 1000 and auto.direct_after_iterations(8000) == auto.DIRECT_AFTER_ITERATIONS
+    assert auto.switch_after_iterations(n) < 1000 and auto.switch_after_iterations(8000) == auto.SWITCH_AFTER_ITERATIONS
     s1, c1, x1 = run(candidates=("pcg", "direct"))
     s2, c2, x2 = run(candidates=("pcg", "direct"))
     assert c1 == c2 == ["direct", "direct", "direct"]  # the first system was solved by PCG, then switched
@@ -395,5 +395,11 @@ def test_auto_rule_model_is_a_function_of_the_problem_not_of_the_clock(monkeypat
         xd = sim._vec_array()
         mg.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
         np.testing.assert_array_equal(xd.numpy(), x4[0])
+        # below it, started with PCG: multigrid (the switch target when installed) after the first solve
+        monkeypatch.setattr(auto, "MULTIGRID_MIN_DOFS", n + 1)
+        s5, c5, x5 = run()
+        assert c5 == ["multigrid"] * 3 and s5.switch_to == "multigrid"
+        np.testing.assert_array_equal(x5[0], x1[0])  # PCG's
+        np.testing.assert_array_equal(x5[1], x4[0])  # multigrid's
     with pytest.raises(ValueError, match="rule"):
         _make("auto", sim, model, rule="fastest")

@@ -15,13 +15,13 @@ docs/linear_solvers.md):
   kernels_bench/bench_auto_crossover.py).
 * Above MULTIGRID_MIN_DOFS unknowns (CPU and CUDA): ``multigrid`` when it is a candidate (the
   cheapest per step from 12k tets on, at nu 0.3 and 0.49, on the boxes and the bunny measured).
-* Otherwise ``pcg``; on the CPU it hands every later system to ``direct`` (where allowed) once one
-  of its solves needs more than DIRECT_AFTER_ITERATIONS x (unknowns / 8000) ** 0.8 CG iterations
-  (:func:`direct_after_iterations`; a factorisation's cost grows faster with the size than a CG
-  iteration's, so the crossover count grows with it). A soft material at a loose tolerance stays
-  with PCG, a stiff one or a tight tolerance goes direct after its first Newton system
-  (kernels_bench/bench_auto_rule.py). An iteration count is a property of the system, not of the
-  machine's load.
+* Otherwise ``pcg``, which hands every later system to ``multigrid`` (when it is a candidate, else
+  to ``direct`` where allowed) once one of its solves needs more than SWITCH_AFTER_ITERATIONS x
+  (unknowns / 8000) ** 0.8 CG iterations (:func:`switch_after_iterations`; the set-up of the
+  other solvers grows faster with the size than a CG iteration's cost, so the crossover count
+  grows with it). A soft material at a loose tolerance stays with PCG, a stiff one or a tight
+  tolerance switches after its first Newton system (kernels_bench/bench_auto_rule.py). An
+  iteration count is a property of the system, not of the machine's load.
 * A factorisation that meets a non-positive pivot is retried with a small diagonal shift by the
   direct solver itself (a semi-definite projected Hessian); only a matrix that no shift makes
   positive definite (an unprojected Hessian far from convex) sends that system and all later ones
@@ -61,15 +61,15 @@ CANDIDATES = ("pcg", "multigrid", "direct")
 RULES = ("model", "measured")
 #: ``rule="model"``: systems above this many unknowns run multigrid when it is a candidate
 MULTIGRID_MIN_DOFS = 10_000
-#: ``rule="model"``, PCG on the CPU: CG iterations of one solve, at 8000 unknowns, past which the
-#: later systems go to the direct solver (scaled by (unknowns / 8000) ** 0.8)
-DIRECT_AFTER_ITERATIONS = 100
+#: ``rule="model"``, PCG: CG iterations of one solve, at 8000 unknowns, past which the later systems
+#: go to multigrid (or, without pyamg, on the CPU, to the direct solver; scaled by (unknowns / 8000) ** 0.8)
+SWITCH_AFTER_ITERATIONS = 100
 
 
-def direct_after_iterations(num_dofs: int) -> int:
-    """``rule="model"`` without multigrid: the CG iterations of one PCG solve past which the later
-    systems of ``num_dofs`` unknowns go to the direct solver."""
-    return int(round(DIRECT_AFTER_ITERATIONS * (max(num_dofs, 1) / 8000.0) ** 0.8))
+def switch_after_iterations(num_dofs: int) -> int:
+    """``rule="model"``: the CG iterations of one PCG solve past which the later systems of
+    ``num_dofs`` unknowns go to multigrid (or direct; see the module)."""
+    return int(round(SWITCH_AFTER_ITERATIONS * (max(num_dofs, 1) / 8000.0) ** 0.8))
 
 
 def starts_direct(pattern) -> bool:
@@ -93,12 +93,20 @@ def describe_choice(num_dofs: int) -> dict:
                f"positive definite")
     elif mg:
         cpu = mg_text
-    elif num_dofs <= limit:
-        cpu = (f"block-Jacobi PCG; direct (sparse Cholesky, {backend}) from the Newton system after the first "
-               f"PCG solve that needs more than {direct_after_iterations(num_dofs)} CG iterations ({num_dofs:,} unknowns)")
+    elif _multigrid_available() or num_dofs <= limit:
+        then = "multigrid-preconditioned CG" if _multigrid_available() else f"direct (sparse Cholesky, {backend})"
+        cpu = (f"block-Jacobi PCG; {then} from the Newton system after the first PCG solve that needs more than "
+               f"{switch_after_iterations(num_dofs)} CG iterations ({num_dofs:,} unknowns)")
     else:
         cpu = f"block-Jacobi PCG ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})"
-    cuda = (mg_text if mg else "block-Jacobi PCG") + " (the data stay on the device)"
+    if mg:
+        cuda = mg_text
+    elif _multigrid_available():
+        cuda = (f"block-Jacobi PCG; multigrid-preconditioned CG from the Newton system after the first PCG solve that "
+                f"needs more than {switch_after_iterations(num_dofs)} CG iterations")
+    else:
+        cuda = "block-Jacobi PCG"
+    cuda += " (the data stay on the device)"
     return {"cpu": cpu, "cuda": cuda}
 
 
@@ -201,16 +209,17 @@ class AutoSolver(LinearSolver):
             self.candidates.insert(0, "pcg")  # the fallback of an indefinite system
         self.active = "pcg"
         n = 3 * pattern.num_rows
-        #: rule "model": the CG iterations of a PCG solve past which later systems go direct (None: never)
-        self.switch_iterations = None
+        #: rule "model": the CG iterations of a PCG solve past which later systems go to ``switch_to`` (None: never)
+        self.switch_iterations, self.switch_to = None, None
         if self._initial == "size" and "direct" in self.candidates and starts_direct(pattern):
             self.active = "direct"
             log.debug("linear solver auto: %d unknowns on the CPU; direct from the first solve", n)
         elif self.rule == "model" and "multigrid" in self.candidates and n > MULTIGRID_MIN_DOFS:
             self.active = "multigrid"
             log.debug("linear solver auto: %d unknowns; multigrid", n)
-        elif self.rule == "model" and "direct" in self.candidates:
-            self.switch_iterations = direct_after_iterations(n)
+        elif self.rule == "model" and ("multigrid" in self.candidates or "direct" in self.candidates):
+            self.switch_iterations = switch_after_iterations(n)
+            self.switch_to = "multigrid" if "multigrid" in self.candidates else "direct"
         self.costs = {}  # seconds per Newton system (prepare + solve) of each measured candidate
         self.setup_seconds = {}  # one-time set-up of each candidate (not in ``costs``)
         self.explorations = 0
@@ -271,14 +280,15 @@ class AutoSolver(LinearSolver):
             self._make(self.active).prepare(values, mask)
 
     def _after_pcg(self, res):
-        """Rule "model": a PCG solve past ``switch_iterations`` CG iterations sends later systems to direct."""
-        if (self.active == "pcg" and self.switch_iterations is not None and "direct" in self.candidates
+        """Rule "model": a PCG solve past ``switch_iterations`` CG iterations sends later systems to
+        ``switch_to`` (multigrid when it is a candidate, else direct)."""
+        if (self.active == "pcg" and self.switch_iterations is not None and self.switch_to in self.candidates
                 and res.iterations > self.switch_iterations):
-            log.info("linear solver auto: %d CG iterations > %d; direct from the next Newton system", res.iterations,
-                     self.switch_iterations)
-            self.active = "direct"
+            log.info("linear solver auto: %d CG iterations > %d; %s from the next Newton system", res.iterations,
+                     self.switch_iterations, self.switch_to)
+            self.active = self.switch_to
             self.switch_iterations = None
-            self._make("direct")
+            self._make(self.active)
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         res = self.solvers[self.active].solve(b, x, tol=tol, maxiter=maxiter)
