@@ -73,7 +73,7 @@ def run(make, warmup, steps):
             sim.step()
         ms = 1e3 * (time.perf_counter() - t0) / steps
     x = sim.positions()
-    return ms, sim._pcg.active, hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()[:16]
+    return ms, getattr(sim._pcg, "active", sim._pcg.name), hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()[:16]
 
 
 def main(argv=None):

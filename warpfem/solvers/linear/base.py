@@ -30,6 +30,7 @@ import warp as wp
 
 from warpfem.kernels import linalg as K
 from warpfem.kernels.generic import launch
+from warpfem.transfer import read, read_scalar
 
 log = logging.getLogger(__name__)
 
@@ -165,7 +166,7 @@ class LinearSolver:
         self._dot.zero_()
         wp.launch(K.dot_kernel, dim=a.shape[0], inputs=[a, b, self._dot], device=self.device)
         self.host_syncs += 1
-        return float(self._dot.numpy()[0])
+        return read_scalar(self._dot)
 
     def matvec(self, values, mask, x, y):
         """y = (P A P + I - P) x."""
@@ -198,7 +199,7 @@ class HostLinearSolver(LinearSolver):
         import scipy.sparse
 
         n = pattern.num_rows
-        offsets = pattern.offsets.numpy()[: n + 1].astype(np.int64)
+        offsets = read(pattern.offsets, n + 1).astype(np.int64)
         nnzb = pattern.nnz
         # scalar CSR of the block matrix with data = arange(9 nnzb): its data says where each
         # scalar entry comes from in the flat (nnzb, 3, 3) value array
@@ -223,8 +224,8 @@ class HostLinearSolver(LinearSolver):
         """The masked float64 CSR matrix (P A P + I - P) of these device block values."""
         import scipy.sparse
 
-        v = values.numpy().astype(np.float64, copy=False).reshape(-1)
-        m = mask.numpy().astype(np.float64, copy=False).reshape(-1)
+        v = read(values).astype(np.float64, copy=False).reshape(-1)
+        m = read(mask).astype(np.float64, copy=False).reshape(-1)
         self.host_syncs += 2
         data = v[self._src]
         data *= m[self._row_of] * m[self._indices]

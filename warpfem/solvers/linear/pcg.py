@@ -29,6 +29,7 @@ import warp as wp
 from warpfem.kernels.generic import COUNTERS, both_precisions
 from warpfem.kernels.linalg import cw_mul
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
+from warpfem.transfer import read
 
 log = logging.getLogger(__name__)
 
@@ -403,7 +404,7 @@ class DevicePCG(LinearSolver):
         self._maxiter.fill_(int(maxiter))
         if self.cpu_serial:
             self._run_serial()
-            rep = self._report.numpy()
+            rep = read(self._report)
             wp.copy(x, self.x)
             return self._result(rep, tol, 1)
         self._launch_start()
@@ -411,7 +412,7 @@ class DevicePCG(LinearSolver):
         while True:
             self._run_chunk()
             chunks += 1
-            rep = self._report.numpy()  # the one host read-back of the chunk
+            rep = read(self._report)  # the one host read-back of the chunk
             syncs += 1
             if int(rep[0]) != _RUNNING:
                 break
@@ -480,7 +481,7 @@ class DevicePCG(LinearSolver):
         while int(rep[0]) == _RUNNING:
             self._run_chunk()
             chunks += 1
-            rep = self._report.numpy()
+            rep = read(self._report)
             syncs += 1
         if syncs:
             wp.copy(x, self.x)
