@@ -22,3 +22,13 @@ def meshes_dir():
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture
+def cpu_rules():
+    """Strict device mode off inside the test: for tests of rules that are the CPU's own (``auto``
+    may pick the host's direct solver there; strict device mode chooses as on CUDA)."""
+    from warpfem.transfer import strict_device_mode
+
+    with strict_device_mode(False):
+        yield

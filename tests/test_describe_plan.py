@@ -57,7 +57,8 @@ def test_auto_choice_by_size(monkeypatch):
     # the size rule: multigrid above its limit (pyamg is in the test extra) on both devices
     assert big["cpu"].startswith("multigrid-preconditioned CG") and big["cuda"].startswith("multigrid")
     assert auto.describe_choice(auto.SMALL_DIRECT_DOFS_CPU)["cpu"].startswith("direct")
-    assert auto.describe_choice(auto.SMALL_DIRECT_DOFS_CPU)["cuda"].startswith("block-Jacobi PCG; multigrid")
+    assert auto.describe_choice(auto.SMALL_DIRECT_DOFS_CPU)["cuda"] == "block-Jacobi PCG (the data stay on the device)"
+    assert auto.describe_choice(auto.SMALL_DIRECT_DOFS_CPU + 3)["cuda"].startswith("block-Jacobi PCG; multigrid")
     mid = auto.SMALL_DIRECT_DOFS_CPU + 3  # between: PCG, multigrid past an iteration count
     assert f"more than {auto.switch_after_iterations(mid)} CG iterations" in auto.describe_choice(mid)["cpu"]
     monkeypatch.setattr(auto, "_multigrid_available", lambda: False)  # without pyamg: the same above the limit

@@ -292,7 +292,7 @@ def test_amg_reuses_its_hierarchy_until_the_iterations_grow():
     assert always.setup_count == 2
 
 
-def test_auto_rule_measured_chooses_the_cheapest_measured_solver(monkeypatch):
+def test_auto_rule_measured_chooses_the_cheapest_measured_solver(monkeypatch, cpu_rules):
     from warpfem.solvers.linear import auto
 
     # quasi-static nu = 0.499 beam: block-Jacobi PCG needs thousands of iterations, the others few
@@ -345,7 +345,7 @@ def test_auto_rule_measured_chooses_the_cheapest_measured_solver(monkeypatch):
     assert not auto.direct_allowed(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3 + 1))
 
 
-def test_auto_rule_model_is_a_function_of_the_problem_not_of_the_clock(monkeypatch):
+def test_auto_rule_model_is_a_function_of_the_problem_not_of_the_clock(monkeypatch, cpu_rules):
     """The default rule picks by size and CG iterations: a timer returning noise (a loaded
     machine, exaggerated) changes neither the choice nor a bit of the answer."""
     from warpfem.solvers.linear import auto
@@ -369,7 +369,12 @@ def test_auto_rule_model_is_a_function_of_the_problem_not_of_the_clock(monkeypat
             xs.append(xd.numpy().copy())
         return s, chosen, xs
 
-    # without multigrid: PCG, then direct once a solve passes the iteration count of its size
+    # a size the rule gives to the small-system direct start: no switching, direct throughout
+    s3, c3, _ = run(initial="size")
+    assert c3 == ["direct"] * 3 and set(s3.solvers) == {"direct"}
+    # above it (lowered to this beam), without multigrid: PCG, then direct once a solve passes the
+    # iteration count of its size
+    monkeypatch.setattr(auto, "SMALL_DIRECT_DOFS_CPU", n - 1)
     assert auto.switch_after_iterations(n) < 1000 and auto.switch_after_iterations(8000) == auto.SWITCH_AFTER_ITERATIONS
     s1, c1, x1 = run(candidates=("pcg", "direct"))
     s2, c2, x2 = run(candidates=("pcg", "direct"))
@@ -383,12 +388,8 @@ def test_auto_rule_model_is_a_function_of_the_problem_not_of_the_clock(monkeypat
     xd = sim._vec_array()
     pcg.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
     np.testing.assert_array_equal(xd.numpy(), x1[0])
-    # a size the rule gives to the small-system direct start: no switching, direct throughout
-    s3, c3, _ = run(initial="size")
-    assert c3 == ["direct"] * 3 and set(s3.solvers) == {"direct"}
     if HAVE_AMG:  # above MULTIGRID_MIN_DOFS: multigrid from the first solve, same bits as naming it
         monkeypatch.setattr(auto, "MULTIGRID_MIN_DOFS", n - 1)
-        monkeypatch.setattr(auto, "SMALL_DIRECT_DOFS_CPU", n - 1)
         s4, c4, x4 = run(initial="size")
         assert c4 == ["multigrid"] * 3 and set(s4.solvers) == {"multigrid"}
         mg = _make("multigrid", sim, model)

@@ -111,7 +111,7 @@ def read_int(a, index: int = 0) -> int:
 
 
 def _np_dtype(dtype):
-    return wp.types.warp_type_to_np_dtype[wp.types.type_scalar_type(dtype)]
+    return wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype))
 
 
 def _host_shape(a):

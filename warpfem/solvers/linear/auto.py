@@ -15,7 +15,7 @@ docs/linear_solvers.md):
   kernels_bench/bench_auto_crossover.py).
 * Above MULTIGRID_MIN_DOFS unknowns (CPU and CUDA): ``multigrid`` when it is a candidate (the
   cheapest per step from 12k tets on, at nu 0.3 and 0.49, on the boxes and the bunny measured).
-* Otherwise ``pcg``, which hands every later system to ``multigrid`` (when it is a candidate, else
+* Otherwise ``pcg``; above SMALL_DIRECT_DOFS_CPU unknowns it hands every later system to ``multigrid`` (when it is a candidate, else
   to ``direct`` where allowed) once one of its solves needs more than SWITCH_AFTER_ITERATIONS x
   (unknowns / 8000) ** 0.8 CG iterations (:func:`switch_after_iterations`; the set-up of the
   other solvers grows faster with the size than a CG iteration's cost, so the crossover count
@@ -44,6 +44,7 @@ import time
 import warp as wp
 
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
+from warpfem.transfer import strict_device
 
 log = logging.getLogger(__name__)
 
@@ -72,9 +73,15 @@ def switch_after_iterations(num_dofs: int) -> int:
     return int(round(SWITCH_AFTER_ITERATIONS * (max(num_dofs, 1) / 8000.0) ** 0.8))
 
 
+def _host_solvers_allowed(pattern) -> bool:
+    """The host (direct) solver is a candidate: on the CPU, outside strict device mode (which makes
+    the CPU choose as on CUDA, where the matrix would cross to the host every Newton iteration)."""
+    return not pattern.device.is_cuda and not strict_device()
+
+
 def starts_direct(pattern) -> bool:
     """The small-system rule: direct from the first solve (CPU, at most SMALL_DIRECT_DOFS_CPU unknowns)."""
-    return (not pattern.device.is_cuda) and 3 * pattern.num_rows <= SMALL_DIRECT_DOFS_CPU
+    return _host_solvers_allowed(pattern) and 3 * pattern.num_rows <= SMALL_DIRECT_DOFS_CPU
 
 
 def describe_choice(num_dofs: int) -> dict:
@@ -101,7 +108,7 @@ def describe_choice(num_dofs: int) -> dict:
         cpu = f"block-Jacobi PCG ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})"
     if mg:
         cuda = mg_text
-    elif _multigrid_available():
+    elif _multigrid_available() and num_dofs > SMALL_DIRECT_DOFS_CPU:
         cuda = (f"block-Jacobi PCG; multigrid-preconditioned CG from the Newton system after the first PCG solve that "
                 f"needs more than {switch_after_iterations(num_dofs)} CG iterations")
     else:
@@ -135,7 +142,7 @@ def _multigrid_available() -> bool:
 
 def direct_allowed(pattern) -> bool:
     """Whether ``auto`` may hand this pattern's systems to the direct solver."""
-    if pattern.device.is_cuda:
+    if not _host_solvers_allowed(pattern):
         return False
     limit = DIRECT_MAX_DOFS_CPU if _pardiso_available() else SUPERLU_MAX_DOFS_CPU
     return 3 * pattern.num_rows <= limit
@@ -217,7 +224,8 @@ class AutoSolver(LinearSolver):
         elif self.rule == "model" and "multigrid" in self.candidates and n > MULTIGRID_MIN_DOFS:
             self.active = "multigrid"
             log.debug("linear solver auto: %d unknowns; multigrid", n)
-        elif self.rule == "model" and ("multigrid" in self.candidates or "direct" in self.candidates):
+        elif self.rule == "model" and n > SMALL_DIRECT_DOFS_CPU and ("multigrid" in self.candidates
+                                                                    or "direct" in self.candidates):
             self.switch_iterations = switch_after_iterations(n)
             self.switch_to = "multigrid" if "multigrid" in self.candidates else "direct"
         self.costs = {}  # seconds per Newton system (prepare + solve) of each measured candidate

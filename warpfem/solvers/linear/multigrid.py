@@ -58,7 +58,7 @@ from warpfem.model import rigid_body_modes
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult, numpy_global_seed, require
 from warpfem.solvers.linear.pcg import (_NEGATIVE, _NONFINITE, _RUNNING, _pcg_carry_kernel, _pcg_direction_kernel,
                                         _pcg_matvec_kernel, _pcg_start_kernel)
-from warpfem.transfer import read, read_scalar, to_device, upload
+from warpfem.transfer import read, read_scalar, strict_device, to_device, upload
 
 log = logging.getLogger(__name__)
 
@@ -389,7 +389,7 @@ class MultigridPCG(LinearSolver):
         if not (np.isfinite(rebuild_factor) and rebuild_factor >= 1.0):
             raise ValueError(f"rebuild_factor must be >= 1, got {rebuild_factor!r}")
         if check_every is None:
-            check_every = 4 if pattern.device.is_cuda else 1
+            check_every = 4 if (pattern.device.is_cuda or strict_device()) else 1
         if int(check_every) != check_every or check_every < 1:
             raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
         self.degree, self.lower = tuple(int(g) for g in degrees), tuple(float(g) for g in lowers)
