@@ -6,9 +6,9 @@ multigrid read a device array to the host or upload host data into one.
 * :func:`upload` (host data into an existing device array, in place), :func:`to_device` (a new
   device array holding host data).
 
-Each call counts one crossing in :data:`COUNTERS` (``reads``, ``uploads``); the simulators report
-the Newton loop's reads per step as ``SolveStats.newton_syncs`` and every crossing of a step as
-``SolveStats.device_reads`` / ``device_uploads``.
+Each call counts one crossing in :data:`COUNTERS` (``reads``, ``uploads``, since start-up); per
+step the simulators report the Newton loop's read-backs as ``SolveStats.newton_syncs`` and those
+inside the linear solves as ``SolveStats.host_syncs``.
 
 On the CPU Warp's arrays are host memory: a read is a view of the array (no copy) and an upload may
 write straight into it. **Strict device mode** (``WARPFEM_STRICT_DEVICE=1`` in the environment, or

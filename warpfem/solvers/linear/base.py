@@ -250,8 +250,8 @@ def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, 
 
     ``options`` go to the solver's constructor (e.g. ``check_every`` for pcg, ``backend`` for
     direct, ``rebuild_every`` for amg). ``positions`` ((n, 3), the model's rest positions) give
-    amg its rigid-body modes. ``auto`` is PCG that switches to direct when the systems turn out
-    hard (see :mod:`warpfem.solvers.linear.auto`).
+    amg its rigid-body modes. ``auto`` picks among them by a fixed rule on the problem's size and
+    its CG iteration counts (see :mod:`warpfem.solvers.linear.auto`).
     """
     import importlib
     import inspect
