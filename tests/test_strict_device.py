@@ -33,10 +33,11 @@ def test_reads_are_copies_and_uploads_the_only_way_in_under_strict_mode():
         upload(a, np.ones(12, dtype=np.float32))  # cast and reshaped into the array's layout
         np.testing.assert_array_equal(read(a), np.ones((4, 3)))
         i = to_device(np.array([3, 5, 7], dtype=np.int32), wp.int32, "cpu")
-        assert read_int(i, 1) == 5 and read_int(i, -1) == 7 and read_scalar(a, 0) == 1.0
+        f = to_device(np.array([0.5, 1.5]), wp.float64, "cpu")
+        assert read_int(i, 1) == 5 and read_int(i, -1) == 7 and read_scalar(f, 1) == 1.5
         with pytest.raises(ValueError, match="upload: 5 values for a device array of shape"):
             upload(a, np.zeros(5))
-    assert T.COUNTERS["reads"] - r0 == 6 and T.COUNTERS["uploads"] - u0 == 3  # every crossing counted
+    assert T.COUNTERS["reads"] - r0 == 7 and T.COUNTERS["uploads"] - u0 == 3  # every crossing counted
     # outside strict mode the CPU read is the array's memory (what strict mode takes away)
     with strict_device_mode(False):
         read(a)[0] = (9.0, 9.0, 9.0)
@@ -57,6 +58,7 @@ def test_the_environment_switch(monkeypatch):
         with pytest.raises(ValueError, match="WARPFEM_STRICT_DEVICE='maybe': expected 1 or 0"):
             T.strict_device()
     finally:
+        monkeypatch.setenv("WARPFEM_STRICT_DEVICE", "0")
         T.set_strict_device(previous)
 
 

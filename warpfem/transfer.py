@@ -121,11 +121,11 @@ def _host_shape(a):
 def upload(dst, host):
     """Host data into the existing device array ``dst`` (same number of entries; cast to its
     scalar type), in place; returns ``dst``."""
-    COUNTERS["uploads"] += 1
     h = np.asarray(host)
     shape = _host_shape(dst)
     if h.size != int(np.prod(shape)):
         raise ValueError(f"upload: {h.size} values for a device array of shape {shape}")
+    COUNTERS["uploads"] += 1
     if host_aliases(dst.device):  # the array is host memory: write into it (no temporary)
         np.copyto(dst.numpy().reshape(shape), h.reshape(shape), casting="unsafe")
     else:  # a device copy from a host staging array (what every discrete device needs)
