@@ -404,3 +404,32 @@ def test_auto_rule_model_is_a_function_of_the_problem_not_of_the_clock(monkeypat
         np.testing.assert_array_equal(x5[1], x4[0])  # multigrid's
     with pytest.raises(ValueError, match="rule"):
         _make("auto", sim, model, rule="fastest")
+
+
+def test_auto_in_a_simulator_repeats_bit_for_bit_under_timer_noise(monkeypatch, cpu_rules):
+    """Inside the Newton loop (PCG deferred, its report read with the trial step): the switch past
+    the iteration count happens on the same system in every run, whatever the clock says."""
+    from warpfem.solvers.linear import auto
+
+    monkeypatch.setattr(auto, "SMALL_DIRECT_DOFS_CPU", 100)  # this beam (300 unknowns) above it: PCG first
+    mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=(24, 1, 1))
+    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e8, poisson_ratio=0.45, density=1000.0),
+                     gravity=(0.0, 0.0, -9.81))
+    model.fix(np.flatnonzero(mesh.vertices[:, 0] < 1e-9))
+
+    def run(seed):
+        rng = np.random.default_rng(seed)
+        monkeypatch.setattr(auto.time, "perf_counter", lambda: float(rng.uniform(0.0, 1e3)))
+        sim = wf.Simulator(model, dt=1 / 60, tol=1e-8, cg_tol=1e-6)
+        assert sim._pcg.active == "pcg" and sim._pcg.switch_iterations is not None
+        xs, chosen = [], []
+        for _ in range(3):
+            sim.step()
+            xs.append(sim.positions())
+            chosen.append(sim._pcg.active)
+        return np.array(xs), chosen
+
+    x1, c1 = run(1)
+    x2, c2 = run(2)
+    assert c1 == c2 and c1[-1] == ("multigrid" if HAVE_AMG else "direct")  # switched, at the same point
+    np.testing.assert_array_equal(x1, x2)
