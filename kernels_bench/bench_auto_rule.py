@@ -9,6 +9,7 @@ configuration is kept. Recorded: ms per step, what each run chose, whether the r
 configuration ended at bit-identical positions, and each rule's time over the best named solver's.
 
     .venv/bin/python kernels_bench/bench_auto_rule.py [--steps 4] [--warmup 2] [--no-box] [--json PATH]
+    .venv/bin/python kernels_bench/bench_auto_rule.py --repeat-box 4 --steps 3 [--json PATH]
 """
 
 from __future__ import annotations
@@ -76,15 +77,46 @@ def run(make, warmup, steps):
     return ms, getattr(sim._pcg, "active", sim._pcg.name), hashlib.sha256(np.ascontiguousarray(x).tobytes()).hexdigest()[:16]
 
 
+def repeat_box(args):
+    """The issue this rule fixes: N runs of the box with the defaults, the same final positions?"""
+    def default_box():
+        c = 16
+        mesh = wf.box_tet_mesh(size=(2.0, 0.5, 0.5), cells=(4 * c, c, c))
+        mat = wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.49, density=1000.0)
+        model = wf.Model(mesh, mat, gravity=(0.0, -9.81, 0.0))
+        model.fix(np.nonzero(mesh.vertices[:, 0] < 1e-9)[0])
+        return wf.Simulator(model, dt=1.0 / 60.0)  # every option at its default: linear_solver "auto"
+
+    load0 = os.getloadavg()[0]
+    runs = []
+    for i in range(args.repeat_box):
+        ms, chose, digest = run(default_box, 0, args.steps)
+        runs.append(dict(ms_per_step=ms, chose=chose, positions_sha256_16=digest))
+        print(f"run {i + 1}: {ms:8.1f} ms/step, {chose}, final positions {digest}", flush=True)
+    same = len({r["positions_sha256_16"] for r in runs}) == 1
+    print(f"{args.repeat_box} runs, {args.steps} steps each: final positions {'identical' if same else 'DIFFERENT'}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(dict(device="cpu", machine=platform.machine(), cores=os.cpu_count(), load_start=load0,
+                           load_end=os.getloadavg()[0], steps=args.steps, case="box 98k tets nu 0.49, defaults",
+                           runs=runs, identical=same), f, indent=1)
+    return 0 if same else 1
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=4)
     ap.add_argument("--warmup", type=int, default=2)
     ap.add_argument("--rounds", type=int, default=2, help="runs of each configuration (the fastest kept)")
     ap.add_argument("--no-box", action="store_true", help="leave out the 98k-tet box")
+    ap.add_argument("--repeat-box", type=int, default=0, metavar="N",
+                    help="instead: N runs of the 98k-tet box at nu 0.49 with the default solver, --steps steps each; "
+                         "are the final positions the same bits?")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     wp.config.quiet = True
+    if args.repeat_box:
+        return repeat_box(args)
     cases = []
     for cells in CANTILEVER_CELLS:
         for E in (1e6, 1e8):
