@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test docs bench clean
+.PHONY: demo test docs bench gpu-check clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -29,6 +29,12 @@ docs: $(STAMP)
 # `pip install -e ".[peer]"` was done, and is skipped otherwise.
 bench: $(STAMP)
 	$(PY) kernels_bench/run_all.py --device $(or $(DEVICE),cpu) $(if $(QUICK),--quick,) $(if $(SKIP),--skip $(SKIP),)
+
+# On a machine with a CUDA GPU, in at most 8 minutes: the device test subset (tests/device_subset.txt)
+# on cuda:0 and the force/assembly, step-pipeline, scale and peer benchmarks, JSON into
+# kernels_bench/results/cuda/ (docs/design.md, "Devices"). Without a GPU: one line, nothing run.
+gpu-check: $(STAMP)
+	$(PY) kernels_bench/gpu_check.py
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

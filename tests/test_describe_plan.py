@@ -50,14 +50,19 @@ def test_describe_names_the_solver_auto_will_run(tmp_path, capsys):
     assert plan["name"] == "auto" and plan["unknowns"] == 60 and plan["cpu"].startswith("direct")
 
 
-def test_auto_choice_by_size():
-    from warpfem.solvers.linear.auto import EXPLORE_SECONDS, SMALL_DIRECT_DOFS_CPU, describe_choice
+def test_auto_choice_by_size(monkeypatch):
+    from warpfem.solvers.linear import auto
 
-    big = describe_choice(SMALL_DIRECT_DOFS_CPU + 3)
-    # the measured-cost rule: PCG first, then the cheapest measured candidate
-    assert big["cpu"].startswith("block-Jacobi PCG first") and f"more than {EXPLORE_SECONDS:g} s" in big["cpu"]
-    assert "multigrid" in big["cpu"] and "direct" in big["cpu"]
-    assert describe_choice(SMALL_DIRECT_DOFS_CPU)["cpu"].startswith("direct")
+    big = auto.describe_choice(auto.MULTIGRID_MIN_DOFS + 3)
+    # the size rule: multigrid above its limit (pyamg is in the test extra) on both devices
+    assert big["cpu"].startswith("multigrid-preconditioned CG") and big["cuda"].startswith("multigrid")
+    assert auto.describe_choice(auto.SMALL_DIRECT_DOFS_CPU)["cpu"].startswith("direct")
+    assert auto.describe_choice(auto.SMALL_DIRECT_DOFS_CPU)["cuda"] == "block-Jacobi PCG (the data stay on the device)"
+    assert auto.describe_choice(auto.SMALL_DIRECT_DOFS_CPU + 3)["cuda"].startswith("block-Jacobi PCG; multigrid")
+    mid = auto.SMALL_DIRECT_DOFS_CPU + 3  # between: PCG, multigrid past an iteration count
+    assert f"more than {auto.switch_after_iterations(mid)} CG iterations" in auto.describe_choice(mid)["cpu"]
+    monkeypatch.setattr(auto, "_multigrid_available", lambda: False)  # without pyamg: the same above the limit
+    assert "; direct (sparse Cholesky" in auto.describe_choice(auto.MULTIGRID_MIN_DOFS + 3)["cpu"]
 
 
 def test_describe_named_solver(tmp_path, capsys):

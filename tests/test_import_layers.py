@@ -19,6 +19,7 @@ ROOT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
 # module prefix -> layer (the longest matching prefix wins). Lower numbers are lower layers.
 LAYERS = {
     "warpfem.device": 0,
+    "warpfem.transfer": 0,
     "warpfem.progress": 0,
     "warpfem.paths": 0,
     "warpfem.lazy": 0,

@@ -292,7 +292,7 @@ def test_amg_reuses_its_hierarchy_until_the_iterations_grow():
     assert always.setup_count == 2
 
 
-def test_auto_chooses_the_cheapest_measured_solver(monkeypatch):
+def test_auto_rule_measured_chooses_the_cheapest_measured_solver(monkeypatch, cpu_rules):
     from warpfem.solvers.linear import auto
 
     # quasi-static nu = 0.499 beam: block-Jacobi PCG needs thousands of iterations, the others few
@@ -302,11 +302,11 @@ def test_auto_chooses_the_cheapest_measured_solver(monkeypatch):
     bd, xd = sim._vec_array(b), sim._vec_array()
     assert 3 * sim._pattern.num_rows <= auto.EXPLORE_MIN_DOFS
     # a system this small keeps its starting solver whatever the timings (reproducible runs) ...
-    small = _make("auto", sim, model, explore_seconds=0.0)
+    small = _make("auto", sim, model, rule="measured", explore_seconds=0.0)
     small.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
     assert small.active == "pcg" and set(small.solvers) == {"pcg"} and small.explorations == 0
     # ... unless asked: explore_min_dofs = 0 measures it like a large one
-    hard = _make("auto", sim, model, explore_seconds=0.0, explore_min_dofs=0)  # starts with PCG; measures the others at once
+    hard = _make("auto", sim, model, rule="measured", explore_seconds=0.0, explore_min_dofs=0)  # starts with PCG; measures the others at once
     r1 = hard.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
     assert hard.explorations == 1 and set(hard.costs) == set(hard.candidates)
     assert hard.active != "pcg" and hard.costs[hard.active] == min(hard.costs.values())
@@ -319,11 +319,11 @@ def test_auto_chooses_the_cheapest_measured_solver(monkeypatch):
         np.testing.assert_allclose(xd.numpy().ravel(), x_ref, rtol=0, atol=1e-6 * np.abs(x_ref).max())
     assert hard.explorations == 1
     # a run whose systems are cheap stays put: nothing else is built or measured
-    cheap = _make("auto", sim, model, explore_seconds=1e9)
+    cheap = _make("auto", sim, model, rule="measured", explore_seconds=1e9)
     cheap.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
     assert cheap.active == "pcg" and set(cheap.solvers) == {"pcg"} and cheap.explorations == 0
     # a candidate not clearly cheaper (margin) is not taken
-    stay = _make("auto", sim, model, switch_margin=1e-9, explore_seconds=0.0, explore_min_dofs=0)
+    stay = _make("auto", sim, model, rule="measured", switch_margin=1e-9, explore_seconds=0.0, explore_min_dofs=0)
     for _ in range(2):
         stay.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
     assert stay.active == "pcg" and stay.explorations == 1
@@ -343,3 +343,93 @@ def test_auto_chooses_the_cheapest_measured_solver(monkeypatch):
     monkeypatch.setattr(auto, "_pardiso_available", lambda: False)
     assert auto.direct_allowed(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3))
     assert not auto.direct_allowed(_Pattern(auto.SUPERLU_MAX_DOFS_CPU // 3 + 1))
+
+
+def test_auto_rule_model_is_a_function_of_the_problem_not_of_the_clock(monkeypatch, cpu_rules):
+    """The default rule picks by size and CG iterations: a timer returning noise (a loaded
+    machine, exaggerated) changes neither the choice nor a bit of the answer."""
+    from warpfem.solvers.linear import auto
+
+    rng = np.random.default_rng(7)
+    monkeypatch.setattr(auto.time, "perf_counter", lambda: float(rng.uniform(0.0, 1e3)))
+    # quasi-static nu = 0.499 beam: block-Jacobi PCG needs thousands of CG iterations
+    sim, model, vals, b, Am = _system(cells=(16, 4, 4), nu=0.499, h2=1.0, mass_scale=1e-6)
+    n = 3 * sim._pattern.num_rows
+    x_ref = spla.spsolve(Am, b.ravel())
+    bd = sim._vec_array(b)
+
+    def run(**opts):
+        s = _make("auto", sim, model, **opts)
+        chosen, xs = [], []
+        for _ in range(3):
+            xd = sim._vec_array()
+            r = s.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
+            assert r.converged
+            chosen.append(s.active)
+            xs.append(xd.numpy().copy())
+        return s, chosen, xs
+
+    # a size the rule gives to the small-system direct start: no switching, direct throughout
+    s3, c3, _ = run(initial="size")
+    assert c3 == ["direct"] * 3 and set(s3.solvers) == {"direct"}
+    # above it (lowered to this beam), without multigrid: PCG, then direct once a solve passes the
+    # iteration count of its size
+    monkeypatch.setattr(auto, "SMALL_DIRECT_DOFS_CPU", n - 1)
+    assert auto.switch_after_iterations(n) < 1000 and auto.switch_after_iterations(8000) == auto.SWITCH_AFTER_ITERATIONS
+    s1, c1, x1 = run(candidates=("pcg", "direct"))
+    s2, c2, x2 = run(candidates=("pcg", "direct"))
+    assert c1 == c2 == ["direct", "direct", "direct"]  # the first system was solved by PCG, then switched
+    assert set(s1.solvers) == {"pcg", "direct"} and s1.costs == {}  # nothing timed
+    for a, c in zip(x1, x2):
+        np.testing.assert_array_equal(a, c)  # bit for bit
+        np.testing.assert_allclose(a.ravel(), x_ref, rtol=0, atol=1e-6 * np.abs(x_ref).max())
+    # the first answer is PCG's own, bit for bit
+    pcg = _make("pcg", sim, model)
+    xd = sim._vec_array()
+    pcg.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
+    np.testing.assert_array_equal(xd.numpy(), x1[0])
+    if HAVE_AMG:  # above MULTIGRID_MIN_DOFS: multigrid from the first solve, same bits as naming it
+        monkeypatch.setattr(auto, "MULTIGRID_MIN_DOFS", n - 1)
+        s4, c4, x4 = run(initial="size")
+        assert c4 == ["multigrid"] * 3 and set(s4.solvers) == {"multigrid"}
+        mg = _make("multigrid", sim, model)
+        xd = sim._vec_array()
+        mg.solve(vals, sim._mask, bd, xd, tol=1e-8, maxiter=20000)
+        np.testing.assert_array_equal(xd.numpy(), x4[0])
+        # below it, started with PCG: multigrid (the switch target when installed) after the first solve
+        monkeypatch.setattr(auto, "MULTIGRID_MIN_DOFS", n + 1)
+        s5, c5, x5 = run()
+        assert c5 == ["multigrid"] * 3 and s5.switch_to == "multigrid"
+        np.testing.assert_array_equal(x5[0], x1[0])  # PCG's
+        np.testing.assert_array_equal(x5[1], x4[0])  # multigrid's
+    with pytest.raises(ValueError, match="rule"):
+        _make("auto", sim, model, rule="fastest")
+
+
+def test_auto_in_a_simulator_repeats_bit_for_bit_under_timer_noise(monkeypatch, cpu_rules):
+    """Inside the Newton loop (PCG deferred, its report read with the trial step): the switch past
+    the iteration count happens on the same system in every run, whatever the clock says."""
+    from warpfem.solvers.linear import auto
+
+    monkeypatch.setattr(auto, "SMALL_DIRECT_DOFS_CPU", 100)  # this beam (300 unknowns) above it: PCG first
+    mesh = wf.box_tet_mesh(size=(1.0, 0.2, 0.2), cells=(24, 1, 1))
+    model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e8, poisson_ratio=0.45, density=1000.0),
+                     gravity=(0.0, 0.0, -9.81))
+    model.fix(np.flatnonzero(mesh.vertices[:, 0] < 1e-9))
+
+    def run(seed):
+        rng = np.random.default_rng(seed)
+        monkeypatch.setattr(auto.time, "perf_counter", lambda: float(rng.uniform(0.0, 1e3)))
+        sim = wf.Simulator(model, dt=1 / 60, tol=1e-8, cg_tol=1e-6)
+        assert sim._pcg.active == "pcg" and sim._pcg.switch_iterations is not None
+        xs, chosen = [], []
+        for _ in range(3):
+            sim.step()
+            xs.append(sim.positions())
+            chosen.append(sim._pcg.active)
+        return np.array(xs), chosen
+
+    x1, c1 = run(1)
+    x2, c2 = run(2)
+    assert c1 == c2 and c1[-1] == ("multigrid" if HAVE_AMG else "direct")  # switched, at the same point
+    np.testing.assert_array_equal(x1, x2)

@@ -34,6 +34,7 @@ from warpfem.solvers.forms import (DampingForm, ElasticForm, IncrementalPotentia
 from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.state import SimulatorBase, check_simulator_options, newton_options_from
 from warpfem.solvers.sparse import PatternView
+from warpfem.transfer import read, to_device, upload
 
 #: the choices of ``Simulator(initial_guess=...)``
 INITIAL_GUESSES = ("previous", "extrapolated")
@@ -120,14 +121,14 @@ class Simulator(SimulatorBase):
         quads = list(getattr(model, "quadratures", None) or [model.quadrature])
         mats = list(getattr(model, "materials", None) or [model.material])
         splits = list(getattr(model, "body_volumetric_parameters", None) or [getattr(model, "volumetric_parameters", None)])
-        self._x_rest = wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev)
+        self._x_rest = to_device(model.rest_positions.astype(self._np), self._vec, dev)
         self._qp_sets, self._main_sets = [], []
         for group, (qd, mat, split) in enumerate(zip(quads, mats, splits)):
-            elements = wp.array(qd.elements, dtype=wp.int32, device=dev)
+            elements = to_device(qd.elements, wp.int32, dev)
             points = quadrature_points(self._s, self._x_rest, elements, qd.nodes_per_element,
-                                       wp.array(qd.qp_element, dtype=wp.int32, device=dev),
-                                       wp.array(qd.qp_weight.astype(self._np), dtype=self._s, device=dev),
-                                       wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev))
+                                       to_device(qd.qp_element, wp.int32, dev),
+                                       to_device(qd.qp_weight.astype(self._np), self._s, dev),
+                                       to_device(qd.qp_dNdX.astype(self._np), self._vec, dev))
             # the kernels' shared arguments as structs (warpfem.kernels.structs): the main point set and
             # the full material (stresses() and, without selective reduced integration, everything)
             material = material_params(self._s, mat.kind, mat.kernel_mu, mat.kernel_lam)
@@ -145,9 +146,9 @@ class Simulator(SimulatorBase):
             vq = qd.volumetric
             (mu_f, lam_f), (mu_v, lam_v) = split or ((mat.kernel_mu, 0.0), (0.0, mat.kernel_lam))
             vpoints = quadrature_points(self._s, self._x_rest, elements, qd.nodes_per_element,
-                                        wp.array(vq.qp_element, dtype=wp.int32, device=dev),
-                                        wp.array(vq.qp_weight.astype(self._np), dtype=self._s, device=dev),
-                                        wp.array(vq.qp_dNdX.astype(self._np), dtype=self._vec, device=dev))
+                                        to_device(vq.qp_element, wp.int32, dev),
+                                        to_device(vq.qp_weight.astype(self._np), self._s, dev),
+                                        to_device(vq.qp_dNdX.astype(self._np), self._vec, dev))
             self._qp_sets += [QuadratureSet(qd.num_points, points, material_params(self._s, mat.kind, mu_f, lam_f),
                                             energy, group),
                               QuadratureSet(vq.num_points, vpoints, material_params(self._s, mat.kind, mu_v, lam_v),
@@ -167,7 +168,7 @@ class Simulator(SimulatorBase):
             self.system.new_values("kn")
         v0 = model.initial_velocities() if hasattr(model, "initial_velocities") else None
         if v0 is not None:  # the bodies' initial_velocity (Model.from_bodies)
-            self.state.v.assign(v0.astype(self._np))
+            upload(self.state.v, v0.astype(self._np))
         # the incremental potential: one list of weighted forms, built once (solvers/forms.py)
         system, ops = self.system, self.ops
         pattern = PatternView(system)  # forms follow the pattern when it grows
@@ -313,7 +314,7 @@ class Simulator(SimulatorBase):
         parts = []
         for count, points, material, buf, _ in self._qp_sets:
             launch(FK.qp_energy_kernel, dim=count, inputs=[x, points, material, buf], device=self.device)
-            parts.append(buf.numpy().astype(np.float64))
+            parts.append(read(buf).astype(np.float64))
         e = np.concatenate(parts)
         return float(e.sum()), float(np.abs(e).sum())
 
@@ -406,7 +407,7 @@ class Simulator(SimulatorBase):
         f = self._vec_array()
         for qs in self._qp_sets:
             launch(FK.qp_force_kernel, dim=qs.count, inputs=[xa, qs.points, qs.material, self._s(1.0), f], device=self.device)
-        return f.numpy().astype(np.float64)
+        return read(f).astype(np.float64)
 
     def stresses(self, x=None) -> np.ndarray:
         """First Piola-Kirchhoff stress (Pa) at every quadrature point, (Q, 3, 3)."""
@@ -415,7 +416,7 @@ class Simulator(SimulatorBase):
         for ms in self._main_sets:  # one per body, in body order
             P = wp.zeros(ms.count, dtype=self._mat, device=self.device)
             launch(FK.qp_stress_kernel, dim=ms.count, inputs=[xa, ms.points, ms.material, P], device=self.device)
-            parts.append(P.numpy().astype(np.float64))
+            parts.append(read(P).astype(np.float64))
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def elastic_energy(self, x=None) -> float:
@@ -441,7 +442,7 @@ class Simulator(SimulatorBase):
     # -- solves ----------------------------------------------------------------------------------
     def _prescribed(self, base_x, h):
         """Fixed-component values of the unknown: velocities (dynamics, h > 0) or positions (static)."""
-        x0 = base_x.numpy().astype(np.float64)
+        x0 = read(base_x).astype(np.float64)
         val = np.zeros_like(x0) if h > 0 else x0.copy()
         for i, p in self._targets.items():
             if h > 0:

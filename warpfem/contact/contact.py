@@ -27,6 +27,7 @@ from warpfem.contact.colliders import default_stiffness as _default_stiffness
 from warpfem.contact.stiffness import AdaptiveStiffness
 from warpfem.kernels.generic import launch
 from warpfem.solvers.forms import Form, InfeasibleStart, lagged_change
+from warpfem.transfer import read, read_int, to_device, upload
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +71,7 @@ class ContactSet:
         self.diagonal = float(np.linalg.norm(np.ptp(X, axis=0)))
         self.total_mass = float(sim.model.total_mass)
         dev = sim.device
-        self._surf = wp.array(self.surface.astype(np.int32), dtype=wp.int32, device=dev)
+        self._surf = to_device(self.surface.astype(np.int32), wp.int32, dev)
         self._diag = None
         self._pattern_changed(self.system.pattern)
         self.system.listeners.append(self._pattern_changed)
@@ -81,7 +82,7 @@ class ContactSet:
 
     def _pattern_changed(self, pattern):
         """The positions of the diagonal blocks (the Hessian's pattern grew)."""
-        self._diag = wp.array(np.asarray(pattern.diag_index).astype(np.int32), dtype=wp.int32, device=self.sim.device)
+        self._diag = to_device(np.asarray(pattern.diag_index).astype(np.int32), wp.int32, self.sim.device)
 
     def __len__(self):
         return len(self.colliders)
@@ -162,15 +163,15 @@ class ContactSet:
         self.epsv = np.array([x[2] for x in d])
         S, V, M = ops.scalar, ops.vec, ops.mat
         npt = ops.np_dtype
-        self._kinds = wp.array(np.array([c.kind for c in cs], dtype=np.int32), dtype=wp.int32, device=dev)
-        self._pa = wp.array(np.array([p[0] for p in pars], dtype=npt).reshape(-1, 3), dtype=V, device=dev)
-        self._pb = wp.array(np.array([p[1] for p in pars], dtype=npt).reshape(-1, 3), dtype=V, device=dev)
-        self._tri_start = wp.array(np.array(start, dtype=np.int32), dtype=wp.int32, device=dev)
-        self._tri_count = wp.array(np.array(count, dtype=np.int32), dtype=wp.int32, device=dev)
-        self._tris = wp.array(tri.astype(npt), dtype=V, device=dev)
-        self._kappa = wp.array(self.kappa.astype(npt), dtype=S, device=dev)
-        self._dhat = wp.array(self.dhat.astype(npt), dtype=S, device=dev)
-        self._mu = wp.array(np.array([c.friction for c in cs], dtype=npt), dtype=S, device=dev)
+        self._kinds = to_device(np.array([c.kind for c in cs], dtype=np.int32), wp.int32, dev)
+        self._pa = to_device(np.array([p[0] for p in pars], dtype=npt).reshape(-1, 3), V, dev)
+        self._pb = to_device(np.array([p[1] for p in pars], dtype=npt).reshape(-1, 3), V, dev)
+        self._tri_start = to_device(np.array(start, dtype=np.int32), wp.int32, dev)
+        self._tri_count = to_device(np.array(count, dtype=np.int32), wp.int32, dev)
+        self._tris = to_device(tri.astype(npt), V, dev)
+        self._kappa = to_device(self.kappa.astype(npt), S, dev)
+        self._dhat = to_device(self.dhat.astype(npt), S, dev)
+        self._mu = to_device(np.array([c.friction for c in cs], dtype=npt), S, dev)
         self._mu_zero = wp.zeros(nc, dtype=S, device=dev)
         self._epsf = wp.zeros(nc, dtype=S, device=dev)
         m = len(self.surface) * nc
@@ -192,10 +193,10 @@ class ContactSet:
         npt = self.ops.np_dtype
         p0 = [c.pose(t0) for c in self.colliders]
         p1 = [c.pose(t1) for c in self.colliders]
-        self._R0.assign(np.array([p[0] for p in p0], dtype=npt).reshape(-1, 3, 3))
-        self._t0.assign(np.array([p[1] for p in p0], dtype=npt).reshape(-1, 3))
-        self._R1.assign(np.array([p[0] for p in p1], dtype=npt).reshape(-1, 3, 3))
-        self._t1.assign(np.array([p[1] for p in p1], dtype=npt).reshape(-1, 3))
+        upload(self._R0, np.array([p[0] for p in p0], dtype=npt).reshape(-1, 3, 3))
+        upload(self._t0, np.array([p[1] for p in p0], dtype=npt).reshape(-1, 3))
+        upload(self._R1, np.array([p[0] for p in p1], dtype=npt).reshape(-1, 3, 3))
+        upload(self._t1, np.array([p[1] for p in p1], dtype=npt).reshape(-1, 3))
 
     # -- kernel launch --------------------------------------------------------------------------------
     def run(self, mode, x, *, scale=1.0, g=None, values=None, acc=None, slot=0, lam=None, y=None, sy=1.0, dbase=None,
@@ -222,7 +223,7 @@ class ContactSet:
     def sync_kappa(self):
         """The adaptive stiffnesses' current values onto the device."""
         self.kappa = np.array([k if a is None else a.kappa for k, a in zip(self.kappa, self.stiffness)], dtype=np.float64)
-        self._kappa.assign(self.kappa.astype(self.ops.np_dtype))
+        upload(self._kappa, self.kappa.astype(self.ops.np_dtype))
 
     def unit_kappa(self, j):
         """A device array of per-collider stiffnesses: 1 for collider j, 0 for the others."""
@@ -232,14 +233,14 @@ class ContactSet:
         if cache[j] is None:
             e = np.zeros(self.nc, dtype=self.ops.np_dtype)
             e[j] = 1.0
-            cache[j] = wp.array(e, dtype=self.ops.scalar, device=self.sim.device)
+            cache[j] = to_device(e, self.ops.scalar, self.sim.device)
         return cache[j]
 
     def distances(self, x=None) -> np.ndarray:
         """(surface vertices, colliders) distances (m) at x (default: the current positions), with
         the colliders at their current pose."""
         self.run(CK.MODE_DISTANCE, self.sim.x if x is None else x, lam=self._dist)
-        return self._dist.numpy().astype(np.float64).reshape(len(self.surface), self.nc)
+        return read(self._dist).astype(np.float64).reshape(len(self.surface), self.nc)
 
     def check(self, x, t, *, what):
         """Raise :class:`CollisionError` naming the collider if a surface vertex of x is at distance <= 0
@@ -257,7 +258,7 @@ class ContactSet:
         """Poses for the step [t0, t1] and the friction data lagged from the positions x0 at its
         start (default: the current positions)."""
         self.set_poses(t0, t1)
-        self._epsf.assign((self.epsv * dt).astype(self.ops.np_dtype))
+        upload(self._epsf, (self.epsv * dt).astype(self.ops.np_dtype))
         wp.copy(self._x0, self.sim.x if x0 is None else x0)
         self.ops.lincomb(-1.0, self._x0, 0.0, self._x0, self._neg_x0)
         self.run(CK.MODE_LAG, self._x0)
@@ -278,7 +279,7 @@ class ContactSet:
     @property
     def filtered_contacts(self) -> int:
         """Contacts whose tangential step the friction filter cut since the start of the step."""
-        return int(self._cuts.numpy()[0])
+        return read_int(self._cuts)
 
     def collider(self, name) -> Collider:
         """The collider named ``name``; a ``KeyError`` listing the names otherwise."""
@@ -296,19 +297,19 @@ class ContactSet:
         if not (np.isfinite(mu) and mu >= 0.0):
             raise ValueError(f"collider {name!r}: friction must be >= 0, got {mu!r}")
         self.collider(name).friction = mu
-        self._mu.assign(np.array([c.friction for c in self.colliders], dtype=self.ops.np_dtype))
+        upload(self._mu, np.array([c.friction for c in self.colliders], dtype=self.ops.np_dtype))
 
     def relag(self, x) -> np.ndarray:
         """Friction's normal forces and normals lagged again, from the positions x (the step's
         last iterate; the step start and the collider motion stay): one fixed-point iteration of
         the lagging. Returns the normal forces (surface vertices x colliders) before the update."""
-        before = self._lam.numpy().astype(np.float64)
+        before = read(self._lam).astype(np.float64)
         self.run(CK.MODE_LAG, x)
         return before
 
     def normal_forces(self) -> np.ndarray:
         """The lagged normal forces (N) per (surface vertex, collider)."""
-        return self._lam.numpy().astype(np.float64)
+        return read(self._lam).astype(np.float64)
 
     @property
     def step_start(self):
@@ -325,7 +326,7 @@ class ContactSet:
         poses (friction excluded)."""
         self._acc.zero_()
         self.run(CK.MODE_ENERGY, self.sim.x if x is None else x, lam=self._lam_zero, friction=False)
-        a = self._acc.numpy()
+        a = read(self._acc)
         return float("inf") if a[1] > 0 else float(a[0])
 
     def forces(self, x=None) -> np.ndarray:
@@ -333,7 +334,7 @@ class ContactSet:
         f = self.ops.new_vector()
         self._acc.zero_()
         self.run(CK.MODE_GRADIENT, self.sim.x if x is None else x, scale=-1.0, g=f)
-        return f.numpy().astype(np.float64)
+        return read(f).astype(np.float64)
 
 
 class LaggedFrictionForm(Form):

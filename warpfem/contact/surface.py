@@ -29,6 +29,7 @@ from warpfem.contact.colliders import default_stiffness as _default_stiffness
 from warpfem.contact.contact import CollisionError, LaggedFrictionForm
 from warpfem.contact.stiffness import AdaptiveStiffness, parse_stiffness
 from warpfem.kernels.generic import launch
+from warpfem.transfer import read, read_int, read_scalar, to_device, upload
 
 log = logging.getLogger(__name__)
 
@@ -111,14 +112,13 @@ def pair_terms(kind, x, *, dhat, kappa, rest=None, direction=None, precision="fl
     npt = np.float64 if f64 else np.float32
     k = {"pt": SK.PT, "ee": SK.EE}[kind]
     x = np.asarray(x, dtype=np.float64).reshape(4, 3)
-    xa = wp.array(x.astype(npt), dtype=V, device=device)
-    ra = wp.array(np.asarray(x if rest is None else rest, dtype=npt).reshape(4, 3), dtype=V, device=device)
-    da = wp.array(np.zeros((4, 3), npt) if direction is None else np.asarray(direction, dtype=npt).reshape(4, 3), dtype=V,
-                  device=device)
-    pairs = wp.array(np.array([[0, 1, 2, 3]], dtype=np.int32), dtype=wp.vec4i, device=device)
-    kinds = wp.array(np.array([k], dtype=np.int32), dtype=wp.int32, device=device)
-    count = wp.array(np.array([1], dtype=np.int32), dtype=wp.int32, device=device)
-    blocks = wp.array(np.arange(16, dtype=np.int32), dtype=wp.int32, device=device)
+    xa = to_device(x.astype(npt), V, device)
+    ra = to_device(np.asarray(x if rest is None else rest, dtype=npt).reshape(4, 3), V, device)
+    da = to_device(np.zeros((4, 3), npt) if direction is None else np.asarray(direction, dtype=npt).reshape(4, 3), V, device)
+    pairs = to_device(np.array([[0, 1, 2, 3]], dtype=np.int32), wp.vec4i, device)
+    kinds = to_device(np.array([k], dtype=np.int32), wp.int32, device)
+    count = to_device(np.array([1], dtype=np.int32), wp.int32, device)
+    blocks = to_device(np.arange(16, dtype=np.int32), wp.int32, device)
     dist = wp.zeros(1, dtype=S, device=device)
     fw = wp.zeros(1, dtype=wp.vec4d if f64 else wp.vec4, device=device)
     fn = wp.zeros(1, dtype=V, device=device)
@@ -132,10 +132,10 @@ def pair_terms(kind, x, *, dhat, kappa, rest=None, direction=None, precision="fl
         values = wp.zeros(16, dtype=M, device=device) if values is None else values
         launch(SK.pair_kernel, 1, [xa, ra, pairs, kinds, count, S(dhat * dhat), S(kappa), mode, S(1.0), da, S(STEP_ETA), g,
                                    blocks, values, dist, fw, fn, flam, acc, 0, S(JACOBI_TOL[np.dtype(npt)])], device)
-        return acc.numpy(), g.numpy(), values.numpy()
+        return read(acc), read(g), read(values)
 
     go(SK.MODE_DISTANCE)
-    out["distance"] = float(dist.numpy()[0])
+    out["distance"] = read_scalar(dist)
     out["energy"] = float(go(SK.MODE_ENERGY)[0][0])
     out["gradient"] = go(SK.MODE_GRADIENT)[1].astype(np.float64).reshape(12)
     for key, mode in (("hessian", SK.MODE_HESSIAN_UNPROJECTED), ("hessian_psd", SK.MODE_HESSIAN)):
@@ -205,13 +205,13 @@ class SurfaceContact:
                                   else float(friction_velocity))
         dev = sim.device
         self.device = dev
-        i32 = lambda a: wp.array(np.ascontiguousarray(a, dtype=np.int32).ravel(), dtype=wp.int32, device=dev)  # noqa: E731
+        i32 = lambda a: to_device(np.ascontiguousarray(a, dtype=np.int32).ravel(), wp.int32, dev)  # noqa: E731
         self._verts, self._tris, self._edges = i32(surf.vertices), i32(surf.triangles), i32(surf.edges)
         self._group = i32(surf.group)
         box = lambda k: (wp.zeros(k, dtype=wp.vec3, device=dev), wp.zeros(k, dtype=wp.vec3, device=dev))  # noqa: E731
         self._vbox, self._tbox, self._ebox = box(self.nv), box(self.nt), box(self.ne)
         self._rest = ops.new_vector()
-        self._rest.assign(X.astype(ops.np_dtype))
+        upload(self._rest, X.astype(ops.np_dtype))
         self._zero_dir = ops.new_vector()
         self._boxes(sim.x, None, 1.0)
         self._tbvh = wp.Bvh(*self._tbox)
@@ -221,7 +221,7 @@ class SurfaceContact:
         self.num_pairs = 0
         # self pairs closer than rest_gap at rest: no barrier, the step bound only (docs/contact.md)
         self.rest_gap = REST_GAP * self.dhat if self_on else 0.0
-        self._rest32 = wp.array(X.astype(np.float32), dtype=wp.vec3, device=dev)
+        self._rest32 = to_device(X.astype(np.float32), wp.vec3, dev)
         self._ccd_count = wp.zeros(1, dtype=wp.int32, device=dev)
         self._alloc_ccd(256)
         self.num_ccd_pairs = 0
@@ -250,7 +250,7 @@ class SurfaceContact:
         if len(d) and d.min() <= 0.0:
             self.detach()
             k = int(np.argmin(d))
-            kind = "vertex-triangle" if int(self._kinds.numpy()[k]) == SK.PT else "edge-edge"
+            kind = "vertex-triangle" if read_int(self._kinds, k) == SK.PT else "edge-edge"
             raise CollisionError(f"set_contact: {int((d <= 0.0).sum())} surface pairs touch now{self._bodies_of(k)} "
                                  f"(first: {kind} pair, vertices {self.pairs_np[k].tolist()}, distance {d[k]:.3g} m): "
                                  "contact needs a gap between them")
@@ -276,7 +276,7 @@ class SurfaceContact:
         offsets, names = getattr(self.sim.model, "body_offsets", None), getattr(self.sim.model, "body_names", None)
         if offsets is None or names is None or len(offsets) < 3:
             return ""
-        b = np.searchsorted(np.asarray(offsets), self.pairs_np[k, [0, 2 if self._kinds.numpy()[k] == SK.EE else 1]],
+        b = np.searchsorted(np.asarray(offsets), self.pairs_np[k, [0, 2 if read_int(self._kinds, k) == SK.EE else 1]],
                             side="right") - 1
         return f" between bodies {names[b[0]]!r} and {names[b[1]]!r}" if b[0] != b[1] else f" in body {names[b[0]]!r}"
 
@@ -326,7 +326,7 @@ class SurfaceContact:
             return self.num_pairs
         n = self._query(x, d, scale, QUERY_MARGIN)
         self.num_pairs = n
-        self.pairs_np = self._pairs.numpy()[:n].astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
+        self.pairs_np = read(self._pairs, n).astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
         self._update_blocks()
         self._grow_near(x, d, scale)
         self._valid = True
@@ -342,12 +342,12 @@ class SurfaceContact:
         if n == 0 or self._has_blocks.all():
             return
         self.run(SK.MODE_DISTANCE, x)
-        lb = self._dist.numpy()[:n].astype(np.float64)
+        lb = read(self._dist, n).astype(np.float64)
         if d is not None:
-            q = float(scale) * d.numpy().astype(np.float64)[self.pairs_np]  # (n, 4, 3)
+            q = float(scale) * read(d).astype(np.float64)[self.pairs_np]  # (n, 4, 3)
             q -= q.mean(axis=1, keepdims=True)
             ln = np.linalg.norm(q, axis=2)
-            pt = self._kinds.numpy()[:n] == SK.PT
+            pt = read(self._kinds, n) == SK.PT
             lb -= np.where(pt, ln[:, 0] + ln[:, 1:].max(axis=1),
                            np.maximum(ln[:, 0], ln[:, 1]) + np.maximum(ln[:, 2], ln[:, 3]))
         need = (lb < 1.01 * self.dhat) & ~self._has_blocks
@@ -362,7 +362,7 @@ class SurfaceContact:
         for prims, k, (lo, hi), m in ((self._verts, 1, self._vbox, self.nv), (self._tris, 3, self._tbox, self.nt),
                                       (self._edges, 2, self._ebox, self.ne)):
             launch(SK.boxes_fit_kernel, m, [x, d, ops.scalar(scale), prims, k, pad, lo, hi, self._misses], dev)
-        return int(self._misses.numpy()[0]) == 0
+        return read_int(self._misses) == 0
 
     def _quad_pairs(self, quads):
         a = np.repeat(quads, 4, axis=1).reshape(-1)
@@ -383,8 +383,8 @@ class SurfaceContact:
                 self._tris, self._edges, self._group, int(self.self_contact), int(self.bodies), self.nv, self._pairs,
                 self._kinds, self._count, self.capacity, self._rest32, float(self.rest_gap), self._ccd_pairs,
                 self._ccd_kinds, self._ccd_count, self.ccd_capacity], self.device)
-            n = int(self._count.numpy()[0])
-            nc = int(self._ccd_count.numpy()[0])
+            n = read_int(self._count)
+            nc = read_int(self._ccd_count)
             if n <= self.capacity and nc <= self.ccd_capacity:
                 self.num_ccd_pairs = nc
                 return n
@@ -417,8 +417,8 @@ class SurfaceContact:
                 raise RuntimeError("surface contact: a pair's Hessian block is missing from the pattern")
             full[:pos.size] = pos.reshape(-1)
         if out is None or out.shape[0] != len(full):
-            return wp.array(full, dtype=wp.int32, device=self.device)
-        out.assign(full)
+            return to_device(full, wp.int32, self.device)
+        upload(out, full)
         return out
 
     def _update_blocks(self):
@@ -476,7 +476,7 @@ class SurfaceContact:
         would take friction from are those of them within dhat)."""
         self.update_pairs(x)
         k = self.num_pairs
-        return self.pairs_np[:k].copy(), self._kinds.numpy()[:k].astype(np.int64)
+        return self.pairs_np[:k].copy(), read(self._kinds, k).astype(np.int64)
 
     def distances(self, x=None) -> np.ndarray:
         """Distances (m) of the current candidate pairs at x (default: the current positions),
@@ -484,7 +484,7 @@ class SurfaceContact:
         x = self.sim.x if x is None else x
         self.update_pairs(x)
         self.run(SK.MODE_DISTANCE, x)
-        return self._dist.numpy()[:self.num_pairs].astype(np.float64)
+        return read(self._dist, self.num_pairs).astype(np.float64)
 
     def pair_min_distance(self, x) -> float:
         """Smallest distance (m) of the current candidate pairs at x, without a broad phase (inf
@@ -492,7 +492,7 @@ class SurfaceContact:
         if self.num_pairs == 0:
             return float("inf")
         self.run(SK.MODE_DISTANCE, x)
-        return float(self._dist.numpy()[:self.num_pairs].min())
+        return float(read(self._dist, self.num_pairs).min())
 
     def min_distance(self, x=None) -> float:
         d = self.distances(x)
@@ -505,7 +505,7 @@ class SurfaceContact:
         acc = self._acc_default()
         acc.zero_()
         self.run(SK.MODE_ENERGY, x, acc=acc)
-        a = acc.numpy()
+        a = read(acc)
         return float("inf") if a[1] > 0 else float(a[0])
 
     # -- friction lagging ----------------------------------------------------------------------------
@@ -534,7 +534,7 @@ class SurfaceContact:
         """The lagged normal forces (N) of the friction pairs."""
         if not self.num_friction:
             return np.zeros(0)
-        return self._f_lam.numpy()[:self.num_friction].astype(np.float64)
+        return read(self._f_lam, self.num_friction).astype(np.float64)
 
     def relag(self, x) -> np.ndarray:
         """Friction lagged again from x (the step's last iterate, on the last candidate pairs);
@@ -551,7 +551,7 @@ class SurfaceContact:
             return
         self._flam.zero_()
         self.run(SK.MODE_LAG, x)
-        lam = self._flam.numpy()[:self.num_pairs]
+        lam = read(self._flam, self.num_pairs)
         keep = np.nonzero(lam > 0.0)[0]
         self.num_friction = len(keep)
         if not len(keep):
@@ -570,10 +570,10 @@ class SurfaceContact:
             self._f_blocks = None
         for src, dst in ((self._pairs, self._f_pairs), (self._fw, self._f_w), (self._fn, self._f_n),
                          (self._flam, self._f_lam)):
-            a = src.numpy()
+            a = read(src)
             b = np.zeros((cap,) + a.shape[1:], dtype=a.dtype)
             b[:len(keep)] = a[keep]
-            dst.assign(b)
+            upload(dst, b)
         self._f_blocks = self._block_positions(quads, cap, self._f_blocks)
 
     def run_friction(self, mode, dbase, y, sy, *, scale=1.0, g=None, values=None, acc=None, slot=0):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import warp as wp
 
 from warpfem.kernels.structs import STRUCT_TYPES
+from warpfem.transfer import strict_device
 
 PRECISION_TYPES = tuple({"s": s, "v": v, "m": m, "v4": v4, **STRUCT_TYPES[s]}
                         for s, v, m, v4 in ((wp.float32, wp.vec3, wp.mat33, wp.vec4), (wp.float64, wp.vec3d, wp.mat33d, wp.vec4d)))
@@ -169,7 +170,7 @@ class RecordedLaunch:
         if tuple(int(v) for v in wp.config.version.split(".")[:2]) not in _DIRECT_CPU_CALL_WARP:
             return None  # the entry point's C signature is Warp's internal: only versions checked here
         try:
-            if not cmd.device.is_cpu or cmd.adjoint or getattr(cmd, "block_dim", 1) > 1:
+            if not cmd.device.is_cpu or cmd.adjoint or getattr(cmd, "block_dim", 1) > 1 or strict_device():
                 return None
             from warp._src.context import _get_apic_capture_for_device
 

@@ -30,6 +30,7 @@ from warpfem.kernels.generic import RecordedLaunch, launch
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.integrators import make_integrator
 from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
+from warpfem.transfer import host_aliases
 from warpfem.solvers.state import PRECISIONS, State, StepperBase, check_simulator_options, newton_options_from
 
 
@@ -160,7 +161,7 @@ class CubatureForces:
         self._psi_d = wp.zeros(cp, dtype=self._s, device=dev)
         self._P_d = wp.zeros(cp, dtype=mat, device=dev)
         self._D_d = wp.zeros(81 * cp, dtype=self._s, device=dev)
-        self._zero_copy = dev.is_cpu and not _COPY_ARRAYS  # host views of the device arrays: no copies at all
+        self._zero_copy = host_aliases(dev) and not _COPY_ARRAYS  # host views of the device arrays: no copies at all
         self._Fh = self._Fd.numpy().reshape(-1) if self._zero_copy else np.zeros(9 * cp, dtype=npdt)
         self._Fw = self._Fh if (self._zero_copy and npdt == np.float64) else np.zeros(9 * cp)
         self._Fw3 = self._Fw.reshape(cp // mpts, -1)

@@ -97,6 +97,7 @@ from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.solvers.adjoint_contact import collider_terms
 from warpfem.solvers.adjoint_surface import surface_friction_terms
+from warpfem.transfer import host_aliases, read, upload
 
 __all__ = ["StepAdjoint", "default_adjoint_tol", "StepRecord", "AdjointError", "PARAMETERS", "set_element_stiffness_scale",
            "set_material_parameters", "set_density", "material_set_parameters", "check_differentiable", "Recording",
@@ -201,7 +202,7 @@ def set_element_stiffness_scale(sim, scale):
         raise ValueError(f"element_stiffness_scale must be {m} finite positive numbers (one per element), "
                          f"got shape {np.shape(scale)}")
     for qs, ps in zip(sim.quadrature_sets, _point_sets(sim.model)):
-        qs.points.weight.assign((ps["weight"] * c[ps["element"]]).astype(sim.numpy_dtype))
+        upload(qs.points.weight, (ps["weight"] * c[ps["element"]]).astype(sim.numpy_dtype))
     sim.element_stiffness_scale = c
 
 
@@ -236,7 +237,7 @@ class StepRecord:
 
 
 def _host(a):
-    return a.numpy().astype(np.float64)
+    return read(a).astype(np.float64)
 
 
 class StepAdjoint:
@@ -393,11 +394,7 @@ class StepAdjoint:
 
     # -- device helpers ---------------------------------------------------------------------------------------
     def _upload(self, buf, a):
-        if buf.device.is_cpu:  # the host array is the device array's memory: copy into it
-            np.copyto(buf.numpy(), np.asarray(a).reshape(buf.shape[0], -1), casting="same_kind")
-        else:
-            buf.assign(np.ascontiguousarray(a, dtype=self.sim.numpy_dtype))
-        return buf
+        return upload(buf, a)
 
     def _assemble_K(self, x_host):
         """Exact elastic Hessian at x into self._K (device)."""
@@ -413,10 +410,10 @@ class StepAdjoint:
         return xd
 
     def _store_K(self, K):
-        """Write host blocks ``K`` (from ``self._K.numpy()``, changed) back to the device: on the CPU
-        that array is the device memory itself, nothing to copy."""
-        if not self._K.device.is_cpu:
-            self._K.assign(K)
+        """Write host blocks ``K`` (from ``read(self._K)``, changed) back to the device: on the CPU
+        outside strict device mode that array is the device memory itself, nothing to copy."""
+        if not host_aliases(self._K.device):
+            upload(self._K, K)
 
     def _follow_pattern(self):
         """The block arrays on the simulator's current pattern (surface contact may have grown it)."""
@@ -444,18 +441,18 @@ class StepAdjoint:
         pt = self.sim.pattern
         if self._csr_map is None or self._csr_map[0] is not pt:
             n = pt.num_rows
-            offsets = pt.offsets.numpy()[: n + 1].astype(np.int64)
+            offsets = read(pt.offsets, n + 1).astype(np.int64)
             cols = np.asarray(pt.cols_np, dtype=np.int64)
             H = scipy.sparse.bsr_matrix((np.zeros((pt.nnz, 3, 3)), cols, offsets), shape=(3 * n, 3 * n))
             self._csr_map = (pt, H)
             self._mass_gathered = None
         _, H = self._csr_map
         if self._mass_gathered is None:
-            self._mass_gathered = self.sim.mass_values.numpy().reshape(-1, 3, 3)[: pt.nnz].astype(np.float64)
+            self._mass_gathered = read(self.sim.mass_values).reshape(-1, 3, 3)[: pt.nnz].astype(np.float64)
             # the same mass blocks as a matrix: M lambda consistent with H's (K lambda is taken from
             # their difference, divided by s^2)
             self._Mc = scipy.sparse.bsr_matrix((self._mass_gathered, H.indices, H.indptr), shape=H.shape)
-        v = values.numpy().reshape(-1, 3, 3)[: pt.nnz].astype(np.float64)  # a copy (float64 or float32 blocks)
+        v = read(values).reshape(-1, 3, 3)[: pt.nnz].astype(np.float64)  # a copy (float64 or float32 blocks)
         v *= scale
         v += mass_scale * self._mass_gathered
         H.data = v
@@ -572,7 +569,7 @@ class StepAdjoint:
             if bufs[i] is None:
                 bufs[i] = wp.zeros((qs.count, 2), dtype=sim.scalar_type, device=sim.device)
             launch(FK.qp_parameter_work_kernel, qs.count, [x_dev, qs.points, qs.material, wd, bufs[i]], sim.device)
-            ab = bufs[i].numpy().astype(np.float64)  # (Q, 2) unweighted works
+            ab = read(bufs[i]).astype(np.float64)  # (Q, 2) unweighted works
             w0 = ps["weight"]
             wq = w0 if c is None else w0 * c[ps["element"]]  # the kernels' weights (element scale included)
             out[i] = wq @ ab
@@ -601,7 +598,7 @@ class StepAdjoint:
             out.append((c, terms))
         touched = np.flatnonzero(np.abs(blocks).sum(axis=(1, 2)) > 0)
         if len(touched):
-            K = self._K.numpy()
+            K = read(self._K)
             diag = np.asarray(self.sim.pattern.diag_index)
             K[diag[touched]] += blocks[touched].astype(K.dtype)
             self._store_K(K)
@@ -657,7 +654,7 @@ class StepAdjoint:
         if sc is not None:  # the exact (unprojected) Hessian of every pair's barrier at x_{n+1}
             sc.exact_hessian(x_dev, self._K)
         if sfric is not None:  # surface friction's exact Hessian blocks at x_{n+1}
-            K = self._K.numpy()
+            K = read(self._K)
             sfric.add_hessian(K, sim.pattern)
             self._store_K(K)
         cm, ck = 1.0 + s * alpha, s * s
@@ -889,7 +886,7 @@ def tape_adjoint(sim) -> StepAdjoint:
 def _add_grad(arr, value):
     if value is not None and arr.requires_grad and np.any(value):
         g = arr.grad
-        g.assign((g.numpy().astype(np.float64) + value).astype(g.numpy().dtype))
+        upload(g, read(g).astype(np.float64) + value)
 
 
 def recorded_step(sim, run, state_in, state_out, control, dt, *, own):
@@ -924,8 +921,8 @@ def recorded_step(sim, run, state_in, state_out, control, dt, *, own):
     adj.taped_steps += 1
 
     def backward():
-        xbar = state_out.x.grad.numpy().astype(np.float64) if state_out.x.requires_grad else None
-        vbar = state_out.v.grad.numpy().astype(np.float64) if state_out.v.requires_grad else None
+        xbar = read(state_out.x.grad).astype(np.float64) if state_out.x.requires_grad else None
+        vbar = read(state_out.v.grad).astype(np.float64) if state_out.v.requires_grad else None
         hbar = adj.history_grads.pop(id(state_out), {})
         xn, vn, h_in = adj.backward(rec, xbar, vbar, hbar, step_index=index)
         _add_grad(state_in.x, xn)
@@ -980,6 +977,7 @@ def set_density(sim, density):
     model.gravity_mass = model.gravity_mass * r
     model.material = new
     mv = sim.mass_values
-    mv.assign(mv.numpy() * mv.numpy().dtype.type(r))
+    h = read(mv)
+    upload(mv, h * h.dtype.type(r))
     sim.sync_model()
     return new

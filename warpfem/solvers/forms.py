@@ -81,6 +81,7 @@ import warp as wp
 from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import CapturedSequences, launch
+from warpfem.transfer import read
 
 __all__ = ["Form", "InertiaForm", "DampingForm", "ElasticForm", "LoadForm", "IncrementalPotential",
            "FullSpacePotential", "Workspace", "StepContext", "InfeasibleStart", "lagged_change"]
@@ -548,7 +549,7 @@ class IncrementalPotential:
     # -- reading the accumulator ----------------------------------------------------------------------
     def _read(self, a):
         self.host_syncs += 1
-        return a.numpy()
+        return read(a)
 
     def _energy_of(self, a):
         E = jE = mag = 0.0
@@ -701,7 +702,7 @@ class IncrementalPotential:
         launch(LK.gradient_finish_kernel, self.n, [g, self.ops.zero, self.ops.scalar(0.0), self.mask, acc, _G_NORM],
                self.ops.device)
         self.host_syncs += 1
-        return g.numpy().astype(np.float64).ravel()
+        return read(g).astype(np.float64).ravel()
 
     def adaptive_forms(self):
         """The forms whose own parameters adapt during a solve (``adaptive_stiffness()`` true)."""

@@ -14,6 +14,7 @@ import warp as wp
 
 from warpfem.kernels import linalg as K
 from warpfem.kernels.generic import launch
+from warpfem.transfer import read_scalar
 
 
 @dataclass
@@ -47,7 +48,7 @@ class BlockJacobiPCG:
     def dot(self, a, b) -> float:
         self._dot.zero_()
         launch(K.dot_kernel, dim=a.shape[0], inputs=[a, b, self._dot], device=self.device)
-        return float(self._dot.numpy()[0])
+        return read_scalar(self._dot)
 
     def matvec(self, values, mask, x, y):
         pt = self.pattern

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse
 import warp as wp
 import warp.sparse as wsp
+from warpfem.transfer import read, to_device
 
 
 class BlockPattern:
@@ -70,20 +71,20 @@ class BlockPattern:
         self.matrix = wsp.bsr_zeros(n, n, block_type=block_type, device=device)
         wsp.bsr_set_from_triplets(
             self.matrix,
-            wp.array(r, dtype=wp.int32, device=device),
-            wp.array(c, dtype=wp.int32, device=device),
+            to_device(r, wp.int32, device),
+            to_device(c, wp.int32, device),
             wp.zeros(len(uniq), dtype=block_type, device=device),
             prune_numerical_zeros=False,
         )
-        offsets = self.matrix.offsets.numpy()[: n + 1]
-        columns = self.matrix.columns.numpy()[: self.nnz]
+        offsets = read(self.matrix.offsets, n + 1)
+        columns = read(self.matrix.columns, self.nnz)
         if offsets[-1] != self.nnz or not np.array_equal(columns, c):
             raise RuntimeError("warp.sparse reordered the block pattern unexpectedly")
         self.offsets = self.matrix.offsets
         self.columns = self.matrix.columns
         self.rows_np = r
         self.cols_np = c
-        self.block_index = wp.array(inverse[: len(rows)].astype(np.int32), dtype=wp.int32, device=device)
+        self.block_index = to_device(inverse[: len(rows)].astype(np.int32), wp.int32, device)
         self.block_indices = [self.block_index]  # per element group (one group: the array itself)
         if multi:
             sizes = np.cumsum([0] + [len(r) for r in row_parts])
@@ -118,9 +119,10 @@ class BlockPattern:
         pos = self.pair_index(np.stack([old.rows_np, old.cols_np], axis=1))
         if np.any(pos < 0):
             raise ValueError("the new pattern does not contain the old one")
-        out = np.zeros((self.nnz, 3, 3), dtype=values.numpy().dtype)
-        out[pos] = values.numpy()
-        return wp.array(out, dtype=self.block_type, device=self.device)
+        v = read(values)
+        out = np.zeros((self.nnz, 3, 3), dtype=v.dtype)
+        out[pos] = v
+        return to_device(out, self.block_type, self.device)
 
     def new_values(self):
         """A zeroed device array of blocks for this pattern."""
@@ -133,12 +135,12 @@ class BlockPattern:
         if not np.isclose(vals.sum(), A.sum(), rtol=1e-12, atol=0.0):
             raise ValueError("scalar matrix has entries outside the block pattern")
         blocks = vals[:, None, None] * np.eye(3)[None]
-        return wp.array(blocks, dtype=self.block_type, device=self.device)
+        return to_device(blocks, self.block_type, self.device)
 
     def to_scipy(self, values) -> scipy.sparse.csr_matrix:
         """The (3n x 3n) matrix with these block values, as scipy CSR (float64)."""
-        v = values.numpy().astype(np.float64) if hasattr(values, "numpy") else np.asarray(values)
-        offsets = self.offsets.numpy()[: self.num_rows + 1]
+        v = read(values).astype(np.float64) if hasattr(values, "numpy") else np.asarray(values)
+        offsets = read(self.offsets, self.num_rows + 1)
         bsr = scipy.sparse.bsr_matrix((v, self.cols_np, offsets), shape=(3 * self.num_rows, 3 * self.num_rows))
         return bsr.tocsr()
 

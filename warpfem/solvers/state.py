@@ -42,6 +42,7 @@ import warp as wp
 from warpfem.kernels import linalg as LK
 from warpfem.kernels.generic import launch
 from warpfem.solvers.adjoint import active_tape, recorded_step
+from warpfem.transfer import read, to_device, upload
 
 __all__ = ["newton_options_from", "SimulatorBase", "SimulatorState", "StepperBase", "ControlledSimulator", "check_solve", "State", "Control", "DeviceVectors", "PRECISIONS", "check_simulator_options"]
 
@@ -123,7 +124,7 @@ class DeviceVectors:
     def new_vector(self, a=None):
         if a is None:
             return wp.zeros(self.n, dtype=self.vec, device=self.device)
-        return wp.array(np.asarray(a, dtype=self.np_dtype), dtype=self.vec, device=self.device)
+        return to_device(np.asarray(a, dtype=self.np_dtype), self.vec, self.device)
 
     def lincomb(self, a, x, b, y, out):
         launch(LK.lincomb_kernel, self.n, [self.scalar(a), x, self.scalar(b), y, out], self.device)
@@ -214,11 +215,11 @@ class SimulatorState(ControlledSimulator):
     # -- state access ------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:
         """Current positions (n, 3), m, float64 copy."""
-        return self.x.numpy().astype(np.float64)
+        return read(self.x).astype(np.float64)
 
     def velocities(self) -> np.ndarray:
         """Current velocities (n, 3), m/s, float64 copy."""
-        return self.v.numpy().astype(np.float64)
+        return read(self.v).astype(np.float64)
 
     def _checked_state(self, a, what: str) -> np.ndarray:
         a = np.asarray(a, dtype=np.float64)
@@ -228,12 +229,12 @@ class SimulatorState(ControlledSimulator):
 
     def set_positions(self, x):
         """Replace the positions (m), (n, 3); raises ValueError (state untouched) for a wrong shape or NaN/inf."""
-        self.state.x.assign(self._checked_state(x, "positions").astype(self._np))
+        upload(self.state.x, self._checked_state(x, "positions").astype(self._np))
         self._state_changed()
 
     def set_velocities(self, v):
         """Replace the velocities (m/s), (n, 3); raises ValueError (state untouched) for a wrong shape or NaN/inf."""
-        self.state.v.assign(self._checked_state(v, "velocities").astype(self._np))
+        upload(self.state.v, self._checked_state(v, "velocities").astype(self._np))
         self._state_changed()
 
 
@@ -442,8 +443,8 @@ class SimulatorBase(SimulatorState, StepperBase):
         if getattr(self, "_mask", None) is None:
             self._mask, self._fext = self._vec_array(mask), self._vec_array(fext)
         else:
-            self._mask.assign(mask)
-            self._fext.assign(fext.astype(self._np))
+            upload(self._mask, mask)
+            upload(self._fext, fext.astype(self._np))
         self._fext_norm = float(np.linalg.norm(fext))
         if getattr(self, "_load", None) is not None:
             self._load.norm = self._fext_norm
@@ -495,10 +496,10 @@ class SimulatorBase(SimulatorState, StepperBase):
                 self.ops.lincomb(1.0, state.x, -1.0, xb, out)
                 self.ops.lincomb(1.0 / s, out, 0.0, out, out)
             return out
-        p = state.x.numpy().astype(np.float64)
+        p = read(state.x).astype(np.float64)
         for i, t in control.targets.items():
             p[i] = t
-        out.assign(((p - xb.numpy().astype(np.float64)) / s).astype(self._np))
+        upload(out, (p - read(xb).astype(np.float64)) / s)
         return out
 
     def _equation_of_motion_acceleration(self, state, out):

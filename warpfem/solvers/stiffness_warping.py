@@ -58,6 +58,7 @@ from warpfem.solvers.forms import DampingForm, Form, IncrementalPotential, Inert
 from warpfem.solvers.nonlinear import NewtonOptions, SolveStats, newton_solve
 from warpfem.solvers.sparse import PatternView
 from warpfem.solvers.state import SimulatorBase, check_simulator_options
+from warpfem.transfer import read, to_device
 
 __all__ = ["StiffnessWarpingSimulator", "WarpedElasticForm", "ROTATIONS", "tet_linear_stiffness_blocks"]
 
@@ -204,10 +205,10 @@ class StiffnessWarpingSimulator(SimulatorBase):
         dev = self.device
         Ke = tet_linear_stiffness_blocks(qd.qp_dNdX, qd.qp_weight, mat.mu_lame, mat.lam_lame)
         # the kernels' fixed data as one struct (kernels.structs.WarpedTets), built once
-        self._tets = warped_tets(self._s, wp.array(model.rest_positions.astype(self._np), dtype=self._vec, device=dev),
-                                 wp.array(qd.elements, dtype=wp.int32, device=dev),
-                                 wp.array(qd.qp_dNdX.astype(self._np), dtype=self._vec, device=dev),
-                                 wp.array(Ke.reshape(-1, 3, 3).astype(self._np), dtype=self._mat, device=dev))
+        self._tets = warped_tets(self._s, to_device(model.rest_positions.astype(self._np), self._vec, dev),
+                                 to_device(qd.elements, wp.int32, dev),
+                                 to_device(qd.qp_dNdX.astype(self._np), self._vec, dev),
+                                 to_device(Ke.reshape(-1, 3, 3).astype(self._np), self._mat, dev))
         self._R = wp.zeros(m, dtype=self._mat, device=dev)
         self._energy_e = wp.zeros(m, dtype=self._s, device=dev)
 
@@ -275,17 +276,17 @@ class StiffnessWarpingSimulator(SimulatorBase):
     def rotations(self, x=None) -> np.ndarray:
         """Element rotations R_e (m, 3, 3) estimated at x (default: current positions)."""
         self._rotations(self.x if x is None else self._vec_array(x))
-        return self._R.numpy().astype(np.float64)
+        return read(self._R).astype(np.float64)
 
     def elastic_forces(self, x=None) -> np.ndarray:
         """Warped elastic force -(K' x + f0') (N) at x (default: current positions), (n, 3)."""
         self._assemble(self.x if x is None else self._vec_array(x), matrix=False)
-        return self._fel.numpy().astype(np.float64)
+        return read(self._fel).astype(np.float64)
 
     def force_offset(self, x=None) -> np.ndarray:
         """f0' = -sum_e R_e K_e X (N) with the rotations at x, (n, 3) (the force offset of "Stable real-time deformations")."""
         self._assemble(self.x if x is None else self._vec_array(x), matrix=False)
-        return self._f0.numpy().astype(np.float64)
+        return read(self._f0).astype(np.float64)
 
     def stiffness_matrix(self, x=None):
         """Warped stiffness K' = sum_e R_e K_e R_e^T (N/m) with the rotations at x, scipy CSR (3n x 3n)."""
@@ -303,7 +304,7 @@ class StiffnessWarpingSimulator(SimulatorBase):
         xa = self.x if x is None else self._vec_array(x)
         self._rotations(xa)
         self._launch(WK.warped_energy_kernel, self.num_elements, [xa, self._tets, self._R, self._energy_e])
-        return float(self._energy_e.numpy().astype(np.float64).sum())
+        return float(read(self._energy_e).astype(np.float64).sum())
 
     # -- time stepping ------------------------------------------------------------------------------
     def _elastic_force_for_acceleration(self, x, out):

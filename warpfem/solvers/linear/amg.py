@@ -23,7 +23,8 @@ import numpy as np
 import warp as wp
 
 from warpfem.model import rigid_body_modes
-from warpfem.solvers.linear.base import HostLinearSolver, LinearSolveResult, require
+from warpfem.solvers.linear.base import HostLinearSolver, LinearSolveResult, numpy_global_seed, require
+from warpfem.transfer import read, upload
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +98,8 @@ class AMGSolver(HostLinearSolver):
                 or (self.rebuild_every > 1 and self._since_build > self.rebuild_every)):
             B = self._B0 * self._mask_host[:, None]
             Ab = scipy.sparse.bsr_matrix(A, blocksize=(3, 3))
-            self.ml = self.pyamg.smoothed_aggregation_solver(Ab, B=B, symmetry="hermitian", **self.sa_options)
+            with numpy_global_seed():
+                self.ml = self.pyamg.smoothed_aggregation_solver(Ab, B=B, symmetry="hermitian", **self.sa_options)
             self._M = self.ml.aspreconditioner(cycle="V")
             self.setup_count += 1
             self._since_build, self._base_iters, self._stale = 1, None, False
@@ -106,7 +108,7 @@ class AMGSolver(HostLinearSolver):
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         import scipy.sparse.linalg as spla
 
-        bh = b.numpy().astype(np.float64).reshape(-1) * self._mask_host
+        bh = read(b).astype(np.float64).reshape(-1) * self._mask_host
         bn = float(np.linalg.norm(bh))
         if bn == 0.0 or not np.isfinite(bn):
             x.zero_()
@@ -122,8 +124,7 @@ class AMGSolver(HostLinearSolver):
         failed = "" if np.all(np.isfinite(xh)) else "non-finite solution"
         if info < 0:
             failed = f"scipy cg breakdown (info {info})"
-        np_t = np.float32 if x.dtype == wp.vec3 else np.float64
-        wp.copy(x, wp.array(xh.reshape(-1, 3).astype(np_t), dtype=x.dtype, device=self.device))
+        upload(x, xh)
         if self._base_iters is None:
             self._base_iters = max(count[0], 1)
         elif count[0] > self.rebuild_factor * self._base_iters + 2:

@@ -1,42 +1,39 @@
-"""The ``auto`` linear solver: it measures what each candidate solver costs on the run's own
-Newton systems and keeps the cheapest.
+"""The ``auto`` linear solver: a fixed rule picks the solver from the problem alone (its size,
+the device, the extras installed, and CG iteration counts), so the same scene makes the same
+choice, and the same numbers, on an idle or a loaded machine (docs/linear_solvers.md, "auto").
 
-Rule (measurements in docs/linear_solvers.md):
+The rule (``rule="model"``, the default; the constants are calibrated on the measurements in
+docs/linear_solvers.md):
 
 * Candidates: ``pcg`` always; ``multigrid`` when pyamg is installed; ``direct`` on the CPU up to
   DIRECT_MAX_DOFS_CPU unknowns (PARDISO installed) or SUPERLU_MAX_DOFS_CPU (SuperLU only). CUDA:
   ``pcg`` and ``multigrid`` (the host backends would copy the matrix down and back every Newton
   iteration).
-* Start: ``pcg``; or, when the solver is built by a simulator (``initial="size"``, the simulators'
-  default) for a CPU system of at most SMALL_DIRECT_DOFS_CPU unknowns, ``direct`` (one
-  factorisation of such a system costs less than the launches of a few dozen PCG iterations,
+* CPU systems of at most SMALL_DIRECT_DOFS_CPU unknowns: ``direct`` from the first solve when the
+  solver is built by a simulator (``initial="size"``, the simulators' default; one factorisation
+  of such a system costs less than the launches of a few dozen PCG iterations,
   kernels_bench/bench_auto_crossover.py).
-* Systems of at most EXPLORE_MIN_DOFS unknowns (``explore_min_dofs``) keep the starting solver:
-  no timing decides anything, so small runs are reproducible bit for bit on any machine load.
-* Every larger Newton system's cost (prepare + solve, wall time; each solver's solve ends with a
-  read-back, so no extra synchronisation) is measured. The first one that costs more than
-  ``explore_seconds`` is solved again by the current solver (its cost without one-time warm-up:
-  if that is below ``explore_seconds`` nothing else happens) and by every other candidate, each timed the same way; one-time
-  set-up (a factorisation's symbolic analysis, the multigrid hierarchy) is timed apart and not
-  counted. The cheapest candidate whose solve converged, if it costs at most ``switch_margin``
-  times the current solver (timing noise), becomes the solver of every later system, and its
-  answer is returned for this one; otherwise the current solver stays.
-* After a choice, when the moving average of the chosen solver's cost (weight 0.3 per system, at
-  least 5 systems after the choice) exceeds ``recheck_factor`` times the cost the choice was made
-  at (the systems became harder), the candidates are measured again, at most
-  ``max_explorations`` measurements per run.
+* Above MULTIGRID_MIN_DOFS unknowns (CPU and CUDA): ``multigrid`` when it is a candidate (the
+  cheapest per step from 12k tets on, at nu 0.3 and 0.49, on the boxes and the bunny measured).
+* Otherwise ``pcg``; above SMALL_DIRECT_DOFS_CPU unknowns it hands every later system to ``multigrid`` (when it is a candidate, else
+  to ``direct`` where allowed) once one of its solves needs more than SWITCH_AFTER_ITERATIONS x
+  (unknowns / 8000) ** 0.8 CG iterations (:func:`switch_after_iterations`; the set-up of the
+  other solvers grows faster with the size than a CG iteration's cost, so the crossover count
+  grows with it). A soft material at a loose tolerance stays with PCG, a stiff one or a tight
+  tolerance switches after its first Newton system (kernels_bench/bench_auto_rule.py). An
+  iteration count is a property of the system, not of the machine's load.
 * A factorisation that meets a non-positive pivot is retried with a small diagonal shift by the
   direct solver itself (a semi-definite projected Hessian); only a matrix that no shift makes
   positive definite (an unprojected Hessian far from convex) sends that system and all later ones
   to PCG (which stops at negative curvature with a descent direction); ``direct`` is then no longer
   a candidate.
 
-A run that stays with the starting solver pays nothing for this beyond the timing; exploring costs
-one extra solve (plus set-up) per candidate, once, on runs whose solves take more than
-``explore_seconds``. Which solver wins depends on the measured times, so two runs of a system
-above EXPLORE_MIN_DOFS unknowns on a loaded machine may choose differently (every candidate solves
-to the same tolerance); name the solver (``linear_solver = "multigrid"``, ...) for runs that must
-be reproducible bit for bit.
+``rule="measured"`` keeps the earlier rule, for comparison (kernels_bench/bench_auto_rule.py): it
+times the candidates on the run's first Newton system that costs more than ``explore_seconds``
+(systems above ``explore_min_dofs`` unknowns) and keeps the cheapest by ``switch_margin``,
+re-measuring when the moving average of the chosen solver's cost passes ``recheck_factor`` times
+the cost at the choice (at most ``max_explorations`` times). Its choice depends on the measured
+times, so two runs on a loaded machine may differ.
 """
 
 from __future__ import annotations
@@ -47,12 +44,14 @@ import time
 import warp as wp
 
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
+from warpfem.transfer import strict_device
 
 log = logging.getLogger(__name__)
 
 DIRECT_MAX_DOFS_CPU = 200_000
 SUPERLU_MAX_DOFS_CPU = 20_000
-SMALL_DIRECT_DOFS_CPU = 10_000  # crossover measured in kernels_bench/bench_auto_crossover.py
+#: CPU systems of at most this many unknowns run direct from the first solve (``initial="size"``)
+SMALL_DIRECT_DOFS_CPU = 3_000
 EXPLORE_SECONDS = 0.02
 #: systems with at most this many unknowns are never timed against the other candidates: their
 #: solver is the starting one, so small runs (tests, studies compared bit for bit, a serial and a
@@ -60,38 +59,61 @@ EXPLORE_SECONDS = 0.02
 EXPLORE_MIN_DOFS = 3_000
 INITIAL_CHOICES = ("pcg", "size")
 CANDIDATES = ("pcg", "multigrid", "direct")
+RULES = ("model", "measured")
+#: ``rule="model"``: systems above this many unknowns run multigrid when it is a candidate
+MULTIGRID_MIN_DOFS = 10_000
+#: ``rule="model"``, PCG: CG iterations of one solve, at 8000 unknowns, past which the later systems
+#: go to multigrid (or, without pyamg, on the CPU, to the direct solver; scaled by (unknowns / 8000) ** 0.8)
+SWITCH_AFTER_ITERATIONS = 100
+
+
+def switch_after_iterations(num_dofs: int) -> int:
+    """``rule="model"``: the CG iterations of one PCG solve past which the later systems of
+    ``num_dofs`` unknowns go to multigrid (or direct; see the module)."""
+    return int(round(SWITCH_AFTER_ITERATIONS * (max(num_dofs, 1) / 8000.0) ** 0.8))
+
+
+def _host_solvers_allowed(pattern) -> bool:
+    """The host (direct) solver is a candidate: on the CPU, outside strict device mode (which makes
+    the CPU choose as on CUDA, where the matrix would cross to the host every Newton iteration)."""
+    return not pattern.device.is_cuda and not strict_device()
 
 
 def starts_direct(pattern) -> bool:
     """The small-system rule: direct from the first solve (CPU, at most SMALL_DIRECT_DOFS_CPU unknowns)."""
-    return (not pattern.device.is_cuda) and 3 * pattern.num_rows <= SMALL_DIRECT_DOFS_CPU
+    return _host_solvers_allowed(pattern) and 3 * pattern.num_rows <= SMALL_DIRECT_DOFS_CPU
 
 
 def describe_choice(num_dofs: int) -> dict:
-    """What ``auto`` (as the simulators build it) will run for a system of ``num_dofs`` unknowns,
-    by device (``warpfem describe``): {"cpu": text, "cuda": text}, from the same rule and limits
-    as :func:`starts_direct`, :func:`direct_allowed` and the candidates."""
+    """What ``auto`` (as the simulators build it, ``rule="model"``) will run for a system of
+    ``num_dofs`` unknowns, by device (``warpfem describe``): {"cpu": text, "cuda": text}, from the
+    same rule and limits as :func:`starts_direct`, :func:`direct_allowed` and the candidates."""
     from warpfem.solvers.linear.direct import available_backends
 
     backend = available_backends()[0]
     limit = DIRECT_MAX_DOFS_CPU if backend == "pardiso" else SUPERLU_MAX_DOFS_CPU
-    mg = ["multigrid"] if _multigrid_available() else []
-    measured = f"than {EXPLORE_SECONDS:g} s, the cheapest measured of "
+    mg = _multigrid_available() and num_dofs > MULTIGRID_MIN_DOFS
+    mg_text = f"multigrid-preconditioned CG ({num_dofs:,} unknowns > {MULTIGRID_MIN_DOFS:,}, pyamg installed)"
     if num_dofs <= SMALL_DIRECT_DOFS_CPU:
         cpu = (f"direct (sparse Cholesky, {backend}) from the first solve: {num_dofs:,} unknowns <= "
-               f"{SMALL_DIRECT_DOFS_CPU:,}; from the first Newton system that costs more {measured}"
-               f"{', '.join(['direct', 'pcg'] + mg)}; block-Jacobi PCG if a factorisation finds the matrix not "
+               f"{SMALL_DIRECT_DOFS_CPU:,}; block-Jacobi PCG if a factorisation finds the matrix not "
                f"positive definite")
-    elif num_dofs <= limit:
-        cpu = (f"block-Jacobi PCG first; from the first Newton system that costs more {measured}"
-               f"{', '.join(['pcg'] + mg + [f'direct (sparse Cholesky, {backend})'])} ({num_dofs:,} unknowns: "
-               f"above {SMALL_DIRECT_DOFS_CPU:,}, within the direct limit {limit:,})")
+    elif mg:
+        cpu = mg_text
+    elif _multigrid_available() or num_dofs <= limit:
+        then = "multigrid-preconditioned CG" if _multigrid_available() else f"direct (sparse Cholesky, {backend})"
+        cpu = (f"block-Jacobi PCG; {then} from the Newton system after the first PCG solve that needs more than "
+               f"{switch_after_iterations(num_dofs)} CG iterations ({num_dofs:,} unknowns)")
     else:
-        cpu = (f"block-Jacobi PCG first; from the first Newton system that costs more {measured}"
-               f"{', '.join(['pcg'] + mg)} ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})")
-    cuda = ("block-Jacobi PCG (the data stay on the device)" if not mg else
-            f"block-Jacobi PCG first; from the first Newton system that costs more {measured}pcg, multigrid "
-            f"(the data stay on the device)")
+        cpu = f"block-Jacobi PCG ({num_dofs:,} unknowns: above the direct limit {limit:,} with {backend})"
+    if mg:
+        cuda = mg_text
+    elif _multigrid_available() and num_dofs > SMALL_DIRECT_DOFS_CPU:
+        cuda = (f"block-Jacobi PCG; multigrid-preconditioned CG from the Newton system after the first PCG solve that "
+                f"needs more than {switch_after_iterations(num_dofs)} CG iterations")
+    else:
+        cuda = "block-Jacobi PCG"
+    cuda += " (the data stay on the device)"
     return {"cpu": cpu, "cuda": cuda}
 
 
@@ -120,21 +142,23 @@ def _multigrid_available() -> bool:
 
 def direct_allowed(pattern) -> bool:
     """Whether ``auto`` may hand this pattern's systems to the direct solver."""
-    if pattern.device.is_cuda:
+    if not _host_solvers_allowed(pattern):
         return False
     limit = DIRECT_MAX_DOFS_CPU if _pardiso_available() else SUPERLU_MAX_DOFS_CPU
     return 3 * pattern.num_rows <= limit
 
 
 class AutoSolver(LinearSolver):
-    """The cheapest of the candidate solvers by measured time per Newton system (see the module).
+    """The solver the rule of the module picks for the problem (``rule="model"``, deterministic), or
+    the cheapest of the candidates by measured time per Newton system (``rule="measured"``).
 
     Args:
-        initial: "pcg" (start with PCG whatever the size) or "size" (direct from the first solve
+        rule: "model" (default) or "measured" (see the module).
+        initial: "pcg" (no direct start whatever the size) or "size" (direct from the first solve
             when :func:`starts_direct`; what the simulators use).
-        candidates: the solvers to measure (default: pcg, multigrid when pyamg is installed,
+        candidates: the solvers the rule may use (default: pcg, multigrid when pyamg is installed,
             direct where :func:`direct_allowed`); names outside these are ignored.
-        explore_seconds: measure the other candidates only when the first solve took longer.
+        explore_seconds (``rule="measured"``): measure the other candidates only when the first solve took longer.
         switch_margin: switch only to a candidate at most this fraction of the current cost.
         recheck_factor, max_explorations: measure again when the chosen solver's cost grows past
             this factor of its cost at the choice, at most this many measurements per run.
@@ -147,10 +171,13 @@ class AutoSolver(LinearSolver):
     # only the solvers in use are built: a small CPU system that stays direct never allocates the
     # PCG workspace (``self.pcg`` stays None)
 
-    def __init__(self, pattern, *, vec_type, scalar, initial: str = "pcg", candidates=None,
+    def __init__(self, pattern, *, vec_type, scalar, rule: str = "model", initial: str = "pcg", candidates=None,
                  explore_seconds: float = EXPLORE_SECONDS, switch_margin: float = 0.8, recheck_factor: float = 2.0,
                  max_explorations: int = 2, check_every: int = 16, use_cuda_graph: bool = True, backend: str = "auto",
                  positions=None, cpu_serial: bool = False, explore_min_dofs: int = EXPLORE_MIN_DOFS):
+        if rule not in RULES:
+            raise ValueError(f"rule must be one of {RULES}, got {rule!r}")
+        self.rule = rule
         if initial not in INITIAL_CHOICES:
             raise ValueError(f"initial must be one of {INITIAL_CHOICES}, got {initial!r}")
         if not (explore_seconds >= 0.0):
@@ -188,9 +215,19 @@ class AutoSolver(LinearSolver):
         if "pcg" not in self.candidates:
             self.candidates.insert(0, "pcg")  # the fallback of an indefinite system
         self.active = "pcg"
+        n = 3 * pattern.num_rows
+        #: rule "model": the CG iterations of a PCG solve past which later systems go to ``switch_to`` (None: never)
+        self.switch_iterations, self.switch_to = None, None
         if self._initial == "size" and "direct" in self.candidates and starts_direct(pattern):
             self.active = "direct"
-            log.debug("linear solver auto: %d unknowns on the CPU; direct from the first solve", 3 * pattern.num_rows)
+            log.debug("linear solver auto: %d unknowns on the CPU; direct from the first solve", n)
+        elif self.rule == "model" and "multigrid" in self.candidates and n > MULTIGRID_MIN_DOFS:
+            self.active = "multigrid"
+            log.debug("linear solver auto: %d unknowns; multigrid", n)
+        elif self.rule == "model" and n > SMALL_DIRECT_DOFS_CPU and ("multigrid" in self.candidates
+                                                                    or "direct" in self.candidates):
+            self.switch_iterations = switch_after_iterations(n)
+            self.switch_to = "multigrid" if "multigrid" in self.candidates else "direct"
         self.costs = {}  # seconds per Newton system (prepare + solve) of each measured candidate
         self.setup_seconds = {}  # one-time set-up of each candidate (not in ``costs``)
         self.explorations = 0
@@ -250,8 +287,22 @@ class AutoSolver(LinearSolver):
         if self.active != "direct":
             self._make(self.active).prepare(values, mask)
 
+    def _after_pcg(self, res):
+        """Rule "model": a PCG solve past ``switch_iterations`` CG iterations sends later systems to
+        ``switch_to`` (multigrid when it is a candidate, else direct)."""
+        if (self.active == "pcg" and self.switch_iterations is not None and self.switch_to in self.candidates
+                and res.iterations > self.switch_iterations):
+            log.info("linear solver auto: %d CG iterations > %d; %s from the next Newton system", res.iterations,
+                     self.switch_iterations, self.switch_to)
+            self.active = self.switch_to
+            self.switch_iterations = None
+            self._make(self.active)
+
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         res = self.solvers[self.active].solve(b, x, tol=tol, maxiter=maxiter)
+        if self.rule == "model":
+            self._after_pcg(res)
+            return res
         cost = time.perf_counter() - self._t_prepare
         self.costs[self.active] = cost
         others = [c for c in self.candidates if c != self.active]
@@ -322,6 +373,8 @@ class AutoSolver(LinearSolver):
 
     # -- deferred solves (PCG only): see DevicePCG.solve_deferred -----------------------------------
     def _may_explore(self) -> bool:
+        if self.rule == "model":
+            return False
         others = [c for c in self.candidates if c != self.active]
         return (bool(others) and self.explorations < self.max_explorations and self._cheap_rechecks < 3
                 and 3 * self.num_rows > self.explore_min_dofs)
@@ -346,5 +399,8 @@ class AutoSolver(LinearSolver):
     def complete_deferred(self, report):
         res, changed = self.pcg.complete_deferred(report)
         self.host_syncs += res.host_syncs
+        if self.rule == "model":
+            self._after_pcg(res)
+            return res, changed
         self.costs["pcg"] = time.perf_counter() - self._t_prepare  # (with the fused trial: an upper bound)
         return res, changed

@@ -20,6 +20,8 @@ prepared matrix, Newton's fallback direction), ``device`` and ``scalar``.
 
 from __future__ import annotations
 
+import contextlib
+
 import logging
 from dataclasses import dataclass
 
@@ -28,8 +30,23 @@ import warp as wp
 
 from warpfem.kernels import linalg as K
 from warpfem.kernels.generic import launch
+from warpfem.transfer import read, read_scalar
 
 log = logging.getLogger(__name__)
+
+
+@contextlib.contextmanager
+def numpy_global_seed(seed: int = 0):
+    """NumPy's global random state seeded inside the block and restored after it: pyamg's set-up
+    draws its spectral-radius estimates (the prolongator smoothing weight) from ``np.random``, so
+    without this two builds of the same hierarchy differ in the last bits, and so does every
+    solve with it."""
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(state)
 
 
 @dataclass
@@ -149,7 +166,7 @@ class LinearSolver:
         self._dot.zero_()
         wp.launch(K.dot_kernel, dim=a.shape[0], inputs=[a, b, self._dot], device=self.device)
         self.host_syncs += 1
-        return float(self._dot.numpy()[0])
+        return read_scalar(self._dot)
 
     def matvec(self, values, mask, x, y):
         """y = (P A P + I - P) x."""
@@ -182,7 +199,7 @@ class HostLinearSolver(LinearSolver):
         import scipy.sparse
 
         n = pattern.num_rows
-        offsets = pattern.offsets.numpy()[: n + 1].astype(np.int64)
+        offsets = read(pattern.offsets, n + 1).astype(np.int64)
         nnzb = pattern.nnz
         # scalar CSR of the block matrix with data = arange(9 nnzb): its data says where each
         # scalar entry comes from in the flat (nnzb, 3, 3) value array
@@ -207,8 +224,8 @@ class HostLinearSolver(LinearSolver):
         """The masked float64 CSR matrix (P A P + I - P) of these device block values."""
         import scipy.sparse
 
-        v = values.numpy().astype(np.float64, copy=False).reshape(-1)
-        m = mask.numpy().astype(np.float64, copy=False).reshape(-1)
+        v = read(values).astype(np.float64, copy=False).reshape(-1)
+        m = read(mask).astype(np.float64, copy=False).reshape(-1)
         self.host_syncs += 2
         data = v[self._src]
         data *= m[self._row_of] * m[self._indices]
@@ -233,8 +250,8 @@ def make_linear_solver(name: str, pattern, *, vec_type, scalar, positions=None, 
 
     ``options`` go to the solver's constructor (e.g. ``check_every`` for pcg, ``backend`` for
     direct, ``rebuild_every`` for amg). ``positions`` ((n, 3), the model's rest positions) give
-    amg its rigid-body modes. ``auto`` is PCG that switches to direct when the systems turn out
-    hard (see :mod:`warpfem.solvers.linear.auto`).
+    amg its rigid-body modes. ``auto`` picks among them by a fixed rule on the problem's size and
+    its CG iteration counts (see :mod:`warpfem.solvers.linear.auto`).
     """
     import importlib
     import inspect

@@ -47,6 +47,7 @@ import warp as wp
 
 from warpfem.kernels import linalg as K
 from warpfem.solvers.linear.base import HostLinearSolver, LinearSolveResult, MissingExtra, require
+from warpfem.transfer import read, upload
 
 log = logging.getLogger(__name__)
 
@@ -503,7 +504,7 @@ class DirectSolver(HostLinearSolver):
         if self._failure:
             wp.launch(K.block_apply_kernel, dim=self.num_rows, inputs=[self.inv_diag, b, x], device=self.device)
             return LinearSolveResult(0, float("nan"), False, host_syncs=0, failed=self._failure)
-        bh = b.numpy().reshape(-1) * self._mask_host  # float64; the system is P b (b should already be masked)
+        bh = read(b).reshape(-1) * self._mask_host  # float64; the system is P b (b should already be masked)
         syncs = 1
         bn = float(np.linalg.norm(bh))
         xh, rel = self._refined_solve(bh, bn, tol)
@@ -520,10 +521,7 @@ class DirectSolver(HostLinearSolver):
                 c = V.T @ bh
                 xh, rel = self._refined_solve(bh - V @ c, bn, tol)
                 xh = xh - V @ (V.T @ xh) + V @ (c / lam_plus)
-        if self.device.is_cpu:  # x.numpy() is a view of x's memory on the CPU: write in place
-            x.numpy()[...] = xh.reshape(-1, 3)
-        else:
-            x.assign(xh.reshape(-1, 3).astype(_np_of(x)))
+        upload(x, xh)  # (on the CPU outside strict device mode: written into x's memory, no temporary)
         return LinearSolveResult(1, rel, bool(rel <= tol), host_syncs=syncs, shift=self._shift, deflated=deflated)
 
     def _refined_solve(self, bh, bn, tol):

@@ -55,9 +55,10 @@ import warp.sparse as wsp
 
 from warpfem.kernels.generic import RecordedLaunch, both_precisions
 from warpfem.model import rigid_body_modes
-from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult, require
+from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult, numpy_global_seed, require
 from warpfem.solvers.linear.pcg import (_NEGATIVE, _NONFINITE, _RUNNING, _pcg_carry_kernel, _pcg_direction_kernel,
                                         _pcg_matvec_kernel, _pcg_start_kernel)
+from warpfem.transfer import read, read_scalar, strict_device, to_device, upload
 
 log = logging.getLogger(__name__)
 
@@ -388,7 +389,7 @@ class MultigridPCG(LinearSolver):
         if not (np.isfinite(rebuild_factor) and rebuild_factor >= 1.0):
             raise ValueError(f"rebuild_factor must be >= 1, got {rebuild_factor!r}")
         if check_every is None:
-            check_every = 4 if pattern.device.is_cuda else 1
+            check_every = 4 if (pattern.device.is_cuda or strict_device()) else 1
         if int(check_every) != check_every or check_every < 1:
             raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
         self.degree, self.lower = tuple(int(g) for g in degrees), tuple(float(g) for g in lowers)
@@ -443,9 +444,9 @@ class MultigridPCG(LinearSolver):
         self._tol2 = wp.zeros(1, dtype=wp.float64, device=dev)
         self._maxiter = wp.zeros(1, dtype=wp.int32, device=dev)
         self._report = wp.zeros(4, dtype=wp.float64, device=dev)
-        self._rows = wp.array(pattern.rows_np, dtype=wp.int32, device=dev)
-        self._cols = wp.array(pattern.cols_np, dtype=wp.int32, device=dev)
-        self._diag = wp.array(np.asarray(pattern.diag_index, dtype=np.int32), dtype=wp.int32, device=dev)
+        self._rows = to_device(pattern.rows_np, wp.int32, dev)
+        self._cols = to_device(pattern.cols_np, wp.int32, dev)
+        self._diag = to_device(np.asarray(pattern.diag_index, dtype=np.int32), wp.int32, dev)
         # the V-cycle's scalar: float32 with preconditioner_precision "float32", else the solver's
         vs = wp.float32 if self.preconditioner_precision == "float32" else self.scalar
         self.vscalar, self._mixed = vs, vs != self.scalar
@@ -461,7 +462,7 @@ class MultigridPCG(LinearSolver):
     def _host_matrix(self, values, mask):
         import scipy.sparse
 
-        m = mask.numpy().astype(np.float64).reshape(-1)
+        m = read(mask).astype(np.float64).reshape(-1)
         A = self.pattern.to_scipy(values)
         self.host_syncs += 2
         Dm = scipy.sparse.diags(m)
@@ -473,10 +474,11 @@ class MultigridPCG(LinearSolver):
         import scipy.sparse
 
         A, m = self._host_matrix(values, mask)
-        ml = self.pyamg.smoothed_aggregation_solver(
-            scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
-            max_coarse=max(1, self.max_coarse // self._B0.shape[1]),  # pyamg counts aggregates (blocks)
-            max_levels=self.max_levels, keep=False, coarse_solver="pinv", **self.sa_options)
+        with numpy_global_seed():  # the same hierarchy, bit for bit, every run
+            ml = self.pyamg.smoothed_aggregation_solver(
+                scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
+                max_coarse=max(1, self.max_coarse // self._B0.shape[1]),  # pyamg counts aggregates (blocks)
+                max_levels=self.max_levels, keep=False, coarse_solver="pinv", **self.sa_options)
         dev, s = self.device, self.vscalar
         levels = [_Level(self._A0, 3 * self.num_rows, s, dev)]
         if not self._mixed:
@@ -518,7 +520,7 @@ class MultigridPCG(LinearSolver):
             if l == 0 and not self.estimate_finest:
                 u = 1.0
             elif self.upper == "estimate":
-                u = min(1.0, self.safety * self._largest_eigenvalue(lv, mask.numpy().reshape(-1) if l == 0 else None))
+                u = min(1.0, self.safety * self._largest_eigenvalue(lv, read(mask).reshape(-1) if l == 0 else None))
             else:
                 u = float(self.upper)
             est.append(u)
@@ -538,7 +540,7 @@ class MultigridPCG(LinearSolver):
 
         A = self._scipy(lv.A).tocsr()
         b = lv.block
-        Di = lv.dinv.numpy().astype(np.float64).reshape(-1, b, b)
+        Di = read(lv.dinv).astype(np.float64).reshape(-1, b, b)
         Di = 0.5 * (Di + Di.transpose(0, 2, 1))
         w, V = np.linalg.eigh(Di)
         S = np.einsum("nij,nj,nkj->nik", V, np.sqrt(np.maximum(w, 0.0)), V)  # Dinv^(1/2) blocks
@@ -567,9 +569,9 @@ class MultigridPCG(LinearSolver):
 
         bi, bj = A.block_shape
         nnz = A.nnz_sync()
-        off = A.offsets.numpy()[: A.nrow + 1]
-        cols = A.columns.numpy()[:nnz]
-        vals = A.values.numpy()[:nnz].astype(np.float64).reshape(nnz, bi, bj)
+        off = read(A.offsets, A.nrow + 1)
+        cols = read(A.columns, nnz)
+        vals = read(A.values, nnz).astype(np.float64).reshape(nnz, bi, bj)
         return scipy.sparse.bsr_matrix((vals, cols, off), shape=(A.nrow * bi, A.ncol * bj))
 
     @staticmethod
@@ -577,8 +579,8 @@ class MultigridPCG(LinearSolver):
         """The block structure of a device BSR matrix as a scipy CSR matrix of ones."""
         import scipy.sparse
 
-        off = M.offsets.numpy()[: M.nrow + 1]
-        cols = M.columns.numpy()[: off[-1]]
+        off = read(M.offsets, M.nrow + 1)
+        cols = read(M.columns, int(off[-1]))
         return scipy.sparse.csr_matrix((np.ones(len(cols)), cols, off), shape=(M.nrow, M.ncol))
 
     def _bsr_topology(self, S, block):
@@ -588,8 +590,8 @@ class MultigridPCG(LinearSolver):
         rows = np.repeat(np.arange(S.shape[0], dtype=np.int32), np.diff(S.indptr))
         dev, bt = self.device, self._block_type(*block)
         out = wsp.bsr_zeros(S.shape[0], S.shape[1], block_type=bt, device=dev)
-        wsp.bsr_set_from_triplets(out, wp.array(rows, dtype=wp.int32, device=dev),
-                                  wp.array(S.indices.astype(np.int32), dtype=wp.int32, device=dev),
+        wsp.bsr_set_from_triplets(out, to_device(rows, wp.int32, dev),
+                                  to_device(S.indices.astype(np.int32), wp.int32, dev),
                                   wp.zeros(len(rows), dtype=bt, device=dev), prune_numerical_zeros=False)
         return out
 
@@ -606,9 +608,9 @@ class MultigridPCG(LinearSolver):
         dev = self.device
         data = M.data.astype(np_t).reshape(-1, bi, bj)
         out = wsp.bsr_zeros(nr, nc, block_type=self._block_type(bi, bj), device=dev)
-        wsp.bsr_set_from_triplets(out, wp.array(rows, dtype=wp.int32, device=dev),
-                                  wp.array(M.indices.astype(np.int32), dtype=wp.int32, device=dev),
-                                  wp.array(data, dtype=self._block_type(bi, bj), device=dev),
+        wsp.bsr_set_from_triplets(out, to_device(rows, wp.int32, dev),
+                                  to_device(M.indices.astype(np.int32), wp.int32, dev),
+                                  to_device(data, self._block_type(bi, bj), dev),
                                   prune_numerical_zeros=False)
         return out
 
@@ -643,10 +645,10 @@ class MultigridPCG(LinearSolver):
         self.host_syncs += 1
         Minv = self._pinv(Ac)
         if last.Minv is None or last.Minv.shape != Minv.shape:
-            last.Minv = wp.array(Minv, dtype=self.vscalar, device=dev)
+            last.Minv = to_device(Minv, self.vscalar, dev)
             self._cmds = None
         else:
-            last.Minv.assign(Minv.astype(last.Minv.numpy().dtype))
+            upload(last.Minv, Minv)
 
     @classmethod
     def _dense(cls, A) -> np.ndarray:
@@ -811,7 +813,7 @@ class MultigridPCG(LinearSolver):
         cmds["init_finish"]()
         syncs = 0
         if self.check_every == 1:
-            stop = np.float64(float(tol) ** 2) * np.float64(self._bb.numpy()[0])
+            stop = np.float64(float(tol) ** 2) * np.float64(read_scalar(self._bb))
             syncs += 1
         while True:
             cmds["carry"]()
@@ -822,13 +824,13 @@ class MultigridPCG(LinearSolver):
                     # one read-back before the V-cycle: the last iteration's is skipped (the
                     # direction kernel sees the same residual and stops without z)
                     syncs += 1
-                    if self._rr.numpy()[1] <= stop:  # the direction kernel's own test, same float64 numbers
+                    if read_scalar(self._rr, 1) <= stop:  # the direction kernel's own test, same float64 numbers
                         direction()
                         continue
                 self._precondition()
                 finish()
                 direction()
-            rep = self._report.numpy()
+            rep = read(self._report)
             syncs += 1
             if int(rep[0]) != _RUNNING:
                 break

@@ -29,6 +29,7 @@ import warp as wp
 from warpfem.kernels.generic import COUNTERS, both_precisions
 from warpfem.kernels.linalg import cw_mul
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
+from warpfem.transfer import read, strict_device
 
 log = logging.getLogger(__name__)
 
@@ -275,11 +276,12 @@ class DevicePCG(LinearSolver):
         check_every: iterations between host read-backs of the residual (k). A solve makes
             ceil(iterations / k) read-backs (at least one), and runs at most k - 1 no-op
             iterations past convergence.
-        use_cuda_graph: on CUDA, capture a chunk of k iterations as a graph and replay it.
+        use_cuda_graph: on CUDA, capture a chunk of k iterations as a graph and replay it (in strict
+            device mode, ``warpfem.transfer``, also on the CPU: Warp's CPU graph, the same code path).
         cpu_serial: on the CPU, run the whole solve as one launch of one thread
             (``_pcg_serial_kernel``: the same iterations in the same order, one read-back per
             solve, no no-op iterations past convergence; the simulators turn it on, see
-            ``linear.auto.simulator_options``). Ignored on CUDA.
+            ``linear.auto.simulator_options``). Ignored on CUDA and in strict device mode.
     """
 
     name = "pcg"
@@ -290,7 +292,10 @@ class DevicePCG(LinearSolver):
             raise ValueError(f"check_every must be a positive integer, got {check_every!r}")
         self.check_every = int(check_every)
         self.use_cuda_graph = bool(use_cuda_graph)
-        self.cpu_serial = bool(cpu_serial) and not pattern.device.is_cuda
+        # strict device mode: the CPU runs the CUDA path (chunks, captured as a graph)
+        strict = strict_device()
+        self.cpu_serial = bool(cpu_serial) and not pattern.device.is_cuda and not strict
+        self._graphs_on = self.use_cuda_graph and (pattern.device.is_cuda or strict)
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     def _analyse(self, pattern):
@@ -378,7 +383,7 @@ class DevicePCG(LinearSolver):
         dev = self.device
         cmds = self._chunk_commands()
         COUNTERS["launches"] += len(cmds)  # a replayed graph counts as its launches
-        if dev.is_cuda and self.use_cuda_graph:
+        if self._graphs_on:
             if self._graph is None:
                 if self._chunk_runs == 0:  # first run uncaptured: loads the modules
                     for c in cmds:
@@ -403,7 +408,7 @@ class DevicePCG(LinearSolver):
         self._maxiter.fill_(int(maxiter))
         if self.cpu_serial:
             self._run_serial()
-            rep = self._report.numpy()
+            rep = read(self._report)
             wp.copy(x, self.x)
             return self._result(rep, tol, 1)
         self._launch_start()
@@ -411,7 +416,7 @@ class DevicePCG(LinearSolver):
         while True:
             self._run_chunk()
             chunks += 1
-            rep = self._report.numpy()  # the one host read-back of the chunk
+            rep = read(self._report)  # the one host read-back of the chunk
             syncs += 1
             if int(rep[0]) != _RUNNING:
                 break
@@ -480,7 +485,7 @@ class DevicePCG(LinearSolver):
         while int(rep[0]) == _RUNNING:
             self._run_chunk()
             chunks += 1
-            rep = self._report.numpy()
+            rep = read(self._report)
             syncs += 1
         if syncs:
             wp.copy(x, self.x)
