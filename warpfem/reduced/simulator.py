@@ -454,6 +454,14 @@ class ReducedSimulator(StepperBase):
         """Full-mesh velocities U qdot (+ L adot) (n, 3), m/s."""
         return (self._B @ self.state.v).reshape(-1, 3)
 
+    def stresses(self, x=None) -> np.ndarray:
+        """First Piola-Kirchhoff stress (Pa) of the model's material at every quadrature point of the full
+        mesh (Q, 3, 3), at x (default: the reconstructed positions X + U q)."""
+        from warpfem.io.vtu import deformation_gradients
+
+        x = self.positions() if x is None else np.asarray(x, dtype=np.float64)
+        return np.asarray(self.model.material.pk1(deformation_gradients(self.model, x)), dtype=np.float64)
+
     # -- kinematic handles --------------------------------------------------------------------------
     def set_targets(self, indices, positions):
         """Prescribe end-of-step positions (m) of handle vertices, like :meth:`warpfem.Simulator.set_targets`.
