@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import time
 import warnings
 from dataclasses import dataclass
@@ -60,7 +61,8 @@ def _one_line(e: BaseException) -> str:
     if isinstance(e, OSError) and e.strerror:
         return e.strerror + (f" ({e.filename})" if e.filename else "")
     text = str(e).strip().splitlines()
-    return (text[0] if text else type(e).__name__).strip()
+    line = (text[0] if text else type(e).__name__).strip()
+    return re.sub(r"^Error in '[^']*' at line \d+ in file \S+ : ", "", line)  # pxr's location prefix
 
 
 def _incomplete_reason(e: BaseException, frame: int) -> str:
