@@ -20,7 +20,6 @@ totals; the outputs are then cut back to that frame by their writers (``RunInfo.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 
@@ -115,10 +114,6 @@ def physics_keys(run, total_frames: int) -> dict:
     return out
 
 
-def _fingerprint(keys: dict) -> str:
-    return hashlib.sha256(json.dumps(keys, sort_keys=True).encode()).hexdigest()
-
-
 def _write_json_atomic(path, data):
     tmp = path + ".partial"
     with open(tmp, "w", encoding="utf-8") as f:
@@ -153,13 +148,11 @@ class Checkpoint:
         import warpfem
 
         run = self.run
-        if not hasattr(warpfem, "save_state"):  # TEMPORARY until the state API is merged
-            return
         os.makedirs(self.folder, exist_ok=True)
         rec = self.read() if os.path.exists(self.record_path) else None
         slot = "state_1.npz" if rec is not None and rec.get("state") == "state_0.npz" else "state_0.npz"
         keys = physics_keys(run, total_frames)
-        warpfem.save_state(run.sim, os.path.join(self.folder, slot), fingerprint=_fingerprint(keys))
+        warpfem.save_state(run.sim, os.path.join(self.folder, slot), fingerprint=keys)
         _write_json_atomic(self.record_path, {
             "format": FORMAT, "frame": int(run.frame), "time": float(run.current_time), "state": slot,
             "frames": int(total_frames), "steps": int(run.steps_total),
@@ -186,7 +179,10 @@ class Checkpoint:
             more = f" and {len(differ) - 6} more" if len(differ) > 6 else ""
             raise ResumeError(f"cannot resume from {self.folder} (frame {k}): the scene's physics changed since: "
                               f"{shown}{more}")
-        warpfem.load_state(run.sim, os.path.join(self.folder, rec["state"]), expect_fingerprint=_fingerprint(keys))
+        try:
+            warpfem.load_state(run.sim, os.path.join(self.folder, rec["state"]), expect_fingerprint=keys)
+        except (ValueError, OSError) as e:  # CheckpointError (a ValueError), a missing or damaged file
+            raise ResumeError(f"cannot resume from {self.folder} (frame {k}): {e}") from None
         run.frame = k
         run.steps_total = int(rec.get("steps", 0))
         run.unconverged = [tuple(u) for u in rec.get("unconverged", [])]

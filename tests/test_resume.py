@@ -1,0 +1,185 @@
+"""``warpfem run SCENE --resume``: real runs killed with SIGKILL (a subprocess, killed once k frames'
+statistics are on disk, so the kill lands anywhere in the writing of the next frames) and resumed end
+with the files of an uninterrupted run: the states bit for bit (float64 with a named linear solver,
+and float32), the same USD frames, the same statistics (but the timings), the same ParaView frames.
+Cases: a beam (with USD value clips cut mid-clip and checkpoints every 4 frames), float32, a contact
+scene, a reduced scene and a two-body scene. Resuming a changed scene, or with nothing to resume, is
+one line."""
+
+from __future__ import annotations
+
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from test_bodies_scenes import BODY_SOFT, BODY_STIFF, SHARED
+from test_run_faults import run_until_killed
+from tiny_scenes import cli_beam_toml, reduced_beam_toml
+from warpfem.cli import main
+from warpfem.io import read_pvd
+from warpfem.io.stats import read_stats
+
+LONG = 100000  # frames of the killed run's scene: it cannot finish before the kill
+
+BEAM_OUT = 'usd = "out/s.usda"\nstates = "out/s.npz"\nclip_frames = 3\n'
+
+
+def beam(solver="pcg", extra=""):
+    text = cli_beam_toml(frames=LONG).replace('dt = 0.025\n', f'dt = 0.025\nlinear_solver = "{solver}"\n')
+    return text + BEAM_OUT + extra
+
+
+def contact():
+    """A free 0.4 m bar dropped 2 cm onto a plane with friction (barrier contact, lagged friction)."""
+    return f"""
+gravity = [0.0, 0.0, -9.81]
+[mesh]
+generator = "box"
+size = [0.4, 0.1, 0.1]
+cells = [4, 1, 1]
+origin = [0.0, 0.0, 0.02]
+[material]
+model = "stable_neo_hookean"
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+[[collider]]
+type = "plane"
+point = [0.0, 0.0, 0.0]
+normal = [0.0, 0.0, 1.0]
+friction = 0.5
+[integrator]
+type = "backward_euler"
+dt = 0.01
+linear_solver = "pcg"
+[output]
+fps = 50
+frames = {LONG}
+""" + BEAM_OUT
+
+
+def reduced():
+    sub = '[subspace]\nmodes = 4\nmax_cubature_points = 16\ntraining = "random"\nmax_error = 0\n'
+    text = reduced_beam_toml("s", g=-9.81, frames=LONG, subspace=sub)
+    return text.replace("[output]\n", "[output]\n" + BEAM_OUT)
+
+
+def bodies():
+    shared = SHARED.replace("frames = 3", f"frames = {LONG}").replace("clip_frames = 0\n", "")
+    return shared + BEAM_OUT + 'vtu = "out/s.pvd"\n' + BODY_SOFT + BODY_STIFF
+
+
+CASES = {  # name: (scene text, precision, frames seen before the kill, frames of the finished run)
+    "beam-float64-every4": (beam(extra="checkpoint_every = 4\n"), "float64", 6, 11),
+    "beam-float32": (beam("auto"), "float32", 3, 7),
+    "contact": (contact(), "float64", 4, 8),
+    "reduced": (reduced(), "float64", 4, 8),
+    "two-bodies": (bodies(), "float64", 2, 5),
+}
+
+
+def _setup(folder, text, *, cache=None):
+    os.makedirs(folder)
+    (folder / "s.toml").write_text(text)
+    if cache is not None:
+        shutil.copy(cache, folder / "s.subspace.npz")
+    return str(folder / "s.toml")
+
+
+def _run(folder, *args):
+    cwd = os.getcwd()
+    os.chdir(folder)
+    try:
+        return main(["run", "s.toml", "--quiet", *args])
+    finally:
+        os.chdir(cwd)
+
+
+def _usd_frames(path):
+    from pxr import Usd, UsdGeom
+
+    stage = Usd.Stage.Open(str(path))
+    out = {}
+    for prim in stage.Traverse():
+        if prim.IsA(UsdGeom.PointBased):  # surfaces, colliders, usd_volume TetMeshes
+            attr = UsdGeom.PointBased(prim).GetPointsAttr()
+            times = attr.GetTimeSamples()
+            out[str(prim.GetPath())] = (list(times), np.array([np.array(attr.Get(t)) for t in times]))
+    return out
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_killed_run_resumes_to_the_uninterrupted_files(tmp_path, case):
+    text, precision, seen, frames = CASES[case]
+    cache = None
+    if case == "reduced":  # the subspace, trained once for both runs
+        scene = _setup(tmp_path / "train", text)
+        assert main(["train", scene, "--quiet"]) == 0
+        cache = tmp_path / "train" / "s.subspace.npz"
+    ref, cut = tmp_path / "ref", tmp_path / "cut"
+    _setup(ref, text, cache=cache)
+    _setup(cut, text, cache=cache)
+    assert _run(ref, "--frames", str(frames), "--precision", precision) == 0
+    run_until_killed("s.toml", cut / "out" / "s.stats.jsonl", seen, cut, extra=("--precision", precision))
+    assert not (cut / "out" / "s.npz").exists()  # killed: the states are in their stream
+    assert _run(cut, "--resume", "--frames", str(frames), "--precision", precision) == 0
+
+    with np.load(ref / "out" / "s.npz") as a, np.load(cut / "out" / "s.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for key in a.files:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)  # bit for bit
+        assert len(a["times"]) == frames + 1
+    usd_a, usd_b = _usd_frames(ref / "out" / "s.usda"), _usd_frames(cut / "out" / "s.usda")
+    assert sorted(usd_a) == sorted(usd_b)
+    for prim, (times, pts) in usd_a.items():
+        assert usd_b[prim][0] == times == list(range(frames + 1)), prim
+        np.testing.assert_array_equal(usd_b[prim][1], pts, err_msg=prim)
+    from pxr import Sdf
+
+    assert Sdf.Layer.FindOrOpen(str(cut / "out" / "s.usda")).customLayerData["warpfem"]["complete"] is True
+    sa, sb = read_stats(ref / "out" / "s.stats.jsonl"), read_stats(cut / "out" / "s.stats.jsonl")
+    assert [{k: v for k, v in r.items() if k != "step_seconds"} for r in sa] == \
+        [{k: v for k, v in r.items() if k != "step_seconds"} for r in sb]
+    if (ref / "out" / "s.pvd").exists():
+        ea, ma = read_pvd(ref / "out" / "s.pvd")
+        eb, mb = read_pvd(cut / "out" / "s.pvd")
+        assert [t for t, _ in ea] == [t for t, _ in eb] and len(ea) == 2 * (frames + 1) and mb["complete"]
+
+
+def test_resume_refusals_and_a_longer_run(tmp_path, capsys):
+    """Nothing to resume (no checkpoint; every frame done) is one line; a finished 3-frame run resumed
+    to 5 frames equals a 5-frame run bit for bit; a changed material is refused naming the key and
+    both values; a changed solver tolerance is accepted."""
+    text = beam()
+    folder, ref = tmp_path / "a", tmp_path / "b"
+    _setup(folder, text)
+    _setup(ref, text)
+    assert _run(folder, "--resume", "--frames", "3") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nothing to resume: no checkpoint in out/s.checkpoint" in err[0], err
+    assert _run(folder, "--frames", "3") == 0
+    assert _run(folder, "--resume", "--frames", "3") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nothing to resume" in err[0] and "frame 3" in err[0], err
+
+    assert _run(folder, "--resume", "--frames", "5") == 0
+    assert _run(ref, "--frames", "5") == 0
+    with np.load(ref / "out" / "s.npz") as a, np.load(folder / "out" / "s.npz") as b:
+        for key in a.files:
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)
+    assert _usd_frames(ref / "out" / "s.usda")["/Root/boundary"][0] == list(range(6))
+    np.testing.assert_array_equal(_usd_frames(ref / "out" / "s.usda")["/Root/boundary"][1],
+                                  _usd_frames(folder / "out" / "s.usda")["/Root/boundary"][1])
+
+    scene = folder / "s.toml"
+    scene.write_text(text.replace("youngs_modulus = 1e5", "youngs_modulus = 2e5"))
+    assert _run(folder, "--resume", "--frames", "7") == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "physics changed" in err[0], err
+    assert "[material].youngs_modulus (100000.0 -> 200000.0)" in err[0], err
+
+    scene.write_text(text.replace("dt = 0.025\n", "dt = 0.025\ntol = 1e-7\n"))  # a solver setting: allowed
+    assert _run(folder, "--resume", "--frames", "7") == 0
+    with np.load(folder / "out" / "s.npz") as z:
+        assert len(z["times"]) == 8
