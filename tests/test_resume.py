@@ -10,17 +10,21 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
+import subprocess
+import sys
+import time
 
 import numpy as np
 import pytest
 
 from test_bodies_scenes import BODY_SOFT, BODY_STIFF, SHARED
-from test_run_faults import run_until_killed
 from tiny_scenes import cli_beam_toml, reduced_beam_toml
 from warpfem.cli import main
 from warpfem.io import read_pvd
 from warpfem.io.stats import read_stats
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LONG = 100000  # frames of the killed run's scene: it cannot finish before the kill
 
 BEAM_OUT = 'usd = "out/s.usda"\nstates = "out/s.npz"\nclip_frames = 3\n'
@@ -70,8 +74,26 @@ def bodies():
     return shared + BEAM_OUT + 'vtu = "out/s.pvd"\n' + BODY_SOFT + BODY_STIFF
 
 
+def run_until_killed(scene, stats, frames_seen, cwd, extra=()):
+    """``warpfem run SCENE`` in a subprocess, SIGKILLed once ``stats`` has ``frames_seen`` records."""
+    env = {**os.environ, "PYTHONPATH": ROOT}
+    p = subprocess.Popen([sys.executable, "-m", "warpfem", "run", scene, "--quiet", *extra], cwd=cwd, env=env,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    try:
+        while time.monotonic() < deadline and p.poll() is None:
+            if os.path.exists(stats) and len(read_stats(stats)) >= frames_seen:
+                break
+            time.sleep(0.002)
+        assert p.poll() is None, f"the run ended before it was killed: {p.stderr.read().decode()}"
+        os.kill(p.pid, signal.SIGKILL)
+    finally:
+        p.wait()
+    assert p.returncode == -signal.SIGKILL
+
+
 CASES = {  # name: (scene text, precision, frames seen before the kill, frames of the finished run)
-    "beam-float64-every4": (beam(extra="checkpoint_every = 4\n"), "float64", 6, 11),
+    "beam-float64-every4": (beam(extra='checkpoint_every = 4\nvtu = "out/s.pvd"\n'), "float64", 6, 11),
     "beam-float32": (beam("auto"), "float32", 3, 7),
     "contact": (contact(), "float64", 4, 8),
     "reduced": (reduced(), "float64", 4, 8),
@@ -109,6 +131,28 @@ def _usd_frames(path):
     return out
 
 
+def check_killed_outputs(out, seen):
+    """What a run killed once ``seen`` frames' statistics were written leaves (frames 0..seen - 1
+    finished, the kill landing anywhere in the writing of the next): the states (from their stream),
+    the USD (saved with every frame), the ParaView collection and the statistics log each hold at
+    least those frames, with their times, marked incomplete where the format says so."""
+    from warpfem.io import read_states
+    from warpfem.io.states import stream_directory
+
+    assert not (out / "s.npz").exists() and os.path.isdir(stream_directory(out / "s.npz"))
+    d = read_states(out / "s.npz")
+    k = len(d["times"])
+    assert d["complete"] is False and k >= seen and d["positions"].shape[0] == k
+    assert np.all(np.isfinite(d["positions"])) and d["times"][0] == 0.0 and np.all(np.diff(d["times"]) > 0)
+    stats = read_stats(out / "s.stats.jsonl")
+    assert len(stats) >= seen and [r["frame"] for r in stats] == list(range(1, len(stats) + 1))
+    for prim, (times, _) in _usd_frames(out / "s.usda").items():
+        assert len(times) >= seen and times == list(range(len(times))), prim
+    if (out / "s.pvd").exists():
+        entries, meta = read_pvd(out / "s.pvd")
+        assert len(entries) >= seen and meta["complete"] is False
+
+
 @pytest.mark.parametrize("case", list(CASES))
 def test_killed_run_resumes_to_the_uninterrupted_files(tmp_path, case):
     text, precision, seen, frames = CASES[case]
@@ -122,7 +166,7 @@ def test_killed_run_resumes_to_the_uninterrupted_files(tmp_path, case):
     _setup(cut, text, cache=cache)
     assert _run(ref, "--frames", str(frames), "--precision", precision) == 0
     run_until_killed("s.toml", cut / "out" / "s.stats.jsonl", seen, cut, extra=("--precision", precision))
-    assert not (cut / "out" / "s.npz").exists()  # killed: the states are in their stream
+    check_killed_outputs(cut / "out", seen)
     assert _run(cut, "--resume", "--frames", str(frames), "--precision", precision) == 0
 
     with np.load(ref / "out" / "s.npz") as a, np.load(cut / "out" / "s.npz") as b:
@@ -144,7 +188,14 @@ def test_killed_run_resumes_to_the_uninterrupted_files(tmp_path, case):
     if (ref / "out" / "s.pvd").exists():
         ea, ma = read_pvd(ref / "out" / "s.pvd")
         eb, mb = read_pvd(cut / "out" / "s.pvd")
-        assert [t for t, _ in ea] == [t for t, _ in eb] and len(ea) == 2 * (frames + 1) and mb["complete"]
+        blocks = 2 if case == "two-bodies" else 1
+        assert [t for t, _ in ea] == [t for t, _ in eb] and len(ea) == blocks * (frames + 1) and mb["complete"]
+        import meshio
+
+        for (_, fa), (_, fb) in zip(ea[-blocks:], eb[-blocks:]):  # the last frame's volume and stresses
+            va, vb = meshio.read(fa), meshio.read(fb)
+            np.testing.assert_array_equal(va.points, vb.points)
+            np.testing.assert_array_equal(va.cell_data["von_mises"][0], vb.cell_data["von_mises"][0])
 
 
 def test_resume_refusals_and_a_longer_run(tmp_path, capsys):
@@ -157,7 +208,7 @@ def test_resume_refusals_and_a_longer_run(tmp_path, capsys):
     _setup(ref, text)
     assert _run(folder, "--resume", "--frames", "3") == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "nothing to resume: no checkpoint in out/s.checkpoint" in err[0], err
+    assert len(err) == 1 and "nothing to resume: no checkpoint out/s.checkpoint.npz" in err[0], err
     assert _run(folder, "--frames", "3") == 0
     assert _run(folder, "--resume", "--frames", "3") == 2
     err = capsys.readouterr().err.strip().splitlines()

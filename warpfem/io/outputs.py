@@ -1,5 +1,5 @@
 """A run's outputs in one place: which writer writes each ``[output]`` key (:data:`OUTPUT_FORMATS`,
-:func:`make_writers`), where its checkpoint goes (:func:`checkpoint_directory`), and the check of
+:func:`make_writers`), where its checkpoint goes (:func:`checkpoint_path`), and the check of
 every output path before any work: a run must not stop with a traceback after minutes of
 simulation (and a partial USD) because ``--out a_file/x.usda`` names a file as a folder.
 
@@ -14,7 +14,7 @@ from __future__ import annotations
 import os
 
 __all__ = ["OutputPathError", "output_path_problem", "check_output_paths", "companion_folders", "OUTPUT_FORMATS",
-           "make_writers", "checkpoint_directory"]
+           "make_writers", "checkpoint_path"]
 
 #: ``[output]`` key -> ``"module:FrameWriter subclass"`` writing it (in the order a run writes them).
 #: A new output format is a module with a :class:`warpfem.io.writers.FrameWriter` and a line here
@@ -39,15 +39,16 @@ def make_writers(paths: dict, **options) -> list:
     return writers
 
 
-def checkpoint_directory(paths: dict) -> str | None:
-    """Where a run's checkpoints go: ``X.checkpoint`` next to its first output (USD, states, statistics
-    log, ParaView collection; ``out/beam.usda`` -> ``out/beam.checkpoint``); None without outputs."""
+def checkpoint_path(paths: dict) -> str | None:
+    """Where a run's checkpoint goes: ``X.checkpoint.npz`` next to its first output (USD, states,
+    statistics log, ParaView collection; ``out/beam.usda`` -> ``out/beam.checkpoint.npz``); None
+    without outputs."""
     for key in ("usd", "states", "stats", "vtu"):
         p = paths.get(key)
         if p:
             p = os.fspath(p)
             base = p[:-len(".stats.jsonl")] if p.endswith(".stats.jsonl") else os.path.splitext(p)[0]
-            return base + ".checkpoint"
+            return base + ".checkpoint.npz"
     return None
 
 

@@ -1,21 +1,18 @@
 """Checkpoints of a scene run and ``--resume``.
 
-A run's checkpoints live in one folder next to its first output (``out/beam.usda`` ->
-``out/beam.checkpoint/``, :func:`warpfem.io.outputs.checkpoint_directory`)::
+A run's checkpoint is one file next to its first output (``out/beam.usda`` ->
+``out/beam.checkpoint.npz``, :func:`warpfem.io.outputs.checkpoint_path`), written by
+:func:`warpfem.save_state` (a temporary file synced to disk, then renamed over the previous one: a
+process killed at any moment leaves the previous or the new checkpoint, never a mixture). It holds
+the simulator's whole state (positions, velocities, integrator history, contact and friction state,
+adaptive stiffness, the linear solver's choices, time) and, in its fingerprint, the scene's physics
+keys (:func:`physics_keys`) and the run's own state under ``"run"``: the frame, the frame count,
+the steps so far and the frames with unconverged steps. It is written after the frame's outputs,
+so every output already holds the checkpointed frame.
 
-    checkpoint.json   the commit record: frame, time, the state file, the run's totals, the scene's
-                      physics keys and precision, the warpfem version
-    state_0.npz       the simulator's whole state (warpfem.save_state), written in turn with
-    state_1.npz       the other slot, so the state named by checkpoint.json is never being written
-
-A checkpoint is written after the frame's outputs: the new state goes to the slot that
-``checkpoint.json`` does not name, then ``checkpoint.json`` is replaced atomically (a temporary file
-and a rename). A process killed at any moment therefore leaves the previous or the new checkpoint,
-never a mixture, and every output already holds the checkpointed frame.
-
-:meth:`Checkpoint.restore` loads it back: the simulator's state (positions, velocities, integrator
-history, contact and friction state, adaptive stiffness, time, ...) and the run's frame index and
-totals; the outputs are then cut back to that frame by their writers (``RunInfo.resume_after``).
+:meth:`Checkpoint.restore` loads it back into a freshly built run (refused, naming the keys, when
+the physics changed); the outputs are then cut back to its frame by their writers
+(``RunInfo.resume_after``).
 """
 
 from __future__ import annotations
@@ -26,8 +23,6 @@ import os
 from warpfem.io.writers import FrameWriter
 
 __all__ = ["Checkpoint", "ResumeError", "NothingToResume", "physics_keys", "SOLVER_KEYS"]
-
-FORMAT = 1
 
 #: ``[integrator]`` keys that control the solver, not the physics: they may change between a
 #: checkpoint and its resume (e.g. more Newton iterations after a failed step).
@@ -114,75 +109,59 @@ def physics_keys(run, total_frames: int) -> dict:
     return out
 
 
-def _write_json_atomic(path, data):
-    tmp = path + ".partial"
-    with open(tmp, "w", encoding="utf-8") as f:
-        json.dump(data, f)
-        f.write("\n")
-    os.replace(tmp, path)
-
-
 class Checkpoint:
-    """The checkpoint folder of a :class:`warpfem.scenes.SceneRun` (see the module's documentation)."""
+    """The checkpoint file of a :class:`warpfem.scenes.SceneRun` (see the module's documentation)."""
 
-    def __init__(self, folder, run):
-        self.folder = os.fspath(folder)
+    def __init__(self, path, run):
+        self.path = os.fspath(path)
         self.run = run
-        self.record_path = os.path.join(self.folder, "checkpoint.json")
+        self._keys = {}  # physics keys per frame count (computed once)
 
-    def read(self) -> dict | None:
-        """The commit record, or None when there is none."""
-        try:
-            with open(self.record_path, encoding="utf-8") as f:
-                rec = json.load(f)
-        except FileNotFoundError:
-            return None
-        except (OSError, ValueError) as e:
-            raise ResumeError(f"{self.record_path}: cannot read the checkpoint: {e}") from None
-        if rec.get("format") != FORMAT:
-            raise ResumeError(f"{self.record_path}: checkpoint format {rec.get('format')!r}, expected {FORMAT}")
-        return rec
+    def physics(self, total_frames: int) -> dict:
+        if total_frames not in self._keys:
+            self._keys[total_frames] = physics_keys(self.run, total_frames)
+        return self._keys[total_frames]
 
     def save(self, total_frames: int) -> None:
         """Checkpoint the run as it is now (after its frame ``run.frame``)."""
         import warpfem
 
         run = self.run
-        os.makedirs(self.folder, exist_ok=True)
-        rec = self.read() if os.path.exists(self.record_path) else None
-        slot = "state_1.npz" if rec is not None and rec.get("state") == "state_0.npz" else "state_0.npz"
-        keys = physics_keys(run, total_frames)
-        warpfem.save_state(run.sim, os.path.join(self.folder, slot), fingerprint=keys)
-        _write_json_atomic(self.record_path, {
-            "format": FORMAT, "frame": int(run.frame), "time": float(run.current_time), "state": slot,
-            "frames": int(total_frames), "steps": int(run.steps_total),
-            "unconverged": [list(u) for u in run.unconverged], "physics": keys,
-            "warpfem_version": warpfem.__version__})
+        warpfem.save_state(run.sim, self.path, fingerprint={**self.physics(total_frames), "run": {
+            "frame": int(run.frame), "time": float(run.current_time), "frames": int(total_frames),
+            "steps": int(run.steps_total), "unconverged": [list(u) for u in run.unconverged],
+            "warpfem_version": warpfem.__version__}})
 
     def restore(self, total_frames: int) -> int:
-        """Load the last checkpoint into the run (refused when the physics changed); returns its frame."""
-        import warpfem
+        """Load the checkpoint into the run (refused when the physics changed); returns its frame."""
+        from warpfem.io.checkpoint import read_state
 
         run = self.run
-        rec = self.read()
-        if rec is None:
-            raise NothingToResume(f"nothing to resume: no checkpoint in {self.folder}")
+        if not os.path.exists(self.path):
+            raise NothingToResume(f"nothing to resume: no checkpoint {self.path}")
+        try:
+            state, fp = read_state(self.path)
+        except (ValueError, OSError) as e:  # CheckpointError (a ValueError): damaged, another format
+            raise ResumeError(f"cannot resume: {e}") from None
+        fp = dict(fp or {})
+        rec = fp.pop("run", None)
+        if not isinstance(rec, dict) or "frame" not in rec:
+            raise ResumeError(f"cannot resume: {self.path} is not a scene run's checkpoint (no run record)")
         k = int(rec["frame"])
         if k >= total_frames:
-            raise NothingToResume(f"nothing to resume: {self.folder} is at frame {k}, the run has {total_frames} "
+            raise NothingToResume(f"nothing to resume: {self.path} is at frame {k}, the run has {total_frames} "
                                   f"frames (ask for more with --frames)")
-        keys = physics_keys(run, total_frames)
-        old = rec.get("physics", {})
-        differ = sorted(set(old) ^ set(keys) | {key for key in set(old) & set(keys) if old[key] != keys[key]})
+        keys = self.physics(total_frames)
+        differ = sorted(set(fp) ^ set(keys) | {key for key in set(fp) & set(keys) if fp[key] != keys[key]})
         if differ:
-            shown = ", ".join(f"{key} ({_shown(old.get(key))} -> {_shown(keys.get(key))})" for key in differ[:6])
+            shown = ", ".join(f"{key} ({_shown(fp.get(key))} -> {_shown(keys.get(key))})" for key in differ[:6])
             more = f" and {len(differ) - 6} more" if len(differ) > 6 else ""
-            raise ResumeError(f"cannot resume from {self.folder} (frame {k}): the scene's physics changed since: "
+            raise ResumeError(f"cannot resume from {self.path} (frame {k}): the scene's physics changed since: "
                               f"{shown}{more}")
         try:
-            warpfem.load_state(run.sim, os.path.join(self.folder, rec["state"]), expect_fingerprint=keys)
-        except (ValueError, OSError) as e:  # CheckpointError (a ValueError), a missing or damaged file
-            raise ResumeError(f"cannot resume from {self.folder} (frame {k}): {e}") from None
+            run.sim.load_state_dict(state)
+        except ValueError as e:  # CheckpointError: the simulator is left as it was
+            raise ResumeError(f"cannot resume from {self.path} (frame {k}): {e}") from None
         run.frame = k
         run.steps_total = int(rec.get("steps", 0))
         run.unconverged = [tuple(u) for u in rec.get("unconverged", [])]
@@ -207,7 +186,7 @@ class CheckpointOutput(FrameWriter):
     label = "checkpoint"
 
     def __init__(self, checkpoint: Checkpoint, total_frames: int):
-        super().__init__(checkpoint.record_path)
+        super().__init__(checkpoint.path)
         self.checkpoint, self.total = checkpoint, int(total_frames)
 
     def open(self, run):

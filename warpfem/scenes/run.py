@@ -280,8 +280,7 @@ class SceneRun:
         (``frame 9: 1 of 4 steps not converged: step 33: ...``); the frames' ``unconverged_steps``
         count them. Returns the list of :class:`FrameStats` of the frames stepped by this call.
         """
-        from warpfem.io.outputs import OutputPathError, check_output_paths, checkpoint_directory, make_writers, \
-            output_path_problem
+        from warpfem.io.outputs import check_output_paths, checkpoint_path, make_writers
 
         from .checkpoint import Checkpoint
 
@@ -293,12 +292,10 @@ class SceneRun:
         every = int(out.get("checkpoint_every", 1) if checkpoint_every is None else checkpoint_every)
         if every < 0:
             raise ValueError(f"checkpoint_every must be >= 0, got {every}")
-        folder = checkpoint_directory(paths) if (every or resume) else None
+        ckpt = checkpoint_path(paths) if (every or resume) else None
         # every output path before anything is written (OutputPathError, a ValueError, names the bad one)
-        check_output_paths(paths)
-        if folder is not None and (why := output_path_problem(folder, folder=True)) is not None:
-            raise OutputPathError(f"checkpoint folder {folder}: cannot write it: {why}")
-        checkpoint = Checkpoint(folder, self) if folder is not None else None
+        check_output_paths({**paths, "checkpoint": ckpt})
+        checkpoint = Checkpoint(ckpt, self) if ckpt is not None else None
         resume_after = None
         if resume:
             if checkpoint is None:
@@ -306,6 +303,7 @@ class SceneRun:
 
                 raise ResumeError("nothing to resume: the run writes no output (no checkpoint)")
             resume_after = checkpoint.restore(total)
+            _logger.info(f"resuming after frame {resume_after} (t = {self.current_time:.6g} s) from {ckpt}")
         writers = make_writers(paths)
         if checkpoint is not None and every:
             writers.append(checkpoint.writer(total))
