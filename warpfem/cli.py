@@ -205,12 +205,13 @@ def _cmd_run(args) -> int:
         return EXIT_INVALID
     paths = scene.output_paths(usd=args.out, stats="" if args.out is not None else None)
     usd, stats = paths["usd"], paths["stats"]
-    from warpfem.io.outputs import OutputPathError, check_output_paths
+    from warpfem.io.outputs import OutputPathError, check_output_paths, checkpoint_path
 
+    checkpoint = checkpoint_path(paths) if scene.spec.output["checkpoint_every"] or args.resume else None
     try:  # every output path before any work (a file named as a folder, a folder not writable)
         check_output_paths({"--out" if args.out is not None else "[output] usd": usd, "statistics log": stats,
                             "[output] states": paths["states"], "[output] vtu": paths["vtu"],
-                            "--preview": getattr(args, "preview", None)})
+                            "checkpoint": checkpoint, "--preview": getattr(args, "preview", None)})
     except OutputPathError as e:
         error(f"{args.scene}: {e}")
         return EXIT_INVALID

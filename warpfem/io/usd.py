@@ -587,12 +587,11 @@ class UsdOutput(FrameWriter):
 
     def open(self, run):
         o = run.options
-        save_every = int(o.get("usd_save_every", 10))
         if run.resume_after is not None:
-            self._w = UsdMeshWriter.resume(self.path, run.resume_after, save_every=save_every)
+            self._w = UsdMeshWriter.resume(self.path, run.resume_after)
             return
         self._w = UsdMeshWriter(self.path, fps=run.fps, up_axis=o.get("up_axis", "Y"),
-                                clip_frames=o.get("clip_frames", 100) or None, save_every=save_every)
+                                clip_frames=o.get("clip_frames", 100) or None)
         for name, faces, count in run.surfaces:
             self._w.add_mesh(name, faces, count)
         for name, tets, faces, lo, hi in run.volumes:
