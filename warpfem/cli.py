@@ -280,12 +280,18 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
 
     from warpfem.io.outputs import OutputPathError
     from warpfem.io.writers import OutputWriteError
-    from warpfem.scenes.checkpoint import ResumeError
+    from warpfem.scenes.checkpoint import NothingToResume, ResumeError
 
     try:
         with bar, terminate_on_sigterm():
             history = run.run(frames=frames, usd=usd, stats=stats, progress=on_frame,
                               resume=getattr(args, "resume", False))
+    except NothingToResume as e:
+        if not e.complete:
+            error(f"{args.scene}: {e}")
+            return EXIT_INVALID
+        print(f"{args.scene}: {e}", flush=True)  # already done: not an error (a resubmitted farm job)
+        return EXIT_OK
     except (ResumeError, OutputPathError) as e:
         error(f"{args.scene}: {e}")
         return EXIT_INVALID

@@ -35,7 +35,12 @@ class ResumeError(ValueError):
 
 
 class NothingToResume(ResumeError):
-    """``--resume`` without a checkpoint, or with a run that already has every frame asked for."""
+    """``--resume`` without a checkpoint (``complete`` False), or with a run that already has every
+    frame asked for (``complete`` True)."""
+
+    def __init__(self, message, *, complete: bool = False):
+        super().__init__(message)
+        self.complete = complete
 
 
 def _plain(v):
@@ -150,7 +155,7 @@ class Checkpoint:
         k = int(rec["frame"])
         if k >= total_frames:
             raise NothingToResume(f"nothing to resume: {self.path} is at frame {k}, the run has {total_frames} "
-                                  f"frames (ask for more with --frames)")
+                                  f"frames (ask for more with --frames)", complete=True)
         keys = self.physics(total_frames)
         differ = sorted(set(fp) ^ set(keys) | {key for key in set(fp) & set(keys) if fp[key] != keys[key]})
         if differ:
