@@ -186,6 +186,13 @@ class StatesWriter:
     def _continue(self, k: int):
         """Keep frames 0..k-1 of the stream (or, without one, of the ``.npz``) and append after them."""
         n = len(self.rest)
+        if os.path.isdir(self.folder) and not os.path.exists(os.path.join(self.folder, "meta.npz")):
+            shutil.rmtree(self.folder)  # killed before its first frame: nothing in it
+        if os.path.isdir(self.folder) and os.path.exists(self.path):
+            _, positions, times = _stream_arrays(self.folder)
+            if len(times) < k:  # a stream cut short while it was being rebuilt from the .npz: again
+                shutil.rmtree(self.folder)
+            del positions
         if not os.path.isdir(self.folder):  # a completed run: its frames back into a stream
             have = read_states(self.path)
             if len(have["times"]) < k:
