@@ -334,8 +334,11 @@ class SceneRun:
                     stats_of = getattr(e, "stats", None)
                     record = {"frame": self.frame, "converged": False, "error": str(e),
                               "newton_iterations": getattr(stats_of, "newton_iterations", None)}
-                    for w in opened:
-                        self._call(w, failed, w.failed, record)
+                    for w in opened:  # the step's error is the one reported
+                        try:
+                            w.failed(record)
+                        except Exception:  # noqa: BLE001
+                            failed.append(w)
                     raise
                 history.append(fs)
                 self._account(fs)
