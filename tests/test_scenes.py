@@ -376,7 +376,8 @@ def test_states_npz_streams_and_matches_run(tmp_path):
     d = np.load(states)
     assert d["positions"].shape == (4, 20, 3) and d["times"] == pytest.approx([0.0, 0.05, 0.1, 0.15])
     np.testing.assert_array_equal(d["positions"][-1], run.sim.positions())
-    assert sorted(os.listdir(tmp_path / "o")) == ["s.clips", "s.npz", "s.stats.jsonl", "s.usda"]  # no temporaries left
+    # no temporaries left; the checkpoint (for --resume) stays
+    assert sorted(os.listdir(tmp_path / "o")) == ["s.checkpoint.npz", "s.clips", "s.npz", "s.stats.jsonl", "s.usda"]
     assert sorted(os.listdir(tmp_path / "o" / "s.clips")) == ["clip_000000.usdc", "clip_000001.usdc", "manifest.usda"]
 
 

@@ -41,6 +41,7 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (mkdocstr
     from warpfem.solvers.state import Control, State
     from warpfem.solvers.forms import Form
     from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
+    from warpfem.io.checkpoint import CheckpointError, load_state, save_state
 
 from warpfem.lazy import lazy_attributes  # noqa: E402
 
@@ -60,6 +61,7 @@ _LAZY = {
     **dict.fromkeys(["Control", "State"], "warpfem.solvers.state"),
     "Form": "warpfem.solvers.forms",
     **dict.fromkeys(["Box", "CollisionError", "MeshCollider", "Plane", "Sphere"], "warpfem.contact"),
+    **dict.fromkeys(["save_state", "load_state", "CheckpointError"], "warpfem.io.checkpoint"),
 }
 
 
@@ -108,4 +110,7 @@ __all__ = [
     "Box",
     "MeshCollider",
     "CollisionError",
+    "save_state",
+    "load_state",
+    "CheckpointError",
 ]

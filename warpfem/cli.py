@@ -203,15 +203,15 @@ def _cmd_run(args) -> int:
     except SceneError as e:
         error(str(e))
         return EXIT_INVALID
-    out = scene.spec.output
-    usd = args.out if args.out is not None else out["usd"]
-    stats = scene.stats_path(usd, None if args.out is not None else out["stats"])
-    from warpfem.io.outputs import OutputPathError, check_output_paths
+    paths = scene.output_paths(usd=args.out, stats="" if args.out is not None else None)
+    usd, stats = paths["usd"], paths["stats"]
+    from warpfem.io.outputs import OutputPathError, check_output_paths, checkpoint_path
 
+    checkpoint = checkpoint_path(paths) if scene.spec.output["checkpoint_every"] or args.resume else None
     try:  # every output path before any work (a file named as a folder, a folder not writable)
         check_output_paths({"--out" if args.out is not None else "[output] usd": usd, "statistics log": stats,
-                            "[output] states": out["states"], "[output] vtu": out.get("vtu"),
-                            "--preview": getattr(args, "preview", None)})
+                            "[output] states": paths["states"], "[output] vtu": paths["vtu"],
+                            "checkpoint": checkpoint, "--preview": getattr(args, "preview", None)})
     except OutputPathError as e:
         error(f"{args.scene}: {e}")
         return EXIT_INVALID
@@ -278,9 +278,26 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
                 recorder.add(fs.frame, fs.time, run.surface_points())
             _report(fs)
 
+    from warpfem.io.outputs import OutputPathError
+    from warpfem.io.writers import OutputWriteError
+    from warpfem.scenes.checkpoint import NothingToResume, ResumeError
+
     try:
         with bar, terminate_on_sigterm():
-            history = run.run(frames=frames, usd=usd, stats=stats, progress=on_frame)
+            history = run.run(frames=frames, usd=usd, stats=stats, progress=on_frame,
+                              resume=getattr(args, "resume", False))
+    except NothingToResume as e:
+        if not e.complete:
+            error(f"{args.scene}: {e}")
+            return EXIT_INVALID
+        print(f"{args.scene}: {e}", flush=True)  # already done: not an error (a resubmitted farm job)
+        return EXIT_OK
+    except (ResumeError, OutputPathError) as e:
+        error(f"{args.scene}: {e}")
+        return EXIT_INVALID
+    except OutputWriteError as e:
+        error(f"{args.scene}: {e}; the frames before it are kept")
+        return EXIT_FAILED
     except SolveFailed as e:
         error(f"{args.scene}: frame {run.frame}: {e}" + (f"; frames 0..{run.frame - 1} are in {usd} (marked incomplete)" if usd else ""))
         return EXIT_FAILED
@@ -298,7 +315,7 @@ def _run_scene(args, scene, usd, stats, watch, shown) -> int:
         outs = [p for p in (usd, stats, scene.spec.output["states"], scene.spec.output.get("vtu"),
                             getattr(args, "preview", None)) if p]
         built = f"; kernels compiled in {watch.seconds:.1f} s (cached for later runs)" if watch.modules else ""
-        print(f"done: {frames} frames ({_convergence_report(run.convergence_summary(history))})"
+        print(f"done: {frames} frames ({_convergence_report(run.convergence_summary(history, run.resumed_totals))})"
               + (f"; wrote {', '.join(outs)}" if outs else "") + built, flush=True)
     return EXIT_OK
 
@@ -332,7 +349,54 @@ def _register_run(subparsers):
     p.add_argument("--require-convergence", action="store_true",
                    help="a step that does not converge is an error (exit 1, outputs kept marked incomplete), "
                         "as the scene's [integrator] require_convergence = true")
+    p.add_argument("--resume", action="store_true",
+                   help="continue a stopped run from its last checkpoint (next to its outputs), appending to its "
+                        "outputs; refused when the scene's physics changed since")
     p.set_defaults(func=_cmd_run)
+
+
+# ----------------------------------------------------------------------------- recover
+def _cmd_recover(args) -> int:
+    import os
+
+    from warpfem.io.states import StatesError, recover_states, stream_directory
+
+    paths = []
+    for p in args.paths:
+        if p.lower().endswith(".toml"):
+            from warpfem.scenes import SceneError
+
+            try:
+                states = load(p).spec.output["states"]
+            except SceneError as e:
+                error(str(e))
+                return EXIT_INVALID
+            if not states:
+                error(f"{p}: the scene writes no [output] states")
+                return EXIT_INVALID
+            paths.append(states)
+        else:
+            paths.append(p)
+    code = EXIT_OK
+    for p in paths:
+        if not os.path.isdir(stream_directory(p)):
+            print(f"{p}: nothing to recover (no {stream_directory(p)})" if os.path.exists(p) else
+                  f"{p}: nothing to recover: neither it nor {stream_directory(p)} exists", flush=True)
+            code = code if os.path.exists(p) else EXIT_INVALID
+            continue
+        try:
+            k = recover_states(p)
+        except (StatesError, OSError) as e:
+            error(f"{p}: cannot recover it: {e}")
+            return EXIT_FAILED
+        print(f"{p}: recovered {k} frames from {stream_directory(p)}", flush=True)
+    return code
+
+
+def _register_recover(subparsers):
+    p = subparsers.add_parser("recover", help="write the states .npz of a run that was killed, from its frame stream")
+    p.add_argument("paths", nargs="+", metavar="OUT", help="a states .npz path (or a scene .toml: its [output] states)")
+    p.set_defaults(func=_cmd_recover)
 
 
 # ----------------------------------------------------------------------------- compare
@@ -385,6 +449,7 @@ COMMANDS = {
     "tune": "warpfem.tradeoff.cli:register_tune",
     "fit": "warpfem.diff.cli:register",
     "compare": "warpfem.cli:_register_compare",
+    "recover": "warpfem.cli:_register_recover",
 }
 
 # Names kept for modules written against the earlier API (subcommands registered on import).

@@ -32,7 +32,7 @@ from warpfem.model import static_supports_error
 from warpfem.solvers.forms import (DampingForm, ElasticForm, IncrementalPotential, InertiaForm, InfeasibleStart, LoadForm,
                                    StepContext, Workspace)
 from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
-from warpfem.solvers.state import SimulatorBase, check_simulator_options, newton_options_from
+from warpfem.solvers.state import SimulatorBase, _NoState, check_simulator_options, newton_options_from
 from warpfem.solvers.sparse import PatternView
 from warpfem.transfer import read, to_device, upload
 
@@ -300,6 +300,18 @@ class Simulator(SimulatorBase):
         want = IncrementalPotential.ordered(self._builtin_forms + [f for f in self._forms if f.enabled()])
         if want != self._potential.forms:
             self._potential.set_forms(want)
+
+    def _form_parts(self, view=None):
+        """(``"form/NAME"``, form) of every form of the potential, the added ones enabled or not
+        (NAME: the form's ``name``, ``NAME#2`` ... for repeated names): each form's
+        ``state_dict`` / ``load_state_dict`` (:class:`~warpfem.solvers.forms.Form`)."""
+        parts, seen = [], {}
+        for f in self._builtin_forms + self._forms:
+            name = str(getattr(f, "name", "form"))
+            seen[name] = seen.get(name, 0) + 1
+            key = name if seen[name] == 1 else f"{name}#{seen[name]}"
+            parts.append((f"form/{key}", f if hasattr(f, "state_dict") else _NoState()))
+        return parts
 
     # -- stages (each a function that can be timed) ------------------------------------------------
     @property

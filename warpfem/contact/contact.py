@@ -337,6 +337,45 @@ class ContactSet:
         return read(f).astype(np.float64)
 
 
+    # -- the step-to-step state (Simulator.state_dict) --------------------------------------------------
+    def state_dict(self) -> dict:
+        """The colliders' names, each adaptive stiffness ("stiffness/J/...": kappa, its bounds, the last
+        smallest distance), and friction's lagged data of the last step (normal forces, normals,
+        closest-point offsets, the step start): what a later step reads besides the state."""
+        d = {"colliders": np.array([c.name for c in self.colliders], dtype=str)}
+        for j, a in enumerate(getattr(self, "stiffness", ())):
+            if a is not None:
+                d.update({f"stiffness/{j}/{k}": v for k, v in a.state_dict().items()})
+        if self.colliders:
+            d.update(lag_normal_force=self._lam.numpy().copy(), lag_normal=self._nrm.numpy().copy(),
+                     lag_offset=self._w.numpy().copy(), step_start=self._x0.numpy().copy())
+        return d
+
+    def load_state_dict(self, view):
+        names = view.array("colliders", (None,))
+        mine = [c.name for c in self.colliders]
+        if names.tolist() != mine:
+            raise view.error("colliders", f"saved with colliders {names.tolist()}, this simulator has {mine}")
+        stiff = {}
+        for j, a in enumerate(getattr(self, "stiffness", ())):
+            if a is not None:
+                stiff[j] = AdaptiveStiffness.read_state(view.view(f"stiffness/{j}"))
+        if not self.colliders:
+            return
+        arrays = {}
+        for key, buf in (("lag_normal_force", self._lam), ("lag_normal", self._nrm), ("lag_offset", self._w),
+                         ("step_start", self._x0)):
+            ref = buf.numpy()
+            arrays[key] = (buf, view.array(key, ref.shape, ref.dtype))
+        for j, values in stiff.items():
+            self.stiffness[j].set_state(values)
+        self.sync_kappa()
+        for buf, a in arrays.values():
+            buf.assign(a)
+        self.ops.lincomb(-1.0, self._x0, 0.0, self._x0, self._neg_x0)
+        self.set_poses(self.sim.time, self.sim.time)
+
+
 class LaggedFrictionForm(Form):
     """What the collider and the surface contact forms share: the step's x_b and s, and the
     displacement base x_b - x_n of lagged friction (x - x_n = (x_b - x_n) + s y); friction's
@@ -491,6 +530,12 @@ class ContactForm(LaggedFrictionForm):
         if changed:
             c.sync_kappa()
         return changed
+
+    def state_dict(self) -> dict:
+        return self.contact.state_dict()
+
+    def load_state_dict(self, state):
+        self.contact.load_state_dict(state)
 
     def stiffness_state(self):
         return [None if a is None else a.state() for a in self.contact.stiffness]

@@ -147,3 +147,23 @@ class AdaptiveStiffness:
 
     def restore(self, state):
         self.kappa, self.d_prev, self.touched = state
+
+    def state_dict(self) -> dict:
+        """kappa, its bounds, the last smallest distance, whether it touched, the doublings."""
+        from warpfem.io.checkpoint import optional_number
+
+        return {"kappa": optional_number(self.kappa), "kappa_min": optional_number(self.kappa_min),
+                "kappa_max": optional_number(self.kappa_max), "d_prev": float(self.d_prev), "touched": bool(self.touched),
+                "doublings": int(self.doublings)}
+
+    @staticmethod
+    def read_state(view) -> dict:
+        """The checked values of :meth:`state_dict` from a :class:`warpfem.io.checkpoint.StateView`."""
+        return {"kappa": view.number("kappa", optional=True), "kappa_min": view.number("kappa_min", optional=True),
+                "kappa_max": view.number("kappa_max", optional=True), "d_prev": view.number("d_prev"),
+                "touched": view.flag("touched"), "doublings": view.integer("doublings")}
+
+    def set_state(self, values: dict):
+        """Set the values :meth:`read_state` returned."""
+        for k, v in values.items():
+            setattr(self, k, v)

@@ -576,6 +576,93 @@ class SurfaceContact:
             upload(dst, b)
         self._f_blocks = self._block_positions(quads, cap, self._f_blocks)
 
+    # -- the step-to-step state (Simulator.state_dict) --------------------------------------------------
+    def state_dict(self) -> dict:
+        """What a later step reads besides the state: the broad phase's last query (its primitives'
+        boxes, candidate pairs and continuous-collision pairs, kept while the boxes still hold:
+        :meth:`update_pairs`), friction's lagged pairs, and the adaptive stiffness."""
+        n, nc, nf = self.num_pairs, self.num_ccd_pairs, self.num_friction
+        d = {"valid": bool(self._valid), "capacity": int(self.capacity), "ccd_capacity": int(self.ccd_capacity),
+             "pairs": self._pairs.numpy()[:n].copy(), "kinds": self._kinds.numpy()[:n].copy(),
+             "ccd_pairs": self._ccd_pairs.numpy()[:nc].copy(), "ccd_kinds": self._ccd_kinds.numpy()[:nc].copy(),
+             "friction_pairs": self._f_pairs.numpy()[:nf].copy() if nf else np.zeros((0, 4), dtype=np.int32),
+             "queries": int(self.queries), "reused": int(self.reused), "step_start": self._x0.numpy().copy(),
+             "friction_eps": float(self._eps)}
+        for name, (lo, hi) in (("vertex", self._vbox), ("triangle", self._tbox), ("edge", self._ebox)):
+            d[f"boxes/{name}_lo"], d[f"boxes/{name}_hi"] = lo.numpy().copy(), hi.numpy().copy()
+        for key, buf in (("lag_offset", "_f_w"), ("lag_normal", "_f_n"), ("lag_normal_force", "_f_lam")):
+            d[f"friction_{key}"] = getattr(self, buf).numpy()[:nf].copy() if nf else np.zeros((0,) + {
+                "_f_w": (4,), "_f_n": (3,), "_f_lam": ()}[buf], dtype=self._flam.numpy().dtype)
+        if self.stiffness is not None:
+            d.update({f"stiffness/{k}": v for k, v in self.stiffness.state_dict().items()})
+        return d
+
+    def load_state_dict(self, view):
+        # everything checked first
+        boxes = {}
+        for name, (lo, hi) in (("vertex", self._vbox), ("triangle", self._tbox), ("edge", self._ebox)):
+            for side, buf in (("lo", lo), ("hi", hi)):
+                boxes[(name, side)] = (buf, view.array(f"boxes/{name}_{side}", (buf.shape[0], 3), np.float32))
+        cap, ccap = view.integer("capacity"), view.integer("ccd_capacity")
+        pairs = view.array("pairs", (None, 4), np.int32)
+        kinds = view.array("kinds", (len(pairs),), np.int32)
+        ccd = view.array("ccd_pairs", (None, 4), np.int32)
+        ccd_kinds = view.array("ccd_kinds", (len(ccd),), np.int32)
+        fpairs = view.array("friction_pairs", (None, 4), np.int32)
+        nf = len(fpairs)
+        dt = self._flam.numpy().dtype
+        fw = view.array("friction_lag_offset", (nf, 4), dt)
+        fn = view.array("friction_lag_normal", (nf, 3), dt)
+        flam = view.array("friction_lag_normal_force", (nf,), dt)
+        x0 = view.array("step_start", (self._x0.shape[0], 3), self._x0.numpy().dtype)
+        if len(pairs) > cap or len(ccd) > ccap or cap < 1 or ccap < 1:
+            raise view.error("capacity", "smaller than the pairs saved with it")
+        nv = self.system.pattern.num_rows
+        for key, p in (("pairs", pairs), ("ccd_pairs", ccd), ("friction_pairs", fpairs)):
+            if p.size and (p.min() < -1 or p.max() >= nv):
+                raise view.error(key, f"vertex indices outside [0, {nv})")
+        stiff = None
+        if self.stiffness is not None:
+            from warpfem.contact.stiffness import AdaptiveStiffness
+
+            stiff = AdaptiveStiffness.read_state(view.view("stiffness"))
+        valid, queries, reused, eps = view.flag("valid"), view.integer("queries"), view.integer("reused"), view.number(
+            "friction_eps")
+        # then written
+        for buf, a in boxes.values():
+            buf.assign(a)
+        if cap != self.capacity:
+            self._alloc(cap)
+        if ccap != self.ccd_capacity:
+            self._alloc_ccd(ccap)
+        for buf, a in ((self._pairs, pairs), (self._kinds, kinds), (self._ccd_pairs, ccd), (self._ccd_kinds, ccd_kinds)):
+            full = np.zeros((buf.shape[0],) + a.shape[1:], dtype=a.dtype)
+            full[:len(a)] = a
+            buf.assign(full)
+        self.num_pairs, self.num_ccd_pairs = len(pairs), len(ccd)
+        self.pairs_np = pairs.astype(np.int64)
+        self._update_blocks()
+        self._valid, self.queries, self.reused, self._eps = valid, queries, reused, eps
+        self._x0.assign(x0)
+        self.num_friction = nf
+        if nf:
+            fcap = _capacity(nf)
+            if fcap != self._f_cap:
+                self._f_cap = fcap
+                self._f_pairs = wp.zeros(fcap, dtype=wp.vec4i, device=self.device)
+                self._f_w = wp.zeros(fcap, dtype=self._fw.dtype, device=self.device)
+                self._f_n = wp.zeros(fcap, dtype=self._fn.dtype, device=self.device)
+                self._f_lam = wp.zeros(fcap, dtype=self._flam.dtype, device=self.device)
+                self._f_blocks = None
+            for buf, a in ((self._f_pairs, fpairs), (self._f_w, fw), (self._f_n, fn), (self._f_lam, flam)):
+                full = np.zeros((fcap,) + a.shape[1:], dtype=a.dtype)
+                full[:nf] = a
+                buf.assign(full)
+            self._f_pairs_np = fpairs.astype(np.int64)
+            self._f_blocks = self._block_positions(self._f_pairs_np, fcap, self._f_blocks)
+        if stiff is not None:
+            self.stiffness.set_state(stiff)
+
     def run_friction(self, mode, dbase, y, sy, *, scale=1.0, g=None, values=None, acc=None, slot=0):
         if self.num_friction == 0:
             return
@@ -673,6 +760,12 @@ class SurfaceContactForm(LaggedFrictionForm):
         if c.stiffness is None:
             return False
         return c.stiffness.update(c.pair_min_distance(x))
+
+    def state_dict(self) -> dict:
+        return self.contact.state_dict()
+
+    def load_state_dict(self, state):
+        self.contact.load_state_dict(state)
 
     def stiffness_state(self):
         s = self.contact.stiffness

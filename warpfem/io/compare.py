@@ -1,6 +1,7 @@
 """How far apart two runs of a scene are: :func:`compare_runs` (``warpfem compare A B``).
 
-A and B are each a states ``.npz`` (``[output] states``, :class:`warpfem.io.StatesWriter`) or a
+A and B are each a states ``.npz`` (``[output] states``, :class:`warpfem.io.StatesWriter`; a killed run's
+frame stream when it has one, :func:`warpfem.io.read_states`) or a
 USD file (``.usda`` / ``.usd`` / ``.usdc``, :class:`warpfem.io.UsdMeshWriter`) written by
 ``warpfem run``, typically the same scene run twice with different speed/accuracy settings (time
 step, precision, Newton iterations, mesh resolution with the same render surface).
@@ -69,10 +70,29 @@ def _kind(path) -> str:
                        f"({', '.join(USD_EXTENSIONS)})")
 
 
+class _Arrays(dict):
+    """The arrays of a states stream (:func:`warpfem.io.read_states`) as ``np.load`` shows an npz."""
+
+    @property
+    def files(self):
+        return list(self)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
 def _load_states(path) -> _Run:
+    from .states import StatesError, read_states, stream_directory
+
     try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as e:
+        if os.path.isdir(stream_directory(path)):  # a run in progress or killed: its frame stream
+            data = _Arrays({k: v for k, v in read_states(path).items() if k != "complete"})
+        else:
+            data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, StatesError) as e:
         raise CompareError(f"{path}: cannot read it as an .npz: {e}") from None
     with data:
         missing = [k for k in ("positions", "times") if k not in data.files]
@@ -142,9 +162,12 @@ def _load_usd(path) -> _Run:
 def _load(path) -> _Run:
     path = os.fspath(path)
     kind = _kind(path)
-    if not os.path.exists(path):
+    from .states import stream_directory
+
+    streamed = kind == "states" and os.path.isdir(stream_directory(path))  # a killed run's frames
+    if not os.path.exists(path) and not streamed:
         raise CompareError(f"{path}: no such file")
-    if not os.path.isfile(path):
+    if not os.path.isfile(path) and not streamed:
         raise CompareError(f"{path}: not a file")
     return _load_states(path) if kind == "states" else _load_usd(path)
 

@@ -1,4 +1,6 @@
-"""Checking output paths before any work: a run must not stop with a traceback after minutes of
+"""A run's outputs in one place: which writer writes each ``[output]`` key (:data:`OUTPUT_FORMATS`,
+:func:`make_writers`), where its checkpoint goes (:func:`checkpoint_path`), and the check of
+every output path before any work: a run must not stop with a traceback after minutes of
 simulation (and a partial USD) because ``--out a_file/x.usda`` names a file as a folder.
 
 :func:`output_path_problem` says why one path cannot be written, without creating anything;
@@ -11,7 +13,43 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["OutputPathError", "output_path_problem", "check_output_paths", "companion_folders"]
+__all__ = ["OutputPathError", "output_path_problem", "check_output_paths", "companion_folders", "OUTPUT_FORMATS",
+           "make_writers", "checkpoint_path"]
+
+#: ``[output]`` key -> ``"module:FrameWriter subclass"`` writing it (in the order a run writes them).
+#: A new output format is a module with a :class:`warpfem.io.writers.FrameWriter` and a line here
+#: (and its key in the scene schema's ``[output]`` table).
+OUTPUT_FORMATS = {
+    "stats": "warpfem.io.stats:StatsOutput",
+    "states": "warpfem.io.states:StatesOutput",
+    "usd": "warpfem.io.usd:UsdOutput",
+    "vtu": "warpfem.io.vtu:ParaViewOutput",
+}
+
+
+def make_writers(paths: dict, **options) -> list:
+    """The writers of ``paths`` ({``[output]`` key: path or None}), in :data:`OUTPUT_FORMATS` order."""
+    import importlib
+
+    writers = []
+    for key, spec in OUTPUT_FORMATS.items():
+        if paths.get(key):
+            module, _, name = spec.partition(":")
+            writers.append(getattr(importlib.import_module(module), name)(paths[key], **options))
+    return writers
+
+
+def checkpoint_path(paths: dict) -> str | None:
+    """Where a run's checkpoint goes: ``X.checkpoint.npz`` next to its first output (USD, states,
+    statistics log, ParaView collection; ``out/beam.usda`` -> ``out/beam.checkpoint.npz``); None
+    without outputs."""
+    for key in ("usd", "states", "stats", "vtu"):
+        p = paths.get(key)
+        if p:
+            p = os.fspath(p)
+            base = p[:-len(".stats.jsonl")] if p.endswith(".stats.jsonl") else os.path.splitext(p)[0]
+            return base + ".checkpoint.npz"
+    return None
 
 
 class OutputPathError(ValueError):
@@ -72,6 +110,10 @@ def companion_folders(label: str, path) -> list[tuple[str, str]]:
         from .vtu import frame_directory
 
         return [(f"{label} (its frames)", frame_directory(p))]
+    if ext == ".npz":
+        from .states import stream_directory
+
+        return [(f"{label} (its frame stream)", stream_directory(p))]
     return []
 
 

@@ -42,7 +42,10 @@ import re
 
 import numpy as np
 
-__all__ = ["UsdMeshWriter", "read_usd_mesh_frames", "usd_validation_errors", "UsdWriterError", "clip_directory"]
+from .writers import FrameWriter
+
+__all__ = ["UsdMeshWriter", "UsdOutput", "read_usd_mesh_frames", "usd_validation_errors", "UsdWriterError",
+           "clip_directory"]
 
 _EXTENSIONS = (".usda", ".usd", ".usdc")
 META_KEY = "warpfem"
@@ -171,6 +174,92 @@ class UsdMeshWriter:
         self._peak_frames_in_memory = 0
         self._set_status(complete=False)
         self.save()
+
+    @classmethod
+    def resume(cls, path, last_frame: int, *, save_every: int = 10) -> "UsdMeshWriter":
+        """Reopen a file written by this writer to continue after frame ``last_frame``: its meshes,
+        clips and frames 0..``last_frame`` are kept as they are, every later sample (and clip) is
+        removed, and :meth:`write_frame` continues from ``last_frame + 1``. The file must hold
+        ``last_frame`` (:class:`UsdWriterError` otherwise)."""
+        from pxr import Sdf
+
+        path = os.fspath(path)
+        k = int(last_frame)
+        if not os.path.isfile(path):
+            raise UsdWriterError(f"{path}: cannot continue it: no such file")
+        layer = Sdf.Layer.FindOrOpen(path)
+        if layer is None:  # pragma: no cover - pxr raises on failure
+            raise UsdWriterError(f"{path}: cannot open it")
+        layer.Reload(True)
+        info = dict(layer.customLayerData).get(META_KEY)
+        if not info or not layer.defaultPrim:
+            raise UsdWriterError(f"{path}: cannot continue it: not written by warpfem's UsdMeshWriter")
+        self = cls.__new__(cls)
+        self.path, self.fps, self.save_every = path, float(layer.timeCodesPerSecond), int(save_every)
+        self.clip_frames = int(info["clipFrames"]) if "clipFrames" in info else None
+        self.clip_dir = clip_directory(path) if self.clip_frames is not None else None
+        self._layer = layer
+        self._root_path = Sdf.Path.absoluteRootPath.AppendChild(layer.defaultPrim)
+        root = layer.GetPrimAtPath(self._root_path)
+        self._clip, self._clip_count, self._clip_assets, self._clip_starts = None, 0, [], []
+        holder = layer  # the layer with the samples of frame k
+        removed = 0
+        if self.clip_frames is not None:
+            clips = (root.GetInfo("clips") or {}).get("default", {}) if root.HasInfo("clips") else {}
+            assets = [a.path for a in clips.get("assetPaths", [])]
+            starts = [int(a[0]) for a in clips.get("active", [])]
+            keep = [i for i, s in enumerate(starts) if s <= k]
+            if not keep:
+                raise UsdWriterError(f"{path}: cannot continue after frame {k}: it holds no frame up to it")
+            base = os.path.dirname(os.path.abspath(path))
+            for i in range(keep[-1] + 1, len(assets)):  # clips wholly after frame k
+                f = os.path.join(base, assets[i])
+                if os.path.exists(f):
+                    removed += len(Sdf.Layer.FindOrOpen(f).ListAllTimeSamples())
+                    os.remove(f)
+            self._clip_assets, self._clip_starts = assets[:len(keep)], starts[:len(keep)]
+            holder = Sdf.Layer.FindOrOpen(os.path.join(base, assets[keep[-1]]))
+            holder.Reload(True)
+        times = sorted(holder.ListAllTimeSamples())
+        if float(k) not in times:
+            have = f"frames up to {int(max(times))}" if times else "no frame"
+            raise UsdWriterError(f"{path}: cannot continue after frame {k}: it holds {have}")
+        self._meshes, self._last = {}, {}
+        for prim in root.nameChildren:
+            if prim.typeName not in ("Mesh", "TetMesh"):
+                continue
+            name = prim.name
+            self._meshes[name] = [prim, 0, "normals" in prim.attributes]
+            for attr, _ in _ANIMATED:
+                apath = self._root_path.AppendChild(name).AppendProperty(attr)
+                for t in holder.ListTimeSamplesForPath(apath):
+                    if t > k:
+                        holder.EraseTimeSample(apath, t)
+                value = holder.QueryTimeSample(apath, float(k)) if holder.GetAttributeAtPath(apath) else None
+                if value is not None:
+                    value = np.array(value, dtype=np.float32).reshape(-1, 3)
+                    self._last.setdefault(name, {})[attr] = value
+                    if attr == "points":
+                        self._meshes[name][1] = len(value)
+        removed += sum(1 for t in times if t > k)
+        self._manifest_attrs = {(n, a) for n, e in self._meshes.items()
+                                for a in ("points", "extent") + (("normals",) if e[2] else ())}
+        self._manifest_written = set(self._manifest_attrs)
+        self._first_frame = int(layer.startTimeCode) if layer.HasStartTimeCode() else None
+        self._last_frame = k
+        self._frames_written = int(info.get("framesWritten", 0)) - removed
+        self._unsaved = 0
+        self._closed = False
+        self._peak_frames_in_memory = 0
+        if self.clip_frames is not None:
+            self._clip = holder
+            self._clip_count = len([t for t in holder.ListAllTimeSamples() if t <= k])
+            self._clip.Save()
+            if self._clip_count >= self.clip_frames:
+                self._clip = None
+        self._set_status(complete=False)
+        self.save()
+        return self
 
     # ------------------------------------------------------------------ metadata
     @property
@@ -441,6 +530,11 @@ class UsdMeshWriter:
         }}
         self._layer.GetPrimAtPath(self._root_path).SetInfo("clips", clips)
 
+    @property
+    def unsaved_frames(self) -> int:
+        """Frames written since the last :meth:`save`."""
+        return self._unsaved
+
     def save(self):
         """Save now: the current clip, then the main layer (clip list, status, end time code), so
         the file holds every frame written so far."""
@@ -478,6 +572,44 @@ class UsdMeshWriter:
         else:
             self.close(complete=False, reason=f"{exc_type.__name__}: {exc}")
         return False
+
+
+class UsdOutput(FrameWriter):
+    """``[output] usd``: the render surfaces (and ``usd_volume`` tet meshes, colliders) of every frame
+    through a :class:`UsdMeshWriter` (options ``up_axis``, ``clip_frames``; 0 = no clips). A
+    snapshot with ``sync`` saves the file, so that it holds that frame after a kill."""
+
+    label = "[output] usd"
+
+    def __init__(self, path, **options):
+        super().__init__(path, **options)
+        self._w = None
+
+    def open(self, run):
+        o = run.options
+        if run.resume_after is not None:
+            self._w = UsdMeshWriter.resume(self.path, run.resume_after)
+            return
+        self._w = UsdMeshWriter(self.path, fps=run.fps, up_axis=o.get("up_axis", "Y"),
+                                clip_frames=o.get("clip_frames", 100) or None)
+        for name, faces, count in run.surfaces:
+            self._w.add_mesh(name, faces, count)
+        for name, tets, faces, lo, hi in run.volumes:
+            self._w.add_tet_mesh(name, tets, hi - lo, surface_faces=faces)
+        for name, faces, count in run.colliders:
+            self._w.add_mesh(name, faces, count)
+
+    def write(self, snapshot):
+        self._w.write_frame(snapshot.frame, snapshot.surface_points)
+        if snapshot.sync and self._w.unsaved_frames:
+            self._w.save()
+
+    def close(self, complete, reason=None):
+        if self._w is not None:
+            self._w.close(complete=complete, reason=reason)
+
+    def abandon(self):
+        self._w = None
 
 
 # ---------------------------------------------------------------------- reading / checking

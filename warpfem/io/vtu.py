@@ -33,8 +33,11 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
-__all__ = ["VtuSeriesWriter", "VtuBodiesWriter", "VtuWriterError", "read_pvd", "frame_directory", "deformation_gradients",
-           "element_stress_fields", "von_mises", "warpfem_version"]
+from .writers import FrameWriter
+
+__all__ = ["VtuSeriesWriter", "VtuBodiesWriter", "ParaViewOutput", "VtuWriterError", "read_pvd", "frame_directory",
+           "deformation_gradients", "element_stress_fields", "element_stress_fields_by_body", "von_mises",
+           "warpfem_version"]
 
 _FRAME_RE = re.compile(r"^frame_\d{6}\.vtu$")
 _META_RE = re.compile(r"<!--\s*warpfem\s+(\{.*?\})\s*-->", re.S)
@@ -95,36 +98,44 @@ def von_mises(sigma) -> np.ndarray:
     return np.sqrt(1.5 * np.einsum("...ij,...ij->...", s, s))
 
 
-def _pk1(sim, model, x, F):
-    """First Piola-Kirchhoff stress (Q, 3, 3) at the main quadrature points, from whatever the simulator offers."""
-    if hasattr(sim, "stresses"):  # warpfem.Simulator: the material on the device
-        return np.asarray(sim.stresses(np.asarray(x, dtype=np.float64)), dtype=np.float64)
-    if hasattr(sim, "rotations"):  # stiffness warping: corotational linear stress P = R (2 mu e + lam tr(e) I)
-        mat = model.material
-        R = np.asarray(sim.rotations(np.asarray(x, dtype=np.float64)), dtype=np.float64)
-        R = R[np.asarray(model.quadrature.qp_element, dtype=np.int64)]
-        G = np.einsum("qji,qjk->qik", R, F) - np.eye(3)  # R^T F - I
-        e = 0.5 * (G + np.swapaxes(G, 1, 2))
-        s = 2.0 * mat.mu_lame * e + mat.lam_lame * np.trace(e, axis1=1, axis2=2)[:, None, None] * np.eye(3)
-        return R @ s
-    return np.asarray(model.material.pk1(F), dtype=np.float64)  # e.g. the reduced simulator: the full material
-
-
 def element_stress_fields(sim, model, x=None) -> dict:
     """Per-element ``J`` (m,), ``cauchy_stress`` (m, 3, 3) and ``von_mises`` (m,) at positions x (default the
     simulator's current positions).
 
-    The first Piola-Kirchhoff stress P comes from ``sim.stresses()`` (:class:`warpfem.Simulator`: the
-    material at its quadrature points), from the corotational linear stress R (2 mu e + lam tr(e) I),
-    e = sym(R^T F) - I, with the simulator's element rotations (stiffness warping), or else from the
-    model's material evaluated at F (e.g. the reduced simulator, at the reconstructed positions).
+    The first Piola-Kirchhoff stress P at the quadrature points is the simulator's own,
+    ``sim.stresses(x)`` (:class:`warpfem.Simulator`: its material; stiffness warping: the corotational
+    linear stress; the reduced simulator: the full material at the reconstructed positions); an
+    object without ``stresses`` (positions only) gets the model's material evaluated at F.
     Cauchy sigma = P F^T / J. With w_q the rest-volume quadrature weights of an element:
     J_e = sum w_q J_q / sum w_q (deformed / rest volume) and sigma_e = sum w_q J_q sigma_q / sum w_q J_q
     (the deformed-volume mean of the Cauchy stress); von Mises from sigma_e.
     """
     x = sim.positions() if x is None else np.asarray(x, dtype=np.float64)
     F = deformation_gradients(model, x)
-    return _element_fields(model.quadrature, F, _pk1(sim, model, x, F))
+    stresses = getattr(sim, "stresses", None)
+    P = model.material.pk1(F) if stresses is None else stresses(x)
+    return _element_fields(model.quadrature, F, np.asarray(P, dtype=np.float64))
+
+
+def element_stress_fields_by_body(model, x, P) -> list:
+    """:func:`element_stress_fields` of every body of a ``Model.from_bodies`` model: a list of dicts
+    in body order, from positions ``x`` (n, 3) and the first Piola-Kirchhoff stress ``P`` (Q, 3, 3) of
+    all bodies' quadrature points in body order (``Simulator.stresses(x)``)."""
+    import dataclasses
+
+    x = np.asarray(x, dtype=np.float64)
+    P = np.asarray(P, dtype=np.float64)
+    out, start = [], 0
+    offs = model.body_offsets
+    for b, (lo, hi) in enumerate(zip(offs[:-1], offs[1:])):
+        lo, hi = int(lo), int(hi)
+        qd = model.quadratures[b]
+        local = dataclasses.replace(qd, elements=np.asarray(qd.elements, dtype=np.int64) - lo, volumetric=None)
+        view = _BodyView(local, model.rest_positions[lo:hi])
+        F = deformation_gradients(view, x[lo:hi])
+        out.append(_element_fields(local, F, P[start:start + qd.num_points]))
+        start += qd.num_points
+    return out
 
 
 def _element_fields(qd, F, P) -> dict:
@@ -164,7 +175,8 @@ class VtuSeriesWriter:
     compression : meshio's VTU compression ("zlib", "lzma" or None).
     """
 
-    def __init__(self, path, *, cells, element_type: str, compression: str | None = "zlib"):
+    def __init__(self, path, *, cells, element_type: str, compression: str | None = "zlib",
+                 keep_frames: int | None = None):
         from warpfem.mesh.element_types import ELEMENTS
 
         path = os.fspath(path)
@@ -186,10 +198,18 @@ class VtuSeriesWriter:
         self.compression = compression
         self.frame_dir = frame_directory(path)
         os.makedirs(self.frame_dir, exist_ok=True)
-        for f in os.listdir(self.frame_dir):
-            if _FRAME_RE.match(f) or f.endswith(".partial"):
-                os.remove(os.path.join(self.frame_dir, f))
         self.entries: list[tuple[float, str]] = []  # (time, file relative to the .pvd's folder)
+        keep = set()
+        if keep_frames is not None:  # continue a collection: its first keep_frames frames stay
+            have = read_pvd(path)[0] if os.path.exists(path) else []
+            if len(have) < keep_frames:
+                raise VtuWriterError(f"{path}: cannot continue it: it lists {len(have)} frames, {keep_frames} needed")
+            base = os.path.dirname(os.path.abspath(path))
+            self.entries = [(t, os.path.relpath(f, base).replace(os.sep, "/")) for t, f in have[:keep_frames]]
+            keep = {os.path.basename(f) for _, f in self.entries}
+        for f in os.listdir(self.frame_dir):
+            if (_FRAME_RE.match(f) and f not in keep) or f.endswith(".partial"):
+                os.remove(os.path.join(self.frame_dir, f))
         self.closed = False
         self.version = warpfem_version()
         self._write_pvd(complete=False, reason="")
@@ -228,16 +248,6 @@ class VtuSeriesWriter:
         rel = os.path.relpath(target, os.path.dirname(os.path.abspath(self.path))).replace(os.sep, "/")
         self.entries.append((float(time), rel))
         self._write_pvd(complete=False, reason="")
-
-    def write_state(self, time: float, sim, model):
-        """Write a frame of a simulator's state: positions, displacement, velocity and the element fields
-        of :func:`element_stress_fields`."""
-        x = np.asarray(sim.positions(), dtype=np.float64)
-        v = np.asarray(sim.velocities(), dtype=np.float64) if hasattr(sim, "velocities") else np.zeros_like(x)
-        fields = element_stress_fields(sim, model, x)
-        self.write_frame(time, x, point_data={"displacement": x - model.rest_positions, "velocity": v},
-                         cell_data={"J": fields["J"], "von_mises": fields["von_mises"],
-                                    "cauchy_stress": fields["cauchy_stress"].reshape(-1, 9)})
 
     def _write_pvd(self, *, complete: bool, reason: str):
         meta = {"complete": bool(complete), "frames": len(self.entries), "version": self.version}
@@ -286,7 +296,7 @@ class VtuBodiesWriter:
         end vertex)] in body order.
     """
 
-    def __init__(self, path, *, bodies, compression: str | None = "zlib"):
+    def __init__(self, path, *, bodies, compression: str | None = "zlib", keep_frames: int | None = None):
         path = os.fspath(path)
         if not path.lower().endswith(".pvd"):
             raise VtuWriterError(f"{path}: a ParaView collection must end in .pvd")
@@ -295,7 +305,8 @@ class VtuBodiesWriter:
         self.ranges = [(int(b[3]), int(b[4])) for b in bodies]
         folder = frame_directory(path)
         self.writers = [VtuSeriesWriter(os.path.join(folder, f"{name}.pvd"), cells=cells, element_type=etype,
-                                        compression=compression) for name, cells, etype, _, _ in bodies]
+                                        compression=compression, keep_frames=keep_frames)
+                        for name, cells, etype, _, _ in bodies]
         self.version = warpfem_version()
         self.closed = False
         self._write_pvd(complete=False, reason="")
@@ -304,30 +315,13 @@ class VtuBodiesWriter:
     def frames_written(self) -> int:
         return self.writers[0].frames_written
 
-    def write_state(self, time: float, sim, model):
-        """Write a frame of every body: positions, displacement, velocity and the element fields of
-        :func:`element_stress_fields` (``model``: a ``Model.from_bodies`` model)."""
-        x = np.asarray(sim.positions(), dtype=np.float64)
-        v = np.asarray(sim.velocities(), dtype=np.float64) if hasattr(sim, "velocities") else np.zeros_like(x)
-        P_all = np.asarray(sim.stresses(x), dtype=np.float64) if hasattr(sim, "stresses") else None
-        start = 0
-        import dataclasses
-
+    def write_frame(self, time: float, points, *, point_data=None, cell_data=None):
+        """Write the next frame of every body: ``points`` (n, 3) of all bodies, ``point_data`` {name:
+        (n, ...)} over all bodies, ``cell_data`` [{name: (m_b, ...)} per body]."""
         for b, (w, (lo, hi)) in enumerate(zip(self.writers, self.ranges)):
-            qd = model.quadratures[b]
-            local = dataclasses.replace(qd, elements=np.asarray(qd.elements, dtype=np.int64) - lo, volumetric=None)
-            view = _BodyView(local, model.rest_positions[lo:hi])
-            xb = x[lo:hi]
-            F = deformation_gradients(view, xb)
-            if P_all is not None:
-                P = P_all[start:start + qd.num_points]
-            else:
-                P = np.asarray(model.materials[b].pk1(F), dtype=np.float64)
-            start += qd.num_points
-            fields = _element_fields(local, F, P)
-            w.write_frame(time, xb, point_data={"displacement": xb - view.rest_positions, "velocity": v[lo:hi]},
-                          cell_data={"J": fields["J"], "von_mises": fields["von_mises"],
-                                     "cauchy_stress": fields["cauchy_stress"].reshape(-1, 9)})
+            w.write_frame(time, np.asarray(points)[lo:hi],
+                          point_data={k: np.asarray(a)[lo:hi] for k, a in (point_data or {}).items()},
+                          cell_data=(cell_data or [{}] * len(self.writers))[b])
         self._write_pvd(complete=False, reason="")
 
     def _write_pvd(self, *, complete: bool, reason: str):
@@ -365,6 +359,44 @@ class VtuBodiesWriter:
     def __exit__(self, exc_type, exc, tb):
         self.close(complete=exc_type is None, reason="" if exc is None else f"{exc_type.__name__}: {exc}")
         return False
+
+
+class ParaViewOutput(FrameWriter):
+    """``[output] vtu``: the volume mesh of every frame (one block per body) as a ParaView collection
+    with its point data ``displacement``, ``velocity`` and cell data ``J``, ``von_mises``,
+    ``cauchy_stress`` from the snapshot's ``element_fields``."""
+
+    label = "[output] vtu"
+
+    def __init__(self, path, **options):
+        super().__init__(path, **options)
+        self._w = None
+
+    def open(self, run):
+        keep = None if run.resume_after is None else run.resume_after + 1
+        self._rest = run.rest
+        if len(run.blocks) == 1 and run.blocks[0][0] is None:
+            _, cells, etype, _, _ = run.blocks[0]
+            self._w = VtuSeriesWriter(self.path, cells=cells, element_type=etype, keep_frames=keep)
+        else:
+            self._w = VtuBodiesWriter(self.path, bodies=run.blocks, keep_frames=keep)
+
+    def write(self, snapshot):
+        x = snapshot.positions
+        cells = [{"J": f["J"], "von_mises": f["von_mises"], "cauchy_stress": f["cauchy_stress"].reshape(-1, 9)}
+                 for f in snapshot.element_fields]
+        points = {"displacement": x - self._rest, "velocity": snapshot.velocities}
+        if isinstance(self._w, VtuBodiesWriter):
+            self._w.write_frame(snapshot.time, x, point_data=points, cell_data=cells)
+        else:
+            self._w.write_frame(snapshot.time, x, point_data=points, cell_data=cells[0])
+
+    def close(self, complete, reason=None):
+        if self._w is not None:
+            self._w.close(complete=complete, reason=reason or "")
+
+    def abandon(self):
+        self._w = None
 
 
 def read_pvd(path) -> tuple[list[tuple[float, str]], dict]:

@@ -455,6 +455,14 @@ class ReducedSimulator(StepperBase):
         """Full-mesh velocities U qdot (+ L adot) (n, 3), m/s."""
         return (self._B @ self.state.v).reshape(-1, 3)
 
+    def stresses(self, x=None) -> np.ndarray:
+        """First Piola-Kirchhoff stress (Pa) of the model's material at every quadrature point of the full
+        mesh (Q, 3, 3), at x (default: the reconstructed positions X + U q)."""
+        from warpfem.io.vtu import deformation_gradients
+
+        x = self.positions() if x is None else np.asarray(x, dtype=np.float64)
+        return np.asarray(self.model.material.pk1(deformation_gradients(self.model, x)), dtype=np.float64)
+
     # -- kinematic handles --------------------------------------------------------------------------
     def set_targets(self, indices, positions):
         """Prescribe end-of-step positions (m) of handle vertices, like :meth:`warpfem.Simulator.set_targets`.
@@ -610,6 +618,22 @@ class ReducedSimulator(StepperBase):
             raise SolveFailed("the initial acceleration is not finite; state left unchanged",
                               SolveStats(reason="non-finite initial acceleration"))
 
+    # -- the full step state (StepperBase.state_dict) -------------------------------------------------------
+    def _state_parts(self, view=None):
+        """The kept Newton matrix ("reduced/newton_matrix/...": it is BFGS-updated and reused from
+        step to step) and what decides when it is evaluated again."""
+        return [("reduced", _ReducedState(self))]
+
+    def _checked_target(self, view, key, value):
+        groups = self.lifting.groups if self.lifting is not None else ()
+        if not (0 <= key < len(groups)):
+            raise view.error("control/target_keys", f"handle group {key}: this subspace has {len(groups)}")
+        sl = self.lifting.group_slice(key)
+        if value.size != len(range(self.p)[sl]):
+            raise view.error("control/target_values", f"handle group {key} has {len(range(self.p)[sl])} coordinates, "
+                             f"got {value.size}")
+        return value
+
     # -- step ---------------------------------------------------------------------------------------
     def add_collider(self, *args, **kw):
         """Not supported: a reduced simulator (x = X + U q) does not handle contact; use :class:`warpfem.Simulator`."""
@@ -645,6 +669,59 @@ class ReducedSimulator(StepperBase):
         state_out.x[r:] = a_next  # exactly the prescribed coordinates
         state_out.time = state_in.time + dt
         return st
+
+
+class _ReducedState:
+    """The reduced simulator's step-to-step data beyond its State: the kept Newton matrix (H, its
+    Cholesky factor, A and s it was formed with, K when known), the step-scale cache its A comes
+    from, and the count that holds a badly contracting kept matrix back."""
+
+    def __init__(self, sim):
+        self.sim = sim
+
+    def state_dict(self) -> dict:
+        sim = self.sim
+        cache, nm = sim.matrix_cache, sim.newton_matrix
+        d = {"kept_matrix_poor": int(sim.kept_matrix_poor),
+             "matrix_cache_s": float("nan") if cache is None else float(cache[0]),
+             "has_newton_matrix": nm is not None}
+        if nm is not None:
+            d.update({"newton_matrix/s": float(nm["s"]), "newton_matrix/A": np.array(nm["A"]),
+                      "newton_matrix/H": np.array(nm["H"]),
+                      "newton_matrix/A_is_cached": cache is not None and nm["A"] is cache[5]})
+            for k in ("K", "chol"):
+                d[f"newton_matrix/has_{k}"] = nm[k] is not None
+                if nm[k] is not None:
+                    d[f"newton_matrix/{k}"] = np.array(nm[k])
+        return d
+
+    def load_state_dict(self, view):
+        sim, r = self.sim, self.sim.r
+        poor = view.integer("kept_matrix_poor")
+        s_cache = view.number("matrix_cache_s", optional=True)
+        nm = None
+        if view.flag("has_newton_matrix"):
+            mv = view.view("newton_matrix")
+            nm = {"s": mv.number("s"), "A": mv.array("A", (r, r), np.float64), "H": mv.array("H", (r, r), np.float64)}
+            for k in ("K", "chol"):
+                nm[k] = mv.array(k, (r, r), np.float64).copy() if mv.flag(f"has_{k}") else None
+            cached = mv.flag("A_is_cached")
+            if cached and s_cache is None:
+                raise mv.error("A_is_cached", "set without a matrix_cache_s")
+        cache = None
+        if s_cache is not None and sim.damping_stiffness == 0:  # the same computation as _ReducedPotential.begin
+            C, C_ul = sim.damping_matrices(None)
+            cache = (s_cache, sim.damping_mass, sim.mass_r, C, C_ul, sim.mass_r + s_cache * C, s_cache * C)
+        if nm is not None:
+            if cached and cache is not None:
+                if not np.array_equal(cache[5], nm["A"]):
+                    raise view.error("newton_matrix/A", "differs from this simulator's A = M_r + s C (another "
+                                     "damping or mass?)")
+                nm["A"] = cache[5]  # the same object: a kept factor stays valid from step to step
+            else:
+                nm["A"] = nm["A"].copy()
+            nm["H"] = nm["H"].copy()
+        sim.kept_matrix_poor, sim.matrix_cache, sim.newton_matrix = poor, cache, nm
 
 
 class _ReducedPotential:

@@ -3,9 +3,8 @@
 
 from __future__ import annotations
 
-import json
 import logging
-import os
+import re
 import time
 import warnings
 from dataclasses import dataclass
@@ -57,6 +56,15 @@ def log_not_converged(fs: FrameStats) -> None:
                 f"not converged: {fs.reason}")
 
 
+def _one_line(e: BaseException) -> str:
+    """An exception as one line: an OSError's reason (and its file when another), else its first line."""
+    if isinstance(e, OSError) and e.strerror:
+        return e.strerror + (f" ({e.filename})" if e.filename else "")
+    text = str(e).strip().splitlines()
+    line = (text[0] if text else type(e).__name__).strip()
+    return re.sub(r"^Error in '[^']*' at line \d+ in file \S+ : ", "", line)  # pxr's location prefix
+
+
 def _incomplete_reason(e: BaseException, frame: int) -> str:
     """What an incomplete output records: ``"SolveFailed: ..."``, ``"KeyboardInterrupt: interrupted
     (Ctrl-C) at frame 3"``, ``"Terminated: SIGTERM at frame 3"`` (an exception's own message when it
@@ -77,6 +85,8 @@ class SceneRun:
         self.fps = float(sp.output["fps"])
         self.frames = int(sp.output["frames"])
         self.frame = 0
+        self.steps_total, self.unconverged = 0, []  # the run's totals (checkpointed; see _account)
+        self.resumed_totals = None  # a resumed run: the totals of the frames before it (convergence_summary)
         self._handles = [(h, ids, model.rest_positions[ids].copy()) for h, ids in zip(sp.handle, handle_ids)]
         self._gravity = model.gravity.copy()
         self._forces = model.forces.copy()
@@ -242,90 +252,78 @@ class SceneRun:
                           energy=float(energy), converged=converged, reason="; ".join(reasons),
                           unconverged_steps=len(reasons), worst_residual=worst)
 
-    def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None, vtu=None):
+    def run(self, *, frames=None, usd=None, states=None, stats=None, progress=None, vtu=None, resume: bool = False,
+            checkpoint_every=None):
         """Run ``frames`` output frames (default: the scene's) writing the outputs.
 
         Frame 0 is the rest state; frames 1..N follow every 1/fps s (static: load fraction k/N).
-        ``usd``/``states``/``stats`` default to the scene's [output] (paths relative to the
-        current directory). ``vtu``: a ParaView collection (.pvd) of the volume mesh, written frame
-        by frame (:class:`warpfem.io.VtuSeriesWriter`); default the scene's [output].vtu. Every
-        stats record carries ``warpfem_version``. ``progress(FrameStats)`` is called after each frame. On
-        :class:`warpfem.SolveFailed` (or Ctrl-C) the USD is closed marked incomplete with the
-        frames done so far, the npz/stats hold them too, and the exception propagates.
+        ``usd``/``states``/``stats``/``vtu`` default to the scene's [output] (paths relative to the
+        current directory). Each output is a :class:`warpfem.io.writers.FrameWriter` (the table
+        ``warpfem.io.outputs.OUTPUT_FORMATS``) fed one :class:`warpfem.io.writers.FrameSnapshot` per
+        frame. Every stats record carries ``warpfem_version``. ``progress(FrameStats)`` is called after
+        each frame.
+
+        Checkpoints: every ``checkpoint_every`` frames (default the scene's ``[output] checkpoint_every``,
+        1; 0 = none) and at the last frame, after the frame's outputs, the simulator's whole state and the
+        run's go to ``X.checkpoint/`` next to the first output (:class:`warpfem.scenes.checkpoint.Checkpoint`),
+        and each output makes its frames so far readable on disk. ``resume=True`` continues from the
+        last checkpoint: the outputs keep their frames up to it (later ones are dropped) and the run goes
+        on to ``frames``; it raises :class:`warpfem.scenes.checkpoint.ResumeError` when there is nothing
+        to resume or the scene's physics changed since (naming the keys).
+
+        On :class:`warpfem.SolveFailed` (or Ctrl-C) the outputs are closed marked incomplete with the
+        frames done so far and the exception propagates. An output that cannot be written (full disk,
+        folder removed) raises :class:`warpfem.io.writers.OutputWriteError` naming the file and the
+        frame; the other outputs are closed with every earlier frame.
         A step that does not converge (``require_convergence`` off) is not a Python warning here:
         each frame with such steps logs one warning line on the ``warpfem.scenes.run`` logger
         (``frame 9: 1 of 4 steps not converged: step 33: ...``); the frames' ``unconverged_steps``
-        count them. Returns the list of :class:`FrameStats`.
+        count them. Returns the list of :class:`FrameStats` of the frames stepped by this call.
         """
-        from warpfem.io import StatesWriter, UsdMeshWriter
+        from warpfem.io.outputs import check_output_paths, checkpoint_path, make_writers
+
+        from .checkpoint import Checkpoint
 
         out = self.scene.spec.output
         total = self.frames if frames is None else int(frames)
         if total < 1:
             raise ValueError(f"frames must be >= 1, got {total}")
-        usd = out["usd"] if usd is None else usd
-        states = out["states"] if states is None else states
-        from .scene import Scene
-
-        stats = Scene.stats_path(usd, out["stats"] if stats is None else stats)
-        vtu = out.get("vtu") if vtu is None else vtu
-        from warpfem.io.outputs import check_output_paths
-
+        paths = self.scene.output_paths(usd=usd, states=states, stats=stats, vtu=vtu)
+        every = int(out.get("checkpoint_every", 1) if checkpoint_every is None else checkpoint_every)
+        if every < 0:
+            raise ValueError(f"checkpoint_every must be >= 0, got {every}")
+        ckpt = checkpoint_path(paths) if (every or resume) else None
         # every output path before anything is written (OutputPathError, a ValueError, names the bad one)
-        check_output_paths({"usd": usd, "states": states, "stats": stats, "vtu": vtu})
-        writer = log = volume = None
-        from warpfem.io.vtu import VtuSeriesWriter, warpfem_version
+        check_output_paths({**paths, "checkpoint": ckpt})
+        checkpoint = Checkpoint(ckpt, self) if ckpt is not None else None
+        resume_after = None
+        if resume:
+            if checkpoint is None:
+                from .checkpoint import ResumeError
 
-        version = warpfem_version()
+                raise ResumeError("nothing to resume: the run writes no output (no checkpoint)")
+            resume_after = checkpoint.restore(total)
+            _logger.info(f"resuming after frame {resume_after} (t = {self.current_time:.6g} s) from {ckpt}")
+        writers = make_writers(paths)
+        if checkpoint is not None and every:
+            writers.append(checkpoint.writer(total))
+        info = self._run_info(total, resume_after)
         history = []
-        positions = None  # frames stream to disk (StatesWriter): memory does not grow with the run
-        if states:
-            extra = {}
-            if self.scene.spec.bodies:  # rest / positions hold every body's vertices in body order
-                extra = {"body_offsets": np.asarray(self.model.body_offsets, dtype=np.int64),
-                         "body_names": np.array(self.model.body_names)}
-            positions = StatesWriter(states, rest=self.model.rest_positions, max_frames=total + 1, fps=self.fps,
-                                     extra=extra)
-            positions.write_frame(self.sim.positions(), self._time())
+        opened, failed = [], []
+
+        def feed(fs):
+            sync = bool(every) and (self.frame % every == 0 or self.frame == total)
+            snap = self._snapshot(fs, sync, info)
+            for w in opened:
+                self._call(w, failed, w.write, snap)
+
         try:
-            if usd:
-                writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
-                for name, faces, count in self.usd_surfaces():
-                    writer.add_mesh(name, faces, count)
-                volumes = self.usd_volumes() if out.get("usd_volume") else []
-                for name, tets, faces, lo, hi in volumes:
-                    writer.add_tet_mesh(name, tets, hi - lo, surface_faces=faces)
-                from warpfem.contact.scene import collider_prims
-
-                colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
-                for name, faces, pts in colliders:
-                    writer.add_mesh(name, faces, len(pts()))
-
-                def usd_frame():
-                    frame = self.usd_surface_points()
-                    if volumes:
-                        x = self.sim.positions()
-                        frame.update({name: x[lo:hi] for name, _, _, lo, hi in volumes})
-                    frame.update({name: pts() for name, _, pts in colliders})
-                    return frame
-
-                writer.write_frame(self.frame, usd_frame())
-            if vtu:
-                if self.scene.spec.bodies:  # one block per body, by name
-                    from warpfem.io.vtu import VtuBodiesWriter
-
-                    offs = self.model.body_offsets
-                    volume = VtuBodiesWriter(vtu, bodies=[(b.body_name, b.mesh().elements, b.mesh().element_type,
-                                                           int(lo), int(hi))
-                                                          for b, lo, hi in zip(self.scene.bodies, offs[:-1], offs[1:])])
-                else:
-                    qd = self.model.quadrature
-                    volume = VtuSeriesWriter(vtu, cells=qd.elements, element_type=qd.element_type)
-                volume.write_state(self._time(), self.sim, self.model)
-            if stats:
-                os.makedirs(os.path.dirname(os.path.abspath(stats)), exist_ok=True)
-                log = open(stats, "w")
-            for _ in range(total):
+            for w in writers:
+                self._call(w, failed, w.open, info)
+                opened.append(w)
+            if resume_after is None:
+                feed(None)
+            while self.frame < total:
                 try:
                     with warnings.catch_warnings():  # reported below, one line per frame
                         from warpfem.solvers.nonlinear import NotConvergedWarning
@@ -333,58 +331,145 @@ class SceneRun:
                         warnings.simplefilter("ignore", NotConvergedWarning)
                         fs = self.step_frame(total_frames=total)
                 except Exception as e:
-                    if log is not None:
-                        failed = getattr(e, "stats", None)
-                        log.write(json.dumps({"frame": self.frame, "converged": False, "error": str(e),
-                                              "newton_iterations": getattr(failed, "newton_iterations", None),
-                                              "warpfem_version": version}) + "\n")
+                    stats_of = getattr(e, "stats", None)
+                    record = {"frame": self.frame, "converged": False, "error": str(e),
+                              "newton_iterations": getattr(stats_of, "newton_iterations", None)}
+                    for w in opened:  # the step's error is the one reported
+                        try:
+                            w.failed(record)
+                        except Exception:  # noqa: BLE001
+                            failed.append(w)
                     raise
                 history.append(fs)
+                self._account(fs)
                 if fs.unconverged_steps:
                     log_not_converged(fs)
-                if log is not None:
-                    log.write(json.dumps({**fs.as_dict(), "warpfem_version": version}) + "\n")
-                    log.flush()
-                if positions is not None:
-                    positions.write_frame(self.sim.positions(), fs.time)
-                if writer is not None:
-                    writer.write_frame(self.frame, usd_frame())
-                if volume is not None:
-                    volume.write_state(fs.time, self.sim, self.model)
+                feed(fs)
                 if progress is not None:
                     progress(fs)
         except BaseException as e:
             reason = _incomplete_reason(e, self.frame)
-            if writer is not None:
-                writer.close(complete=False, reason=reason)
-            if volume is not None:
-                volume.close(complete=False, reason=reason)
+            for w in opened:
+                try:
+                    w.abandon() if w in failed else w.close(False, reason)
+                except Exception as close_error:  # noqa: BLE001 - the first error is the one reported
+                    _logger.warning(f"{w.path}: could not be closed: {_one_line(close_error)}")
             raise
-        else:
-            if writer is not None:
-                writer.close(complete=True)
-            if volume is not None:
-                volume.close(complete=True)
-        finally:
-            if log is not None:
-                log.close()
-            if positions is not None:
-                positions.close()
+        errors = []
+        for w in opened:
+            try:
+                self._call(w, failed, w.close, True, None)
+            except Exception as e:  # noqa: BLE001 - close the others, then report the first
+                errors.append(e)
+        if errors:
+            raise errors[0]
         return history
 
+    def _call(self, writer, failed, method, *args):
+        """``method(*args)`` of ``writer``; any error becomes an :class:`OutputWriteError` naming the file
+        and the frame (and the writer is marked failed: abandoned, not closed)."""
+        from warpfem.io.writers import OutputWriteError
+
+        try:
+            method(*args)
+        except OutputWriteError:
+            failed.append(writer)
+            raise
+        except Exception as e:
+            failed.append(writer)
+            what = "finish" if method.__name__ == "close" else "open" if method.__name__ == "open" else \
+                f"write frame {self.frame} to"
+            raise OutputWriteError(f"{writer.label} {writer.path}: cannot {what} it: {_one_line(e)}") from e
+
+    def _account(self, fs):
+        """The run's totals (kept in checkpoints): steps, and the frames with unconverged steps."""
+        self.steps_total += fs.steps
+        if fs.unconverged_steps:
+            self.unconverged.append((fs.frame, fs.unconverged_steps, float(fs.worst_residual)))
+
+    def _run_info(self, total, resume_after):
+        """The :class:`warpfem.io.writers.RunInfo` of this run (surfaces, volumes, colliders, blocks)."""
+        from warpfem.contact.scene import collider_prims
+        from warpfem.io.vtu import warpfem_version
+        from warpfem.io.writers import RunInfo
+
+        out = self.scene.spec.output
+        volumes = self.usd_volumes() if out.get("usd_volume") else []
+        colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
+        self._collider_points = [(name, pts) for name, _, pts in colliders]
+        self._volumes = volumes
+        extra, blocks = {}, []
+        if self.scene.spec.bodies:  # rest / positions hold every body's vertices in body order
+            offs = self.model.body_offsets
+            extra = {"body_offsets": np.asarray(offs, dtype=np.int64), "body_names": np.array(self.model.body_names)}
+            blocks = [(b.body_name, b.mesh().elements, b.mesh().element_type, int(lo), int(hi))
+                      for b, lo, hi in zip(self.scene.bodies, offs[:-1], offs[1:])]
+        else:
+            qd = self.model.quadrature
+            blocks = [(None, qd.elements, qd.element_type, 0, int(self.model.num_vertices))]
+        return RunInfo(fps=self.fps, total_frames=total, rest=self.model.rest_positions, resume_after=resume_after,
+                       version=warpfem_version(), surfaces=self.usd_surfaces(), volumes=volumes,
+                       colliders=[(name, faces, len(pts())) for name, faces, pts in colliders], blocks=blocks,
+                       states_extra=extra, options=dict(out))
+
+    def _snapshot(self, fs, sync, info):
+        """The :class:`warpfem.io.writers.FrameSnapshot` of the current state (``fs``: its FrameStats, None
+        for frame 0)."""
+        from warpfem.io.writers import FrameSnapshot
+
+        snap = None
+
+        def positions():
+            return self.sim.positions()
+
+        def surface_points():
+            pts = self.usd_surface_points()
+            if self._volumes:
+                x = snap.positions
+                pts.update({name: x[lo:hi] for name, _, _, lo, hi in self._volumes})
+            pts.update({name: p() for name, p in self._collider_points})
+            return pts
+
+        snap = FrameSnapshot(self.frame, self._time() if fs is None else fs.time, stats=fs, sync=sync,
+                             providers={"positions": positions, "velocities": self.sim.velocities,
+                                        "surface_points": surface_points,
+                                        "element_fields": lambda: self.element_fields(snap.positions)})
+        return snap
+
+    def element_fields(self, x=None) -> list:
+        """Per-element ``J``, ``cauchy_stress`` and ``von_mises`` at positions x (default current), one
+        dict per body (one for a one-body scene), from the simulator's own ``stresses(x)``
+        (:func:`warpfem.io.element_stress_fields`)."""
+        from warpfem.io.vtu import element_stress_fields, element_stress_fields_by_body
+
+        x = self.sim.positions() if x is None else np.asarray(x, dtype=np.float64)
+        if self.scene.spec.bodies:
+            return element_stress_fields_by_body(self.model, x, self.sim.stresses(x))
+        return [element_stress_fields(self.sim, self.model, x)]
+
     @staticmethod
-    def convergence_summary(history) -> dict:
+    def convergence_summary(history, prior=None) -> dict:
         """What a run's frames say about convergence: ``steps`` (all), ``unconverged_steps``,
         ``unconverged_frames`` (the frame numbers with at least one) and ``worst`` ((frame, relative
-        gradient) of the unconverged step farthest from the tolerance, or None)."""
-        bad = [fs for fs in history if fs.unconverged_steps]
+        gradient) of the unconverged step farthest from the tolerance, or None). ``prior``: the
+        frames before ``history`` of a resumed run (:attr:`resumed_totals`: steps and [(frame,
+        unconverged steps, worst)])."""
+        bad = [(fs.frame, fs.unconverged_steps, float(fs.worst_residual)) for fs in history if fs.unconverged_steps]
+        steps = int(sum(fs.steps for fs in history))
+        if prior:
+            steps += int(prior["steps"])
+            bad = [tuple(b) for b in prior["unconverged"]] + bad
         worst = None
         if bad:
-            fs = max(bad, key=lambda f: (f.worst_residual if f.worst_residual == f.worst_residual else float("inf")))
-            worst = (fs.frame, float(fs.worst_residual))
-        return {"steps": int(sum(fs.steps for fs in history)),
-                "unconverged_steps": int(sum(fs.unconverged_steps for fs in history)),
-                "unconverged_frames": [fs.frame for fs in bad], "worst": worst}
+            b = max(bad, key=lambda f: (f[2] if f[2] == f[2] else float("inf")))
+            worst = (b[0], float(b[2]))
+        return {"steps": steps, "unconverged_steps": int(sum(b[1] for b in bad)),
+                "unconverged_frames": [b[0] for b in bad], "worst": worst}
+
+    @property
+    def current_time(self) -> float:
+        """Simulated time of the current state (s)."""
+        return self._time()
 
     def _time(self):
         """Simulated time of the current state (s): the integrator's clock, or frame / fps (static)."""

@@ -597,6 +597,15 @@ class Scene(_SceneBodies):
             "estimated_device_memory_bytes": memory,
         }
 
+    def output_paths(self, *, usd=None, states=None, stats=None, vtu=None) -> dict:
+        """{``[output]`` key: path or None} of a run: each given path, else the scene's (the statistics
+        log defaults to ``<usd>.stats.jsonl``; a USD given here moves it along)."""
+        out = self.spec.output
+        usd = out["usd"] if usd is None else usd
+        return {"usd": usd, "states": out["states"] if states is None else states,
+                "stats": self.stats_path(usd, out["stats"] if stats is None else stats),
+                "vtu": out.get("vtu") if vtu is None else vtu}
+
     @staticmethod
     def stats_path(usd, stats):
         if stats:

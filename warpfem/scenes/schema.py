@@ -234,6 +234,10 @@ SCHEMA: dict[str, dict[str, Key]] = {
                               "volume for a one-body scene) beside its surface Mesh (corner tets of higher-order elements)"),
         "clip_frames": Key("int", default=100, check=_non_negative,
                            doc="frames per USD value clip (bounds the writer's memory); 0 = one file, all in memory"),
+        "checkpoint_every": Key("int", default=1, check=_non_negative,
+                                doc="checkpoint the whole simulation state every this many frames (and at the last), "
+                                    "in <output>.checkpoint/ next to the outputs, for `warpfem run --resume`; each "
+                                    "output is then saved to disk too; 0 = no checkpoints (docs/cli.md, \"Resuming\")"),
     },
     "surface": {
         "path": Key("path", required=True, doc="render surface (.obj/.off/.ply/.stl)"),

@@ -60,7 +60,10 @@ in without the simulator knowing what it is; PolyFEM's ``init_lagging`` / ``upda
    ``change`` exceeds ``friction_tol`` x its ``scale``
    (:meth:`IncrementalPotential.set_lag_updates`; :func:`lagged_change` measures two arrays);
    the solve then goes on to its tolerance with them.
-6. ``static_error()``: None when the form may join a quasi-static solve (x = y, s = 1; its
+6. ``state_dict()`` / ``load_state_dict(state)``: the form's step-to-step state for checkpoints
+   (default: none); a form whose later steps depend on more than the step's start state (a
+   kept set of pairs, an adaptive parameter) returns it so a continued run is bit-identical.
+7. ``static_error()``: None when the form may join a quasi-static solve (x = y, s = 1; its
    ``begin_step`` gets a context with ``static`` True), else the sentence ``solve_static`` refuses
    with. Default: a form of x may, a form of y (the velocity) may not.
 
@@ -229,6 +232,21 @@ class Form:
         solution); returns (change, scale) (:func:`lagged_change`), or None when nothing was lagged
         or nothing changed (then the potential is not evaluated again)."""
         return None
+
+    def state_dict(self) -> dict:
+        """What the form carries from one step to the next that is not a function of the step's
+        start state (an adaptive stiffness, a kept set of candidate pairs, a lagged quantity the
+        next step reads), as a flat dict of numpy arrays and Python scalars (keys without "/"
+        prefixes of their own are fine: the simulator files them under ``form/NAME/``). Saved by
+        ``Simulator.state_dict`` so that a run continued from a checkpoint is bit-identical.
+        Default: nothing."""
+        return {}
+
+    def load_state_dict(self, state):
+        """Set what :meth:`state_dict` returned. ``state`` is a read-only mapping of the form's keys
+        (a :class:`warpfem.io.checkpoint.StateView`: ``state.array(key, shape, dtype)``,
+        ``state.number(key)``, ... check the value and raise a one-line error naming the key).
+        Check everything before writing anything. Default: nothing."""
 
     def static_error(self):
         """None when the form may join a quasi-static solve, else why not (the message of

@@ -330,6 +330,111 @@ class StepperBase(ControlledSimulator):
         return self.integrator.predict(self.state if state is None else state, self.dt if dt is None else float(dt),
                                        self.ops, self._prediction_work)
 
+    # -- the full step state (warpfem.io.checkpoint) ----------------------------------------------------
+    def state_dict(self) -> dict:
+        """Everything that influences later steps, as a flat dict of numpy arrays and Python scalars
+        under namespaced keys: "x", "v" (the state's vectors in the simulator's precision; the
+        reduced simulator's coordinates), "time", "step_count", "integrator/..." (the integrator's
+        history: x_{n-1}, v_{n-1}, Newmark's a_n, the step size, the extrapolated guess's v_{n-1}),
+        "control/..." (load scale, pending targets), and what the simulator adds (forms, pattern,
+        linear solver: :meth:`_state_parts`). ``load_state_dict`` into a fresh simulator of the same
+        scene continues bit for bit; ``warpfem.save_state`` writes it to a file."""
+        st = self.state
+        d = {"meta/simulator": type(self).__name__, "meta/precision": self.precision,
+             "meta/integrator": self.integrator.name, "time": float(st.time), "step_count": int(self.step_count),
+             "unconverged_steps": int(getattr(self, "unconverged_steps", 0)),
+             "x": self._vector_of(st.x), "v": self._vector_of(st.v),
+             "control/load_scale": float(self.control.load_scale)}
+        for k, h in st.history.items():
+            d[f"integrator/{k}"] = float(h) if isinstance(h, (int, float, np.integer, np.floating)) else self._vector_of(h)
+        keys = sorted(self.control.targets)
+        vals = [np.asarray(self.control.targets[k], dtype=np.float64).reshape(-1) for k in keys]
+        d["control/target_keys"] = np.asarray(keys, dtype=np.int64)
+        d["control/target_sizes"] = np.asarray([len(v) for v in vals], dtype=np.int64)
+        d["control/target_values"] = np.concatenate(vals) if vals else np.zeros(0)
+        for prefix, part in self._state_parts():
+            for k, v in part.state_dict().items():
+                d[f"{prefix}/{k}"] = v
+        return d
+
+    def load_state_dict(self, d):
+        """Set the full step state from ``d`` (a :meth:`state_dict` of a simulator of the same
+        scene, or what ``warpfem.io.checkpoint.read_state`` read). Every key is checked (precision,
+        shape, dtype; keys this simulator does not have are refused): a mismatch raises
+        :class:`warpfem.io.checkpoint.CheckpointError` naming the key, and the simulator is left as
+        it was."""
+        from warpfem.io.checkpoint import CheckpointError, StateView
+
+        view = d if isinstance(d, StateView) else StateView(dict(d))
+        view.expect_text("meta/simulator", type(self).__name__, "a")
+        view.expect_text("meta/precision", self.precision, "a simulator of precision")
+        view.expect_text("meta/integrator", self.integrator.name, "a simulator with the integrator")
+        before = self.state_dict()
+        try:
+            self._load_state(view)
+            extra = view.unused()
+            if extra:
+                raise CheckpointError(f"state key(s) {extra[:6]}{' ...' if len(extra) > 6 else ''} are not part of this "
+                                      "simulator (saved from another scene?)")
+        except BaseException:
+            self._load_state(StateView(before, restoring=True))
+            raise
+
+    def _load_state(self, view):
+        x = self._vector_of(self.state.x)
+        shape, dtype = x.shape, x.dtype
+        xs = view.array("x", shape, dtype, finite=True)
+        vs = view.array("v", shape, dtype, finite=True)
+        hv = view.view("integrator")
+        hist = {}
+        for k in list(hv):
+            val = hv[k]
+            hist[k] = hv.array(k, shape, dtype, finite=True) if isinstance(val, np.ndarray) else hv.number(k)
+        tk = view.array("control/target_keys", (None,), np.int64)
+        sizes = view.array("control/target_sizes", (len(tk),), np.int64)
+        tv = view.array("control/target_values", (int(sizes.sum()),), np.float64, finite=True)
+        targets = {}
+        for k, a, b in zip(tk.tolist(), np.cumsum(sizes) - sizes, np.cumsum(sizes)):
+            targets[int(k)] = self._checked_target(view, int(k), tv[a:b].copy())
+        time_, steps = view.number("time"), view.integer("step_count")
+        unconverged, load_scale = view.integer("unconverged_steps"), view.number("control/load_scale")
+        parts = [(prefix, part, view.view(prefix)) for prefix, part in self._state_parts(view)]
+        # everything checked that can be without writing: write
+        self._assign_vector(self.state.x, xs)
+        self._assign_vector(self.state.v, vs)
+        st = self.state
+        st.history = {k: (v if isinstance(v, float) else self._assign_vector(self.ops.new_vector(), v))
+                      for k, v in hist.items()}
+        st.time, self.step_count, self.unconverged_steps = time_, steps, unconverged
+        self.control.targets = targets
+        self.control.load_scale = load_scale
+        for _, part, sub in parts:
+            part.load_state_dict(sub)
+            sub.use_all()
+
+    def _checked_target(self, view, key, value):
+        """A pending target of the control as saved (the full-space simulators: a vertex and its
+        end-of-step position; the reduced one: a handle group and its coordinates)."""
+        return value
+
+    def _state_parts(self, view=None):
+        """(key prefix, object with ``state_dict()`` / ``load_state_dict(view)``) of the parts of the
+        simulator that carry step-to-step state beyond the :class:`State` (none here). With
+        ``view`` (a load): the parts the saved state has, made ready to be loaded into."""
+        return []
+
+    def _vector_of(self, a) -> np.ndarray:
+        """A state vector (device vec3 array or numpy coordinates) as a numpy copy in its own dtype."""
+        return a.numpy().copy() if isinstance(a, wp.array) else np.array(a, copy=True)
+
+    @staticmethod
+    def _assign_vector(buf, a):
+        if isinstance(buf, wp.array):
+            buf.assign(a)
+        else:
+            buf[...] = a
+        return buf
+
     # -- energies -------------------------------------------------------------------------------------
     def total_energy(self) -> float:
         """Kinetic + elastic - x^T f_ext (J, f_ext times ``load_scale``): conserved by the exact
@@ -449,6 +554,25 @@ class SimulatorBase(SimulatorState, StepperBase):
         if getattr(self, "_load", None) is not None:
             self._load.norm = self._fext_norm
 
+    # -- the full step state (StepperBase.state_dict) ------------------------------------------------------
+    def _state_parts(self, view=None):
+        """The fixed components ("model/fixed"), the Hessian pattern's added blocks
+        ("pattern/extra_pairs": contact pairs grow it, and the direct solvers' orderings follow
+        it), the forms' own state ("form/NAME/...", :meth:`_form_parts`), and the linear solver's
+        recorded decisions ("linear_solver/...")."""
+        solver = self._pcg if hasattr(self._pcg, "state_dict") else _NoState()
+        return [("model", _FixedState(self)), ("pattern", _PatternState(self.system))] + self._form_parts(view) + [
+            ("linear_solver", solver)]
+
+    def _form_parts(self, view=None):
+        return []
+
+    def _checked_target(self, view, key, value):
+        if not (0 <= key < self.num_vertices) or value.shape != (3,):
+            raise view.error("control/target_keys", f"a target of vertex {key} with {value.size} values does not fit "
+                             f"{self.num_vertices} vertices")
+        return value
+
     # -- products and solves ------------------------------------------------------------------------
     def _bsr_mv(self, values, x, alpha, y):
         """y += alpha A x, A the block matrix ``values`` in the current pattern."""
@@ -520,3 +644,54 @@ class SimulatorBase(SimulatorState, StepperBase):
         if not np.isfinite(res.residual):
             raise SolveFailed("the initial acceleration M a = f + f_ext - C v is not finite; state left unchanged",
                               SolveStats(reason="non-finite initial acceleration"))
+
+
+class _NoState:
+    """A part without step-to-step state."""
+
+    def state_dict(self):
+        return {}
+
+    def load_state_dict(self, view):
+        pass
+
+
+class _FixedState:
+    """The model's fixed components (``fix`` / ``release`` change them during a run)."""
+
+    def __init__(self, sim):
+        self.sim = sim
+
+    def state_dict(self):
+        return {"fixed": np.array(self.sim.model.fixed, dtype=bool)}
+
+    def load_state_dict(self, view):
+        a = view.array("fixed", (self.sim.num_vertices, 3), bool)
+        if not np.array_equal(a, self.sim.model.fixed):
+            self.sim.model.fixed[...] = a
+            self.sim.sync_model()
+
+
+class _PatternState:
+    """The blocks added to the Hessian's pattern (contact pairs): the same pattern after a load."""
+
+    def __init__(self, system):
+        self.system = system
+
+    def state_dict(self):
+        return {"extra_pairs": np.array(self.system.pattern.extra_pairs, dtype=np.int64)}
+
+    def load_state_dict(self, view):
+        pairs = view.array("extra_pairs", (None, 2), np.int64)
+        n = self.system.pattern.num_rows
+        if pairs.size and (pairs.min() < 0 or pairs.max() >= n):
+            raise view.error("extra_pairs", f"vertex indices outside [0, {n})")
+        have = self.system.pattern.extra_pairs
+        if len(have) and not view.restoring:
+            keys = np.sort(pairs[:, 0] * n + pairs[:, 1])
+            mine = have[:, 0] * n + have[:, 1]
+            pos = np.minimum(np.searchsorted(keys, mine), max(len(keys) - 1, 0))
+            if not len(keys) or np.any(keys[pos] != mine):
+                raise view.error("extra_pairs", "this simulator's pattern has blocks the saved one lacks "
+                                 "(saved from another scene, or this one has stepped already)")
+        self.system.ensure_blocks(pairs)

@@ -278,6 +278,21 @@ class StiffnessWarpingSimulator(SimulatorBase):
         self._rotations(self.x if x is None else self._vec_array(x))
         return read(self._R).astype(np.float64)
 
+    def stresses(self, x=None) -> np.ndarray:
+        """The corotational linear first Piola-Kirchhoff stress P = R (2 mu e + lam tr(e) I), e = sym(R^T F)
+        - I (Pa), with the element rotations R at x (default: current positions), at every quadrature
+        point (Q, 3, 3)."""
+        from warpfem.io.vtu import deformation_gradients
+
+        x = self.positions() if x is None else np.asarray(x, dtype=np.float64)
+        mat, qd = self.model.material, self.model.quadrature
+        F = deformation_gradients(self.model, x)
+        R = self.rotations(x)[np.asarray(qd.qp_element, dtype=np.int64)]
+        G = np.einsum("qji,qjk->qik", R, F) - np.eye(3)  # R^T F - I
+        e = 0.5 * (G + np.swapaxes(G, 1, 2))
+        s = 2.0 * mat.mu_lame * e + mat.lam_lame * np.trace(e, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+        return R @ s
+
     def elastic_forces(self, x=None) -> np.ndarray:
         """Warped elastic force -(K' x + f0') (N) at x (default: current positions), (n, 3)."""
         self._assemble(self.x if x is None else self._vec_array(x), matrix=False)

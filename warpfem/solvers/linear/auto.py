@@ -41,6 +41,7 @@ from __future__ import annotations
 import logging
 import time
 
+import numpy as np
 import warp as wp
 
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
@@ -370,6 +371,51 @@ class AutoSolver(LinearSolver):
         self._since_choice, self._avg_cost = 0, None
         best_res.host_syncs = syncs
         return best_res
+
+    # -- the recorded choice (a simulator's state_dict) ------------------------------------------------
+    def state_dict(self) -> dict:
+        """The recorded choice and what decides the next one: the active solver, the candidates left,
+        the measured costs, the explorations made, the moving average since the choice; and the
+        state of each solver built so far ("solvers/NAME/..."). Loaded into a fresh ``auto``, the
+        choice is reused as recorded, not measured again."""
+        from warpfem.io.checkpoint import optional_number
+
+        names = sorted(self.costs)
+        d = {"active": self.active, "candidates": np.array(self.candidates, dtype=str),
+             "explorations": int(self.explorations), "cheap_rechecks": int(self._cheap_rechecks),
+             "chosen_cost": optional_number(self._chosen_cost), "since_choice": int(getattr(self, "_since_choice", 0)),
+             "avg_cost": optional_number(getattr(self, "_avg_cost", None)), "cost_names": np.array(names, dtype=str),
+             "cost_seconds": np.array([self.costs[k] for k in names], dtype=np.float64),
+             "built": np.array(sorted(self.solvers), dtype=str)}
+        for name, s in self.solvers.items():
+            d.update({f"solvers/{name}/{k}": v for k, v in s.state_dict().items()})
+        return d
+
+    def load_state_dict(self, view):
+        active = view.text("active")
+        candidates = view.array("candidates", (None,)).tolist()
+        unknown = [c for c in candidates + [active] if c not in CANDIDATES]
+        if unknown:
+            raise view.error("candidates", f"unknown solver(s) {unknown}; auto chooses among {', '.join(CANDIDATES)}")
+        if active != "pcg" and active not in self.candidates:
+            raise view.error("active", f"{active!r} is not a candidate here (candidates {self.candidates}: another "
+                             "device, or a missing extra)")
+        names = view.array("cost_names", (None,)).tolist()
+        seconds = view.array("cost_seconds", (len(names),), np.float64)
+        built = view.array("built", (None,)).tolist()
+        values = dict(explorations=view.integer("explorations"), _cheap_rechecks=view.integer("cheap_rechecks"),
+                      _chosen_cost=view.number("chosen_cost", optional=True), _since_choice=view.integer("since_choice"),
+                      _avg_cost=view.number("avg_cost", optional=True))
+        for name in built:
+            if name not in CANDIDATES:
+                raise view.error("built", f"unknown solver {name!r}")
+            self._make(name).load_state_dict(view.view(f"solvers/{name}"))
+        self.active = active
+        self.candidates = [c for c in self.candidates if c in candidates or c == "pcg"]
+        self._make(active)
+        self.costs = dict(zip(names, seconds.tolist()))
+        for k, v in values.items():
+            setattr(self, k, v)
 
     # -- deferred solves (PCG only): see DevicePCG.solve_deferred -----------------------------------
     def _may_explore(self) -> bool:

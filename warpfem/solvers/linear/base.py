@@ -149,6 +149,15 @@ class LinearSolver:
         self.host_syncs += res.host_syncs
         return res
 
+    # -- the step-to-step state (a simulator's ``state_dict``) ---------------------------------------
+    def state_dict(self) -> dict:
+        """What the solver carries from one Newton system to later ones that changes their numbers or
+        its choices (a recorded choice, a kept preconditioner); default: nothing."""
+        return {}
+
+    def load_state_dict(self, view):
+        """Set what :meth:`state_dict` returned (a :class:`warpfem.io.checkpoint.StateView`)."""
+
     # -- shared helpers ---------------------------------------------------------------------------
     @property
     def inv_diag(self):

@@ -436,6 +436,14 @@ class DevicePCG(LinearSolver):
     # -- a solve whose read-back is the caller's (the Newton loop reads it with its own numbers) --------
     last_chunks = 0  # chunks of check_every iterations the last solve ran
 
+    def state_dict(self) -> dict:
+        """The chunks the last solve ran (a deferred solve's first guess)."""
+        return {"last_chunks": int(self.last_chunks)}
+
+    def load_state_dict(self, view):
+        self.last_chunks = view.integer("last_chunks")
+
+
     def can_defer(self) -> bool:
         return self._values is not None
 
