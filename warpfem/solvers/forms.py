@@ -806,9 +806,20 @@ class IncrementalPotential:
         rhs = self.work.rhs
         launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
         lin = self.linear_solve(values, rhs, d, opts)
-        if getattr(opts, "friction_filter", False):
+        self._raw_kept = False
+        if getattr(opts, "friction_filter", False) and any(hasattr(f, "filter_direction") for f in self.forms):
+            w = self.work
+            if getattr(w, "d_raw", None) is None or w.d_raw.shape[0] != self.n:
+                w.d_raw = self.ops.new_vector()
+            wp.copy(w.d_raw, d)
+            self._raw_kept = True
             self.filter_direction(y, d)
         return lin
+
+    def unfiltered_direction(self):
+        """The last Newton direction before :meth:`filter_direction` changed it (None when it was
+        not filtered)."""
+        return self.work.d_raw if getattr(self, "_raw_kept", False) else None
 
     def filter_direction(self, y, d):
         """Let the forms that filter the Newton direction (``filter_direction(y, x, d)``: lagged

@@ -21,6 +21,11 @@ from warpfem.solvers.linear.forcing import FORCING, ForcingTerms
 
 
 #: the values of ``NewtonOptions.hessian_projection``
+#: with ``friction_filter``: when the line search cut the filtered Newton step below this length,
+#: the unfiltered direction is tried too (at most ``UNFILTERED_HALVINGS`` halvings from its own
+#: collision bound) and taken when its point is lower (docs/contact.md, "Why frictional steps crawl")
+UNFILTERED_BELOW = 0.3
+UNFILTERED_HALVINGS = 6
 HESSIAN_PROJECTIONS = ("always", "on_demand")
 
 
@@ -65,7 +70,10 @@ class NewtonOptions:
         friction_filter: with lagged friction in the potential, cut each contact's tangential step
             where the Newton step would carry it across its sticking zone (stick/slip-aware steps,
             :mod:`warpfem.contact.friction`). Changes the path to the step's solution, not the
-            solution; off: the plain Newton direction (measured effect in docs/contact.md).
+            solution; off: the plain Newton direction (measured effect in docs/contact.md). When
+            the line search cuts a filtered step below 0.3 of its length, the unfiltered
+            direction is tried as well and taken where it goes lower (a cut that fights the
+            elastic forces).
         extrapolate: after a full Newton step that the line search accepted, when the energy
             still falls steeply along the step (its slope there below half the start's), try the
             secant model's longer step along it and keep it if the energy is lower: corrects the
@@ -142,12 +150,13 @@ class SolveStats:
     projected_retries: int = 0  # hessian_projection="on_demand": Newton systems solved again with the projected Hessian
     adaptations: int = 0  # Newton iterations after which the potential changed (an adaptive barrier stiffness doubled)
     extrapolations: int = 0  # Newton iterations whose accepted step was lengthened (NewtonOptions.extrapolate)
+    unfiltered_steps: int = 0  # Newton iterations that took the unfiltered direction (friction_filter's fallback)
     history: list = field(default_factory=list)
 
     #: the work counters a step made of several solves (load steps) sums
     COUNTS = ("newton_iterations", "cg_iterations", "line_search_steps", "linear_iterations", "host_syncs",
               "newton_syncs", "hessian_evaluations", "singular_solves", "projected_retries", "adaptations",
-              "extrapolations")
+              "extrapolations", "unfiltered_steps")
 
     def add_counts(self, other: "SolveStats") -> None:
         """Add ``other``'s work counters (``COUNTS``) to this one's."""
@@ -405,6 +414,29 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
             else:
                 st.reason = "line search could not decrease the energy"
             break
+        if (accepted and alpha < UNFILTERED_BELOW and getattr(problem, "unfiltered_direction", None) is not None
+                and problem.unfiltered_direction() is not None):
+            # the filtered direction's step was cut short by the line search: the plain Newton
+            # direction may go further (a filter cut that fights the elastic forms)
+            d_raw = problem.unfiltered_direction()
+            gd_r, _ = problem.direction_check(y, g, d_raw)
+            if gd_r < 0.0:
+                a_r = min(1.0, problem.max_step(y, d_raw)) if bounded else 1.0
+                y_alt = getattr(problem.work, "y_alt", None)
+                if y_alt is None or y_alt.shape[0] != y.shape[0]:
+                    y_alt = problem.work.y_alt = problem.new_vector()
+                for _k in range(UNFILTERED_HALVINGS):
+                    if a_r <= alpha:
+                        break
+                    problem.trial(y, a_r, d_raw, y_alt)
+                    E_r, mag_r = problem.energy(y_alt)
+                    if np.isfinite(E_r) and E_r <= E + opts.armijo * a_r * gd_r + noise:
+                        if E_r < E_try:
+                            st.unfiltered_steps += 1
+                            problem.assign(y_try, y_alt)
+                            E_try, mag_try, g_new, alpha = E_r, mag_r, None, a_r
+                        break
+                    a_r *= 0.5
         if (opts.extrapolate and pre is not None and _ls == 0 and alpha >= 1.0 and g_new is not None and len(pre) > 6
                 and hasattr(problem, "extrapolate")):
             longer = problem.extrapolate(y, d, gd, pre[6], E_try, y_try, g_try)
