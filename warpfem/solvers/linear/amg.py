@@ -97,7 +97,12 @@ class AMGSolver(HostLinearSolver):
                 or (self.rebuild_every > 1 and self._since_build > self.rebuild_every)):
             B = self._B0 * self._mask_host[:, None]
             Ab = scipy.sparse.bsr_matrix(A, blocksize=(3, 3))
-            self.ml = self.pyamg.smoothed_aggregation_solver(Ab, B=B, symmetry="hermitian", **self.sa_options)
+            state = np.random.get_state()  # pyamg's estimates start from numpy's global generator: seeded,
+            np.random.seed(0)  # so the hierarchy is the same every run (its state given back)
+            try:
+                self.ml = self.pyamg.smoothed_aggregation_solver(Ab, B=B, symmetry="hermitian", **self.sa_options)
+            finally:
+                np.random.set_state(state)
             self._M = self.ml.aspreconditioner(cycle="V")
             self.setup_count += 1
             self._since_build, self._base_iters, self._stale = 1, None, False

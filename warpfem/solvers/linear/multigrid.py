@@ -53,7 +53,7 @@ import numpy as np
 import warp as wp
 import warp.sparse as wsp
 
-from warpfem.kernels.generic import RecordedLaunch, both_precisions
+from warpfem.kernels.generic import RecordedLaunch, both_precisions, splittable
 from warpfem.model import rigid_body_modes
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult, require
 from warpfem.solvers.linear.pcg import (_NEGATIVE, _NONFINITE, _RUNNING, _pcg_carry_kernel, _pcg_direction_kernel,
@@ -159,6 +159,9 @@ def _scale_kernel(src: wp.array(dtype=Any), a: Any, dst: wp.array(dtype=Any)):
     dst[t] = a * src[t]
 
 
+splittable("view", 32768)(_scale_kernel)
+
+
 @both_precisions(d="s[]", x="s[]")
 @wp.kernel
 def _add_kernel(d: wp.array(dtype=Any), x: wp.array(dtype=Any)):
@@ -166,12 +169,15 @@ def _add_kernel(d: wp.array(dtype=Any), x: wp.array(dtype=Any)):
     x[t] = x[t] + d[t]
 
 
+splittable("view", 32768)(_add_kernel)
+
+
 @wp.kernel
 def _bsr_block_mv_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
                          values: wp.array(dtype=Any), x: wp.array(dtype=Any), alpha: Any, f: wp.array(dtype=Any),
-                         beta: Any, y: wp.array(dtype=Any)):
-    """y = alpha A x + beta f, one thread per block row (f may be y)."""
-    i = wp.tid()
+                         beta: Any, y: wp.array(dtype=Any), start: int):
+    """y = alpha A x + beta f, one thread per block row (f may be y); ``start``: the first row."""
+    i = wp.tid() + start
     fi = f[i]
     acc = fi - fi
     for q in range(offsets[i], offsets[i + 1]):
@@ -188,10 +194,12 @@ def _block_mv_overloads():
             wp.overload(_bsr_block_mv_kernel, {
                 "offsets": wp.array(dtype=wp.int32), "columns": wp.array(dtype=wp.int32),
                 "values": wp.array(dtype=wp.types.matrix(shape=(bi, bj), dtype=s)), "x": wp.array(dtype=vec[bj]),
-                "alpha": s, "f": wp.array(dtype=vec[bi]), "beta": s, "y": wp.array(dtype=vec[bi])})
+                "alpha": s, "f": wp.array(dtype=vec[bi]), "beta": s, "y": wp.array(dtype=vec[bi]), "start": int})
 
 
 _block_mv_overloads()
+# split across CPU threads (``kernels.generic.splittable``): row-wise and element-wise, no reductions
+splittable("start", 1024)(_bsr_block_mv_kernel)
 
 
 def _block_overloads():
@@ -207,6 +215,8 @@ def _block_overloads():
 
 
 _block_overloads()
+splittable("view", 8192)(_cheb_start_kernel)
+splittable("view", 8192)(_cheb_step_kernel)
 
 
 @wp.kernel
@@ -219,6 +229,7 @@ def _convert_kernel(src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
 
 wp.overload(_convert_kernel, {"src": wp.array(dtype=wp.float64), "dst": wp.array(dtype=wp.float32)})
 wp.overload(_convert_kernel, {"src": wp.array(dtype=wp.float32), "dst": wp.array(dtype=wp.float64)})
+splittable("view", 32768)(_convert_kernel)
 
 
 @both_precisions(M="s[,]", x="s[]", y="s[]")
@@ -473,10 +484,17 @@ class MultigridPCG(LinearSolver):
         import scipy.sparse
 
         A, m = self._host_matrix(values, mask)
-        ml = self.pyamg.smoothed_aggregation_solver(
-            scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
-            max_coarse=max(1, self.max_coarse // self._B0.shape[1]),  # pyamg counts aggregates (blocks)
-            max_levels=self.max_levels, keep=False, coarse_solver="pinv", **self.sa_options)
+        # pyamg's spectral-radius estimates (prolongator smoothing) start from numpy's global random
+        # generator: seeded here (and its state given back) so the hierarchy is the same every run
+        state = np.random.get_state()
+        np.random.seed(0)
+        try:
+            ml = self.pyamg.smoothed_aggregation_solver(
+                scipy.sparse.bsr_matrix(A, blocksize=(3, 3)), B=self._B0 * m[:, None], symmetry="hermitian",
+                max_coarse=max(1, self.max_coarse // self._B0.shape[1]),  # pyamg counts aggregates (blocks)
+                max_levels=self.max_levels, keep=False, coarse_solver="pinv", **self.sa_options)
+        finally:
+            np.random.set_state(state)
         dev, s = self.device, self.vscalar
         levels = [_Level(self._A0, 3 * self.num_rows, s, dev)]
         if not self._mixed:
