@@ -113,7 +113,10 @@ _workers: list = []
 
 def _pool_resize():
     with _lock:
-        want = max(0, get_threads() - 1) if _workers else 0
+        try:
+            want = max(0, get_threads() - 1) if _workers else 0
+        except ThreadsError:  # a bad WARPFEM_THREADS: said at the next launch
+            want = 0
         while len(_workers) > want:
             w = _workers.pop()
             w.fn = None

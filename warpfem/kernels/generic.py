@@ -77,6 +77,12 @@ SPLIT: dict = {}
 #: only on the range, so the sums do not depend on the thread count)
 REDUCE_ROWS = 64
 REDUCE_BLOCK_MIN = 1024
+#: None: each kernel's own ``min_chunk``; an int: that for every kernel (tests split tiny ranges with it)
+MIN_CHUNK = None
+
+
+def _min_chunk(spec) -> int:
+    return max(1, spec.min_chunk if MIN_CHUNK is None else int(MIN_CHUNK))
 
 
 def splittable(kind: str, min_chunk: int = 4096, acc: int = -1, slot: int = -1, n_add: int = 0, n_max: int = 0,
@@ -176,7 +182,7 @@ def launch(kernel, dim, inputs, device):
     if kind == "reduce":
         block = max(REDUCE_BLOCK_MIN, -(-n // REDUCE_ROWS))
         rows = -(-n // block)
-        parts = max(1, min(threads, rows, n // max(spec.min_chunk, 1)))
+        parts = max(1, min(threads, rows, n // _min_chunk(spec)))
         bounds = [min(n, block * (rows * c // parts)) for c in range(parts + 1)]
         width = spec.n_add + spec.n_max
         if rows > 1:
@@ -188,7 +194,7 @@ def launch(kernel, dim, inputs, device):
         else:
             tail = [max(n, 1), 0]
     else:
-        parts = max(1, min(threads, n // max(spec.min_chunk, 1)))
+        parts = max(1, min(threads, n // _min_chunk(spec)))
         bounds = [n * c // parts for c in range(parts + 1)]
     fns = []
     for c in range(parts):
@@ -352,7 +358,7 @@ class RecordedLaunch:
     def _split_parts(self, threads):
         """The chunks of a split launch on the CPU (``splittable``): one RecordedLaunch each."""
         spec, n = self._spec, int(self._dim)
-        parts = max(1, min(threads, n // max(spec.min_chunk, 1)))
+        parts = max(1, min(threads, n // _min_chunk(spec)))
         bounds = [n * c // parts for c in range(parts + 1)]
         out = []
         for c in range(parts):
