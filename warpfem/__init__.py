@@ -41,6 +41,7 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (mkdocstr
     from warpfem.solvers.state import Control, State
     from warpfem.solvers.forms import Form
     from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
+    from warpfem.threads import ThreadsError, get_threads, set_threads
 
 from warpfem.lazy import lazy_attributes  # noqa: E402
 
@@ -60,6 +61,7 @@ _LAZY = {
     **dict.fromkeys(["Control", "State"], "warpfem.solvers.state"),
     "Form": "warpfem.solvers.forms",
     **dict.fromkeys(["Box", "CollisionError", "MeshCollider", "Plane", "Sphere"], "warpfem.contact"),
+    **dict.fromkeys(["set_threads", "get_threads", "ThreadsError"], "warpfem.threads"),
 }
 
 
@@ -108,4 +110,7 @@ __all__ = [
     "Box",
     "MeshCollider",
     "CollisionError",
+    "set_threads",
+    "get_threads",
+    "ThreadsError",
 ]
