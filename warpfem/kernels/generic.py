@@ -299,11 +299,27 @@ class RecordedLaunch:
 
     def __init__(self, kernel, dim, inputs, device, split=True):
         spec = SPLIT.get(kernel) if split else None
-        if spec is not None and spec.kind == "reduce":
-            raise ValueError(f"RecordedLaunch does not split reductions ({kernel.key})")
         self._spec = spec if spec is not None and wp.get_device(device).is_cpu and isinstance(dim, int) else None
         inputs = list(inputs)
-        if spec is not None and spec.kind == "start" and self._spec is None:
+        self._reduce = None
+        if spec is not None and spec.kind == "reduce":
+            # the whole accumulator array in rows of partial sums (sums only), added in row order
+            n = int(dim)
+            block = max(REDUCE_BLOCK_MIN, -(-n // REDUCE_ROWS))
+            rows = -(-n // block)
+            if self._spec is None or rows <= 1:
+                inputs += [0, max(n, 1), 0]  # not split: the whole range into the accumulator itself
+                self._spec = None
+            else:
+                from warpfem.kernels import linalg as LK
+
+                acc = inputs[spec.acc]
+                width = acc.shape[0]
+                part = wp.zeros(rows * width, dtype=wp.float64, device=device)
+                self._reduce = (part, rows, block, width,
+                                RecordedLaunch(LK.reduce_rows_kernel, width, [part, rows, width, width, acc, 0], device,
+                                               split=False))
+        elif spec is not None and spec.kind == "start" and self._spec is None:
             inputs.append(0)  # not split (CUDA): the whole range from 0
         self._kernel, self._dim, self._inputs, self._device = kernel, dim, inputs, device
         self._cmd = self._module = self._key = self._direct = None
@@ -358,8 +374,13 @@ class RecordedLaunch:
     def _split_parts(self, threads):
         """The chunks of a split launch on the CPU (``splittable``): one RecordedLaunch each."""
         spec, n = self._spec, int(self._dim)
-        parts = max(1, min(threads, n // _min_chunk(spec)))
-        bounds = [n * c // parts for c in range(parts + 1)]
+        if self._reduce is not None:
+            part, rows, block, width, _ = self._reduce
+            parts = max(1, min(threads, rows, n // _min_chunk(spec)))
+            bounds = [min(n, block * (rows * c // parts)) for c in range(parts + 1)]
+        else:
+            parts = max(1, min(threads, n // _min_chunk(spec)))
+            bounds = [n * c // parts for c in range(parts + 1)]
         out = []
         for c in range(parts):
             lo, hi = bounds[c], bounds[c + 1]
@@ -367,6 +388,10 @@ class RecordedLaunch:
                 continue
             if spec.kind == "view":
                 args = [v[lo:hi] if isinstance(v, wp.array) else v for v in self._inputs]
+            elif self._reduce is not None:
+                args = list(self._inputs)
+                args[spec.acc] = part
+                args += [lo, block, width]
             else:
                 args = self._inputs + [lo]
             out.append(RecordedLaunch(self._kernel, hi - lo, args, self._device, split=False))
@@ -380,11 +405,15 @@ class RecordedLaunch:
             fresh = self._parts_for != threads
             if fresh:  # (recorded here, in this thread, by their first runs below)
                 self._parts, self._parts_for = self._split_parts(threads), threads
+            if self._reduce is not None:
+                self._reduce[0].zero_()
             if len(self._parts) > 1 and not fresh and not _cpu_capturing(self._device):
                 run_chunks(self._parts)
             else:
                 for part in self._parts:
                     part()
+            if self._reduce is not None:
+                self._reduce[4]()
             return
         cmd = self._cmd
         if cmd is False:

@@ -247,13 +247,13 @@ def _dense_mv_kernel(M: wp.array2d(dtype=Any), x: wp.array(dtype=Any), y: wp.arr
 @both_precisions(b="s[]", x="s[]", r="s[]")
 @wp.kernel
 def _mg_init_kernel(b: wp.array(dtype=Any), x: wp.array(dtype=Any), r: wp.array(dtype=Any),
-                    rr: wp.array(dtype=wp.float64), slot: int):
+                    rr: wp.array(dtype=wp.float64), slot: int, start: int, row_block: int, row_stride: int):
     """x = 0, r = b, rr[slot] += b.b."""
-    t = wp.tid()
+    t = wp.tid() + start
     bt = b[t]
     x[t] = bt - bt
     r[t] = bt
-    wp.atomic_add(rr, slot, wp.float64(bt * bt))
+    wp.atomic_add(rr, slot + (t // row_block) * row_stride, wp.float64(bt * bt))
 
 
 @both_precisions(x="s[]", r="s[]", z="s[]", p="s[]", Ap="s[]")
@@ -261,10 +261,10 @@ def _mg_init_kernel(b: wp.array(dtype=Any), x: wp.array(dtype=Any), r: wp.array(
 def _mg_update_kernel(x: wp.array(dtype=Any), r: wp.array(dtype=Any), z: wp.array(dtype=Any), p: wp.array(dtype=Any),
                       Ap: wp.array(dtype=Any), status: wp.array(dtype=wp.int32), iters: wp.array(dtype=wp.int32),
                       rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64), pap: wp.array(dtype=wp.float64),
-                      j: int):
+                      j: int, start: int, row_block: int, row_stride: int):
     """alpha = rz/pAp; x += alpha p; r -= alpha Ap; rr[j+1] accumulated (z comes from the V-cycle
     next). With non-positive curvature on the first iteration, x = z."""
-    t = wp.tid()
+    t = wp.tid() + start
     if status[j] != int(_RUNNING):
         return
     a = pap[j]
@@ -277,16 +277,17 @@ def _mg_update_kernel(x: wp.array(dtype=Any), r: wp.array(dtype=Any), z: wp.arra
     x[t] = xt + alpha * p[t]
     rt = r[t] - alpha * Ap[t]
     r[t] = rt
-    wp.atomic_add(rr, j + 1, wp.float64(rt * rt))
+    wp.atomic_add(rr, j + 1 + (t // row_block) * row_stride, wp.float64(rt * rt))
 
 
 @both_precisions(r="s[]", z="s[]", mask="s[]", p="s[]")
 @wp.kernel
 def _mg_precond_finish_kernel(r: wp.array(dtype=Any), z: wp.array(dtype=Any), mask: wp.array(dtype=Any),
                               p: wp.array(dtype=Any), status: wp.array(dtype=wp.int32),
-                              pap: wp.array(dtype=wp.float64), rz: wp.array(dtype=wp.float64), j: int, init: int):
+                              pap: wp.array(dtype=wp.float64), rz: wp.array(dtype=wp.float64), j: int, init: int,
+                              start: int, row_block: int, row_stride: int):
     """z = P z + (I - P) r; rz[slot] += r.z (slot j+1 after an update, j at the start, where also p = z)."""
-    t = wp.tid()
+    t = wp.tid() + start
     slot = j
     if init == 0:
         if status[j] != int(_RUNNING):
@@ -301,7 +302,13 @@ def _mg_precond_finish_kernel(r: wp.array(dtype=Any), z: wp.array(dtype=Any), ma
     z[t] = zt
     if init != 0:
         p[t] = zt
-    wp.atomic_add(rz, slot, wp.float64(rt * zt))
+    wp.atomic_add(rz, slot + (t // row_block) * row_stride, wp.float64(rt * zt))
+
+
+# split across CPU threads by their recorded launches (``RecordedLaunch``): rows of partial sums
+splittable("reduce", 8192, acc=3, slot=4)(_mg_init_kernel)
+splittable("reduce", 8192, acc=8, slot=10)(_mg_update_kernel)
+splittable("reduce", 8192, acc=6, slot=7)(_mg_precond_finish_kernel)
 
 
 def _chebyshev_coefficients(degree: int, lower: float, upper: float = 1.0):

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from warpfem.kernels.generic import COUNTERS, both_precisions
+from warpfem.kernels.generic import COUNTERS, both_precisions, splittable
 from warpfem.kernels.linalg import cw_mul
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
 
@@ -98,9 +98,10 @@ def _pcg_carry_kernel(rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.floa
 def _pcg_matvec_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
                        values: wp.array(dtype=Any), mask: wp.array(dtype=Any), p: wp.array(dtype=Any),
                        Ap: wp.array(dtype=Any), status: wp.array(dtype=wp.int32),
-                       pap: wp.array(dtype=wp.float64), j: int):
-    """Ap = (P A P + I - P) p and pap[j] += p.Ap, while running."""
-    i = wp.tid()
+                       pap: wp.array(dtype=wp.float64), j: int, start: int, row_block: int, row_stride: int):
+    """Ap = (P A P + I - P) p and pap[j] += p.Ap, while running (rows of partial sums:
+    ``kernels.generic.splittable``)."""
+    i = wp.tid() + start
     if status[j] != int(_RUNNING):
         return
     pi = p[i]
@@ -111,7 +112,7 @@ def _pcg_matvec_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
     m = mask[i]
     y = cw_mul(m, acc) + pi - cw_mul(m, pi)
     Ap[i] = y
-    wp.atomic_add(pap, j, wp.float64(wp.dot(pi, y)))
+    wp.atomic_add(pap, j + (i // row_block) * row_stride, wp.float64(wp.dot(pi, y)))
 
 
 @both_precisions(inv_diag="m[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]")
@@ -148,10 +149,11 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
                           iters: wp.array(dtype=wp.int32), rz: wp.array(dtype=wp.float64),
                           rr: wp.array(dtype=wp.float64), pap: wp.array(dtype=wp.float64),
                           bb: wp.array(dtype=wp.float64), tol2: wp.array(dtype=wp.float64),
-                          maxiter: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.float64), j: int):
+                          maxiter: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.float64), j: int,
+                          start: int):
     """Stopping test on the device; p = z + beta p while running. Thread 0 writes slot j+1's
     status and iteration count and the report the host reads."""
-    i = wp.tid()
+    i = wp.tid() + start
     st = status[j]
     it = iters[j]
     res2 = rr[j]
@@ -180,6 +182,11 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
         report[1] = wp.float64(it)
         report[2] = res2
         report[3] = bb[0]
+
+
+# the recorded launches of the multigrid's CG split these across CPU threads (``RecordedLaunch``)
+splittable("reduce", 2048, acc=7, slot=8)(_pcg_matvec_kernel)
+splittable("start", 8192)(_pcg_direction_kernel)
 
 
 @both_precisions(values="m[]", mask="v[]", inv_diag="m[]", b="v[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]",
@@ -343,13 +350,13 @@ class DevicePCG(LinearSolver):
             cmds = [self._record(_pcg_carry_kernel, 1, [self._rz, self._rr, self._pap, self._status, self._iters, k])]
             for j in range(k):
                 cmds.append(self._record(_pcg_matvec_kernel, n, [pt.offsets, pt.columns, values, mask, self.p, self.Ap,
-                                                                 self._status, self._pap, j]))
+                                                                 self._status, self._pap, j, 0, max(n, 1), 0]))
                 cmds.append(self._record(_pcg_update_kernel, n, [self.inv_diag, self.x, self.r, self.z, self.p, self.Ap,
                                                                  self._status, self._iters, self._rz, self._rr,
                                                                  self._pap, j]))
                 cmds.append(self._record(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz,
                                                                     self._rr, self._pap, self._bb, self._tol2,
-                                                                    self._maxiter, self._report, j]))
+                                                                    self._maxiter, self._report, j, 0]))
             self._chunk_cmds, self._chunk_key = cmds, key
             self._graph = None
         return self._chunk_cmds
