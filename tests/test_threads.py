@@ -174,3 +174,29 @@ def test_cli_threads_option(tmp_path, capsys, monkeypatch):
     assert main(["run", scene]) == EXIT_INVALID
     assert capsys.readouterr().err.strip() == ("warpfem: error: WARPFEM_THREADS='x': the thread count must be a "
                                                "positive integer")
+
+
+def test_split_pcg_identical_for_1_2_3_threads_and_close_to_the_serial_solve(tiny_chunks, monkeypatch):
+    import warpfem.solvers.linear.pcg as P
+
+    mesh = box_tet_mesh(size=(1.0, 0.25, 0.25), cells=(8, 2, 2))
+
+    def run(split_rows):
+        monkeypatch.setattr(P, "SPLIT_ROWS", split_rows)
+        m = _model(mesh, nu=0.45)
+        m.fix(np.nonzero(np.asarray(mesh.vertices)[:, 0] < 1e-9)[0])
+        sim = Simulator(m, dt=1 / 60, precision="float64", linear_solver="pcg")
+        for _ in range(2):
+            assert sim.step().converged
+        assert sim.linear_solver.cpu_split == (split_rows == 1)
+        return sim.state.x.numpy()
+
+    out = {}
+    for T in (1, 2, 3):
+        TH.set_threads(T)
+        out[T] = run(1)
+    assert out[1].tobytes() == out[2].tobytes() == out[3].tobytes()
+    TH.set_threads(1)
+    serial = run(10**9)
+    scale = np.abs(serial - np.asarray(mesh.vertices)).max()  # the sag over two steps
+    assert scale > 1e-4 and np.abs(out[1] - serial).max() <= 1e-8 * scale + 1e-12
