@@ -43,8 +43,10 @@ __all__ = [
 
 wp.set_module_options({"enable_backward": False})
 
-#: the fewest quadrature points worth a CPU thread of their own (``kernels.generic.splittable``)
-_POINTS_MIN = 512
+#: the fewest quadrature points worth a CPU thread of their own (``kernels.generic.splittable``): a
+#: chunk's dispatch costs tens of microseconds; a point's Hessian a few, its force or energy ~0.05
+_HESSIAN_POINTS_MIN = 256
+_POINTS_MIN = 8192
 
 
 @both_precisions(x="v[]", points="qp", F_out="m[]")
@@ -99,7 +101,7 @@ def _put_block(values: wp.array(dtype=Any), block_index: wp.array(dtype=wp.int32
             wp.atomic_add(values, block_index[base + b * k + a], wp.transpose(blk))
 
 
-@splittable("start", _POINTS_MIN, when=7)
+@splittable("start", _HESSIAN_POINTS_MIN, when=7)
 @both_precisions(x="v[]", points="qp", material="mat", scale="s", values="m[]")
 @wp.kernel
 def qp_hessian_kernel(
@@ -218,7 +220,7 @@ def gather_blocks_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dt
         values[p] = acc
 
 
-@splittable("start", 4096)
+@splittable("start", 8192)
 @both_precisions(contrib="v[]", f="v[]", f_abs="v[]")
 @wp.kernel
 def gather_force_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),

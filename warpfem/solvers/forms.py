@@ -338,14 +338,17 @@ class ElasticForm(Form):
         ``hessian``, (block offsets, entries, slots)."""
         group = getattr(qs, "group", 0)
         bi = self.pattern.block_indices[group]
-        key = (id(qs.points), qs.count)
+        pts = qs.points
+        key = (id(pts), qs.count, _ptr(pts.element), _ptr(pts.elements), int(pts.k))
         cache = self.__dict__.setdefault("_maps", {})
         entry = cache.get(key)
         if entry is None:
-            pts, dev = qs.points, self.ops.device
+            dev = self.ops.device
             k = int(pts.k)
             fo, fe = FK.element_slot_maps(pts.element.numpy(), pts.elements.numpy(), k, num_vertices=self.ops.n)
-            entry = cache[key] = {"k": k, "force": (wp.array(fo, dtype=wp.int32, device=dev),
+            if len(cache) > 4 * len(self.qp_sets) + 4:  # point sets replaced since: drop the old maps
+                cache.clear()
+            entry = cache[key] = {"k": k, "points": pts, "force": (wp.array(fo, dtype=wp.int32, device=dev),
                                                     wp.array(fe, dtype=wp.int32, device=dev),
                                                     wp.zeros(qs.count * k, dtype=self.ops.vec, device=dev))}
         if hessian and entry.get("blocks_of") != (_ptr(bi), self.pattern.nnz):
