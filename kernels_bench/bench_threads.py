@@ -120,7 +120,8 @@ def assembly_case(c, threads, repeats):
         acc.zero_()
         g.zero_()
         fa.zero_()
-        launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, S(-1.0), g, fa, 0], "cpu")
+        launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, S(-1.0), g, fa,
+                                                      qs.points.elements, 0], "cpu")
         launch(LK.dot_slot_kernel, sim.num_vertices, [fa, fa, wp.float64(1.0), acc, 10], "cpu")
 
     def hessian_atomic():
