@@ -52,8 +52,7 @@ def _atomic(sim, x, project=True):
     g, fa = sim.ops.new_vector(), sim.ops.new_vector()
     vals = sim.new_matrix_values()
     for qs in el.qp_sets:
-        launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, S(-1.0), g, fa,
-                                                      qs.points.elements, 0], sim.device)
+        launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, S(-1.0), g, fa, 0], sim.device)
         launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, S(1.0), int(project),
                                                 el.pattern.block_indices[getattr(qs, "group", 0)], vals, 0],
                sim.device)

@@ -92,14 +92,11 @@ def qp_stress_kernel(x: wp.array(dtype=Any), points: Any, material: Any, P_out: 
 
 @wp.func
 def _put_block(values: wp.array(dtype=Any), block_index: wp.array(dtype=wp.int32), slots: int, base: int, k: int,
-               a: int, b: int, blk: Any):
-    """Block (a, b) (a <= b) at ``block_index[base + a k + b]`` and, for a != b, its transpose at
-    ``block_index[base + b k + a]``: written there (``slots != 0``: the point's own slots, base
-    q k k) or added with atomics (the matrix's blocks, base e k k)."""
+               a: int, b: int, u: int, blk: Any):
+    """Block (a, b) (a <= b) of an element (``block_index`` rows of k x k from ``base``): into its point
+    slot u (``slots != 0``), or added with atomics at (a, b) and, for a != b, its transpose at (b, a)."""
     if slots != 0:
-        values[block_index[base + a * k + b]] = blk
-        if b != a:
-            values[block_index[base + b * k + a]] = wp.transpose(blk)
+        values[u] = blk
     else:
         wp.atomic_add(values, block_index[base + a * k + b], blk)
         if b != a:
@@ -121,11 +118,10 @@ def qp_hessian_kernel(
     start: int,
 ):
     """values[block(e, a, b)] += scale * w d2(psi)/dx_a dx_b (N/m), in place in a fixed pattern
-    (``slots == 0``, atomics); or, with ``slots != 0``, the point's k x k blocks written to its own
-    slots ``values[block_index[(q * k + a) * k + b]]`` (``element_slot_maps``: the slots of one
-    matrix block are consecutive), which ``gather_blocks_kernel`` sums into the matrix in a fixed
-    order (deterministic whatever the thread count). ``start``: the first point of this launch (a
-    range split across CPU threads).
+    (``slots == 0``, atomics); or, with ``slots != 0``, the point's upper blocks a <= b written to
+    its own slots ``values[q * k (k + 1) / 2 + u]`` (u: the pairs a <= b in row order), which
+    ``gather_blocks_kernel`` sums into the matrix in a fixed order (deterministic whatever the
+    thread count). ``start``: the first point of this launch (a range split across CPU threads).
 
     ``block_index[(e * k + a) * k + b]`` is the position of block (node a, node b) of element e in
     the block-sparse matrix, built once per mesh. ``project != 0`` clamps negative eigenvalues of
@@ -148,21 +144,22 @@ def qp_hessian_kernel(
     F = point_deformation_gradient(x, points, q)
     U0, V0, A0, tw, fl = material_hessian_parts(material.kind, F, material.mu, material.lam)
     c = scale * points.weight[q]
-    base = e * k * k
-    if slots != 0:
-        base = q * k * k
+    npair = k * (k + 1) // 2
     if k > 4:
         H = hessian_point_matrix(U0, V0, A0, tw, fl, project)
+        u = q * npair
         for a in range(k):
             T0, T1, T2 = hessian_matrix_rows(H, points.dNdX[q * k + a])
             for b in range(a, k):  # symmetric: compute a <= b, add the transpose (as OpenTissue's assembly)
                 gb = points.dNdX[q * k + b]
                 blk = c * wp.matrix_from_rows(T0 * gb, T1 * gb, T2 * gb)
-                _put_block(values, block_index, slots, base, k, a, b, blk)
+                _put_block(values, block_index, slots, e * k * k, k, a, b, u, blk)
+                u += 1
     elif k == 4:
         # four nodes: the gradients sum to zero (partition of unity), so the blocks of the last node
         # are sums of the others' (K_a3 = -sum_b<3 K_ab, K_33 = -sum_a<3 K_a3): 6 contractions, not 10
         U, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
+        base = e * 16
         r0 = Vt * points.dNdX[q * 4]
         r1 = Vt * points.dNdX[q * 4 + 1]
         r2 = Vt * points.dNdX[q * 4 + 2]
@@ -180,60 +177,68 @@ def qp_hessian_kernel(
         D = K00 + K11 + K22
         O = K01 + K02 + K12
         K33 = type(c)(0.5) * (D + wp.transpose(D)) + (O + wp.transpose(O))
-        _put_block(values, block_index, slots, base, 4, 0, 0, K00)
-        _put_block(values, block_index, slots, base, 4, 0, 1, K01)
-        _put_block(values, block_index, slots, base, 4, 0, 2, K02)
-        _put_block(values, block_index, slots, base, 4, 0, 3, K03)
-        _put_block(values, block_index, slots, base, 4, 1, 1, K11)
-        _put_block(values, block_index, slots, base, 4, 1, 2, K12)
-        _put_block(values, block_index, slots, base, 4, 1, 3, K13)
-        _put_block(values, block_index, slots, base, 4, 2, 2, K22)
-        _put_block(values, block_index, slots, base, 4, 2, 3, K23)
-        _put_block(values, block_index, slots, base, 4, 3, 3, K33)
+        u = q * 10
+        _put_block(values, block_index, slots, base, 4, 0, 0, u, K00)
+        _put_block(values, block_index, slots, base, 4, 0, 1, u + 1, K01)
+        _put_block(values, block_index, slots, base, 4, 0, 2, u + 2, K02)
+        _put_block(values, block_index, slots, base, 4, 0, 3, u + 3, K03)
+        _put_block(values, block_index, slots, base, 4, 1, 1, u + 4, K11)
+        _put_block(values, block_index, slots, base, 4, 1, 2, u + 5, K12)
+        _put_block(values, block_index, slots, base, 4, 1, 3, u + 6, K13)
+        _put_block(values, block_index, slots, base, 4, 2, 2, u + 7, K22)
+        _put_block(values, block_index, slots, base, 4, 2, 3, u + 8, K23)
+        _put_block(values, block_index, slots, base, 4, 3, 3, u + 9, K33)
     else:
         U, Vt, A, cp, cm = hessian_point_prepare(U0, V0, A0, tw, fl, project)
+        u = q * npair
         for a in range(k):
             ra = Vt * points.dNdX[q * k + a]
             for b in range(a, k):
                 blk = c * hessian_point_block(U, A, cp, cm, ra, Vt * points.dNdX[q * k + b])
-                _put_block(values, block_index, slots, base, k, a, b, blk)
+                _put_block(values, block_index, slots, e * k * k, k, a, b, u, blk)
+                u += 1
 
 
 @splittable("start", 4096)
 @both_precisions(contrib="m[]", values="m[]")
 @wp.kernel
-def gather_blocks_kernel(offsets: wp.array(dtype=wp.int32), contrib: wp.array(dtype=Any), values: wp.array(dtype=Any),
-                         start: int):
-    """values[p] += contrib[offsets[p]] + ... + contrib[offsets[p + 1] - 1], in that order: the
-    gather half of the deterministic assembly (``qp_hessian_kernel`` with ``slots != 0`` wrote the
-    slots of block p consecutively)."""
+def gather_blocks_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
+                         contrib: wp.array(dtype=Any), values: wp.array(dtype=Any), start: int):
+    """values[p] += sum of the point slots of block p, in the order of ``entries[offsets[p]:offsets[p + 1]]``
+    (each entry 2 x slot + 1 for the transpose of the slot's block): the gather half of the
+    deterministic assembly (``qp_hessian_kernel`` with ``slots != 0`` wrote the slots)."""
     p = wp.tid() + start
     lo = offsets[p]
     hi = offsets[p + 1]
     if hi > lo:
         acc = values[p]
         for i in range(lo, hi):
-            acc += contrib[i]
+            t = entries[i]
+            blk = contrib[t >> 1]
+            if (t & 1) != 0:
+                acc += wp.transpose(blk)
+            else:
+                acc += blk
         values[p] = acc
 
 
 @splittable("start", 8192)
 @both_precisions(contrib="v[]", f="v[]", f_abs="v[]")
 @wp.kernel
-def gather_force_kernel(offsets: wp.array(dtype=wp.int32), contrib: wp.array(dtype=Any), f: wp.array(dtype=Any),
-                        f_abs: wp.array(dtype=Any), with_abs: int, start: int):
-    """f[v] -= contrib[offsets[v]] + ... + contrib[offsets[v + 1] - 1] (and f_abs[v] += their
-    component-wise magnitudes when ``with_abs``), in that order: the gather half of the
-    deterministic force (``qp_force_and_abs_kernel`` with ``slots != 0`` wrote vertex v's slots
-    consecutively)."""
+def gather_force_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
+                        contrib: wp.array(dtype=Any), f: wp.array(dtype=Any), f_abs: wp.array(dtype=Any),
+                        with_abs: int, start: int):
+    """f[v] -= sum of the point slots of vertex v (and f_abs[v] += their component-wise magnitudes when
+    ``with_abs``), in the order of ``entries[offsets[v]:offsets[v + 1]]``: the gather half of the
+    deterministic force (``qp_force_and_abs_kernel`` with ``slots != 0`` wrote the slots)."""
     v = wp.tid() + start
     lo = offsets[v]
     hi = offsets[v + 1]
     if hi > lo:
-        s = contrib[lo] - contrib[lo]
+        s = contrib[entries[lo]] - contrib[entries[lo]]
         m = s
         for i in range(lo, hi):
-            c = contrib[i]
+            c = contrib[entries[i]]
             s += c
             m += type(c)(wp.abs(c[0]), wp.abs(c[1]), wp.abs(c[2]))
         f[v] = f[v] - s
@@ -266,7 +271,7 @@ def qp_energy_sum_kernel(
     wp.atomic_add(acc, r + 1, wp.abs(e))
 
 
-@splittable("start", _POINTS_MIN, when=7)
+@splittable("start", _POINTS_MIN, when=6)
 @both_precisions(x="v[]", points="qp", material="mat", scale="s", f="v[]", f_abs="v[]")
 @wp.kernel
 def qp_force_and_abs_kernel(
@@ -276,16 +281,15 @@ def qp_force_and_abs_kernel(
     scale: Any,
     f: wp.array(dtype=Any),
     f_abs: wp.array(dtype=Any),
-    slot_index: wp.array(dtype=wp.int32),
     slots: int,
     start: int,
 ):
     """``qp_force_kernel`` plus the size of the contributions whose cancellation gives the nodal
     force (the scale of its round-off), in one pass (F and P evaluated once):
     f[node] += -scale w P dN/dX, f_abs[node] += |scale w P dN/dX| component-wise (atomics); with
-    ``slots != 0``, f[slot_index[q k + a]] = scale w P dN_a/dX into the point's own slots
-    (``element_slot_maps``: a vertex's slots are consecutive), which ``gather_force_kernel`` sums
-    per vertex in a fixed order (f_abs unused). ``start``: the first point of this launch."""
+    ``slots != 0``, f[q k + a] = scale w P dN_a/dX into the point's own slots, which
+    ``gather_force_kernel`` sums per vertex in a fixed order (f_abs unused). ``start``: the first
+    point of this launch."""
     q = wp.tid() + start
     k = points.k
     e = points.element[q]
@@ -295,7 +299,7 @@ def qp_force_and_abs_kernel(
     for a in range(k):
         v = c * (P * points.dNdX[q * k + a])
         if slots != 0:
-            f[slot_index[q * k + a]] = v
+            f[q * k + a] = v
         else:
             node = points.elements[e * k + a]
             wp.atomic_add(f, node, -v)
@@ -329,32 +333,38 @@ def element_slot_maps(point_element, elements_flat, k: int, block_index=None, nu
     """The maps of the deterministic (gather) assembly of one quadrature-point set, built once per
     mesh and pattern (numpy int32 arrays, CSR-style):
 
-    - ``(force_offsets, force_slots)``: ``force_slots[q k + a]`` is where point q's force on its
-      node a goes; vertex v's slots are ``force_offsets[v]:force_offsets[v + 1]``, in increasing
-      (q, a) order;
-    - ``(block_offsets, block_slots)`` (when ``block_index`` is given): ``block_slots[(q k + a) k + b]``
-      is where point q's block (a, b) goes; matrix block p's slots are
-      ``block_offsets[p]:block_offsets[p + 1]``, in increasing (q, a, b) order.
+    - ``(force_offsets, force_entries)``: vertex v's force slots ``q k + a`` (point q's node a is v),
+      ``force_entries[force_offsets[v]:force_offsets[v + 1]]`` in increasing order;
+    - ``(block_offsets, block_entries)`` (when ``block_index`` is given): block p's entries
+      2 x slot (+ 1: the transpose), slot ``q k (k + 1) / 2 + u`` the u-th upper block a <= b of
+      point q, in increasing order.
 
     ``point_element``: per point its element; ``elements_flat``: the connectivity (k per element);
     ``block_index``: (element, a, b) -> block position (``BlockPattern.block_index``)."""
     import numpy as np
 
-    def ranks(keys, n):
-        order = np.argsort(keys, kind="stable")  # stable: ties in increasing slot order
-        pos = np.empty(len(keys), dtype=np.int64)
-        pos[order] = np.arange(len(keys))
-        off = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(keys, minlength=n), out=off[1:])
-        return off.astype(np.int32), pos.astype(np.int32)
-
     pe = np.asarray(point_element, dtype=np.int64)
     E = np.asarray(elements_flat, dtype=np.int64).reshape(-1, k)
-    nodes = E[pe].ravel()  # (q, a) -> vertex
+    nq = len(pe)
+    nodes = E[pe].ravel()  # (q, a) -> vertex, slot q * k + a
     nv = max(int(num_vertices), int(nodes.max()) + 1 if nodes.size else 0)
-    out = list(ranks(nodes, nv))
+    order = np.argsort(nodes, kind="stable")
+    f_off = np.zeros(nv + 1, dtype=np.int64)
+    np.cumsum(np.bincount(nodes, minlength=nv), out=f_off[1:])
+    out = [f_off.astype(np.int32), order.astype(np.int32)]
     if block_index is not None:
-        blocks = np.asarray(block_index, dtype=np.int64).reshape(-1, k * k)[pe].ravel()  # (q, a, b) -> block
-        nb = max(int(nnz), int(blocks.max()) + 1 if blocks.size else 0)
-        out += list(ranks(blocks, nb))
+        bi = np.asarray(block_index, dtype=np.int64).reshape(-1, k, k)
+        a_idx, b_idx = np.triu_indices(k)  # row order: (0,0), (0,1), ..., (k-1,k-1)
+        npair = len(a_idx)
+        slot = (np.arange(nq, dtype=np.int64)[:, None] * npair + np.arange(npair)[None, :])
+        p_ab = bi[pe][:, a_idx, b_idx]  # (nq, npair)
+        p_ba = bi[pe][:, b_idx, a_idx]
+        off = a_idx != b_idx
+        pos = np.concatenate([p_ab.ravel(), p_ba[:, off].ravel()])
+        code = np.concatenate([2 * slot.ravel(), 2 * slot[:, off].ravel() + 1])
+        o = np.lexsort((code, pos))
+        nb = max(int(nnz), int(pos.max()) + 1 if pos.size else 0)
+        b_off = np.zeros(nb + 1, dtype=np.int64)
+        np.cumsum(np.bincount(pos, minlength=nb), out=b_off[1:])
+        out += [b_off.astype(np.int32), code[o].astype(np.int32)]
     return tuple(out)

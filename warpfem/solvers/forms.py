@@ -345,18 +345,18 @@ class ElasticForm(Form):
         if entry is None:
             dev = self.ops.device
             k = int(pts.k)
-            fo, fs = FK.element_slot_maps(pts.element.numpy(), pts.elements.numpy(), k, num_vertices=self.ops.n)
+            fo, fe = FK.element_slot_maps(pts.element.numpy(), pts.elements.numpy(), k, num_vertices=self.ops.n)
             if len(cache) > 4 * len(self.qp_sets) + 4:  # point sets replaced since: drop the old maps
                 cache.clear()
             entry = cache[key] = {"k": k, "points": pts, "force": (wp.array(fo, dtype=wp.int32, device=dev),
-                                                                   wp.array(fs, dtype=wp.int32, device=dev),
-                                                                   wp.zeros(len(fs), dtype=self.ops.vec, device=dev))}
+                                                                   wp.array(fe, dtype=wp.int32, device=dev),
+                                                                   wp.zeros(qs.count * k, dtype=self.ops.vec, device=dev))}
         if hessian and entry.get("blocks_of") != (_ptr(bi), self.pattern.nnz):
             dev, k = self.ops.device, entry["k"]
-            _, _, bo, bs = FK.element_slot_maps(pts.element.numpy(), pts.elements.numpy(), k, bi.numpy(),
+            _, _, bo, be = FK.element_slot_maps(pts.element.numpy(), pts.elements.numpy(), k, bi.numpy(),
                                                 num_vertices=self.ops.n, nnz=self.pattern.nnz)
-            entry["blocks"] = (wp.array(bo, dtype=wp.int32, device=dev), wp.array(bs, dtype=wp.int32, device=dev),
-                               wp.zeros(len(bs), dtype=self.ops.mat, device=dev))
+            entry["blocks"] = (wp.array(bo, dtype=wp.int32, device=dev), wp.array(be, dtype=wp.int32, device=dev),
+                               wp.zeros(qs.count * k * (k + 1) // 2, dtype=self.ops.mat, device=dev))
             entry["blocks_of"] = (_ptr(bi), self.pattern.nnz)
         return entry
 
@@ -364,10 +364,10 @@ class ElasticForm(Form):
         fa, dev = self._fa, self.ops.device
         fa.zero_()
         for qs in self.qp_sets:
-            off, index, slots = self._gather(qs)["force"]
+            off, ent, slots = self._gather(qs)["force"]
             launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(-scale), slots,
-                                                          slots, index, 1], dev)
-            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, slots, g, fa, 1], dev)
+                                                          slots, 1], dev)
+            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, g, fa, 1], dev)
         launch(LK.dot_slot_kernel, self.ops.n, [fa, fa, _F64_ONE, acc, self.acc_slot + 2], dev)
 
     def gradient_magnitude(self, row, scale):
@@ -389,10 +389,10 @@ class ElasticForm(Form):
         project = self.options.project_hessian if project is None else project
         dev = self.ops.device
         for qs in self.qp_sets:
-            off, index, slots = self._gather(qs, hessian=True)["blocks"]
+            off, ent, slots = self._gather(qs, hessian=True)["blocks"]
             launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(scale), int(project),
-                                                    index, slots, 1], dev)
-            launch(FK.gather_blocks_kernel, off.shape[0] - 1, [off, slots, values], dev)
+                                                    self.pattern.block_indices[getattr(qs, "group", 0)], slots, 1], dev)
+            launch(FK.gather_blocks_kernel, off.shape[0] - 1, [off, ent, slots, values], dev)
 
 
 def _capture_key(form):
