@@ -43,6 +43,7 @@ noisy (re-run it on a quiet one).
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import os
 import platform
@@ -209,6 +210,7 @@ def step_case(make, threads, steps):
     for _ in range(steps):
         for T in (1, threads):
             set_threads(T)
+            gc.collect()  # not inside a timed step (the previous cases' arrays, the other simulator's garbage)
             res = {}
             secs[T].append(CP.measure(lambda: res.setdefault("st", sims[T].step())))
             stats = res["st"]
@@ -246,7 +248,8 @@ def main(argv=None):
     global CP
     CP = CriticalPath()
     start_load = load()
-    rows = {}
+    rows = {"beam-864-step": step_case(beam, p, max(args.steps, 5))}  # first: no garbage of the big cases yet
+    gc.collect()
     for c, tag in ((10, "24k"),) + (() if args.quick else ((20, "200k"),)):
         for name, row in assembly_case(c, p, args.repeats).items():
             rows[f"{name}-{tag}"] = row
@@ -255,9 +258,9 @@ def main(argv=None):
                   f"{row['cpu_speedup']:.2f}x); atomic scatter on 1 thread {row['atomic_seconds_1'] * 1e3:.2f} ms "
                   f"(gather / atomic: wall {row['gather_over_atomic_1']:.2f}, CPU {row['gather_over_atomic_cpu_1']:.2f}); "
                   f"identical {row['identical']}", flush=True)
+        gc.collect()
     if not args.quick:
         rows["box-98k-step"] = step_case(lambda: box(16, 0.49, args.box_solver), p, args.steps)
-    rows["beam-864-step"] = step_case(beam, p, max(args.steps, 5))
     for name in ("box-98k-step", "beam-864-step"):
         if name in rows:
             r = rows[name]

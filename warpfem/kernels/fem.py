@@ -199,7 +199,7 @@ def qp_hessian_kernel(
                 u += 1
 
 
-@splittable("start", 4096)
+@splittable("start", 2048)
 @both_precisions(contrib="m[]", values="m[]")
 @wp.kernel
 def gather_blocks_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
@@ -222,7 +222,7 @@ def gather_blocks_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dt
         values[p] = acc
 
 
-@splittable("start", 8192)
+@splittable("start", 2048)
 @both_precisions(contrib="v[]", f="v[]", f_abs="v[]")
 @wp.kernel
 def gather_force_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
