@@ -199,7 +199,7 @@ def _block_mv_overloads():
 
 _block_mv_overloads()
 # split across CPU threads (``kernels.generic.splittable``): row-wise and element-wise, no reductions
-splittable("start", 1024)(_bsr_block_mv_kernel)
+splittable("start", 256)(_bsr_block_mv_kernel)
 
 
 def _block_overloads():
