@@ -108,7 +108,7 @@ def _drop(threads, steps=4):
 
 def test_newton_steps_with_contact_and_friction_identical_for_1_2_3_threads_and_run_to_run(tiny_chunks):
     x1, v1, n1 = _drop(1)
-    assert n1 >= 4 and x1[:, 2].min() < 0.0  # it landed (below the start of the plane's barrier band)
+    assert n1 >= 4 and -0.01 < x1[:, 2].min() < 0.0  # it landed on the plane (z = -0.01), never through it
     s0 = COUNTERS["split"]
     for T in (2, 3, 1):
         x, v, n = _drop(T)

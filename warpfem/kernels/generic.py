@@ -64,11 +64,11 @@ COUNTERS = {"launches": 0, "split": 0}
 class _Split:
     """How :func:`launch` may split a kernel's range across CPU threads (:func:`splittable`)."""
 
-    __slots__ = ("kind", "min_chunk", "acc", "slot", "n_add", "n_max", "when")
+    __slots__ = ("kind", "min_chunk", "acc", "slot", "n_add", "n_max", "n_min", "when")
 
-    def __init__(self, kind, min_chunk, acc, slot, n_add, n_max, when):
+    def __init__(self, kind, min_chunk, acc, slot, n_add, n_max, n_min, when):
         self.kind, self.min_chunk, self.acc, self.slot, self.n_add, self.n_max = kind, min_chunk, acc, slot, n_add, n_max
-        self.when = when
+        self.n_min, self.when = n_min, when
 
 
 #: kernel -> _Split: the kernels whose launches :func:`launch` splits across CPU threads
@@ -86,7 +86,7 @@ def _min_chunk(spec) -> int:
 
 
 def splittable(kind: str, min_chunk: int = 4096, acc: int = -1, slot: int = -1, n_add: int = 0, n_max: int = 0,
-               when: int = -1):
+               n_min: int = 0, when: int = -1):
     """Declare how :func:`launch` splits a kernel's 1-d range across CPU threads (CUDA launches are
     never split). ``kind``:
 
@@ -94,7 +94,8 @@ def splittable(kind: str, min_chunk: int = 4096, acc: int = -1, slot: int = -1, 
       is written by one index only (the gather kernels, the per-point slot kernels).
     - ``"reduce"``: the last three are ``start, row_block, row_stride``; the kernel adds its
       float64 sums into ``acc[slot + (i // row_block) * row_stride + j]`` (``acc``, ``slot``: the
-      positions of those arguments), the first ``n_add`` of them sums and the next ``n_max`` maxima.
+      positions of those arguments), the first ``n_add`` of them sums, the next ``n_max`` maxima and
+      the next ``n_min`` minima.
       On the CPU a range longer than ``REDUCE_BLOCK_MIN`` adds into rows of partial sums (one per
       block, the block size a function of the range only) that are then added in row order into
       ``acc``: the same numbers whatever the thread count.
@@ -106,7 +107,7 @@ def splittable(kind: str, min_chunk: int = 4096, acc: int = -1, slot: int = -1, 
     kernel that scatters with atomics otherwise)."""
 
     def decorate(kernel):
-        SPLIT[kernel] = _Split(kind, int(min_chunk), acc, slot, n_add, n_max, when)
+        SPLIT[kernel] = _Split(kind, int(min_chunk), acc, slot, n_add, n_max, n_min, when)
         return kernel
 
     return decorate
@@ -184,11 +185,16 @@ def launch(kernel, dim, inputs, device):
         rows = -(-n // block)
         parts = max(1, min(threads, rows, n // _min_chunk(spec)))
         bounds = [min(n, block * (rows * c // parts)) for c in range(parts + 1)]
-        width = spec.n_add + spec.n_max
+        width = spec.n_add + spec.n_max + spec.n_min
         if rows > 1:
+            from warpfem.kernels import linalg as LK
+
             acc, slot = inputs[spec.acc], int(inputs[spec.slot])
             part = _scratch(dev, rows * width)
-            part.zero_()
+            if spec.n_max or spec.n_min:  # sums from 0, maxima from -inf, minima from +inf
+                _prepare(LK.init_rows_kernel, rows * width, [part, width, spec.n_add, spec.n_max], device, None)()
+            else:
+                part.zero_()
             inputs[spec.acc], inputs[spec.slot] = part, 0
             tail = [block, width]
         else:
@@ -219,9 +225,7 @@ def launch(kernel, dim, inputs, device):
     elif fns:
         fns[0]()
     if kind == "reduce" and rows > 1:
-        from warpfem.kernels import linalg as LK
-
-        _prepare(LK.reduce_rows_kernel, width, [part, rows, width, spec.n_add, acc, slot], device, None)()
+        _prepare(LK.reduce_rows_kernel, width, [part, rows, width, spec.n_add, spec.n_max, acc, slot], device, None)()
 
 
 def _prepare(kernel, dim, inputs, device, tag):
@@ -317,8 +321,8 @@ class RecordedLaunch:
                 width = acc.shape[0]
                 part = wp.zeros(rows * width, dtype=wp.float64, device=device)
                 self._reduce = (part, rows, block, width,
-                                RecordedLaunch(LK.reduce_rows_kernel, width, [part, rows, width, width, acc, 0], device,
-                                               split=False))
+                                RecordedLaunch(LK.reduce_rows_kernel, width, [part, rows, width, width, 0, acc, 0],
+                                               device, split=False))
         elif spec is not None and spec.kind == "start" and self._spec is None:
             inputs.append(0)  # not split (CUDA): the whole range from 0
         self._kernel, self._dim, self._inputs, self._device = kernel, dim, inputs, device

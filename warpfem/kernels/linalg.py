@@ -258,15 +258,31 @@ def newton_check_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), y: wp.ar
 
 
 @wp.kernel
-def reduce_rows_kernel(part: wp.array(dtype=wp.float64), rows: int, width: int, n_add: int,
+def reduce_rows_kernel(part: wp.array(dtype=wp.float64), rows: int, width: int, n_add: int, n_max: int,
                        acc: wp.array(dtype=wp.float64), slot: int):
-    """acc[slot + j] += part[0, j] + part[1, j] + ... (j < n_add; the others: the maximum), in row
-    order: the partial sums of a reduction split into blocks (``kernels.generic.launch``)."""
+    """acc[slot + j] += part[0, j] + part[1, j] + ... for j < n_add, in row order; the maximum of
+    acc[slot + j] and the rows' for the next n_max, the minimum for the rest: the partial results of
+    a reduction split into blocks (``kernels.generic.launch``)."""
     j = wp.tid()
     v = acc[slot + j]
     for r in range(rows):
         if j < n_add:
             v += part[r * width + j]
-        else:
+        elif j < n_add + n_max:
             v = wp.max(v, part[r * width + j])
+        else:
+            v = wp.min(v, part[r * width + j])
     acc[slot + j] = v
+
+
+@wp.kernel
+def init_rows_kernel(part: wp.array(dtype=wp.float64), width: int, n_add: int, n_max: int):
+    """The rows of partial results before a reduction: 0 for sums, -inf for maxima, +inf for minima."""
+    t = wp.tid()
+    j = t % width
+    v = wp.float64(0.0)
+    if j >= n_add + n_max:
+        v = wp.float64(wp.inf)
+    elif j >= n_add:
+        v = -wp.float64(wp.inf)
+    part[t] = v
