@@ -200,3 +200,24 @@ def test_split_pcg_identical_for_1_2_3_threads_and_close_to_the_serial_solve(tin
     serial = run(10**9)
     scale = np.abs(serial - np.asarray(mesh.vertices)).max()  # the sag over two steps
     assert scale > 1e-4 and np.abs(out[1] - serial).max() <= 1e-8 * scale + 1e-12
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="needs fork")
+def test_pool_works_in_a_forked_child(monkeypatch):
+    """A forked process (a process-pool executor) has none of the parent's pool threads: its pool
+    starts empty instead of waiting on threads that do not exist."""
+    import os
+
+    monkeypatch.setattr(TH, "available_cores", lambda: 4)
+    TH.set_threads(3)
+    out = []
+    TH.run_chunks([lambda: out.append(1), lambda: out.append(2), lambda: out.append(3)])
+    assert sorted(out) == [1, 2, 3]
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover (the child)
+        got = []
+        TH.run_chunks([lambda: got.append(1), lambda: got.append(2), lambda: got.append(3)])
+        os._exit(0 if sorted(got) == [1, 2, 3] else 1)
+    _, status = os.waitpid(pid, 0)
+    TH.set_threads(None)
+    assert os.waitstatus_to_exitcode(status) == 0

@@ -111,6 +111,17 @@ class _Worker:
 _workers: list = []
 
 
+def _after_fork_in_child():
+    """A forked process has none of its parent's pool threads: start from an empty pool."""
+    global _lock
+    _workers.clear()
+    _lock = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_after_fork_in_child)
+
+
 def _pool_resize():
     with _lock:
         try:
