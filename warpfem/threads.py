@@ -41,9 +41,7 @@ def parse_threads(value, source: str = ENV) -> int:
     to :func:`available_cores`. ``source`` names where it came from in the one-line error."""
     text = str(value).strip()
     try:
-        n = int(text)
-        if isinstance(value, float) and value != n:
-            raise ValueError
+        n = int(text)  # "2.5", "two", "" and True are refused
     except (TypeError, ValueError):
         raise ThreadsError(f"{source}={text!r}: the thread count must be a positive integer") from None
     if n < 1:
