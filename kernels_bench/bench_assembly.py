@@ -218,7 +218,8 @@ def run_case(cells, precision, device, repeats, batches=5, noise=0.1):
         wp.launch(FK.qp_force_kernel, dim=sim.num_points, inputs=[sim.x, qp, mp, S(1.0), f], device=dev)
 
     def kernel():
-        wp.launch(FK.qp_hessian_kernel, dim=sim.num_points, inputs=[sim.x, qp, mp, S(1.0), project, bi, vals], device=dev)
+        wp.launch(FK.qp_hessian_kernel, dim=sim.num_points, inputs=[sim.x, qp, mp, S(1.0), project, bi, vals, 0, 0],
+                  device=dev)  # slots 0: added with atomics (the gather of a Newton iteration: bench_threads.py)
 
     def hessian():
         vals.zero_()

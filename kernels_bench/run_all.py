@@ -17,6 +17,8 @@ Warp kernel cache is shared, so only the first run of a module compiles it), its
   contact-cost                      bench_contact_cost.py  Newton iterations and seconds per free vs contact frame,
                                     before = e18de72's code (git archive, a subprocess) / after = the working tree
                                     (needs git; skips without ipctk; quick: box_drop and stack, few frames)
+  threads                           bench_threads.py   CPU threads: 2 against 1 on assembly and steps, Amdahl projection
+                                    (CPU only; quick: the 24k-tet assembly and the 864-tet beam)
 
 ``--quick`` shrinks every benchmark (about 5 minutes on 2 idle CPU cores); ``--only`` / ``--skip`` take
 comma-separated names (with ``--only`` the other entries of an existing summary of the same mode and
@@ -108,6 +110,10 @@ def plan(args, out: Path):
               + (["--cases", "box_drop,stack", "--frames", "box_drop=15,stack=6", "--precision", "float64", "--repeats", "2"]
                  if q else []),
               j, m))
+    if str(args.device).startswith("cpu"):  # CPU threads: 2 against 1 (CUDA launches are not split)
+        j = out / "threads_cpu.json"
+        P.append(("threads", py + [str(HERE / "bench_threads.py"), "--out", str(j)]
+                  + (["--quick", "--repeats", "3"] if q else []), j, None))
     return P
 
 

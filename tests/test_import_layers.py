@@ -23,6 +23,7 @@ LAYERS = {
     "warpfem.progress": 0,
     "warpfem.paths": 0,
     "warpfem.lazy": 0,
+    "warpfem.threads": 0,
     "warpfem.mesh": 1,
     "warpfem.materials": 1,
     "warpfem.integrators": 1,

@@ -42,6 +42,7 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (mkdocstr
     from warpfem.solvers.forms import Form
     from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
     from warpfem.io.checkpoint import CheckpointError, load_state, save_state
+    from warpfem.threads import ThreadsError, get_threads, set_threads
 
 from warpfem.lazy import lazy_attributes  # noqa: E402
 
@@ -62,6 +63,7 @@ _LAZY = {
     "Form": "warpfem.solvers.forms",
     **dict.fromkeys(["Box", "CollisionError", "MeshCollider", "Plane", "Sphere"], "warpfem.contact"),
     **dict.fromkeys(["save_state", "load_state", "CheckpointError"], "warpfem.io.checkpoint"),
+    **dict.fromkeys(["set_threads", "get_threads", "ThreadsError"], "warpfem.threads"),
 }
 
 
@@ -113,4 +115,7 @@ __all__ = [
     "save_state",
     "load_state",
     "CheckpointError",
+    "set_threads",
+    "get_threads",
+    "ThreadsError",
 ]

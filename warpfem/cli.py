@@ -68,6 +68,10 @@ def error(msg):
     print(f"warpfem: error: {msg}", file=sys.stderr)
 
 
+def note(msg):
+    print(f"warpfem: note: {msg}", file=sys.stderr)
+
+
 class _LogHandler(logging.Handler):
     """The library's log records on the current ``sys.stderr`` ("warning: ..." for warnings)."""
 
@@ -338,6 +342,7 @@ def _register_run(subparsers):
     p = subparsers.add_parser("run", help="simulate a scene and write its outputs")
     p.add_argument("scene", help="TOML scene file")
     p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... or auto (CUDA when present, else cpu; default cpu)")
+    add_threads_option(p)
     p.add_argument("--precision", choices=("float32", "float64"), default="float64")
     p.add_argument("--frames", type=int, default=None, help="number of frames (default: the scene's [output].frames)")
     p.add_argument("--out", default=None, help="USD file (.usda/.usd/.usdc); default: the scene's [output].usd")
@@ -492,6 +497,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def add_threads_option(p) -> None:
+    """The ``--threads N`` option of a subcommand that simulates (applied by :func:`main`)."""
+    p.add_argument("--threads", default=None, metavar="N",
+                   help="CPU threads for the kernels (default: WARPFEM_THREADS, else every core this process may use; "
+                        "ignored on CUDA)")
+
+
+def apply_threads(args) -> int | None:
+    """Check ``WARPFEM_THREADS`` and apply ``--threads`` (a note and nothing else on a CUDA device).
+    Returns None, or EXIT_INVALID after a one-line error."""
+    import warnings
+
+    from warpfem.threads import ThreadsError, get_threads, set_threads
+
+    n = getattr(args, "threads", None)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            if n is not None and str(getattr(args, "device", "cpu")).strip().lower().startswith("cuda"):
+                note(f"--threads {n} ignored: the kernels run on {args.device}, not on CPU threads")
+                get_threads()
+            elif n is not None:
+                import os
+
+                os.environ["WARPFEM_THREADS"] = str(set_threads(n))  # processes it starts use the same count
+            else:
+                get_threads()
+        except ThreadsError as e:
+            error(str(e).replace("threads=", "--threads ", 1) if n is not None else str(e))
+            return EXIT_INVALID
+    for w in caught:
+        note(str(w.message).replace("threads=", "--threads ", 1))
+    return None
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # before anything (subcommand modules included) can initialise Warp: banner / module-load lines only with --verbose
@@ -501,6 +541,8 @@ def main(argv=None) -> int:
     _configure_logging(getattr(args, "verbose", False), quiet=getattr(args, "quiet", False))
     if getattr(args, "func", None) is None:
         parser.print_help(sys.stderr)
+        return EXIT_INVALID
+    if apply_threads(args) is not None:
         return EXIT_INVALID
     return int(args.func(args))
 

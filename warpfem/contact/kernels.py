@@ -37,7 +37,7 @@ from typing import Any
 import warp as wp
 
 from warpfem.contact.colliders import add_registry_listener, registered_colliders
-from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.generic import both_precisions, splittable
 
 wp.set_module_options({"enable_backward": False})
 
@@ -131,6 +131,10 @@ def friction_f0(y: Any, eps: Any):
     return y * y / (type(y)(2.0) * eps) + eps / type(y)(2.0)
 
 
+# split across CPU threads (``kernels.generic.splittable``): each thread owns one surface vertex's
+# gradient entry and diagonal block; energies, magnitudes (sums) and the step bound (a minimum) go
+# through rows of partial results
+@splittable("reduce", 1024, acc=29, slot=30, n_add=3, n_min=1)
 @both_precisions(x="v[]", rots="m[]", trans="v[]", rots0="m[]", trans0="v[]", pa="v[]", pb="v[]", tris="v[]",
                  kappa="s[]", dhat="s[]", mu="s[]", epsf="s[]", lam="s[]", nrm="v[]", wdisp="v[]", x0="v[]",
                  ydisp="v[]", sy="s", eta="s", scale="s", g="v[]", values="m[]")
@@ -167,8 +171,11 @@ def contact_kernel(
     values: wp.array(dtype=Any),
     acc: wp.array(dtype=wp.float64),
     slot: int,
+    start: int,
+    row_block: int,
+    row_stride: int,
 ):
-    i = wp.tid()
+    i = wp.tid() + start
     vi = surf[i]
     xi = x[vi]
     zero = eta - eta
@@ -252,14 +259,15 @@ def contact_kernel(
                         hess += (c / y) * (Pm - wp.outer(u, u) / (y * y))
                     else:
                         hess += (c / eps) * Pm
+    r = slot + (i // row_block) * row_stride  # rows of partial results when split (``kernels.generic``)
     if mode == 0:
-        wp.atomic_add(acc, slot, energy)
+        wp.atomic_add(acc, r, energy)
         if bad > 0:
-            wp.atomic_add(acc, slot + 1, wp.float64(bad))
+            wp.atomic_add(acc, r + 1, wp.float64(bad))
     elif mode == 1:
         g[vi] = g[vi] + scale * grad
-        wp.atomic_add(acc, slot + 2, wp.float64(wp.dot(grad, grad)) * wp.float64(scale * scale))
+        wp.atomic_add(acc, r + 2, wp.float64(wp.dot(grad, grad)) * wp.float64(scale * scale))
     elif mode == 2:
-        wp.atomic_add(values, diag[vi], scale * hess)
+        wp.atomic_add(values, diag[vi], scale * hess)  # (vi: one per thread, the surface's vertices are unique)
     elif mode == 3:
-        wp.atomic_min(acc, slot + 3, wp.float64(alpha))
+        wp.atomic_min(acc, r + 3, wp.float64(alpha))

@@ -113,6 +113,7 @@ def register(subparsers):
     p.add_argument("--report", help="JSON report: fitted params, loss history, iterations, gradient norm")
     p.add_argument("--out", help="write the scene with the fitted values (TOML)")
     p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... or auto (default cpu)")
+    _cli.add_threads_option(p)
     p.add_argument("--precision", choices=("float32", "float64"), default="float64")
     p.add_argument("--quiet", action="store_true", help="only the final report")
     p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages")

@@ -54,16 +54,101 @@ def _type_key(a):
 _LAUNCH_CACHE: dict = {}
 _WARP_SCALARS = (wp.float32, wp.float64, wp.int32, wp.int64, wp.uint32, wp.uint64, wp.float16)
 _IMMUTABLE = (int, float, bool)
-_LAUNCH_CACHE_SIZE = 256
+_LAUNCH_CACHE_SIZE = 1024
 
 
 #: launches made through :func:`launch` (and counted by solvers that replay recorded launches):
 #: the simulators report the difference over a step as ``SolveStats.launches``
-COUNTERS = {"launches": 0}
+COUNTERS = {"launches": 0, "split": 0}
+
+
+class _Split:
+    """How :func:`launch` may split a kernel's range across CPU threads (:func:`splittable`)."""
+
+    __slots__ = ("kind", "min_chunk", "acc", "slot", "n_add", "n_max", "n_min", "when")
+
+    def __init__(self, kind, min_chunk, acc, slot, n_add, n_max, n_min, when):
+        self.kind, self.min_chunk, self.acc, self.slot, self.n_add, self.n_max = kind, min_chunk, acc, slot, n_add, n_max
+        self.n_min, self.when = n_min, when
+
+
+#: kernel -> _Split: the kernels whose launches :func:`launch` splits across CPU threads
+SPLIT: dict = {}
+#: a reduction's range is cut into at most this many blocks of partial sums (the block size depends
+#: only on the range, so the sums do not depend on the thread count)
+REDUCE_ROWS = 64
+REDUCE_BLOCK_MIN = 1024
+#: None: each kernel's own ``min_chunk``; an int: that for every kernel (tests split tiny ranges with it)
+MIN_CHUNK = None
+
+
+def _min_chunk(spec) -> int:
+    return max(1, spec.min_chunk if MIN_CHUNK is None else int(MIN_CHUNK))
+
+
+def splittable(kind: str, min_chunk: int = 4096, acc: int = -1, slot: int = -1, n_add: int = 0, n_max: int = 0,
+               n_min: int = 0, when: int = -1):
+    """Declare how :func:`launch` splits a kernel's 1-d range across CPU threads (CUDA launches are
+    never split). ``kind``:
+
+    - ``"start"``: the kernel's last argument is ``start: int``, added to ``wp.tid()``; every output
+      is written by one index only (the gather kernels, the per-point slot kernels).
+    - ``"reduce"``: the last three are ``start, row_block, row_stride``; the kernel adds its
+      float64 sums into ``acc[slot + (i // row_block) * row_stride + j]`` (``acc``, ``slot``: the
+      positions of those arguments), the first ``n_add`` of them sums, the next ``n_max`` maxima and
+      the next ``n_min`` minima.
+      On the CPU a range longer than ``REDUCE_BLOCK_MIN`` adds into rows of partial sums (one per
+      block, the block size a function of the range only) that are then added in row order into
+      ``acc``: the same numbers whatever the thread count.
+    - ``"view"``: element-wise, every array argument indexed by the thread index only: each chunk
+      is launched on views of the arrays.
+
+    ``min_chunk``: the fewest indices worth a thread of their own (a chunk's launch costs some
+    microseconds). ``when``: the position of an int argument that must be non-zero for a split (a
+    kernel that scatters with atomics otherwise)."""
+
+    def decorate(kernel):
+        SPLIT[kernel] = _Split(kind, int(min_chunk), acc, slot, n_add, n_max, n_min, when)
+        return kernel
+
+    return decorate
+
+
+_SCRATCH: dict = {}
+_VIEWS: dict = {}
+
+
+def _scratch(device, size):
+    key = (str(device), size)
+    a = _SCRATCH.get(key)
+    if a is None:
+        if len(_SCRATCH) > 32:
+            _SCRATCH.clear()
+        a = _SCRATCH[key] = wp.zeros(size, dtype=wp.float64, device=device)
+    return a
+
+
+def _view(a, lo, hi):
+    key = (id(a), lo, hi)
+    v = _VIEWS.get(key)
+    if v is None:
+        if len(_VIEWS) > 4096:
+            _VIEWS.clear()
+        v = _VIEWS[key] = (a[lo:hi], a)  # the base kept alive with its view: its id is not reused
+    return v[0]
+
+
+def _cpu_capturing(device) -> bool:
+    try:
+        from warp._src.context import _get_apic_capture_for_device
+
+        return _get_apic_capture_for_device(wp.get_device(device)) is not None
+    except Exception:  # noqa: BLE001 -- a Warp without the query: assume not capturing
+        return False
 
 
 def launch(kernel, dim, inputs, device):
-    """``wp.launch`` with less host overhead for the solver loops.
+    """``wp.launch`` with less host overhead for the solver loops, split across CPU threads.
 
     The concrete overload of a generic kernel is looked up once per argument-type signature (Warp
     infers it on every launch of a generic kernel, about 4x the rest of the launch on the CPU), and
@@ -71,7 +156,82 @@ def launch(kernel, dim, inputs, device):
     parameters are replaced (about half the cost of a fresh launch), only those that are not the
     same objects as in the previous launch of that entry (kernel structs, ``kernels.structs``,
     included: the same instance is not re-packed). Measured in
-    kernels_bench/bench_solver_overhead.py."""
+    kernels_bench/bench_solver_overhead.py.
+
+    A kernel declared :func:`splittable` gets its trailing range arguments here (callers pass the
+    others); on the CPU its range is cut into contiguous chunks run at once by the pool of
+    :mod:`warpfem.threads` (``warpfem.set_threads``, ``WARPFEM_THREADS``), with results that do not
+    depend on the thread count. Inside a CPU graph capture the chunks are recorded one after the
+    other."""
+    spec = SPLIT.get(kernel)
+    if spec is None:
+        _prepare(kernel, dim, inputs, device, None)()
+        return
+    n = int(dim)
+    inputs = list(inputs)
+    dev = wp.get_device(device)
+    if not dev.is_cpu or n <= 0:
+        if spec.kind == "start":
+            inputs.append(0)
+        elif spec.kind == "reduce":
+            inputs += [0, max(n, 1), 0]
+        _prepare(kernel, dim, inputs, device, None)()
+        return
+    from warpfem.threads import get_threads, run_chunks
+
+    threads = get_threads() if spec.when < 0 or inputs[spec.when] else 1
+    kind = spec.kind
+    if kind == "reduce":
+        block = max(REDUCE_BLOCK_MIN, -(-n // REDUCE_ROWS))
+        rows = -(-n // block)
+        parts = max(1, min(threads, rows, n // _min_chunk(spec)))
+        bounds = [min(n, block * (rows * c // parts)) for c in range(parts + 1)]
+        width = spec.n_add + spec.n_max + spec.n_min
+        if rows > 1:
+            from warpfem.kernels import linalg as LK
+
+            acc, slot = inputs[spec.acc], int(inputs[spec.slot])
+            part = _scratch(dev, rows * width)
+            if spec.n_max or spec.n_min:  # sums from 0, maxima from -inf, minima from +inf
+                _prepare(LK.init_rows_kernel, rows * width, [part, width, spec.n_add, spec.n_max], device, None)()
+            else:
+                part.zero_()
+            inputs[spec.acc], inputs[spec.slot] = part, 0
+            tail = [block, width]
+        else:
+            tail = [max(n, 1), 0]
+    else:
+        parts = max(1, min(threads, n // _min_chunk(spec)))
+        bounds = [n * c // parts for c in range(parts + 1)]
+    fns = []
+    for c in range(parts):
+        lo, hi = bounds[c], bounds[c + 1]
+        if hi <= lo:
+            continue
+        if kind == "view":
+            args = [_view(v, lo, hi) if isinstance(v, wp.array) else v for v in inputs]
+        elif kind == "start":
+            args = inputs + [lo]
+        else:
+            args = inputs + [lo] + tail
+        fns.append(_prepare(kernel, hi - lo, args, device, (lo, hi) if parts > 1 else None))
+    if len(fns) > 1:
+        COUNTERS["split"] += 1
+        COUNTERS["launches"] -= len(fns) - 1  # counted as the one launch it stands for
+        if _cpu_capturing(dev):
+            for f in fns:
+                f()
+        else:
+            run_chunks(fns)
+    elif fns:
+        fns[0]()
+    if kind == "reduce" and rows > 1:
+        _prepare(LK.reduce_rows_kernel, width, [part, rows, width, spec.n_add, spec.n_max, acc, slot], device, None)()
+
+
+def _prepare(kernel, dim, inputs, device, tag):
+    """The recorded launch of ``kernel`` over ``inputs``, its parameters set, as a callable that
+    runs it (see :func:`launch`); ``tag`` tells the chunks of one split launch apart."""
     COUNTERS["launches"] += 1
     if kernel.is_generic:
         key = (kernel, *map(_type_key, inputs))
@@ -86,7 +246,7 @@ def launch(kernel, dim, inputs, device):
     # one entry per set of array arguments (by identity: an entry keeps its arrays alive, so their
     # ids are not reused while it exists): a kernel launched on alternating arrays (the two states,
     # the gradient and its trial buffer) finds its arrays already packed
-    lkey = (kernel, dim if isinstance(dim, tuple) else (dim,), str(device),
+    lkey = (kernel, dim if isinstance(dim, tuple) else (dim,), str(device), tag,
             *[id(v) for v in inputs if isinstance(v, wp.array)])
     entry = _LAUNCH_CACHE.get(lkey)
     if entry is not None:
@@ -110,11 +270,10 @@ def launch(kernel, dim, inputs, device):
                     continue
                 cmd.set_param_at_index(i, v)
                 last[i] = v
-            cmd.launch()
-            return
+            return cmd.launch
     cmd = wp.launch(kernel, dim=dim, inputs=inputs, device=device, record_cmd=True)
     if cmd is None:  # nothing to launch (e.g. dim 0)
-        return
+        return _nothing
     try:
         module = kernel.module
         exec_key = next(k for k, v in module.execs.items() if v is cmd.module_exec)
@@ -123,7 +282,11 @@ def launch(kernel, dim, inputs, device):
         _LAUNCH_CACHE[lkey] = (cmd, module, exec_key, list(inputs))
     except (AttributeError, StopIteration):  # a Warp without these internals: no caching
         pass
-    cmd.launch()
+    return cmd.launch
+
+
+def _nothing():
+    pass
 
 
 # Warp versions whose CPU kernel entry point (forward(bounds*, args*)) and launch internals the
@@ -139,9 +302,33 @@ class RecordedLaunch:
     with its argument struct packed once, ~1.5 us). For the reduced simulator's per-iteration kernel.
     Re-recorded when the kernel's module was reloaded since (as :func:`launch` checks)."""
 
-    def __init__(self, kernel, dim, inputs, device):
-        self._kernel, self._dim, self._inputs, self._device = kernel, dim, list(inputs), device
+    def __init__(self, kernel, dim, inputs, device, split=True):
+        spec = SPLIT.get(kernel) if split else None
+        self._spec = spec if spec is not None and wp.get_device(device).is_cpu and isinstance(dim, int) else None
+        inputs = list(inputs)
+        self._reduce = None
+        if spec is not None and spec.kind == "reduce":
+            # the whole accumulator array in rows of partial sums (sums only), added in row order
+            n = int(dim)
+            block = max(REDUCE_BLOCK_MIN, -(-n // REDUCE_ROWS))
+            rows = -(-n // block)
+            if self._spec is None or rows <= 1:
+                inputs += [0, max(n, 1), 0]  # not split: the whole range into the accumulator itself
+                self._spec = None
+            else:
+                from warpfem.kernels import linalg as LK
+
+                acc = inputs[spec.acc]
+                width = acc.shape[0]
+                part = wp.zeros(rows * width, dtype=wp.float64, device=device)
+                self._reduce = (part, rows, block, width,
+                                RecordedLaunch(LK.reduce_rows_kernel, width, [part, rows, width, width, 0, acc, 0],
+                                               device, split=False))
+        elif spec is not None and spec.kind == "start" and self._spec is None:
+            inputs.append(0)  # not split (CUDA): the whole range from 0
+        self._kernel, self._dim, self._inputs, self._device = kernel, dim, inputs, device
         self._cmd = self._module = self._key = self._direct = None
+        self._parts, self._parts_for = None, None
 
     def _record(self):
         kernel = self._kernel
@@ -189,7 +376,50 @@ class RecordedLaunch:
         except Exception:  # noqa: BLE001 -- any mismatch of Warp internals: the public replay
             return None
 
+    def _split_parts(self, threads):
+        """The chunks of a split launch on the CPU (``splittable``): one RecordedLaunch each."""
+        spec, n = self._spec, int(self._dim)
+        if self._reduce is not None:
+            part, rows, block, width, _ = self._reduce
+            parts = max(1, min(threads, rows, n // _min_chunk(spec)))
+            bounds = [min(n, block * (rows * c // parts)) for c in range(parts + 1)]
+        else:
+            parts = max(1, min(threads, n // _min_chunk(spec)))
+            bounds = [n * c // parts for c in range(parts + 1)]
+        out = []
+        for c in range(parts):
+            lo, hi = bounds[c], bounds[c + 1]
+            if hi <= lo:
+                continue
+            if spec.kind == "view":
+                args = [v[lo:hi] if isinstance(v, wp.array) else v for v in self._inputs]
+            elif self._reduce is not None:
+                args = list(self._inputs)
+                args[spec.acc] = part
+                args += [lo, block, width]
+            else:
+                args = self._inputs + [lo]
+            out.append(RecordedLaunch(self._kernel, hi - lo, args, self._device, split=False))
+        return out
+
     def __call__(self):
+        if self._spec is not None:
+            from warpfem.threads import get_threads, run_chunks
+
+            threads = get_threads() if self._spec.when < 0 or self._inputs[self._spec.when] else 1
+            fresh = self._parts_for != threads
+            if fresh:  # (recorded here, in this thread, by their first runs below)
+                self._parts, self._parts_for = self._split_parts(threads), threads
+            if self._reduce is not None:
+                self._reduce[0].zero_()
+            if len(self._parts) > 1 and not fresh and not _cpu_capturing(self._device):
+                run_chunks(self._parts)
+            else:
+                for part in self._parts:
+                    part()
+            if self._reduce is not None:
+                self._reduce[4]()
+            return
         cmd = self._cmd
         if cmd is False:
             wp.launch(self._kernel, dim=self._dim, inputs=self._inputs, device=self._device)
@@ -239,23 +469,41 @@ class CapturedSequences:
             self.enabled = bool(dev.is_cpu)
         self._graphs: dict = {}
         self._seen: set = set()
+        self._split: set = set()  # keys whose sequence split launches across CPU threads (not captured)
+        self._threads = None
         self.captures = 0
         self.replays = 0
 
     def clear(self):
         self._graphs.clear()
         self._seen.clear()
+        self._split.clear()
 
     def run(self, key, fn):
         if key is None or not (self.enabled and CAPTURE_SEQUENCES) or getattr(self.device, "is_capturing", False):
             return fn()  # (inside a caller's own capture the launches go into that one)
+        if self.device.is_cpu:
+            from warpfem.threads import get_threads
+
+            threads = get_threads()
+            if self._threads != threads:  # the thread count changed: which sequences split may too
+                self._threads = threads
+                self.clear()
+            if key in self._split:
+                return fn()
         entry = self._graphs.get(key)
         if entry is None:
             if key not in self._seen:
                 if len(self._seen) >= 16 * self.MAX_GRAPHS:
                     self._seen.clear()
                 self._seen.add(key)
-                return fn()
+                s0 = COUNTERS["split"]
+                out = fn()
+                if self.device.is_cpu and COUNTERS["split"] != s0:
+                    # launches split across CPU threads: a replayed graph would run them on one
+                    # thread, so this sequence is run as is every time
+                    self._split.add(key)
+                return out
             if len(self._graphs) >= self.MAX_GRAPHS:
                 self._graphs.clear()
             c0 = COUNTERS["launches"]

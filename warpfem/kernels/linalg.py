@@ -12,9 +12,14 @@ from typing import Any
 
 import warp as wp
 
-from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.generic import both_precisions, splittable
 
 wp.set_module_options({"enable_backward": False})
+
+# the fewest vector entries worth a CPU thread of their own (``kernels.generic.splittable``): an
+# element-wise pass costs a few ns per entry, a chunk's dispatch some microseconds
+_VIEW_MIN = 32768
+_REDUCE_MIN = 16384
 
 
 @wp.func
@@ -45,6 +50,7 @@ def bsr_masked_mv_kernel(
     y[i] = r
 
 
+@splittable("start", 2048)
 @both_precisions(values="m[]", x="v[]", alpha="s", y="v[]")
 @wp.kernel
 def bsr_mv_kernel(
@@ -54,9 +60,10 @@ def bsr_mv_kernel(
     x: wp.array(dtype=Any),
     alpha: Any,
     y: wp.array(dtype=Any),
+    start: int,
 ):
     """y += alpha A x (no mask)."""
-    i = wp.tid()
+    i = wp.tid() + start
     acc = x[i] - x[i]
     for p in range(offsets[i], offsets[i + 1]):
         acc += values[p] * x[columns[p]]
@@ -88,6 +95,7 @@ def block_jacobi_setup_kernel(
         inv_diag[i] = wp.diag(type(m)(one, one, one))
 
 
+@splittable("view", _VIEW_MIN)
 @both_precisions(M="m[]", x="v[]", y="v[]")
 @wp.kernel
 def block_apply_kernel(M: wp.array(dtype=Any), x: wp.array(dtype=Any), y: wp.array(dtype=Any)):
@@ -102,6 +110,7 @@ def dot_kernel(a: wp.array(dtype=Any), b: wp.array(dtype=Any), out: wp.array(dty
     wp.atomic_add(out, 0, wp.float64(wp.dot(a[i], b[i])))
 
 
+@splittable("view", _VIEW_MIN)
 @both_precisions(alpha="s", x="v[]", y="v[]")
 @wp.kernel
 def axpy_kernel(alpha: Any, x: wp.array(dtype=Any), y: wp.array(dtype=Any)):
@@ -110,6 +119,7 @@ def axpy_kernel(alpha: Any, x: wp.array(dtype=Any), y: wp.array(dtype=Any)):
     y[i] = y[i] + alpha * x[i]
 
 
+@splittable("view", _VIEW_MIN)
 @both_precisions(x="v[]", beta="s", y="v[]")
 @wp.kernel
 def xpby_kernel(x: wp.array(dtype=Any), beta: Any, y: wp.array(dtype=Any)):
@@ -118,6 +128,7 @@ def xpby_kernel(x: wp.array(dtype=Any), beta: Any, y: wp.array(dtype=Any)):
     y[i] = x[i] + beta * y[i]
 
 
+@splittable("view", _VIEW_MIN)
 @both_precisions(a="s", x="v[]", b="s", y="v[]", out="v[]")
 @wp.kernel
 def lincomb_kernel(a: Any, x: wp.array(dtype=Any), b: Any, y: wp.array(dtype=Any), out: wp.array(dtype=Any)):
@@ -126,6 +137,7 @@ def lincomb_kernel(a: Any, x: wp.array(dtype=Any), b: Any, y: wp.array(dtype=Any
     out[i] = a * x[i] + b * y[i]
 
 
+@splittable("view", _VIEW_MIN)
 @both_precisions(mask="v[]", x="v[]")
 @wp.kernel
 def mask_kernel(mask: wp.array(dtype=Any), x: wp.array(dtype=Any)):
@@ -134,6 +146,7 @@ def mask_kernel(mask: wp.array(dtype=Any), x: wp.array(dtype=Any)):
     x[i] = cw_mul(mask[i], x[i])
 
 
+@splittable("view", _VIEW_MIN)
 @both_precisions(mask="v[]", free="v[]", fixed="v[]", out="v[]")
 @wp.kernel
 def select_kernel(mask: wp.array(dtype=Any), free: wp.array(dtype=Any), fixed: wp.array(dtype=Any), out: wp.array(dtype=Any)):
@@ -152,6 +165,7 @@ def scale_copy_kernel(src: wp.array(dtype=Any), a: Any, dst: wp.array(dtype=Any)
 
 both_precisions(src="v[]", a="s", dst="v[]")(scale_copy_kernel)
 both_precisions(src="m[]", a="s", dst="m[]")(scale_copy_kernel)
+splittable("view", _VIEW_MIN)(scale_copy_kernel)
 
 
 @wp.kernel
@@ -163,18 +177,21 @@ def add_scaled_kernel(src: wp.array(dtype=Any), a: Any, dst: wp.array(dtype=Any)
 
 both_precisions(src="v[]", a="s", dst="v[]")(add_scaled_kernel)
 both_precisions(src="m[]", a="s", dst="m[]")(add_scaled_kernel)
+splittable("view", _VIEW_MIN)(add_scaled_kernel)
 
 
+@splittable("reduce", _REDUCE_MIN, acc=3, slot=4, n_add=1)
 @both_precisions(a="v[]", b="v[]")
 @wp.kernel
 def dot_slot_kernel(a: wp.array(dtype=Any), b: wp.array(dtype=Any), alpha: wp.float64, acc: wp.array(dtype=wp.float64),
-                    slot: int):
+                    slot: int, start: int, row_block: int, row_stride: int):
     """acc[slot] += alpha a . b (float64): several reductions land in one small array that is read
-    back once."""
-    i = wp.tid()
-    wp.atomic_add(acc, slot, alpha * wp.float64(wp.dot(a[i], b[i])))
+    back once (in rows of partial sums on the CPU: ``kernels.generic.splittable``)."""
+    i = wp.tid() + start
+    wp.atomic_add(acc, slot + (i // row_block) * row_stride, alpha * wp.float64(wp.dot(a[i], b[i])))
 
 
+@splittable("reduce", 2048, acc=7, slot=8, n_add=1)
 @both_precisions(values="m[]", x="v[]", x0="v[]", alpha="s", y="v[]")
 @wp.kernel
 def bsr_diff_mv_kernel(
@@ -189,10 +206,13 @@ def bsr_diff_mv_kernel(
     slot: int,
     want_gradient: int,
     want_energy: int,
+    start: int,
+    row_block: int,
+    row_stride: int,
 ):
     """With r = A (x - x0): y += alpha r (want_gradient) and acc[slot] += alpha/2 (x - x0) . r
     (want_energy, float64): a quadratic term's gradient or energy in one pass."""
-    i = wp.tid()
+    i = wp.tid() + start
     acc_r = x[i] - x[i]
     for p in range(offsets[i], offsets[i + 1]):
         j = columns[p]
@@ -200,33 +220,69 @@ def bsr_diff_mv_kernel(
     if want_gradient != 0:
         y[i] = y[i] + alpha * acc_r
     if want_energy != 0:
-        wp.atomic_add(acc, slot, wp.float64(0.5) * wp.float64(alpha * wp.dot(x[i] - x0[i], acc_r)))
+        wp.atomic_add(acc, slot + (i // row_block) * row_stride,
+                      wp.float64(0.5) * wp.float64(alpha * wp.dot(x[i] - x0[i], acc_r)))
 
 
+@splittable("reduce", _REDUCE_MIN, acc=4, slot=5, n_add=1)
 @both_precisions(g="v[]", fext="v[]", c="s", mask="v[]")
 @wp.kernel
 def gradient_finish_kernel(g: wp.array(dtype=Any), fext: wp.array(dtype=Any), c: Any, mask: wp.array(dtype=Any),
-                           acc: wp.array(dtype=wp.float64), slot: int):
+                           acc: wp.array(dtype=wp.float64), slot: int, start: int, row_block: int, row_stride: int):
     """g = P (g - c f_ext) and acc[slot] += |g_i|^2 (float64)."""
-    i = wp.tid()
+    i = wp.tid() + start
     v = cw_mul(mask[i], g[i] - c * fext[i])
     g[i] = v
-    wp.atomic_add(acc, slot, wp.float64(wp.dot(v, v)))
+    wp.atomic_add(acc, slot + (i // row_block) * row_stride, wp.float64(wp.dot(v, v)))
 
 
+@splittable("reduce", _REDUCE_MIN, acc=6, slot=7, n_add=1, n_max=3)
 @both_precisions(g="v[]", d="v[]", y="v[]", xb="v[]", s="s")
 @wp.kernel
 def newton_check_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), y: wp.array(dtype=Any),
-                        xb: wp.array(dtype=Any), s: Any, use_xb: int, acc: wp.array(dtype=wp.float64), slot: int):
+                        xb: wp.array(dtype=Any), s: Any, use_xb: int, acc: wp.array(dtype=wp.float64), slot: int,
+                        start: int, row_block: int, row_stride: int):
     """acc[slot] += g . d; acc[slot+1..3] = max |d|, max |y|, max |x| (x = x_b + s y, or y without
     x_b): the descent test and the resolution of a Newton step in one pass."""
-    i = wp.tid()
-    wp.atomic_add(acc, slot, wp.float64(wp.dot(g[i], d[i])))
+    i = wp.tid() + start
+    r = slot + (i // row_block) * row_stride
+    wp.atomic_add(acc, r, wp.float64(wp.dot(g[i], d[i])))
     a = d[i]
-    wp.atomic_max(acc, slot + 1, wp.float64(wp.max(wp.max(wp.abs(a[0]), wp.abs(a[1])), wp.abs(a[2]))))
+    wp.atomic_max(acc, r + 1, wp.float64(wp.max(wp.max(wp.abs(a[0]), wp.abs(a[1])), wp.abs(a[2]))))
     b = y[i]
-    wp.atomic_max(acc, slot + 2, wp.float64(wp.max(wp.max(wp.abs(b[0]), wp.abs(b[1])), wp.abs(b[2]))))
+    wp.atomic_max(acc, r + 2, wp.float64(wp.max(wp.max(wp.abs(b[0]), wp.abs(b[1])), wp.abs(b[2]))))
     x = b
     if use_xb != 0:
         x = xb[i] + s * b
-    wp.atomic_max(acc, slot + 3, wp.float64(wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))))
+    wp.atomic_max(acc, r + 3, wp.float64(wp.max(wp.max(wp.abs(x[0]), wp.abs(x[1])), wp.abs(x[2]))))
+
+
+@wp.kernel
+def reduce_rows_kernel(part: wp.array(dtype=wp.float64), rows: int, width: int, n_add: int, n_max: int,
+                       acc: wp.array(dtype=wp.float64), slot: int):
+    """acc[slot + j] += part[0, j] + part[1, j] + ... for j < n_add, in row order; the maximum of
+    acc[slot + j] and the rows' for the next n_max, the minimum for the rest: the partial results of
+    a reduction split into blocks (``kernels.generic.launch``)."""
+    j = wp.tid()
+    v = acc[slot + j]
+    for r in range(rows):
+        if j < n_add:
+            v += part[r * width + j]
+        elif j < n_add + n_max:
+            v = wp.max(v, part[r * width + j])
+        else:
+            v = wp.min(v, part[r * width + j])
+    acc[slot + j] = v
+
+
+@wp.kernel
+def init_rows_kernel(part: wp.array(dtype=wp.float64), width: int, n_add: int, n_max: int):
+    """The rows of partial results before a reduction: 0 for sums, -inf for maxima, +inf for minima."""
+    t = wp.tid()
+    j = t % width
+    v = wp.float64(0.0)
+    if j >= n_add + n_max:
+        v = wp.float64(wp.inf)
+    elif j >= n_add:
+        v = -wp.float64(wp.inf)
+    part[t] = v

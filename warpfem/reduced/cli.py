@@ -98,6 +98,7 @@ def register(subparsers):
     p.add_argument("--retrain", action="store_true",
                    help="train even when the cache is up to date (default: reuse a cache that matches the scene)")
     p.add_argument("--device", default="cpu", help="Warp device for the training run: cpu, cuda, cuda:0, ... or auto (default cpu)")
+    _cli.add_threads_option(p)
     p.add_argument("--precision", choices=("float32", "float64"), default="float64")
     p.add_argument("--quiet", action="store_true", help="only the final report")
     p.add_argument("--verbose", action="store_true", help="show Warp's initialisation and compile messages")

@@ -357,11 +357,42 @@ class ElasticForm(Form):
     def read(self, row):
         return float(row[0]), float(row[1]), True
 
+    def _gather(self, qs, hessian=False):
+        """The gather-assembly maps and slot buffers of a point set (``kernels.fem.element_slot_maps``),
+        built on first use per set and pattern: (force offsets, entries, slots) and, with
+        ``hessian``, (block offsets, entries, slots)."""
+        group = getattr(qs, "group", 0)
+        bi = self.pattern.block_indices[group]
+        pts = qs.points
+        key = (id(pts), qs.count, _ptr(pts.element), _ptr(pts.elements), int(pts.k))
+        cache = self.__dict__.setdefault("_maps", {})
+        entry = cache.get(key)
+        if entry is None:
+            dev = self.ops.device
+            k = int(pts.k)
+            fo, fe = FK.element_slot_maps(pts.element.numpy(), pts.elements.numpy(), k, num_vertices=self.ops.n)
+            if len(cache) > 4 * len(self.qp_sets) + 4:  # point sets replaced since: drop the old maps
+                cache.clear()
+            entry = cache[key] = {"k": k, "points": pts, "force": (wp.array(fo, dtype=wp.int32, device=dev),
+                                                                   wp.array(fe, dtype=wp.int32, device=dev),
+                                                                   wp.zeros(qs.count * k, dtype=self.ops.vec, device=dev))}
+        if hessian and entry.get("blocks_of") != (_ptr(bi), self.pattern.nnz):
+            dev, k = self.ops.device, entry["k"]
+            _, _, bo, be = FK.element_slot_maps(pts.element.numpy(), pts.elements.numpy(), k, bi.numpy(),
+                                                num_vertices=self.ops.n, nnz=self.pattern.nnz)
+            entry["blocks"] = (wp.array(bo, dtype=wp.int32, device=dev), wp.array(be, dtype=wp.int32, device=dev),
+                               wp.zeros(qs.count * k * (k + 1) // 2, dtype=self.ops.mat, device=dev))
+            entry["blocks_of"] = (_ptr(bi), self.pattern.nnz)
+        return entry
+
     def gradient(self, y, x, scale, g, acc):
         fa, dev = self._fa, self.ops.device
         fa.zero_()
         for qs in self.qp_sets:
-            launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(-scale), g, fa], dev)
+            off, ent, slots = self._gather(qs)["force"]
+            launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(-scale), slots,
+                                                          slots, 1], dev)
+            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, g, fa, 1], dev)
         launch(LK.dot_slot_kernel, self.ops.n, [fa, fa, _F64_ONE, acc, self.acc_slot + 2], dev)
 
     def gradient_magnitude(self, row, scale):
@@ -381,10 +412,12 @@ class ElasticForm(Form):
     def assemble(self, x, scale, values, project=None):
         """values += scale d2V/dx2 at x (SPD-projected per point if ``project``, default the options')."""
         project = self.options.project_hessian if project is None else project
+        dev = self.ops.device
         for qs in self.qp_sets:
+            off, ent, slots = self._gather(qs, hessian=True)["blocks"]
             launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(scale), int(project),
-                                                    self.pattern.block_indices[getattr(qs, "group", 0)], values],
-                   self.ops.device)
+                                                    self.pattern.block_indices[getattr(qs, "group", 0)], slots, 1], dev)
+            launch(FK.gather_blocks_kernel, off.shape[0] - 1, [off, ent, slots, values], dev)
 
 
 def _capture_key(form):

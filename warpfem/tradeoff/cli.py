@@ -160,6 +160,7 @@ def register(subparsers):
                    help="'quick' (one knob at a time, default), 'full' (products) or a grid .toml file")
     p.add_argument("--frames", type=int, default=None, help="output frames per run (default: grid's, else the scene's)")
     p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... or auto (default cpu)")
+    _cli.add_threads_option(p)
     p.add_argument("--json", default=None, metavar="OUT.json", help="write every measurement as JSON")
     p.add_argument("--markdown", default=None, metavar="OUT.md", help="write the table as markdown")
     p.add_argument("--plot", default=None, metavar="OUT.png", help="Pareto plot, error vs time (needs matplotlib)")
@@ -295,6 +296,7 @@ def register_tune(subparsers):
     p.add_argument("--tip-point", type=float, nargs=3, metavar=("X", "Y", "Z"), default=None,
                    help="rest position (m) of the tip (default: free vertex of max displacement)")
     p.add_argument("--device", default="cpu", help="Warp device: cpu, cuda, cuda:0, ... or auto (default cpu)")
+    _cli.add_threads_option(p)
     add_cluster_args(p)
     p.add_argument("--quiet", action="store_true", help="no progress lines")
     p.add_argument("--verbose", action="store_true", help="show Warp's messages")

@@ -53,7 +53,7 @@ import numpy as np
 import warp as wp
 import warp.sparse as wsp
 
-from warpfem.kernels.generic import RecordedLaunch, both_precisions
+from warpfem.kernels.generic import RecordedLaunch, both_precisions, splittable
 from warpfem.model import rigid_body_modes
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult, numpy_global_seed, require
 from warpfem.solvers.linear.pcg import (_NEGATIVE, _NONFINITE, _RUNNING, _pcg_carry_kernel, _pcg_direction_kernel,
@@ -160,6 +160,9 @@ def _scale_kernel(src: wp.array(dtype=Any), a: Any, dst: wp.array(dtype=Any)):
     dst[t] = a * src[t]
 
 
+splittable("view", 32768)(_scale_kernel)
+
+
 @both_precisions(d="s[]", x="s[]")
 @wp.kernel
 def _add_kernel(d: wp.array(dtype=Any), x: wp.array(dtype=Any)):
@@ -167,12 +170,15 @@ def _add_kernel(d: wp.array(dtype=Any), x: wp.array(dtype=Any)):
     x[t] = x[t] + d[t]
 
 
+splittable("view", 32768)(_add_kernel)
+
+
 @wp.kernel
 def _bsr_block_mv_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
                          values: wp.array(dtype=Any), x: wp.array(dtype=Any), alpha: Any, f: wp.array(dtype=Any),
-                         beta: Any, y: wp.array(dtype=Any)):
-    """y = alpha A x + beta f, one thread per block row (f may be y)."""
-    i = wp.tid()
+                         beta: Any, y: wp.array(dtype=Any), start: int):
+    """y = alpha A x + beta f, one thread per block row (f may be y); ``start``: the first row."""
+    i = wp.tid() + start
     fi = f[i]
     acc = fi - fi
     for q in range(offsets[i], offsets[i + 1]):
@@ -189,10 +195,12 @@ def _block_mv_overloads():
             wp.overload(_bsr_block_mv_kernel, {
                 "offsets": wp.array(dtype=wp.int32), "columns": wp.array(dtype=wp.int32),
                 "values": wp.array(dtype=wp.types.matrix(shape=(bi, bj), dtype=s)), "x": wp.array(dtype=vec[bj]),
-                "alpha": s, "f": wp.array(dtype=vec[bi]), "beta": s, "y": wp.array(dtype=vec[bi])})
+                "alpha": s, "f": wp.array(dtype=vec[bi]), "beta": s, "y": wp.array(dtype=vec[bi]), "start": int})
 
 
 _block_mv_overloads()
+# split across CPU threads (``kernels.generic.splittable``): row-wise and element-wise, no reductions
+splittable("start", 256)(_bsr_block_mv_kernel)
 
 
 def _block_overloads():
@@ -208,6 +216,8 @@ def _block_overloads():
 
 
 _block_overloads()
+splittable("view", 8192)(_cheb_start_kernel)
+splittable("view", 8192)(_cheb_step_kernel)
 
 
 @wp.kernel
@@ -220,6 +230,7 @@ def _convert_kernel(src: wp.array(dtype=Any), dst: wp.array(dtype=Any)):
 
 wp.overload(_convert_kernel, {"src": wp.array(dtype=wp.float64), "dst": wp.array(dtype=wp.float32)})
 wp.overload(_convert_kernel, {"src": wp.array(dtype=wp.float32), "dst": wp.array(dtype=wp.float64)})
+splittable("view", 32768)(_convert_kernel)
 
 
 @both_precisions(M="s[,]", x="s[]", y="s[]")
@@ -237,13 +248,13 @@ def _dense_mv_kernel(M: wp.array2d(dtype=Any), x: wp.array(dtype=Any), y: wp.arr
 @both_precisions(b="s[]", x="s[]", r="s[]")
 @wp.kernel
 def _mg_init_kernel(b: wp.array(dtype=Any), x: wp.array(dtype=Any), r: wp.array(dtype=Any),
-                    rr: wp.array(dtype=wp.float64), slot: int):
+                    rr: wp.array(dtype=wp.float64), slot: int, start: int, row_block: int, row_stride: int):
     """x = 0, r = b, rr[slot] += b.b."""
-    t = wp.tid()
+    t = wp.tid() + start
     bt = b[t]
     x[t] = bt - bt
     r[t] = bt
-    wp.atomic_add(rr, slot, wp.float64(bt * bt))
+    wp.atomic_add(rr, slot + (t // row_block) * row_stride, wp.float64(bt * bt))
 
 
 @both_precisions(x="s[]", r="s[]", z="s[]", p="s[]", Ap="s[]")
@@ -251,10 +262,10 @@ def _mg_init_kernel(b: wp.array(dtype=Any), x: wp.array(dtype=Any), r: wp.array(
 def _mg_update_kernel(x: wp.array(dtype=Any), r: wp.array(dtype=Any), z: wp.array(dtype=Any), p: wp.array(dtype=Any),
                       Ap: wp.array(dtype=Any), status: wp.array(dtype=wp.int32), iters: wp.array(dtype=wp.int32),
                       rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64), pap: wp.array(dtype=wp.float64),
-                      j: int):
+                      j: int, start: int, row_block: int, row_stride: int):
     """alpha = rz/pAp; x += alpha p; r -= alpha Ap; rr[j+1] accumulated (z comes from the V-cycle
     next). With non-positive curvature on the first iteration, x = z."""
-    t = wp.tid()
+    t = wp.tid() + start
     if status[j] != int(_RUNNING):
         return
     a = pap[j]
@@ -267,16 +278,17 @@ def _mg_update_kernel(x: wp.array(dtype=Any), r: wp.array(dtype=Any), z: wp.arra
     x[t] = xt + alpha * p[t]
     rt = r[t] - alpha * Ap[t]
     r[t] = rt
-    wp.atomic_add(rr, j + 1, wp.float64(rt * rt))
+    wp.atomic_add(rr, j + 1 + (t // row_block) * row_stride, wp.float64(rt * rt))
 
 
 @both_precisions(r="s[]", z="s[]", mask="s[]", p="s[]")
 @wp.kernel
 def _mg_precond_finish_kernel(r: wp.array(dtype=Any), z: wp.array(dtype=Any), mask: wp.array(dtype=Any),
                               p: wp.array(dtype=Any), status: wp.array(dtype=wp.int32),
-                              pap: wp.array(dtype=wp.float64), rz: wp.array(dtype=wp.float64), j: int, init: int):
+                              pap: wp.array(dtype=wp.float64), rz: wp.array(dtype=wp.float64), j: int, init: int,
+                              start: int, row_block: int, row_stride: int):
     """z = P z + (I - P) r; rz[slot] += r.z (slot j+1 after an update, j at the start, where also p = z)."""
-    t = wp.tid()
+    t = wp.tid() + start
     slot = j
     if init == 0:
         if status[j] != int(_RUNNING):
@@ -291,7 +303,13 @@ def _mg_precond_finish_kernel(r: wp.array(dtype=Any), z: wp.array(dtype=Any), ma
     z[t] = zt
     if init != 0:
         p[t] = zt
-    wp.atomic_add(rz, slot, wp.float64(rt * zt))
+    wp.atomic_add(rz, slot + (t // row_block) * row_stride, wp.float64(rt * zt))
+
+
+# split across CPU threads by their recorded launches (``RecordedLaunch``): rows of partial sums
+splittable("reduce", 8192, acc=3, slot=4)(_mg_init_kernel)
+splittable("reduce", 8192, acc=8, slot=10)(_mg_update_kernel)
+splittable("reduce", 8192, acc=6, slot=7)(_mg_precond_finish_kernel)
 
 
 def _chebyshev_coefficients(degree: int, lower: float, upper: float = 1.0):

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from warpfem.kernels.generic import COUNTERS, both_precisions
+from warpfem.kernels.generic import COUNTERS, RecordedLaunch, both_precisions, splittable
 from warpfem.kernels.linalg import cw_mul
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
 from warpfem.transfer import read, strict_device
@@ -99,9 +99,10 @@ def _pcg_carry_kernel(rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.floa
 def _pcg_matvec_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtype=wp.int32),
                        values: wp.array(dtype=Any), mask: wp.array(dtype=Any), p: wp.array(dtype=Any),
                        Ap: wp.array(dtype=Any), status: wp.array(dtype=wp.int32),
-                       pap: wp.array(dtype=wp.float64), j: int):
-    """Ap = (P A P + I - P) p and pap[j] += p.Ap, while running."""
-    i = wp.tid()
+                       pap: wp.array(dtype=wp.float64), j: int, start: int, row_block: int, row_stride: int):
+    """Ap = (P A P + I - P) p and pap[j] += p.Ap, while running (rows of partial sums:
+    ``kernels.generic.splittable``)."""
+    i = wp.tid() + start
     if status[j] != int(_RUNNING):
         return
     pi = p[i]
@@ -112,7 +113,7 @@ def _pcg_matvec_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
     m = mask[i]
     y = cw_mul(m, acc) + pi - cw_mul(m, pi)
     Ap[i] = y
-    wp.atomic_add(pap, j, wp.float64(wp.dot(pi, y)))
+    wp.atomic_add(pap, j + (i // row_block) * row_stride, wp.float64(wp.dot(pi, y)))
 
 
 @both_precisions(inv_diag="m[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]")
@@ -149,10 +150,11 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
                           iters: wp.array(dtype=wp.int32), rz: wp.array(dtype=wp.float64),
                           rr: wp.array(dtype=wp.float64), pap: wp.array(dtype=wp.float64),
                           bb: wp.array(dtype=wp.float64), tol2: wp.array(dtype=wp.float64),
-                          maxiter: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.float64), j: int):
+                          maxiter: wp.array(dtype=wp.int32), report: wp.array(dtype=wp.float64), j: int,
+                          start: int):
     """Stopping test on the device; p = z + beta p while running. Thread 0 writes slot j+1's
     status and iteration count and the report the host reads."""
-    i = wp.tid()
+    i = wp.tid() + start
     st = status[j]
     it = iters[j]
     res2 = rr[j]
@@ -181,6 +183,11 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
         report[1] = wp.float64(it)
         report[2] = res2
         report[3] = bb[0]
+
+
+# the recorded launches of the multigrid's CG split these across CPU threads (``RecordedLaunch``)
+splittable("reduce", 2048, acc=7, slot=8)(_pcg_matvec_kernel)
+splittable("start", 8192)(_pcg_direction_kernel)
 
 
 @both_precisions(values="m[]", mask="v[]", inv_diag="m[]", b="v[]", x="v[]", r="v[]", z="v[]", p="v[]", Ap="v[]",
@@ -268,6 +275,17 @@ def _pcg_serial_kernel(offsets: wp.array(dtype=wp.int32), columns: wp.array(dtyp
     report[3] = bb
 
 
+#: on a CPU with at least ``SPLIT_CORES`` cores (``warpfem.threads.available_cores``: a property of
+#: the machine, not of the thread count asked for), systems of at least ``SPLIT_ROWS`` block rows are
+#: solved with launches split across CPU threads (``cpu_serial`` asked for: the split path instead
+#: of the one-thread launch). Its sums are rows of partial sums, so its numbers do not depend on the
+#: thread count. On one thread it is ~1.5x slower than the serial launch (measured at 5k and 19k
+#: rows, kernels_bench/bench_threads.py's notes in docs/benchmarks.md), hence only where there are
+#: cores to win that back.
+SPLIT_ROWS = 16384
+SPLIT_CORES = 4
+
+
 class DevicePCG(LinearSolver):
     """Block-Jacobi PCG with device-side scalars and a host check every ``check_every`` iterations.
 
@@ -281,7 +299,10 @@ class DevicePCG(LinearSolver):
         cpu_serial: on the CPU, run the whole solve as one launch of one thread
             (``_pcg_serial_kernel``: the same iterations in the same order, one read-back per
             solve, no no-op iterations past convergence; the simulators turn it on, see
-            ``linear.auto.simulator_options``). Ignored on CUDA and in strict device mode.
+            ``linear.auto.simulator_options``). Ignored on CUDA and in strict device mode. From
+            ``SPLIT_ROWS`` block rows on a machine of ``SPLIT_CORES`` cores or more, the CPU solve is
+            instead a loop of launches split across CPU threads
+            (``cpu_split``: the multigrid's CG with the block-Jacobi step, ``warpfem.threads``).
     """
 
     name = "pcg"
@@ -294,13 +315,20 @@ class DevicePCG(LinearSolver):
         self.use_cuda_graph = bool(use_cuda_graph)
         # strict device mode: the CPU runs the CUDA path (chunks, captured as a graph)
         strict = strict_device()
-        self.cpu_serial = bool(cpu_serial) and not pattern.device.is_cuda and not strict
+        self._serial_asked = bool(cpu_serial) and not pattern.device.is_cuda and not strict
+        self.cpu_serial = self._serial_asked
+        self.cpu_split = False
         self._graphs_on = self.use_cuda_graph and (pattern.device.is_cuda or strict)
         super().__init__(pattern, vec_type=vec_type, scalar=scalar)
 
     def _analyse(self, pattern):
         n, dev, k = pattern.num_rows, self.device, self.check_every
         vec = self.vec_type
+        from warpfem.threads import available_cores
+
+        self.cpu_split = self._serial_asked and n >= SPLIT_ROWS and available_cores() >= SPLIT_CORES
+        self.cpu_serial = self._serial_asked and not self.cpu_split
+        self._split_cmds, self._split_key = None, None
         self.b = wp.zeros(n, dtype=vec, device=dev)
         self.x = wp.zeros(n, dtype=vec, device=dev)
         self.r = wp.zeros(n, dtype=vec, device=dev)
@@ -348,13 +376,13 @@ class DevicePCG(LinearSolver):
             cmds = [self._record(_pcg_carry_kernel, 1, [self._rz, self._rr, self._pap, self._status, self._iters, k])]
             for j in range(k):
                 cmds.append(self._record(_pcg_matvec_kernel, n, [pt.offsets, pt.columns, values, mask, self.p, self.Ap,
-                                                                 self._status, self._pap, j]))
+                                                                 self._status, self._pap, j, 0, max(n, 1), 0]))
                 cmds.append(self._record(_pcg_update_kernel, n, [self.inv_diag, self.x, self.r, self.z, self.p, self.Ap,
                                                                  self._status, self._iters, self._rz, self._rr,
                                                                  self._pap, j]))
                 cmds.append(self._record(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz,
                                                                     self._rr, self._pap, self._bb, self._tol2,
-                                                                    self._maxiter, self._report, j]))
+                                                                    self._maxiter, self._report, j, 0]))
             self._chunk_cmds, self._chunk_key = cmds, key
             self._graph = None
         return self._chunk_cmds
@@ -371,9 +399,46 @@ class DevicePCG(LinearSolver):
         self._serial_cmd.launch()
         COUNTERS["launches"] += 1
 
+    def _split_commands(self):
+        """The CPU split path's launches (``cpu_split``), recorded once per (values, mask) arrays:
+        the CG of the multigrid solver (``linear.multigrid``: flat vectors, rows of partial sums)
+        with z = M^-1 r by the block-Jacobi inverse."""
+        key = (self._values.ptr, self._mask.ptr, self.inv_diag.ptr)
+        if self._split_key != key:
+            from warpfem.kernels import linalg as LK
+            from warpfem.solvers.linear.multigrid import _mg_init_kernel, _mg_precond_finish_kernel, _mg_update_kernel
+
+            pt, n, k, dev = self.pattern, self.num_rows, self.check_every, self.device
+            R = lambda kern, dim, inputs: RecordedLaunch(kern, dim, inputs, dev)  # noqa: E731
+            flat = lambda a: a.view(self.scalar).flatten()  # noqa: E731
+            bf, xf, rf, zf, pf, Apf, mf = map(flat, (self.b, self.x, self.r, self.z, self.p, self.Ap, self._mask))
+            precond = R(LK.block_apply_kernel, n, [self.inv_diag, self.r, self.z])
+            start = [R(_mg_init_kernel, 3 * n, [bf, xf, rf, self._rr, k]),
+                     R(_pcg_start_kernel, 1, [self._rr, self._status, self._iters, self._bb, self._report, k]),
+                     precond,
+                     R(_mg_precond_finish_kernel, 3 * n, [rf, zf, mf, pf, self._status, self._pap, self._rz, k, 1])]
+            chunk = [R(_pcg_carry_kernel, 1, [self._rz, self._rr, self._pap, self._status, self._iters, k])]
+            for j in range(k):
+                chunk += [R(_pcg_matvec_kernel, n, [pt.offsets, pt.columns, self._values, self._mask, self.p, self.Ap,
+                                                    self._status, self._pap, j]),
+                          R(_mg_update_kernel, 3 * n, [xf, rf, zf, pf, Apf, self._status, self._iters, self._rz,
+                                                       self._rr, self._pap, j]),
+                          precond,
+                          R(_mg_precond_finish_kernel, 3 * n, [rf, zf, mf, pf, self._status, self._pap, self._rz, j, 0]),
+                          R(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz, self._rr,
+                                                       self._pap, self._bb, self._tol2, self._maxiter, self._report, j])]
+            self._split_cmds, self._split_key = (start, chunk), key
+        return self._split_cmds
+
     def _launch_start(self):
         self._rz.zero_()
         self._rr.zero_()
+        if self.cpu_split:
+            cmds = self._split_commands()[0]
+            for c in cmds:
+                c()
+            COUNTERS["launches"] += len(cmds)
+            return
         cmds = self._start_commands()
         for c in cmds:
             c.launch()
@@ -381,6 +446,13 @@ class DevicePCG(LinearSolver):
 
     def _run_chunk(self):
         dev = self.device
+        if self.cpu_split:
+            cmds = self._split_commands()[1]
+            for c in cmds:
+                c()
+            COUNTERS["launches"] += len(cmds)
+            self._chunk_runs += 1
+            return
         cmds = self._chunk_commands()
         COUNTERS["launches"] += len(cmds)  # a replayed graph counts as its launches
         if self._graphs_on:
