@@ -102,8 +102,10 @@ def test_dirty_surface_goes_to_tetwild_with_a_warning_naming_the_defect():
     msgs = [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
     assert any("statue.obj: the surface intersects itself" in m and "TetWild" in m for m in msgs), msgs
     info = mesh.tetrahedralization
-    assert info.mesher == "tetwild" and "intersects itself" in info.extra["dirty"]
-    assert mesh.num_elements <= 1.5 * 1500
+    assert "intersects itself" in info.extra["dirty"]
+    # TetWild's count was off by more than 10 %: TetGen re-meshed TetWild's (clean) boundary to the target
+    assert abs(mesh.num_elements / 1500 - 1.0) <= T.TARGET_TOLERANCE, mesh.num_elements
+    assert (info.mesher, info.extra.get("remeshed_from")) in (("tetwild", None), ("tetgen", "tetwild"))
     # the union of the two cubes: 2 - 0.5 * 0.7 * 0.8 (TetWild meshes what the surface encloses)
     assert mesh.total_volume() == pytest.approx(2.0 - 0.28, rel=2e-3)
 
