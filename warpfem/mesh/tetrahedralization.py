@@ -692,11 +692,12 @@ def _off(n, target):
     return abs(n / target - 1.0)
 
 
-def _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, tries=TARGET_TRIES, clean=True):
+def _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, tries=TARGET_TRIES, clean=True, as_is=False):
     """TetGen meshes of ``V, F`` decimated to the triangle size of the edge bound, the bound corrected
     until the count is within TARGET_TOLERANCE of ``target``. Returns (nodes, tets, L, faces, history)
     of the closest, or None when no clean decimation exists (first try). ``clean=False``: ``V, F``
-    itself is not clean (only its decimations may be meshed)."""
+    itself is not clean (only its decimations may be meshed); ``as_is=True``: when no decimation is
+    clean, ``V, F`` itself is meshed (a coarse surface: TetWild's boundary)."""
     best, history = None, []
     for k in range(tries):
         faces = _faces_for_edge(area, L)
@@ -705,6 +706,8 @@ def _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, tries=TAR
         else:
             with stages.stage(f"decimating {len(F)} to about {faces} triangles (quadric edge collapse)"):
                 surf = _simplified(V, F, faces, name, edge=L)
+            if surf is None and as_is and clean:
+                surf = (V, F)
         if surf is None:
             if best is None:
                 return None
@@ -736,7 +739,7 @@ def _tetwild_to_target(V, F, target, opts, diag, L, stages, tries):
     for k in range(tries):
         run = dict(opts, mesher="tetwild", max_edge_length=L)
         with stages.stage(f"TetWild: meshing {len(F)} triangles, ideal edge {L:.4g} (mesh {k + 1} of at most {tries}; "
-                          "tens of seconds)"):
+                          "one native call, typically 15-60 s, silent until it ends)"):
             nodes, tets = _run_tetwild(V, F, run, diag, **TETWILD_COARSE)
         n = len(tets)
         history.append((L, n))
@@ -794,10 +797,15 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
     stages = Stages(f"meshing {os.path.basename(name) if name else 'a surface'}")
     dirty = ""
     n_in = len(np.asarray(faces))
+    # a surface that will be decimated for target_tets: its decimation is checked for crossings (what
+    # the mesher sees), the input only for the rest (the crossing test is most of a 100k-triangle check)
+    decimated_ahead = (max_edge_length is None and opts["target_tets"] is not None and opts["mesher"] == "tetgen"
+                       and OWN_RESOLUTION_TETS_PER_FACE * n_in > 2.0 * opts["target_tets"])
     if check:
         try:
-            with stages.stage(f"checking the {n_in}-triangle surface (closed, manifold, no self-intersection)"):
-                V, F = check_surface(vertices, faces, name=name)
+            with stages.stage(f"checking the {n_in}-triangle surface (closed, manifold"
+                              + (")" if decimated_ahead else ", no self-intersection)")):
+                V, F = check_surface(vertices, faces, name=name, self_intersections=not decimated_ahead)
         except DirtySurface as exc:
             if requested != "auto":
                 raise
@@ -931,7 +939,7 @@ def _coarse_mesh(V, F, vol, area, diag, target, opts, requested, dirty, name, st
         return nodes, tets, L
     barea = _enclosed_volume_and_area(bV, bF)[1]
     got = _tetgen_to_target(bV, bF, barea, target, opts, diag, name, _edge_for_tets("tetgen", vol, target), stages,
-                            tries=TARGET_TRIES - 1)
+                            tries=TARGET_TRIES - 1, as_is=True)
     if got is None or _off(len(got[1]), target) >= _off(len(tets), target):
         return nodes, tets, L
     nodes, tets, L, faces, history2 = got

@@ -137,6 +137,7 @@ class _SceneBodies:
             lines.append(f"  vtu: {out['vtu']} (ParaView collection, one block per body)")
         for prec, b in memory.items():
             lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz_total} 3x3 matrix blocks)")
+        lines += self._cost_lines()
         return "\n".join(lines)
 
 
@@ -348,6 +349,34 @@ class Scene(_SceneBodies):
                                         for k in ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity"))
                 + (" ([contact] defaults: several bodies)" if self.spec.contact is None else "") + " (docs/contact.md)"]
 
+    def cost_estimate(self) -> dict | None:
+        """The estimated seconds per frame and for the run, with its basis
+        (:func:`warpfem.scenes.cost.estimate_frame_cost`: steps per frame, Newton iterations, a
+        per-iteration CPU cost by vertex count, a contact factor); None for a reduced run
+        (``[subspace]``), which it does not model."""
+        from . import INTEGRATORS
+        from .cost import estimate_frame_cost
+
+        sp = self.spec
+        if getattr(sp, "subspace", None) is not None:
+            return None
+        integ = sp.integrator
+        steps = int(integ["substeps"]) if INTEGRATORS[self.integrator_type].dynamic else int(integ.get("load_steps", 1))
+        contact = bool(sp.collider) or sp.contact is not None or len(sp.bodies or ()) >= 2
+        return estimate_frame_cost(vertices=self.mesh().num_vertices, steps_per_frame=steps, frames=int(sp.output["frames"]),
+                                   contact=contact, newton=self.integrator_type != "stiffness_warping")
+
+    def _cost_lines(self) -> list[str]:
+        from warpfem.progress import format_duration
+
+        c = self.cost_estimate()
+        if c is None:
+            return ["estimated cost: not estimated for a reduced run ([subspace])"]
+        per = c["seconds_per_frame"]
+        return [f"estimated cost (CPU, float64): {per:.3g} s per frame, {format_duration(c['seconds_total'])} for "
+                f"{self.spec.output['frames']} frames (within about {c['stated_factor']:g}x either way; not counting "
+                f"kernel compilation on a first run; {c['basis']})"]
+
     def describe(self, *, precision: str = "float64") -> str:
         """What :meth:`build` will build: counts, selections, integrator, outputs and memory."""
         from . import INTEGRATORS
@@ -444,6 +473,7 @@ class Scene(_SceneBodies):
                                        block_nnz=nnz, precision=prec, surface_points=p, weights_per_point=k,
                                        stiffness_damping=sp.integrator.get("damping_stiffness", 0.0) > 0)
             lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz} 3x3 matrix blocks)")
+        lines += self._cost_lines()
         return "\n".join(lines)
 
     def linear_solver_plan(self) -> dict | None:
@@ -595,6 +625,7 @@ class Scene(_SceneBodies):
                         "vtu": out.get("vtu")},
             "matrix_blocks": int(nnz),
             "estimated_device_memory_bytes": memory,
+            "estimated_cost": self.cost_estimate(),
         }
 
     @staticmethod
