@@ -67,11 +67,18 @@ def test_target_tets_on_a_noisy_subdivided_scan(tetgen):
     assert q > T.DECIMATION_MIN_QUALITY
 
 
-def test_target_tets_leaves_a_coarse_surface_at_its_own_resolution(tetgen, meshes_dir):
+def test_target_tets_refines_a_coarse_surface_unless_it_is_only_a_bound(tetgen, meshes_dir):
+    """The knight (1,000 triangles) gives 3,424 tets at its own resolution: a target of 8,000 refines
+    it (within 10 %); as an upper bound only (a scene's default target_tets) it keeps its own."""
     knight = meshes_dir / "decimated-knight.off"
     a = load_mesh(knight, cache=False)
-    b = load_mesh(knight, target_tets=25000, cache=False)
+    b = load_mesh(knight, target_tets=25000, cache=False, coarsen_only=True)
     assert a.num_elements == b.num_elements and "edge_length" not in b.tetrahedralization.extra
+    c = load_mesh(knight, target_tets=8000, cache=False)
+    assert abs(c.num_elements / 8000 - 1.0) <= 0.1, c.num_elements
+    assert c.tetrahedralization.extra["refined"] and "finer than the surface for target_tets = 8000" in \
+        c.tetrahedralization.describe()
+    assert c.total_volume() == pytest.approx(a.total_volume(), rel=1e-4)  # the surface kept: same volume
 
 
 def test_target_tets_is_validated():

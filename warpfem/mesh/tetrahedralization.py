@@ -67,7 +67,7 @@ FILL = {"tetgen": 3.0, "tetwild": 0.75}
 MAX_ESTIMATED_TETS = 20_000_000
 
 #: Bumped when the cache file layout or the meaning of an option changes.
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2  # 2: target_tets is a target (a coarser surface refined) unless coarsen_only
 
 _AREA_RTOL = 1e-14  # zero-area face: area <= _AREA_RTOL * bbox_diagonal**2
 
@@ -113,7 +113,8 @@ class Tetrahedralization:
             simple = self.extra.get("simulation_surface_faces")
             target = self.extra["target_tets"]
             tries = self.extra.get("meshes")
-            coarse = (f"; coarser than the surface for target_tets = {target}: {self.num_tets} tets "
+            how = "finer" if self.extra.get("refined") else "coarser"
+            coarse = (f"; {how} than the surface for target_tets = {target}: {self.num_tets} tets "
                       f"({100 * (self.num_tets / target - 1):+.1f} %"
                       + (f", {tries} mesh{'es' if tries != 1 else ''}" if tries else "") + "), edge bound "
                       f"{self.extra['edge_length']:.4g}" + (f", surface simplified to {simple} triangles" if simple else "")
@@ -354,8 +355,10 @@ def _self_intersections(V, F, diag):
 
 
 # ----------------------------------------------------------------------------- meshing
-def _resolve_options(max_edge_length=None, max_radius_edge_ratio=None, mesher=None, target_tets=None):
+def _resolve_options(max_edge_length=None, max_radius_edge_ratio=None, mesher=None, target_tets=None, coarsen_only=False):
     opts = dict(DEFAULTS)
+    if coarsen_only and target_tets is not None:  # only then (the options of other meshes print as before)
+        opts["coarsen_only"] = True
     if target_tets is not None:
         if isinstance(target_tets, bool) or not isinstance(target_tets, (int, np.integer)) or target_tets < 10:
             raise MeshError(f"target_tets must be an integer >= 10, got {target_tets!r}")
@@ -692,13 +695,15 @@ def _off(n, target):
     return abs(n / target - 1.0)
 
 
-def _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, tries=TARGET_TRIES, clean=True, as_is=False):
+def _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, tries=TARGET_TRIES, clean=True, as_is=False,
+                      seed=None):
     """TetGen meshes of ``V, F`` decimated to the triangle size of the edge bound, the bound corrected
     until the count is within TARGET_TOLERANCE of ``target``. Returns (nodes, tets, L, faces, history)
     of the closest, or None when no clean decimation exists (first try). ``clean=False``: ``V, F``
     itself is not clean (only its decimations may be meshed); ``as_is=True``: when no decimation is
-    clean, ``V, F`` itself is meshed (a coarse surface: TetWild's boundary)."""
-    best, history = None, []
+    clean, ``V, F`` itself is meshed (a coarse surface: TetWild's boundary). ``seed``: an (edge, count)
+    measured before (the surface's own resolution), the secant's first point."""
+    best, history = None, [seed] if seed else []
     for k in range(tries):
         faces = _faces_for_edge(area, L)
         if faces >= 0.9 * len(F):
@@ -729,10 +734,15 @@ def _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, tries=TAR
         if _off(n, target) <= TARGET_TOLERANCE or n == 0:
             break
         L = _next_edge(history, target)
-    return (*best, history)
+    return (*best, history[1:] if seed else history)
 
 
-def _tetwild_to_target(V, F, target, opts, diag, L, stages, tries):
+def _own_edge(vol, tets):
+    """The TetGen edge bound that would give ``tets`` tets (a mesh made without one, for the secant)."""
+    return _edge_for_tets("tetgen", vol, max(tets, 1))
+
+
+def _tetwild_to_target(V, F, target, opts, diag, L, stages, tries, settings=None):
     """TetWild meshes (coarse settings, TETWILD_COARSE) with the ideal edge corrected as in
     :func:`_tetgen_to_target`; returns (nodes, tets, L, history) of the closest."""
     best, history = None, []
@@ -740,7 +750,7 @@ def _tetwild_to_target(V, F, target, opts, diag, L, stages, tries):
         run = dict(opts, mesher="tetwild", max_edge_length=L)
         with stages.stage(f"TetWild: meshing {len(F)} triangles, ideal edge {L:.4g} (mesh {k + 1} of at most {tries}; "
                           "one native call, typically 15-60 s, silent until it ends)"):
-            nodes, tets = _run_tetwild(V, F, run, diag, **TETWILD_COARSE)
+            nodes, tets = _run_tetwild(V, F, run, diag, **(TETWILD_COARSE if settings is None else settings))
         n = len(tets)
         history.append((L, n))
         stages.note(f"{n} tets ({100 * (n / target - 1):+.1f} % of target_tets = {target})")
@@ -753,7 +763,7 @@ def _tetwild_to_target(V, F, target, opts, diag, L, stages, tries):
 
 
 def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
-                   target_tets=None, name=None, check=True):
+                   target_tets=None, name=None, check=True, coarsen_only=False):
     """Fill a closed triangle surface with tets; returns a Tet4 ``VolumeMesh``.
 
     Parameters
@@ -773,15 +783,18 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
         ``target_tets``, its clean decimation goes to TetGen first); otherwise the error says what
         is wrong and how to install it. A named mesher is used as asked.
     target_tets : int, optional
-        Used when ``max_edge_length`` is not given: a surface whose own resolution gives more tets
-        than this is meshed coarser, to ``target_tets`` within 10 % (``TARGET_TOLERANCE``).
+        Used when ``max_edge_length`` is not given: the mesh gets ``target_tets`` tets within 10 %
+        (``TARGET_TOLERANCE``). A surface whose own resolution gives more is meshed coarser.
         TetGen meshes the surface decimated (quadric edge collapse) to the triangle size of the
         edge bound expected to give ``target_tets``; the bound is then corrected from the counts
         measured (at most ``TARGET_TRIES`` meshes, the closest kept). When no clean decimation
         exists or the surface is dirty, TetWild meshes the decimated surface and, with ``auto``,
         TetGen re-meshes TetWild's boundary to the target. A surface whose own resolution gives
-        fewer tets keeps it. The input surface is not changed: embed it as the render surface
-        (scenes do so by default).
+        fewer tets is meshed finer (the edge bound corrected the same way), unless ``coarsen_only``.
+        The input surface is not changed: embed it as the render surface (scenes do so by default).
+    coarsen_only : bool
+        ``target_tets`` only bounds the count from above: a surface whose own resolution gives fewer
+        tets keeps it (what a scene does with its default ``target_tets``).
     name : used as the prefix of error messages and in the progress lines (a file name).
     check : run :func:`check_surface` first (default True).
 
@@ -792,7 +805,7 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
     from warpfem.progress import Stages
 
     requested = mesher if mesher is not None else "auto"
-    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets)
+    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets, coarsen_only)
     pre = f"{name}: " if name else ""
     stages = Stages(f"meshing {os.path.basename(name) if name else 'a surface'}")
     dirty = ""
@@ -855,6 +868,26 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
         if L is None and target is not None and len(tets) > (1.0 + TARGET_TOLERANCE) * target:
             stages.note(f"{len(tets)} tets at the surface's own resolution, more than target_tets = {target}: coarser")
             coarsen = True  # the own-resolution estimate was low
+        elif (L is None and target is not None and not coarsen_only
+              and len(tets) < (1.0 - TARGET_TOLERANCE) * target):
+            stages.note(f"{len(tets)} tets at the surface's own resolution, fewer than target_tets = {target}: finer")
+            L0 = _edge_for_tets(opts["mesher"], vol, target)
+            if opts["mesher"] == "tetgen":
+                got = _tetgen_to_target(V, F, area, target, opts, diag, name, L0, stages, clean=not dirty,
+                                        seed=(_own_edge(vol, len(tets)), len(tets)))
+                if got is not None and _off(len(got[1]), target) < _off(len(tets), target):
+                    nodes, tets, L, faces, history = got
+                    extra.update(refined=True, meshes=1 + len(history))
+                    if faces is not None:
+                        extra.update(simulation_surface_faces=int(faces))
+            else:
+                n0 = len(tets)
+                got = _tetwild_to_target(V, F, target, opts, diag, L0, stages, TARGET_TRIES - 1, settings={})
+                if _off(len(got[1]), target) < _off(n0, target):
+                    nodes, tets, L, history = got
+                    extra.update(refined=True, meshes=1 + len(history))
+    if extra.get("refined"):
+        extra.update(edge_length=float(L), target_tets=int(target))
     if coarsen:
         nodes, tets, L = _coarse_mesh(V, F, vol, area, diag, target, opts, requested, dirty, name, stages, extra)
     seconds = time.perf_counter() - t0
@@ -1025,7 +1058,7 @@ def _write_cache(path, mesh):
 
 
 def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None, cache=True,
-                        check=True, target_tets=None):
+                        check=True, target_tets=None, coarsen_only=False):
     """Read a surface file (.obj, .off, .ply, .stl, or any meshio file with triangles), check it and tetrahedralise it (see :func:`tetrahedralize`), through the cache.
 
     The cache key is a SHA-256 of the file bytes and the resolved options (mesher included), so
@@ -1035,7 +1068,7 @@ def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=Non
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"surface file not found: {path}")
-    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets)
+    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets, coarsen_only)
     with open(path, "rb") as f:
         data = f.read()
     entry = None
@@ -1055,7 +1088,8 @@ def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=Non
             return mesh
     V, F = read_surface(path)
     mesh = tetrahedralize(V, F, name=path, check=check, max_edge_length=max_edge_length,
-                          max_radius_edge_ratio=max_radius_edge_ratio, mesher=mesher, target_tets=target_tets)
+                          max_radius_edge_ratio=max_radius_edge_ratio, mesher=mesher, target_tets=target_tets,
+                          coarsen_only=coarsen_only)
     if entry is not None:
         _write_cache(entry, mesh)
         mesh.tetrahedralization.cache_path = entry

@@ -259,6 +259,8 @@ class Scene(_SceneBodies):
             try:  # a surface file is tetrahedralised (warpfem.mesh.tetrahedralize; cached)
                 tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher", "target_tets", "prim")
                          if m.get(k) is not None}
+                if m.get("target_tets_default"):  # the default is an upper bound; a value given is a target
+                    tetra["coarsen_only"] = True
                 mesh = load_mesh(path, inside_surface=m["inside_surface"], **tetra)
                 self._tetrahedralization = getattr(mesh, "tetrahedralization", None)
             except MeshError:
