@@ -119,3 +119,66 @@ def test_stages_heartbeat_during_a_long_stage():
     with st.stage("TetWild: meshing"):
         assert beat.wait(5.0)
     assert lines[0] == "x [0:00:00] TetWild: meshing" and "still TetWild: meshing" in lines[1]
+
+
+def _knight_scene(tmp_path, meshes_dir, extra=""):
+    import os
+
+    knight = os.path.relpath(meshes_dir / "decimated-knight.off", tmp_path)
+    path = tmp_path / "knight.toml"
+    path.write_text(f'gravity = [0.0, -9.81, 0.0]\n[mesh]\npath = "{knight}"\n{extra}\n[material]\nmodel = "stable_neo_hookean"\nyoungs_modulus = 2e5\npoisson_ratio = 0.3\n'
+                    '[[fixed]]\nbox_min = [-10.0, -10.0, -10.0]\nbox_max = [10.0, 0.1, 10.0]\n'
+                    '[[collider]]\ntype = "plane"\npoint = [0.0, -0.5, 0.0]\nnormal = [0.0, 1.0, 0.0]\n'
+                    '[output]\nfps = 24\nframes = 48\n')
+    return str(path)
+
+
+def test_describe_meshes_with_progress_on_stderr_unless_quiet(tetgen, meshes_dir, tmp_path, monkeypatch, capsys):
+    from warpfem.cli import main
+
+    scene = _knight_scene(tmp_path, meshes_dir)
+    assert main(["describe", scene]) == 0
+    out = capsys.readouterr()
+    stages = [line for line in out.err.splitlines() if line.startswith("meshing decimated-knight.off [")]
+    assert any("TetGen: meshing 1000 triangles at the surface's own resolution" in line for line in stages), out.err
+    assert "done: 3424 tets" in stages[-1]
+    assert "meshing " not in out.out and "estimated cost (CPU, float64): " in out.out
+    monkeypatch.setenv("WARPFEM_CACHE_DIR", str(tmp_path / "cache2"))  # meshes again, quietly
+    assert main(["describe", scene, "--quiet"]) == 0
+    out = capsys.readouterr()
+    assert "meshing " not in out.err and "3424 tets" in out.out
+
+
+def test_cost_estimate_follows_its_basis(tetgen, meshes_dir, tmp_path):
+    from warpfem.scenes import load_scene
+    from warpfem.scenes import cost as C
+
+    scene = load_scene(_knight_scene(tmp_path, meshes_dir))
+    c = scene.cost_estimate()
+    n = scene.mesh().num_vertices
+    per_iter = C.ITERATION_OVERHEAD_S + C.ITERATION_S_PER_VERTEX_POWER * n ** C.VERTEX_POWER
+    assert c["contact_factor"] == C.CONTACT_FACTOR  # a collider
+    assert c["seconds_per_frame"] == pytest.approx(1 * C.NEWTON_PER_STEP * per_iter * C.CONTACT_FACTOR)
+    assert c["seconds_total"] == pytest.approx(48 * c["seconds_per_frame"])
+    assert f"{n} vertices on a CPU x {C.CONTACT_FACTOR:g} for contact" in c["basis"]
+    # four steps per frame cost four times as much
+    scene4 = load_scene(_knight_scene(tmp_path, meshes_dir, extra="[integrator]\ndt = 0.010416666666666666"))
+    assert scene4.cost_estimate()["seconds_per_frame"] == pytest.approx(4 * c["seconds_per_frame"])
+    assert scene.summary()["estimated_cost"]["seconds_per_frame"] == c["seconds_per_frame"]
+
+
+def test_cost_estimate_iterations_hold_on_a_tiny_scene(tmp_path):
+    """The estimate's Newton iterations per frame are within its stated factor of a tiny beam's
+    (the seconds per iteration are a calibration, checked in kernels_bench/bench_cost_estimate.py)."""
+    from tiny_scenes import cli_beam_toml
+    from warpfem.scenes import load_scene
+    from warpfem.scenes.cost import STATED_FACTOR
+
+    path = tmp_path / "beam.toml"
+    path.write_text(cli_beam_toml(frames=3))
+    scene = load_scene(str(path))
+    est = scene.cost_estimate()
+    rows = []
+    scene.build(device="cpu", precision="float64").run(frames=3, progress=rows.append)
+    measured = np.mean([r.newton_iterations for r in rows])
+    assert 1.0 / STATED_FACTOR <= measured / est["newton_per_frame"] <= STATED_FACTOR, (measured, est)

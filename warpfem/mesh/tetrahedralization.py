@@ -465,7 +465,7 @@ def _quiet_stdout():
 
 def _run_tetwild(V, F, opts, diag, **settings):
     wm = _import_mesher("tetwild")
-    kw = {"max_threads": 1, **settings}  # one thread: its threads make the mesh differ run to run
+    kw = dict(settings)  # (TetWild's mesh differs slightly run to run, with one thread too: the cache keeps one)
     if opts["max_edge_length"] is not None:
         kw["edge_length_r"] = min(opts["max_edge_length"] / diag, 1.0)  # relative to the bbox diagonal
     try:
