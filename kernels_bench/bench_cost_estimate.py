@@ -51,7 +51,7 @@ def measure(path, frames):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=5)
+    ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--out", default=str(ROOT / "kernels_bench" / "results" / "cost_estimate"))
     args = ap.parse_args()
     import warp as wp

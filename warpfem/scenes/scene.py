@@ -376,8 +376,8 @@ class Scene(_SceneBodies):
             return ["estimated cost: not estimated for a reduced run ([subspace])"]
         per = c["seconds_per_frame"]
         return [f"estimated cost (CPU, float64): {per:.3g} s per frame, {format_duration(c['seconds_total'])} for "
-                f"{self.spec.output['frames']} frames (within about {c['stated_factor']:g}x either way; not counting "
-                f"kernel compilation on a first run; {c['basis']})"]
+                f"{self.spec.output['frames']} frames (rough: within {c['stated_factor']:g}x on typical scenes, more "
+                f"for hard contact or large rotations; no kernel compilation counted; {c['basis']})"]
 
     def describe(self, *, precision: str = "float64") -> str:
         """What :meth:`build` will build: counts, selections, integrator, outputs and memory."""
