@@ -545,11 +545,11 @@ def _tangential_relaxation(V, F, iterations):
 def _simplified(V, F, faces, name, edge=None):
     """The surface decimated to about ``faces`` triangles (quadric edge collapse, fast-simplification)
     and repaired (:func:`_repaired`), retried with 1.6, 0.7 and 2.56 times the faces while the result
-    is not clean; None when no decimation is clean.
+    is not clean; None when no decimation is clean. Each size is tried plain, then relaxed.
 
     With ``edge`` (the tet edge bound) a decimation must also pass ``DECIMATION_MIN_QUALITY``,
-    ``DECIMATION_MIN_EDGE`` and ``DECIMATION_MAX_VOLUME_CHANGE``. When no plain decimation does, the same decimations are relaxed
-    tangentially (3, then 10 sweeps) and the first relaxed surface that is clean and passes is
+    ``DECIMATION_MIN_EDGE`` and ``DECIMATION_MAX_VOLUME_CHANGE``. When a plain decimation does not, it
+    is relaxed tangentially (3, then 10 sweeps) and the first surface that is clean and passes is
     taken; when none passes, the clean candidate of best quality is kept."""
     fs = _fast_simplification(F, name)
     vol0 = _enclosed_volume_and_area(V, F)[0]
@@ -565,11 +565,11 @@ def _simplified(V, F, faces, name, edge=None):
         return decimations[k]
 
     best = None
-    for sweeps in (0, 3, 10) if edge is not None else (0,):
-        for k in range(4):
-            d = decimation(k)
-            if d is None:
-                break
+    for k in range(4):  # each size plain, then relaxed, before the next is made
+        d = decimation(k)
+        if d is None:
+            break
+        for sweeps in (0, 3, 10) if edge is not None else (0,):
             Vd, Fd = d
             Vc = _tangential_relaxation(Vd, Fd, sweeps) if sweeps else Vd
             try:
