@@ -680,15 +680,21 @@ def _faces_for_edge(area, L):
 
 
 def _next_edge(history, target):
-    """The next edge bound from the (edge, count) meshes so far: count ~ L^-b, b from the last two
-    meshes (clamped to [1.5, 6]; 3 after one mesh)."""
-    (L1, n1) = history[-1]
+    """The next edge bound from the (edge, count) meshes so far: count ~ L^-b from the mesh closest
+    to the target, b from the two closest (clamped to [1.5, 6]; 3 after one mesh, or when the
+    counts do not fall as the edge grows: a decimation of another size can do that)."""
+    ranked = sorted(history, key=lambda h: abs(math.log(max(h[1], 1) / target)))
+    (L1, n1) = ranked[0]
     b = 3.0
-    if len(history) >= 2:
-        L0, n0 = history[-2]
+    if len(ranked) >= 2:
+        L0, n0 = ranked[1]
         if n0 > 0 and n1 > 0 and n0 != n1 and abs(math.log(L1 / L0)) > 1e-6:
-            b = min(max(-math.log(n1 / n0) / math.log(L1 / L0), 1.5), 6.0)
-    return L1 * (max(n1, 1) / target) ** (1.0 / b)
+            slope = -math.log(n1 / n0) / math.log(L1 / L0)
+            b = min(max(slope, 1.5), 6.0) if slope > 0 else 3.0
+    L = L1 * (max(n1, 1) / target) ** (1.0 / b)
+    if any(abs(L / h[0] - 1.0) < 1e-3 for h in history):  # no new point: a smaller step from the best
+        L = L1 * (max(n1, 1) / target) ** (1.0 / 6.0)
+    return L
 
 
 def _off(n, target):
@@ -972,7 +978,7 @@ def _coarse_mesh(V, F, vol, area, diag, target, opts, requested, dirty, name, st
         return nodes, tets, L
     barea = _enclosed_volume_and_area(bV, bF)[1]
     got = _tetgen_to_target(bV, bF, barea, target, opts, diag, name, _edge_for_tets("tetgen", vol, target), stages,
-                            tries=TARGET_TRIES - 1, as_is=True)
+                            as_is=True)
     if got is None or _off(len(got[1]), target) >= _off(len(tets), target):
         return nodes, tets, L
     nodes, tets, L, faces, history2 = got
