@@ -41,6 +41,7 @@ def test_target_tets_is_met_within_ten_percent_on_the_bunny(tetgen, meshes_dir, 
     assert abs(m.num_elements / target - 1.0) <= T.TARGET_TOLERANCE == 0.1, m.num_elements
     assert info.extra["meshes"] <= T.TARGET_TRIES and info.mesher == "tetgen"
     assert f"{m.num_elements} tets ({100 * (m.num_elements / target - 1):+.1f} %" in info.describe()
+    assert "; meshed in " in info.describe() and "; coarser than the surface for target_tets" in info.describe()
 
 
 def test_target_tets_is_met_on_a_surface_not_tuned_on(tetgen, meshes_dir):

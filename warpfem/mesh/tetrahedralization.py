@@ -113,8 +113,8 @@ class Tetrahedralization:
             simple = self.extra.get("simulation_surface_faces")
             target = self.extra["target_tets"]
             tries = self.extra.get("meshes")
-            how = "finer" if self.extra.get("refined") else "coarser"
-            coarse = (f"; {how} than the surface for target_tets = {target}: {self.num_tets} tets "
+            direction = "finer" if self.extra.get("refined") else "coarser"
+            coarse = (f"; {direction} than the surface for target_tets = {target}: {self.num_tets} tets "
                       f"({100 * (self.num_tets / target - 1):+.1f} %"
                       + (f", {tries} mesh{'es' if tries != 1 else ''}" if tries else "") + "), edge bound "
                       f"{self.extra['edge_length']:.4g}" + (f", surface simplified to {simple} triangles" if simple else "")
@@ -702,17 +702,18 @@ def _off(n, target):
 
 
 def _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, tries=TARGET_TRIES, clean=True, as_is=False,
-                      seed=None):
+                      seed=None, keep_surface=False):
     """TetGen meshes of ``V, F`` decimated to the triangle size of the edge bound, the bound corrected
     until the count is within TARGET_TOLERANCE of ``target``. Returns (nodes, tets, L, faces, history)
     of the closest, or None when no clean decimation exists (first try). ``clean=False``: ``V, F``
     itself is not clean (only its decimations may be meshed); ``as_is=True``: when no decimation is
     clean, ``V, F`` itself is meshed (a coarse surface: TetWild's boundary). ``seed``: an (edge, count)
-    measured before (the surface's own resolution), the secant's first point."""
+    measured before (the surface's own resolution), the secant's first point. ``keep_surface``: never
+    decimate (refining: only the edge bound changes)."""
     best, history = None, [seed] if seed else []
     for k in range(tries):
         faces = _faces_for_edge(area, L)
-        if faces >= 0.9 * len(F):
+        if faces >= 0.9 * len(F) or keep_surface:
             surf = (V, F) if clean else None
         else:
             with stages.stage(f"decimating {len(F)} to about {faces} triangles (quadric edge collapse)"):
@@ -880,7 +881,7 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
             L0 = _edge_for_tets(opts["mesher"], vol, target)
             if opts["mesher"] == "tetgen":
                 got = _tetgen_to_target(V, F, area, target, opts, diag, name, L0, stages, clean=not dirty,
-                                        seed=(_own_edge(vol, len(tets)), len(tets)))
+                                        seed=(_own_edge(vol, len(tets)), len(tets)), keep_surface=True)
                 if got is not None and _off(len(got[1]), target) < _off(len(tets), target):
                     nodes, tets, L, faces, history = got
                     extra.update(refined=True, meshes=1 + len(history))
