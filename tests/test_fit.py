@@ -130,3 +130,24 @@ def test_continuation_escapes_the_local_minima_of_an_oscillating_run(tmp_path):
     res = fit(str(path), obs)
     assert abs(res.params["youngs_modulus"] / TRUE["youngs_modulus"] - 1.0) < 1e-3, res.params
     assert abs(res.params["poisson_ratio"] - TRUE["poisson_ratio"]) < 1e-3, res.params
+
+
+def test_fitted_scene_keeps_output_paths_and_reanchors_inputs(tmp_path, meshes_dir):
+    """``fit --out`` writes the scene elsewhere: its inputs (a mesh file) are re-anchored to the new
+    folder, its [output] paths (relative to the folder a scene runs from) are kept as written."""
+    import os
+
+    from warpfem.diff.fit import write_fitted_scene
+    from warpfem.scenes.schema import read_toml
+
+    src = tmp_path / "scenes"
+    src.mkdir()
+    mesh = os.path.relpath(meshes_dir / "decimated-knight.off", src)
+    (src / "s.toml").write_text(f'[mesh]\npath = "{mesh}"\n[material]\nyoungs_modulus = 1e5\n'
+                                '[output]\nusd = "out/s.usda"\nstates = "out/s.npz"\n')
+    out = tmp_path / "fits" / "deep" / "s.fit.toml"
+    write_fitted_scene(str(src / "s.toml"), {"youngs_modulus": 2.5e5}, str(out))
+    doc = read_toml(str(out), ValueError, what="scene")
+    assert doc["output"] == {"usd": "out/s.usda", "states": "out/s.npz"}
+    assert os.path.normpath(os.path.join(out.parent, doc["mesh"]["path"])) == os.path.normpath(meshes_dir / "decimated-knight.off")
+    assert doc["material"]["youngs_modulus"] == 2.5e5

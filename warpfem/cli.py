@@ -172,10 +172,12 @@ def _cmd_describe(args) -> int:
 
 
 def _register_describe(subparsers):
-    p = subparsers.add_parser("describe", help="print what a scene builds (counts, memory) without running it")
+    p = subparsers.add_parser("describe", help="print what a scene builds (counts, memory, estimated cost per frame) "
+                                               "without running it (a surface file is meshed, with progress on stderr)")
     p.add_argument("scene", help="TOML scene file")
     p.add_argument("--precision", choices=("float32", "float64"), default="float64")
     p.add_argument("--json", action="store_true", help="print a JSON object instead of text")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr (meshing a surface file)")
     p.set_defaults(func=_cmd_describe)
 
 
@@ -544,7 +546,18 @@ def main(argv=None) -> int:
         return EXIT_INVALID
     if apply_threads(args) is not None:
         return EXIT_INVALID
-    return int(args.func(args))
+    from warpfem.progress import set_stage_writer
+
+    # the stages of long preparations (meshing a surface file: which mesher, decimation, elapsed) on stderr
+    previous = set_stage_writer(None if getattr(args, "quiet", False) else _stage_line)
+    try:
+        return int(args.func(args))
+    finally:
+        set_stage_writer(previous)
+
+
+def _stage_line(line) -> None:
+    print(line, file=sys.stderr, flush=True)
 
 
 if __name__ == "__main__":  # pragma: no cover

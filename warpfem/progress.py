@@ -14,11 +14,13 @@ inflated either.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
+import threading
 import time
 
-__all__ = ["Progress", "format_duration", "CompileWatch", "COMPILING_NOTICE"]
+__all__ = ["Progress", "format_duration", "CompileWatch", "COMPILING_NOTICE", "Stages", "set_stage_writer"]
 
 COMPILING_NOTICE = "compiling kernels (first run only) ..."
 
@@ -235,3 +237,70 @@ class CompileWatch:
             setattr(cls, name, fn)
         self._saved = []
         return False
+
+
+# ------------------------------------------------------------------------------------- stages
+_stage_writer = None
+
+
+def set_stage_writer(write):
+    """Where the stage lines of long preparations (meshing a surface file) go: a callable taking one
+    line, or None: silent, the default (library use, tests). The command line sets it to stderr
+    unless ``--quiet``. Returns the previous writer."""
+    global _stage_writer
+    previous, _stage_writer = _stage_writer, write
+    return previous
+
+
+class Stages:
+    """One line per stage of a job that has no unit count (meshing a surface file)::
+
+        meshing scan.obj [0:00:00] checking the 111456-triangle surface
+        meshing scan.obj [0:00:03] decimating to 1776 triangles (fast-simplification)
+        meshing scan.obj [0:00:04] TetGen: filling it, edge bound 0.0087 (try 1 of 4)
+        meshing scan.obj [0:00:05] 19740 tets (target 20000, -1.3 %)
+
+    The bracket is the time since the job began. A stage still running after ``heartbeat`` seconds
+    gets a "still ..." line every ``heartbeat`` seconds (a mesher is one long native call). Lines go to
+    ``write`` (default: the writer of :func:`set_stage_writer`, silent when none).
+    """
+
+    def __init__(self, job, *, write=None, clock=time.perf_counter, heartbeat=15.0):
+        self.job = job
+        self._write = write if write is not None else _stage_writer
+        self._clock = clock
+        self._t0 = clock()
+        self.heartbeat = heartbeat
+
+    @property
+    def enabled(self) -> bool:
+        return self._write is not None
+
+    def elapsed(self) -> float:
+        return self._clock() - self._t0
+
+    def note(self, text) -> None:
+        if self._write is not None:
+            self._write(f"{self.job} [{format_duration(self.elapsed())}] {text}")
+
+    @contextlib.contextmanager
+    def stage(self, text):
+        """``with stages.stage("TetGen: ..."):`` a line now; "still <text>" lines while it runs."""
+        self.note(text)
+        timer = None
+        if self._write is not None and self.heartbeat:
+            started = self._clock()
+            stop = threading.Event()
+
+            def beat():
+                while not stop.wait(self.heartbeat):
+                    self.note(f"still {text} ({format_duration(self._clock() - started)} in this stage)")
+
+            timer = threading.Thread(target=beat, daemon=True)
+            timer.start()
+        try:
+            yield
+        finally:
+            if timer is not None:
+                stop.set()
+                timer.join()

@@ -236,7 +236,9 @@ def fit(scene, observed, params=("youngs_modulus", "poisson_ratio"), *, vertices
 def write_fitted_scene(scene_path, fitted: dict, out_path, header=None) -> str:
     """Write ``scene_path``'s document with ``fitted`` values written in (``[material]`` values,
     ``[contact] friction`` for ``contact_friction``, the ``friction`` of the ``[[collider]]`` that
-    ``friction:<name>`` names) to ``out_path`` (relative paths re-anchored to the new folder)."""
+    ``friction:<name>`` names) to ``out_path``: its input paths (mesh, surface, index files) re-anchored
+    to the new folder, its ``[output]`` paths kept as they are (relative to the folder a scene is run
+    from, so the fitted scene run from the same folder writes the files the original would)."""
     from warpfem.contact.scene import scene_collider_names
     from warpfem.scenes import SceneError
     from warpfem.scenes.schema import read_toml, rebase_scene_paths
@@ -259,7 +261,10 @@ def write_fitted_scene(scene_path, fitted: dict, out_path, header=None) -> str:
             doc.setdefault("material", {})[k] = float(v)
     src_dir = os.path.dirname(os.path.abspath(scene_path))
     out_dir = os.path.dirname(os.path.abspath(out_path))
+    output = dict(doc.get("output") or {})
     rebase_scene_paths(doc, src_dir, out_dir)
+    if output:  # outputs are relative to the folder a scene is run from, not to the scene file: kept
+        doc["output"] = output
     os.makedirs(out_dir, exist_ok=True)
     with open(out_path, "w") as f:
         if header:

@@ -17,14 +17,15 @@ __all__ = ["load_mesh", "save_mesh", "load_element_mesh", "save_element_mesh"]
 
 
 def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
-              cache=None, target_tets=None, prim=None, **kw):
+              cache=None, target_tets=None, prim=None, coarsen_only=False, **kw):
     """Load the ``tetra`` cells of any meshio-readable file as a Tet4 ``VolumeMesh``.
 
     A surface file (.obj, .off, .ply, .stl: chosen by the extension) is checked and
     tetrahedralised instead, through a cache (``warpfem.mesh.tetrahedralize_file``,
     needs ``pip install warpfem[mesh]``); ``max_edge_length``, ``max_radius_edge_ratio``,
-    ``mesher``, ``target_tets`` (an upper bound on the tets: a finer surface is meshed coarser) and
-    ``cache`` apply to such files only (``MeshError`` for a tet file).
+    ``mesher``, ``target_tets`` (about this many tets, within 10 %: a finer surface is meshed coarser,
+    a coarser one finer unless ``coarsen_only``), ``coarsen_only`` and ``cache`` apply to such files
+    only (``MeshError`` for a tet file).
 
     Other cell types (surface triangles, lines, ...) are ignored, except with
     ``inside_surface=True``: then only the tets inside the closed surface formed by the file's
@@ -54,6 +55,8 @@ def load_mesh(path, *, inside_surface=False, max_edge_length=None, max_radius_ed
 
     tetra_opts = {"max_edge_length": max_edge_length, "max_radius_edge_ratio": max_radius_edge_ratio,
                   "mesher": mesher, "cache": cache, "target_tets": target_tets}
+    if coarsen_only:
+        tetra_opts["coarsen_only"] = True
 
     def surface():
         if inside_surface:

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .volume_mesh import MeshError, VolumeMesh, _fmt_list
+from .volume_mesh import MeshError, VolumeMesh, _fmt_list, boundary_faces, tet_volumes
 
 __all__ = ["tetrahedralize", "tetrahedralize_file", "check_surface", "read_surface", "cache_dir",
            "Tetrahedralization", "MesherNotInstalled", "DirtySurface", "SURFACE_EXTENSIONS", "MESHERS", "DEFAULTS"]
@@ -67,7 +67,7 @@ FILL = {"tetgen": 3.0, "tetwild": 0.75}
 MAX_ESTIMATED_TETS = 20_000_000
 
 #: Bumped when the cache file layout or the meaning of an option changes.
-_CACHE_VERSION = 1
+_CACHE_VERSION = 2  # 2: target_tets is a target (a coarser surface refined) unless coarsen_only
 
 _AREA_RTOL = 1e-14  # zero-area face: area <= _AREA_RTOL * bbox_diagonal**2
 
@@ -111,11 +111,21 @@ class Tetrahedralization:
         coarse = ""
         if "edge_length" in self.extra:
             simple = self.extra.get("simulation_surface_faces")
-            coarse = (f"; coarser than the surface for target_tets = {self.extra['target_tets']}: edge bound "
+            target = self.extra["target_tets"]
+            tries = self.extra.get("meshes")
+            direction = "finer" if self.extra.get("refined") else "coarser"
+            coarse = (f"; {direction} than the surface for target_tets = {target}: {self.num_tets} tets "
+                      f"({100 * (self.num_tets / target - 1):+.1f} %"
+                      + (f", {tries} mesh{'es' if tries != 1 else ''}" if tries else "") + "), edge bound "
                       f"{self.extra['edge_length']:.4g}" + (f", surface simplified to {simple} triangles" if simple else "")
+                      + (", TetWild's boundary re-meshed by TetGen" if self.extra.get("remeshed_from") else "")
+                      + (", no clean decimation: the surface's own resolution" if self.extra.get("own_resolution") else "")
                       + (f", volume {100 * self.extra['volume_change']:+.1f} % of the surface's"
                          if "volume_change" in self.extra else ""))
-        dirty = f"; the surface is not clean ({self.extra['dirty']}): TetWild" if "dirty" in self.extra else ""
+        dirty = ""
+        if "dirty" in self.extra:
+            dirty = f"; the surface is not clean ({self.extra['dirty']}): " + (
+                "its decimation is, TetGen" if self.extra.get("dirty_cleared") else "TetWild")
         return (f"tetrahedralised from a {self.surface_vertices}-vertex, {self.surface_faces}-triangle surface by "
                 f"{self.mesher} ({MESHERS[self.mesher][0]} {self.version}): {self.num_tets} tets, "
                 f"{self.num_vertices} vertices ({opts}; {how}{where}{coarse}{dirty})")
@@ -345,8 +355,10 @@ def _self_intersections(V, F, diag):
 
 
 # ----------------------------------------------------------------------------- meshing
-def _resolve_options(max_edge_length=None, max_radius_edge_ratio=None, mesher=None, target_tets=None):
+def _resolve_options(max_edge_length=None, max_radius_edge_ratio=None, mesher=None, target_tets=None, coarsen_only=False):
     opts = dict(DEFAULTS)
+    if coarsen_only and target_tets is not None:  # only then (the options of other meshes print as before)
+        opts["coarsen_only"] = True
     if target_tets is not None:
         if isinstance(target_tets, bool) or not isinstance(target_tets, (int, np.integer)) or target_tets < 10:
             raise MeshError(f"target_tets must be an integer >= 10, got {target_tets!r}")
@@ -451,9 +463,9 @@ def _quiet_stdout():
         os.close(saved)
 
 
-def _run_tetwild(V, F, opts, diag):
+def _run_tetwild(V, F, opts, diag, **settings):
     wm = _import_mesher("tetwild")
-    kw = {}
+    kw = dict(settings)  # (TetWild's mesh differs slightly run to run, with one thread too: the cache keeps one)
     if opts["max_edge_length"] is not None:
         kw["edge_length_r"] = min(opts["max_edge_length"] / diag, 1.0)  # relative to the bbox diagonal
     try:
@@ -531,33 +543,34 @@ def _tangential_relaxation(V, F, iterations):
 
 
 def _simplified(V, F, faces, name, edge=None):
-    """The surface decimated to about ``faces`` triangles (quadric edge collapse, fast-simplification),
-    retried with 1.6x more faces (up to 4 times) while the result is not clean; None when no
-    decimation is clean.
+    """The surface decimated to about ``faces`` triangles (quadric edge collapse, fast-simplification)
+    and repaired (:func:`_repaired`), retried with 1.6, 0.7 and 2.56 times the faces while the result
+    is not clean; None when no decimation is clean. Each size is tried plain, then relaxed.
 
     With ``edge`` (the tet edge bound) a decimation must also pass ``DECIMATION_MIN_QUALITY``,
-    ``DECIMATION_MIN_EDGE`` and ``DECIMATION_MAX_VOLUME_CHANGE``. When no plain decimation does, the same decimations are relaxed
-    tangentially (3, then 10 sweeps) and the first relaxed surface that is clean and passes is
+    ``DECIMATION_MIN_EDGE`` and ``DECIMATION_MAX_VOLUME_CHANGE``. When a plain decimation does not, it
+    is relaxed tangentially (3, then 10 sweeps) and the first surface that is clean and passes is
     taken; when none passes, the clean candidate of best quality is kept."""
-    try:
-        import fast_simplification
-    except ImportError as exc:
-        raise MesherNotInstalled(
-            f"{name + ': ' if name else ''}a coarse simulation mesh of a {len(F)}-triangle surface (target_tets) needs the "
-            "Python package 'fast_simplification' (quadric surface decimation), which is not installed: pip install "
-            "'warpfem[mesh]' (or pip install fast-simplification), or set max_edge_length") from exc
+    fs = _fast_simplification(F, name)
     vol0 = _enclosed_volume_and_area(V, F)[0]
     decimations = []
-    for _ in range(4):
-        if faces >= 0.9 * len(F):
-            break
-        Vd, Fd = fast_simplification.simplify(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32),
-                                              target_reduction=1.0 - faces / len(F))
-        decimations.append((np.asarray(Vd, dtype=np.float64), np.asarray(Fd, dtype=np.int64)))
-        faces = int(faces * 1.6)
+
+    sizes = [f for f in (int(faces), int(1.6 * faces), int(0.7 * faces), int(2.56 * faces)) if 20 <= f < 0.9 * len(F)]
+
+    def decimation(k):  # made when first asked for (one costs ~0.2 s on a 100k-triangle surface)
+        while len(decimations) <= k:
+            if len(decimations) >= len(sizes):
+                return None
+            decimations.append(_repaired(*_decimate(fs, V, F, sizes[len(decimations)])))
+        return decimations[k]
+
     best = None
-    for sweeps in (0, 3, 10) if edge is not None else (0,):
-        for Vd, Fd in decimations:
+    for k in range(4):  # each size plain, then relaxed, before the next is made
+        d = decimation(k)
+        if d is None:
+            break
+        for sweeps in (0, 3, 10) if edge is not None else (0,):
+            Vd, Fd = d
             Vc = _tangential_relaxation(Vd, Fd, sweeps) if sweeps else Vd
             try:
                 cand = check_surface(Vc, Fd, name=name)
@@ -582,8 +595,182 @@ def _simplified(V, F, faces, name, edge=None):
     return best[1] if best is not None else None
 
 
+def _repaired(V, F, rounds=5):
+    """What quadric edge collapse leaves at sharp features and flat regions, removed: a zero-area face
+    has its shortest edge collapsed (its two ends merged at their midpoint), faces repeating a
+    vertex are dropped, and a face listed twice (a flap folded back onto itself: both copies) is
+    dropped; repeated until nothing changes (at most ``rounds``), unused vertices removed. The
+    result is not checked (:func:`check_surface` decides)."""
+    V = np.array(V, dtype=np.float64)
+    F = np.array(F, dtype=np.int64)
+    for _ in range(rounds):
+        changed = False
+        if len(F) == 0:
+            break
+        diag = float(np.linalg.norm(V.max(axis=0) - V.min(axis=0)))
+        a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+        area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+        zero = np.flatnonzero(area <= 1e3 * _AREA_RTOL * diag * diag)
+        if zero.size:
+            parent = np.arange(len(V))
+            for f in zero:  # few: a loop is fine
+                tri = F[f]
+                e = [np.sum((V[tri[(k + 1) % 3]] - V[tri[k]]) ** 2) for k in range(3)]
+                k = int(np.argmin(e))
+                i, j = int(tri[k]), int(tri[(k + 1) % 3])
+                while parent[i] != i:
+                    i = parent[i]
+                while parent[j] != j:
+                    j = parent[j]
+                if i != j:
+                    V[min(i, j)] = 0.5 * (V[i] + V[j])
+                    parent[max(i, j)] = min(i, j)
+            for v in range(len(parent)):  # flatten
+                r = v
+                while parent[r] != r:
+                    r = parent[r]
+                parent[v] = r
+            F = parent[F]
+            changed = True
+        s = np.sort(F, axis=1)
+        keep = (s[:, 1:] != s[:, :-1]).all(axis=1)
+        _, inv, cnt = np.unique(s, axis=0, return_inverse=True, return_counts=True)
+        keep &= cnt[inv.ravel()] == 1
+        if not keep.all():
+            F = F[keep]
+            changed = True
+        if not changed:
+            break
+    used = np.unique(F)
+    remap = np.full(len(V), -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    return V[used], remap[F]
+
+
+def _fast_simplification(F, name):
+    try:
+        import fast_simplification
+    except ImportError as exc:
+        raise MesherNotInstalled(
+            f"{name + ': ' if name else ''}a coarse simulation mesh of a {len(F)}-triangle surface (target_tets) needs the "
+            "Python package 'fast_simplification' (quadric surface decimation), which is not installed: pip install "
+            "'warpfem[mesh]' (or pip install fast-simplification), or set max_edge_length") from exc
+    return fast_simplification
+
+
+def _decimate(fs, V, F, faces):
+    Vd, Fd = fs.simplify(np.ascontiguousarray(V, dtype=np.float64), np.ascontiguousarray(F, dtype=np.int32),
+                         target_reduction=1.0 - faces / len(F))
+    return np.asarray(Vd, dtype=np.float64), np.asarray(Fd, dtype=np.int64)
+
+
+#: ``target_tets`` is met when the count is within this fraction of it (documented: 10 %); the
+#: edge bound is corrected (secant on log count against log edge) until then, at most
+#: ``TARGET_TRIES`` meshes in all, and the closest count is kept.
+TARGET_TOLERANCE = 0.1
+TARGET_TRIES = 4
+#: A TetWild run for a coarse physics mesh (a decimated or dirty surface under target_tets) uses a
+#: looser envelope and fewer optimisation passes than its defaults: 16 s instead of 49 s for 17k
+#: tets from the 2,000-triangle decimated scan stand-in (the render surface is the input anyway).
+TETWILD_COARSE = {"epsilon": 4e-3, "max_its": 20, "stop_quality": 20.0}
+
+
+def _faces_for_edge(area, L):
+    return max(int(area / (math.sqrt(3.0) / 4.0 * L * L)), 20)
+
+
+def _next_edge(history, target):
+    """The next edge bound from the (edge, count) meshes so far: count ~ L^-b from the mesh closest
+    to the target, b from the two closest (clamped to [1.5, 6]; 3 after one mesh, or when the
+    counts do not fall as the edge grows: a decimation of another size can do that)."""
+    ranked = sorted(history, key=lambda h: abs(math.log(max(h[1], 1) / target)))
+    (L1, n1) = ranked[0]
+    b = 3.0
+    if len(ranked) >= 2:
+        L0, n0 = ranked[1]
+        if n0 > 0 and n1 > 0 and n0 != n1 and abs(math.log(L1 / L0)) > 1e-6:
+            slope = -math.log(n1 / n0) / math.log(L1 / L0)
+            b = min(max(slope, 1.5), 6.0) if slope > 0 else 3.0
+    L = L1 * (max(n1, 1) / target) ** (1.0 / b)
+    if any(abs(L / h[0] - 1.0) < 1e-3 for h in history):  # no new point: a smaller step from the best
+        L = L1 * (max(n1, 1) / target) ** (1.0 / 6.0)
+    return L
+
+
+def _off(n, target):
+    return abs(n / target - 1.0)
+
+
+def _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, tries=TARGET_TRIES, clean=True, as_is=False,
+                      seed=None, keep_surface=False):
+    """TetGen meshes of ``V, F`` decimated to the triangle size of the edge bound, the bound corrected
+    until the count is within TARGET_TOLERANCE of ``target``. Returns (nodes, tets, L, faces, history)
+    of the closest, or None when no clean decimation exists (first try). ``clean=False``: ``V, F``
+    itself is not clean (only its decimations may be meshed); ``as_is=True``: when no decimation is
+    clean, ``V, F`` itself is meshed (a coarse surface: TetWild's boundary). ``seed``: an (edge, count)
+    measured before (the surface's own resolution), the secant's first point. ``keep_surface``: never
+    decimate (refining: only the edge bound changes)."""
+    best, history = None, [seed] if seed else []
+    for k in range(tries):
+        faces = _faces_for_edge(area, L)
+        if faces >= 0.9 * len(F) or keep_surface:
+            surf = (V, F) if clean else None
+        else:
+            with stages.stage(f"decimating {len(F)} to about {faces} triangles (quadric edge collapse)"):
+                surf = _simplified(V, F, faces, name, edge=L)
+            if surf is None and as_is and clean:
+                surf = (V, F)
+        if surf is None:
+            if best is None:
+                return None
+            break
+        run = dict(opts, mesher="tetgen", max_edge_length=L)
+        try:
+            with stages.stage(f"TetGen: filling {len(surf[1])} triangles, edge bound {L:.4g} (mesh {k + 1} of at most {tries})"):
+                nodes, tets = _run_tetgen(*surf, run)
+        except MeshError as exc:  # a crossing the approximate surface check missed
+            log.info("%s: %s", name, exc)
+            if best is None:
+                return None
+            break
+        n = len(tets)
+        history.append((L, n))
+        stages.note(f"{n} tets ({100 * (n / target - 1):+.1f} % of target_tets = {target})")
+        if best is None or _off(n, target) < _off(len(best[1]), target):
+            best = (nodes, tets, L, len(surf[1]) if surf[1] is not F else None)
+        if _off(n, target) <= TARGET_TOLERANCE or n == 0:
+            break
+        L = _next_edge(history, target)
+    return (*best, history[1:] if seed else history)
+
+
+def _own_edge(vol, tets):
+    """The TetGen edge bound that would give ``tets`` tets (a mesh made without one, for the secant)."""
+    return _edge_for_tets("tetgen", vol, max(tets, 1))
+
+
+def _tetwild_to_target(V, F, target, opts, diag, L, stages, tries, settings=None):
+    """TetWild meshes (coarse settings, TETWILD_COARSE) with the ideal edge corrected as in
+    :func:`_tetgen_to_target`; returns (nodes, tets, L, history) of the closest."""
+    best, history = None, []
+    for k in range(tries):
+        run = dict(opts, mesher="tetwild", max_edge_length=L)
+        with stages.stage(f"TetWild: meshing {len(F)} triangles, ideal edge {L:.4g} (mesh {k + 1} of at most {tries}; "
+                          "one native call, typically 15-60 s, silent until it ends)"):
+            nodes, tets = _run_tetwild(V, F, run, diag, **(TETWILD_COARSE if settings is None else settings))
+        n = len(tets)
+        history.append((L, n))
+        stages.note(f"{n} tets ({100 * (n / target - 1):+.1f} % of target_tets = {target})")
+        if best is None or _off(n, target) < _off(len(best[1]), target):
+            best = (nodes, tets, L)
+        if _off(n, target) <= TARGET_TOLERANCE or n == 0:
+            break
+        L = _next_edge(history, target)
+    return (*best, history)
+
+
 def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None,
-                   target_tets=None, name=None, check=True):
+                   target_tets=None, name=None, check=True, coarsen_only=False):
     """Fill a closed triangle surface with tets; returns a Tet4 ``VolumeMesh``.
 
     Parameters
@@ -599,39 +786,56 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
         shaped, more tets; >= 1.1. TetWild ignores it (it optimises its own AMIPS energy).
     mesher : "auto" (default), "tetgen" or "tetwild". With "auto", a surface that is readable but
         not clean (holes, duplicated or degenerate faces, non-manifold edges, self-intersections)
-        goes to TetWild with a warning naming the defect when TetWild is installed; otherwise the
-        error says what is wrong and how to install it. A named mesher is used as asked.
+        goes to TetWild with a warning naming the defect when TetWild is installed (under
+        ``target_tets``, its clean decimation goes to TetGen first); otherwise the error says what
+        is wrong and how to install it. A named mesher is used as asked.
     target_tets : int, optional
-        Upper bound on the tet count when ``max_edge_length`` is not given: a surface whose own
-        resolution would give more (estimated as OWN_RESOLUTION_TETS_PER_FACE per triangle for
-        TetGen, from TetWild's default edge, the bbox diagonal / 20, for TetWild) is meshed coarser: TetGen meshes the surface decimated (quadric edge collapse) to the
-        triangle size of a tet edge that gives about ``target_tets`` tets (one re-mesh corrects
-        the count when it is off by more than 30 %); TetWild gets that edge length. The input
-        surface is not changed: embed it as the render surface (scenes do so by default).
-    name : used as the prefix of error messages (a file name).
+        Used when ``max_edge_length`` is not given: the mesh gets ``target_tets`` tets within 10 %
+        (``TARGET_TOLERANCE``). A surface whose own resolution gives more is meshed coarser.
+        TetGen meshes the surface decimated (quadric edge collapse) to the triangle size of the
+        edge bound expected to give ``target_tets``; the bound is then corrected from the counts
+        measured (at most ``TARGET_TRIES`` meshes, the closest kept). When no clean decimation
+        exists or the surface is dirty, TetWild meshes the decimated surface and, with ``auto``,
+        TetGen re-meshes TetWild's boundary to the target. A surface whose own resolution gives
+        fewer tets is meshed finer (the edge bound corrected the same way), unless ``coarsen_only``.
+        The input surface is not changed: embed it as the render surface (scenes do so by default).
+    coarsen_only : bool
+        ``target_tets`` only bounds the count from above: a surface whose own resolution gives fewer
+        tets keeps it (what a scene does with its default ``target_tets``).
+    name : used as the prefix of error messages and in the progress lines (a file name).
     check : run :func:`check_surface` first (default True).
 
+    Progress: one line per stage (check, decimation, each mesher run and its count) through
+    :class:`warpfem.progress.Stages` (silent unless a writer is set: the command line's stderr).
     The result carries ``.tetrahedralization`` (a :class:`Tetrahedralization`).
     """
+    from warpfem.progress import Stages
+
     requested = mesher if mesher is not None else "auto"
-    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets)
+    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets, coarsen_only)
     pre = f"{name}: " if name else ""
+    stages = Stages(f"meshing {os.path.basename(name) if name else 'a surface'}")
     dirty = ""
+    n_in = len(np.asarray(faces))
+    # a surface that will be decimated for target_tets: its decimation is checked for crossings (what
+    # the mesher sees), the input only for the rest (the crossing test is most of a 100k-triangle check)
+    decimated_ahead = (max_edge_length is None and opts["target_tets"] is not None and opts["mesher"] == "tetgen"
+                       and OWN_RESOLUTION_TETS_PER_FACE * n_in > 2.0 * opts["target_tets"])
     if check:
         try:
-            V, F = check_surface(vertices, faces, name=name)
+            with stages.stage(f"checking the {n_in}-triangle surface (closed, manifold"
+                              + (")" if decimated_ahead else ", no self-intersection)")):
+                V, F = check_surface(vertices, faces, name=name, self_intersections=not decimated_ahead)
         except DirtySurface as exc:
             if requested != "auto":
                 raise
             if not _installed(MESHERS["tetwild"][0]):
-                raise DirtySurface(f"{exc}. TetGen cannot mesh such a surface; TetWild (envelope-based) can: "
-                                   f"pip install 'warpfem[tetwild]', then load it again (or repair the surface)",
-                                   exc.problem) from exc
+                if not (target_tets is not None and max_edge_length is None and _installed("fast_simplification")):
+                    raise DirtySurface(f"{exc}. TetGen cannot mesh such a surface; TetWild (envelope-based) can: "
+                                       f"pip install 'warpfem[tetwild]', then load it again (or repair the surface)",
+                                       exc.problem) from exc
             V, F = check_surface(vertices, faces, name=name, clean=False)
             dirty = exc.problem
-            warnings.warn(f"{pre}{dirty}: meshed with TetWild (envelope-based, tolerates it) instead of TetGen",
-                          RuntimeWarning, stacklevel=2)
-            opts["mesher"] = "tetwild"
     else:
         V, F = np.asarray(vertices, dtype=np.float64), np.asarray(faces, dtype=np.int64)
     nsurf_v, nsurf_f = len(V), len(F)
@@ -646,59 +850,62 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
     extra = {}
     L = opts["max_edge_length"]
     target = opts["target_tets"]
+    if dirty and not (L is None and target is not None):  # no decimation ahead: TetWild as before
+        opts["mesher"] = "tetwild"
     if opts["mesher"] == "tetgen":  # TetGen keeps the surface's triangles; TetWild's default edge is diag / 20
         own = OWN_RESOLUTION_TETS_PER_FACE * len(F)
     else:
         own = FILL["tetwild"] * vol / _regular_tet_volume(diag / 20.0)
-    coarsen = L is None and target is not None and own > target
-    run_opts = dict(opts)
-    Vm, Fm = V, F
-    if coarsen:
-        L = _edge_for_tets(opts["mesher"], vol, target)
-        extra.update(target_tets=int(target))
-        if opts["mesher"] == "tetgen":
-            faces = int(area / (math.sqrt(3.0) / 4.0 * L * L))
-            simple = _simplified(V, F, faces, name, edge=L)
-            if simple is not None:
-                Vm, Fm = simple
-                extra.update(simulation_surface_faces=int(len(Fm)))
-            elif _installed(MESHERS["tetwild"][0]):
-                warnings.warn(f"{pre}no clean decimation of the {len(F)}-triangle surface to about {faces} triangles "
-                              "(quadric edge collapse leaves duplicated or zero-area faces on flat, finely subdivided "
-                              "regions): the coarse mesh for target_tets is made by TetWild from the full surface",
-                              RuntimeWarning, stacklevel=2)
-                opts["mesher"] = run_opts["mesher"] = "tetwild"
-                L = _edge_for_tets("tetwild", vol, target)
-            else:
-                warnings.warn(f"{pre}no clean decimation of the {len(F)}-triangle surface to about {faces} triangles "
-                              "(quadric edge collapse leaves duplicated or zero-area faces on flat, finely subdivided "
-                              f"regions): meshed at the surface's own resolution, about {own:.0f} tets instead of "
-                              f"target_tets = {target}. TetWild makes the coarse mesh from such a surface: pip install "
-                              "'warpfem[tetwild]'; or set max_edge_length", RuntimeWarning, stacklevel=2)
-        run_opts["max_edge_length"] = L
+    coarsen = L is None and target is not None and (own > target or dirty)
     if L is not None:
         est = vol / _regular_tet_volume(L)
         if est > MAX_ESTIMATED_TETS:
             raise MeshError(f"{pre}max_edge_length = {L:g} would give about {est:.3g} tets "
                             f"(enclosed volume {vol:.4g}, limit {MAX_ESTIMATED_TETS:.0e}); use a larger max_edge_length")
+    if dirty and not coarsen:
+        warnings.warn(f"{pre}{dirty}: meshed with TetWild (envelope-based, tolerates it) instead of TetGen",
+                      RuntimeWarning, stacklevel=2)
     t0 = time.perf_counter()
-    nodes, tets = _run(Vm, Fm, run_opts, diag)
-    if coarsen and opts["mesher"] == "tetgen" and not (0.7 * target <= len(tets) <= 1.3 * target):
-        L = L * (len(tets) / target) ** (1.0 / 3.0)  # the count goes as L^-3: one correction
-        run_opts["max_edge_length"] = L
-        simple = _simplified(V, F, int(area / (math.sqrt(3.0) / 4.0 * L * L)), name, edge=L)
-        if simple is not None:  # else the first mesh stays (its count off the target)
-            Vm, Fm = simple
-            extra.update(simulation_surface_faces=int(len(Fm)))
-            nodes, tets = _run(Vm, Fm, run_opts, diag)
+    nodes = tets = None
+    if not coarsen:
+        what = {"tetgen": "TetGen", "tetwild": "TetWild"}[opts["mesher"]]
+        with stages.stage(f"{what}: meshing {len(F)} triangles" + (f", edge bound {L:.4g}" if L is not None else
+                                                                 f" at the surface's own resolution (about {own:.0f} tets)")):
+            nodes, tets = _run(V, F, opts, diag)
+        if L is None and target is not None and len(tets) > (1.0 + TARGET_TOLERANCE) * target:
+            stages.note(f"{len(tets)} tets at the surface's own resolution, more than target_tets = {target}: coarser")
+            coarsen = True  # the own-resolution estimate was low
+        elif (L is None and target is not None and not coarsen_only
+              and len(tets) < (1.0 - TARGET_TOLERANCE) * target):
+            stages.note(f"{len(tets)} tets at the surface's own resolution, fewer than target_tets = {target}: finer")
+            L0 = _edge_for_tets(opts["mesher"], vol, target)
+            if opts["mesher"] == "tetgen":
+                got = _tetgen_to_target(V, F, area, target, opts, diag, name, L0, stages, clean=not dirty,
+                                        seed=(_own_edge(vol, len(tets)), len(tets)), keep_surface=True)
+                if got is not None and _off(len(got[1]), target) < _off(len(tets), target):
+                    nodes, tets, L, faces, history = got
+                    extra.update(refined=True, meshes=1 + len(history))
+                    if faces is not None:
+                        extra.update(simulation_surface_faces=int(faces))
+            else:
+                n0 = len(tets)
+                got = _tetwild_to_target(V, F, target, opts, diag, L0, stages, TARGET_TRIES - 1, settings={})
+                if _off(len(got[1]), target) < _off(n0, target):
+                    nodes, tets, L, history = got
+                    extra.update(refined=True, meshes=1 + len(history))
+    if extra.get("refined"):
+        extra.update(edge_length=float(L), target_tets=int(target))
+    if coarsen:
+        nodes, tets, L = _coarse_mesh(V, F, vol, area, diag, target, opts, requested, dirty, name, stages, extra)
     seconds = time.perf_counter() - t0
     if coarsen:
-        extra.update(edge_length=float(L))
+        extra.update(edge_length=float(L), target_tets=int(target))
     if dirty:
         extra.update(dirty=dirty)
     if len(tets) == 0:
         raise MeshError(f"{pre}{opts['mesher']} produced no tets (does the surface enclose a volume?)")
-    mesh = VolumeMesh(nodes, tets, name=name)
+    with stages.stage(f"checking the {len(tets)}-tet mesh"):
+        mesh = VolumeMesh(nodes, tets, name=name)
     if coarsen and vol > 0.0:  # what decimation did to the volume (and so to the mass)
         extra.update(volume_change=float(mesh.total_volume() / vol - 1.0))
     module = MESHERS[opts["mesher"]][0]
@@ -706,8 +913,95 @@ def tetrahedralize(vertices, faces, *, max_edge_length=None, max_radius_edge_rat
         mesher=opts["mesher"], version=_version(module), options=opts, num_tets=mesh.num_elements,
         num_vertices=mesh.num_vertices, surface_vertices=nsurf_v, surface_faces=nsurf_f, seconds=seconds, source=name,
         extra=extra)
+    stages.note(f"done: {mesh.num_elements} tets, {mesh.num_vertices} vertices by {opts['mesher']}")
     log.info("%s", mesh.tetrahedralization.describe())
     return mesh
+
+
+def _coarse_mesh(V, F, vol, area, diag, target, opts, requested, dirty, name, stages, extra):
+    """The coarse physics mesh for ``target_tets`` (see :func:`tetrahedralize`); sets ``opts['mesher']``
+    to the mesher that made it and fills ``extra``. Returns (nodes, tets, edge bound)."""
+    pre = f"{name}: " if name else ""
+    have_tetgen, have_tetwild = _installed(MESHERS["tetgen"][0]), _installed(MESHERS["tetwild"][0])
+    use_tetgen = opts["mesher"] == "tetgen" or (dirty and requested == "auto" and have_tetgen)
+    if use_tetgen:
+        L = _edge_for_tets("tetgen", vol, target)
+        got = _tetgen_to_target(V, F, area, target, opts, diag, name, L, stages, clean=not dirty)
+        if got is not None:
+            nodes, tets, L, faces, history = got
+            opts["mesher"] = "tetgen"
+            if faces is not None:
+                extra.update(simulation_surface_faces=int(faces))
+            extra.update(meshes=len(history))
+            if dirty:
+                extra.update(dirty_cleared="its decimation is clean")
+                log.info("%s%s: the decimated surface is clean, meshed by TetGen", pre, dirty)
+            return nodes, tets, L
+        faces = _faces_for_edge(area, L)
+        if not have_tetwild:
+            if dirty:
+                raise DirtySurface(f"{pre}{dirty}. No clean decimation of it to about {faces} triangles either; "
+                                   "TetWild (envelope-based) meshes such a surface: pip install 'warpfem[tetwild]', "
+                                   "then load it again (or repair the surface)", dirty)
+            warnings.warn(f"{pre}no clean decimation of the {len(F)}-triangle surface to about {faces} triangles: "
+                          f"meshed at the surface's own resolution instead of target_tets = {target}. TetWild makes "
+                          "the coarse mesh from such a surface: pip install 'warpfem[tetwild]'; or set max_edge_length",
+                          RuntimeWarning, stacklevel=3)
+            with stages.stage(f"TetGen: meshing {len(F)} triangles at the surface's own resolution"):
+                nodes, tets = _run_tetgen(V, F, dict(opts, mesher="tetgen", max_edge_length=None))
+            opts["mesher"] = "tetgen"
+            extra.update(own_resolution=True)
+            return nodes, tets, L
+        why = dirty or f"no clean decimation of the {len(F)}-triangle surface to about {faces} triangles"
+        warnings.warn(f"{pre}{why}: the coarse mesh for target_tets is made by TetWild (envelope-based) from the "
+                      "decimated surface" + (", then TetGen re-meshes its boundary to the target" if have_tetgen else ""),
+                      RuntimeWarning, stacklevel=3)
+    # TetWild on the surface decimated to about the triangle size of its edge (any cleanliness will do)
+    L = _edge_for_tets("tetwild", vol, target)
+    faces = _faces_for_edge(area, L) * 2
+    Vw, Fw = V, F
+    if faces < 0.9 * len(F) and _installed("fast_simplification"):
+        with stages.stage(f"decimating {len(F)} to about {faces} triangles for TetWild"):
+            Vw, Fw = _decimate(_fast_simplification(F, name), V, F, faces)
+        extra.update(simulation_surface_faces=int(len(Fw)))
+    hybrid = requested == "auto" and have_tetgen
+    nodes, tets, L, history = _tetwild_to_target(Vw, Fw, target, opts, diag, L, stages, 1 if hybrid else TARGET_TRIES - 1)
+    opts["mesher"] = "tetwild"
+    extra.update(meshes=len(history))
+    if _off(len(tets), target) <= TARGET_TOLERANCE or not hybrid or len(tets) == 0:
+        return nodes, tets, L
+    # TetWild's boundary is a clean closed surface: TetGen fills it to the target (fast retries)
+    bV, bF = _boundary_surface(nodes, tets)
+    try:
+        bV, bF = check_surface(bV, bF, name=name)
+    except MeshError as exc:
+        log.info("%sTetWild's boundary is not clean (%s): its mesh is kept", pre, exc)
+        return nodes, tets, L
+    barea = _enclosed_volume_and_area(bV, bF)[1]
+    got = _tetgen_to_target(bV, bF, barea, target, opts, diag, name, _edge_for_tets("tetgen", vol, target), stages,
+                            as_is=True)
+    if got is None or _off(len(got[1]), target) >= _off(len(tets), target):
+        return nodes, tets, L
+    nodes, tets, L, faces, history2 = got
+    opts["mesher"] = "tetgen"
+    extra.update(meshes=len(history) + len(history2), remeshed_from="tetwild",
+                 simulation_surface_faces=int(faces if faces is not None else len(bF)))
+    return nodes, tets, L
+
+
+def _boundary_surface(nodes, tets):
+    """(vertices, faces) of a tet mesh's boundary, unused vertices dropped."""
+    tets = np.asarray(tets, dtype=np.int64)
+    X = np.asarray(nodes, dtype=np.float64)
+    vol = tet_volumes(X, tets)
+    t = tets.copy()
+    neg = vol < 0
+    t[neg] = t[neg][:, [0, 1, 3, 2]]
+    F = boundary_faces(t)
+    used = np.unique(F)
+    remap = np.full(len(X), -1, dtype=np.int64)
+    remap[used] = np.arange(used.size)
+    return X[used], remap[F]
 
 
 def _run(V, F, opts, diag):
@@ -771,7 +1065,7 @@ def _write_cache(path, mesh):
 
 
 def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=None, mesher=None, cache=True,
-                        check=True, target_tets=None):
+                        check=True, target_tets=None, coarsen_only=False):
     """Read a surface file (.obj, .off, .ply, .stl, or any meshio file with triangles), check it and tetrahedralise it (see :func:`tetrahedralize`), through the cache.
 
     The cache key is a SHA-256 of the file bytes and the resolved options (mesher included), so
@@ -781,7 +1075,7 @@ def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=Non
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"surface file not found: {path}")
-    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets)
+    opts = _resolve_options(max_edge_length, max_radius_edge_ratio, mesher, target_tets, coarsen_only)
     with open(path, "rb") as f:
         data = f.read()
     entry = None
@@ -801,7 +1095,8 @@ def tetrahedralize_file(path, *, max_edge_length=None, max_radius_edge_ratio=Non
             return mesh
     V, F = read_surface(path)
     mesh = tetrahedralize(V, F, name=path, check=check, max_edge_length=max_edge_length,
-                          max_radius_edge_ratio=max_radius_edge_ratio, mesher=mesher, target_tets=target_tets)
+                          max_radius_edge_ratio=max_radius_edge_ratio, mesher=mesher, target_tets=target_tets,
+                          coarsen_only=coarsen_only)
     if entry is not None:
         _write_cache(entry, mesh)
         mesh.tetrahedralization.cache_path = entry

@@ -137,6 +137,7 @@ class _SceneBodies:
             lines.append(f"  vtu: {out['vtu']} (ParaView collection, one block per body)")
         for prec, b in memory.items():
             lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz_total} 3x3 matrix blocks)")
+        lines += self._cost_lines()
         return "\n".join(lines)
 
 
@@ -258,6 +259,8 @@ class Scene(_SceneBodies):
             try:  # a surface file is tetrahedralised (warpfem.mesh.tetrahedralize; cached)
                 tetra = {k: m[k] for k in ("max_edge_length", "max_radius_edge_ratio", "mesher", "target_tets", "prim")
                          if m.get(k) is not None}
+                if m.get("target_tets_default"):  # the default is an upper bound; a value given is a target
+                    tetra["coarsen_only"] = True
                 mesh = load_mesh(path, inside_surface=m["inside_surface"], **tetra)
                 self._tetrahedralization = getattr(mesh, "tetrahedralization", None)
             except MeshError:
@@ -347,6 +350,34 @@ class Scene(_SceneBodies):
         return ["contact: " + ", ".join(f"{k} = {('default' if c[k] is None else c[k])}"
                                         for k in ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity"))
                 + (" ([contact] defaults: several bodies)" if self.spec.contact is None else "") + " (docs/contact.md)"]
+
+    def cost_estimate(self) -> dict | None:
+        """The estimated seconds per frame and for the run, with its basis
+        (:func:`warpfem.scenes.cost.estimate_frame_cost`: steps per frame, Newton iterations, a
+        per-iteration CPU cost by vertex count, a contact factor); None for a reduced run
+        (``[subspace]``), which it does not model."""
+        from . import INTEGRATORS
+        from .cost import estimate_frame_cost
+
+        sp = self.spec
+        if getattr(sp, "subspace", None) is not None:
+            return None
+        integ = sp.integrator
+        steps = int(integ["substeps"]) if INTEGRATORS[self.integrator_type].dynamic else int(integ.get("load_steps", 1))
+        contact = bool(sp.collider) or sp.contact is not None or len(sp.bodies or ()) >= 2
+        return estimate_frame_cost(vertices=self.mesh().num_vertices, steps_per_frame=steps, frames=int(sp.output["frames"]),
+                                   contact=contact, newton=self.integrator_type != "stiffness_warping")
+
+    def _cost_lines(self) -> list[str]:
+        from warpfem.progress import format_duration
+
+        c = self.cost_estimate()
+        if c is None:
+            return ["estimated cost: not estimated for a reduced run ([subspace])"]
+        per = c["seconds_per_frame"]
+        return [f"estimated cost (CPU, float64): {per:.3g} s per frame, {format_duration(c['seconds_total'])} for "
+                f"{self.spec.output['frames']} frames (rough: within {c['stated_factor']:g}x on typical scenes, more "
+                f"for hard contact or large rotations; no kernel compilation counted; {c['basis']})"]
 
     def describe(self, *, precision: str = "float64") -> str:
         """What :meth:`build` will build: counts, selections, integrator, outputs and memory."""
@@ -444,6 +475,7 @@ class Scene(_SceneBodies):
                                        block_nnz=nnz, precision=prec, surface_points=p, weights_per_point=k,
                                        stiffness_damping=sp.integrator.get("damping_stiffness", 0.0) > 0)
             lines.append(f"estimated device memory ({prec}): {_fmt_bytes(b)} ({nnz} 3x3 matrix blocks)")
+        lines += self._cost_lines()
         return "\n".join(lines)
 
     def linear_solver_plan(self) -> dict | None:
@@ -595,6 +627,7 @@ class Scene(_SceneBodies):
                         "vtu": out.get("vtu")},
             "matrix_blocks": int(nnz),
             "estimated_device_memory_bytes": memory,
+            "estimated_cost": self.cost_estimate(),
         }
 
     def output_paths(self, *, usd=None, states=None, stats=None, vtu=None) -> dict:

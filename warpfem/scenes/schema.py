@@ -570,6 +570,7 @@ def parse_scene_dict(data: dict, *, path: str | None = None, base_dir: str | Non
                  "load); this file is read as a volume mesh")
     if surface_file and mesh["target_tets"] is None and mesh["max_edge_length"] is None:
         mesh["target_tets"] = TARGET_TETS_DEFAULT
+        mesh["target_tets_default"] = True  # only an upper bound: a coarser surface keeps its own resolution
     if mesh["generator"] == "box" and tetra_keys:
         ctx.fail(f"[mesh].{tetra_keys[0]}", "only applies to path = \"surface.obj/.off/.ply/.stl\" (tetrahedralised on load)")
     if mesh["path"] and os.path.splitext(mesh["path"])[1].lower() in (".obj", ".off", ".ply", ".stl"):

@@ -283,12 +283,14 @@ def register_tune(subparsers):
     p.add_argument("--report", default=None, metavar="REPORT.json", help="search report (default next to --out)")
     p.add_argument("--space", default=None, metavar="default|full|SPACE.toml",
                    help="search space: default (the registered dynamic integrators on the scene's element and its "
-                        "higher-order partner, 1/2/4 substeps, float64: minutes), full (every element, 1-8 substeps, "
+                        "higher-order partner, 1/2/4 substeps, float64; a surface-file scene also 1/4, 1/2, 1 x its target_tets "
+                        "and float32: minutes), full (every element, 1-8 substeps, "
                         "two tolerances each, both precisions, every linear solver: hours), or a file of axes (arrays) "
                         "replacing those of the default space")
     p.add_argument("--subspace", type=int, nargs="+", default=None, metavar="R",
                    help="also search reduced runs with these subspace sizes (trains each once: minutes)")
-    p.add_argument("--truth-refine", type=int, default=None, help="reference mesh: cells x this (default 2)")
+    p.add_argument("--truth-refine", type=int, default=None,
+                   help="reference mesh: cells x this (default 2); a surface-file scene: target_tets x this cubed")
     p.add_argument("--truth-substeps", type=int, default=None, help="reference: finest substeps per frame (default 8)")
     p.add_argument("--truth-element", default=None, help="reference element (default tet10 / hex27)")
     p.add_argument("--no-truth", action="store_true",

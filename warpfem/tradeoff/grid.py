@@ -37,6 +37,7 @@ class TradeoffConfig:
     tol, max_iters, cg_tol: ``[integrator]`` Newton keys (ignored by integrators without them).
     substeps: time steps per output frame (dt = 1 / (fps * substeps)).
     integrator: ``[integrator].type``; element: ``[mesh].element``.
+    target_tets: ``[mesh].target_tets`` (a scene whose mesh is a surface file: the physics mesh size).
     subspace: the ``[subspace]`` table (reduced run), e.g. {"modes": 20, "cubature_tolerance": 0.01}.
     """
 
@@ -52,6 +53,7 @@ class TradeoffConfig:
     max_cg_iters: int | None = None
     refine: int | None = None  # box generator: [mesh].cells multiplied by this (spatial refinement)
     linear_solver: str | None = None  # [integrator].linear_solver, for integrators that take one
+    target_tets: int | None = None  # [mesh].target_tets of a scene whose mesh is a surface file
 
     def subspace_dict(self) -> dict | None:
         return None if self.subspace is None else dict(self.subspace)
@@ -90,6 +92,9 @@ class TradeoffConfig:
             v = getattr(self, k)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
                 raise GridError(f"{where}.{k}: must be an integer >= 1, got {v!r}")
+        v = self.target_tets
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 10):
+            raise GridError(f"{where}.target_tets: must be an integer >= 10, got {v!r}")
         if self.linear_solver is not None and self.linear_solver not in ("auto", "pcg", "direct", "amg", "multigrid"):
             raise GridError(f"{where}.linear_solver: must be one of auto, pcg, direct, amg, multigrid, got {self.linear_solver!r}")
         for k in ("integrator", "element", "name", "linear_solver"):
@@ -113,6 +118,8 @@ def _auto_name(d: dict) -> str:
         parts.append(d["element"])
     if d.get("refine") not in (None, 1):
         parts.append(f"cells x{d['refine']}")
+    if d.get("target_tets") is not None:
+        parts.append(f"tets={d['target_tets']}")
     if d.get("linear_solver"):
         parts.append(d["linear_solver"])
     sub = d.get("subspace")

@@ -66,9 +66,12 @@ class Reference:
             res.solver_tip_error, res.solver_rms_error = _pair_errors(traj, _as_reference(mt, ref))
         return res
 
-    def discretisation_error(self, element: str, refine: int = 1, quantity: str = "tip") -> float:
-        """The time-converged run on that mesh vs the reference (NaN: not measured)."""
-        mt = self.mesh_truth.get((element, refine))
+    def discretisation_error(self, element: str, refine: int = 1, quantity: str = "tip", target_tets=None) -> float:
+        """The time-converged run on that mesh vs the reference (NaN: not measured). ``target_tets``:
+        the physics mesh size of a scene whose mesh is a surface file (None: the scene's own)."""
+        if target_tets is None:
+            target_tets = self.plan["scene_mesh"][2]
+        mt = self.mesh_truth.get((element, refine, target_tets))
         if mt is None or not self.plan["split"]:
             return math.nan
         tip, rms = _pair_errors(mt, self.ref)
@@ -157,10 +160,14 @@ def _plan(doc, scene_path, base, reference: TradeoffConfig, tspec, configs, extr
     own mesh and the report says so (``flag``)."""
     import dataclasses
 
+    from .runner import surface_target_tets
+
     scene_el = base.spec.mesh["element"]
-    sample_cfg = dataclasses.replace(reference, element=None, refine=None, subspace=None)
-    plan = {"spec": tspec, "split": False, "space": None, "mesh_refs": {}, "flag": "", "scene_mesh": (scene_el, 1)}
-    plan["mesh_of"] = lambda c: (c.element or scene_el, c.refine or 1)
+    scene_tets = surface_target_tets(doc)  # a surface file's physics mesh size (None: a box or a volume file)
+    sample_cfg = dataclasses.replace(reference, element=None, refine=None, subspace=None, target_tets=None)
+    # a mesh is (element, box refinement, target_tets of a surface file)
+    plan = {"spec": tspec, "split": False, "space": None, "mesh_refs": {}, "flag": "", "scene_mesh": (scene_el, 1, scene_tets)}
+    plan["mesh_of"] = lambda c: (c.element or scene_el, c.refine or 1, c.target_tets or scene_tets)
     if tspec is None:
         plan["ladder"] = [reference]
         plan["sample_rest"] = np.asarray(variant_scene(doc, scene_path, reference).mesh().vertices, dtype=np.float64)
@@ -174,28 +181,42 @@ def _plan(doc, scene_path, base, reference: TradeoffConfig, tspec, configs, extr
         steps.append(steps[-1] // 2)
     el = _truth_element(scene_el, tspec)
     refine = int(tspec.refine)
-    can_refine = doc.get("mesh", {}).get("generator") == "box"
-    if not can_refine:
+    box = doc.get("mesh", {}).get("generator") == "box"
+    can_refine = box or scene_tets is not None
+    ref_tets = None
+    if scene_tets is not None:  # a surface file: a finer mesh of the same surface, refine^3 times the tets
+        finest = max([scene_tets] + [c.target_tets for c in configs if c.target_tets])
+        ref_tets = int(finest * refine ** 3)
+        plan["flag"] = (f"the scene's mesh is made from a surface file: the reference is a finer mesh of the same surface "
+                        f"(target_tets = {ref_tets}, {refine}^3 x {finest}; {el}), so the discretisation error of "
+                        "target_tets and of the element is measured")
+    elif not can_refine:
         plan["flag"] = ("the scene reads a mesh file, which cannot be refined here: the reference is the time-step "
                         "ladder on the scene's own mesh and element (solver and time-step error only; no "
                         "discretisation error)")
         el, refine = scene_el, 1
-    base_ref = dataclasses.replace(reference, name="reference", element=el, refine=refine if refine != 1 else None,
-                                   subspace=None)
-    plan["ladder"] = [dataclasses.replace(base_ref, name=f"reference {el}" + (f" cells x{refine}" if refine != 1 else "")
-                                          + f" {s} substeps", substeps=s) for s in steps]
+    box_refine = refine if box else 1
+    base_ref = dataclasses.replace(reference, name="reference", element=el, refine=box_refine if box_refine != 1 else None,
+                                   subspace=None, target_tets=ref_tets)
+    label = f" cells x{box_refine}" if box_refine != 1 else f" tets={ref_tets}" if ref_tets else ""
+    plan["ladder"] = [dataclasses.replace(base_ref, name=f"reference {el}{label} {s} substeps", substeps=s) for s in steps]
     plan["ladder"][0] = dataclasses.replace(plan["ladder"][0], name="reference")
-    if can_refine and refine >= 2:
+    if box and refine >= 2:
         plan["space"] = dataclasses.replace(base_ref, name=f"space check: {el} cells x{refine // 2} {S} substeps",
                                             refine=(refine // 2) if refine // 2 != 1 else None, substeps=S)
+    elif ref_tets is not None and refine >= 2:
+        half = max(int(ref_tets // 8), 10)
+        plan["space"] = dataclasses.replace(base_ref, name=f"space check: {el} tets={half} {S} substeps",
+                                            target_tets=half, substeps=S)
     if not can_refine:
         return plan
     plan["split"] = True
     meshes = {plan["scene_mesh"]} | {plan["mesh_of"](c) for c in configs} | set(extra_meshes)
-    for mk in sorted(meshes):
-        e, r = mk
-        cs = [dataclasses.replace(base_ref, name=f"mesh reference {e}" + (f" cells x{r}" if r != 1 else "") + f" {s} substeps",
-                                  element=e, refine=r if r != 1 else None, substeps=s) for s in steps[:2]]
+    for mk in sorted(meshes, key=lambda k: (k[0], k[1], k[2] or 0)):
+        e, r, tt = mk
+        what = (f" cells x{r}" if r != 1 else "") + (f" tets={tt}" if tt else "")
+        cs = [dataclasses.replace(base_ref, name=f"mesh reference {e}{what} {s} substeps",
+                                  element=e, refine=r if r != 1 else None, target_tets=tt, substeps=s) for s in steps[:2]]
         plan["mesh_refs"][mk] = cs
     return plan
 
@@ -204,6 +225,10 @@ def describe_reference(plan, ladder, space, ref, mesh_truth, mesh_runs) -> dict:
     """The report's account of the reference: what it is, its own convergence in time and space."""
     info = {"kind": "converged" if plan["split"] else "solver/time-step only", "flag": plan["flag"],
             "runs": [r.as_dict() for r, _ in ladder]}
+    r0 = ladder[0][0]  # what the reference costs (its finest run), against the scene's own mesh
+    info["cost"] = {"elements": (r0.settings or {}).get("elements"), "vertices": (r0.settings or {}).get("vertices"),
+                    "seconds_per_sim_second": r0.seconds_per_sim_second, "work": r0.work,
+                    "config": r0.config.get("name") if isinstance(r0.config, dict) else None}
     if plan["spec"] is not None:
         info["spec"] = plan["spec"].as_dict()
     L = ref
@@ -231,7 +256,7 @@ def describe_reference(plan, ladder, space, ref, mesh_truth, mesh_runs) -> dict:
             info["space"] = {"difference_tip": d[0], "difference_rms": d[1],
                              "note": "vs the reference mesh at the same dt: the error of the coarser level; the "
                                      "reference's own is smaller (about 1/8 of it for a quadratic element, error ~ h^3)"}
-    info["meshes"] = {f"{mk[0]}" + (f" cells x{mk[1]}" if mk[1] != 1 else ""):
+    info["meshes"] = {f"{mk[0]}" + (f" cells x{mk[1]}" if mk[1] != 1 else "") + (f" tets={mk[2]}" if mk[2] else ""):
                       {"discretisation_tip_error": (_pair_errors(mesh_truth[mk], L)[0] if mk in mesh_truth else None),
                        "discretisation_rms_error": (_pair_errors(mesh_truth[mk], L)[1] if mk in mesh_truth else None),
                        "notes": [r.note for r in runs if r.note]}

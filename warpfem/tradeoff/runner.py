@@ -22,7 +22,8 @@ from .grid import TradeoffConfig
 from .metrics import _Trajectory, work_proxy
 from .results import ConfigResult
 
-__all__ = ["scene_document", "Unavailable", "variant_scene", "variant_document", "make_job", "run_job", "SerialExecutor"]
+__all__ = ["scene_document", "Unavailable", "variant_scene", "variant_document", "make_job", "run_job", "SerialExecutor",
+           "surface_target_tets"]
 
 
 def scene_document(scene_path) -> dict:
@@ -92,6 +93,12 @@ def variant_document(doc: dict, cfg: TradeoffConfig, *, cache_dir: str | None = 
             raise Unavailable("spatial refinement needs [mesh] generator = \"box\" with cells (a mesh file cannot be "
                               "refined here)")
         mesh["cells"] = [int(c) * cfg.refine for c in mesh["cells"]]
+    if cfg.target_tets is not None:
+        mesh = d.setdefault("mesh", {})
+        if surface_target_tets(doc) is None:
+            raise Unavailable("target_tets needs [mesh] path = a surface file (.obj, .off, .ply, .stl) without "
+                              "max_edge_length")
+        mesh["target_tets"] = int(cfg.target_tets)
     if cfg.subspace is not None:
         sub = dict(cfg.subspace_dict())
         if "cache" not in sub and cache_dir is not None:
@@ -99,6 +106,20 @@ def variant_document(doc: dict, cfg: TradeoffConfig, *, cache_dir: str | None = 
             sub["cache"] = os.path.join(cache_dir, f"subspace_{key}.npz")
         d["subspace"] = sub
     return d
+
+
+def surface_target_tets(doc) -> int | None:
+    """The ``target_tets`` a scene document's mesh is made with when it is a surface file (its own
+    value or the default for surface files), None for a box, a volume file or ``max_edge_length``."""
+    from warpfem.mesh.tetrahedralization import SURFACE_EXTENSIONS
+    from warpfem.scenes.schema import TARGET_TETS_DEFAULT
+
+    mesh = (doc or {}).get("mesh") or {}
+    path = mesh.get("path")
+    if not isinstance(path, str) or not path.lower().endswith(SURFACE_EXTENSIONS) or mesh.get("max_edge_length") is not None:
+        return None
+    t = mesh.get("target_tets")
+    return int(t) if isinstance(t, int) and not isinstance(t, bool) else TARGET_TETS_DEFAULT
 
 
 def _build(scene, *, device, precision):

@@ -58,7 +58,11 @@ __all__ = ["tune", "format_tune", "search_space", "TuneResult", "DEFAULT_AXES", 
 DEFAULT_AXES = {"substeps": [1, 2, 4], "tol": [1e-4], "cg_tol": [1e-4], "precision": ["float64"]}
 FULL_AXES = {"substeps": [1, 2, 4, 8], "tol": [1e-3, 1e-5], "cg_tol": [1e-2, 1e-4], "precision": ["float32", "float64"]}
 SPACES = ("default", "full")
-_AXES = ("integrator", "element", "substeps", "tol", "cg_tol", "precision", "linear_solver", "subspace")
+_AXES = ("integrator", "element", "substeps", "tol", "cg_tol", "precision", "linear_solver", "subspace", "target_tets")
+#: A scene whose mesh is a surface file: the default and full spaces also search its physics mesh
+#: size, these fractions of the scene's ``target_tets`` (candidates below the scene's value; the
+#: reference is a finer mesh of the same surface), and both precisions.
+TARGET_TETS_FRACTIONS = (0.25, 0.5, 1.0)
 QUANTITY_FIELDS = {"tip": "tip_error", "rms": "rms_error"}
 
 
@@ -99,12 +103,19 @@ def space_axes(space, doc=None) -> dict:
     if space not in SPACES:
         raise GridError(f"search space must be one of {', '.join(SPACES)} or a .toml file, got {space!r}")
     full = space == "full"
-    return {**_registered_axes(full, doc), **(FULL_AXES if full else DEFAULT_AXES)}
+    axes = {**_registered_axes(full, doc), **(FULL_AXES if full else DEFAULT_AXES)}
+    from .runner import surface_target_tets
+
+    tets = surface_target_tets(doc)
+    if tets is not None:  # a surface file: its physics mesh size and float32 too
+        axes["target_tets"] = sorted({max(int(tets * f), 10) for f in TARGET_TETS_FRACTIONS})
+        axes["precision"] = ["float32", "float64"]
+    return axes
 
 
 def load_space(path) -> dict:
     """A search-space TOML file: any of ``integrator``, ``element``, ``substeps``, ``tol``, ``cg_tol``,
-    ``precision``, ``linear_solver`` (arrays of values) and ``subspace`` (array of mode counts)."""
+    ``precision``, ``linear_solver``, ``target_tets`` (arrays of values) and ``subspace`` (array of mode counts)."""
     from warpfem.scenes.schema import read_toml
 
     data = read_toml(os.fspath(path), GridError, what="search-space file")
@@ -130,12 +141,12 @@ def search_space(doc, scene_path, axes: dict | None = None, space: str = "defaul
 
     out, seen, dropped = [], {}, []
     solvers = ax.get("linear_solver") or [None]
-    for integ, el, sub, tol, cg, prec in itertools.product(ax["integrator"], ax["element"], ax["substeps"], ax["tol"],
-                                                          ax["cg_tol"], ax["precision"]):
+    for integ, el, sub, tol, cg, prec, tets in itertools.product(ax["integrator"], ax["element"], ax["substeps"], ax["tol"],
+                                                                ax["cg_tol"], ax["precision"], ax.get("target_tets") or [None]):
         entry = INTEGRATORS.get(integ)
         for ls in (solvers if entry is not None and "linear_solver" in entry.keys else [None]):
             _add(out, seen, dropped, doc, scene_path, dict(integrator=integ, element=el, substeps=sub, tol=tol, cg_tol=cg,
-                                                           precision=prec, linear_solver=ls))
+                                                           precision=prec, linear_solver=ls, target_tets=tets))
     for modes, sub, tol, prec in itertools.product(ax.get("subspace") or [], ax["substeps"], ax["tol"], ax["precision"]):
         _add(out, seen, dropped, doc, scene_path, dict(subspace={"modes": int(modes)}, substeps=sub, tol=tol, precision=prec))
     return out, dropped
@@ -161,7 +172,8 @@ def _add(out, seen, dropped, doc, scene_path, kw):
         dropped.append((cfg.name, str(e).splitlines()[0][:200]))
         return
     eff = json.dumps([cfg.precision, {k: v for k, v in spec.integrator.items() if not k.startswith("require")},
-                      spec.mesh.get("element"), spec.subspace and {k: v for k, v in spec.subspace.items() if k != "cache"}],
+                      spec.mesh.get("element"), spec.subspace and {k: v for k, v in spec.subspace.items() if k != "cache"},
+                      spec.mesh.get("target_tets")],
                      sort_keys=True, default=str)
     if eff in seen:
         return
@@ -350,14 +362,19 @@ def _tune(scene_path, max_error, *, quantity, frames, device, axes, candidates, 
                          f"({max_error:.2e}): tighten it (truth substeps) or loosen the budget")
         if reference.info.get("flag"):
             notes.append(reference.info["flag"])
+        rc = reference.info.get("cost") or {}
+        if reference.plan.get("scene_mesh", (None, 1, None))[2] is not None and rc.get("elements"):
+            notes.append(f"the reference run cost {_fmt(rc.get('seconds_per_sim_second'), '.3g')} s per simulated second "
+                         f"on {rc['elements']} elements, {rc.get('vertices')} vertices (work {_fmt(rc.get('work'), '.3g')})")
         # a mesh that alone misses the budget cannot be in the answer
         pruned, alive = [], []
         for c in candidates:
-            el, rf = reference.plan["mesh_of"](c)
-            d = reference.discretisation_error(el, rf, quantity)
+            el, rf, tt = reference.plan["mesh_of"](c)
+            d = reference.discretisation_error(el, rf, quantity, target_tets=tt)
             if math.isfinite(d) and d > max_error:
+                what = f"{el} mesh" + (f" of target_tets = {tt}" if tt else "")
                 pruned.append({"name": c.name, "stage": "discretisation",
-                               "reason": f"{el} mesh: discretisation {quantity} error {d:.3g} > {max_error:g}"})
+                               "reason": f"{what}: discretisation {quantity} error {d:.3g} > {max_error:g}"})
             else:
                 alive.append(c)
         log(f"{len(alive)} candidates after the discretisation check ({len(pruned)} dropped)")
@@ -493,11 +510,15 @@ def _run_weight(cfg, doc) -> float:
     """Relative cost of a run (for ETAs only): substeps x nodes per element x refine^3."""
     from warpfem.mesh.element_types import ELEMENTS
 
+    from .runner import surface_target_tets
+
     mesh = (doc or {}).get("mesh") or {}
     el = cfg.element or mesh.get("element", "tet4")
     k = ELEMENTS[el].nodes_per_element if el in ELEMENTS else 4
     sub = cfg.substeps or ((doc or {}).get("integrator") or {}).get("substeps") or 1
-    return float(sub) * k * float(cfg.refine or 1) ** 3
+    tets = surface_target_tets(doc)
+    size = float(cfg.target_tets) / tets if cfg.target_tets and tets else 1.0
+    return float(sub) * k * float(cfg.refine or 1) ** 3 * size
 
 
 def _clock(seconds) -> str:
