@@ -185,7 +185,7 @@ def main():
     s = summary(rows)
     res = {"case": a.case, "mode": a.mode, "friction": a.friction if a.case == "collider_drop" else "scene's",
            "friction_velocity": a.friction_velocity if a.case == "collider_drop" else "scene's", "precision": a.precision, "frames": a.frames,
-           "device": f"cpu ({platform.processor() or platform.machine()}), 2 cores shared with other sessions",
+           "device": f"cpu ({platform.processor() or platform.machine()}), 2 cores shared with other jobs",
            "load_average": [load0, os.getloadavg()[0]], "summary": s,
            "frames_intersecting": sum(f["intersects"] for f in frames), "steps": rows, "frame_checks": frames}
     print(json.dumps({k: res[k] for k in ("case", "mode", "precision", "summary", "frames_intersecting", "load_average")}))

@@ -35,7 +35,7 @@ def drop(mu, theta, steps, epsv=None, stiffness=None, precision="float64"):
         if land is None and sim.contact.distances().min() < sim.contact.dhat[0]: land = k
     return np.array(pos), np.array(vel), land, newton / steps, bad, float(sim.contact.epsv[0])
 th = math.radians(30)
-out = {"device": "cpu (x86_64), 2 cores shared with other sessions"}
+out = {"device": "cpu (x86_64), 2 cores shared with other jobs"}
 for name, kw in (("default", {}), ("epsv_x10", {"epsv": "x10"}), ("auto", {"stiffness": "auto"}), ("default_f32", {"precision": "float32"}), ("epsv_x10_f32", {"epsv": "x10", "precision": "float32"})):
     kw = dict(kw)
     if kw.get("epsv") == "x10":

@@ -454,8 +454,8 @@ class CapturedSequences:
     time it is captured, then replayed, and every later time only replayed. What ``fn`` returns
     is kept with the graph and returned by each replay. Launches are counted in ``COUNTERS`` as if
     they had been made. On CUDA only with the memory pool enabled (captures need it for
-    allocations); never on CUDA without it. **The CUDA path has not been run** (no GPU in the
-    session that wrote it); the CPU path is tested (tests/test_step_pipeline.py).
+    allocations); never on CUDA without it. **The CUDA path has not been run** (no GPU was
+    available when it was written); the CPU path is tested (tests/test_step_pipeline.py).
     """
 
     MAX_GRAPHS = 16
