@@ -61,7 +61,7 @@ friction = 0.5
 [output]
 fps = 48
 frames = {frames}
-"""
+{integrator}"""
 
 
 def main(argv=None):
@@ -71,6 +71,8 @@ def main(argv=None):
     ap.add_argument("--noise", type=float, default=0.05)
     ap.add_argument("--precision", default="float64")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--integrator", default="", help="extra [integrator] keys, TOML (e.g. 'max_iters = 100'); "
+                    "default: none, the defaults decide")
     ap.add_argument("--out", default=str(ROOT / "kernels_bench" / "results" / "scan_job"))
     a = ap.parse_args(argv)
 
@@ -93,7 +95,8 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         write_obj(os.path.join(tmp, "scan.obj"), V, F)
         with open(os.path.join(tmp, "scan.toml"), "w") as f:
-            f.write(SCENE.format(floor=floor, sx=centre[0], sy=centre[1], sz=centre[2], r=r, frames=a.frames))
+            f.write(SCENE.format(floor=floor, sx=centre[0], sy=centre[1], sz=centre[2], r=r, frames=a.frames,
+                                  integrator=f"[integrator]\n{a.integrator}\n" if a.integrator else ""))
         t0 = time.perf_counter()
         scene = load_scene(os.path.join(tmp, "scan.toml"))
         run = scene.build(device=a.device, precision=a.precision)
@@ -111,7 +114,7 @@ def main(argv=None):
     job_s = time.perf_counter() - t_job
     unconverged = sum(1 for f in frames if not f["converged"])
     meta = dict(device=a.device, cpu=platform.processor() or platform.machine(), cores=os.cpu_count(),
-                precision=a.precision, surface_vertices=int(len(V)), surface_triangles=int(len(F)),
+                precision=a.precision, integrator_keys=a.integrator, surface_vertices=int(len(V)), surface_triangles=int(len(F)),
                 noise=a.noise, subdivisions=a.subdivisions, tets=int(m.num_elements), vertices=int(m.num_vertices),
                 mesh_and_build_seconds=mesh_s, job_seconds=job_s, frames=a.frames, unconverged_frames=unconverged,
                 newton_per_frame=float(np.mean([f["newton"] for f in frames])),

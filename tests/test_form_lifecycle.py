@@ -244,3 +244,37 @@ def test_builtin_contact_forms_are_added_forms():
     assert [f.name for f in sim.potential().forms] == ["inertia", "elastic", "lag_counter", "load"]
     assert lagged_change(np.ones(3), np.array([1.0, 3.0, 1.0])) == (2.0, 3.0)
     assert lagged_change(np.ones(3), np.ones(2)) == (float("inf"), 1.0)
+
+
+def test_max_iters_default_follows_the_forms_and_a_given_value_wins(tmp_path):
+    """Contact asks for 100 Newton iterations per solve (Form.newton_iterations): a simulator or a
+    scene whose max_iters was not given gets it when contact is added; a given value is kept, and a
+    simulator without contact keeps the default 30. A user's form can ask the same way."""
+    model = wf.Model(wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1), origin=(0.0, 0.01, 0.0)),
+                     wf.make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),
+                     gravity=(0.0, -9.81, 0.0))
+    sim = wf.Simulator(model, dt=0.01)
+    assert sim.options.max_iters == 30
+    sim.add_collider(type="plane", point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0))
+    assert sim.options.max_iters == 100
+    given = wf.Simulator(model, dt=0.01, max_iters=7)
+    given.add_collider(type="plane", point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0))
+    assert given.options.max_iters == 7
+
+    class Asks(PlaneBarrier):
+        newton_iterations = 150
+
+    own = wf.Simulator(model, dt=0.01)
+    own.add_form(Asks(own, point=(0.0, -1.0, 0.0), normal=(0.0, 1.0, 0.0)))
+    assert own.options.max_iters == 150
+
+    from warpfem.scenes import load_scene
+
+    base = ('gravity = [0.0, -9.81, 0.0]\n[mesh]\ngenerator = "box"\nsize = [0.1, 0.1, 0.1]\ncells = [1, 1, 1]\n'
+            'origin = [0.0, 0.01, 0.0]\n[material]\nmodel = "stable_neo_hookean"\nyoungs_modulus = 1e5\n'
+            'poisson_ratio = 0.3\ndensity = 1000.0\n')
+    floor = '[[collider]]\ntype = "plane"\npoint = [0.0, 0.0, 0.0]\nnormal = [0.0, 1.0, 0.0]\n'
+    for text, want in ((base, 30), (base + floor, 100), (base + floor + "[integrator]\nmax_iters = 40\n", 40)):
+        p = tmp_path / "s.toml"
+        p.write_text(text)
+        assert load_scene(str(p)).build().sim.options.max_iters == want

@@ -78,7 +78,8 @@ class Simulator(SimulatorBase):
             ``sim.unconverged_steps``.
         linear_solver: "auto", "pcg", "direct", "amg" or "multigrid": the solver of each Newton system
             (docs/linear_solvers.md); ``linear_solver_options`` (dict) go to its constructor.
-        Newton options (keyword): ``tol``, ``atol``, ``max_iters``, ``cg_tol``, ``max_cg_iters``,
+        Newton options (keyword): ``tol``, ``atol``, ``max_iters`` (not given: 30, or what the
+            potential's forms ask for, ``Form.newton_iterations``: 100 with contact), ``cg_tol``, ``max_cg_iters``,
             ``max_line_search``, ``armijo``, ``project_hessian``, ``hessian_projection``, ``forcing``,
             ``friction_filter``, ``extrapolate`` (see :class:`NewtonOptions`).
         initial_guess: where each step's Newton solve starts (free components; fixed ones always
@@ -113,6 +114,8 @@ class Simulator(SimulatorBase):
         self.friction_iterations, self.friction_tol = int(friction_iterations), float(friction_tol)
         self.integrator = make_integrator(integrator)
         self.options = newton_options_from(newton_options)
+        # max_iters not given: the default, raised to what the potential's forms ask for (contact)
+        self._max_iters_base = None if "max_iters" in newton_options else self.options.max_iters
         self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
         n = self.num_vertices
         dev = self.device
@@ -300,6 +303,9 @@ class Simulator(SimulatorBase):
         want = IncrementalPotential.ordered(self._builtin_forms + [f for f in self._forms if f.enabled()])
         if want != self._potential.forms:
             self._potential.set_forms(want)
+        if getattr(self, "_max_iters_base", None) is not None:
+            self.options.max_iters = max([self._max_iters_base] + [int(f.newton_iterations) for f in self._forms
+                                                                   if getattr(f, "newton_iterations", None)])
 
     def _form_parts(self, view=None):
         """(``"form/NAME"``, form) of every form of the potential, the added ones enabled or not

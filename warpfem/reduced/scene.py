@@ -144,7 +144,7 @@ def _reduced_simulator(scene, model, sub, *, device="cpu", precision="float64"):
     o = scene.spec.integrator
     return ReducedSimulator(model, sub, device=device, precision=precision, dt=o["dt"], damping_mass=o["damping_mass"],
                             damping_stiffness=o["damping_stiffness"], require_convergence=o["require_convergence"],
-                            tol=o["tol"], atol=o["atol"], max_iters=o["max_iters"], project_hessian=o["project_hessian"],
+                            tol=o["tol"], atol=o["atol"], max_iters=30 if o["max_iters"] is None else o["max_iters"], project_hessian=o["project_hessian"],
                             integrator=scene.integrator_type)
 
 

@@ -133,7 +133,7 @@ _NEWTON = ("tol", "atol", "cg_tol", "max_iters", "max_cg_iters", "project_hessia
 def _simulator(model, opts, *, device, precision, dt, dynamic, integrator="backward_euler"):
     from warpfem.simulator import Simulator
 
-    kw = {k: opts[k] for k in _NEWTON}
+    kw = {k: opts[k] for k in _NEWTON if opts[k] is not None}  # max_iters not given: the simulator's default
     damping = {}
     if dynamic:
         damping = {"damping_mass": opts["damping_mass"], "damping_stiffness": opts["damping_stiffness"]}

@@ -222,6 +222,9 @@ class Form:
     #: the form's lagged quantities are taken again only from an iterate whose relative gradient is at
     #: most this (and that a full Newton step reached); default ``LAG_BELOW``
     lag_below = LAG_BELOW
+    #: the Newton iterations a solve with this form needs at most, as a default: a simulator whose
+    #: ``max_iters`` was not given allows the largest of its forms' (None: no need beyond the default)
+    newton_iterations = None
 
     def uses_lagging(self) -> bool:
         """Whether the form lags a quantity that :meth:`update_lagging` can take again."""
