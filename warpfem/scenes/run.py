@@ -295,9 +295,11 @@ class SceneRun:
                 volumes = self.usd_volumes() if out.get("usd_volume") else []
                 for name, tets, faces, lo, hi in volumes:
                     writer.add_tet_mesh(name, tets, hi - lo, surface_faces=faces)
-                from warpfem.contact.scene import collider_prims
+                colliders = []
+                if getattr(self.sim, "contact", None) is not None:  # the contact modules only when there is contact
+                    from warpfem.contact.scene import collider_prims
 
-                colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
+                    colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
                 for name, faces, pts in colliders:
                     writer.add_mesh(name, faces, len(pts()))
 
