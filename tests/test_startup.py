@@ -10,6 +10,8 @@ import os
 import subprocess
 import sys
 
+import numpy as np
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 HEAVY = {"scipy", "pyamg", "pypardiso", "meshio", "pxr", "matplotlib", "tetgen", "wildmeshing",
@@ -118,20 +120,34 @@ def test_a_run_process_of_a_plain_scene_loads_only_what_it_uses_and_freezes_its_
     """``python -m warpfem run`` (main() owning the process): contact, trade-off, reduced and VTU code
     never imported (nor xml.sax); the collector is on again at the end, with the start-up objects frozen."""
     code = ("import gc, runpy, sys\n"
-            f"sys.argv = ['warpfem', 'run', {CANTILEVER!r}, '--frames', '1', '--quiet', '--out', 'c.usda']\n"
+            "import warpfem.scenes.run as R\n"  # whether the USD library is loaded when the first step starts
+            "at_first_step, step = [], R.SceneRun.step_frame\n"
+            "R.SceneRun.step_frame = lambda self, **k: (at_first_step.append('pxr' in sys.modules), step(self, **k))[1]\n"
+            f"sys.argv = ['warpfem', 'run', {CANTILEVER!r}, '--frames', '2', '--quiet', '--out', 'c.usda']\n"
             "try:\n    runpy.run_module('warpfem', run_name='__main__', alter_sys=True)\n"
             "except SystemExit as e:\n    assert not e.code, e.code\n"
-            "print(repr((gc.isenabled(), gc.get_freeze_count())))")
+            "print(repr((gc.isenabled(), gc.get_freeze_count(), at_first_step)))")
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([ROOT, *filter(None, [env.get("PYTHONPATH")])])
     out = subprocess.run([sys.executable, "-c", code + "\nprint(repr(sorted(sys.modules)))"], capture_output=True,
                          text=True, env=env, cwd=tmp_path)
     assert out.returncode == 0, out.stderr[-2000:]
     lines = out.stdout.strip().splitlines()
-    enabled, frozen = eval(lines[-2])
+    enabled, frozen, pxr_loaded = eval(lines[-2])
     mods = eval(lines[-1])
     assert enabled and frozen > 10_000  # Warp's built-ins alone are tens of thousands of objects
-    assert "pxr.Usd" in mods and (tmp_path / "c.usda").is_file()  # it did write its USD
+    # the USD stage is made after the first step (pxr not loaded before it), with frame 0 as it was
+    assert pxr_loaded == [False, True] and "pxr.Usd" in mods
+    from warpfem.io import read_usd_mesh_frames
+    from warpfem.scenes import load_scene
+    from warpfem.scenes.loads import boundary_surface
+
+    times, frames = read_usd_mesh_frames(str(tmp_path / "c.usda"), "boundary")
+    mesh = load_scene(CANTILEVER).mesh()
+    ids, _ = boundary_surface(mesh)
+    assert list(times) == [0.0, 1.0, 2.0]
+    np.testing.assert_array_equal(frames[0], np.asarray(mesh.vertices, dtype=np.float32)[ids])
+    assert np.abs(frames[2] - frames[0]).max() > 1e-4  # it sags: frames 1, 2 are the stepped states
     assert [m for m in mods if m.startswith(NOT_FOR_A_PLAIN_RUN)] == []
     assert [m for m in mods if m.startswith(("warpfem.io.compare", "xml.sax", "matplotlib"))] == []
 

@@ -273,7 +273,7 @@ class SceneRun:
 
         # every output path before anything is written (OutputPathError, a ValueError, names the bad one)
         check_output_paths({"usd": usd, "states": states, "stats": stats, "vtu": vtu})
-        writer = log = volume = None
+        writer = log = volume = pending_usd = None
         from warpfem.io.vtu import VtuSeriesWriter, warpfem_version
 
         version = warpfem_version()
@@ -289,19 +289,12 @@ class SceneRun:
             positions.write_frame(self.sim.positions(), self._time())
         try:
             if usd:
-                writer = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
-                for name, faces, count in self.usd_surfaces():
-                    writer.add_mesh(name, faces, count)
                 volumes = self.usd_volumes() if out.get("usd_volume") else []
-                for name, tets, faces, lo, hi in volumes:
-                    writer.add_tet_mesh(name, tets, hi - lo, surface_faces=faces)
                 colliders = []
                 if getattr(self.sim, "contact", None) is not None:  # the contact modules only when there is contact
                     from warpfem.contact.scene import collider_prims
 
                     colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
-                for name, faces, pts in colliders:
-                    writer.add_mesh(name, faces, len(pts()))
 
                 def usd_frame():
                     frame = self.usd_surface_points()
@@ -311,7 +304,20 @@ class SceneRun:
                     frame.update({name: pts() for name, _, pts in colliders})
                     return frame
 
-                writer.write_frame(self.frame, usd_frame())
+                def open_usd(first):
+                    w = UsdMeshWriter(usd, fps=self.fps, up_axis=out["up_axis"], clip_frames=out["clip_frames"] or None)
+                    for name, faces, count in self.usd_surfaces():
+                        w.add_mesh(name, faces, count)
+                    for name, tets, faces, lo, hi in volumes:
+                        w.add_tet_mesh(name, tets, hi - lo, surface_faces=faces)
+                    for name, faces, pts in colliders:
+                        w.add_mesh(name, faces, len(pts()))
+                    w.write_frame(*first)
+                    return w
+
+                # the stage is made, with frame 0, once the first frame is stepped: the USD library
+                # (~0.2 s to import) does not hold up the first step
+                pending_usd = (open_usd, (self.frame, {k: np.array(v, copy=True) for k, v in usd_frame().items()}))
             if vtu:
                 if self.scene.spec.bodies:  # one block per body, by name
                     from warpfem.io.vtu import VtuBodiesWriter
@@ -349,6 +355,9 @@ class SceneRun:
                     log.flush()
                 if positions is not None:
                     positions.write_frame(self.sim.positions(), fs.time)
+                if pending_usd is not None:
+                    (open_usd, first), pending_usd = pending_usd, None
+                    writer = open_usd(first)
                 if writer is not None:
                     writer.write_frame(self.frame, usd_frame())
                 if volume is not None:
@@ -357,6 +366,11 @@ class SceneRun:
                     progress(fs)
         except BaseException as e:
             reason = _incomplete_reason(e, self.frame)
+            if pending_usd is not None:  # the first frame failed: frame 0 is still written, marked incomplete
+                try:
+                    writer = pending_usd[0](pending_usd[1])
+                except Exception as usd_error:  # noqa: BLE001 - the step's error is the one raised
+                    _logger.warning(f"{usd}: not written: {usd_error}")
             if writer is not None:
                 writer.close(complete=False, reason=reason)
             if volume is not None:
