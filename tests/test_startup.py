@@ -34,13 +34,6 @@ def test_import_warpfem_loads_no_heavy_optional_module():
     assert sorted(m for m in mods if m.startswith(LAZY_WARPFEM)) == []
 
 
-def test_import_warpfem_leaves_the_collector_as_it_found_it():
-    """The collector is paused during Warp's import only: on after the import, off if it was off."""
-    assert _modules_after("import gc\nimport warpfem\nassert gc.isenabled()")
-    assert _modules_after("import gc\ngc.disable()\nimport warpfem\nassert not gc.isenabled()\n"
-                          "assert gc.get_freeze_count() == 0")
-
-
 def test_a_plain_scene_build_does_not_load_the_reduced_package_or_contact():
     mods = _modules_after(f"from warpfem.scenes import load_scene\n"
                           f"load_scene({os.path.join(ROOT, 'examples', 'scenes', 'cantilever.toml')!r})"

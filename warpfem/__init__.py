@@ -15,21 +15,9 @@ Warp's start-up banner and ``Module ... load`` lines are off once warpfem is imp
 not); ``WARPFEM_VERBOSE=1`` shows them (:mod:`warpfem.device`).
 """
 
-import gc as _gc
+from warpfem.device import configure_warp as _configure_warp
 
-# Warp's import makes ~100,000 long-lived objects and almost no garbage: the cyclic collector, which
-# would run ~175 times over them meanwhile (a quarter of the import's time), is paused during it and
-# then left as it was (kernels_bench/bench_startup.py).
-_collecting = _gc.isenabled()
-_gc.disable()
-try:
-    from warpfem.device import configure_warp as _configure_warp
-
-    _configure_warp()  # quiet unless WARPFEM_VERBOSE; before any warpfem module can initialise Warp
-finally:
-    if _collecting:
-        _gc.enable()
-del _gc, _collecting
+_configure_warp()  # quiet unless WARPFEM_VERBOSE; before any warpfem module can initialise Warp
 
 from typing import TYPE_CHECKING  # noqa: E402
 

@@ -4,7 +4,8 @@
 The subcommands are listed in one table, :data:`COMMANDS` (name -> ``"module:function"``). Each
 function is ``register(subparsers)``: it adds its parser and must ``set_defaults(func=handler)``,
 where ``handler(args) -> int`` returns the exit code. A module is imported only when the parser is
-built, so a subcommand whose optional dependency is missing does not break the others. A new
+built, so a subcommand whose optional dependency is missing does not break the others, and a command
+line naming a subcommand (``warpfem run ...``) imports that subcommand's module only. A new
 subcommand is one module with a ``register`` function plus one line in :data:`COMMANDS`.
 
 Subcommand modules use the public helpers here: :func:`error`, :func:`check_device`,
