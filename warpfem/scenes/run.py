@@ -249,7 +249,8 @@ class SceneRun:
         ``usd``/``states``/``stats`` default to the scene's [output] (paths relative to the
         current directory). ``vtu``: a ParaView collection (.pvd) of the volume mesh, written frame
         by frame (:class:`warpfem.io.VtuSeriesWriter`); default the scene's [output].vtu. Every
-        stats record carries ``warpfem_version``. ``progress(FrameStats)`` is called after each frame. On
+        stats record carries ``warpfem_version``. The USD stage is made once the first frame is stepped
+        (frame 0 kept until then). ``progress(FrameStats)`` is called after each frame. On
         :class:`warpfem.SolveFailed` (or Ctrl-C) the USD is closed marked incomplete with the
         frames done so far, the npz/stats hold them too, and the exception propagates.
         A step that does not converge (``require_convergence`` off) is not a Python warning here:
@@ -355,9 +356,9 @@ class SceneRun:
                     log.flush()
                 if positions is not None:
                     positions.write_frame(self.sim.positions(), fs.time)
-                if pending_usd is not None:
-                    (open_usd, first), pending_usd = pending_usd, None
-                    writer = open_usd(first)
+                if pending_usd is not None:  # the first frame is stepped: the stage now, with frame 0
+                    (opener, first), pending_usd = pending_usd, None
+                    writer = opener(first)
                 if writer is not None:
                     writer.write_frame(self.frame, usd_frame())
                 if volume is not None:
