@@ -586,10 +586,14 @@ class UsdOutput(FrameWriter):
         self._w = None
 
     def open(self, run):
-        o = run.options
+        self._run, self._pending = run, None
         if run.resume_after is not None:
             self._w = UsdMeshWriter.resume(self.path, run.resume_after)
-            return
+
+    def _make(self):
+        """The stage (pxr imported here) with the run's prims, and the frame kept until now."""
+        run = self._run
+        o = run.options
         self._w = UsdMeshWriter(self.path, fps=run.fps, up_axis=o.get("up_axis", "Y"),
                                 clip_frames=o.get("clip_frames", 100) or None)
         for name, faces, count in run.surfaces:
@@ -598,13 +602,25 @@ class UsdOutput(FrameWriter):
             self._w.add_tet_mesh(name, tets, hi - lo, surface_faces=faces)
         for name, faces, count in run.colliders:
             self._w.add_mesh(name, faces, count)
+        if self._pending is not None:
+            self._w.write_frame(*self._pending)
+            self._pending = None
 
     def write(self, snapshot):
+        if self._w is None and self._pending is None and not snapshot.sync:
+            # the start (frame 0) is kept in memory and the stage made with the next frame: the USD
+            # library (~0.2 s to import) does not hold up the first step
+            self._pending = (snapshot.frame, {k: np.array(v, copy=True) for k, v in snapshot.surface_points.items()})
+            return
+        if self._w is None:
+            self._make()
         self._w.write_frame(snapshot.frame, snapshot.surface_points)
         if snapshot.sync and self._w.unsaved_frames:
             self._w.save()
 
     def close(self, complete, reason=None):
+        if self._w is None and self._pending is not None:  # stopped before frame 1: frame 0 is still written
+            self._make()
         if self._w is not None:
             self._w.close(complete=complete, reason=reason)
 

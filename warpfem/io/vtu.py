@@ -29,7 +29,6 @@ from __future__ import annotations
 import json
 import os
 import re
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
@@ -258,6 +257,8 @@ class VtuSeriesWriter:
                  '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
                  f"  <!-- warpfem {comment} -->",
                  "  <Collection>"]
+        from xml.sax.saxutils import quoteattr  # here: it imports urllib, http and email
+
         lines += [f'    <DataSet timestep="{t!r}" group="" part="0" file={quoteattr(f)}/>' for t, f in self.entries]
         lines += ["  </Collection>", "</VTKFile>", ""]
         _write_text_atomic(self.path, "\n".join(lines))
@@ -329,6 +330,8 @@ class VtuBodiesWriter:
                 "bodies": self.names}
         if reason:
             meta["reason"] = reason
+        from xml.sax.saxutils import quoteattr
+
         comment = json.dumps(meta).replace("--", "- -")
         base = os.path.dirname(os.path.abspath(self.path))
         lines = ['<?xml version="1.0"?>',

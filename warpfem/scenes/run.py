@@ -312,7 +312,8 @@ class SceneRun:
         opened, failed = [], []
 
         def feed(fs):
-            sync = bool(every) and (self.frame % every == 0 or self.frame == total)
+            # frame 0 (the start, fs None) is not checkpointed: a run stopped before frame 1 starts again
+            sync = fs is not None and bool(every) and (self.frame % every == 0 or self.frame == total)
             snap = self._snapshot(fs, sync, info)
             for w in opened:
                 self._call(w, failed, w.write, snap)
