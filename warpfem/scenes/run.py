@@ -390,13 +390,16 @@ class SceneRun:
 
     def _run_info(self, total, resume_after):
         """The :class:`warpfem.io.writers.RunInfo` of this run (surfaces, volumes, colliders, blocks)."""
-        from warpfem.contact.scene import collider_prims
         from warpfem.io.vtu import warpfem_version
         from warpfem.io.writers import RunInfo
 
         out = self.scene.spec.output
         volumes = self.usd_volumes() if out.get("usd_volume") else []
-        colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
+        colliders = []
+        if getattr(self.sim, "contact", None) is not None:  # the contact modules only when there is contact
+            from warpfem.contact.scene import collider_prims
+
+            colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
         self._collider_points = [(name, pts) for name, _, pts in colliders]
         self._volumes = volumes
         extra, blocks = {}, []
