@@ -80,10 +80,9 @@ def main():
         lines.append(f"| {r['scene']} | {r['vertices']} | {'yes' if r['contact'] else 'no'} | {r['estimated_s_per_frame']:.3g} | "
                      f"{r['measured_s_per_frame']:.3g} | {r['time_ratio']:.2f} | {r['estimated_newton_per_frame']:g} | "
                      f"{r['measured_newton_per_frame']:.1f} |")
-    text = "\n".join(lines) + f"\n\n{json.dumps(meta)}\n"
-    with open(args.out + ".md", "w") as f:
-        f.write(text)
-    print(text)
+    from kernels_bench.report import write_markdown
+
+    write_markdown(args.out + ".md", lines, meta)
 
 
 if __name__ == "__main__":

@@ -114,10 +114,9 @@ def main():
         how = r["mesher"] + (" (TetWild's boundary)" if r["remeshed_from"] else "") + (", dirty input" if r["dirty"] else "")
         lines.append(f"| {r['surface']} | {r['surface_triangles']} | {r['target_tets']} | {r['tets']} | "
                      f"{100 * r['off']:+.1f} % | {how} | {r['meshes'] or 1} | {r['seconds']:.1f} |")
-    text = "\n".join(lines) + f"\n\n{json.dumps(meta)}\n"
-    with open(args.out + ".md", "w") as f:
-        f.write(text)
-    print(text)
+    from kernels_bench.report import write_markdown
+
+    write_markdown(args.out + ".md", lines, meta)
 
 
 if __name__ == "__main__":

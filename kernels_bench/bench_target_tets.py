@@ -109,10 +109,9 @@ def main():
                      f"{r['render_outside']} (max {r['render_max_outside'] * 1e3:.2f} mm) | {r['step_seconds_median']:.3f} | "
                      f"{r['cost_vs_finest']:.3f} | {100 * r['error_vs_finest']:.2f} % | "
                      f"{100 * r['last_step_error_vs_finest']:.2f} % |")
-    text = "\n".join(lines) + f"\n\n{json.dumps(meta)}\n"
-    with open(args.out + ".md", "w") as f:
-        f.write(text)
-    print(text)
+    from kernels_bench.report import write_markdown
+
+    write_markdown(args.out + ".md", lines, meta)
 
 
 if __name__ == "__main__":

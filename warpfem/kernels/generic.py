@@ -86,6 +86,17 @@ def _min_chunk(spec) -> int:
     return max(1, spec.min_chunk if MIN_CHUNK is None else int(MIN_CHUNK))
 
 
+def _chunk_bounds(n, threads, spec, rows=None, block=None):
+    """The chunks' bounds [b_0 = 0, ..., b_parts = n] of a split launch over n items on ``threads``
+    threads: contiguous ranges of at least the kernel's minimal chunk; a reduction (``rows`` partial
+    rows of ``block`` items) splits on whole rows, so its partial sums do not depend on the split."""
+    if rows is None:
+        parts = max(1, min(threads, n // _min_chunk(spec)))
+        return [n * c // parts for c in range(parts + 1)]
+    parts = max(1, min(threads, rows, n // _min_chunk(spec)))
+    return [min(n, block * (rows * c // parts)) for c in range(parts + 1)]
+
+
 def splittable(kind: str, min_chunk: int = 4096, acc: int = -1, slot: int = -1, n_add: int = 0, n_max: int = 0,
                n_min: int = 0, when: int = -1):
     """Declare how :func:`launch` splits a kernel's 1-d range across CPU threads (CUDA launches are
@@ -184,8 +195,7 @@ def launch(kernel, dim, inputs, device):
     if kind == "reduce":
         block = max(REDUCE_BLOCK_MIN, -(-n // REDUCE_ROWS))
         rows = -(-n // block)
-        parts = max(1, min(threads, rows, n // _min_chunk(spec)))
-        bounds = [min(n, block * (rows * c // parts)) for c in range(parts + 1)]
+        bounds = _chunk_bounds(n, threads, spec, rows=rows, block=block)
         width = spec.n_add + spec.n_max + spec.n_min
         if rows > 1:
             from warpfem.kernels import linalg as LK
@@ -201,10 +211,9 @@ def launch(kernel, dim, inputs, device):
         else:
             tail = [max(n, 1), 0]
     else:
-        parts = max(1, min(threads, n // _min_chunk(spec)))
-        bounds = [n * c // parts for c in range(parts + 1)]
+        bounds = _chunk_bounds(n, threads, spec)
     fns = []
-    for c in range(parts):
+    for c in range(len(bounds) - 1):
         lo, hi = bounds[c], bounds[c + 1]
         if hi <= lo:
             continue
@@ -214,7 +223,7 @@ def launch(kernel, dim, inputs, device):
             args = inputs + [lo]
         else:
             args = inputs + [lo] + tail
-        fns.append(_prepare(kernel, hi - lo, args, device, (lo, hi) if parts > 1 else None))
+        fns.append(_prepare(kernel, hi - lo, args, device, (lo, hi) if len(bounds) > 2 else None))
     if len(fns) > 1:
         COUNTERS["split"] += 1
         COUNTERS["launches"] -= len(fns) - 1  # counted as the one launch it stands for
@@ -381,13 +390,11 @@ class RecordedLaunch:
         spec, n = self._spec, int(self._dim)
         if self._reduce is not None:
             part, rows, block, width, _ = self._reduce
-            parts = max(1, min(threads, rows, n // _min_chunk(spec)))
-            bounds = [min(n, block * (rows * c // parts)) for c in range(parts + 1)]
+            bounds = _chunk_bounds(n, threads, spec, rows=rows, block=block)
         else:
-            parts = max(1, min(threads, n // _min_chunk(spec)))
-            bounds = [n * c // parts for c in range(parts + 1)]
+            bounds = _chunk_bounds(n, threads, spec)
         out = []
-        for c in range(parts):
+        for c in range(len(bounds) - 1):
             lo, hi = bounds[c], bounds[c + 1]
             if hi <= lo:
                 continue
