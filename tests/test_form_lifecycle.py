@@ -257,6 +257,9 @@ def test_max_iters_default_follows_the_forms_and_a_given_value_wins(tmp_path):
     assert sim.options.max_iters == 30
     sim.add_collider(type="plane", point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0))
     assert sim.options.max_iters == 100
+    sim.options.max_iters = 12  # assigned later: the user's, kept through the steps
+    sim.step()
+    assert sim.options.max_iters == 12
     given = wf.Simulator(model, dt=0.01, max_iters=7)
     given.add_collider(type="plane", point=(0.0, 0.0, 0.0), normal=(0.0, 1.0, 0.0))
     assert given.options.max_iters == 7

@@ -114,8 +114,10 @@ class Simulator(SimulatorBase):
         self.friction_iterations, self.friction_tol = int(friction_iterations), float(friction_tol)
         self.integrator = make_integrator(integrator)
         self.options = newton_options_from(newton_options)
-        # max_iters not given: the default, raised to what the potential's forms ask for (contact)
+        # max_iters not given: the default, raised to what the potential's forms ask for (contact),
+        # while it is still the value set so (an assignment to options.max_iters is the user's)
         self._max_iters_base = None if "max_iters" in newton_options else self.options.max_iters
+        self._max_iters_set = self.options.max_iters
         self._setup_base(model, device, precision, types, dt, damping_mass, damping_stiffness, require_convergence)
         n = self.num_vertices
         dev = self.device
@@ -303,9 +305,10 @@ class Simulator(SimulatorBase):
         want = IncrementalPotential.ordered(self._builtin_forms + [f for f in self._forms if f.enabled()])
         if want != self._potential.forms:
             self._potential.set_forms(want)
-        if getattr(self, "_max_iters_base", None) is not None:
-            self.options.max_iters = max([self._max_iters_base] + [int(f.newton_iterations) for f in self._forms
-                                                                   if getattr(f, "newton_iterations", None)])
+        if getattr(self, "_max_iters_base", None) is not None and self.options.max_iters == self._max_iters_set:
+            self.options.max_iters = self._max_iters_set = max(
+                [self._max_iters_base] + [int(f.newton_iterations) for f in self._forms
+                                          if getattr(f, "newton_iterations", None)])
 
     def _form_parts(self, view=None):
         """(``"form/NAME"``, form) of every form of the potential, the added ones enabled or not
