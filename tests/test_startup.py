@@ -87,6 +87,16 @@ def test_loading_and_building_a_plain_scene_imports_no_output_or_contact_module(
                                              "http.client", "scipy.sparse.linalg", "scipy.optimize"))] == []
 
 
+def test_building_a_contact_scene_loads_no_scipy_linear_algebra():
+    """The stack (two bodies, surface contact): the bodies' components are labelled in numpy, so its
+    set-up does not import scipy.sparse.csgraph and with it scipy.sparse.linalg and scipy.linalg
+    (about 0.2 s before the first step); the labels are csgraph's (tests/test_surface_contact.py)."""
+    stack = os.path.join(ROOT, "examples", "scenes", "stack.toml")
+    mods = _modules_after(f"from warpfem.scenes import load_scene\nload_scene({stack!r}).build(device='cpu')")
+    assert "warpfem.contact.surface" in mods
+    assert [m for m in mods if m.startswith(("scipy.sparse.csgraph", "scipy.sparse.linalg", "scipy.linalg"))] == []
+
+
 def test_checking_output_paths_loads_no_writer():
     mods = _modules_after("from warpfem.io.outputs import check_output_paths\ncheck_output_paths({'usd': 'a.usda'})")
     assert [m for m in mods if m.startswith(("warpfem.io.states", "warpfem.io.compare", "pxr", "xml.sax"))] == []

@@ -502,3 +502,25 @@ def test_the_pattern_grows_only_for_pairs_that_can_come_within_dhat(monkeypatch)
     x_eager, sc_e, _ = run(True)
     assert sc_e._has_blocks.all() and sc_e.sim.pattern.nnz > sc.sim.pattern.nnz
     assert np.abs(x_lazy - x_eager).max() <= 1e-9
+
+
+def test_connected_labels_are_scipy_csgraph_components():
+    """The bodies' labelling of surface contact (numpy root hooking and pointer jumping) gives the
+    components of scipy.sparse.csgraph, numbered alike, on random graphs, a long shuffled path and
+    isolated vertices."""
+    import scipy.sparse
+    import scipy.sparse.csgraph
+
+    from warpfem.contact.surface import connected_labels
+
+    rng = np.random.default_rng(7)
+    cases = [(1, np.zeros(0, int), np.zeros(0, int))]
+    for n, m in ((12, 6), (500, 400), (3000, 2990), (4000, 8000)):
+        cases.append((n, rng.integers(0, n, m), rng.integers(0, n, m)))
+    perm = rng.permutation(5000)
+    cases.append((5000, perm[:-1], perm[1:]))
+    for n, r, c in cases:
+        A = scipy.sparse.coo_matrix((np.ones(len(r)), (r, c)), shape=(n, n))
+        k, ref = scipy.sparse.csgraph.connected_components(A, directed=False)
+        got = connected_labels(n, r, c)
+        assert np.array_equal(got, ref) and got.max() + 1 == k

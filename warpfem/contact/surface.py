@@ -19,8 +19,6 @@ from dataclasses import dataclass
 import logging
 
 import numpy as np
-import scipy.sparse
-import scipy.sparse.csgraph
 import warp as wp
 
 from warpfem.contact import surface_kernels as SK
@@ -62,6 +60,30 @@ class ContactSurface:
     num_groups: int
 
 
+
+def connected_labels(n: int, rows, cols) -> np.ndarray:
+    """Connected components of the undirected graph on n vertices with edges (rows[k], cols[k]): a
+    label 0..c-1 per vertex, numbered in the order of each component's smallest vertex (as
+    ``scipy.sparse.csgraph.connected_components`` numbers them), in numpy: each round hooks every
+    edge's larger root onto its smaller one, then jumps pointers to the roots (a few rounds; no
+    scipy.sparse.linalg import at contact set-up)."""
+    rows = np.asarray(rows, dtype=np.int64)
+    cols = np.asarray(cols, dtype=np.int64)
+    lab = np.arange(n, dtype=np.int64)
+    while True:
+        a, b = lab[rows], lab[cols]
+        new = lab.copy()
+        np.minimum.at(new, np.maximum(a, b), np.minimum(a, b))
+        while True:  # every vertex to its root
+            nxt = new[new]
+            if np.array_equal(nxt, new):
+                break
+            new = nxt
+        if np.array_equal(new, lab):
+            break
+        lab = new
+    return np.unique(lab, return_inverse=True)[1].reshape(-1)
+
 def contact_surface(mesh, body=None, *, elements=None) -> ContactSurface:
     """The contact surface of ``mesh`` (a :class:`~warpfem.mesh.VolumeMesh`: its
     ``boundary_faces()``). ``body``: optional (n,) body id per vertex (a model of several
@@ -79,8 +101,7 @@ def contact_surface(mesh, body=None, *, elements=None) -> ContactSurface:
         tables = [faces]
     rows = np.concatenate([np.repeat(E[:, 0], E.shape[1]) for E in tables])
     cols = np.concatenate([E.ravel() for E in tables])
-    A = scipy.sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(n, n))
-    _, comp = scipy.sparse.csgraph.connected_components(A, directed=False)
+    comp = connected_labels(n, rows, cols)
     if body is not None:
         body = np.asarray(body, dtype=np.int64).reshape(-1)
         if body.shape != (n,):
