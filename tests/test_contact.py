@@ -60,13 +60,20 @@ def test_resting_block_carries_its_weight():
     assert sim.contact.distances().min() > 0.0
 
 
-def _incline_run(mu, theta):
+def _incline_model(theta, height):
+    """A stiff block (side L, E 1e6) with its base ``height`` above an incline of angle theta through
+    the origin: (model, R), R rotating +y onto the incline's normal (R[:, 0] points up the slope)."""
     c, s = math.cos(theta), math.sin(theta)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])  # rotates +y onto the incline's normal
-    box = box_tet_mesh(size=(L, L, L), cells=(2, 2, 2), origin=(-0.5 * L, 0.001, -0.5 * L))
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    box = box_tet_mesh(size=(L, L, L), cells=(2, 2, 2), origin=(-0.5 * L, height, -0.5 * L))
     mesh = TetMesh(np.asarray(box.vertices) @ R.T, box.tets)
     m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0),
               gravity=(0.0, -G, 0.0))
+    return m, R
+
+
+def _incline_run(mu, theta):
+    m, R = _incline_model(theta, 0.001)
     n = R[:, 1]
     t = -R[:, 0]  # down the slope
     sim = Simulator(m, dt=0.01, colliders=[Plane(point=(0, 0, 0), normal=n, friction=mu)])
@@ -315,12 +322,7 @@ def test_collider_moving_into_the_body_within_a_step_fails_cleanly():
 def _incline_drop(mu, theta, steps, dt=0.01, **kw):
     """A block dropped from 1 cm (above dhat) onto an incline: its centre of mass down the slope
     (position, velocity) per step and the first step in contact."""
-    c, s = math.cos(theta), math.sin(theta)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    box = box_tet_mesh(size=(L, L, L), cells=(2, 2, 2), origin=(-0.5 * L, 0.01, -0.5 * L))
-    mesh = TetMesh(np.asarray(box.vertices) @ R.T, box.tets)
-    m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0),
-              gravity=(0.0, -G, 0.0))
+    m, R = _incline_model(theta, 0.01)
     t = -R[:, 0]
     sim = Simulator(m, dt=dt, max_iters=200, colliders=[Plane(point=(0, 0, 0), normal=R[:, 1], friction=mu)], **kw)
     Mv = m.lumped_mass / m.lumped_mass.sum()

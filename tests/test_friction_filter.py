@@ -117,17 +117,10 @@ def test_a_filtered_step_that_fights_the_elastic_forces_falls_back_to_the_plain_
     2^-2 .. 2^-8 for 30 iterations (step 11 stopped at the default max_iters with a relative
     gradient of 0.12). The unfiltered direction tried where the filtered step fell below 0.3 of
     its length converges every step, to the same motion as the plain Newton direction."""
-    from test_contact import L
+    from test_contact import _incline_model
 
     theta = math.radians(20.0)
-    c, s = math.cos(theta), math.sin(theta)
-    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    box = box_tet_mesh(size=(L, L, L), cells=(2, 2, 2), origin=(-0.5 * L, 0.001, -0.5 * L))
-    from warpfem.mesh import TetMesh
-
-    mesh = TetMesh(np.asarray(box.vertices) @ R.T, box.tets)
-    m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0),
-              gravity=(0.0, -G, 0.0))
+    m, R = _incline_model(theta, 0.001)
     runs = {}
     for filt in (True, False):
         sim = Simulator(m, dt=0.01, friction_filter=filt,

@@ -475,6 +475,10 @@ class ContactForm(LaggedFrictionForm):
     def hessian(self, y, x, scale, values):
         self.contact.run(CK.MODE_HESSIAN, x, scale=scale, values=values, **self._disp(y))
 
+    def filters_direction(self) -> bool:
+        """Whether :meth:`filter_direction` can change a direction (only with friction)."""
+        return self.contact.has_friction()
+
     def filter_direction(self, y, x, d):
         """Cut the tangential step of each frictional contact that the Newton step ``d`` (in y)
         would carry across its sticking zone (:mod:`warpfem.contact.friction`), in place."""

@@ -843,7 +843,7 @@ class IncrementalPotential:
         launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
         lin = self.linear_solve(values, rhs, d, opts)
         self._raw_kept = False
-        if getattr(opts, "friction_filter", False) and any(hasattr(f, "filter_direction") for f in self.forms):
+        if getattr(opts, "friction_filter", False) and self._filtering_forms():
             w = self.work
             if getattr(w, "d_raw", None) is None or w.d_raw.shape[0] != self.n:
                 w.d_raw = self.ops.new_vector()
@@ -857,10 +857,16 @@ class IncrementalPotential:
         not filtered)."""
         return self.work.d_raw if getattr(self, "_raw_kept", False) else None
 
+    def _filtering_forms(self):
+        """The forms that filter Newton directions now (``filter_direction``; ``filters_direction()``
+        False, e.g. contact without friction: it would leave them as they are)."""
+        return [f for f in self.forms if hasattr(f, "filter_direction")
+                and getattr(f, "filters_direction", lambda: True)()]
+
     def filter_direction(self, y, d):
         """Let the forms that filter the Newton direction (``filter_direction(y, x, d)``: lagged
         friction's stick/slip-aware step, :mod:`warpfem.contact.friction`) change d in place."""
-        filters = [f for f in self.forms if hasattr(f, "filter_direction")]
+        filters = self._filtering_forms()
         if not filters:
             return
         x = self._x_of(y)

@@ -420,7 +420,7 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
             # direction may go further (a filter cut that fights the elastic forms)
             d_raw = problem.unfiltered_direction()
             gd_r, _ = problem.direction_check(y, g, d_raw)
-            if gd_r < 0.0:
+            if gd_r < 0.0 and gd_r != gd:  # (the same slope: the filter cut nothing, the same direction)
                 a_r = min(1.0, problem.max_step(y, d_raw)) if bounded else 1.0
                 y_alt = getattr(problem.work, "y_alt", None)
                 if y_alt is None or y_alt.shape[0] != y.shape[0]:
