@@ -141,16 +141,17 @@ class Model:
         # a model of one mesh is the one-body case of Model.from_bodies: the same construction
         body = Body(mesh, material, volumetric_integration=volumetric_integration, mass_matrix=mass_matrix)
         body.name = getattr(mesh, "name", None) or "body"
-        self._build([body], gravity=gravity, mass_matrix=mass_matrix, mesh=mesh)
-        # its arguments' forms (Model.from_bodies: one entry per body in body_volumetric_parameters)
-        self.volumetric_integration = volumetric_integration
-        self.volumetric_parameters = self.body_volumetric_parameters[0]
+        self._build([body], gravity=gravity, mass_matrix=mass_matrix)
 
-    def _build(self, bodies, *, gravity, mass_matrix, mesh=None, name_errors=False):
+    def _build(self, bodies, *, gravity, mass_matrix, name_errors=False):
         """The construction of every model: the bodies (:class:`BaseBody`, named) discretised one by
-        one (``BaseBody.discretize``), their vertices concatenated in body order. ``mesh``: the
-        model's mesh (default a :class:`BodiesMesh` of the bodies'); ``name_errors``: a body's
-        ValueError / TypeError is raised again prefixed by its name."""
+        one (``BaseBody.discretize``), their vertices concatenated in body order. ``name_errors``: a
+        body's ValueError / TypeError is raised again prefixed by its name (its ``body`` attribute:
+        the body's index, ``__cause__`` the body's own error).
+
+        A model of one body (either construction) shows that body directly: ``mesh`` is its mesh,
+        ``quadrature`` its quadrature, ``volumetric_integration`` / ``volumetric_parameters`` its
+        own; with several they are a :class:`BodiesMesh`, None, the list per body and None."""
         import dataclasses
 
         if mass_matrix not in MASS_MATRIX_KINDS:
@@ -159,16 +160,19 @@ class Model:
         if g.shape != (3,) or not np.all(np.isfinite(g)):
             raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
         parts = []
-        for b in bodies:
+        for i, b in enumerate(bodies):
             try:
                 parts.append(b.discretize(mass_matrix))
             except (ValueError, TypeError) as e:
                 if not name_errors:
                     raise
-                raise type(e)(f"body {b.name!r}: {e}") from e
+                err = type(e)(f"body {b.name!r}: {e}")
+                err.body = i
+                raise err from e
         offsets = np.concatenate([[0], np.cumsum([len(p.rest_positions) for p in parts])]).astype(np.int64)
         self.bodies, self.body_names, self.body_offsets = list(bodies), [b.name for b in bodies], offsets
-        self.mesh = BodiesMesh([b.mesh for b in bodies], offsets, self.body_names) if mesh is None else mesh
+        one = len(bodies) == 1  # the one body's own mesh, quadrature and volumetric integration (above)
+        self.mesh = bodies_mesh([b.mesh for b in bodies], offsets, self.body_names)
         # the material contact defaults scale with (the stiffest body's); per body: materials[i]
         self.material = max((b.material for b in bodies), key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0))
         self.materials = [b.material for b in bodies]
@@ -176,9 +180,10 @@ class Model:
         self.mass_matrix_kind = mass_matrix
         self.rest_positions = np.concatenate([p.rest_positions for p in parts])
         self.num_vertices = int(offsets[-1])
-        self.volumetric_integration = [b.volumetric_integration for b in bodies]
-        self.volumetric_parameters = None  # ((mu, lam) full-rule part, (mu, lam) 1-point part): per body below
+        self.volumetric_integration = bodies[0].volumetric_integration if one else [b.volumetric_integration for b in bodies]
+        # ((mu, lam) full-rule part, (mu, lam) 1-point part) with "reduced"; per body: body_volumetric_parameters
         self.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
+        self.volumetric_parameters = parts[0].volumetric_parameters if one else None
 
         def shifted(qd, o):  # a body's quadrature with its connectivity in global vertex indices
             if qd is None or o == 0:
@@ -187,7 +192,7 @@ class Model:
                                        volumetric=shifted(qd.volumetric, o))
 
         self.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, offsets[:-1])]
-        self.quadrature = self.quadratures[0] if len(self.quadratures) == 1 else None  # the one body's
+        self.quadrature = self.quadratures[0] if one else None
         self.lumped_mass = np.concatenate([p.lumped_mass for p in parts])
         self.mass = scipy.sparse.block_diag([p.mass for p in parts], format="csr")
         # gravity is M (1 x g) with each body's mass matrix, so free fall is exact with either
@@ -265,8 +270,10 @@ class Model:
         ``materials`` one material per body, so each body keeps its own element type and material.
         ``mesh`` is a :class:`BodiesMesh` (the bodies' boundary triangles in global indices, the
         body of each vertex); :meth:`body_vertices` maps a body's own vertex indices to global
-        ones. ``gravity`` and ``mass_matrix`` apply to every body. Bodies interact only through
-        contact forms; without them each moves exactly as it would alone.
+        ones. ``gravity`` and ``mass_matrix`` apply to every body (a body may set its own mass
+        matrix). Bodies interact only through contact forms; without them each moves exactly as
+        it would alone. One body gives the model ``Model(mesh, material)`` builds (the same
+        construction): ``mesh``, ``quadrature`` and ``volumetric_integration`` are that body's.
 
         Bodies that overlap at the start (boundary surfaces crossing, or one inside another) are
         refused with :class:`warpfem.mesh.intersect.BodyOverlapError` naming the two bodies and the
@@ -443,6 +450,12 @@ class Body(BaseBody):
     def __repr__(self):
         return (f"Body({self.name!r}, {getattr(self.mesh, 'element_type', '?')}, {self.mesh.num_vertices} vertices, "
                 f"{type(self.material).__name__})")
+
+
+def bodies_mesh(meshes, offsets, names):
+    """The mesh of a model (or scene) of the bodies' ``meshes``: the one body's own mesh, or a
+    :class:`BodiesMesh` of several (``offsets``: the first vertex of each, then the total)."""
+    return meshes[0] if len(meshes) == 1 else BodiesMesh(meshes, offsets, names)
 
 
 class BodiesMesh:
