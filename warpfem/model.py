@@ -141,64 +141,7 @@ class Model:
         # a model of one mesh is the one-body case of Model.from_bodies: the same construction
         body = Body(mesh, material, volumetric_integration=volumetric_integration, mass_matrix=mass_matrix)
         body.name = getattr(mesh, "name", None) or "body"
-        self._build([body], gravity=gravity, mass_matrix=mass_matrix)
-
-    def _build(self, bodies, *, gravity, mass_matrix, name_errors=False):
-        """The construction of every model: the bodies (:class:`BaseBody`, named) discretised one by
-        one (``BaseBody.discretize``), their vertices concatenated in body order. ``name_errors``: a
-        body's ValueError / TypeError is raised again prefixed by its name (its ``body`` attribute:
-        the body's index, ``__cause__`` the body's own error).
-
-        A model of one body (either construction) shows that body directly: ``mesh`` is its mesh,
-        ``quadrature`` its quadrature, ``volumetric_integration`` / ``volumetric_parameters`` its
-        own; with several they are a :class:`BodiesMesh`, None, the list per body and None."""
-        import dataclasses
-
-        if mass_matrix not in MASS_MATRIX_KINDS:
-            raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
-        g = np.asarray(gravity, dtype=np.float64)
-        if g.shape != (3,) or not np.all(np.isfinite(g)):
-            raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
-        parts = []
-        for i, b in enumerate(bodies):
-            try:
-                parts.append(b.discretize(mass_matrix))
-            except (ValueError, TypeError) as e:
-                if not name_errors:
-                    raise
-                err = type(e)(f"body {b.name!r}: {e}")
-                err.body = i
-                raise err from e
-        offsets = np.concatenate([[0], np.cumsum([len(p.rest_positions) for p in parts])]).astype(np.int64)
-        self.bodies, self.body_names, self.body_offsets = list(bodies), [b.name for b in bodies], offsets
-        one = len(bodies) == 1  # the one body's own mesh, quadrature and volumetric integration (above)
-        self.mesh = bodies_mesh([b.mesh for b in bodies], offsets, self.body_names)
-        # the material contact defaults scale with (the stiffest body's); per body: materials[i]
-        self.material = max((b.material for b in bodies), key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0))
-        self.materials = [b.material for b in bodies]
-        self.gravity = g
-        self.mass_matrix_kind = mass_matrix
-        self.rest_positions = np.concatenate([p.rest_positions for p in parts])
-        self.num_vertices = int(offsets[-1])
-        self.volumetric_integration = bodies[0].volumetric_integration if one else [b.volumetric_integration for b in bodies]
-        # ((mu, lam) full-rule part, (mu, lam) 1-point part) with "reduced"; per body: body_volumetric_parameters
-        self.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
-        self.volumetric_parameters = parts[0].volumetric_parameters if one else None
-
-        def shifted(qd, o):  # a body's quadrature with its connectivity in global vertex indices
-            if qd is None or o == 0:
-                return qd
-            return dataclasses.replace(qd, elements=(np.asarray(qd.elements, dtype=np.int64) + o).astype(qd.elements.dtype),
-                                       volumetric=shifted(qd.volumetric, o))
-
-        self.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, offsets[:-1])]
-        self.quadrature = self.quadratures[0] if one else None
-        self.lumped_mass = np.concatenate([p.lumped_mass for p in parts])
-        self.mass = scipy.sparse.block_diag([p.mass for p in parts], format="csr")
-        # gravity is M (1 x g) with each body's mass matrix, so free fall is exact with either
-        self.gravity_mass = np.concatenate([p.gravity_mass for p in parts])
-        self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
-        self.forces = np.zeros((self.num_vertices, 3))
+        _construct(self, [body], gravity=gravity, mass_matrix=mass_matrix)
 
     # -- rest state -----------------------------------------------------------------------------
     @property
@@ -299,7 +242,7 @@ class Model:
             if problem:
                 raise BodyOverlapError(problem)
         model = cls.__new__(cls)
-        model._build(bodies, gravity=gravity, mass_matrix=mass_matrix, name_errors=True)
+        _construct(model, bodies, gravity=gravity, mass_matrix=mass_matrix, name_errors=True)
         return model
 
     @property
@@ -450,6 +393,65 @@ class Body(BaseBody):
     def __repr__(self):
         return (f"Body({self.name!r}, {getattr(self.mesh, 'element_type', '?')}, {self.mesh.num_vertices} vertices, "
                 f"{type(self.material).__name__})")
+
+
+def _construct(model, bodies, *, gravity, mass_matrix, name_errors=False):
+    """The construction of every model (``model``: the Model being built, by ``Model.__init__`` and
+    ``Model.from_bodies``): the bodies (:class:`BaseBody`, named) discretised one by
+    one (``BaseBody.discretize``), their vertices concatenated in body order. ``name_errors``: a
+    body's ValueError / TypeError is raised again prefixed by its name (its ``body`` attribute:
+    the body's index, ``__cause__`` the body's own error).
+
+    A model of one body (either construction) shows that body directly: ``mesh`` is its mesh,
+    ``quadrature`` its quadrature, ``volumetric_integration`` / ``volumetric_parameters`` its
+    own; with several they are a :class:`BodiesMesh`, None, the list per body and None."""
+    import dataclasses
+
+    if mass_matrix not in MASS_MATRIX_KINDS:
+        raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
+    g = np.asarray(gravity, dtype=np.float64)
+    if g.shape != (3,) or not np.all(np.isfinite(g)):
+        raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
+    parts = []
+    for i, b in enumerate(bodies):
+        try:
+            parts.append(b.discretize(mass_matrix))
+        except (ValueError, TypeError) as e:
+            if not name_errors:
+                raise
+            err = type(e)(f"body {b.name!r}: {e}")
+            err.body = i
+            raise err from e
+    offsets = np.concatenate([[0], np.cumsum([len(p.rest_positions) for p in parts])]).astype(np.int64)
+    model.bodies, model.body_names, model.body_offsets = list(bodies), [b.name for b in bodies], offsets
+    one = len(bodies) == 1  # the one body's own mesh, quadrature and volumetric integration (above)
+    model.mesh = bodies_mesh([b.mesh for b in bodies], offsets, model.body_names)
+    # the material contact defaults scale with (the stiffest body's); per body: materials[i]
+    model.material = max((b.material for b in bodies), key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0))
+    model.materials = [b.material for b in bodies]
+    model.gravity = g
+    model.mass_matrix_kind = mass_matrix
+    model.rest_positions = np.concatenate([p.rest_positions for p in parts])
+    model.num_vertices = int(offsets[-1])
+    model.volumetric_integration = bodies[0].volumetric_integration if one else [b.volumetric_integration for b in bodies]
+    # ((mu, lam) full-rule part, (mu, lam) 1-point part) with "reduced"; per body: body_volumetric_parameters
+    model.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
+    model.volumetric_parameters = parts[0].volumetric_parameters if one else None
+
+    def shifted(qd, o):  # a body's quadrature with its connectivity in global vertex indices
+        if qd is None or o == 0:
+            return qd
+        return dataclasses.replace(qd, elements=(np.asarray(qd.elements, dtype=np.int64) + o).astype(qd.elements.dtype),
+                                   volumetric=shifted(qd.volumetric, o))
+
+    model.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, offsets[:-1])]
+    model.quadrature = model.quadratures[0] if one else None
+    model.lumped_mass = np.concatenate([p.lumped_mass for p in parts])
+    model.mass = scipy.sparse.block_diag([p.mass for p in parts], format="csr")
+    # gravity is M (1 x g) with each body's mass matrix, so free fall is exact with either
+    model.gravity_mass = np.concatenate([p.gravity_mass for p in parts])
+    model.fixed = np.zeros((model.num_vertices, 3), dtype=bool)
+    model.forces = np.zeros((model.num_vertices, 3))
 
 
 def bodies_mesh(meshes, offsets, names):

@@ -119,7 +119,7 @@ class SceneRun:
         its own elements, or its boundary; the USD prim is ``b.surface_prim``."""
         from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
 
-        bm = b._own_mesh()
+        bm = b.own_mesh()
         if b.spec.surface is None:
             ids, tris = boundary_surface(bm)
             ids = ids + lo
@@ -154,7 +154,7 @@ class SceneRun:
         out = []
         offsets = self.model.body_offsets
         for b, lo, hi in zip(self.scene.bodies, offsets[:-1], offsets[1:]):
-            m = b._own_mesh()
+            m = b.own_mesh()
             tets = np.asarray(m.corner_tets(), dtype=np.int64)
             faces = np.asarray(m.boundary_faces(), dtype=np.int64) if m.element.is_linear_tet else None
             out.append((b.volume_prim, tets, faces, int(lo), int(hi)))
@@ -384,7 +384,7 @@ class SceneRun:
         extra = {}
         if self.scene.named_bodies:  # the states name the bodies of a [[body]] scene
             extra = {"body_offsets": np.asarray(offs, dtype=np.int64), "body_names": np.array(self.model.body_names)}
-        blocks = [(b.block_name, b._own_mesh().elements, b._own_mesh().element_type, int(lo), int(hi))
+        blocks = [(b.block_name, b.own_mesh().elements, b.own_mesh().element_type, int(lo), int(hi))
                   for b, lo, hi in zip(self.scene.bodies, offs[:-1], offs[1:])]
         return RunInfo(fps=self.fps, total_frames=total, rest=self.model.rest_positions, resume_after=resume_after,
                        version=warpfem_version(), surfaces=self.usd_surfaces(), volumes=volumes,

@@ -48,16 +48,16 @@ class _SceneBodies:
         from warpfem.model import Model
 
         try:
-            return Model.from_bodies([b._body() for b in self.bodies], gravity=self.spec.top["gravity"],
+            return Model.from_bodies([b.model_body() for b in self.bodies], gravity=self.spec.top["gravity"],
                                      mass_matrix=self.spec.material["mass_matrix"])
         except ValueError as e:
             i = getattr(e, "body", None)
             if i is None:
                 self._fail("[[body]]", str(e))
             msg = str(e.__cause__)  # e.g. an element with det J <= 0 at a quadrature point (named)
-            self.bodies[i]._fail("[mesh]" if "element" in msg.lower() else "[material]", msg)
+            self.bodies[i].fail("[mesh]" if "element" in msg.lower() else "[material]", msg)
 
-    def _body(self):
+    def model_body(self):
         """This scene's own body (its [mesh] and [material]) as a :class:`warpfem.Body`."""
         from warpfem.materials import make_material
         from warpfem.model import Body
@@ -65,7 +65,7 @@ class _SceneBodies:
         mat = self.spec.material
         material = make_material(mat["model"], youngs_modulus=mat["youngs_modulus"], poisson_ratio=mat["poisson_ratio"],
                                  density=mat["density"])
-        body = Body(self._own_mesh(), material, initial_velocity=self.initial_velocity,
+        body = Body(self.own_mesh(), material, initial_velocity=self.initial_velocity,
                     volumetric_integration=mat["volumetric_integration"], mass_matrix=mat["mass_matrix"])
         body.name = self.body_name
         body.offset = self.offset  # the mesh is already moved (selections were made on it)
@@ -193,8 +193,8 @@ class Scene(_SceneBodies):
         self.spec = spec
         self.path = spec.path
         self._mesh = None
-        self._own = None  # this scene's own [mesh], loaded (a body's; _own_mesh())
-        self._own_warnings = []
+        self._own = None  # this scene's own [mesh], loaded (a body's; own_mesh())
+        self.own_mesh_warnings = []
         self.mesh_warnings = []  # the mesh loader's warnings (filled by mesh())
 
     @property
@@ -246,7 +246,7 @@ class Scene(_SceneBodies):
     @property
     def body_name(self) -> str:
         """The body's name in the model: its mesh's name, or "body" (BodyScene: the table's name)."""
-        return getattr(self._own_mesh(), "name", None) or "body"
+        return getattr(self.own_mesh(), "name", None) or "body"
 
     @property
     def surface_prim(self) -> str:
@@ -272,7 +272,7 @@ class Scene(_SceneBodies):
     @property
     def body_offsets(self) -> np.ndarray:
         """The first vertex of each body in the scene's vertex numbering, then the total."""
-        return np.concatenate([[0], np.cumsum([b._own_mesh().num_vertices for b in self.bodies])]).astype(np.int64)
+        return np.concatenate([[0], np.cumsum([b.own_mesh().num_vertices for b in self.bodies])]).astype(np.int64)
 
     @property
     def contact_by_default(self) -> bool:
@@ -286,15 +286,15 @@ class Scene(_SceneBodies):
         if self._mesh is None:
             from warpfem.model import bodies_mesh
 
-            meshes = [b._own_mesh() for b in self.bodies]
+            meshes = [b.own_mesh() for b in self.bodies]
             self._mesh = bodies_mesh(meshes, self.body_offsets, [b.body_name for b in self.bodies])
             # the loader's notes (reoriented tets, removed vertices): `describe` lists them, `build` logs them
-            self.mesh_warnings = [w if b is self else f"{b.label}: {w}" for b in self.bodies for w in b._own_warnings]
+            self.mesh_warnings = [w if b is self else f"{b.label}: {w}" for b in self.bodies for w in b.own_mesh_warnings]
         return self._mesh
 
-    def _own_mesh(self):
+    def own_mesh(self):
         """This scene's own [mesh] (a body's; loaded / generated once), the loader's notes in
-        ``_own_warnings``."""
+        ``own_mesh_warnings``."""
         if self._own is None:
             import warnings
 
@@ -309,7 +309,7 @@ class Scene(_SceneBodies):
                 if isinstance(e, SceneError):
                     raise
                 self._fail("[mesh]", str(e))
-            self._own_warnings = list(dict.fromkeys(str(w.message) for w in caught))
+            self.own_mesh_warnings = list(dict.fromkeys(str(w.message) for w in caught))
         return self._own
 
     def _make_mesh(self):
@@ -359,7 +359,7 @@ class Scene(_SceneBodies):
     def _select(self, section, i, entry):
         from warpfem.mesh import select_vertices_in_box
 
-        mesh = self._own_mesh()
+        mesh = self.own_mesh()
         if entry.get("indices") is not None:
             ids = np.unique(np.asarray(entry["indices"], dtype=np.int64))
             if ids.max() >= mesh.num_vertices:
@@ -376,11 +376,11 @@ class Scene(_SceneBodies):
         (every body's entries in body order, global vertex ids)."""
         out = {s: [] for s in ("fixed", "handle", "force")}
         for b, lo in zip(self.bodies, self.body_offsets[:-1]):
-            for s, ids in b._own_selections().items():
+            for s, ids in b.own_selections().items():
                 out[s] += [i + int(lo) for i in ids]
         return out
 
-    def _own_selections(self) -> dict:
+    def own_selections(self) -> dict:
         """The selections of this scene's own entries, in its own mesh's vertex numbering."""
         return {s: [self._select(s, i, e) for i, e in enumerate(getattr(self.spec, s))] for s in ("fixed", "handle", "force")}
 
@@ -390,15 +390,15 @@ class Scene(_SceneBodies):
         offsets = self.body_offsets
         out = []
         for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
-            for f, faces, area in b._own_tractions():
+            for f, faces, area in b.own_tractions():
                 g = np.zeros((int(offsets[-1]), 3))
                 g[lo:hi] = f
                 out.append((g, faces, area))
         return out
 
-    def _own_tractions(self):
+    def own_tractions(self):
         """The tractions of this scene's own entries, over its own mesh's vertices."""
-        mesh = self._own_mesh()
+        mesh = self.own_mesh()
         tet4 = mesh.element.is_linear_tet  # plain triangles; other types integrate N_a on their faces
         faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
         out = []
@@ -598,7 +598,7 @@ class Scene(_SceneBodies):
         diagonal = float(np.linalg.norm(np.ptp(X, axis=0)))
         surface = int(np.unique(faces).size)
         # as the model: every body's mass, the stiffest body's E
-        mass = sum(float(b.spec.material["density"]) * b._own_mesh().total_volume() for b in self.bodies)
+        mass = sum(float(b.spec.material["density"]) * b.own_mesh().total_volume() for b in self.bodies)
         E = max(float(b.spec.material.get("youngs_modulus") or 0.0) for b in self.bodies)
         out = []
         for i, c in enumerate(sp.collider):
