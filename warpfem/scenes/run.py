@@ -117,14 +117,14 @@ class SceneRun:
     def _body_surface(self, b, lo, hi, device, precision) -> "_RenderSurface":
         """Body ``b``'s render surface (its vertices lo..hi-1 of the model): its [surface] embedded in
         its own elements, or its boundary; the USD prim is ``b.surface_prim``."""
-        from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
-
         bm = b.own_mesh()
         if b.spec.surface is None:
             ids, tris = boundary_surface(bm)
             ids = ids + lo
             return _RenderSurface(b.surface_prim, np.asarray(tris), int(ids.size), lambda: self.sim.positions()[ids],
                                   vertex_ids=ids)
+        from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface  # only with a [surface]
+
         pts, tris = load_surface(b.spec.surface["path"])
         emb = embed_points_in_mesh(np.asarray(pts, dtype=np.float64) + b.offset, bm)  # k weights per point
         if self._sim_surface_points is not None and hi - lo == self.model.num_vertices:
