@@ -55,10 +55,17 @@ def slot_map(keys):
     target t, the positions k with keys[k] == targets[t] in ascending order,
     ``entries[offsets[t]:offsets[t + 1]]``: the map a gather follows (a CSR of slot -> target)."""
     keys = np.asarray(keys, dtype=np.int64).reshape(-1)
-    order = np.argsort(keys, kind="stable")
-    targets, starts = np.unique(keys[order], return_index=True)
-    offsets = np.append(starts, len(keys))
-    return targets.astype(np.int32), offsets.astype(np.int32), order.astype(np.int32)
+    n = len(keys)
+    # one sort of (key, position) packed into an int64 (unique values: a plain sort is a stable one,
+    # and sorting values is several times faster than an argsort)
+    packed = np.sort(keys * max(n, 1) + np.arange(n, dtype=np.int64))
+    sorted_keys = packed // max(n, 1)
+    order = packed - sorted_keys * max(n, 1)
+    first = np.ones(n, dtype=bool)
+    first[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    starts = np.flatnonzero(first)
+    offsets = np.append(starts, n)
+    return sorted_keys[starts].astype(np.int32), offsets.astype(np.int32), order.astype(np.int32)
 
 
 def canonical_order(pairs, kinds):
@@ -88,9 +95,9 @@ class _GatherMap:
             upload(b[:len(a)], a)
         return self
 
-    def gather(self, kernel, contrib, out):
+    def gather(self, kernel, active, shift, contrib, out):
         if self.n:
-            launch(kernel, self.n, [*self.bufs, contrib, out], self.device)
+            launch(kernel, self.n, [*self.bufs, active, shift, contrib, out], self.device)
 
 
 @dataclass
@@ -201,7 +208,7 @@ def pair_terms(kind, x, *, dhat, kappa, rest=None, direction=None, precision="fl
         values = wp.zeros(16, dtype=M, device=device) if values is None else values
         launch(SK.pair_kernel, 1, [xa, ra, pairs, kinds, count, S(dhat * dhat), S(kappa), mode, S(1.0), da, S(STEP_ETA), g,
                                    blocks, values, dist, fw, fn, flam, acc, 0, S(JACOBI_TOL[np.dtype(npt)]), g, values,
-                                   hidx, 0], device)
+                                   hidx, hidx, hidx, 0], device)
         return read(acc), read(g), read(values)
 
     go(SK.MODE_DISTANCE)
@@ -287,9 +294,13 @@ class SurfaceContact:
         self._tbvh = wp.Bvh(*self._tbox)
         self._ebvh = wp.Bvh(*self._ebox)
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
-        self._gmap = self._hmap = self._hslots = None  # the gather maps and Hessian slots (_update_maps)
+        self._gmap = self._hmap = None  # the gather maps (_update_maps) and the Hessian slots
+        self._hslots = wp.zeros(16 * 256, dtype=ops.mat, device=dev)
+        self._hact = wp.zeros(256, dtype=wp.int32, device=dev)  # per pair with blocks: whether its Hessian slots hold terms
+        self._maps_valid = False
         self._f_gmap, self._f_hmap = _GatherMap(dev), _GatherMap(dev)  # friction's
         self._f_gslots = self._f_hslots = None
+        self._f_maps_valid = False
         self._alloc(_capacity(4 * (self.nv + self.ne)))
         self.num_pairs = 0
         # self pairs closer than rest_gap at rest: no barrier, the step bound only (docs/contact.md)
@@ -373,6 +384,7 @@ class SurfaceContact:
         self._flam = wp.zeros(cap, dtype=ops.scalar, device=dev)
         self._gslots = wp.zeros(4 * cap, dtype=ops.vec, device=dev)  # 4 gradient slots per pair
         self._hidx = wp.zeros(cap, dtype=wp.int32, device=dev)  # per pair: its Hessian slots' index, -1: none
+        self._gact = wp.zeros(cap, dtype=wp.int32, device=dev)  # per pair: whether its gradient slots hold terms
 
     def _alloc_ccd(self, cap):
         self.ccd_capacity = cap
@@ -509,12 +521,14 @@ class SurfaceContact:
     def _update_blocks(self):
         self._has_blocks = np.zeros(self.num_pairs, dtype=bool)
         self._blocks = self._block_positions(self.pairs_np, self.capacity, self._blocks, missing_ok=True)
-        self._update_maps()
+        self._maps_valid = False  # rebuilt by the next gradient or Hessian (_update_maps)
 
     def _update_maps(self):
         """The gather maps of the candidate pairs (``GATHER``): gradient slot 4 p + i -> vertex
         pairs[p, i]; Hessian slots (16 per pair with blocks, in pair order) -> pattern block; and
-        per pair the index of its Hessian slots (-1: none)."""
+        per pair the index of its Hessian slots (-1: none). Built when first needed after the pairs
+        or the pattern changed."""
+        self._maps_valid = True
         n, dev = self.num_pairs, self.device
         if self._gmap is None:
             self._gmap, self._hmap = _GatherMap(dev), _GatherMap(dev)
@@ -524,8 +538,9 @@ class SurfaceContact:
         hidx[with_blocks] = np.arange(len(with_blocks), dtype=np.int32)
         upload(self._hidx, hidx)
         k = len(with_blocks)
-        if self._hslots is None or self._hslots.shape[0] < 16 * k:
+        if self._hslots.shape[0] < 16 * k:
             self._hslots = wp.zeros(16 * _capacity(k), dtype=self.ops.mat, device=dev)
+            self._hact = wp.zeros(_capacity(k), dtype=wp.int32, device=dev)
         pos = self._blocks_np.reshape(-1, 16)[with_blocks]
         self._hmap.set(pos.reshape(-1))
 
@@ -542,8 +557,12 @@ class SurfaceContact:
             self._update_friction_maps()
 
     def _update_friction_maps(self):
+        self._f_maps_valid = False  # rebuilt by the next gradient or Hessian (_build_friction_maps)
+
+    def _build_friction_maps(self):
         """The friction pairs' gather maps: gradient slot 4 p + i -> vertex, Hessian slot 16 p + k
         -> pattern block (every friction pair has its blocks)."""
+        self._f_maps_valid = True
         nf = self.num_friction
         self._f_gmap.set(self._f_pairs_np[:nf].reshape(-1))
         self._f_hmap.set(read(self._f_blocks, 16 * nf))
@@ -565,16 +584,18 @@ class SurfaceContact:
         gather = GATHER and mode in (SK.MODE_GRADIENT, SK.MODE_HESSIAN, SK.MODE_HESSIAN_UNPROJECTED)
         g = ops.zero if g is None else g
         values = self.system.hessian_values if values is None else values
+        if gather and not self._maps_valid:
+            self._update_maps()
         launch(SK.pair_kernel, n, [
             x, self._rest, self._pairs, self._kinds, self._count, ops.scalar(self.dhat ** 2), ops.scalar(kappa),
             int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA), g, self._blocks,
             values, self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot),
-            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)]), self._gslots, self._hslots, self._hidx,
-            int(GATHER)], self.device)
+            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)]), self._gslots, self._hslots, self._hidx, self._gact,
+            self._hact, int(GATHER)], self.device)
         if gather and mode == SK.MODE_GRADIENT:
-            self._gmap.gather(SK.gather_vec_kernel, self._gslots, g)
+            self._gmap.gather(SK.gather_vec_kernel, self._gact, 2, self._gslots, g)
         elif gather:
-            self._hmap.gather(SK.gather_mat_kernel, self._hslots, values)
+            self._hmap.gather(SK.gather_mat_kernel, self._hact, 4, self._hslots, values)
 
     def run_ccd(self, x, *, scale, d, acc, slot=0):
         """The step bound (additive CCD) of the CCD-only pairs (self pairs closer than rest_gap at rest)."""
@@ -585,8 +606,8 @@ class SurfaceContact:
             x, self._rest, self._ccd_pairs, self._ccd_kinds, self._ccd_count, ops.scalar(self.dhat ** 2),
             ops.scalar(self.kappa), int(SK.MODE_MAX_STEP), ops.scalar(scale), d, ops.scalar(STEP_ETA), ops.zero,
             self._blocks, self.system.hessian_values, self._dist, self._fw, self._fn, self._flam, acc, int(slot),
-            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)]), self._gslots, self._hslots, self._hidx,
-            int(GATHER)], self.device)
+            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)]), self._gslots, self._hslots, self._hidx, self._gact,
+            self._hact, int(GATHER)], self.device)
 
     def _acc_default(self):
         if getattr(self, "_acc", None) is None:
@@ -704,6 +725,7 @@ class SurfaceContact:
     def _alloc_friction_slots(self, cap):
         self._f_gslots = wp.zeros(4 * cap, dtype=self.ops.vec, device=self.device)
         self._f_hslots = wp.zeros(16 * cap, dtype=self.ops.mat, device=self.device)
+        self._f_act = wp.zeros(cap, dtype=wp.int32, device=self.device)
 
     # -- the step-to-step state (Simulator.state_dict) --------------------------------------------------
     def state_dict(self) -> dict:
@@ -805,15 +827,17 @@ class SurfaceContact:
         ops = self.ops
         g = ops.zero if g is None else g
         values = self.system.hessian_values if values is None else values
+        if GATHER and mode in (1, 2) and not self._f_maps_valid:
+            self._build_friction_maps()
         launch(SK.friction_kernel, nf, [
             dbase, y, ops.scalar(sy), self._f_pairs, self._f_w, self._f_n, self._f_lam, nf,
             ops.scalar(self.friction), ops.scalar(self._eps), int(mode), ops.scalar(scale), g, self._f_blocks, values,
-            self._acc_default() if acc is None else acc, int(slot), self._f_gslots, self._f_hslots,
+            self._acc_default() if acc is None else acc, int(slot), self._f_gslots, self._f_hslots, self._f_act,
             int(GATHER)], self.device)
         if GATHER and mode == 1:
-            self._f_gmap.gather(SK.gather_vec_kernel, self._f_gslots, g)
+            self._f_gmap.gather(SK.gather_vec_kernel, self._f_act, 2, self._f_gslots, g)
         elif GATHER and mode == 2:
-            self._f_hmap.gather(SK.gather_mat_kernel, self._f_hslots, values)
+            self._f_hmap.gather(SK.gather_mat_kernel, self._f_act, 4, self._f_hslots, values)
 
     @property
     def step_start(self):

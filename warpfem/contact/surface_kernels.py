@@ -620,26 +620,23 @@ def _add_pair_hessian(values: wp.array(dtype=Any), blocks: wp.array(dtype=wp.int
 
 
 @wp.func
-def _zero_slots(mode: int, p: int, h: int, zv: Any, gslots: wp.array(dtype=Any), hslots: wp.array(dtype=Any),
-                slots: int):
-    """Zero pair p's gradient slots (mode 1) or its Hessian slots (modes 2, 6; h >= 0): a pair
-    that adds nothing (the gather reads every slot of its map)."""
+def _no_slots(mode: int, p: int, h: int, active: wp.array(dtype=wp.int32), hactive: wp.array(dtype=wp.int32),
+              slots: int):
+    """Pair p adds nothing (gradient, mode 1; Hessian, modes 2 and 6, h >= 0): its slots are
+    marked inactive, and the gather skips them."""
     if slots == 0:
         return
     if mode == 1:
-        for i in range(4):
-            gslots[4 * p + i] = zv
+        active[p] = 0
     elif (mode == 2 or mode == 6) and h >= 0:
-        zm = wp.outer(zv, zv)
-        for i in range(16):
-            hslots[16 * h + i] = zm
+        hactive[h] = 0
 
 
 # split across CPU threads (``kernels.generic.splittable``) when ``slots`` is set: every pair writes
 # only its own outputs (distance, lagging data, gradient and Hessian slots, gathered afterwards by
 # ``gather_vec_kernel`` / ``gather_mat_kernel``); energies, magnitudes (sums) and the step bound (a
 # minimum) go through rows of partial results
-@splittable("reduce", 512, acc=18, slot=19, n_add=3, n_min=1, when=24)
+@splittable("reduce", 512, acc=18, slot=19, n_add=3, n_min=1, when=26)
 @both_precisions(x="v[]", rest="v[]", dx="v[]", dhat2="s", kappa="s", eta="s", scale="s", g="v[]", values="m[]",
                  out="s[]", f_w="v4[]", f_n="v[]", f_lam="s[]", jtol="s", gslots="v[]", hslots="m[]")
 @wp.kernel
@@ -649,13 +646,14 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
                 blocks: wp.array(dtype=wp.int32), values: wp.array(dtype=Any), out: wp.array(dtype=Any),
                 f_w: wp.array(dtype=Any), f_n: wp.array(dtype=Any), f_lam: wp.array(dtype=Any),
                 acc: wp.array(dtype=wp.float64), slot: int, jtol: Any, gslots: wp.array(dtype=Any),
-                hslots: wp.array(dtype=Any), hidx: wp.array(dtype=wp.int32), slots: int, start: int, row_block: int,
-                row_stride: int):
+                hslots: wp.array(dtype=Any), hidx: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32),
+                hactive: wp.array(dtype=wp.int32), slots: int, start: int, row_block: int, row_stride: int):
     """Pair p's job of ``mode`` (module docstring). ``slots != 0``: the gradient (mode 1) into the
-    pair's four slots ``gslots[4 p:4 p + 4]`` and the Hessian (modes 2, 6) into its 16 slots
-    ``hslots[16 h:16 h + 16]``, h = ``hidx[p]`` (-1: the pair has no blocks), both for a gather in
-    a fixed order; ``slots == 0``: added with atomics into g and values. Sums and the step bound
-    go to ``acc[slot + (p / row_block) row_stride + j]`` (rows of partial results when split)."""
+    pair's four slots ``gslots[4 p:4 p + 4]`` (``active[p]`` 1, or 0 when the pair adds nothing)
+    and the Hessian (modes 2, 6) into its 16 slots ``hslots[16 h:16 h + 16]``, h = ``hidx[p]``
+    (-1: the pair has no blocks; ``hactive[h]`` as ``active``), both for a gather in a fixed
+    order; ``slots == 0``: added with atomics into g and values. Sums and the step bound go to
+    ``acc[slot + (p / row_block) row_stride + j]`` (rows of partial results when split)."""
     p = wp.tid() + start
     if p >= count[0]:
         return
@@ -688,12 +686,12 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
     if s <= zero:
         if mode == 0:
             wp.atomic_add(acc, ra + 1, wp.float64(1.0))
-        _zero_slots(mode, p, h, r - r, gslots, hslots, slots)
+        _no_slots(mode, p, h, active, hactive, slots)
         return
     if s >= dhat2:
         if mode == 5:
             f_lam[p] = zero
-        _zero_slots(mode, p, h, r - r, gslots, hslots, slots)
+        _no_slots(mode, p, h, active, hactive, slots)
         return
     b0, b1, b2 = barrier(s, dhat2)
     # edge-edge mollifier and its derivatives (1, 0, 0 for point-triangle pairs)
@@ -743,14 +741,18 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
             else:
                 wp.atomic_add(g, ids[i], scale * gi)
             gsq += wp.float64(wp.dot(gi, gi))
+        if slots != 0:
+            active[p] = 1
         wp.atomic_add(acc, ra + 2, gsq * wp.float64(scale * scale))
         return
+    if h >= 0:
+        hactive[h] = 1
     # modes 2, 6 (a function: its 12 x 12 locals are only set up for the pairs within dhat)
     _add_pair_hessian(values, blocks, p, scale, mode, kind, x0, x1, x2, x3, w, c0, c1, k, r, u, v, m, m1, m2, b0, b1, b2,
                       gc0, gc1, gc2, gc3, kappa, jtol, hslots, h)
 
 
-@splittable("reduce", 1024, acc=15, slot=16, n_add=3, when=19)
+@splittable("reduce", 1024, acc=15, slot=16, n_add=3, when=20)
 @both_precisions(dbase="v[]", ydisp="v[]", sy="s", f_w="v4[]", f_n="v[]", f_lam="s[]", mu="s", eps="s", scale="s",
                  g="v[]", values="m[]", gslots="v[]", hslots="m[]")
 @wp.kernel
@@ -758,13 +760,13 @@ def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: 
                     f_w: wp.array(dtype=Any), f_n: wp.array(dtype=Any), f_lam: wp.array(dtype=Any),
                     count: int, mu: Any, eps: Any, mode: int, scale: Any, g: wp.array(dtype=Any),
                     blocks: wp.array(dtype=wp.int32), values: wp.array(dtype=Any), acc: wp.array(dtype=wp.float64),
-                    slot: int, gslots: wp.array(dtype=Any), hslots: wp.array(dtype=Any), slots: int, start: int,
-                    row_block: int, row_stride: int):
+                    slot: int, gslots: wp.array(dtype=Any), hslots: wp.array(dtype=Any), active: wp.array(dtype=wp.int32),
+                    slots: int, start: int, row_block: int, row_stride: int):
     """Lagged friction of pair p: mu lambda f0(|u|), u = P sum_i w_i (x_i - x_i^n), P = I - n n^T
     (lambda, w, n from the start of the step; x - x^n = dbase + sy ydisp). ``slots != 0``: the
-    gradient into ``gslots[4 p:4 p + 4]``, the Hessian into ``hslots[16 p:16 p + 16]`` (gathered
-    afterwards in a fixed order); ``slots == 0``: added with atomics. Sums into rows as
-    ``pair_kernel``."""
+    gradient into ``gslots[4 p:4 p + 4]``, the Hessian into ``hslots[16 p:16 p + 16]`` (``active[p]``
+    0 for a pair without a normal force), gathered afterwards in a fixed order; ``slots == 0``:
+    added with atomics. Sums into rows as ``pair_kernel``."""
     p = wp.tid() + start
     if p >= count:
         return
@@ -772,9 +774,11 @@ def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: 
     lam = f_lam[p]
     zero = mu - mu
     if lam <= zero:
-        zv = f_n[p] - f_n[p]
-        _zero_slots(mode, p, p, zv, gslots, hslots, slots)
+        if slots != 0:
+            active[p] = 0
         return
+    if slots != 0:
+        active[p] = 1
     ids = pairs[p]
     w = f_w[p]
     nv = f_n[p]
@@ -820,27 +824,39 @@ def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: 
 @both_precisions(contrib="v[]", out="v[]")
 @wp.kernel
 def gather_vec_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
-                      entries: wp.array(dtype=wp.int32), contrib: wp.array(dtype=Any), out: wp.array(dtype=Any),
-                      start: int):
-    """out[targets[i]] += contrib[entries[k]] for k in offsets[i]:offsets[i + 1], in that order."""
+                      entries: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), shift: int,
+                      contrib: wp.array(dtype=Any), out: wp.array(dtype=Any), start: int):
+    """out[targets[i]] += contrib[s] for s = entries[k], k in offsets[i]:offsets[i + 1], in that
+    order, skipping the slots of inactive owners (``active[s >> shift] == 0``)."""
     i = wp.tid() + start
     t = targets[i]
     a = out[t]
+    n = int(0)
     for k in range(offsets[i], offsets[i + 1]):
-        a = a + contrib[entries[k]]
-    out[t] = a
+        e = entries[k]
+        if active[e >> shift] != 0:
+            a = a + contrib[e]
+            n += 1
+    if n > 0:
+        out[t] = a
 
 
 @splittable("start", 1024)
 @both_precisions(contrib="m[]", out="m[]")
 @wp.kernel
 def gather_mat_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
-                      entries: wp.array(dtype=wp.int32), contrib: wp.array(dtype=Any), out: wp.array(dtype=Any),
-                      start: int):
-    """out[targets[i]] += contrib[entries[k]] for k in offsets[i]:offsets[i + 1], in that order."""
+                      entries: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), shift: int,
+                      contrib: wp.array(dtype=Any), out: wp.array(dtype=Any), start: int):
+    """out[targets[i]] += contrib[s] for s = entries[k], k in offsets[i]:offsets[i + 1], in that
+    order, skipping the slots of inactive owners (``active[s >> shift] == 0``)."""
     i = wp.tid() + start
     t = targets[i]
     a = out[t]
+    n = int(0)
     for k in range(offsets[i], offsets[i + 1]):
-        a = a + contrib[entries[k]]
-    out[t] = a
+        e = entries[k]
+        if active[e >> shift] != 0:
+            a = a + contrib[e]
+            n += 1
+    if n > 0:
+        out[t] = a
