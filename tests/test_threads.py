@@ -132,6 +132,51 @@ def test_multigrid_steps_identical_for_1_and_2_threads(tiny_chunks):
     assert res[0] == res[1]
 
 
+def test_stiffness_warping_gathered_identical_for_1_and_2_threads_and_equal_to_the_atomic_scatter(tiny_chunks,
+                                                                                                    monkeypatch):
+    """Stiffness warping's per-tet forces and blocks go to slots gathered per vertex and per block:
+    its steps are bit-identical for 1 and 2 threads (the assembly, rotation and gather launches
+    split), and its force, force offset and stiffness equal the atomic scatter's to 1e-12."""
+    import warpfem.solvers.stiffness_warping as SW
+
+    mesh = box_tet_mesh(size=(0.4, 0.1, 0.1), cells=(4, 1, 1))
+    plain, split = SW.launch, set()
+
+    def spy(kernel, dim, inputs, device):
+        s0 = COUNTERS["split"]
+        plain(kernel, dim, inputs, device)
+        if COUNTERS["split"] > s0:
+            split.add(kernel.key)
+
+    monkeypatch.setattr(SW, "launch", spy)
+
+    def run(threads):
+        TH.set_threads(threads)
+        m = _model(mesh)
+        m.fix(np.nonzero(np.asarray(mesh.vertices)[:, 0] < 1e-9)[0])
+        sim = SW.StiffnessWarpingSimulator(m, dt=0.01, precision="float64", rotation="polar")
+        split.clear()
+        for _ in range(3):
+            assert sim.step().converged
+        if threads > 1:
+            assert {"warped_assembly_kernel", "element_rotation_kernel", "gather_force_kernel",
+                    "gather_blocks_kernel"} <= split, split
+        else:
+            assert not split
+        return sim
+
+    a, b = run(1), run(2)
+    assert a.state.x.numpy().tobytes() == b.state.x.numpy().tobytes()
+    assert np.abs(a.positions() - np.asarray(mesh.vertices)).max() > 1e-4  # it sagged
+    TH.set_threads(1)
+    x = a.positions()
+    got = (a.elastic_forces(x), a.force_offset(x), a.stiffness_matrix(x).toarray())
+    monkeypatch.setattr(SW, "GATHER", False)
+    ref = (a.elastic_forces(x), a.force_offset(x), a.stiffness_matrix(x).toarray())
+    for g, r in zip(got, ref):
+        np.testing.assert_allclose(g, r, rtol=0, atol=1e-12 * np.abs(r).max())
+
+
 # -- bad input -----------------------------------------------------------------------------------
 @pytest.mark.parametrize("value", ["0", "-3", "1.5", "two", ""])
 def test_bad_env_thread_count_is_a_one_line_error_naming_the_variable(monkeypatch, value):
