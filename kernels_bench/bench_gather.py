@@ -1,4 +1,6 @@
-"""What the deterministic (atomic-free) assembly of surface contact costs: two soft boxes of about
+"""What the deterministic (atomic-free) assembly of surface contact and stiffness warping costs.
+
+Surface contact: two soft boxes of about
 ``--tets`` tetrahedra, the upper one dropped onto the lower one with friction, stepped into contact;
 then, at that state, the contact's energy, gradient and Hessian (barrier pairs + lagged friction)
 with the gather (per-pair slots, then per vertex / per block in a fixed order) against the atomic
@@ -7,7 +9,11 @@ time and wall time; on one thread (the serial cost) and, for the gather, on two.
 work per broad-phase query (the canonical sort of the pairs, the gather maps) and whole steps of
 two simulators taking the same steps, one per assembly, alternated.
 
-    .venv/bin/python kernels_bench/bench_contact_gather.py [--tets 20000] [--reps 9] [--json PATH]
+Stiffness warping: the warped assembly (rotations, forces, stiffness blocks) of a clamped box of
+about ``--warp-tets`` tets, vertices perturbed, gather against atomics (``stiffness_warping.GATHER``),
+one thread, and the gather on two.
+
+    .venv/bin/python kernels_bench/bench_gather.py [--tets 20000] [--warp-tets 24000] [--reps 9] [--json PATH]
 """
 
 from __future__ import annotations
@@ -29,9 +35,11 @@ sys.path.insert(0, ROOT)
 import warp as wp  # noqa: E402
 
 import warpfem.contact.surface as S  # noqa: E402
+import warpfem.solvers.stiffness_warping as SW  # noqa: E402
 import warpfem.threads as TH  # noqa: E402
 from warpfem.contact import surface_kernels as SK  # noqa: E402
 from warpfem.materials import make_material  # noqa: E402
+from warpfem.mesh import box_tet_mesh  # noqa: E402
 from warpfem.model import Model  # noqa: E402
 from warpfem.simulator import Simulator  # noqa: E402
 
@@ -72,11 +80,60 @@ def main():
     ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds of every variant")
     ap.add_argument("--steps", type=int, default=4, help="steps of the step comparison")
     ap.add_argument("--friction", type=float, default=0.3)
+    ap.add_argument("--warp-tets", type=int, default=24000)
+    ap.add_argument("--skip-contact", action="store_true")
     ap.add_argument("--json", default=None)
     a = ap.parse_args()
     out = {"device": "cpu", "machine": platform.machine(), "processor": platform.processor(),
            "python": platform.python_version(), "warp": wp.config.version, "precision": a.precision,
            "load_average": os.getloadavg()}
+    out["warping"] = warping(a)
+    if not a.skip_contact:
+        contact(a, out)
+    out["load_average_end"] = os.getloadavg()
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+def warping(a):
+    n = max(2, int(round((a.warp_tets / 6) ** (1.0 / 3.0))))
+    mesh = box_tet_mesh(size=(1.0, 1.0, 1.0), cells=(n, n, n))
+    m = Model(mesh, make_material("corotated", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0))
+    X = np.asarray(mesh.vertices)
+    m.fix(np.flatnonzero(X[:, 0] < 1e-9))
+    TH.set_threads(1)
+    sim = SW.StiffnessWarpingSimulator(m, precision=a.precision, rotation="polar")
+    x = sim.ops.new_vector()
+    x.assign(X + 0.02 * np.random.default_rng(0).standard_normal(X.shape) / n)
+    jobs = {"force": lambda: sim._assemble(x, matrix=False), "force+stiffness": lambda: sim._assemble(x, matrix=True)}
+    variants = (("atomic", False, 1), ("gather", True, 1), ("gather-2-threads", True, 2))
+    best = {}
+    for _ in range(a.rounds):
+        for v, gather, threads in variants:
+            SW.GATHER = gather
+            TH.set_threads(threads)
+            for j, fn in jobs.items():
+                fn()
+                w, c = timed(fn, a.reps)
+                b = best.get((v, j), (np.inf, np.inf))
+                best[(v, j)] = (min(b[0], w), min(b[1], c))
+    SW.GATHER = True
+    TH.set_threads(1)
+    rows = []
+    for j in jobs:
+        at, ga, g2 = best[("atomic", j)], best[("gather", j)], best[("gather-2-threads", j)]
+        row = dict(job=j, tets=int(mesh.num_elements), atomic_ms=1e3 * at[1], gather_ms=1e3 * ga[1],
+                   gather_over_atomic_cpu=ga[1] / at[1], gather_over_atomic_wall=ga[0] / at[0],
+                   gather_2_threads_wall_ms=1e3 * g2[0], speedup_2_threads_wall=ga[0] / g2[0])
+        rows.append(row)
+        print(f"warping {j:16s} ({row['tets']} tets) atomic {row['atomic_ms']:.2f} ms  gather {row['gather_ms']:.2f} ms "
+              f"(CPU, 1 thread: {row['gather_over_atomic_cpu']:.3f}x; wall {row['gather_over_atomic_wall']:.3f}x)  "
+              f"2 threads {row['gather_2_threads_wall_ms']:.2f} ms wall ({row['speedup_2_threads_wall']:.2f}x)", flush=True)
+    return rows
+
+
+def contact(a, out):
     TH.set_threads(1)
     sim = make(a.tets, a.precision, a.friction)
     sc = sim.surface_contact
@@ -159,10 +216,6 @@ def main():
                         newton_atomic=newton[False], newton_gather=newton[True])
     print(f"{a.steps} steps: atomic {cpu[False]:.2f} s, gather {cpu[True]:.2f} s CPU ({cpu[True] / cpu[False]:.3f}x); "
           f"Newton iterations {newton[False]} / {newton[True]}", flush=True)
-    out["load_average_end"] = os.getloadavg()
-    if a.json:
-        with open(a.json, "w") as f:
-            json.dump(out, f, indent=1)
 
 
 if __name__ == "__main__":
