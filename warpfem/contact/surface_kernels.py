@@ -829,15 +829,19 @@ def gather_vec_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype
     """out[targets[i]] += contrib[s] for s = entries[k], k in offsets[i]:offsets[i + 1], in that
     order, skipping the slots of inactive owners (``active[s >> shift] == 0``)."""
     i = wp.tid() + start
-    t = targets[i]
-    a = out[t]
-    n = int(0)
-    for k in range(offsets[i], offsets[i + 1]):
-        e = entries[k]
-        if active[e >> shift] != 0:
-            a = a + contrib[e]
-            n += 1
-    if n > 0:
+    lo = offsets[i]
+    hi = offsets[i + 1]
+    k = lo
+    while k < hi and active[entries[k] >> shift] == 0:  # the target is read only if a slot adds to it
+        k += 1
+    if k < hi:
+        t = targets[i]
+        a = out[t]
+        while k < hi:
+            e = entries[k]
+            if active[e >> shift] != 0:
+                a = a + contrib[e]
+            k += 1
         out[t] = a
 
 
@@ -850,13 +854,17 @@ def gather_mat_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype
     """out[targets[i]] += contrib[s] for s = entries[k], k in offsets[i]:offsets[i + 1], in that
     order, skipping the slots of inactive owners (``active[s >> shift] == 0``)."""
     i = wp.tid() + start
-    t = targets[i]
-    a = out[t]
-    n = int(0)
-    for k in range(offsets[i], offsets[i + 1]):
-        e = entries[k]
-        if active[e >> shift] != 0:
-            a = a + contrib[e]
-            n += 1
-    if n > 0:
+    lo = offsets[i]
+    hi = offsets[i + 1]
+    k = lo
+    while k < hi and active[entries[k] >> shift] == 0:  # the target is read only if a slot adds to it
+        k += 1
+    if k < hi:
+        t = targets[i]
+        a = out[t]
+        while k < hi:
+            e = entries[k]
+            if active[e >> shift] != 0:
+                a = a + contrib[e]
+            k += 1
         out[t] = a
