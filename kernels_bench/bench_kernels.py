@@ -291,8 +291,8 @@ def bench_cubature(mesh, model, x_np, args, precision, device, s):
         wp.launch(RK.cubature_element_kernel, dim=cf.c,
                   inputs=[cf.U, cf._q, cf.points, cf.material, 0, 1, cf._energy, cf._f, cf._H], device=cf.device)
         cf._force.zero_()
-        wp.launch(RK.cubature_project_kernel, dim=(cf.c, cf.r),
-                  inputs=[cf.U, cf.points, cf._f, cf._H, 0, cf._force, cf._K], device=cf.device)
+        wp.launch(RK.cubature_project_kernel, dim=(cf.r, 1),
+                  inputs=[cf.U, cf.points, cf._f, cf._H, 0, cf.c, cf._force, cf._K], device=cf.device)
 
     # numpy baseline: the same sum over all elements with weight 1 (= the exact reduced force)
     dt = np.float32 if s == 4 else np.float64

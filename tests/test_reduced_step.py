@@ -189,15 +189,39 @@ def test_direct_cpu_launch_equals_warps_own_launch(beam_subspace, monkeypatch):
     fast = CubatureForces(model, sub.U, sub.cubature.elements, sub.cubature.weights)
     a = [fast.evaluate(q, hessian=h) for h in (False, True)]
     checked = tuple(int(v) for v in wp.config.version.split(".")[:2]) in G._DIRECT_CPU_CALL_WARP
-    used = [rl for rl in fast._launch.values() if rl._cmd]
+    # (a launch split across CPU threads runs its chunks as recorded launches of their own)
+    used = [p for rl in fast._launch.values() for p in (rl._parts or [rl]) if p._cmd]
     assert used and all((rl._direct is not None) == checked for rl in used)
     monkeypatch.setattr(G, "_DIRECT_CPU_CALL_WARP", set())
     public = CubatureForces(model, sub.U, sub.cubature.elements, sub.cubature.weights)
     b = [public.evaluate(q, hessian=h) for h in (False, True)]
-    assert all(rl._direct is None for rl in public._launch.values())
+    assert all(p._direct is None for rl in public._launch.values() for p in (rl._parts or [rl]))
     for (Ea, fa, Ka), (Eb, fb, Kb) in zip(a, b):
         assert Ea == Eb and np.array_equal(fa, fb)
         assert (Ka is None and Kb is None) or np.array_equal(Ka, Kb)
+
+
+def test_point_kernel_split_across_threads_gives_the_same_bits(beam_subspace, monkeypatch):
+    """The per-point kernel with the Hessian runs in chunks on 2 threads (every point writes its own
+    outputs; the reductions are dense host products): the same energy, force and stiffness bits."""
+    import warpfem.kernels.generic as G
+    import warpfem.threads as TH
+
+    monkeypatch.setattr(G, "MIN_CHUNK", 1)
+    monkeypatch.setattr(TH, "available_cores", lambda: 4)
+    _, model, sub = beam_subspace
+    q = 0.3 * np.random.default_rng(4).standard_normal(sub.U.shape[1]) / np.abs(sub.U).max()
+    cf = CubatureForces(model, sub.U, sub.cubature.elements, sub.cubature.weights)
+    out = []
+    try:
+        for T in (1, 2, 2):  # (the second run on 2 threads replays the recorded chunks)
+            TH.set_threads(T)
+            E, f, K = cf.evaluate(q, hessian=True, project=False)
+            out.append((E, f.tobytes(), K.tobytes()))
+        assert len(cf._launch[(1, 0)]._parts) == 2
+    finally:
+        TH.set_threads(None)
+    assert out[0] == out[1] == out[2]
 
 
 def test_load_scale_is_a_control_of_the_reduced_step(beam_subspace):

@@ -132,6 +132,91 @@ def test_multigrid_steps_identical_for_1_and_2_threads(tiny_chunks):
     assert res[0] == res[1]
 
 
+def test_stiffness_warping_gathered_identical_for_1_and_2_threads_and_equal_to_the_atomic_scatter(tiny_chunks,
+                                                                                                    monkeypatch):
+    """Stiffness warping's per-tet forces and blocks go to slots gathered per vertex and per block:
+    its steps are bit-identical for 1 and 2 threads (the assembly, rotation and gather launches
+    split), and its force, force offset and stiffness equal the atomic scatter's to 1e-12."""
+    import warpfem.solvers.stiffness_warping as SW
+
+    mesh = box_tet_mesh(size=(0.4, 0.1, 0.1), cells=(4, 1, 1))
+    plain, split = SW.launch, set()
+
+    def spy(kernel, dim, inputs, device):
+        s0 = COUNTERS["split"]
+        plain(kernel, dim, inputs, device)
+        if COUNTERS["split"] > s0:
+            split.add(kernel.key)
+
+    monkeypatch.setattr(SW, "launch", spy)
+
+    def run(threads):
+        TH.set_threads(threads)
+        m = _model(mesh)
+        m.fix(np.nonzero(np.asarray(mesh.vertices)[:, 0] < 1e-9)[0])
+        sim = SW.StiffnessWarpingSimulator(m, dt=0.01, precision="float64", rotation="polar")
+        split.clear()
+        for _ in range(3):
+            assert sim.step().converged
+        if threads > 1:
+            assert {"warped_assembly_kernel", "element_rotation_kernel", "gather_force_kernel",
+                    "gather_blocks_kernel"} <= split, split
+        else:
+            assert not split
+        return sim
+
+    a, b = run(1), run(2)
+    assert a.state.x.numpy().tobytes() == b.state.x.numpy().tobytes()
+    assert np.abs(a.positions() - np.asarray(mesh.vertices)).max() > 1e-4  # it sagged
+    TH.set_threads(1)
+    x = a.positions()
+    got = (a.elastic_forces(x), a.force_offset(x), a.stiffness_matrix(x).toarray())
+    monkeypatch.setattr(SW, "GATHER", False)
+    ref = (a.elastic_forces(x), a.force_offset(x), a.stiffness_matrix(x).toarray())
+    for g, r in zip(got, ref):
+        np.testing.assert_allclose(g, r, rtol=0, atol=1e-12 * np.abs(r).max())
+
+
+def test_ordered_sums_from_one_row_per_index_equal_the_row_sums(monkeypatch):
+    """The fixed-order reduction used on devices other than the CPU (one row per index, a tree of
+    passes of TREE_BLOCK rows, ``generic.ORDERED_SUMS``), forced on the CPU with a tiny block so
+    that the tree has several passes: energies, magnitudes and maxima equal the default path's to
+    round-off, steps onto a plane with friction (the default solver and PCG, whose dot products are
+    recorded launches) take the same Newton iterations to the same states (1e-10), and two
+    runs give the same bits."""
+    monkeypatch.setattr(generic, "TREE_BLOCK", 4)
+    mesh = box_tet_mesh(size=(0.4, 0.1, 0.1), cells=(4, 1, 1))
+    sim = Simulator(_model(mesh), dt=0.01, precision="float64")
+    rng = np.random.default_rng(2)
+    X = np.asarray(mesh.vertices)
+    x = wp.array(X + 0.01 * rng.standard_normal(X.shape), dtype=wp.vec3d)
+    ref = _force_and_hessian(sim, x)
+    monkeypatch.setattr(generic, "ORDERED_SUMS", "always")
+    got = _force_and_hessian(sim, x)
+    assert np.array_equal(got[0], ref[0]) and np.array_equal(got[1], ref[1])  # (gathered: no sums)
+    np.testing.assert_allclose(got[2], ref[2], rtol=1e-13, atol=0)
+    assert generic._tree_passes(len(sim._elastic.qp_sets[0].points.weight))[0]  # the tree took passes
+
+    def stepped(ordered, solver="direct"):
+        monkeypatch.setattr(generic, "ORDERED_SUMS", "always" if ordered else "device")
+        TH.set_threads(1)
+        m = _model(box_tet_mesh(size=(0.2, 0.2, 0.2), cells=(2, 2, 2)))
+        sim = Simulator(m, dt=1 / 240, precision="float64", max_iters=100, linear_solver=solver)
+        sim.add_collider(Plane(point=(0, 0, -0.01), normal=(0, 0, 1), friction=0.3))
+        sim.set_velocities(np.tile([0.3, 0.0, -1.0], (sim.num_vertices, 1)))
+        n = 0
+        for _ in range(3):
+            st = sim.step()
+            assert st.converged
+            n += st.newton_iterations
+        return sim.state.x.numpy(), n
+
+    for solver in ("direct", "pcg"):
+        (xa, na), (xb, nb), (xc, nc) = stepped(False, solver), stepped(True, solver), stepped(True, solver)
+        assert na == nb and np.abs(xa - xb).max() <= 1e-10 and xb.tobytes() == xc.tobytes()
+    TH.set_threads(None)
+
+
 # -- bad input -----------------------------------------------------------------------------------
 @pytest.mark.parametrize("value", ["0", "-3", "1.5", "two", ""])
 def test_bad_env_thread_count_is_a_one_line_error_naming_the_variable(monkeypatch, value):

@@ -44,6 +44,60 @@ QUERY_MARGIN = 2.0
 #: self pairs closer than this many dhat in the rest shape get no barrier (only the step bound):
 #: features that are close but not neighbours at rest (short edges, slivers) are not pushed apart
 REST_GAP = 1.0
+#: gradients and Hessian blocks per pair into slots, then gathered per vertex and per block in a fixed
+#: order (bit-identical whatever the thread count, on every device); False: added with atomics (the
+#: reference of tests and benchmarks; CPU launches are then not split)
+GATHER = True
+
+
+def slot_map(keys):
+    """(targets, offsets, entries) int32: the distinct values of ``keys`` (ascending) and, per
+    target t, the positions k with keys[k] == targets[t] in ascending order,
+    ``entries[offsets[t]:offsets[t + 1]]``: the map a gather follows (a CSR of slot -> target)."""
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+    n = len(keys)
+    # one sort of (key, position) packed into an int64 (unique values: a plain sort is a stable one,
+    # and sorting values is several times faster than an argsort)
+    packed = np.sort(keys * max(n, 1) + np.arange(n, dtype=np.int64))
+    sorted_keys = packed // max(n, 1)
+    order = packed - sorted_keys * max(n, 1)
+    first = np.ones(n, dtype=bool)
+    first[1:] = sorted_keys[1:] != sorted_keys[:-1]
+    starts = np.flatnonzero(first)
+    offsets = np.append(starts, n)
+    return sorted_keys[starts].astype(np.int32), offsets.astype(np.int32), order.astype(np.int32)
+
+
+def canonical_order(pairs, kinds):
+    """The permutation that sorts candidate pairs by (kind, vertex ids): the pair list's order no
+    longer depends on the broad phase's (thread count, device, BVH traversal)."""
+    pairs = np.asarray(pairs).reshape(-1, 4)
+    return np.lexsort((pairs[:, 3], pairs[:, 2], pairs[:, 1], pairs[:, 0], np.asarray(kinds).reshape(-1)))
+
+
+class _GatherMap:
+    """A gather map (``slot_map``) on the device, its buffers grown by powers of two and reused."""
+
+    def __init__(self, device):
+        self.device = device
+        self.n = 0
+        self.bufs = None
+
+    def set(self, keys):
+        t, o, e = slot_map(keys)
+        self.n = len(t)
+        if self.n == 0:
+            return self
+        need = (len(t), len(o), len(e))
+        if self.bufs is None or any(b.shape[0] < k for b, k in zip(self.bufs, need)):
+            self.bufs = tuple(wp.zeros(_capacity(k), dtype=wp.int32, device=self.device) for k in need)
+        for b, a in zip(self.bufs, (t, o, e)):
+            upload(b[:len(a)], a)
+        return self
+
+    def gather(self, kernel, active, shift, contrib, out):
+        if self.n:
+            launch(kernel, self.n, [*self.bufs, active, shift, contrib, out], self.device)
 
 
 @dataclass
@@ -144,6 +198,7 @@ def pair_terms(kind, x, *, dhat, kappa, rest=None, direction=None, precision="fl
     fw = wp.zeros(1, dtype=wp.vec4d if f64 else wp.vec4, device=device)
     fn = wp.zeros(1, dtype=V, device=device)
     flam = wp.zeros(1, dtype=S, device=device)
+    hidx = wp.zeros(1, dtype=wp.int32, device=device)
     out = {}
 
     def go(mode, g=None, values=None):
@@ -152,7 +207,8 @@ def pair_terms(kind, x, *, dhat, kappa, rest=None, direction=None, precision="fl
         g = wp.zeros(4, dtype=V, device=device) if g is None else g
         values = wp.zeros(16, dtype=M, device=device) if values is None else values
         launch(SK.pair_kernel, 1, [xa, ra, pairs, kinds, count, S(dhat * dhat), S(kappa), mode, S(1.0), da, S(STEP_ETA), g,
-                                   blocks, values, dist, fw, fn, flam, acc, 0, S(JACOBI_TOL[np.dtype(npt)])], device)
+                                   blocks, values, dist, fw, fn, flam, acc, 0, S(JACOBI_TOL[np.dtype(npt)]), g, values,
+                                   hidx, hidx, hidx, 0], device)
         return read(acc), read(g), read(values)
 
     go(SK.MODE_DISTANCE)
@@ -238,6 +294,13 @@ class SurfaceContact:
         self._tbvh = wp.Bvh(*self._tbox)
         self._ebvh = wp.Bvh(*self._ebox)
         self._count = wp.zeros(1, dtype=wp.int32, device=dev)
+        self._gmap = self._hmap = None  # the gather maps (_update_maps) and the Hessian slots
+        self._hslots = wp.zeros(16 * 256, dtype=ops.mat, device=dev)
+        self._hact = wp.zeros(256, dtype=wp.int32, device=dev)  # per pair with blocks: whether its Hessian slots hold terms
+        self._maps_valid = False
+        self._f_gmap, self._f_hmap = _GatherMap(dev), _GatherMap(dev)  # friction's
+        self._f_gslots = self._f_hslots = None
+        self._f_maps_valid = False
         self._alloc(_capacity(4 * (self.nv + self.ne)))
         self.num_pairs = 0
         # self pairs closer than rest_gap at rest: no barrier, the step bound only (docs/contact.md)
@@ -319,6 +382,9 @@ class SurfaceContact:
         self._fw = wp.zeros(cap, dtype=wp.vec4d if ops.np_dtype == np.float64 else wp.vec4, device=dev)
         self._fn = wp.zeros(cap, dtype=ops.vec, device=dev)
         self._flam = wp.zeros(cap, dtype=ops.scalar, device=dev)
+        self._gslots = wp.zeros(4 * cap, dtype=ops.vec, device=dev)  # 4 gradient slots per pair
+        self._hidx = wp.zeros(cap, dtype=wp.int32, device=dev)  # per pair: its Hessian slots' index, -1: none
+        self._gact = wp.zeros(cap, dtype=wp.int32, device=dev)  # per pair: whether its gradient slots hold terms
 
     def _alloc_ccd(self, cap):
         self.ccd_capacity = cap
@@ -347,7 +413,15 @@ class SurfaceContact:
             return self.num_pairs
         n = self._query(x, d, scale, QUERY_MARGIN)
         self.num_pairs = n
-        self.pairs_np = read(self._pairs, n).astype(np.int64) if n else np.zeros((0, 4), dtype=np.int64)
+        if n:  # in a canonical order (the broad phase's depends on the BVH traversal and the threads)
+            pairs, kinds = read(self._pairs, n), read(self._kinds, n)
+            order = canonical_order(pairs, kinds)
+            pairs, kinds = np.ascontiguousarray(pairs[order]), np.ascontiguousarray(kinds[order])
+            upload(self._pairs[:n], pairs)
+            upload(self._kinds[:n], kinds)
+            self.pairs_np = pairs.astype(np.int64)
+        else:
+            self.pairs_np = np.zeros((0, 4), dtype=np.int64)
         self._update_blocks()
         self._grow_near(x, d, scale)
         self._valid = True
@@ -426,6 +500,8 @@ class SurfaceContact:
         """Device int32 (16 cap,): the pattern positions of the 4 x 4 vertex blocks of each quad
         (``missing_ok``: all 16 are -1 for a quad that lacks one, and ``_has_blocks`` says which)."""
         full = np.zeros(16 * cap, dtype=np.int32)
+        if missing_ok:
+            self._blocks_np = full[:16 * len(quads)]
         if len(quads):
             a = np.repeat(quads, 4, axis=1).reshape(-1)
             b = np.tile(quads, (1, 4)).reshape(-1)
@@ -445,6 +521,28 @@ class SurfaceContact:
     def _update_blocks(self):
         self._has_blocks = np.zeros(self.num_pairs, dtype=bool)
         self._blocks = self._block_positions(self.pairs_np, self.capacity, self._blocks, missing_ok=True)
+        self._maps_valid = False  # rebuilt by the next gradient or Hessian (_update_maps)
+
+    def _update_maps(self):
+        """The gather maps of the candidate pairs (``GATHER``): gradient slot 4 p + i -> vertex
+        pairs[p, i]; Hessian slots (16 per pair with blocks, in pair order) -> pattern block; and
+        per pair the index of its Hessian slots (-1: none). Built when first needed after the pairs
+        or the pattern changed."""
+        self._maps_valid = True
+        n, dev = self.num_pairs, self.device
+        if self._gmap is None:
+            self._gmap, self._hmap = _GatherMap(dev), _GatherMap(dev)
+        self._gmap.set(self.pairs_np[:n].reshape(-1))
+        with_blocks = np.flatnonzero(self._has_blocks)
+        hidx = np.full(self.capacity, -1, dtype=np.int32)
+        hidx[with_blocks] = np.arange(len(with_blocks), dtype=np.int32)
+        upload(self._hidx, hidx)
+        k = len(with_blocks)
+        if self._hslots.shape[0] < 16 * k:
+            self._hslots = wp.zeros(16 * _capacity(k), dtype=self.ops.mat, device=dev)
+            self._hact = wp.zeros(_capacity(k), dtype=wp.int32, device=dev)
+        pos = self._blocks_np.reshape(-1, 16)[with_blocks]
+        self._hmap.set(pos.reshape(-1))
 
     def detach(self):
         """Stop following the Hessian's pattern (the simulator dropped this contact)."""
@@ -456,6 +554,18 @@ class SurfaceContact:
             self._update_blocks()
         if self.num_friction:
             self._f_blocks = self._block_positions(self._f_pairs_np, self._f_cap, self._f_blocks)
+            self._update_friction_maps()
+
+    def _update_friction_maps(self):
+        self._f_maps_valid = False  # rebuilt by the next gradient or Hessian (_build_friction_maps)
+
+    def _build_friction_maps(self):
+        """The friction pairs' gather maps: gradient slot 4 p + i -> vertex, Hessian slot 16 p + k
+        -> pattern block (every friction pair has its blocks)."""
+        self._f_maps_valid = True
+        nf = self.num_friction
+        self._f_gmap.set(self._f_pairs_np[:nf].reshape(-1))
+        self._f_hmap.set(read(self._f_blocks, 16 * nf))
 
     # -- pair kernel ---------------------------------------------------------------------------------
     def exact_hessian(self, x, values, scale=1.0):
@@ -464,27 +574,40 @@ class SurfaceContact:
         self.run(SK.MODE_HESSIAN_UNPROJECTED, x, scale=scale, values=values)
 
     def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0, kappa=None):
+        """The pair kernel's job ``mode`` over the candidate pairs; gradients into g and Hessian
+        blocks into values through the pairs' slots and the gather maps (``GATHER``)."""
         ops = self.ops
-        if self.num_pairs == 0:
+        n = self.num_pairs
+        if n == 0:
             return
         kappa = self.kappa if kappa is None else kappa
-        launch(SK.pair_kernel, self.capacity, [
+        gather = GATHER and mode in (SK.MODE_GRADIENT, SK.MODE_HESSIAN, SK.MODE_HESSIAN_UNPROJECTED)
+        g = ops.zero if g is None else g
+        values = self.system.hessian_values if values is None else values
+        if gather and not self._maps_valid:
+            self._update_maps()
+        launch(SK.pair_kernel, n, [
             x, self._rest, self._pairs, self._kinds, self._count, ops.scalar(self.dhat ** 2), ops.scalar(kappa),
-            int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA),
-            ops.zero if g is None else g, self._blocks, self.system.hessian_values if values is None else values,
-            self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot),
-            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)])], self.device)
+            int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA), g, self._blocks,
+            values, self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot),
+            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)]), self._gslots, self._hslots, self._hidx, self._gact,
+            self._hact, int(GATHER)], self.device)
+        if gather and mode == SK.MODE_GRADIENT:
+            self._gmap.gather(SK.gather_vec_kernel, self._gact, 2, self._gslots, g)
+        elif gather:
+            self._hmap.gather(SK.gather_mat_kernel, self._hact, 4, self._hslots, values)
 
     def run_ccd(self, x, *, scale, d, acc, slot=0):
         """The step bound (additive CCD) of the CCD-only pairs (self pairs closer than rest_gap at rest)."""
         if self.num_ccd_pairs == 0:
             return
         ops = self.ops
-        launch(SK.pair_kernel, self.ccd_capacity, [
+        launch(SK.pair_kernel, self.num_ccd_pairs, [
             x, self._rest, self._ccd_pairs, self._ccd_kinds, self._ccd_count, ops.scalar(self.dhat ** 2),
             ops.scalar(self.kappa), int(SK.MODE_MAX_STEP), ops.scalar(scale), d, ops.scalar(STEP_ETA), ops.zero,
             self._blocks, self.system.hessian_values, self._dist, self._fw, self._fn, self._flam, acc, int(slot),
-            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)])], self.device)
+            ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)]), self._gslots, self._hslots, self._hidx, self._gact,
+            self._hact, int(GATHER)], self.device)
 
     def _acc_default(self):
         if getattr(self, "_acc", None) is None:
@@ -589,6 +712,7 @@ class SurfaceContact:
             self._f_n = wp.zeros(cap, dtype=self._fn.dtype, device=dev)
             self._f_lam = wp.zeros(cap, dtype=self._flam.dtype, device=dev)
             self._f_blocks = None
+            self._alloc_friction_slots(cap)
         for src, dst in ((self._pairs, self._f_pairs), (self._fw, self._f_w), (self._fn, self._f_n),
                          (self._flam, self._f_lam)):
             a = read(src)
@@ -596,6 +720,12 @@ class SurfaceContact:
             b[:len(keep)] = a[keep]
             upload(dst, b)
         self._f_blocks = self._block_positions(quads, cap, self._f_blocks)
+        self._update_friction_maps()
+
+    def _alloc_friction_slots(self, cap):
+        self._f_gslots = wp.zeros(4 * cap, dtype=self.ops.vec, device=self.device)
+        self._f_hslots = wp.zeros(16 * cap, dtype=self.ops.mat, device=self.device)
+        self._f_act = wp.zeros(cap, dtype=wp.int32, device=self.device)
 
     # -- the step-to-step state (Simulator.state_dict) --------------------------------------------------
     def state_dict(self) -> dict:
@@ -661,6 +791,8 @@ class SurfaceContact:
             full[:len(a)] = a
             buf.assign(full)
         self.num_pairs, self.num_ccd_pairs = len(pairs), len(ccd)
+        upload(self._count, np.array([len(pairs)], dtype=np.int32))
+        upload(self._ccd_count, np.array([len(ccd)], dtype=np.int32))
         self.pairs_np = pairs.astype(np.int64)
         self._update_blocks()
         self._valid, self.queries, self.reused, self._eps = valid, queries, reused, eps
@@ -675,24 +807,37 @@ class SurfaceContact:
                 self._f_n = wp.zeros(fcap, dtype=self._fn.dtype, device=self.device)
                 self._f_lam = wp.zeros(fcap, dtype=self._flam.dtype, device=self.device)
                 self._f_blocks = None
+                self._alloc_friction_slots(fcap)
             for buf, a in ((self._f_pairs, fpairs), (self._f_w, fw), (self._f_n, fn), (self._f_lam, flam)):
                 full = np.zeros((fcap,) + a.shape[1:], dtype=a.dtype)
                 full[:nf] = a
                 buf.assign(full)
             self._f_pairs_np = fpairs.astype(np.int64)
             self._f_blocks = self._block_positions(self._f_pairs_np, fcap, self._f_blocks)
+            self._update_friction_maps()
         if stiff is not None:
             self.stiffness.set_state(stiff)
 
     def run_friction(self, mode, dbase, y, sy, *, scale=1.0, g=None, values=None, acc=None, slot=0):
-        if self.num_friction == 0:
+        """The friction kernel's job ``mode`` (0 energy, 1 gradient, 2 Hessian) over the lagged
+        pairs; gradients and Hessian blocks gathered from the pairs' slots (``GATHER``)."""
+        nf = self.num_friction
+        if nf == 0:
             return
         ops = self.ops
-        launch(SK.friction_kernel, self._f_cap, [
-            dbase, y, ops.scalar(sy), self._f_pairs, self._f_w, self._f_n, self._f_lam, self.num_friction,
-            ops.scalar(self.friction), ops.scalar(self._eps), int(mode), ops.scalar(scale), ops.zero if g is None else g,
-            self._f_blocks, self.system.hessian_values if values is None else values,
-            self._acc_default() if acc is None else acc, int(slot)], self.device)
+        g = ops.zero if g is None else g
+        values = self.system.hessian_values if values is None else values
+        if GATHER and mode in (1, 2) and not self._f_maps_valid:
+            self._build_friction_maps()
+        launch(SK.friction_kernel, nf, [
+            dbase, y, ops.scalar(sy), self._f_pairs, self._f_w, self._f_n, self._f_lam, nf,
+            ops.scalar(self.friction), ops.scalar(self._eps), int(mode), ops.scalar(scale), g, self._f_blocks, values,
+            self._acc_default() if acc is None else acc, int(slot), self._f_gslots, self._f_hslots, self._f_act,
+            int(GATHER)], self.device)
+        if GATHER and mode == 1:
+            self._f_gmap.gather(SK.gather_vec_kernel, self._f_act, 2, self._f_gslots, g)
+        elif GATHER and mode == 2:
+            self._f_hmap.gather(SK.gather_mat_kernel, self._f_act, 4, self._f_hslots, values)
 
     @property
     def step_start(self):

@@ -45,7 +45,7 @@ from typing import Any
 import warp as wp
 
 from warpfem.contact.kernels import barrier, friction_f0
-from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.generic import both_precisions, splittable
 
 wp.set_module_options({"enable_backward": False, "max_unroll": 1})
 
@@ -559,11 +559,12 @@ def pair_accd(kind: int, x0: Any, x1: Any, x2: Any, x3: Any, p0: Any, p1: Any, p
 def _add_pair_hessian(values: wp.array(dtype=Any), blocks: wp.array(dtype=wp.int32), p: int, scale: Any, mode: int,
                       kind: int, x0: Any, x1: Any, x2: Any, x3: Any, w: Any, c0: Any, c1: Any, k: int, r: Any, u: Any,
                       v: Any, m: Any, m1: Any, m2: Any, b0: Any, b1: Any, b2: Any, gc0: Any, gc1: Any, gc2: Any,
-                      gc3: Any, kappa: Any, jtol: Any):
+                      gc3: Any, kappa: Any, jtol: Any, hslots: wp.array(dtype=Any), h: int):
     """Hessian of kappa m b(s): m b'' gs gs^T + m b' Hs + b' (gm gs^T + gs gm^T) + b Hm (mode 2: its PSD
-    projection) into pair p's 16 vertex blocks of values, times scale (none when the pattern has
-    no blocks for it, -1: not reached, a pair within dhat has them)."""
-    if blocks[16 * p] < 0:
+    projection), times scale: pair p's 16 vertex blocks into its slots ``hslots[16 h:16 h + 16]``
+    (``h >= 0``, the gather path), or added with atomics into values (``h < 0``; none when the
+    pattern has no blocks for the pair, -1: not reached, a pair within dhat has them)."""
+    if h < 0 and blocks[16 * p] < 0:
         return
     zero = kappa - kappa
     one = zero + type(kappa)(1.0)
@@ -612,21 +613,56 @@ def _add_pair_hessian(values: wp.array(dtype=Any), blocks: wp.array(dtype=wp.int
             for a in range(3):
                 for b in range(3):
                     M[a, b] = H[3 * i + a, 3 * j + b]
-            wp.atomic_add(values, blocks[16 * p + 4 * i + j], scale * M)
+            if h >= 0:
+                hslots[16 * h + 4 * i + j] = scale * M
+            else:
+                wp.atomic_add(values, blocks[16 * p + 4 * i + j], scale * M)
 
 
+@wp.func
+def _no_slots(mode: int, p: int, h: int, active: wp.array(dtype=wp.int32), hactive: wp.array(dtype=wp.int32),
+              slots: int):
+    """Pair p adds nothing (gradient, mode 1; Hessian, modes 2 and 6, h >= 0): its slots are
+    marked inactive, and the gather skips them."""
+    if slots == 0:
+        return
+    if mode == 1:
+        active[p] = 0
+    elif (mode == 2 or mode == 6) and h >= 0:
+        hactive[h] = 0
+
+
+# split across CPU threads (``kernels.generic.splittable``) when ``slots`` is set: every pair writes
+# only its own outputs (distance, lagging data, gradient and Hessian slots, gathered afterwards by
+# ``gather_vec_kernel`` / ``gather_mat_kernel``); energies, magnitudes (sums) and the step bound (a
+# minimum) go through rows of partial results
+@splittable("reduce", 512, acc=18, slot=19, n_add=3, n_min=1, when=26)
 @both_precisions(x="v[]", rest="v[]", dx="v[]", dhat2="s", kappa="s", eta="s", scale="s", g="v[]", values="m[]",
-                 out="s[]", f_w="v4[]", f_n="v[]", f_lam="s[]", jtol="s")
+                 out="s[]", f_w="v4[]", f_n="v[]", f_lam="s[]", jtol="s", gslots="v[]", hslots="m[]")
 @wp.kernel
 def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.array(dtype=wp.vec4i),
                 kinds: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32), dhat2: Any, kappa: Any,
                 mode: int, scale: Any, dx: wp.array(dtype=Any), eta: Any, g: wp.array(dtype=Any),
                 blocks: wp.array(dtype=wp.int32), values: wp.array(dtype=Any), out: wp.array(dtype=Any),
                 f_w: wp.array(dtype=Any), f_n: wp.array(dtype=Any), f_lam: wp.array(dtype=Any),
-                acc: wp.array(dtype=wp.float64), slot: int, jtol: Any):
-    p = wp.tid()
+                acc: wp.array(dtype=wp.float64), slot: int, jtol: Any, gslots: wp.array(dtype=Any),
+                hslots: wp.array(dtype=Any), hidx: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32),
+                hactive: wp.array(dtype=wp.int32), slots: int, start: int, row_block: int, row_stride: int):
+    """Pair p's job of ``mode`` (module docstring). ``slots != 0``: the gradient (mode 1) into the
+    pair's four slots ``gslots[4 p:4 p + 4]`` (``active[p]`` 1, or 0 when the pair adds nothing)
+    and the Hessian (modes 2, 6) into its 16 slots ``hslots[16 h:16 h + 16]``, h = ``hidx[p]``
+    (-1: the pair has no blocks; ``hactive[h]`` as ``active``), both for a gather in a fixed
+    order; ``slots == 0``: added with atomics into g and values. Sums and the step bound go to
+    ``acc[slot + (p / row_block) row_stride + j]`` (rows of partial results when split)."""
+    p = wp.tid() + start
     if p >= count[0]:
         return
+    ra = slot + (p / row_block) * row_stride
+    h = int(-1)
+    if slots != 0 and (mode == 2 or mode == 6):
+        h = hidx[p]
+        if h < 0:
+            return
     ids = pairs[p]
     kind = kinds[p]
     x0 = x[ids[0]]
@@ -639,7 +675,7 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
     if mode == 3:
         t = pair_accd(kind, x0, x1, x2, x3, scale * dx[ids[0]], scale * dx[ids[1]], scale * dx[ids[2]],
                       scale * dx[ids[3]], eta)
-        wp.atomic_min(acc, slot + 3, wp.float64(t))
+        wp.atomic_min(acc, ra + 3, wp.float64(t))
         return
     w, c0, c1, k = pair_features(kind, x0, x1, x2, x3)
     r = pair_r(w, x0, x1, x2, x3)
@@ -649,11 +685,13 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
         return
     if s <= zero:
         if mode == 0:
-            wp.atomic_add(acc, slot + 1, wp.float64(1.0))
+            wp.atomic_add(acc, ra + 1, wp.float64(1.0))
+        _no_slots(mode, p, h, active, hactive, slots)
         return
     if s >= dhat2:
         if mode == 5:
             f_lam[p] = zero
+        _no_slots(mode, p, h, active, hactive, slots)
         return
     b0, b1, b2 = barrier(s, dhat2)
     # edge-edge mollifier and its derivatives (1, 0, 0 for point-triangle pairs)
@@ -675,7 +713,7 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
         f_n[p] = r / wp.sqrt(s)
         return
     if mode == 0:
-        wp.atomic_add(acc, slot, wp.float64(kappa * m * b0))
+        wp.atomic_add(acc, ra, wp.float64(kappa * m * b0))
         return
     # dc/dx per vertex (edge-edge only): c = |u|^2 |v|^2 - (u.v)^2, u = x1 - x0, v = x3 - x2
     uv = wp.dot(u, v)
@@ -698,32 +736,49 @@ def pair_kernel(x: wp.array(dtype=Any), rest: wp.array(dtype=Any), pairs: wp.arr
                 elif i == 3:
                     gci = gc3
                 gi = gi + (kappa * b0 * m1) * gci
-            wp.atomic_add(g, ids[i], scale * gi)
+            if slots != 0:
+                gslots[4 * p + i] = scale * gi
+            else:
+                wp.atomic_add(g, ids[i], scale * gi)
             gsq += wp.float64(wp.dot(gi, gi))
-        wp.atomic_add(acc, slot + 2, gsq * wp.float64(scale * scale))
+        if slots != 0:
+            active[p] = 1
+        wp.atomic_add(acc, ra + 2, gsq * wp.float64(scale * scale))
         return
+    if h >= 0:
+        hactive[h] = 1
     # modes 2, 6 (a function: its 12 x 12 locals are only set up for the pairs within dhat)
     _add_pair_hessian(values, blocks, p, scale, mode, kind, x0, x1, x2, x3, w, c0, c1, k, r, u, v, m, m1, m2, b0, b1, b2,
-                      gc0, gc1, gc2, gc3, kappa, jtol)
+                      gc0, gc1, gc2, gc3, kappa, jtol, hslots, h)
 
 
+@splittable("reduce", 1024, acc=15, slot=16, n_add=3, when=20)
 @both_precisions(dbase="v[]", ydisp="v[]", sy="s", f_w="v4[]", f_n="v[]", f_lam="s[]", mu="s", eps="s", scale="s",
-                 g="v[]", values="m[]")
+                 g="v[]", values="m[]", gslots="v[]", hslots="m[]")
 @wp.kernel
 def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: Any, pairs: wp.array(dtype=wp.vec4i),
                     f_w: wp.array(dtype=Any), f_n: wp.array(dtype=Any), f_lam: wp.array(dtype=Any),
                     count: int, mu: Any, eps: Any, mode: int, scale: Any, g: wp.array(dtype=Any),
                     blocks: wp.array(dtype=wp.int32), values: wp.array(dtype=Any), acc: wp.array(dtype=wp.float64),
-                    slot: int):
+                    slot: int, gslots: wp.array(dtype=Any), hslots: wp.array(dtype=Any), active: wp.array(dtype=wp.int32),
+                    slots: int, start: int, row_block: int, row_stride: int):
     """Lagged friction of pair p: mu lambda f0(|u|), u = P sum_i w_i (x_i - x_i^n), P = I - n n^T
-    (lambda, w, n from the start of the step; x - x^n = dbase + sy ydisp)."""
-    p = wp.tid()
+    (lambda, w, n from the start of the step; x - x^n = dbase + sy ydisp). ``slots != 0``: the
+    gradient into ``gslots[4 p:4 p + 4]``, the Hessian into ``hslots[16 p:16 p + 16]`` (``active[p]``
+    0 for a pair without a normal force), gathered afterwards in a fixed order; ``slots == 0``:
+    added with atomics. Sums into rows as ``pair_kernel``."""
+    p = wp.tid() + start
     if p >= count:
         return
+    ra = slot + (p / row_block) * row_stride
     lam = f_lam[p]
     zero = mu - mu
     if lam <= zero:
+        if slots != 0:
+            active[p] = 0
         return
+    if slots != 0:
+        active[p] = 1
     ids = pairs[p]
     w = f_w[p]
     nv = f_n[p]
@@ -735,7 +790,7 @@ def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: 
     y = wp.length(u)
     c = mu * lam
     if mode == 0:
-        wp.atomic_add(acc, slot, wp.float64(c * friction_f0(y, eps)))
+        wp.atomic_add(acc, ra, wp.float64(c * friction_f0(y, eps)))
         return
     f1y = c / eps  # f1(y) / y times c: 1 / eps in the sticking zone (a linear spring), 1 / y beyond
     if y >= eps:
@@ -744,13 +799,72 @@ def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: 
         gsq = wp.float64(0.0)
         for i in range(4):
             gi = (w[i] * f1y) * u
-            wp.atomic_add(g, ids[i], scale * gi)
+            if slots != 0:
+                gslots[4 * p + i] = scale * gi
+            else:
+                wp.atomic_add(g, ids[i], scale * gi)
             gsq += wp.float64(wp.dot(gi, gi))
-        wp.atomic_add(acc, slot + 2, gsq * wp.float64(scale * scale))
+        wp.atomic_add(acc, ra + 2, gsq * wp.float64(scale * scale))
         return
     Hu = f1y * Pm
     if y >= eps:
         Hu = (c / y) * (Pm - wp.outer(u, u) / (y * y))
     for i in range(4):
         for j in range(4):
-            wp.atomic_add(values, blocks[16 * p + 4 * i + j], (scale * w[i] * w[j]) * Hu)
+            if slots != 0:
+                hslots[16 * p + 4 * i + j] = (scale * w[i] * w[j]) * Hu
+            else:
+                wp.atomic_add(values, blocks[16 * p + 4 * i + j], (scale * w[i] * w[j]) * Hu)
+
+
+# the gather half of the deterministic assembly: per target (a vertex, a pattern block) the sum of its
+# slots in the order of its map, added to what the target holds (split across CPU threads: each
+# target is written by one index only)
+@splittable("start", 2048)
+@both_precisions(contrib="v[]", out="v[]")
+@wp.kernel
+def gather_vec_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                      entries: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), shift: int,
+                      contrib: wp.array(dtype=Any), out: wp.array(dtype=Any), start: int):
+    """out[targets[i]] += contrib[s] for s = entries[k], k in offsets[i]:offsets[i + 1], in that
+    order, skipping the slots of inactive owners (``active[s >> shift] == 0``)."""
+    i = wp.tid() + start
+    lo = offsets[i]
+    hi = offsets[i + 1]
+    k = lo
+    while k < hi and active[entries[k] >> shift] == 0:  # the target is read only if a slot adds to it
+        k += 1
+    if k < hi:
+        t = targets[i]
+        a = out[t]
+        while k < hi:
+            e = entries[k]
+            if active[e >> shift] != 0:
+                a = a + contrib[e]
+            k += 1
+        out[t] = a
+
+
+@splittable("start", 1024)
+@both_precisions(contrib="m[]", out="m[]")
+@wp.kernel
+def gather_mat_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                      entries: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), shift: int,
+                      contrib: wp.array(dtype=Any), out: wp.array(dtype=Any), start: int):
+    """out[targets[i]] += contrib[s] for s = entries[k], k in offsets[i]:offsets[i + 1], in that
+    order, skipping the slots of inactive owners (``active[s >> shift] == 0``)."""
+    i = wp.tid() + start
+    lo = offsets[i]
+    hi = offsets[i + 1]
+    k = lo
+    while k < hi and active[entries[k] >> shift] == 0:  # the target is read only if a slot adds to it
+        k += 1
+    if k < hi:
+        t = targets[i]
+        a = out[t]
+        while k < hi:
+            e = entries[k]
+            if active[e >> shift] != 0:
+                a = a + contrib[e]
+            k += 1
+        out[t] = a

@@ -80,6 +80,12 @@ REDUCE_ROWS = 64
 REDUCE_BLOCK_MIN = 1024
 #: None: each kernel's own ``min_chunk``; an int: that for every kernel (tests split tiny ranges with it)
 MIN_CHUNK = None
+#: where a reduction's float64 sums are made in a fixed order from one row per index (``_ordered_reduce``):
+#: "device" on devices other than the CPU (whose atomics add in no fixed order; the CPU's rows of
+#: partial sums are already in a fixed order), "always" on the CPU too (tests), "never": atomics
+ORDERED_SUMS = "device"
+#: rows summed per thread and pass of the fixed-order tree
+TREE_BLOCK = 256
 
 
 def _min_chunk(spec) -> int:
@@ -181,6 +187,9 @@ def launch(kernel, dim, inputs, device):
     n = int(dim)
     inputs = list(inputs)
     dev = wp.get_device(device)
+    if spec.kind == "reduce" and n > 1 and _ordered(dev):
+        _ordered_reduce(kernel, n, inputs, spec, dev, device)
+        return
     if not dev.is_cpu or n <= 0:
         if spec.kind == "start":
             inputs.append(0)
@@ -236,6 +245,47 @@ def launch(kernel, dim, inputs, device):
         fns[0]()
     if kind == "reduce" and rows > 1:
         _prepare(LK.reduce_rows_kernel, width, [part, rows, width, spec.n_add, spec.n_max, acc, slot], device, None)()
+
+
+def _ordered(dev) -> bool:
+    return ORDERED_SUMS == "always" or (ORDERED_SUMS == "device" and not dev.is_cpu)
+
+
+def _tree_passes(rows):
+    """The row counts of the fixed-order tree's passes, from ``rows`` down to at most TREE_BLOCK."""
+    out = []
+    while rows > TREE_BLOCK:
+        out.append(rows)
+        rows = -(-rows // TREE_BLOCK)
+    return out, rows
+
+
+def _ordered_reduce(kernel, n, inputs, spec, dev, device):
+    """A reduction with its float64 results in a fixed order on any device: index i adds into a row
+    of its own (``row_block`` 1), then the rows are combined by a tree of passes, each thread
+    summing TREE_BLOCK consecutive rows in order (``reduce_tree_kernel``), and the last rows are
+    added into ``acc`` in row order (``reduce_rows_kernel``): the same bits run to run, whatever
+    order the device's threads run in. Costs n x width float64 of scratch and a few launches."""
+    from warpfem.kernels import linalg as LK
+
+    width = spec.n_add + spec.n_max + spec.n_min
+    acc, slot = inputs[spec.acc], int(inputs[spec.slot])
+    part = _scratch(dev, n * width)
+    if spec.n_max or spec.n_min:
+        _prepare(LK.init_rows_kernel, n * width, [part, width, spec.n_add, spec.n_max], device, None)()
+    else:
+        part.zero_()
+    inputs[spec.acc], inputs[spec.slot] = part, 0
+    _prepare(kernel, n, inputs + [0, 1, width], device, None)()
+    passes, rows = _tree_passes(n)
+    src = part
+    for r in passes:
+        groups = -(-r // TREE_BLOCK)
+        dst = _scratch(dev, groups * width)
+        _prepare(LK.reduce_tree_kernel, groups * width, [src, r, width, spec.n_add, spec.n_max, TREE_BLOCK, dst],
+                 device, None)()
+        src = dst
+    _prepare(LK.reduce_rows_kernel, width, [src, rows, width, spec.n_add, spec.n_max, acc, slot], device, None)()
 
 
 def _prepare(kernel, dim, inputs, device, tag):
@@ -316,7 +366,31 @@ class RecordedLaunch:
         self._spec = spec if spec is not None and wp.get_device(device).is_cpu and isinstance(dim, int) else None
         inputs = list(inputs)
         self._reduce = None
-        if spec is not None and spec.kind == "reduce":
+        self._ordered = None
+        if (spec is not None and spec.kind == "reduce" and isinstance(dim, int) and dim > 1
+                and _ordered(wp.get_device(device))):
+            # one row per index, combined by the fixed-order tree (``_ordered_reduce``): the whole
+            # accumulator array per row, sums only (the recorded reductions are dot products)
+            n = int(dim)
+            acc = inputs[spec.acc]
+            width = acc.shape[0]
+            part = wp.zeros(n * width, dtype=wp.float64, device=device)
+            inputs[spec.acc] = part
+            inputs += [0, 1, width]
+            steps, (passes, rows), src = [], _tree_passes(n), part
+            from warpfem.kernels import linalg as LK
+
+            for r in passes:
+                groups = -(-r // TREE_BLOCK)
+                dst = wp.zeros(groups * width, dtype=wp.float64, device=device)
+                steps.append(RecordedLaunch(LK.reduce_tree_kernel, groups * width,
+                                            [src, r, width, width, 0, TREE_BLOCK, dst], device, split=False))
+                src = dst
+            steps.append(RecordedLaunch(LK.reduce_rows_kernel, width, [src, rows, width, width, 0, acc, 0], device,
+                                        split=False))
+            self._ordered = (part, steps)
+            self._spec = None
+        elif spec is not None and spec.kind == "reduce":
             # the whole accumulator array in rows of partial sums (sums only), added in row order
             n = int(dim)
             block = max(REDUCE_BLOCK_MIN, -(-n // REDUCE_ROWS))
@@ -426,6 +500,17 @@ class RecordedLaunch:
                     part()
             if self._reduce is not None:
                 self._reduce[4]()
+            return
+        if self._ordered is not None:
+            part, steps = self._ordered
+            part.zero_()
+            self._ordered = None  # (the kernel's own launch below, then the tree)
+            try:
+                self()
+            finally:
+                self._ordered = (part, steps)
+            for st in steps:
+                st()
             return
         cmd = self._cmd
         if cmd is False:

@@ -258,6 +258,29 @@ def newton_check_kernel(g: wp.array(dtype=Any), d: wp.array(dtype=Any), y: wp.ar
 
 
 @wp.kernel
+def reduce_tree_kernel(src: wp.array(dtype=wp.float64), rows: int, width: int, n_add: int, n_max: int, block: int,
+                       dst: wp.array(dtype=wp.float64)):
+    """dst[g, j] = the sum (j < n_add; the maximum for the next n_max, the minimum for the rest) of
+    src rows g block .. g block + block - 1 (fewer in the last group), column j, in row order: one
+    pass of a reduction in a fixed order (``kernels.generic``, sums on devices other than the CPU)."""
+    t = wp.tid()
+    g = t / width
+    j = t - g * width
+    r0 = g * block
+    r1 = wp.min(rows, r0 + block)
+    v = src[r0 * width + j]
+    for r in range(r0 + 1, r1):
+        w = src[r * width + j]
+        if j < n_add:
+            v += w
+        elif j < n_add + n_max:
+            v = wp.max(v, w)
+        else:
+            v = wp.min(v, w)
+    dst[g * width + j] = v
+
+
+@wp.kernel
 def reduce_rows_kernel(part: wp.array(dtype=wp.float64), rows: int, width: int, n_add: int, n_max: int,
                        acc: wp.array(dtype=wp.float64), slot: int):
     """acc[slot + j] += part[0, j] + part[1, j] + ... for j < n_add, in row order; the maximum of

@@ -10,14 +10,15 @@ Per cubature element c (element e, weight w_c; ``cub_weight[c] = w_c * vol_e``):
     F   = I + sum_a u_a (dN_a/dX)^T,   P = P(F)
     f_a = -cub_weight P dN_a/dX                         (element node forces, N)
     H_ab = cub_weight * C[dN_a/dX, dN_b/dX]            (element stiffness blocks, N/m)
-    f_r[j]    += sum_a U[n_a, j] . f_a                  (r-vector, atomics)
-    K_r[j, l] += sum_ab U[n_a, j]^T H_ab U[n_b, l]      (r x r, atomics)
+    f_r[j]    += sum_a U[n_a, j] . f_a                  (r-vector)
+    K_r[j, l] += sum_ab U[n_a, j]^T H_ab U[n_b, l]      (r x r)
 
 The cubature points come as a ``QuadraturePoints32/64`` struct and the material as a
 ``MaterialParams32/64`` (``warpfem.kernels.structs``, as the kernels of ``fem.py``).
 Only cubature elements are touched. Two launches: one per element (material evaluation, dim =
-number of cubature points), one per (element, column) pair for the projections (dim = (c, r)), so
-the GPU sees c * r threads.
+number of cubature points), one per entry (j, l) of the reduced stiffness for the projections (dim
+(r, r)), each summing over the cubature points in their order: no atomics, the same sums on every
+device and thread count.
 
 The reduced simulator's hot path uses :func:`cubature_point_kernel` instead: F is affine in the
 reduced coordinates, F_c = I + G_c z with G_c = dF/dz (9 x r, constant), so the host forms F for
@@ -32,7 +33,7 @@ from typing import Any
 
 import warp as wp
 
-from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.generic import both_precisions, splittable
 from warpfem.materials.dispatch import material_hessian_parts, material_pk1, material_psi
 from warpfem.materials.eigensystem import cofactor, hessian_point_block, hessian_point_prepare
 
@@ -105,33 +106,46 @@ def cubature_project_kernel(
     f_in: wp.array(dtype=Any),
     H_in: wp.array(dtype=Any),
     want_hessian: int,
+    count: int,
     force: wp.array(dtype=Any),
     K: wp.array2d(dtype=Any),
 ):
-    """force[j] += sum_a U[n_a, j] . f_a ;  K[j, l] += sum_b y_b . U[n_b, l], y_b = sum_a H_ab^T U[n_a, j]."""
-    c, j = wp.tid()
-    e = points.element[c]
-    n0 = points.elements[e * 4]
-    n1 = points.elements[e * 4 + 1]
-    n2 = points.elements[e * 4 + 2]
-    n3 = points.elements[e * 4 + 3]
-    u0 = U[n0, j]
-    u1 = U[n1, j]
-    u2 = U[n2, j]
-    u3 = U[n3, j]
-    b = c * 4
-    wp.atomic_add(force, j, wp.dot(u0, f_in[b]) + wp.dot(u1, f_in[b + 1]) + wp.dot(u2, f_in[b + 2]) + wp.dot(u3, f_in[b + 3]))
+    """Thread (j, l) (dim (r, r), or (r, 1) without the Hessian): force[j] += sum_c sum_a U[n_a, j] . f_a
+    (l = 0) and K[j, l] += sum_c sum_b y_b . U[n_b, l], y_b = sum_a H_ab^T U[n_a, j], the sums over
+    the ``count`` cubature points taken in their order (no atomics: the same numbers on every
+    device)."""
+    j, l = wp.tid()
+    fs = f_in[0][0] - f_in[0][0]
+    ks = fs
+    for c in range(count):
+        e = points.element[c]
+        n0 = points.elements[e * 4]
+        n1 = points.elements[e * 4 + 1]
+        n2 = points.elements[e * 4 + 2]
+        n3 = points.elements[e * 4 + 3]
+        u0 = U[n0, j]
+        u1 = U[n1, j]
+        u2 = U[n2, j]
+        u3 = U[n3, j]
+        b = c * 4
+        if l == 0:
+            fs += wp.dot(u0, f_in[b]) + wp.dot(u1, f_in[b + 1]) + wp.dot(u2, f_in[b + 2]) + wp.dot(u3, f_in[b + 3])
+        if want_hessian != 0:
+            h = c * 16
+            y0 = wp.transpose(H_in[h + 0]) * u0 + wp.transpose(H_in[h + 4]) * u1 + wp.transpose(H_in[h + 8]) * u2 + wp.transpose(H_in[h + 12]) * u3
+            y1 = wp.transpose(H_in[h + 1]) * u0 + wp.transpose(H_in[h + 5]) * u1 + wp.transpose(H_in[h + 9]) * u2 + wp.transpose(H_in[h + 13]) * u3
+            y2 = wp.transpose(H_in[h + 2]) * u0 + wp.transpose(H_in[h + 6]) * u1 + wp.transpose(H_in[h + 10]) * u2 + wp.transpose(H_in[h + 14]) * u3
+            y3 = wp.transpose(H_in[h + 3]) * u0 + wp.transpose(H_in[h + 7]) * u1 + wp.transpose(H_in[h + 11]) * u2 + wp.transpose(H_in[h + 15]) * u3
+            ks += wp.dot(y0, U[n0, l]) + wp.dot(y1, U[n1, l]) + wp.dot(y2, U[n2, l]) + wp.dot(y3, U[n3, l])
+    if l == 0:
+        force[j] = force[j] + fs
     if want_hessian != 0:
-        h = c * 16
-        y0 = wp.transpose(H_in[h + 0]) * u0 + wp.transpose(H_in[h + 4]) * u1 + wp.transpose(H_in[h + 8]) * u2 + wp.transpose(H_in[h + 12]) * u3
-        y1 = wp.transpose(H_in[h + 1]) * u0 + wp.transpose(H_in[h + 5]) * u1 + wp.transpose(H_in[h + 9]) * u2 + wp.transpose(H_in[h + 13]) * u3
-        y2 = wp.transpose(H_in[h + 2]) * u0 + wp.transpose(H_in[h + 6]) * u1 + wp.transpose(H_in[h + 10]) * u2 + wp.transpose(H_in[h + 14]) * u3
-        y3 = wp.transpose(H_in[h + 3]) * u0 + wp.transpose(H_in[h + 7]) * u1 + wp.transpose(H_in[h + 11]) * u2 + wp.transpose(H_in[h + 15]) * u3
-        for l in range(U.shape[1]):
-            val = wp.dot(y0, U[n0, l]) + wp.dot(y1, U[n1, l]) + wp.dot(y2, U[n2, l]) + wp.dot(y3, U[n3, l])
-            wp.atomic_add(K, j, l, val)
+        K[j, l] = K[j, l] + ks
 
 
+# split across CPU threads with the Hessian (a few microseconds per point; each point writes its own
+# outputs) for 256 points or more; without it a point costs less than a chunk's dispatch
+@splittable("start", 128, when=3)
 @_both(F="m[]", points="qp", material="mat", psi_out="s[]", P_out="m[]", D_out="s[]")
 @wp.kernel
 def cubature_point_kernel(
@@ -144,6 +158,7 @@ def cubature_point_kernel(
     psi_out: wp.array(dtype=Any),
     P_out: wp.array(dtype=Any),
     D_out: wp.array(dtype=Any),
+    start: int,
 ):
     """Per cubature point c at the given deformation gradient F[c]: psi_out[c] = w psi (J),
     P_out[c] = w P (N m), and with ``want_hessian`` D_out[81 c + 9 (3i+j) + 3k+l] = w dP_ij/dF_kl
@@ -154,7 +169,7 @@ def cubature_point_kernel(
     with ``project == 0``: the exact dP/dF in closed form, no SVD (about 5x cheaper):
     mu I + lam vec(cof F) vec(cof F)^T + (lam (J - 1) - mu) d cof(F)/dF, with
     d cof(F)_ij / dF_kl = e_ikm e_jln F_mn (e: the permutation symbol)."""
-    c = wp.tid()
+    c = wp.tid() + start
     Fc = F[c]
     w = points.weight[c]
     kind, mu, lam = material.kind, material.mu, material.lam

@@ -24,7 +24,7 @@ from typing import Any
 import warp as wp
 
 from warpfem.kernels.common import qp_deformation_gradient
-from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.generic import both_precisions, splittable
 from warpfem.materials.eigensystem import signed_svd
 
 wp.set_module_options({"enable_backward": False})
@@ -58,11 +58,16 @@ def gram_schmidt_rotation(F: Any):
     return R
 
 
+#: the fewest tets worth a CPU thread of their own (``kernels.generic.splittable``)
+_TETS_MIN = 4096
+
+
+@splittable("start", _TETS_MIN)
 @both_precisions(x="v[]", tets="tets", R_out="m[]")
 @wp.kernel
-def element_rotation_kernel(x: wp.array(dtype=Any), tets: Any, rotation: int, R_out: wp.array(dtype=Any)):
+def element_rotation_kernel(x: wp.array(dtype=Any), tets: Any, rotation: int, R_out: wp.array(dtype=Any), start: int):
     """R_out[e] = rotation of tet e (kind ``rotation``: 0 identity, 1 polar, 2 Gram-Schmidt)."""
-    e = wp.tid()
+    e = wp.tid() + start
     F = qp_deformation_gradient(x, tets.X, tets.elements, 4, e, e, tets.dNdX)  # Tet4: one point per element
     R = wp.identity(n=3, dtype=F.dtype)
     if rotation == 1:
@@ -73,7 +78,10 @@ def element_rotation_kernel(x: wp.array(dtype=Any), tets: Any, rotation: int, R_
     R_out[e] = R
 
 
-@both_precisions(x="v[]", tets="tets", R="m[]", force_scale="s", values="m[]", f0="v[]", f_el="v[]")
+# split across CPU threads when it writes slots (``slots != 0``: each tet writes its own)
+@splittable("start", _TETS_MIN, when=9)
+@both_precisions(x="v[]", tets="tets", R="m[]", force_scale="s", values="m[]", f0="v[]", f_el="v[]", f0_slots="v[]",
+                 fel_slots="v[]", blk_slots="m[]")
 @wp.kernel
 def warped_assembly_kernel(
     x: wp.array(dtype=Any),
@@ -85,19 +93,30 @@ def warped_assembly_kernel(
     values: wp.array(dtype=Any),
     f0: wp.array(dtype=Any),
     f_el: wp.array(dtype=Any),
+    slots: int,
+    f0_slots: wp.array(dtype=Any),
+    fel_slots: wp.array(dtype=Any),
+    blk_slots: wp.array(dtype=Any),
+    start: int,
 ):
-    """Warped-stiffness assembly of one tet, scattered with atomics into a fixed block pattern.
+    """Warped-stiffness assembly of one tet into a fixed block pattern.
 
     values[block(e, i, j)] += R K_ij R^T for i <= j and its transpose at block(e, j, i) for j > i
     (when ``assemble_matrix``); f0[i] -= R sum_j K_ij X_j; f_el[i] -= force_scale R sum_j K_ij u_j
     with u_j = R^T (x_j - x_0) - (X_j - X_0): algebraically -(K' x + f0')_i, but free of the
     cancellation between K' x and f0' (sum_j K_ij = 0 removes the reference node's offset).
+
+    ``slots == 0``: scattered with atomics. ``slots != 0``: the tet's terms go to slots of its own
+    (``f0_slots[4 e + i]``, ``fel_slots[4 e + i]`` the subtracted terms, ``blk_slots[10 e + u]``
+    the u-th upper block i <= j in row order), for ``kernels.fem.gather_force_kernel`` and
+    ``gather_blocks_kernel`` to sum in a fixed order (maps from ``kernels.fem.element_slot_maps``).
     """
-    e = wp.tid()
+    e = wp.tid() + start
     X, elements, Ke = tets.X, tets.elements, tets.Ke
     Re = R[e]
     RT = wp.transpose(Re)
     n0 = elements[e * 4]
+    u = int(0)
     for i in range(4):
         ni = elements[e * 4 + i]
         Kx0 = X[ni] - X[ni]
@@ -110,18 +129,28 @@ def warped_assembly_kernel(
             if assemble_matrix != 0:
                 if j >= i:
                     blk = Re * Kij * RT
-                    wp.atomic_add(values, block_index[(e * 4 + i) * 4 + j], blk)
-                    if j > i:
-                        wp.atomic_add(values, block_index[(e * 4 + j) * 4 + i], wp.transpose(blk))
-        wp.atomic_sub(f0, ni, Re * Kx0)
-        wp.atomic_sub(f_el, ni, force_scale * (Re * Ku))
+                    if slots != 0:
+                        blk_slots[e * 10 + u] = blk
+                        u += 1
+                    else:
+                        wp.atomic_add(values, block_index[(e * 4 + i) * 4 + j], blk)
+                        if j > i:
+                            wp.atomic_add(values, block_index[(e * 4 + j) * 4 + i], wp.transpose(blk))
+        if slots != 0:
+            f0_slots[e * 4 + i] = Re * Kx0
+            fel_slots[e * 4 + i] = force_scale * (Re * Ku)
+        else:
+            wp.atomic_sub(f0, ni, Re * Kx0)
+            wp.atomic_sub(f_el, ni, force_scale * (Re * Ku))
 
 
+@splittable("start", _TETS_MIN)
 @both_precisions(x="v[]", tets="tets", R="m[]", energy_out="s[]")
 @wp.kernel
-def warped_energy_kernel(x: wp.array(dtype=Any), tets: Any, R: wp.array(dtype=Any), energy_out: wp.array(dtype=Any)):
+def warped_energy_kernel(x: wp.array(dtype=Any), tets: Any, R: wp.array(dtype=Any), energy_out: wp.array(dtype=Any),
+                         start: int):
     """energy_out[e] = 1/2 u^T K_e u with u_j = R^T (x_j - x_0) - (X_j - X_0) (J)."""
-    e = wp.tid()
+    e = wp.tid() + start
     X, elements, Ke = tets.X, tets.elements, tets.Ke
     RT = wp.transpose(R[e])
     n0 = elements[e * 4]

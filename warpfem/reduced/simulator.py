@@ -98,8 +98,8 @@ class CubatureForces:
     asked, the 9 x 9 w dP/dF per point), then f = -sum_c G_c^T vec(w P) and
     K = sum_c G_c^T (w dP/dF) G_c as dense products on the host, read from the kernel's output
     arrays in place on the CPU (one copy each on a GPU). ``evaluate_per_element`` is the earlier
-    two-kernel path (per-element forces and stiffness blocks projected with atomics), kept as a
-    reference.
+    two-kernel path (per-element forces and stiffness blocks, projected per reduced entry in the
+    cubature points' order), kept as a reference.
     """
 
     def __init__(self, model, U, elements, weights, *, device="cpu", precision="float64"):
@@ -288,7 +288,8 @@ class CubatureForces:
 
     def evaluate_per_element(self, q, *, hessian: bool = False, project: bool = True):
         """:meth:`evaluate` by the earlier path: per-element node forces and 4 x 4 stiffness blocks
-        (``cubature_element_kernel``), projected on the basis with atomics (``cubature_project_kernel``)."""
+        (``cubature_element_kernel``), projected on the basis per reduced entry, summed over the points in
+        their order (``cubature_project_kernel``)."""
         self._q.assign(np.asarray(q, dtype=self._npdt))
         wh = int(bool(hessian))
         launch(RK.cubature_element_kernel, dim=self.c,
@@ -297,8 +298,8 @@ class CubatureForces:
         self._force.zero_()
         if hessian:
             self._K.zero_()
-        launch(RK.cubature_project_kernel, dim=(self.c, self.r),
-                  inputs=[self.U, self.points, self._f, self._H, wh, self._force, self._K],
+        launch(RK.cubature_project_kernel, dim=(self.r, self.r if hessian else 1),
+                  inputs=[self.U, self.points, self._f, self._H, wh, self.c, self._force, self._K],
                   device=self.device)
         E = float(self._energy.numpy().astype(np.float64).sum())
         f = self._force.numpy().astype(np.float64)

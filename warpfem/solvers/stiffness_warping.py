@@ -49,6 +49,7 @@ import time
 import numpy as np
 import warp as wp
 
+from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
 from warpfem.kernels import warping as WK
 from warpfem.kernels.generic import COUNTERS, launch
@@ -65,6 +66,10 @@ __all__ = ["StiffnessWarpingSimulator", "WarpedElasticForm", "ROTATIONS", "tet_l
 
 #: rotation estimators: name -> kernel int
 ROTATIONS = {"identity": WK.ROTATION_IDENTITY, "polar": WK.ROTATION_POLAR, "qr": WK.ROTATION_QR}
+#: forces and stiffness blocks per tet into slots, then gathered per vertex and per block in a fixed
+#: order (bit-identical whatever the thread count; split across CPU threads); False: added with
+#: atomics (the reference of tests, never split)
+GATHER = True
 
 
 def tet_linear_stiffness_blocks(dNdX: np.ndarray, volumes: np.ndarray, mu: float, lam: float) -> np.ndarray:
@@ -268,9 +273,42 @@ class StiffnessWarpingSimulator(SimulatorBase):
             self._k_values.zero_()
         self._f0.zero_()
         self._fel.zero_()
+        bi = self._pattern.block_index
+        head = [x, self._tets, self._R, self._s(force_scale), int(matrix), bi, self._k_values, self._f0, self._fel]
+        if not GATHER:
+            self._launch(WK.warped_assembly_kernel, self.num_elements, head + [0, self._f0, self._fel, self._R])
+            return
+        maps = self._gather_maps(matrix)
+        fo, fe, f0s, fels = maps["force"]
+        blocks = maps.get("blocks") if matrix else None
         self._launch(WK.warped_assembly_kernel, self.num_elements,
-                     [x, self._tets, self._R, self._s(force_scale), int(matrix), self._pattern.block_index,
-                      self._k_values, self._f0, self._fel])
+                     head + [1, f0s, fels, self._R if blocks is None else blocks[2]])
+        n = fo.shape[0] - 1
+        self._launch(FK.gather_force_kernel, n, [fo, fe, f0s, self._f0, self._f0, 0])
+        self._launch(FK.gather_force_kernel, n, [fo, fe, fels, self._fel, self._fel, 0])
+        if blocks is not None:
+            self._launch(FK.gather_blocks_kernel, blocks[0].shape[0] - 1, [*blocks, self._k_values])
+
+    def _gather_maps(self, matrix):
+        """The gather maps (``kernels.fem.element_slot_maps``, one point per tet) and slot buffers:
+        "force" (offsets, entries, f0 slots, force slots), built once; "blocks" (offsets, entries,
+        block slots), built on first use per pattern."""
+        maps = self.__dict__.setdefault("_maps", {})
+        dev, m = self.device, self.num_elements
+        elements = np.asarray(self.model.quadrature.elements, dtype=np.int64).reshape(-1)
+        if "force" not in maps:
+            fo, fe = FK.element_slot_maps(np.arange(m), elements, 4, num_vertices=self.ops.n)
+            maps["force"] = (to_device(fo, wp.int32, dev), to_device(fe, wp.int32, dev),
+                             wp.zeros(4 * m, dtype=self._vec, device=dev), wp.zeros(4 * m, dtype=self._vec, device=dev))
+        bi = self._pattern.block_index
+        key = (id(bi), int(self._pattern.nnz))
+        if matrix and maps.get("blocks_of") != key:
+            _, _, bo, be = FK.element_slot_maps(np.arange(m), elements, 4, bi.numpy(), num_vertices=self.ops.n,
+                                                nnz=self._pattern.nnz)
+            maps["blocks"] = (to_device(bo, wp.int32, dev), to_device(be, wp.int32, dev),
+                              wp.zeros(10 * m, dtype=self._mat, device=dev))
+            maps["blocks_of"] = key
+        return maps
 
     # -- helpers (analysis, tests) -----------------------------------------------------------------
     def rotations(self, x=None) -> np.ndarray:
