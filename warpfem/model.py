@@ -123,6 +123,7 @@ class Model:
         self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
         self.forces = np.zeros((self.num_vertices, 3))
         # one body: the multi-body view of it (Model.from_bodies fills these for several)
+        self.rigid = None  # the rigid bodies' layout (warpfem.rigid.model.RigidLayout) when it has some
         self.bodies = []
         self.body_names = [getattr(mesh, "name", None) or "body"]
         self.body_offsets = np.array([0, self.num_vertices], dtype=np.int64)
@@ -149,6 +150,8 @@ class Model:
         if idx.size and (idx.dtype.kind not in "iu"):
             raise TypeError(f"vertex indices must be integers, got dtype {idx.dtype}")
         idx = idx.astype(np.int64).ravel()
+        if getattr(self, "rigid", None) is not None:  # soft vertices only (warpfem.rigid)
+            self.rigid.check_vertices(idx)
         bad = idx[(idx < 0) | (idx >= self.num_vertices)]
         if bad.size:
             raise IndexError(f"vertex index {int(bad[0])} out of range [0, {self.num_vertices}) ({bad.size} bad)")
@@ -298,7 +301,12 @@ class Model:
         return np.unique(e, axis=0)
 
     def initial_velocities(self):
-        """(n, 3) velocities at t = 0 (the bodies' ``initial_velocity``), or None when all are zero."""
+        """(n, 3) velocities at t = 0 (the bodies' ``initial_velocity``), or None when all are zero.
+        With rigid bodies: of the unknown's nodes (``warpfem.rigid.model``)."""
+        if getattr(self, "rigid", None) is not None:
+            soft = [np.repeat(b.initial_velocity[None], n, axis=0) for b, n in
+                    zip(self.bodies, np.diff(self.body_offsets)[:len(self.bodies) - len(self.rigid.bodies)])]
+            return self.rigid.initial_velocities(np.concatenate(soft) if soft else np.zeros((0, 3)))
         if not self.bodies or not any(np.any(b.initial_velocity != 0.0) for b in self.bodies):
             return None
         return np.repeat(np.stack([b.initial_velocity for b in self.bodies]), np.diff(self.body_offsets), axis=0)
@@ -402,6 +410,12 @@ def _from_bodies(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lu
     bodies = list(bodies)
     if not bodies:
         raise ValueError("Model.from_bodies needs at least one body")
+    from warpfem.rigid.body import RigidBody
+
+    if any(isinstance(b, RigidBody) for b in bodies):  # affine bodies: the unknown and the vertices differ
+        from warpfem.rigid.model import build_model
+
+        return build_model(cls, bodies, gravity=gravity, mass_matrix=mass_matrix, check_overlap=check_overlap)
     for i, b in enumerate(bodies):
         if not isinstance(b, Body):
             raise TypeError(f"body #{i + 1} must be a warpfem.Body, got {type(b).__name__}")
