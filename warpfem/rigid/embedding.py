@@ -190,8 +190,6 @@ class EmbeddedForm(Form):
     variable = "x"
 
     def __init__(self, inner, rigid):
-        if getattr(inner, "adaptive_stiffness", None) is not None and inner.adaptive_stiffness():
-            raise ValueError(f"{inner.name}: stiffness 'auto' is not available with rigid bodies; give a number")
         self.inner, self.rigid = inner, rigid
         self.name, self.order = inner.name, getattr(inner, "order", 100)
         self.weight = getattr(inner, "weight", 1.0)
