@@ -415,7 +415,7 @@ def _from_bodies(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lu
     if any(isinstance(b, RigidBody) for b in bodies):  # affine bodies: the unknown and the vertices differ
         from warpfem.rigid.model import build_model
 
-        return build_model(cls, bodies, gravity=gravity, mass_matrix=mass_matrix, check_overlap=check_overlap)
+        return build_model(cls, bodies, bodies_mesh=BodiesMesh, gravity=gravity, mass_matrix=mass_matrix, check_overlap=check_overlap)
     for i, b in enumerate(bodies):
         if not isinstance(b, Body):
             raise TypeError(f"body #{i + 1} must be a warpfem.Body, got {type(b).__name__}")

@@ -115,9 +115,10 @@ class RigidLayout:
             else np.zeros((0, 3))
 
 
-def build_model(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix="lumped", check_overlap=True):
+def build_model(cls, bodies, *, bodies_mesh, gravity=(0.0, 0.0, 0.0), mass_matrix="lumped", check_overlap=True):
     """``Model.from_bodies`` of a list with :class:`RigidBody` entries (soft :class:`~warpfem.model.Body`
-    entries first): see the module docstring for the two spaces."""
+    entries first): see the module docstring for the two spaces. ``cls``: the Model class,
+    ``bodies_mesh``: its ``BodiesMesh`` (given by the caller: this module does not import it)."""
     names = [b.name or f"body{i + 1}" for i, b in enumerate(bodies)]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
@@ -153,8 +154,6 @@ def build_model(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix="lumped", c
     voff = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     n_soft = int(voff[len(soft)])
     layout = RigidLayout(rigid, names[len(soft):], n_soft, voff)
-    from warpfem.model import BodiesMesh  # noqa: PLC0415 (the caller's module: loaded already)
-
     self = cls.__new__(cls)
     self.bodies, self.body_models, self.body_names = list(bodies), parts + [None] * len(rigid), names
     self.body_offsets = voff  # vertex space (what outputs and contact see)
@@ -162,7 +161,7 @@ def build_model(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix="lumped", c
     self.rigid = layout
     for p, n in zip(parts, names):
         p.body_names = [n]
-    self.mesh = BodiesMesh([b.mesh for b in bodies], voff, names)
+    self.mesh = bodies_mesh([b.mesh for b in bodies], voff, names)
     mats = [b.material for b in soft]
     self.material = max(mats, key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0)) if mats else None
     self.materials = mats
