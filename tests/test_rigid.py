@@ -208,3 +208,25 @@ def test_bad_rigid_bodies_are_refused_with_one_line_errors():
         sim.set_targets(m.body_vertices("r", [0]), np.zeros((1, 3)))
     with pytest.raises(ValueError, match="does not handle rigid bodies"):
         sim.solve_static()
+
+
+def test_rigid_ball_resting_on_a_soft_slab_on_a_floor_weighs_what_both_weigh():
+    """A rigid ball (icosphere) dropped 2 mm onto a soft slab on a floor plane, damped: after
+    0.3 s the floor's reaction (barrier + friction forces on the vertices) equals the total weight
+    within 1 % (measured 3e-5), the ball at rest above the slab."""
+    from warpfem import Body, make_material
+    from warpfem.mesh.box import icosphere_surface
+
+    slab = Body(box_tet_mesh(size=(0.3, 0.04, 0.3), cells=(2, 1, 2), origin=(-0.15, 0.001, -0.15)),
+                make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=500.0), name="slab")
+    ball = RigidBody(icosphere_surface(0.05, 1), density=1000.0, name="ball", offset=(0.0, 0.093, 0.0))
+    m = Model.from_bodies([slab, ball], gravity=(0.0, -G, 0.0))
+    sim = Simulator(m, dt=0.01, damping_mass=10.0, colliders=[Plane(point=(0, 0, 0), normal=(0, 1, 0))])
+    sim.set_contact(bodies=True)
+    for _ in range(30):
+        sim.step()
+    reaction = sim.contact.forces().sum(axis=0)
+    assert reaction[1] == pytest.approx(m.total_mass * G, rel=0.01)
+    assert abs(sim.velocities()[m.rigid.node_of[0], 1]) < 1e-3
+    X = sim.vertex_positions()
+    assert X[m.body_vertices("ball"), 1].min() > X[m.body_vertices("slab"), 1].max()
