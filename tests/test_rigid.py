@@ -230,3 +230,33 @@ def test_rigid_ball_resting_on_a_soft_slab_on_a_floor_weighs_what_both_weigh():
     assert abs(sim.velocities()[m.rigid.node_of[0], 1]) < 1e-3
     X = sim.vertex_positions()
     assert X[m.body_vertices("ball"), 1].min() > X[m.body_vertices("slab"), 1].max()
+
+
+def test_rigid_boxes_dropped_onto_a_soft_slab_never_intersect_with_a_mass_ratio_of_1000():
+    """A light rigid box on a soft slab on a floor and a rigid box 1000 times heavier thrown onto
+    it at 1 m/s (rigid-rigid, rigid-soft, soft-floor contact with friction): no intersection at
+    any step (IPC Toolkit's test on the vertices), every step converged, A a rotation within 1e-4."""
+    ipctk = pytest.importorskip("ipctk")
+    from warpfem import Body, make_material
+
+    slab = Body(box_tet_mesh(size=(0.3, 0.04, 0.3), cells=(2, 1, 2), origin=(-0.15, 0.001, -0.15)),
+                make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=100.0), name="slab")
+    light = RigidBody(box_tet_mesh(size=(0.1, 0.02, 0.1), cells=(1, 1, 1), origin=(-0.05, 0.05, -0.05)),
+                      density=100.0, name="light", initial_angular_velocity=(0.3, 0.0, 0.2))
+    heavy = RigidBody(box_tet_mesh(size=(0.06, 0.02, 0.06), cells=(1, 1, 1), origin=(-0.02, 0.08, -0.03)),
+                      density=100.0 * 1000.0 * (0.1 * 0.1) / (0.06 * 0.06), name="heavy", initial_velocity=(0.0, -1.0, 0.0))
+    assert heavy.mass / light.mass == pytest.approx(1000.0)
+    m = Model.from_bodies([slab, light, heavy], gravity=(0.0, -G, 0.0))
+    sim = Simulator(m, dt=0.01, require_convergence=True,
+                    colliders=[Plane(point=(0, 0, 0), normal=(0, 1, 0), friction=0.5)])
+    sim.set_contact(bodies=True, friction=0.5)
+    F = np.asarray(m.mesh.boundary_faces())
+    cm = ipctk.CollisionMesh(np.asarray(m.vertex_rest_positions, dtype=np.float64), ipctk.edges(F), F)
+    for _ in range(12):
+        sim.step()
+        assert not ipctk.has_intersections(cm, np.asfortranarray(sim.vertex_positions()))
+    for r in range(2):
+        k = int(m.rigid.node_of[r])
+        A = sim.positions()[k + 1:k + 4].T
+        assert np.abs(A.T @ A - np.eye(3)).max() < 1e-4
+    assert sim.positions()[int(m.rigid.node_of[1]), 1] > sim.positions()[int(m.rigid.node_of[0]), 1] + 0.02
