@@ -209,6 +209,11 @@ def test_bad_rigid_bodies_are_refused_with_one_line_errors():
         sim.set_targets(m.body_vertices("r", [0]), np.zeros((1, 3)))
     with pytest.raises(ValueError, match="does not handle rigid bodies"):
         sim.solve_static()
+    sim.add_collider(Plane(point=(0, -1, 0), normal=(0, 1, 0), stiffness="auto"))
+    x0 = sim.positions()
+    with pytest.raises(ValueError, match="stiffness 'auto' is not available with rigid bodies"):
+        sim.step()
+    assert np.array_equal(sim.positions(), x0) and sim.step_count == 0
 
 
 def test_rigid_ball_resting_on_a_soft_slab_on_a_floor_weighs_what_both_weigh():

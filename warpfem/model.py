@@ -253,6 +253,11 @@ class Model:
         refused with :class:`warpfem.mesh.intersect.BodyOverlapError` naming the two bodies and the
         first crossing (an edge of one through a triangle of the other, with positions);
         ``check_overlap=False`` skips the test (``warpfem.mesh.intersect.first_body_overlap``).
+
+        Rigid bodies (:class:`warpfem.RigidBody`, after the soft bodies in the list): the model's
+        unknown then holds four nodes per rigid body in place of its vertices (``num_vertices``,
+        ``rest_positions``, ``mass``, ``fixed`` are of the unknown; ``body_offsets`` and ``mesh``
+        stay of the vertices; ``rigid`` maps one to the other: docs/rigid.md).
         """
         return _from_bodies(cls, bodies, gravity=gravity, mass_matrix=mass_matrix, check_overlap=check_overlap)
 
