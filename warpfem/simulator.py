@@ -472,6 +472,8 @@ class Simulator(SimulatorBase):
             P = wp.zeros(ms.count, dtype=self._mat, device=self.device)
             launch(FK.qp_stress_kernel, dim=ms.count, inputs=[xa, ms.points, ms.material, P], device=self.device)
             parts.append(read(P).astype(np.float64))
+        if not parts:  # rigid bodies only: no quadrature point
+            return np.zeros((0, 3, 3))
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def elastic_energy(self, x=None) -> float:
