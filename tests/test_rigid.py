@@ -288,7 +288,7 @@ def test_a_run_continued_from_a_checkpoint_and_a_second_run_are_bit_identical():
 
 def test_two_rigid_cubes_collide_conserving_linear_momentum_and_losing_energy():
     """Zero gravity, a spinning 1 kg cube thrown at a 3 kg cube (off centre, friction 0.5), BDF2:
-    the total linear momentum is unchanged to round-off through the impact (contact forces act in
+    the total linear momentum is unchanged through the impact (contact forces act in
     equal and opposite pairs through E), the kinetic energy does not grow, they bounce apart."""
     a = RigidBody(box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1), origin=(-0.2, 0.0, 0.0)), density=1000.0,
                   name="a", initial_velocity=(1.0, 0.0, 0.0), initial_angular_velocity=(0.0, 0.0, 3.0))
@@ -305,6 +305,8 @@ def test_two_rigid_cubes_collide_conserving_linear_momentum_and_losing_energy():
     for _ in range(40):
         sim.step()
     v = sim.velocities()
-    assert np.abs(momentum() - P0).max() < 1e-12
+    # to round-off with the direct solver (1e-15); to the linear solver's tolerance with PCG (strict
+    # device mode: 9e-9 of 2 kg m/s)
+    assert np.abs(momentum() - P0).max() < 1e-7
     assert sim.kinetic_energy() < K0
     assert v[4, 0] - v[0, 0] > 0.5  # separating (they approached at 2 m/s)
