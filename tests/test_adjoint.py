@@ -376,3 +376,28 @@ def test_gradients_through_plane_friction(integrator):
              "collider_friction": (g["collider_friction"]["plane"], lambda h: go(mu=0.4 + h), 1e-5),
              "initial_velocities": (float(np.sum(g["initial_velocities"] * D)), lambda h: go(v=v0 + h * D), 1e-6)}
     assert_central_differences(cases, integrator)
+
+
+def test_a_new_integrator_is_differentiated_by_its_own_reverse():
+    """The adjoint has no table of schemes: an integrator class of its own (here BDF2 under another
+    name) is recorded and differentiated through its reverse methods, to the same numbers bit for bit;
+    one without a reverse is refused naming the differentiable ones."""
+    from warpfem.integrators import BDF2, Integrator
+
+    class MyBDF2(BDF2):
+        name = "my_bdf2"
+
+    _, g_ref = run("bdf2", BASE, grads=True)
+    _, g = run(MyBDF2(), BASE, grads=True)
+    for k in ("youngs_modulus", "density", "initial_positions", "initial_velocities", "forces"):
+        assert np.array_equal(g[k], g_ref[k]), k
+
+    class Forward(BDF2):  # a scheme without its reverse
+        name = "forward_only"
+        reversible = False
+
+    model = wf.Model(MESH, wf.StableNeoHookean(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0))
+    with pytest.raises(NotImplementedError, match="with backward_euler, bdf2 or newmark, not for Simulator "
+                                                  r"\(integrator 'forward_only'\)"):
+        Recording(wf.Simulator(model, dt=0.01, integrator=Forward(), linear_solver="pcg"))
+    assert not Integrator.reversible

@@ -222,3 +222,30 @@ def test_static_solve_with_selective_reduced_integration_and_direct_solver():
         lo, hi = model.body_offsets[b], model.body_offsets[b + 1]
         assert np.abs(s.positions() - alone.rest_positions).max() > 0.03  # sags (m)
         assert np.abs(s.positions() - x[lo:hi]).max() < 1e-10
+
+
+def test_a_single_mesh_model_is_the_one_body_case():
+    """``Model(mesh, material)`` and ``Model.from_bodies([Body(mesh, material)])`` are one construction:
+    the same arrays bit for bit, the body's own mesh and quadrature, and the same trajectory."""
+    tet, _ = _meshes()
+    mat = wf.StableNeoHookean(**MAT_A)
+    a = wf.Model(tet, mat, gravity=G, mass_matrix="consistent")
+    b = wf.Model.from_bodies([wf.Body(tet, mat, name="beam")], gravity=G, mass_matrix="consistent")
+    for m in (a, b):
+        assert m.num_bodies == 1 and m.mesh is tet and m.quadrature is m.quadratures[0]
+        assert m.body_offsets.tolist() == [0, tet.num_vertices] and m.volumetric_integration == "full"
+    assert a.body_names == ["body"] and b.body_names == ["beam"] and isinstance(a.bodies[0], wf.Body)
+    for key in ("rest_positions", "lumped_mass", "gravity_mass"):
+        assert np.array_equal(getattr(a, key), getattr(b, key)), key
+    assert (a.mass != b.mass).nnz == 0 and np.array_equal(a.quadrature.qp_dNdX, b.quadrature.qp_dNdX)
+    xs = []
+    for m in (a, b):
+        m.fix(_clamp(tet, (0.0, 0.0, 0.0)))
+        sim = wf.Simulator(m, dt=0.01, tol=1e-10, linear_solver="pcg")
+        for _ in range(2):
+            sim.step()
+        xs.append(sim.positions())
+    assert np.array_equal(xs[0], xs[1])
+    assert a.free_rigid_motions() == b.free_rigid_motions() == []  # one body: no name prefix
+    a.release(_clamp(tet, (0.0, 0.0, 0.0)))
+    assert len(a.free_rigid_motions()) == 6 and not a.free_rigid_motions()[0].startswith("body")

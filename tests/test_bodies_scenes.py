@@ -307,3 +307,24 @@ def test_body_render_surface_embedded_and_moved_by_the_offset(tmp_path, precisio
     np.testing.assert_allclose(frames[0], hexa.vertices[ids] + (0.0, 0.5, 0.0), atol=1e-6)
     np.testing.assert_allclose(frames[-1], d["positions"][-1, 20 + ids], atol=2e-6 if precision == "float32" else 1e-9)
     assert np.abs(frames[-1] - frames[0]).max() > 1e-3
+
+
+def test_a_one_body_scene_is_the_one_body_case_of_a_body_scene(tmp_path):
+    """A scene of the top-level form is its own one body: built and run on the same path as one
+    [[body]] table, the same model and trajectory bit for bit; only the output names differ by form
+    (prims "boundary" / "volume", no body_offsets in the states file, against the body's name)."""
+    table = load_scene(_write(tmp_path, "table.toml", SHARED + BODY_SOFT))
+    single = load_scene(_write(tmp_path, "single.toml", SHARED + _as_single(BODY_SOFT)))
+    assert single.bodies == [single] and len(table.bodies) == 1 and table.bodies[0] is not table
+    runs = {}
+    for name, scene in (("table", table), ("single", single)):
+        run = scene.build()
+        assert run.model.num_bodies == 1 and run.model.mesh is scene.mesh() and run.model.quadrature is not None
+        run.run(frames=2, states=str(tmp_path / f"{name}.npz"), checkpoint_every=0)
+        runs[name] = (run, np.load(tmp_path / f"{name}.npz"))
+    (rt, dt), (rs, ds) = runs["table"], runs["single"]
+    assert np.array_equal(dt["positions"], ds["positions"]) and dt["positions"].shape == (3, 20, 3)
+    assert set(dt.files) - set(ds.files) == {"body_offsets", "body_names"} and dt["body_names"].tolist() == ["soft"]
+    assert [s[0] for s in rt.usd_surfaces()] == ["soft"] and [s[0] for s in rs.usd_surfaces()] == ["boundary"]
+    assert [v[0] for v in rt.usd_volumes()] == ["soft_volume"] and [v[0] for v in rs.usd_volumes()] == ["volume"]
+    assert np.array_equal(rt.surface_faces, rs.surface_faces) and np.array_equal(rt.surface_vertex_ids, rs.surface_vertex_ids)

@@ -37,6 +37,18 @@ calls ``advance(state_in, v, prediction, dt, ops, state_out)`` with the converge
 it; nothing is written before the solve succeeds, so a failed step leaves the state (and the
 history) as it was.
 
+Each scheme also owns its reverse, the transposed predict and advance that the adjoint
+(``warpfem.solvers.adjoint``) applies to adjoint vectors, so the adjoint has no table of schemes:
+``reverse_record(state, dt, host)`` says before a step which variant it takes (e.g. BDF2's first,
+backward Euler step), its scale s and the history it reads (host copies);
+``reverse_complete(record, state_out, host)`` adds what the step wrote that the reverse needs;
+``recorded_v_hat(record)`` is the step's predicted velocity; ``advance_reverse(record, xbar, vbar,
+hbar)`` maps the adjoints of the step's output (x_{n+1}, v_{n+1}, history) to those of the converged
+velocity, of x_b and of v_hat; ``predict_reverse(record, xb_bar, vhat_bar, xn_bar, vn_bar, ops)``
+adds the adjoints of x_b and v_hat into those of x_n, v_n and returns the adjoint of the input
+history (Newmark's a_0 goes through ``ops.acceleration_reverse``, the reverse of
+``ops.acceleration``). The reverse works on host float64 numpy arrays of shape (n, 3).
+
 ``ops`` is the vector algebra of the simulator (:class:`VectorOps`): device vec3 arrays for the
 full-space simulators, numpy coordinate vectors for the reduced one. Buffers are taken from
 ``work`` (the prediction's) and from ``state_out.history`` (the history), each made once with
@@ -67,7 +79,9 @@ class VectorOps:
     """The vector algebra an integrator uses (implemented by each simulator):
     ``new_vector()`` (a zero vector, only called on first use of a buffer), ``lincomb(a, x, b, y,
     out)`` (out = a x + b y; out may alias x or y), ``copy(dst, src)``, and for Newmark
-    ``acceleration(state, out)`` (M a = f + f_ext - C v on the free components)."""
+    ``acceleration(state, out)`` (M a = f + f_ext - C v on the free components). The reverse
+    pass's algebra (the adjoint) provides ``acceleration_reverse(record, a_bar, xn_bar, vn_bar,
+    v_hat)``: the adjoint of that solve, added into ``xn_bar`` and ``vn_bar``."""
 
     def new_vector(self):  # pragma: no cover - interface
         raise NotImplementedError
@@ -117,6 +131,36 @@ class Integrator:
         ops.lincomb(1.0, xb, s, v, state_out.x)
         ops.copy(state_out.v, v)
 
+    # -- reverse (the adjoint of a step: warpfem.solvers.adjoint) -----------------------------------
+    #: whether the scheme provides its reverse (the reverse_* / *_reverse methods below)
+    reversible = False
+
+    def reverse_record(self, state, dt, host):
+        """(variant, s, history) of a step of ``dt`` from ``state``: the name of the variant of the
+        scheme the step takes, its scale s and host copies (``host(array)``) of the history it reads."""
+        raise NotImplementedError(f"{type(self).__name__} has no reverse (gradients)")
+
+    def reverse_complete(self, record, state_out, host):
+        """Keep on ``record`` what the step wrote that the reverse needs (nothing by default)."""
+
+    def recorded_v_hat(self, record):
+        """The predicted velocity v_hat of the recorded step (host)."""
+        raise NotImplementedError(f"{type(self).__name__} has no reverse (gradients)")
+
+    def advance_reverse(self, record, xbar, vbar, hbar):
+        """The transposed advance: from the adjoints of x_{n+1} = x_b + s y, v_{n+1} = y and of the
+        output history ``hbar`` (a dict), (ybar, xb_bar, vhat_bar, xn_bar, vn_bar): the adjoints of
+        the converged velocity y, of x_b and v_hat, and what the output history adds to those of x_n
+        and v_n. The base class is the end state shared by every scheme (no history)."""
+        n = xbar.shape[0]
+        return vbar + record.s * xbar, xbar.copy(), np.zeros((n, 3)), np.zeros((n, 3)), np.zeros((n, 3))
+
+    def predict_reverse(self, record, xb_bar, vhat_bar, xn_bar, vn_bar, ops) -> dict:
+        """The transposed predict: add the adjoints of x_b and v_hat into ``xn_bar`` and ``vn_bar``
+        (in place) and return the adjoint of the input history (a dict). ``ops`` is the adjoint's
+        algebra (``acceleration_reverse``)."""
+        raise NotImplementedError(f"{type(self).__name__} has no reverse (gradients)")
+
     def __repr__(self):
         return f"{type(self).__name__}()"
 
@@ -134,6 +178,19 @@ class BackwardEuler(Integrator):
     def advance(self, state_in, v, prediction, dt, ops, state_out):
         self._end_state(v, prediction, ops, state_out)
         state_out.history.clear()
+
+    reversible = True
+
+    def reverse_record(self, state, dt, host):
+        return "be", dt, {}
+
+    def recorded_v_hat(self, record):
+        return record.v
+
+    def predict_reverse(self, record, xb_bar, vhat_bar, xn_bar, vn_bar, ops):
+        xn_bar += xb_bar  # x_b = x_n, v_hat = v_n
+        vn_bar += vhat_bar
+        return {}
 
 
 class BDF2(Integrator):
@@ -165,6 +222,35 @@ class BDF2(Integrator):
         self._end_state(v, prediction, ops, state_out)
         hist["h"] = dt
 
+    reversible = True
+
+    def reverse_record(self, state, dt, host):
+        hist = state.history
+        if hist.get("h") != dt or "x_prev" not in hist:  # as predict: a backward Euler step
+            return "bdf2_first", dt, {}
+        return "bdf2", 2.0 * dt / 3.0, {"x_prev": host(hist["x_prev"]), "v_prev": host(hist["v_prev"])}
+
+    def recorded_v_hat(self, record):
+        if record.kind == "bdf2_first":
+            return record.v
+        return record.v + (record.v - record.hist["v_prev"]) / 3.0
+
+    def advance_reverse(self, record, xbar, vbar, hbar):
+        ybar, xb_bar, vhat_bar, xn_bar, vn_bar = super().advance_reverse(record, xbar, vbar, hbar)
+        xn_bar += hbar.get("x_prev", 0.0)  # the output history is (x_n, v_n)
+        vn_bar += hbar.get("v_prev", 0.0)
+        return ybar, xb_bar, vhat_bar, xn_bar, vn_bar
+
+    def predict_reverse(self, record, xb_bar, vhat_bar, xn_bar, vn_bar, ops):
+        if record.kind == "bdf2_first":
+            xn_bar += xb_bar
+            vn_bar += vhat_bar
+            return {}
+        # x_b = 4/3 x_n - 1/3 x_{n-1}, v_hat = 4/3 v_n - 1/3 v_{n-1}
+        xn_bar += (4.0 / 3.0) * xb_bar
+        vn_bar += (4.0 / 3.0) * vhat_bar
+        return {"x_prev": -xb_bar / 3.0, "v_prev": -vhat_bar / 3.0}
+
 
 class Newmark(Integrator):
     """Newmark's average-acceleration rule (beta = 1/4, gamma = 1/2; the trapezoidal rule): second
@@ -191,6 +277,38 @@ class Newmark(Integrator):
         ops.lincomb(1.0 / s, v, -1.0 / s, vh, a_new)  # a_{n+1} = (v - v_hat) / s
         self._end_state(v, prediction, ops, state_out)
         state_out.history["h"] = dt
+
+    reversible = True
+
+    def reverse_record(self, state, dt, host):
+        hist = state.history
+        if "a" in hist:
+            return "newmark", 0.5 * dt, {"a": host(hist["a"])}
+        return "newmark_a0", 0.5 * dt, {}  # a_0 from the equations of motion at x_n
+
+    def reverse_complete(self, record, state_out, host):
+        record.v_hat = record.y - record.s * host(state_out.history["a"])  # a_{n+1} = (y - v_hat) / s
+
+    def recorded_v_hat(self, record):
+        return record.v_hat
+
+    def advance_reverse(self, record, xbar, vbar, hbar):
+        ybar, xb_bar, vhat_bar, xn_bar, vn_bar = super().advance_reverse(record, xbar, vbar, hbar)
+        if "a" in hbar:  # a_{n+1} = (y - v_hat) / s
+            ybar = ybar + hbar["a"] / record.s
+            vhat_bar -= hbar["a"] / record.s
+        return ybar, xb_bar, vhat_bar, xn_bar, vn_bar
+
+    def predict_reverse(self, record, xb_bar, vhat_bar, xn_bar, vn_bar, ops):
+        h = record.dt  # x_b = x_n + h/2 v_n, v_hat = v_n + h/2 a
+        xn_bar += xb_bar
+        vn_bar += 0.5 * h * xb_bar + vhat_bar
+        a_bar = 0.5 * h * vhat_bar
+        if record.kind == "newmark":
+            return {"a": a_bar}
+        # a_0 from M a_0 = f(x_n) + c f_ext - alpha M v_n (free components)
+        ops.acceleration_reverse(record, a_bar, xn_bar, vn_bar, self.recorded_v_hat(record))
+        return {}
 
 
 class Static(Integrator):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import scipy.sparse
 
@@ -64,8 +66,58 @@ def static_supports_error(model, what: str) -> str:
             + f". Fix more components ({what}) or use a time integrator")
 
 
+def _free_motions(X, fixed) -> list[str]:
+    """The rigid motions of one body (rest positions ``X`` (n, 3)) that its fixed components
+    (``fixed`` (n, 3) bool) leave free, in words (``Model.free_rigid_motions``)."""
+    c = X.mean(axis=0)
+    L = float(np.linalg.norm(np.ptp(X, axis=0))) or 1.0
+    n = len(X)
+    B = rigid_body_modes(X, normalize=False)  # columns: translations, e_a x (X - c)
+    norms = np.linalg.norm(B, axis=0)
+    norms[norms == 0.0] = 1.0
+    rows = (B / norms).reshape(n, 3, 6)[fixed]  # unit columns: a rank test free of units
+    if rows.shape[0]:
+        _, sv, Vt = np.linalg.svd(rows, full_matrices=True)
+        rank = int(np.sum(sv > 1e-9 * sv[0])) if sv.size else 0
+        N = Vt[rank:].T  # (6, k) coefficients of the free motions (unit columns)
+    else:
+        N = np.eye(6)
+    if N.shape[1] == 0:
+        return []
+    out = []
+    # pure translations: the combinations of N with no rotation part
+    _, sr, Vr = np.linalg.svd(N[3:], full_matrices=True)
+    rr = int(np.sum(sr > 1e-9)) if sr.size else 0
+    T = np.linalg.qr((N @ Vr[rr:].T)[:3])[0][:, : N.shape[1] - rr]  # (3, kt) free translations
+    out += [f"translation along {_direction(b)}" for b in T.T]
+    Q = (N @ Vr[:rr].T) / norms[:, None]  # (6, kr) motions that rotate: (t, w) in m and 1/m
+    if rr:
+        # rotation axes: the coordinate axes in the span of the free rotation parts first
+        Wb = np.linalg.qr(Q[3:])[0][:, :rr]
+        axes = [e for e in np.eye(3) if np.linalg.norm(e - Wb @ (Wb.T @ e)) < 1e-9]
+        for e in list(Wb.T):  # then the rest of the span, orthogonal to those
+            r = e - sum(((a @ e) * a for a in axes), np.zeros(3))
+            if len(axes) < rr and np.linalg.norm(r) > 1e-6:
+                axes.append(r / np.linalg.norm(r))
+        for w in axes[:rr]:  # a unit rotation about w: v = t + w x (X - c)
+            coef = np.linalg.lstsq(Q[3:], w, rcond=None)[0]
+            t = Q[:3] @ coef
+            t = t - T @ (T.T @ t)  # the part no free translation explains
+            p = c + np.cross(w, t)  # the axis point nearest the centroid
+            p[np.abs(p) < 1e-9 * L] = 0.0
+            text = f"rotation about {_direction(w)} through ({p[0]:.4g}, {p[1]:.4g}, {p[2]:.4g})"
+            if abs(float(t @ w)) > 1e-9 * L:
+                text += " (with a slide along it)"
+            out.append(text)
+    return out
+
+
 class Model:
-    """A deformable body ready to simulate: mesh + material + fixed DOFs + loads.
+    """Bodies ready to simulate: their meshes and materials, fixed DOFs and loads.
+
+    A model is a list of bodies (``bodies``, :class:`BaseBody`) in one vertex space; ``Model(mesh,
+    material)`` is the one-body case (a :class:`Body` of ``mesh`` named after it, or "body") and
+    :meth:`from_bodies` the general one; both build the model the same way.
 
     Args:
         mesh: a volume mesh (``warpfem.mesh.VolumeMesh`` of any element type, or any object with
@@ -84,52 +136,15 @@ class Model:
             neo-Hookean: lambda_L/2 (J - 1)^2 | the rest (see ``Material.volumetric_split``).
     """
 
+    #: the rigid bodies' layout (``warpfem.rigid.model.RigidLayout``) of a model with some, else None
+    rigid = None
+
     def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped",
                  volumetric_integration: str = "full"):
-        if mass_matrix not in MASS_MATRIX_KINDS:
-            raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
-        for attr in ("kind", "kernel_mu", "kernel_lam", "density"):
-            if not hasattr(material, attr):
-                raise TypeError(f"material must be a warpfem material (missing {attr!r}), got {type(material).__name__}")
-        g = np.asarray(gravity, dtype=np.float64)
-        if g.shape != (3,) or not np.all(np.isfinite(g)):
-            raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
-        self.mesh = mesh
-        self.material = material
-        self.gravity = g
-        self.mass_matrix_kind = mass_matrix
-        self.rest_positions = np.asarray(mesh.vertices, dtype=np.float64)
-        self.num_vertices = len(self.rest_positions)
-        self.volumetric_parameters = None  # ((mu, lam) full-rule part, (mu, lam) 1-point part) with "reduced"
-        if volumetric_integration == "reduced":
-            split = getattr(material, "volumetric_split", None)
-            if split is None:
-                raise ValueError("volumetric_integration='reduced' needs a material whose energy splits into a "
-                                 f"volumetric and a remaining part (a volumetric_split() method); {type(material).__name__} "
-                                 "has none")
-            (mu_f, lam_f), (mu_v, lam_v) = split()
-            if lam_v < 0.0:
-                raise ValueError("volumetric_integration='reduced' is for nearly incompressible materials: it needs "
-                                 f"poisson_ratio >= 0 (a non-negative volumetric part), got poisson_ratio="
-                                 f"{getattr(material, 'poisson_ratio', '?')!r} for {type(material).__name__}")
-            self.volumetric_parameters = ((float(mu_f), float(lam_f)), (float(mu_v), float(lam_v)))
-        self.volumetric_integration = volumetric_integration
-        self.quadrature = precompute_quadrature(self.rest_positions, mesh.elements, mesh.element_type,
-                                                volumetric_integration=volumetric_integration)
-        self.lumped_mass, self.mass = mass_matrices(mesh, material.density, mass_matrix)
-        # gravity is M (1 x g) with the chosen mass matrix, so free fall is exact with either; this is
-        # lumped_mass except for Tet10/Hex27 with the consistent mass (rho g int N_a dV there).
-        self.gravity_mass = np.asarray(self.mass.sum(axis=1), dtype=np.float64).ravel()
-        self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
-        self.forces = np.zeros((self.num_vertices, 3))
-        # one body: the multi-body view of it (Model.from_bodies fills these for several)
-        self.rigid = None  # the rigid bodies' layout (warpfem.rigid.model.RigidLayout) when it has some
-        self.bodies = []
-        self.body_names = [getattr(mesh, "name", None) or "body"]
-        self.body_offsets = np.array([0, self.num_vertices], dtype=np.int64)
-        self.quadratures = [self.quadrature]
-        self.materials = [material]
-        self.body_volumetric_parameters = [self.volumetric_parameters]
+        # a model of one mesh is the one-body case of Model.from_bodies: the same construction
+        body = Body(mesh, material, volumetric_integration=volumetric_integration, mass_matrix=mass_matrix)
+        body.name = getattr(mesh, "name", None) or "body"
+        _construct(self, [body], gravity=gravity, mass_matrix=mass_matrix)
 
     # -- rest state -----------------------------------------------------------------------------
     @property
@@ -175,53 +190,10 @@ class Model:
         A static solve of such a model is singular (no mass term holds the motion). Several
         bodies: each body's free motions, prefixed by its name.
         """
-        if len(self.bodies) > 1:
-            out = []
-            for name, part, lo, hi in zip(self.body_names, self.body_models, self.body_offsets[:-1], self.body_offsets[1:]):
-                part.fixed = self.fixed[lo:hi]
-                out += [f"{name}: {m}" for m in part.free_rigid_motions()]
-            return out
-        X = self.rest_positions
-        c = X.mean(axis=0)
-        L = float(np.linalg.norm(np.ptp(X, axis=0))) or 1.0
-        n = len(X)
-        B = rigid_body_modes(X, normalize=False)  # columns: translations, e_a x (X - c)
-        norms = np.linalg.norm(B, axis=0)
-        norms[norms == 0.0] = 1.0
-        rows = (B / norms).reshape(n, 3, 6)[self.fixed]  # unit columns: a rank test free of units
-        if rows.shape[0]:
-            _, sv, Vt = np.linalg.svd(rows, full_matrices=True)
-            rank = int(np.sum(sv > 1e-9 * sv[0])) if sv.size else 0
-            N = Vt[rank:].T  # (6, k) coefficients of the free motions (unit columns)
-        else:
-            N = np.eye(6)
-        if N.shape[1] == 0:
-            return []
         out = []
-        # pure translations: the combinations of N with no rotation part
-        _, sr, Vr = np.linalg.svd(N[3:], full_matrices=True)
-        rr = int(np.sum(sr > 1e-9)) if sr.size else 0
-        T = np.linalg.qr((N @ Vr[rr:].T)[:3])[0][:, : N.shape[1] - rr]  # (3, kt) free translations
-        out += [f"translation along {_direction(b)}" for b in T.T]
-        Q = (N @ Vr[:rr].T) / norms[:, None]  # (6, kr) motions that rotate: (t, w) in m and 1/m
-        if rr:
-            # rotation axes: the coordinate axes in the span of the free rotation parts first
-            Wb = np.linalg.qr(Q[3:])[0][:, :rr]
-            axes = [e for e in np.eye(3) if np.linalg.norm(e - Wb @ (Wb.T @ e)) < 1e-9]
-            for e in list(Wb.T):  # then the rest of the span, orthogonal to those
-                r = e - sum(((a @ e) * a for a in axes), np.zeros(3))
-                if len(axes) < rr and np.linalg.norm(r) > 1e-6:
-                    axes.append(r / np.linalg.norm(r))
-            for w in axes[:rr]:  # a unit rotation about w: v = t + w x (X - c)
-                coef = np.linalg.lstsq(Q[3:], w, rcond=None)[0]
-                t = Q[:3] @ coef
-                t = t - T @ (T.T @ t)  # the part no free translation explains
-                p = c + np.cross(w, t)  # the axis point nearest the centroid
-                p[np.abs(p) < 1e-9 * L] = 0.0
-                text = f"rotation about {_direction(w)} through ({p[0]:.4g}, {p[1]:.4g}, {p[2]:.4g})"
-                if abs(float(t @ w)) > 1e-9 * L:
-                    text += " (with a slide along it)"
-                out.append(text)
+        for name, lo, hi in zip(self.body_names, self.body_offsets[:-1], self.body_offsets[1:]):
+            motions = _free_motions(self.rest_positions[lo:hi], self.fixed[lo:hi])
+            out += motions if len(self.bodies) == 1 else [f"{name}: {m}" for m in motions]
         return out
 
     def add_force(self, indices, force) -> None:
@@ -246,8 +218,10 @@ class Model:
         ``materials`` one material per body, so each body keeps its own element type and material.
         ``mesh`` is a :class:`BodiesMesh` (the bodies' boundary triangles in global indices, the
         body of each vertex); :meth:`body_vertices` maps a body's own vertex indices to global
-        ones. ``gravity`` and ``mass_matrix`` apply to every body. Bodies interact only through
-        contact forms; without them each moves exactly as it would alone.
+        ones. ``gravity`` and ``mass_matrix`` apply to every body (a body may set its own mass
+        matrix). Bodies interact only through contact forms; without them each moves exactly as
+        it would alone. One body gives the model ``Model(mesh, material)`` builds (the same
+        construction): ``mesh``, ``quadrature`` and ``volumetric_integration`` are that body's.
 
         Bodies that overlap at the start (boundary surfaces crossing, or one inside another) are
         refused with :class:`warpfem.mesh.intersect.BodyOverlapError` naming the two bodies and the
@@ -259,17 +233,44 @@ class Model:
         ``rest_positions``, ``mass``, ``fixed`` are of the unknown; ``body_offsets`` and ``mesh``
         stay of the vertices; ``rigid`` maps one to the other: docs/rigid.md).
         """
-        return _from_bodies(cls, bodies, gravity=gravity, mass_matrix=mass_matrix, check_overlap=check_overlap)
+        bodies = list(bodies)
+        if not bodies:
+            raise ValueError("Model.from_bodies needs at least one body")
+        from warpfem.rigid.body import RigidBody
+
+        if any(isinstance(b, RigidBody) for b in bodies):  # affine bodies: the unknown and the vertices differ
+            from warpfem.rigid.model import build_model
+
+            return build_model(cls, bodies, bodies_mesh=BodiesMesh, gravity=gravity, mass_matrix=mass_matrix,
+                               check_overlap=check_overlap)
+        for i, b in enumerate(bodies):
+            if not isinstance(b, BaseBody):
+                raise TypeError(f"body #{i + 1} must be a warpfem.Body, got {type(b).__name__}")
+        names = [b.name or f"body{i + 1}" for i, b in enumerate(bodies)]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"body names must be unique, {dup[0]!r} is given {names.count(dup[0])} times")
+        for b, n in zip(bodies, names):
+            b.name = n
+        if check_overlap and len(bodies) > 1:  # a crossing needs two bodies
+            from warpfem.mesh.intersect import BodyOverlapError, first_body_overlap
+
+            problem = first_body_overlap([b.mesh for b in bodies], names)
+            if problem:
+                raise BodyOverlapError(problem)
+        model = cls.__new__(cls)
+        _construct(model, bodies, gravity=gravity, mass_matrix=mass_matrix, name_errors=True)
+        return model
 
     @property
     def num_bodies(self) -> int:
         """How many bodies the model holds (1 for a single-mesh model)."""
-        return max(1, len(self.bodies))
+        return len(self.bodies)
 
     def body_index(self, body) -> int:
         """The index of ``body`` (its name, index or :class:`Body`); KeyError naming the bodies."""
         names = self.body_names
-        if isinstance(body, Body):
+        if isinstance(body, BaseBody):
             body = body.name
         if isinstance(body, (int, np.integer)) and not isinstance(body, bool):
             if 0 <= int(body) < len(names):
@@ -308,29 +309,58 @@ class Model:
     def initial_velocities(self):
         """(n, 3) velocities at t = 0 (the bodies' ``initial_velocity``), or None when all are zero.
         With rigid bodies: of the unknown's nodes (``warpfem.rigid.model``)."""
-        if getattr(self, "rigid", None) is not None:
+        if self.rigid is not None:
             soft = [np.repeat(b.initial_velocity[None], n, axis=0) for b, n in
                     zip(self.bodies, np.diff(self.body_offsets)[:len(self.bodies) - len(self.rigid.bodies)])]
             return self.rigid.initial_velocities(np.concatenate(soft) if soft else np.zeros((0, 3)))
-        if not self.bodies or not any(np.any(b.initial_velocity != 0.0) for b in self.bodies):
+        if not any(np.any(b.initial_velocity != 0.0) for b in self.bodies):
             return None
         return np.repeat(np.stack([b.initial_velocity for b in self.bodies]), np.diff(self.body_offsets), axis=0)
 
 # ----------------------------------------------------------------------------- several bodies
-class Body:
-    """One deformable body of a multi-body :class:`Model` (``Model.from_bodies``).
+class BodyParts(NamedTuple):
+    """One body discretised for a :class:`Model` (``BaseBody.discretize``), in the body's own vertex
+    numbering: ``rest_positions`` (n, 3) m, ``quadrature`` (``warpfem.elements.QuadratureData``: the
+    elastic energy's points, connectivity in the body's own indices), ``lumped_mass`` (n,) kg,
+    ``mass`` (n, n) scipy sparse (per vertex; the same for each axis), ``gravity_mass`` (n,) (M 1:
+    gravity is gravity_mass x g per vertex) and ``volumetric_parameters`` (None, or the two (mu, lam)
+    pairs of selective reduced integration)."""
 
-    Args:
-        mesh: its volume mesh (any element type; ``warpfem.mesh.VolumeMesh``), positions in m.
-        material: its material (``warpfem.materials``; its own density).
-        name: a name (USD prim, ParaView block and messages); default ``body<i>`` (1-based).
-        offset: (3,) translation (m) applied to the mesh's vertices: the body's rest positions
-            are ``mesh.vertices + offset`` (``Body.mesh`` is the moved mesh).
-        initial_velocity: (3,) velocity (m/s) of every vertex at t = 0.
-        volumetric_integration: "full" or "reduced" (Hex8), as for :class:`Model`.
-        mass_matrix: "lumped" or "consistent" for this body (default: the model's).
+    rest_positions: np.ndarray
+    quadrature: object
+    lumped_mass: np.ndarray
+    mass: object
+    gravity_mass: np.ndarray
+    volumetric_parameters: object = None
+
+
+class BaseBody:
+    """What a :class:`Model` needs of a body: the base class of :class:`Body` (a deformable body
+    of finite elements) and of any other kind of body a model may hold.
+
+    A subclass sets ``name`` (None: ``body<i>``, given by ``Model.from_bodies``), ``mesh`` (what
+    the outputs and contact see of it: ``vertices`` (n, 3) and ``boundary_faces()``, plus
+    ``elements`` and ``element_type`` for the per-element outputs), ``material`` (with
+    ``density``; the model's contact defaults read ``youngs_modulus``), ``initial_velocity`` (3,)
+    and ``volumetric_integration``, and implements :meth:`discretize`. ``Model`` concatenates the
+    bodies' vertices in body order (``body_offsets``) and their quadratures and mass matrices
+    block by block; nothing in it depends on how many bodies there are.
     """
 
+    name = None
+    mesh = None
+    material = None
+    initial_velocity = np.zeros(3)
+    volumetric_integration = "full"
+
+    def discretize(self, mass_matrix: str) -> BodyParts:
+        """The body's :class:`BodyParts` with the model's mass matrix kind ``mass_matrix`` ("lumped"
+        or "consistent"; a body may keep its own). ValueError / TypeError for bad input (the model
+        names the body)."""
+        raise NotImplementedError
+
+
+class Body(BaseBody):
     def __init__(self, mesh, material, *, name=None, offset=(0.0, 0.0, 0.0), initial_velocity=(0.0, 0.0, 0.0),
                  volumetric_integration: str = "full", mass_matrix: str | None = None):
         off = np.asarray(offset, dtype=np.float64)
@@ -351,9 +381,105 @@ class Body:
         self.volumetric_integration = volumetric_integration
         self.mass_matrix = mass_matrix
 
+    def discretize(self, mass_matrix: str) -> BodyParts:
+        """Quadrature (``warpfem.elements.precompute_quadrature``) and mass matrices
+        (``warpfem.mesh.mass``) of the mesh, with the body's ``mass_matrix`` or else the model's."""
+        mesh, material = self.mesh, self.material
+        mass_matrix = self.mass_matrix or mass_matrix
+        if mass_matrix not in MASS_MATRIX_KINDS:
+            raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
+        for attr in ("kind", "kernel_mu", "kernel_lam", "density"):
+            if not hasattr(material, attr):
+                raise TypeError(f"material must be a warpfem material (missing {attr!r}), got {type(material).__name__}")
+        vi = self.volumetric_integration
+        volumetric_parameters = None
+        if vi == "reduced":
+            split = getattr(material, "volumetric_split", None)
+            if split is None:
+                raise ValueError("volumetric_integration='reduced' needs a material whose energy splits into a "
+                                 f"volumetric and a remaining part (a volumetric_split() method); {type(material).__name__} "
+                                 "has none")
+            (mu_f, lam_f), (mu_v, lam_v) = split()
+            if lam_v < 0.0:
+                raise ValueError("volumetric_integration='reduced' is for nearly incompressible materials: it needs "
+                                 f"poisson_ratio >= 0 (a non-negative volumetric part), got poisson_ratio="
+                                 f"{getattr(material, 'poisson_ratio', '?')!r} for {type(material).__name__}")
+            volumetric_parameters = ((float(mu_f), float(lam_f)), (float(mu_v), float(lam_v)))
+        rest = np.asarray(mesh.vertices, dtype=np.float64)
+        quadrature = precompute_quadrature(rest, mesh.elements, mesh.element_type, volumetric_integration=vi)
+        lumped, mass = mass_matrices(mesh, material.density, mass_matrix)
+        # M (1 x g): the lumped mass except for Tet10/Hex27 with the consistent mass (rho g int N_a dV there)
+        gravity_mass = np.asarray(mass.sum(axis=1), dtype=np.float64).ravel()
+        return BodyParts(rest, quadrature, lumped, mass, gravity_mass, volumetric_parameters)
+
     def __repr__(self):
         return (f"Body({self.name!r}, {getattr(self.mesh, 'element_type', '?')}, {self.mesh.num_vertices} vertices, "
                 f"{type(self.material).__name__})")
+
+
+def _construct(model, bodies, *, gravity, mass_matrix, name_errors=False):
+    """The construction of every model (``model``: the Model being built, by ``Model.__init__`` and
+    ``Model.from_bodies``): the bodies (:class:`BaseBody`, named) discretised one by
+    one (``BaseBody.discretize``), their vertices concatenated in body order. ``name_errors``: a
+    body's ValueError / TypeError is raised again prefixed by its name (its ``body`` attribute:
+    the body's index, ``__cause__`` the body's own error).
+
+    A model of one body (either construction) shows that body directly: ``mesh`` is its mesh,
+    ``quadrature`` its quadrature, ``volumetric_integration`` / ``volumetric_parameters`` its
+    own; with several they are a :class:`BodiesMesh`, None, the list per body and None."""
+    import dataclasses
+
+    if mass_matrix not in MASS_MATRIX_KINDS:
+        raise ValueError(f"mass_matrix must be 'lumped' or 'consistent', got {mass_matrix!r}")
+    g = np.asarray(gravity, dtype=np.float64)
+    if g.shape != (3,) or not np.all(np.isfinite(g)):
+        raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
+    parts = []
+    for i, b in enumerate(bodies):
+        try:
+            parts.append(b.discretize(mass_matrix))
+        except (ValueError, TypeError) as e:
+            if not name_errors:
+                raise
+            err = type(e)(f"body {b.name!r}: {e}")
+            err.body = i
+            raise err from e
+    offsets = np.concatenate([[0], np.cumsum([len(p.rest_positions) for p in parts])]).astype(np.int64)
+    model.bodies, model.body_names, model.body_offsets = list(bodies), [b.name for b in bodies], offsets
+    one = len(bodies) == 1  # the one body's own mesh, quadrature and volumetric integration (above)
+    model.mesh = bodies_mesh([b.mesh for b in bodies], offsets, model.body_names)
+    # the material contact defaults scale with (the stiffest body's); per body: materials[i]
+    model.material = max((b.material for b in bodies), key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0))
+    model.materials = [b.material for b in bodies]
+    model.gravity = g
+    model.mass_matrix_kind = mass_matrix
+    model.rest_positions = np.concatenate([p.rest_positions for p in parts])
+    model.num_vertices = int(offsets[-1])
+    model.volumetric_integration = bodies[0].volumetric_integration if one else [b.volumetric_integration for b in bodies]
+    # ((mu, lam) full-rule part, (mu, lam) 1-point part) with "reduced"; per body: body_volumetric_parameters
+    model.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
+    model.volumetric_parameters = parts[0].volumetric_parameters if one else None
+
+    def shifted(qd, o):  # a body's quadrature with its connectivity in global vertex indices
+        if qd is None or o == 0:
+            return qd
+        return dataclasses.replace(qd, elements=(np.asarray(qd.elements, dtype=np.int64) + o).astype(qd.elements.dtype),
+                                   volumetric=shifted(qd.volumetric, o))
+
+    model.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, offsets[:-1])]
+    model.quadrature = model.quadratures[0] if one else None
+    model.lumped_mass = np.concatenate([p.lumped_mass for p in parts])
+    model.mass = scipy.sparse.block_diag([p.mass for p in parts], format="csr")
+    # gravity is M (1 x g) with each body's mass matrix, so free fall is exact with either
+    model.gravity_mass = np.concatenate([p.gravity_mass for p in parts])
+    model.fixed = np.zeros((model.num_vertices, 3), dtype=bool)
+    model.forces = np.zeros((model.num_vertices, 3))
+
+
+def bodies_mesh(meshes, offsets, names):
+    """The mesh of a model (or scene) of the bodies' ``meshes``: the one body's own mesh, or a
+    :class:`BodiesMesh` of several (``offsets``: the first vertex of each, then the total)."""
+    return meshes[0] if len(meshes) == 1 else BodiesMesh(meshes, offsets, names)
 
 
 class BodiesMesh:
@@ -406,72 +532,3 @@ class BodiesMesh:
         f = self.boundary_faces()
         e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
         return np.unique(e, axis=0)
-
-
-def _from_bodies(cls, bodies, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped", check_overlap: bool = True):
-    """``Model.from_bodies``: see there."""
-    import dataclasses
-
-    bodies = list(bodies)
-    if not bodies:
-        raise ValueError("Model.from_bodies needs at least one body")
-    from warpfem.rigid.body import RigidBody
-
-    if any(isinstance(b, RigidBody) for b in bodies):  # affine bodies: the unknown and the vertices differ
-        from warpfem.rigid.model import build_model
-
-        return build_model(cls, bodies, bodies_mesh=BodiesMesh, gravity=gravity, mass_matrix=mass_matrix, check_overlap=check_overlap)
-    for i, b in enumerate(bodies):
-        if not isinstance(b, Body):
-            raise TypeError(f"body #{i + 1} must be a warpfem.Body, got {type(b).__name__}")
-    names = [b.name or f"body{i + 1}" for i, b in enumerate(bodies)]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ValueError(f"body names must be unique, {dup[0]!r} is given {names.count(dup[0])} times")
-    for b, n in zip(bodies, names):
-        b.name = n
-    if check_overlap and len(bodies) > 1:
-        from warpfem.mesh.intersect import BodyOverlapError, first_body_overlap
-
-        problem = first_body_overlap([b.mesh for b in bodies], names)
-        if problem:
-            raise BodyOverlapError(problem)
-    parts = []
-    for b in bodies:
-        try:
-            parts.append(cls(b.mesh, b.material, gravity=gravity, mass_matrix=b.mass_matrix or mass_matrix,
-                             volumetric_integration=b.volumetric_integration))
-        except (ValueError, TypeError) as e:
-            raise type(e)(f"body {b.name!r}: {e}") from e
-    sizes = [p.num_vertices for p in parts]
-    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    self = cls.__new__(cls)
-    self.bodies, self.body_models, self.body_offsets, self.body_names = bodies, parts, offsets, names
-    for p, n in zip(parts, names):
-        p.body_names = [n]
-    self.mesh = BodiesMesh([b.mesh for b in bodies], offsets, names)
-    # the material contact defaults scale with (the stiffest body's); per body: bodies[i].material
-    self.material = max((b.material for b in bodies), key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0))
-    self.materials = [b.material for b in bodies]
-    self.gravity = parts[0].gravity
-    self.mass_matrix_kind = mass_matrix
-    self.rest_positions = np.concatenate([p.rest_positions for p in parts])
-    self.num_vertices = int(offsets[-1])
-    self.volumetric_integration = [b.volumetric_integration for b in bodies]
-    self.volumetric_parameters = None
-    self.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
-
-    def shifted(qd, o):
-        if qd is None:
-            return None
-        return dataclasses.replace(qd, elements=(np.asarray(qd.elements, dtype=np.int64) + o).astype(qd.elements.dtype),
-                                   volumetric=shifted(qd.volumetric, o))
-
-    self.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, offsets[:-1])]
-    self.quadrature = self.quadratures[0] if len(parts) == 1 else None
-    self.lumped_mass = np.concatenate([p.lumped_mass for p in parts])
-    self.mass = scipy.sparse.block_diag([p.mass for p in parts], format="csr")
-    self.gravity_mass = np.concatenate([p.gravity_mass for p in parts])
-    self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
-    self.forces = np.zeros((self.num_vertices, 3))
-    return self

@@ -221,8 +221,8 @@ class Simulator(SimulatorBase):
             collider = make_collider(**kw)
         elif kw:
             raise TypeError("add_collider takes a collider object or keywords, not both")
-        if self.contact is None:  # (with rigid bodies: on the vertex space, warpfem.rigid)
-            self.contact = ContactSet(self if self._rigid is None else self._rigid.space)  # its form joins the potential once it holds a collider
+        if self.contact is None:  # its form joins the potential once it holds a collider
+            self.contact = ContactSet(self if self._rigid is None else self._rigid.space)  # rigid: vertex space
         self.contact.add(collider)
         return collider
 
@@ -254,7 +254,8 @@ class Simulator(SimulatorBase):
         :class:`warpfem.contact.CollisionError` naming a pair when surface primitives touch now."""
         from warpfem.contact.surface import SurfaceContact
 
-        sc = SurfaceContact(self if self._rigid is None else self._rigid.space, bodies=bodies, friction=friction, dhat=dhat, stiffness=stiffness,
+        on = self if self._rigid is None else self._rigid.space  # rigid bodies: the vertex space
+        sc = SurfaceContact(on, bodies=bodies, friction=friction, dhat=dhat, stiffness=stiffness,
                             friction_velocity=friction_velocity, **flags)
         if not (sc.bodies or sc.self_contact):
             sc.detach()

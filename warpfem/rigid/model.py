@@ -130,7 +130,7 @@ def build_model(cls, bodies, *, bodies_mesh, gravity=(0.0, 0.0, 0.0), mass_matri
                          "list the soft bodies first, then the rigid ones")
     soft, rigid = bodies[:first_rigid], bodies[first_rigid:]
     for i, b in enumerate(soft):
-        if not hasattr(b, "material") or not hasattr(b, "volumetric_integration"):
+        if not hasattr(b, "discretize"):
             raise TypeError(f"body #{i + 1} must be a warpfem.Body or warpfem.RigidBody, got {type(b).__name__}")
     for b, n in zip(bodies, names):
         b.name = n
@@ -140,27 +140,24 @@ def build_model(cls, bodies, *, bodies_mesh, gravity=(0.0, 0.0, 0.0), mass_matri
         problem = first_body_overlap([b.mesh for b in bodies], names)
         if problem:
             raise BodyOverlapError(problem)
-    parts = []
+    parts = []  # each soft body discretised (``BaseBody.discretize``: rest positions, quadrature, masses)
     for b in soft:
         try:
-            parts.append(cls(b.mesh, b.material, gravity=gravity, mass_matrix=b.mass_matrix or mass_matrix,
-                             volumetric_integration=b.volumetric_integration))
+            parts.append(b.discretize(mass_matrix))
         except (ValueError, TypeError) as e:
             raise type(e)(f"body {b.name!r}: {e}") from e
     g = np.asarray(gravity, dtype=np.float64)
     if g.shape != (3,) or not np.all(np.isfinite(g)):
         raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
-    sizes = [p.num_vertices for p in parts] + [len(b.local_positions) for b in rigid]
+    sizes = [len(p.rest_positions) for p in parts] + [len(b.local_positions) for b in rigid]
     voff = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     n_soft = int(voff[len(soft)])
     layout = RigidLayout(rigid, names[len(soft):], n_soft, voff)
     self = cls.__new__(cls)
-    self.bodies, self.body_models, self.body_names = list(bodies), parts + [None] * len(rigid), names
+    self.bodies, self.body_names = list(bodies), names
     self.body_offsets = voff  # vertex space (what outputs and contact see)
     self.dof_offsets = np.concatenate([voff[:len(soft) + 1], n_soft + 4 * np.arange(1, len(rigid) + 1)]).astype(np.int64)
     self.rigid = layout
-    for p, n in zip(parts, names):
-        p.body_names = [n]
     self.mesh = bodies_mesh([b.mesh for b in bodies], voff, names)
     mats = [b.material for b in soft]
     self.material = max(mats, key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0)) if mats else None

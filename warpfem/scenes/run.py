@@ -75,8 +75,19 @@ def _incomplete_reason(e: BaseException, frame: int) -> str:
     return f"{type(e).__name__}: {msg}"
 
 
+class _RenderSurface:
+    """One body's render surface: USD prim ``name``, ``faces`` over its ``count`` points,
+    ``points()`` now; ``embedding`` / ``skinner`` with a [surface], else the model's ``vertex_ids``."""
+
+    def __init__(self, name, faces, count, points, *, embedding=None, skinner=None, vertex_ids=None):
+        self.name, self.faces, self.count, self.points = name, faces, count, points
+        self.embedding, self.skinner, self.vertex_ids = embedding, skinner, vertex_ids
+
+
 class SceneRun:
-    """A built scene: ``model``, ``sim`` (the integrator), ``skinner`` (None without [surface])."""
+    """A built scene: ``model``, ``sim`` (the integrator), ``surfaces`` (one render surface per
+    body); ``skinner`` / ``embedding`` / ``surface_vertex_ids`` are a one-body scene's (None without
+    [surface] / with it)."""
 
     def __init__(self, scene: "Scene", model, sim, handle_ids, *, device, precision):
         self.scene, self.model, self.sim = scene, model, sim
@@ -90,73 +101,51 @@ class SceneRun:
         self._handles = [(h, ids, model.rest_positions[ids].copy()) for h, ids in zip(sp.handle, handle_ids)]
         self._gravity = model.gravity.copy()
         self._forces = model.forces.copy()
-        mesh = scene.mesh()
         # a simulator may map an embedding to surface points itself (e.g. a reduced one, O(r) per point)
         self._sim_surface_points = getattr(sim, "surface_points", None)
-        self.body_surfaces = None  # [[body]] scenes: [(prim name, faces, count, points())] per body
-        if sp.bodies:
-            self._setup_body_surfaces(scene, device, precision)
-        elif sp.surface is not None:
-            from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
+        # one render surface per body (a one-body scene: its one body); the previews see them all
+        offsets = model.body_offsets
+        self.surfaces = [self._body_surface(b, int(lo), int(hi), device, precision)
+                         for b, lo, hi in zip(scene.bodies, offsets[:-1], offsets[1:])]
+        starts = np.concatenate([[0], np.cumsum([c.count for c in self.surfaces])])
+        self.surface_faces = np.concatenate([c.faces + int(o) for c, o in zip(self.surfaces, starts[:-1])])
+        # the one body's surface as attributes (several bodies: None, and the name "bodies")
+        one = self.surfaces[0] if len(self.surfaces) == 1 else _RenderSurface("bodies", None, 0, None)
+        self.embedding, self.skinner = one.embedding, one.skinner
+        self.surface_vertex_ids, self.surface_name = one.vertex_ids, one.name
 
-            pts, tris = load_surface(sp.surface["path"])
-            self.embedding = embed_points_in_mesh(pts, mesh)  # k weights per point (k = nodes per element)
-            self.skinner = None
-            if self._sim_surface_points is None:
-                self.skinner = SurfaceSkinner(self.embedding, mesh, device=device, precision=precision)
-            self.surface_faces = tris
-            self.surface_vertex_ids = None
-            self.surface_name = sp.surface["name"]
-        else:
-            self.embedding = None
-            self.skinner = None
-            self.surface_vertex_ids, self.surface_faces = boundary_surface(mesh)
-            self.surface_name = "boundary"
+    def _body_surface(self, b, lo, hi, device, precision) -> "_RenderSurface":
+        """Body ``b``'s render surface (its vertices lo..hi-1 of the model): its [surface] embedded in
+        its own elements, or its boundary; the USD prim is ``b.surface_prim``."""
+        bm = b.own_mesh()
+        if b.spec.surface is None:
+            ids, tris = boundary_surface(bm)
+            ids = ids + lo
+            return _RenderSurface(b.surface_prim, np.asarray(tris), int(ids.size), lambda: self.sim.positions()[ids],
+                                  vertex_ids=ids)
+        from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface  # only with a [surface]
 
-    def _setup_body_surfaces(self, scene, device, precision):
-        """One render surface per body (its [surface], embedded in its own elements, or its boundary);
-        ``surface_points()`` / ``surface_faces`` are all of them concatenated (previews)."""
-        from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface
+        pts, tris = load_surface(b.spec.surface["path"])
+        emb = embed_points_in_mesh(np.asarray(pts, dtype=np.float64) + b.offset, bm)  # k weights per point
+        if self._sim_surface_points is not None and hi - lo == self.model.num_vertices:
+            def points():  # the simulator maps the embedding itself (its one body)
+                return np.asarray(self._sim_surface_points(emb), dtype=np.float64)
 
-        self.embedding = self.skinner = None
-        self.surface_vertex_ids = None
-        self.surface_name = "bodies"
-        out = []
-        offsets = self.model.body_offsets
-        for b, lo, hi in zip(scene.bodies, offsets[:-1], offsets[1:]):
-            lo, hi = int(lo), int(hi)
-            bm = b.mesh()
-            if b.spec.surface is not None:
-                pts, tris = load_surface(b.spec.surface["path"])
-                emb = embed_points_in_mesh(np.asarray(pts, dtype=np.float64) + b.offset, bm)
-                skinner = SurfaceSkinner(emb, bm, device=device, precision=precision)
+            return _RenderSurface(b.surface_prim, np.asarray(tris), emb.num_points, points, embedding=emb)
+        skinner = SurfaceSkinner(emb, bm, device=device, precision=precision)
 
-                def points(skinner=skinner, lo=lo, hi=hi):
-                    return skinner.apply(self.sim.x[lo:hi]).numpy().astype(np.float64)
+        def points():  # x_surface = W x on the device
+            return skinner.apply(self.sim.x[lo:hi]).numpy().astype(np.float64)
 
-                out.append((b.body_name, np.asarray(tris), emb.num_points, points))
-            else:
-                ids, tris = boundary_surface(bm)
-
-                def points(ids=ids + lo):
-                    return self.sim.positions()[ids]
-
-                out.append((b.body_name, np.asarray(tris), int(ids.size), points))
-        self.body_surfaces = out
-        starts = np.concatenate([[0], np.cumsum([c for _, _, c, _ in out])])
-        self.surface_faces = np.concatenate([f + int(o) for (_, f, _, _), o in zip(out, starts[:-1])])
+        return _RenderSurface(b.surface_prim, np.asarray(tris), emb.num_points, points, embedding=emb, skinner=skinner)
 
     def usd_surfaces(self) -> list:
         """The USD prims of the render surfaces: [(name, faces, number of points)] (one per body)."""
-        if self.body_surfaces is not None:
-            return [(name, faces, count) for name, faces, count, _ in self.body_surfaces]
-        return [(self.surface_name, self.surface_faces, self.num_surface_points)]
+        return [(c.name, c.faces, c.count) for c in self.surfaces]
 
     def usd_surface_points(self) -> dict:
         """{prim name: current points} of :meth:`usd_surfaces`."""
-        if self.body_surfaces is not None:
-            return {name: points() for name, _, _, points in self.body_surfaces}
-        return {self.surface_name: self.surface_points()}
+        return {c.name: c.points() for c in self.surfaces}
 
     def usd_volumes(self) -> list:
         """``[output] usd_volume``: [(prim name, tets (m, 4) over the body's own vertices, surface faces,
@@ -164,21 +153,16 @@ class SceneRun:
         higher-order elements, so the TetMesh shows the element corners' motion."""
         out = []
         offsets = self.model.body_offsets
-        meshes = [b.mesh() for b in self.scene.bodies] or [self.scene.mesh()]
-        names = [f"{b.body_name}_volume" for b in self.scene.bodies] or ["volume"]
-        for name, m, lo, hi in zip(names, meshes, offsets[:-1], offsets[1:]):
+        for b, lo, hi in zip(self.scene.bodies, offsets[:-1], offsets[1:]):
+            m = b.own_mesh()
             tets = np.asarray(m.corner_tets(), dtype=np.int64)
             faces = np.asarray(m.boundary_faces(), dtype=np.int64) if m.element.is_linear_tet else None
-            out.append((name, tets, faces, int(lo), int(hi)))
+            out.append((b.volume_prim, tets, faces, int(lo), int(hi)))
         return out
 
     @property
     def num_surface_points(self) -> int:
-        if self.body_surfaces is not None:
-            return int(sum(c for _, _, c, _ in self.body_surfaces))
-        if self.embedding is not None:
-            return self.embedding.num_points
-        return int(self.surface_vertex_ids.size)
+        return int(sum(c.count for c in self.surfaces))
 
     def duration(self, frames=None) -> float:
         """Length of the run (s) over which handles ramp by default."""
@@ -187,14 +171,8 @@ class SceneRun:
     def surface_points(self) -> np.ndarray:
         """Current render-surface points (p, 3): x_surface = W x on the device (the skinner), or the
         simulator's own ``surface_points(embedding)`` when it has one; without ``[surface]`` the
-        boundary vertices' positions. ``[[body]]`` scenes: every body's, concatenated in body order."""
-        if self.body_surfaces is not None:
-            return np.concatenate([points() for _, _, _, points in self.body_surfaces])
-        if self.embedding is not None:
-            if self._sim_surface_points is not None:
-                return np.asarray(self._sim_surface_points(self.embedding), dtype=np.float64)
-            return self.skinner.apply(self.sim.x).numpy().astype(np.float64)
-        return self.sim.positions()[self.surface_vertex_ids]
+        boundary vertices' positions. Every body's, concatenated in body order."""
+        return np.concatenate([c.points() for c in self.surfaces])
 
     def set_handles(self, fraction_of):
         """Targets of every handle for the coming step: ``fraction_of(handle)`` of its motion."""
@@ -402,15 +380,12 @@ class SceneRun:
             colliders = collider_prims(self.sim, 2.0 * float(np.ptp(self.model.rest_positions, axis=0).max()))
         self._collider_points = [(name, pts) for name, _, pts in colliders]
         self._volumes = volumes
-        extra, blocks = {}, []
-        if self.scene.spec.bodies:  # rest / positions hold every body's vertices in body order
-            offs = self.model.body_offsets
+        offs = self.model.body_offsets  # rest / positions hold every body's vertices in body order
+        extra = {}
+        if self.scene.named_bodies:  # the states name the bodies of a [[body]] scene
             extra = {"body_offsets": np.asarray(offs, dtype=np.int64), "body_names": np.array(self.model.body_names)}
-            blocks = [(b.body_name, b.mesh().elements, b.mesh().element_type, int(lo), int(hi))
-                      for b, lo, hi in zip(self.scene.bodies, offs[:-1], offs[1:])]
-        else:
-            qd = self.model.quadrature
-            blocks = [(None, qd.elements, qd.element_type, 0, int(self.model.num_vertices))]
+        blocks = [(b.block_name, b.own_mesh().elements, b.own_mesh().element_type, int(lo), int(hi))
+                  for b, lo, hi in zip(self.scene.bodies, offs[:-1], offs[1:])]
         return RunInfo(fps=self.fps, total_frames=total, rest=self.model.rest_positions, resume_after=resume_after,
                        version=warpfem_version(), surfaces=self.usd_surfaces(), volumes=volumes,
                        colliders=[(name, faces, len(pts())) for name, faces, pts in colliders], blocks=blocks,
@@ -444,12 +419,12 @@ class SceneRun:
         """Per-element ``J``, ``cauchy_stress`` and ``von_mises`` at positions x (default current), one
         dict per body (one for a one-body scene), from the simulator's own ``stresses(x)``
         (:func:`warpfem.io.element_stress_fields`)."""
-        from warpfem.io.vtu import element_stress_fields, element_stress_fields_by_body
+        from warpfem.io.vtu import deformation_gradients, element_stress_fields_by_body
 
         x = self.sim.positions() if x is None else np.asarray(x, dtype=np.float64)
-        if self.scene.spec.bodies:
-            return element_stress_fields_by_body(self.model, x, self.sim.stresses(x))
-        return [element_stress_fields(self.sim, self.model, x)]
+        stresses = getattr(self.sim, "stresses", None)  # a simulator without: the material at F (one body)
+        P = stresses(x) if stresses is not None else self.model.material.pk1(deformation_gradients(self.model, x))
+        return element_stress_fields_by_body(self.model, x, P)
 
     @staticmethod
     def convergence_summary(history, prior=None) -> dict:

@@ -40,38 +40,48 @@ def _body_plain(v):
 class _SceneBodies:
     """What a scene of ``[[body]]`` tables builds and describes (mixed into :class:`Scene`)."""
 
-    def _bodies_model(self):
-        """The ``Model.from_bodies`` of a ``[[body]]`` scene (each body's material, element type, mass
-        matrix kind); overlapping bodies are a SceneError naming both and the first crossing."""
-        from warpfem.materials import make_material
-        from warpfem.model import Body, Model
+    def _model(self):
+        """The model of the scene's bodies (``Model.from_bodies``, one :class:`warpfem.Body` per body:
+        its mesh, material, element type, mass matrix kind; a scene of the top-level form is the
+        one-body case). A body's error names the body's section; overlapping bodies are a
+        SceneError naming both and the first crossing."""
+        from warpfem.model import Model
 
-        bodies = []
-        for b in self.bodies:
-            mat = b.spec.material
-            material = make_material(mat["model"], youngs_modulus=mat["youngs_modulus"], poisson_ratio=mat["poisson_ratio"],
-                                     density=mat["density"])
-            body = Body(b.mesh(), material, name=b.body_name, initial_velocity=b.initial_velocity,
-                        volumetric_integration=mat["volumetric_integration"], mass_matrix=mat["mass_matrix"])
-            body.offset = b.offset  # the mesh is already moved (selections were made on it)
-            bodies.append(body)
         try:
-            return Model.from_bodies(bodies, gravity=self.spec.top["gravity"])
+            return Model.from_bodies([b.model_body() for b in self.bodies], gravity=self.spec.top["gravity"],
+                                     mass_matrix=self.spec.material["mass_matrix"])
         except ValueError as e:
-            self._fail("[[body]]", str(e))
+            i = getattr(e, "body", None)
+            if i is None:
+                self._fail("[[body]]", str(e))
+            msg = str(e.__cause__)  # e.g. an element with det J <= 0 at a quadrature point (named)
+            self.bodies[i].fail("[mesh]" if "element" in msg.lower() else "[material]", msg)
 
+    def model_body(self):
+        """This scene's own body (its [mesh] and [material]) as a :class:`warpfem.Body`."""
+        from warpfem.materials import make_material
+        from warpfem.model import Body
+
+        mat = self.spec.material
+        material = make_material(mat["model"], youngs_modulus=mat["youngs_modulus"], poisson_ratio=mat["poisson_ratio"],
+                                 density=mat["density"])
+        body = Body(self.own_mesh(), material, initial_velocity=self.initial_velocity,
+                    volumetric_integration=mat["volumetric_integration"], mass_matrix=mat["mass_matrix"])
+        body.name = self.body_name
+        body.offset = self.offset  # the mesh is already moved (selections were made on it)
+        return body
 
     def _describe_bodies(self) -> str:
         """``warpfem describe`` of a ``[[body]]`` scene: every body, then the shared sections."""
         from . import INTEGRATORS, section_entries
 
         sp = self.spec
-        mesh = self.mesh()
+        mesh, offsets = self.mesh(), self.body_offsets
         lines = [f"scene {self.name!r} ({self.path}): {len(self.bodies)} bodies, {mesh.num_elements} elements, "
                  f"{mesh.num_vertices} vertices, {3 * mesh.num_vertices} DOFs in all"]
         memory = {"float32": 0, "float64": 0}
         nnz_total = 0
-        for b, lo, hi in zip(self.bodies, mesh.body_offsets[:-1], mesh.body_offsets[1:]):
+        for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
             bs, bm = b.spec, b.mesh()
             etype, vi = bs.mesh["element"], bs.material["volumetric_integration"]
             qpe = quadrature_points_per_element(etype, vi)
@@ -147,11 +157,11 @@ class _SceneBodies:
 
         from . import INTEGRATORS
 
-        sp, mesh = self.spec, self.mesh()
+        sp, mesh, offsets = self.spec, self.mesh(), self.body_offsets
         entry = INTEGRATORS[self.integrator_type]
         out = sp.output
         bodies = []
-        for b, lo, hi in zip(self.bodies, mesh.body_offsets[:-1], mesh.body_offsets[1:]):
+        for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
             s = b.summary()
             bodies.append({"name": b.body_name, "offset": b.offset.tolist(), "initial_velocity": b.initial_velocity.tolist(),
                            "first_vertex": int(lo), "vertices": int(hi - lo), "mesh": s["mesh"], "material": s["material"],
@@ -159,7 +169,7 @@ class _SceneBodies:
                            "matrix_blocks": s["matrix_blocks"], "estimated_device_memory_bytes": s["estimated_device_memory_bytes"]})
         return {
             "scene": self.name, "path": self.path, "warpfem_version": warpfem_version(),
-            "bodies": bodies, "body_offsets": [int(o) for o in mesh.body_offsets],
+            "bodies": bodies, "body_offsets": [int(o) for o in offsets],
             "vertices": int(mesh.num_vertices), "elements": int(mesh.num_elements), "dofs": int(3 * mesh.num_vertices),
             "gravity": list(sp.top["gravity"]),
             "integrator": {**{key: _body_plain(val) for key, val in sp.integrator.items()}, "dynamic": bool(entry.dynamic),
@@ -183,6 +193,8 @@ class Scene(_SceneBodies):
         self.spec = spec
         self.path = spec.path
         self._mesh = None
+        self._own = None  # this scene's own [mesh], loaded (a body's; own_mesh())
+        self.own_mesh_warnings = []
         self.mesh_warnings = []  # the mesh loader's warnings (filled by mesh())
 
     @property
@@ -210,23 +222,80 @@ class Scene(_SceneBodies):
     # -- mesh and selections (numpy) --------------------------------------------------------------
     @property
     def bodies(self) -> list:
-        """The ``[[body]]`` tables as scenes of their own (:class:`BodyScene`: mesh moved by the
-        body's offset, selections in its own vertex numbering); [] for a single-body scene."""
+        """The scene's bodies, each a scene of its own (mesh, material, selections in its own vertex
+        numbering): the ``[[body]]`` tables (:class:`BodyScene`: mesh moved by the body's offset,
+        errors naming the body), or, for a scene of the top-level form ([mesh], [material]), the
+        scene itself: a one-body scene is its own one body. Everything else runs over this list."""
         if getattr(self, "_bodies", None) is None:
             self._bodies = [BodyScene(self, b) for b in self.spec.bodies]
-        return self._bodies
+        return self._bodies or [self]  # not kept: a copy of the scene is its own body
+
+    # -- the scene as a body (its own [mesh] and [material]; BodyScene: a [[body]] table) ------------
+    label = None  # BodyScene: "[[body]] #2 'right'" (messages)
+
+    @property
+    def offset(self) -> np.ndarray:
+        """The body's translation (m): zero for a scene of the top-level form."""
+        return np.zeros(3)
+
+    @property
+    def initial_velocity(self) -> np.ndarray:
+        """The body's velocity at t = 0 (m/s): zero for a scene of the top-level form."""
+        return np.zeros(3)
+
+    @property
+    def body_name(self) -> str:
+        """The body's name in the model: its mesh's name, or "body" (BodyScene: the table's name)."""
+        return getattr(self.own_mesh(), "name", None) or "body"
+
+    @property
+    def surface_prim(self) -> str:
+        """The USD prim of the body's render surface: the [surface] name, or "boundary"."""
+        return self.spec.surface["name"] if self.spec.surface is not None else "boundary"
+
+    @property
+    def volume_prim(self) -> str:
+        """The USD prim of the body's TetMesh (``[output] usd_volume``)."""
+        return "volume"
+
+    @property
+    def block_name(self):
+        """The body's ParaView block name (None: the collection holds the one body's cells)."""
+        return None
+
+    @property
+    def named_bodies(self) -> bool:
+        """Whether the outputs name each body: a scene of ``[[body]]`` tables (USD prims and ParaView
+        blocks by body name, ``body_offsets`` / ``body_names`` in the states file)."""
+        return bool(self.spec.bodies)
+
+    @property
+    def body_offsets(self) -> np.ndarray:
+        """The first vertex of each body in the scene's vertex numbering, then the total."""
+        return np.concatenate([[0], np.cumsum([b.own_mesh().num_vertices for b in self.bodies])]).astype(np.int64)
+
+    @property
+    def contact_by_default(self) -> bool:
+        """Two or more bodies: contact between them without a [contact] section (its defaults)."""
+        return len(self.bodies) >= 2
 
     def mesh(self):
-        """The simulation mesh (loaded / generated once): a ``warpfem.mesh.VolumeMesh`` of the scene's
-        element type; for ``[[body]]`` scenes a :class:`warpfem.model.BodiesMesh` of every body's mesh."""
-        if self._mesh is None and self.spec.bodies:
-            from warpfem.model import BodiesMesh
-
-            meshes = [b.mesh() for b in self.bodies]
-            offsets = np.concatenate([[0], np.cumsum([m.num_vertices for m in meshes])])
-            self._mesh = BodiesMesh(meshes, offsets, [b.body_name for b in self.bodies])
-            self.mesh_warnings = [f"{b.label}: {w}" for b in self.bodies for w in b.mesh_warnings]
+        """The simulation mesh (loaded / generated once) as the model sees it: the one body's
+        ``warpfem.mesh.VolumeMesh`` (of the scene's element type), or a
+        :class:`warpfem.model.BodiesMesh` of every body's mesh (``warpfem.model.bodies_mesh``)."""
         if self._mesh is None:
+            from warpfem.model import bodies_mesh
+
+            meshes = [b.own_mesh() for b in self.bodies]
+            self._mesh = bodies_mesh(meshes, self.body_offsets, [b.body_name for b in self.bodies])
+            # the loader's notes (reoriented tets, removed vertices): `describe` lists them, `build` logs them
+            self.mesh_warnings = [w if b is self else f"{b.label}: {w}" for b in self.bodies for w in b.own_mesh_warnings]
+        return self._mesh
+
+    def own_mesh(self):
+        """This scene's own [mesh] (a body's; loaded / generated once), the loader's notes in
+        ``own_mesh_warnings``."""
+        if self._own is None:
             import warnings
 
             from warpfem.elements import ElementError
@@ -234,15 +303,14 @@ class Scene(_SceneBodies):
 
             try:
                 with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always")  # reorientation / unreferenced notes: kept, shown below
-                    self._mesh = self._make_mesh()
+                    warnings.simplefilter("always")  # reorientation / unreferenced notes: kept
+                    self._own = self._make_mesh()
             except (MeshError, ElementError, ValueError) as e:
                 if isinstance(e, SceneError):
                     raise
                 self._fail("[mesh]", str(e))
-            # the loader's notes (reoriented tets, removed vertices): `describe` lists them, `build` logs them
-            self.mesh_warnings = list(dict.fromkeys(str(w.message) for w in caught))
-        return self._mesh
+            self.own_mesh_warnings = list(dict.fromkeys(str(w.message) for w in caught))
+        return self._own
 
     def _make_mesh(self):
         from warpfem.mesh import MeshError, load_element_mesh, load_mesh
@@ -291,7 +359,7 @@ class Scene(_SceneBodies):
     def _select(self, section, i, entry):
         from warpfem.mesh import select_vertices_in_box
 
-        mesh = self.mesh()
+        mesh = self.own_mesh()
         if entry.get("indices") is not None:
             ids = np.unique(np.asarray(entry["indices"], dtype=np.int64))
             if ids.max() >= mesh.num_vertices:
@@ -305,28 +373,32 @@ class Scene(_SceneBodies):
 
     def selections(self) -> dict:
         """Vertex ids per ``[[fixed]]``, ``[[handle]]``, ``[[force]]`` entry: {section: [ids, ...]}
-        (``[[body]]`` scenes: every body's entries in body order, global vertex ids)."""
-        if self.spec.bodies:
-            out = {s: [] for s in ("fixed", "handle", "force")}
-            offsets = self.mesh().body_offsets
-            for b, lo in zip(self.bodies, offsets[:-1]):
-                for s, ids in b.selections().items():
-                    out[s] += [i + int(lo) for i in ids]
-            return out
+        (every body's entries in body order, global vertex ids)."""
+        out = {s: [] for s in ("fixed", "handle", "force")}
+        for b, lo in zip(self.bodies, self.body_offsets[:-1]):
+            for s, ids in b.own_selections().items():
+                out[s] += [i + int(lo) for i in ids]
+        return out
+
+    def own_selections(self) -> dict:
+        """The selections of this scene's own entries, in its own mesh's vertex numbering."""
         return {s: [self._select(s, i, e) for i, e in enumerate(getattr(self.spec, s))] for s in ("fixed", "handle", "force")}
 
     def tractions(self):
-        """[(forces (n, 3), loaded faces, area)] per ``[[traction]]`` entry (consistent loads)."""
-        if self.spec.bodies:
-            mesh = self.mesh()
-            out = []
-            for b, lo, hi in zip(self.bodies, mesh.body_offsets[:-1], mesh.body_offsets[1:]):
-                for f, faces, area in b.tractions():
-                    g = np.zeros((mesh.num_vertices, 3))
-                    g[lo:hi] = f
-                    out.append((g, faces, area))
-            return out
-        mesh = self.mesh()
+        """[(forces (n, 3), loaded faces, area)] per ``[[traction]]`` entry (consistent loads; every
+        body's entries in body order, forces over every vertex)."""
+        offsets = self.body_offsets
+        out = []
+        for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
+            for f, faces, area in b.own_tractions():
+                g = np.zeros((int(offsets[-1]), 3))
+                g[lo:hi] = f
+                out.append((g, faces, area))
+        return out
+
+    def own_tractions(self):
+        """The tractions of this scene's own entries, over its own mesh's vertices."""
+        mesh = self.own_mesh()
         tet4 = mesh.element.is_linear_tet  # plain triangles; other types integrate N_a on their faces
         faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
         out = []
@@ -344,7 +416,7 @@ class Scene(_SceneBodies):
     def _contact_lines(self) -> list[str]:
         """describe's line on surface contact ([contact], or its defaults in a scene of two or more bodies)."""
         c = self.spec.contact
-        if c is None and len(self.spec.bodies or ()) < 2:
+        if c is None and not self.contact_by_default:
             return []
         c = dict.fromkeys(("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity")) if c is None else c
         return ["contact: " + ", ".join(f"{k} = {('default' if c[k] is None else c[k])}"
@@ -364,7 +436,7 @@ class Scene(_SceneBodies):
             return None
         integ = sp.integrator
         steps = int(integ["substeps"]) if INTEGRATORS[self.integrator_type].dynamic else int(integ.get("load_steps", 1))
-        contact = bool(sp.collider) or sp.contact is not None or len(sp.bodies or ()) >= 2
+        contact = bool(sp.collider) or sp.contact is not None or self.contact_by_default
         return estimate_frame_cost(vertices=self.mesh().num_vertices, steps_per_frame=steps, frames=int(sp.output["frames"]),
                                    contact=contact, newton=self.integrator_type != "stiffness_warping")
 
@@ -383,7 +455,7 @@ class Scene(_SceneBodies):
         """What :meth:`build` will build: counts, selections, integrator, outputs and memory."""
         from . import INTEGRATORS
 
-        if self.spec.bodies:
+        if self.named_bodies:  # the [[body]] form: a section per body
             return self._describe_bodies()
         sp = self.spec
         mesh = self.mesh()
@@ -525,11 +597,9 @@ class Scene(_SceneBodies):
         mean_edge = float(np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1).mean())
         diagonal = float(np.linalg.norm(np.ptp(X, axis=0)))
         surface = int(np.unique(faces).size)
-        mass = float(sp.material["density"]) * mesh.total_volume()
-        E = float(sp.material.get("youngs_modulus") or 0.0)
-        if sp.bodies:  # as the model: every body's mass, the stiffest body's E
-            mass = sum(float(b.spec.material["density"]) * b.mesh().total_volume() for b in self.bodies)
-            E = max(float(b.spec.material.get("youngs_modulus") or 0.0) for b in self.bodies)
+        # as the model: every body's mass, the stiffest body's E
+        mass = sum(float(b.spec.material["density"]) * b.own_mesh().total_volume() for b in self.bodies)
+        E = max(float(b.spec.material.get("youngs_modulus") or 0.0) for b in self.bodies)
         out = []
         for i, c in enumerate(sp.collider):
             auto = c.get("stiffness") == "auto"  # adaptive (warpfem.contact.stiffness): set per step
@@ -564,7 +634,7 @@ class Scene(_SceneBodies):
 
         from . import INTEGRATORS
 
-        if self.spec.bodies:
+        if self.named_bodies:  # the [[body]] form: an entry per body
             return self._summary_bodies()
         sp, mesh = self.spec, self.mesh()
         k, n, m = mesh.nodes_per_element, mesh.num_vertices, mesh.num_elements
@@ -653,9 +723,6 @@ class Scene(_SceneBodies):
 
         ``full=True``: the full-space simulator even when a section (``[subspace]``) would replace
         it (the training run of a reduced scene)."""
-        from warpfem.materials import make_material
-        from warpfem.model import Model
-
         from . import integrator_entry
 
         if precision not in ("float32", "float64"):
@@ -664,22 +731,12 @@ class Scene(_SceneBodies):
 
         device = resolve_device(device)  # DeviceError (lists the devices) before any scene work
         sp = self.spec
-        mesh = self.mesh()
+        self.mesh()  # every body's mesh, and the loaders' notes
         for w in self.mesh_warnings:
             logging.getLogger(__name__).warning("%s: [mesh]: %s", self.path or "<scene>", w)
         sel = self.selections()
         tractions = self.tractions()
-        mat = sp.material
-        material = make_material(mat["model"], youngs_modulus=mat["youngs_modulus"], poisson_ratio=mat["poisson_ratio"],
-                                 density=mat["density"])
-        if sp.bodies:
-            model = self._bodies_model()
-        else:
-            try:
-                model = Model(mesh, material, gravity=sp.top["gravity"], mass_matrix=mat["mass_matrix"],
-                              volumetric_integration=mat["volumetric_integration"])
-            except ValueError as e:  # e.g. an element with det J <= 0 at a quadrature point (named)
-                self._fail("[mesh]" if "element" in str(e).lower() else "[material]", str(e))
+        model = self._model()
         for e, ids in zip(sp.fixed, sel["fixed"]):
             model.fix(ids, e["components"])
         for e, ids in zip(sp.force, sel["force"]):
@@ -701,8 +758,7 @@ class Scene(_SceneBodies):
             from warpfem.contact.scene import add_scene_colliders
 
             add_scene_colliders(self, sim, duration=sp.output["frames"] / sp.output["fps"])
-        several = len(getattr(model, "body_offsets", ())) > 2  # two or more bodies: contact between them by default
-        if sp.contact is not None or (several and hasattr(sim, "set_contact")):  # warpfem.contact.surface
+        if sp.contact is not None or (self.contact_by_default and hasattr(sim, "set_contact")):  # warpfem.contact.surface
             from warpfem.contact.scene import set_scene_contact
             from warpfem.scenes.schema import SCHEMA
 
@@ -736,9 +792,16 @@ class BodyScene(Scene):
     def __init__(self, parent: Scene, body: dict):
         super().__init__(body["spec"])
         self.parent, self.body = parent, body
-        self.label, self.body_name = body["label"], body["name"]
-        self.offset = np.asarray(body["offset"], dtype=np.float64)
-        self.initial_velocity = np.asarray(body["initial_velocity"], dtype=np.float64)
+        self.label = body["label"]
+        self._offset = np.asarray(body["offset"], dtype=np.float64)
+        self._initial_velocity = np.asarray(body["initial_velocity"], dtype=np.float64)
+
+    offset = property(lambda self: self._offset, doc="The body's translation (m).")
+    initial_velocity = property(lambda self: self._initial_velocity, doc="The body's velocity at t = 0 (m/s).")
+    body_name = property(lambda self: self.body["name"], doc="The ``[[body]]`` table's name.")
+    surface_prim = property(lambda self: self.body_name, doc="USD prims are named after the body.")
+    volume_prim = property(lambda self: f"{self.body_name}_volume", doc="The body's TetMesh prim.")
+    block_name = property(lambda self: self.body_name, doc="ParaView blocks are named after the body.")
 
     def fail(self, where, msg):
         raise SceneError(f"{self.path or '<scene>'}: {self.label}: {where}: {msg}")

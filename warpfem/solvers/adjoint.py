@@ -108,8 +108,6 @@ PARAMETERS = ("youngs_modulus", "poisson_ratio", "density", "element_stiffness_s
               "initial_positions", "initial_velocities", "targets", "collider_translations", "collider_rotations",
               "collider_friction", "contact_friction")
 
-_KINDS = {"backward_euler": "be", "bdf2": "bdf2", "newmark": "newmark"}
-
 #: default memory for the factorisations that recorded steps keep for their reverse pass (direct
 #: solver; docs/gradients.md, "Cost"): 1 GiB
 DEFAULT_FACTOR_BUDGET = 1 << 30
@@ -136,9 +134,12 @@ def check_differentiable(sim):
     """Raise ``NotImplementedError`` (saying what) when gradients of ``sim``'s steps are not supported."""
     integ = getattr(sim, "integrator", None)
     name = getattr(integ, "name", None)
-    if not hasattr(sim, "quadrature_sets") or name not in _KINDS:
-        raise NotImplementedError(f"gradients are supported for warpfem.Simulator with backward_euler, bdf2 or "
-                                  f"newmark, not for {type(sim).__name__} (integrator {name!r})")
+    if not hasattr(sim, "quadrature_sets") or not getattr(integ, "reversible", False):
+        from warpfem.integrators import INTEGRATOR_NAMES, make_integrator
+
+        names = [k for k in INTEGRATOR_NAMES if make_integrator(k).reversible]
+        raise NotImplementedError(f"gradients are supported for warpfem.Simulator with {', '.join(names[:-1])} or "
+                                  f"{names[-1]}, not for {type(sim).__name__} (integrator {name!r})")
     contact = getattr(sim, "contact", None)
     if contact is not None and len(contact):
         for c in contact.colliders:
@@ -208,9 +209,9 @@ def set_element_stiffness_scale(sim, scale):
 
 class StepRecord:
     """What the reverse pass needs of one forward step (host float64 copies): the kind of step
-    ("be", "bdf2_first", "bdf2", "newmark_a0", "newmark"), dt, s, the input state (x, v and the
-    history it used), the converged y (= v_{n+1}), x_{n+1}, v_hat (Newmark), the free mask, the
-    control's targets and load scale."""
+    (the integrator's variant, ``Integrator.reverse_record``: "be", "bdf2_first", "bdf2",
+    "newmark_a0", "newmark"), dt, s, the input state (x, v and the history it used), the converged
+    y (= v_{n+1}), x_{n+1}, v_hat (Newmark), the free mask, the control's targets and load scale."""
 
     def __init__(self, kind, dt, s, x, v, hist, mask, targets, load_scale):
         self.kind, self.dt, self.s = kind, float(dt), float(s)
@@ -274,7 +275,7 @@ class StepAdjoint:
         self.max_refinements = int(max_refinements)
         model = sim.model
         self.n = n = sim.num_vertices
-        self.kind_name = _KINDS[sim.integrator.name]
+        self.integrator = sim.integrator  # its reverse: reverse_record, advance_reverse, predict_reverse
         self._M = sim.mass_matrix().tocsr()
         mats = _body_materials(model)
         self._mats = mats
@@ -358,19 +359,7 @@ class StepAdjoint:
         """Copy what the reverse pass of a step from ``state_in`` needs (call before the step)."""
         check_differentiable(self.sim)
         dt = float(dt)
-        hist, h = state_in.history, {}
-        kind = self.kind_name
-        if kind == "bdf2":
-            if hist.get("h") != dt or "x_prev" not in hist:
-                kind = "bdf2_first"
-            else:
-                h = {"x_prev": _host(hist["x_prev"]), "v_prev": _host(hist["v_prev"])}
-        elif kind == "newmark":
-            if "a" in hist:
-                h = {"a": _host(hist["a"])}
-            else:
-                kind = "newmark_a0"
-        s = {"be": dt, "bdf2_first": dt, "bdf2": 2.0 * dt / 3.0, "newmark": 0.5 * dt, "newmark_a0": 0.5 * dt}[kind]
+        kind, s, h = self.integrator.reverse_record(state_in, dt, _host)
         rec = StepRecord(kind, dt, s, _host(state_in.x), _host(state_in.v), h, _host(self.sim.free_mask),
                          control.targets, control.load_scale)
         rec.t0 = float(state_in.time)
@@ -388,8 +377,7 @@ class StepAdjoint:
             # the factorisation of the step's last Newton iteration, solved with in the reverse pass
             # (refined against the exact Hessian) instead of factorising again
             rec.factor = solver.keep_factor(self.factor_budget - solver.kept_bytes)
-        if rec.kind.startswith("newmark"):
-            rec.v_hat = rec.y - rec.s * _host(state_out.history["a"])  # a_{n+1} = (y - v_hat) / s
+        self.integrator.reverse_complete(rec, state_out, _host)
         return rec
 
     # -- device helpers ---------------------------------------------------------------------------------------
@@ -623,26 +611,13 @@ class StepAdjoint:
         zero = np.zeros((n, 3))
         xbar = zero if xbar is None else np.asarray(xbar, dtype=np.float64).reshape(n, 3)
         vbar = zero if vbar is None else np.asarray(vbar, dtype=np.float64).reshape(n, 3)
-        h, s, kind, P = rec.dt, rec.s, rec.kind, rec.mask
+        s, P = rec.s, rec.mask
         alpha, c = sim.damping_mass, rec.load_scale
-        x_n, v_n, y = rec.x, rec.v, rec.y
-        if kind in ("be", "bdf2_first"):
-            v_hat = v_n
-        elif kind == "bdf2":
-            v_hat = v_n + (v_n - rec.hist["v_prev"]) / 3.0
-        else:
-            v_hat = rec.v_hat
-        xn_bar, vn_bar, h_in = np.zeros((n, 3)), np.zeros((n, 3)), {}
-        # outputs: x_{n+1} = x_b + s y, v_{n+1} = y, history
-        ybar = vbar + s * xbar
-        xb_bar = xbar.copy()
-        vhat_bar = np.zeros((n, 3))
-        if kind.startswith("bdf2"):
-            xn_bar += hbar.get("x_prev", 0.0)
-            vn_bar += hbar.get("v_prev", 0.0)
-        if kind.startswith("newmark") and "a" in hbar:
-            ybar = ybar + hbar["a"] / s  # a_{n+1} = (y - v_hat) / s
-            vhat_bar -= hbar["a"] / s
+        y = rec.y
+        integ = self.integrator
+        v_hat = integ.recorded_v_hat(rec)
+        # outputs: x_{n+1} = x_b + s y, v_{n+1} = y, history (the integrator's transposed advance)
+        ybar, xb_bar, vhat_bar, xn_bar, vn_bar = integ.advance_reverse(rec, xbar, vbar, hbar)
         # the implicit solve: H lambda = ybar on the free components
         sc = getattr(sim, "surface_contact", None)
         sfric = self._surface_friction(rec, sc)  # lagged at x_n: its broad phase there first
@@ -712,22 +687,8 @@ class StepAdjoint:
         # parameters at the converged step
         if np.any(lam):
             self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha, M_w=M_lam)
-        # the prediction (x_b, v_hat) from (x_n, v_n, history)
-        if kind in ("be", "bdf2_first"):
-            xn_bar += xb_bar
-            vn_bar += vhat_bar
-        elif kind == "bdf2":
-            xn_bar += (4.0 / 3.0) * xb_bar
-            vn_bar += (4.0 / 3.0) * vhat_bar
-            h_in = {"x_prev": -xb_bar / 3.0, "v_prev": -vhat_bar / 3.0}
-        else:  # Newmark: x_b = x_n + h/2 v_n, v_hat = v_n + h/2 a
-            xn_bar += xb_bar
-            vn_bar += 0.5 * h * xb_bar + vhat_bar
-            a_bar = 0.5 * h * vhat_bar
-            if kind == "newmark":
-                h_in = {"a": a_bar}
-            else:  # a_0 from M a_0 = f(x_n) + c f_ext - alpha M v_n (free components)
-                self._a0_backward(rec, a_bar, xn_bar, vn_bar, v_hat)
+        # the prediction (x_b, v_hat) from (x_n, v_n, history): the integrator's transposed predict
+        h_in = integ.predict_reverse(rec, xb_bar, vhat_bar, xn_bar, vn_bar, self)
         return xn_bar, vn_bar, h_in
 
     def _accumulate_params(self, x_dev, w, sign, *, y=None, v_hat=None, s=1.0, c=1.0, alpha=0.0, a0=None, v_n=None,
@@ -759,7 +720,10 @@ class StepAdjoint:
             self.grads["forces"] += c * w
             self.grads["density"] -= per_body(M1(a0) - c * self._fgrav_unit + alpha * M1(v_n))
 
-    def _a0_backward(self, rec, a_bar, xn_bar, vn_bar, v_hat):
+    def acceleration_reverse(self, rec, a_bar, xn_bar, vn_bar, v_hat):
+        """The reverse of ``VectorOps.acceleration`` (M a_0 = f(x_n) + c f_ext - alpha M v_n on the free
+        components, Newmark's first step): adds its adjoint into ``xn_bar`` / ``vn_bar`` and the
+        parameter gradients (``a_bar``: the adjoint of a_0)."""
         n, P = self.n, rec.mask
         a_bar = P * a_bar
         if not np.any(a_bar):
