@@ -310,3 +310,22 @@ def test_two_rigid_cubes_collide_conserving_linear_momentum_and_losing_energy():
     assert np.abs(momentum() - P0).max() < 1e-7
     assert sim.kinetic_energy() < K0
     assert v[4, 0] - v[0, 0] > 0.5  # separating (they approached at 2 m/s)
+
+
+def test_a_force_on_a_rigid_vertex_gives_its_impulse_and_its_moment():
+    """Zero gravity, a constant force F on one vertex of a resting rigid body (``model.add_force``,
+    through E^T): after t the linear momentum is F t and the angular momentum about the centre of
+    mass (the vertex moves little in 0.02 s) is about (x - c) x F t."""
+    b = _box()
+    m = Model.from_bodies([b])
+    F = np.array([0.0, 0.0, 2.0])
+    m.add_force([0], F)
+    sim = Simulator(m, dt=0.002, integrator="bdf2")
+    r = sim.vertex_positions()[0] - b.center_of_mass
+    for _ in range(10):
+        sim.step()
+    P, L = _moments(sim, b)
+    c = sim.positions()[0]
+    L_com = L - b.mass * np.cross(c, sim.velocities()[0])  # about the moving centre of mass
+    np.testing.assert_allclose(P, F * 0.02, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(L_com, np.cross(r, F) * 0.02, rtol=0.02, atol=1e-4 * np.linalg.norm(np.cross(r, F)) * 0.02)

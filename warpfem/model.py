@@ -197,10 +197,14 @@ class Model:
         return out
 
     def add_force(self, indices, force) -> None:
-        """Add a constant force (N) to each given vertex."""
+        """Add a constant force (N) to each given vertex (with rigid bodies: vertex indices of every
+        body, ``body_offsets``; on a rigid body's vertex the force and its torque act on the body)."""
         f = np.asarray(force, dtype=np.float64)
         if f.shape != (3,) or not np.all(np.isfinite(f)):
             raise ValueError(f"force must be 3 finite numbers, got {force!r}")
+        if self.rigid is not None:  # vertices of every body; a rigid body's force acts through E^T
+            self.rigid.add_force(self.forces, indices, f)
+            return
         np.add.at(self.forces, self.indices(indices), f)
 
 

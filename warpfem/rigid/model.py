@@ -94,13 +94,30 @@ class RigidLayout:
 
     # -- model hooks ----------------------------------------------------------------------------------
     def check_vertices(self, idx):
-        """Refuse vertex indices of rigid bodies (fixed components, targets, applied forces)."""
+        """Refuse vertex indices of rigid bodies (fixed components, targets)."""
         idx = np.asarray(idx, dtype=np.int64)
         bad = idx[(idx >= self.num_soft) & (idx < self.num_positions)]
         if bad.size:
             r = int(self.vertex_body[int(bad[0])])
             raise ValueError(f"vertex {int(bad[0])} belongs to rigid body {self.names[r]!r}: a rigid body cannot have "
-                             "fixed components, targets or applied forces (only soft bodies can)")
+                             "fixed components or targets (only soft bodies can)")
+
+    def add_force(self, forces, indices, f):
+        """forces (the unknown's, (n_dofs, 3)) += E^T of the force f on each vertex of ``indices``
+        (vertex space): a soft vertex's own row; a rigid vertex adds f to p and X_k f to a_k (the
+        generalised force of f at x = p + A X: its resultant and its moment about the centre of mass)."""
+        idx = np.atleast_1d(np.asarray(indices))
+        if idx.size and idx.dtype.kind not in "iu":
+            raise TypeError(f"vertex indices must be integers, got dtype {idx.dtype}")
+        idx = idx.astype(np.int64).ravel()
+        bad = idx[(idx < 0) | (idx >= self.num_positions)]
+        if bad.size:
+            raise IndexError(f"vertex index {int(bad[0])} out of range [0, {self.num_positions}) ({bad.size} bad)")
+        nodes, w = self.vertex_weights()
+        for v in idx:
+            for a in range(4):
+                if nodes[v, a] >= 0:
+                    forces[nodes[v, a]] += w[v, a] * f
 
     def initial_velocities(self, soft_velocities):
         """(n_dofs, 3) node velocities at t = 0: the soft bodies' then each rigid body's
