@@ -34,6 +34,7 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (mkdocstr
                               embed_points_in_elements, load_element_mesh, load_mesh, save_element_mesh, save_mesh,
                               select_vertices_in_box, tet10_from_tet4)
     from warpfem.model import Body, Model
+    from warpfem.rigid import RigidBody
     from warpfem.integrators import BDF2, BackwardEuler, Integrator, Newmark
     from warpfem.simulator import Simulator
     from warpfem.solvers.nonlinear import NewtonOptions, SolveFailed, SolveStats
@@ -55,6 +56,7 @@ _LAZY = {
                      "embed_points_in_elements", "load_element_mesh", "load_mesh", "save_element_mesh", "save_mesh",
                      "select_vertices_in_box", "tet10_from_tet4"], "warpfem.mesh"),
     **dict.fromkeys(["Body", "Model"], "warpfem.model"),
+    "RigidBody": "warpfem.rigid",
     **dict.fromkeys(["BDF2", "BackwardEuler", "Integrator", "Newmark"], "warpfem.integrators"),
     "Simulator": "warpfem.simulator",
     **dict.fromkeys(["NewtonOptions", "SolveFailed", "SolveStats"], "warpfem.solvers.nonlinear"),
@@ -88,6 +90,7 @@ __all__ = [
     "MeshError",
     "Model",
     "Body",
+    "RigidBody",
     "NewtonOptions",
     "Simulator",
     "State",

@@ -136,6 +136,9 @@ class Model:
             neo-Hookean: lambda_L/2 (J - 1)^2 | the rest (see ``Material.volumetric_split``).
     """
 
+    #: the rigid bodies' layout (``warpfem.rigid.model.RigidLayout``) of a model with some, else None
+    rigid = None
+
     def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped",
                  volumetric_integration: str = "full"):
         # a model of one mesh is the one-body case of Model.from_bodies: the same construction
@@ -162,6 +165,8 @@ class Model:
         if idx.size and (idx.dtype.kind not in "iu"):
             raise TypeError(f"vertex indices must be integers, got dtype {idx.dtype}")
         idx = idx.astype(np.int64).ravel()
+        if getattr(self, "rigid", None) is not None:  # soft vertices only (warpfem.rigid)
+            self.rigid.check_vertices(idx)
         bad = idx[(idx < 0) | (idx >= self.num_vertices)]
         if bad.size:
             raise IndexError(f"vertex index {int(bad[0])} out of range [0, {self.num_vertices}) ({bad.size} bad)")
@@ -192,10 +197,14 @@ class Model:
         return out
 
     def add_force(self, indices, force) -> None:
-        """Add a constant force (N) to each given vertex."""
+        """Add a constant force (N) to each given vertex (with rigid bodies: vertex indices of every
+        body, ``body_offsets``; on a rigid body's vertex the force and its torque act on the body)."""
         f = np.asarray(force, dtype=np.float64)
         if f.shape != (3,) or not np.all(np.isfinite(f)):
             raise ValueError(f"force must be 3 finite numbers, got {force!r}")
+        if self.rigid is not None:  # vertices of every body; a rigid body's force acts through E^T
+            self.rigid.add_force(self.forces, indices, f)
+            return
         np.add.at(self.forces, self.indices(indices), f)
 
 
@@ -222,10 +231,22 @@ class Model:
         refused with :class:`warpfem.mesh.intersect.BodyOverlapError` naming the two bodies and the
         first crossing (an edge of one through a triangle of the other, with positions);
         ``check_overlap=False`` skips the test (``warpfem.mesh.intersect.first_body_overlap``).
+
+        Rigid bodies (:class:`warpfem.RigidBody`, after the soft bodies in the list): the model's
+        unknown then holds four nodes per rigid body in place of its vertices (``num_vertices``,
+        ``rest_positions``, ``mass``, ``fixed`` are of the unknown; ``body_offsets`` and ``mesh``
+        stay of the vertices; ``rigid`` maps one to the other: docs/rigid.md).
         """
         bodies = list(bodies)
         if not bodies:
             raise ValueError("Model.from_bodies needs at least one body")
+        from warpfem.rigid.body import RigidBody
+
+        if any(isinstance(b, RigidBody) for b in bodies):  # affine bodies: the unknown and the vertices differ
+            from warpfem.rigid.model import build_model
+
+            return build_model(cls, bodies, bodies_mesh=BodiesMesh, gravity=gravity, mass_matrix=mass_matrix,
+                               check_overlap=check_overlap)
         for i, b in enumerate(bodies):
             if not isinstance(b, BaseBody):
                 raise TypeError(f"body #{i + 1} must be a warpfem.Body, got {type(b).__name__}")
@@ -290,7 +311,12 @@ class Model:
         return np.unique(e, axis=0)
 
     def initial_velocities(self):
-        """(n, 3) velocities at t = 0 (the bodies' ``initial_velocity``), or None when all are zero."""
+        """(n, 3) velocities at t = 0 (the bodies' ``initial_velocity``), or None when all are zero.
+        With rigid bodies: of the unknown's nodes (``warpfem.rigid.model``)."""
+        if self.rigid is not None:
+            soft = [np.repeat(b.initial_velocity[None], n, axis=0) for b, n in
+                    zip(self.bodies, np.diff(self.body_offsets)[:len(self.bodies) - len(self.rigid.bodies)])]
+            return self.rigid.initial_velocities(np.concatenate(soft) if soft else np.zeros((0, 3)))
         if not any(np.any(b.initial_velocity != 0.0) for b in self.bodies):
             return None
         return np.repeat(np.stack([b.initial_velocity for b in self.bodies]), np.diff(self.body_offsets), axis=0)

@@ -123,7 +123,9 @@ class Simulator(SimulatorBase):
         dev = self.device
         # one quadrature set per body (a single-mesh model: its one body); each body's own element
         # type (k), material and connectivity (global vertex indices), all in one vertex space
-        quads = list(getattr(model, "quadratures", None) or [model.quadrature])
+        rigid = getattr(model, "rigid", None)  # rigid bodies (warpfem.rigid): their nodes have no elements
+        quads = list(model.quadratures) if rigid is not None else list(getattr(model, "quadratures", None)
+                                                                        or [model.quadrature])
         mats = list(getattr(model, "materials", None) or [model.material])
         splits = list(getattr(model, "body_volumetric_parameters", None) or [getattr(model, "volumetric_parameters", None)])
         self._x_rest = to_device(model.rest_positions.astype(self._np), self._vec, dev)
@@ -158,13 +160,16 @@ class Simulator(SimulatorBase):
                                             energy, group),
                               QuadratureSet(vq.num_points, vpoints, material_params(self._s, mat.kind, mu_v, lam_v),
                                             wp.zeros(vq.num_points, dtype=self._s, device=dev), group)]
-        first = self._main_sets[0]
-        self._points, self._material = first.points, first.material  # the first body's (benchmarks, tools)
-        self._elements = first.points.elements
-        self._k = quads[0].nodes_per_element
+        first = self._main_sets[0] if self._main_sets else None  # None: rigid bodies only
+        self._points, self._material = (first.points, first.material) if first else (None, None)  # the first body's
+        self._elements = first.points.elements if first else None
+        self._k = quads[0].nodes_per_element if quads else 4
         self._qp_count = sum(ms.count for ms in self._main_sets)
-        self._energy_q = first.energy
-        if len(quads) == 1:
+        self._energy_q = first.energy if first else None
+        if rigid is not None:  # the soft bodies' patterns and each rigid body's 4 nodes as one "element"
+            groups = [(q.elements, q.nodes_per_element) for q in quads] + list(model.extra_element_groups)
+            self._setup_system([e for e, _ in groups], [k for _, k in groups], linear_solver, linear_solver_options)
+        elif len(quads) == 1:
             self._setup_system(quads[0].elements, quads[0].nodes_per_element, linear_solver, linear_solver_options)
         else:  # the union of the bodies' element patterns (one element group per body)
             self._setup_system([q.elements for q in quads], [q.nodes_per_element for q in quads], linear_solver,
@@ -197,6 +202,11 @@ class Simulator(SimulatorBase):
         self._static_potential = None
         self._contact_form = None  # the colliders' ContactForm (its ContactSet: self.contact)
         self._surface_form = None  # the SurfaceContactForm of set_contact(...)
+        self._rigid = None  # the rigid bodies' map and vertex space (warpfem.rigid.embedding)
+        if rigid is not None:
+            from warpfem.rigid.embedding import attach
+
+            self._rigid = attach(self)
         for c in colliders or ():
             self.add_collider(c)
 
@@ -211,8 +221,8 @@ class Simulator(SimulatorBase):
             collider = make_collider(**kw)
         elif kw:
             raise TypeError("add_collider takes a collider object or keywords, not both")
-        if self.contact is None:
-            self.contact = ContactSet(self)  # its form joins the potential once it holds a collider
+        if self.contact is None:  # its form joins the potential once it holds a collider
+            self.contact = ContactSet(self if self._rigid is None else self._rigid.space)  # rigid: vertex space
         self.contact.add(collider)
         return collider
 
@@ -227,6 +237,8 @@ class Simulator(SimulatorBase):
         from warpfem.contact import ContactForm
 
         new = None if contact_set is None else ContactForm(contact_set)
+        if self._rigid is not None:
+            new = self._rigid.wrap(new)
         self._replace_form(self._contact_form, new)
         self._contact_form = new
 
@@ -242,7 +254,8 @@ class Simulator(SimulatorBase):
         :class:`warpfem.contact.CollisionError` naming a pair when surface primitives touch now."""
         from warpfem.contact.surface import SurfaceContact
 
-        sc = SurfaceContact(self, bodies=bodies, friction=friction, dhat=dhat, stiffness=stiffness,
+        on = self if self._rigid is None else self._rigid.space  # rigid bodies: the vertex space
+        sc = SurfaceContact(on, bodies=bodies, friction=friction, dhat=dhat, stiffness=stiffness,
                             friction_velocity=friction_velocity, **flags)
         if not (sc.bodies or sc.self_contact):
             sc.detach()
@@ -263,6 +276,8 @@ class Simulator(SimulatorBase):
         if old is not None and old.contact is not surface_contact:
             old.contact.detach()
         new = None if surface_contact is None else SurfaceContactForm(surface_contact)
+        if self._rigid is not None:
+            new = self._rigid.wrap(new)
         self._replace_form(old, new)
         self._surface_form = new
 
@@ -332,6 +347,8 @@ class Simulator(SimulatorBase):
         return self.system.values.get("kn")
 
     def _elastic_energy(self, x):
+        if not self._qp_sets:  # rigid bodies only
+            return 0.0, 0.0
         parts = []
         for count, points, material, buf, _ in self._qp_sets:
             launch(FK.qp_energy_kernel, dim=count, inputs=[x, points, material, buf], device=self.device)
@@ -386,6 +403,24 @@ class Simulator(SimulatorBase):
         return self._vec
 
     @property
+    def rigid(self):
+        """The rigid bodies' :class:`warpfem.rigid.embedding.RigidSystem` (the map from the unknown to
+        the vertices, ``vertex_positions``), or None for a model without rigid bodies."""
+        return self._rigid
+
+    def vertex_positions(self, state=None) -> np.ndarray:
+        """(n, 3) positions of every body's vertices in body order (``model.body_offsets``): the
+        same as :meth:`positions` without rigid bodies; with them, a rigid body's vertices at
+        p + A X (the unknown, :meth:`positions`, holds p and A's columns: docs/rigid.md)."""
+        x = self.x if state is None else state.x
+        return read(x).astype(np.float64) if self._rigid is None else self._rigid.vertex_positions(x)
+
+    def vertex_velocities(self, state=None) -> np.ndarray:
+        """(n, 3) velocities of every body's vertices in body order (see :meth:`vertex_positions`)."""
+        v = self.v if state is None else state.v
+        return read(v).astype(np.float64) if self._rigid is None else self._rigid.vertex_positions(v)
+
+    @property
     def numpy_dtype(self):
         """The numpy dtype of the simulator's precision."""
         return self._np
@@ -438,6 +473,8 @@ class Simulator(SimulatorBase):
             P = wp.zeros(ms.count, dtype=self._mat, device=self.device)
             launch(FK.qp_stress_kernel, dim=ms.count, inputs=[xa, ms.points, ms.material, P], device=self.device)
             parts.append(read(P).astype(np.float64))
+        if not parts:  # rigid bodies only: no quadrature point
+            return np.zeros((0, 3, 3))
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
     def elastic_energy(self, x=None) -> float:
@@ -504,6 +541,8 @@ class Simulator(SimulatorBase):
     def _step(self, state_in, state_out, control, dt) -> SolveStats:
         t0 = time.perf_counter()
         n, ops = self.num_vertices, self.ops
+        if self._rigid is not None and self._differentiating():
+            raise ValueError("gradients (warpfem.diff, the adjoint) do not handle rigid bodies yet")
         self._step_control = control
         syncs0, launches0 = self._potential.host_syncs, COUNTERS["launches"]
         if self._kn_values is not None:

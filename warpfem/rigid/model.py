@@ -1,0 +1,210 @@
+"""``Model.from_bodies`` with rigid bodies: the two spaces of such a model (docs/rigid.md).
+
+* the **unknown** (DOF space, q): the soft bodies' vertices, then four vec3 nodes per rigid body
+  (p, a_1, a_2, a_3: the centre of mass and the columns of A). This is what the simulator steps
+  (``model.num_vertices``, ``rest_positions``, ``mass``, ``fixed``, its states' x and v).
+* the **vertices** (vertex space, X = E q): every body's vertices in body order
+  (``body_offsets``, ``mesh``), a rigid body's at p + A X_i; what the contact forms and outputs see.
+
+Soft bodies come first, so a soft vertex has the same index in both spaces. numpy only (the device
+side is :mod:`warpfem.rigid.embedding`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse
+
+from warpfem.rigid.body import RigidBody
+
+__all__ = ["RigidLayout", "build_model"]
+
+
+class RigidLayout:
+    """Where the rigid bodies of a model are in the two spaces, and the map E between them.
+
+    Attributes: ``bodies`` (the :class:`RigidBody` objects), ``num_soft`` (soft vertices: the
+    first rows of both spaces), ``num_dofs`` (nodes of the unknown), ``num_positions`` (vertices),
+    ``node_of`` (per rigid body its first node), ``vertex_of`` (per rigid body its first vertex),
+    ``names``; per vertex ``vertex_node`` (its node: itself for a soft vertex, p of its body for a
+    rigid one), ``vertex_local`` (X, zero for soft vertices) and ``vertex_rigid``."""
+
+    def __init__(self, rigid_bodies, names, num_soft, vertex_offsets):
+        self.bodies, self.names = list(rigid_bodies), list(names)
+        self.num_soft = int(num_soft)
+        k = len(self.bodies)
+        self.node_of = self.num_soft + 4 * np.arange(k, dtype=np.int64)
+        self.vertex_of = np.asarray(vertex_offsets[-k - 1:-1], dtype=np.int64) if k else np.zeros(0, np.int64)
+        self.num_dofs = self.num_soft + 4 * k
+        self.num_positions = int(vertex_offsets[-1])
+        n = self.num_positions
+        self.vertex_node = np.arange(n, dtype=np.int64)
+        self.vertex_local = np.zeros((n, 3))
+        self.vertex_rigid = np.zeros(n, dtype=bool)
+        self.vertex_body = np.full(n, -1, dtype=np.int64)  # rigid body index, -1 for soft vertices
+        for r, b in enumerate(self.bodies):
+            lo = int(self.vertex_of[r])
+            hi = lo + len(b.local_positions)
+            self.vertex_node[lo:hi] = self.node_of[r]
+            self.vertex_local[lo:hi] = b.local_positions
+            self.vertex_rigid[lo:hi] = True
+            self.vertex_body[lo:hi] = r
+
+    # -- the map ------------------------------------------------------------------------------------
+    def vertex_weights(self):
+        """(n, 4) nodes and (n, 4) weights of each vertex: x_v = sum_a w_a q[node_a] (a soft vertex:
+        one node of weight 1, the other three -1 / 0; a rigid one: p, a_1, a_2, a_3 with 1, X)."""
+        n = self.num_positions
+        nodes = np.full((n, 4), -1, dtype=np.int64)
+        w = np.zeros((n, 4))
+        nodes[:, 0] = self.vertex_node
+        w[:, 0] = 1.0
+        r = self.vertex_rigid
+        nodes[r, 1:] = self.vertex_node[r, None] + np.arange(1, 4)
+        w[r, 1:] = self.vertex_local[r]
+        return nodes, w
+
+    def matrix(self):
+        """E as a scipy CSR matrix (3 n_vertices x 3 n_dofs): X = E q (flat, xyz per vertex)."""
+        nodes, w = self.vertex_weights()
+        keep = nodes >= 0
+        v = np.repeat(np.arange(self.num_positions), 4).reshape(-1, 4)[keep]
+        a, wa = nodes[keep], w[keep]
+        rows = (3 * v[:, None] + np.arange(3)).ravel()
+        cols = (3 * a[:, None] + np.arange(3)).ravel()
+        vals = np.repeat(wa, 3)
+        return scipy.sparse.csr_matrix((vals, (rows, cols)), shape=(3 * self.num_positions, 3 * self.num_dofs))
+
+    def positions(self, q):
+        """(n_vertices, 3) vertex positions (or velocities) of the unknown's values q (n_dofs, 3)."""
+        q = np.asarray(q, dtype=np.float64)
+        out = np.empty((self.num_positions, 3))
+        out[:self.num_soft] = q[:self.num_soft]
+        r = self.vertex_rigid
+        base = self.vertex_node[r]
+        X = self.vertex_local[r]
+        out[r] = q[base] + X[:, 0:1] * q[base + 1] + X[:, 1:2] * q[base + 2] + X[:, 2:3] * q[base + 3]
+        return out
+
+    def pose(self, q, body):
+        """(p, A) of rigid body ``body`` (index among the rigid bodies) in the unknown's values q."""
+        k = int(self.node_of[body])
+        q = np.asarray(q, dtype=np.float64)
+        return q[k].copy(), np.stack([q[k + 1], q[k + 2], q[k + 3]], axis=1)
+
+    # -- model hooks ----------------------------------------------------------------------------------
+    def check_vertices(self, idx):
+        """Refuse vertex indices of rigid bodies (fixed components, targets)."""
+        idx = np.asarray(idx, dtype=np.int64)
+        bad = idx[(idx >= self.num_soft) & (idx < self.num_positions)]
+        if bad.size:
+            r = int(self.vertex_body[int(bad[0])])
+            raise ValueError(f"vertex {int(bad[0])} belongs to rigid body {self.names[r]!r}: a rigid body cannot have "
+                             "fixed components or targets (only soft bodies can)")
+
+    def add_force(self, forces, indices, f):
+        """forces (the unknown's, (n_dofs, 3)) += E^T of the force f on each vertex of ``indices``
+        (vertex space): a soft vertex's own row; a rigid vertex adds f to p and X_k f to a_k (the
+        generalised force of f at x = p + A X: its resultant and its moment about the centre of mass)."""
+        idx = np.atleast_1d(np.asarray(indices))
+        if idx.size and idx.dtype.kind not in "iu":
+            raise TypeError(f"vertex indices must be integers, got dtype {idx.dtype}")
+        idx = idx.astype(np.int64).ravel()
+        bad = idx[(idx < 0) | (idx >= self.num_positions)]
+        if bad.size:
+            raise IndexError(f"vertex index {int(bad[0])} out of range [0, {self.num_positions}) ({bad.size} bad)")
+        nodes, w = self.vertex_weights()
+        for v in idx:
+            for a in range(4):
+                if nodes[v, a] >= 0:
+                    forces[nodes[v, a]] += w[v, a] * f
+
+    def initial_velocities(self, soft_velocities):
+        """(n_dofs, 3) node velocities at t = 0: the soft bodies' then each rigid body's
+        (p-dot, a_k-dot = w x e_k), or None when all are zero."""
+        v = np.concatenate([np.asarray(soft_velocities, dtype=np.float64).reshape(-1, 3)]
+                           + [b.initial_node_velocities() for b in self.bodies])
+        return v if np.any(v != 0.0) else None
+
+    def dof_rest(self):
+        """(4 k, 3) rest values of the rigid nodes: p = the centre of mass, A = I."""
+        return np.concatenate([np.vstack([b.center_of_mass, np.eye(3)]) for b in self.bodies]) if self.bodies \
+            else np.zeros((0, 3))
+
+
+def build_model(cls, bodies, *, bodies_mesh, gravity=(0.0, 0.0, 0.0), mass_matrix="lumped", check_overlap=True):
+    """``Model.from_bodies`` of a list with :class:`RigidBody` entries (soft :class:`~warpfem.model.Body`
+    entries first): see the module docstring for the two spaces. ``cls``: the Model class,
+    ``bodies_mesh``: its ``BodiesMesh`` (given by the caller: this module does not import it)."""
+    names = [b.name or f"body{i + 1}" for i, b in enumerate(bodies)]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ValueError(f"body names must be unique, {dup[0]!r} is given {names.count(dup[0])} times")
+    first_rigid = next(i for i, b in enumerate(bodies) if isinstance(b, RigidBody))
+    late = [names[i] for i, b in enumerate(bodies) if i > first_rigid and not isinstance(b, RigidBody)]
+    if late:
+        raise ValueError(f"Model.from_bodies: soft body {late[0]!r} comes after rigid body {names[first_rigid]!r}; "
+                         "list the soft bodies first, then the rigid ones")
+    soft, rigid = bodies[:first_rigid], bodies[first_rigid:]
+    for i, b in enumerate(soft):
+        if not hasattr(b, "discretize"):
+            raise TypeError(f"body #{i + 1} must be a warpfem.Body or warpfem.RigidBody, got {type(b).__name__}")
+    for b, n in zip(bodies, names):
+        b.name = n
+    if check_overlap and len(bodies) > 1:
+        from warpfem.mesh.intersect import BodyOverlapError, first_body_overlap
+
+        problem = first_body_overlap([b.mesh for b in bodies], names)
+        if problem:
+            raise BodyOverlapError(problem)
+    parts = []  # each soft body discretised (``BaseBody.discretize``: rest positions, quadrature, masses)
+    for b in soft:
+        try:
+            parts.append(b.discretize(mass_matrix))
+        except (ValueError, TypeError) as e:
+            raise type(e)(f"body {b.name!r}: {e}") from e
+    g = np.asarray(gravity, dtype=np.float64)
+    if g.shape != (3,) or not np.all(np.isfinite(g)):
+        raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
+    sizes = [len(p.rest_positions) for p in parts] + [len(b.local_positions) for b in rigid]
+    voff = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    n_soft = int(voff[len(soft)])
+    layout = RigidLayout(rigid, names[len(soft):], n_soft, voff)
+    self = cls.__new__(cls)
+    self.bodies, self.body_names = list(bodies), names
+    self.body_offsets = voff  # vertex space (what outputs and contact see)
+    self.dof_offsets = np.concatenate([voff[:len(soft) + 1], n_soft + 4 * np.arange(1, len(rigid) + 1)]).astype(np.int64)
+    self.rigid = layout
+    self.mesh = bodies_mesh([b.mesh for b in bodies], voff, names)
+    mats = [b.material for b in soft]
+    self.material = max(mats, key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0)) if mats else None
+    self.materials = mats
+    self.gravity = g
+    self.mass_matrix_kind = mass_matrix
+    self.num_vertices = layout.num_dofs
+    self.rest_positions = np.concatenate([p.rest_positions for p in parts] + [layout.dof_rest()])
+    self.vertex_rest_positions = np.concatenate([p.rest_positions for p in parts]
+                                                + [b.local_positions + b.center_of_mass for b in rigid])
+    self.volumetric_integration = [b.volumetric_integration for b in soft]
+    self.volumetric_parameters = None
+    self.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
+    import dataclasses
+
+    def shifted(qd, o):
+        if qd is None:
+            return None
+        return dataclasses.replace(qd, elements=(np.asarray(qd.elements, dtype=np.int64) + o).astype(qd.elements.dtype),
+                                   volumetric=shifted(qd.volumetric, o))
+
+    self.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, voff[:len(soft)])]
+    self.quadrature = self.quadratures[0] if len(parts) == 1 else None
+    # each rigid body's four nodes as one "element" of the Hessian's pattern (its 4x4 blocks)
+    self.extra_element_groups = [(np.asarray([np.arange(k, k + 4) for k in layout.node_of], dtype=np.int64).ravel(), 4)]
+    rigid_lumped = np.concatenate([[b.mass, 0.0, 0.0, 0.0] for b in rigid])
+    self.lumped_mass = np.concatenate([p.lumped_mass for p in parts] + [rigid_lumped])
+    self.mass = scipy.sparse.block_diag([p.mass for p in parts] + [scipy.sparse.csr_matrix(b.dof_mass_matrix())
+                                                                    for b in rigid], format="csr")
+    self.gravity_mass = np.concatenate([p.gravity_mass for p in parts] + [rigid_lumped])
+    self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
+    self.forces = np.zeros((self.num_vertices, 3))
+    return self
