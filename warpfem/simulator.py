@@ -541,8 +541,6 @@ class Simulator(SimulatorBase):
     def _step(self, state_in, state_out, control, dt) -> SolveStats:
         t0 = time.perf_counter()
         n, ops = self.num_vertices, self.ops
-        if self._rigid is not None and self._differentiating():
-            raise ValueError("gradients (warpfem.diff, the adjoint) do not handle rigid bodies yet")
         self._step_control = control
         syncs0, launches0 = self._potential.host_syncs, COUNTERS["launches"]
         if self._kn_values is not None:
