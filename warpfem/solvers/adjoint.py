@@ -199,7 +199,8 @@ def _body_materials(model):
 def _body_densities(model):
     """The density of every body in the model's order (soft bodies, then rigid ones)."""
     rigid = getattr(model, "rigid", None)
-    return [float(m.density) for m in _body_materials(model)] + ([float(b.density) for b in rigid.bodies] if rigid else [])
+    soft = [float(m.density) for m in _body_materials(model)]
+    return soft + ([float(b.density) for b in rigid.bodies] if rigid is not None else [])
 
 
 def set_element_stiffness_scale(sim, scale):
@@ -641,13 +642,11 @@ class StepAdjoint:
         finally:
             form.project = old
         space = rs.space
-        if getattr(self, "_vbuf", None) is None:
-            self._vbuf = space.ops.new_vector()
         hv = space.system.hessian_values
         hv.zero_()
-        planes = self._add_contact_hessian(rec, rec.xv_next, rec.xv, hv, space.system.pattern)
+        planes = self._add_contact_hessian(rec, self._xv_next, self._xv_n, hv, space.system.pattern)
         if sc is not None:
-            sc.exact_hessian(upload(self._vbuf, rec.xv_next), hv)
+            sc.exact_hessian(upload(self._vbuf, self._xv_next), hv)
         if sfric is not None:
             Kv = read(hv)
             sfric.add_hessian(Kv, space.system.pattern)
@@ -663,9 +662,10 @@ class StepAdjoint:
         if sc is None or not sc.has_friction():
             return None
         if self._rigid is not None:
-            pairs, kinds = sc.candidates(upload(self._vbuf, rec.xv))
-            return surface_friction_terms(pairs, kinds, rec.xv_next, rec.xv, self.sim.model.vertex_rest_positions,
-                                          kappa=sc.kappa, dhat=sc.dhat, mu=sc.friction, eps=sc.friction_velocity * rec.dt)
+            pairs, kinds = sc.candidates(upload(self._vbuf, self._xv_n))
+            rest = self.sim.model.vertex_rest_positions
+            return surface_friction_terms(pairs, kinds, self._xv_next, self._xv_n, rest, kappa=sc.kappa, dhat=sc.dhat,
+                                          mu=sc.friction, eps=sc.friction_velocity * rec.dt)
         pairs, kinds = sc.candidates(self._upload(self._dev[5], rec.x))
         return surface_friction_terms(pairs, kinds, rec.x_next, rec.x, self.sim.model.rest_positions, kappa=sc.kappa,
                                       dhat=sc.dhat, mu=sc.friction, eps=sc.friction_velocity * rec.dt)
@@ -691,12 +691,12 @@ class StepAdjoint:
         sc = getattr(sim, "surface_contact", None)
         rigid = self._rigid is not None
         if rigid:  # the contact terms live in vertex space: X = E q
-            rec.xv, rec.xv_next = self._E(rec.x), self._E(rec.x_next)
+            self._xv_n, self._xv_next = self._E(rec.x), self._E(rec.x_next)  # this step's, host
             if getattr(self, "_vbuf", None) is None:
                 self._vbuf = sim.rigid.space.ops.new_vector()
         sfric = self._surface_friction(rec, sc)  # lagged at x_n: its broad phase there first
         if sc is not None:  # its candidate pairs at x_{n+1} (the pattern may grow for them)
-            sc.update_pairs(upload(self._vbuf, rec.xv_next) if rigid else self._upload(self._dev[5], rec.x_next))
+            sc.update_pairs(upload(self._vbuf, self._xv_next) if rigid else self._upload(self._dev[5], rec.x_next))
             self._follow_pattern()
         x_dev = self._assemble_K(rec.x_next)
         if rigid:
@@ -747,7 +747,7 @@ class StepAdjoint:
         xn_bar[~tgt] += p_bar[~tgt]
         if rigid and (planes or sfric is not None) and np.any(lam):
             # contact terms of vertex positions: their adjoint is E lambda, their x_n adjoint maps back by E^T
-            lam_c, xn_c = self._E(lam), np.zeros((len(rec.xv), 3))
+            lam_c, xn_c = self._E(lam), np.zeros((len(self._xv_n), 3))
         else:
             lam_c, xn_c = lam, xn_bar
         if planes and np.any(lam):  # -s lambda^T d(grad E_c)/d(x_n, poses, mu), per collider in contact
