@@ -18,7 +18,9 @@ Iterations are counted as "tail" when they start within 1e-6 L (and 1e-5, 1e-4) 
 positions, and "short" when alpha < 1.
 
     PYTHONPATH=. .venv/bin/python kernels_bench/newton_history.py --case box_drop --precision float64
-        [--frames 60] [--first-contact-frames N] [--json PATH] [--config key=value,...]
+        [--frames 60] [--first-contact-frames N] [--json PATH] [--summary PATH] [--config key=value,...]
+
+Summaries of the runs in docs/contact.md: kernels_bench/results/contact_cost/newton_history.json.
 """
 
 from __future__ import annotations
@@ -133,6 +135,24 @@ def summarize(r):
     for thr in (1e-4, 1e-5, 1e-6):
         out[f"tail_{thr:.0e}"] = sum(it["dist"] <= thr for it in its) / n
     out["short"] = sum(it["alpha"] < 1.0 for it in its) / n
+    # a step length that is a power of 2 below 1 was halved from the full step by the line search
+    # (Armijo); any other below 1 started at the collision (CCD) bound
+    halved = [it["alpha"] < 1.0 and float(np.log2(it["alpha"])).is_integer() for it in its]
+    out["short_halved"] = sum(halved) / n
+    out["short_ccd"] = sum(it["alpha"] < 1.0 and not hv for it, hv in zip(its, halved)) / n
+    per_step_before = per_step_after = 0
+    halved_after = 0
+    for st in steps:
+        ks = [k for k, it in enumerate(st["iterations"]) if it["lag"]]
+        if ks:
+            per_step_before += ks[0] + 1
+            per_step_after += len(st["iterations"]) - 1 - ks[0]
+            halved_after += sum(it["alpha"] < 1.0 and float(np.log2(it["alpha"])).is_integer()
+                                for it in st["iterations"][ks[0] + 1:])
+    out["steps_with_lag"] = sum(any(it["lag"] for it in st["iterations"]) for st in steps)
+    out["iterations_to_lag"] = per_step_before
+    out["iterations_after_lag"] = per_step_after
+    out["halved_after_lag"] = halved_after
     out["extrapolated"] = sum(it["alpha"] > 1.0 for it in its) / n
     out["lag_updates"] = sum(it["lag"] for it in its)
     # iterations after the step's last lag update
@@ -215,7 +235,8 @@ def main(argv=None):
     ap.add_argument("--first-contact-frames", type=int, default=None)
     ap.add_argument("--config", default="", help="key=value,... (NewtonOptions fields or simulator attributes)")
     ap.add_argument("--print", action="store_true", help="every contact step's iterations")
-    ap.add_argument("--json", default=None)
+    ap.add_argument("--json", default=None, help="every step's history (JSON)")
+    ap.add_argument("--summary", default=None, help="a JSON file of summaries (updated: one entry per case/precision)")
     a = ap.parse_args(argv)
     config = {}
     for kv in filter(None, a.config.split(",")):
@@ -229,6 +250,16 @@ def main(argv=None):
     if a.json:
         with open(a.json, "w") as fh:
             json.dump(r, fh)
+    if a.summary:  # summaries of several runs, one file (case/precision keys)
+        try:
+            with open(a.summary) as fh:
+                allsum = json.load(fh)
+        except FileNotFoundError:
+            allsum = {}
+        allsum[f"{a.case}/{a.precision}"] = dict(summarize(r), frames=frames, first_contact_frames=a.first_contact_frames,
+                                                 config=config)
+        with open(a.summary, "w") as fh:
+            json.dump(allsum, fh, indent=1, sort_keys=True)
 
 
 if __name__ == "__main__":
