@@ -129,8 +129,9 @@ class SolveStats:
     """What one nonlinear solve (a time step or a static load step) did.
 
     ``converged`` is True when the final gradient passes the tolerance test, ||P g|| <= tol *
-    ``initial_gradient`` (or <= atol), whatever stopped the loop, or when the solve stopped at
-    the precision limit of its arithmetic (``reason`` says so); it is False when an iteration cap
+    ``initial_gradient`` (or <= atol), whatever stopped the loop, when the solve stopped at
+    the precision limit of its arithmetic, or by the step test of ``NewtonOptions.step_tol``
+    (``reason`` says which); it is False when an iteration cap
     was hit, the line search could not decrease the energy or there was no descent direction with
     the gradient above the tolerance; ``reason`` says which. ``residual`` is the final ||P g|| /
     ``initial_gradient`` (the relative gradient), ``tolerance`` the ``tol`` it was tested against:
