@@ -85,8 +85,10 @@ class NewtonOptions:
             time step (|x_{k+1} - x_k|_inf / h <= step_tol x L, L the bounding-box diagonal of the
             rest mesh; with the friction filter, the unfiltered direction's move counts too), taken
             only once the step's friction lag update is made. 0 (default): off, the relative
-            gradient alone decides. Dynamics only (a static solve ignores it); measured effect on
-            iterations and accuracy in docs/contact.md ("Where a contact step's Newton iterations go").
+            gradient alone decides. Full-space dynamics only (static solves and reduced models ignore
+            it); measured effect on iterations and accuracy in docs/contact.md ("Where a contact
+            step's Newton iterations go"): it saves little where Newton converges quadratically and
+            costs accuracy where it converges linearly, hence off.
     """
 
     tol: float = 1e-6
