@@ -7,7 +7,8 @@ Per Newton iteration k of a step (iterate k-1 -> k):
 
 * ``rel``: ||P g|| at iterate k over the step's reference (the tolerance test's quantity);
 * ``alpha``: its step length (> 1: extrapolated, < 1: the collision bound or the line search);
-* ``lag``: whether friction's lagged normal forces were taken again after it;
+* ``lag``: whether friction's lagged normal forces were taken again after it (``rel_before``: the
+  relative gradient before that update, ``rel`` the one after);
 * ``move``: max_i |x_k - x_{k-1}|_inf over the body size L (the bounding-box diagonal of the rest
   mesh), ``move_v``: that move over h, in L per second; ``dir_v`` the full Newton direction's
   (move / alpha) over h, in L per second;
@@ -54,7 +55,7 @@ def record_histories(case, precision, frames, first_contact_frames=None, config=
 
     def solve(pot, y, opts, *a, **kw):
         xs = [pot.x_of(y).numpy().astype(np.float64).copy()]
-        alphas, lags, rels = [], [], []
+        alphas, lags, rels = [], [], []  # rels: the relative gradient before a lag update
         hook = pot.after_iteration
         dirs = [None]  # (max |d| raw, max |d| filtered) of the last Newton system, in x units
         raws = []
@@ -75,6 +76,7 @@ def record_histories(case, precision, frames, first_contact_frames=None, config=
             xs.append(pot.x_of(yy).numpy().astype(np.float64).copy())
             alphas.append(float(alpha))
             lags.append(pot.lag_updates > n0)
+            rels.append(float(residual))
             raws.append(dirs[0])
             return changed
 
@@ -90,7 +92,8 @@ def record_histories(case, precision, frames, first_contact_frames=None, config=
         its = []
         for k in range(1, len(xs)):
             move = float(np.abs(xs[k] - xs[k - 1]).max()) / L
-            its.append(dict(rel=float(st.history[k - 1][1] / ref) if ref > 0 else 0.0, alpha=alphas[k - 1],
+            its.append(dict(rel=float(st.history[k - 1][1] / ref) if ref > 0 else 0.0, rel_before=rels[k - 1],
+                            alpha=alphas[k - 1],
                             lag=bool(lags[k - 1]), move=move, move_v=move / h,
                             dir_v=move / h / max(alphas[k - 1], 1e-300),
                             dist=float(np.abs(xs[k - 1] - xf).max()) / L,
@@ -150,6 +153,13 @@ def summarize(r):
             halved_after += sum(it["alpha"] < 1.0 and float(np.log2(it["alpha"])).is_integer()
                                 for it in st["iterations"][ks[0] + 1:])
     out["steps_with_lag"] = sum(any(it["lag"] for it in st["iterations"]) for st in steps)
+    # lag updates made at an iterate already within the solve's tolerance (1e-6 of the reference):
+    # the update then works as a re-solve; and the iterations after those
+    at_tol = [(st, k) for st in steps for k, it in enumerate(st["iterations"]) if it["lag"] and it["rel_before"] <= 1e-6]
+    out["lag_updates_within_tol"] = len(at_tol)
+    out["iterations_after_lag_within_tol"] = sum(len(st["iterations"]) - 1 - k for st, k in at_tol)
+    jumps = [it["rel"] for st in steps for it in st["iterations"] if it["lag"]]
+    out["rel_after_lag_quantiles"] = np.quantile(jumps, [0.25, 0.5, 0.75]).tolist() if jumps else None
     out["iterations_to_lag"] = per_step_before
     out["iterations_after_lag"] = per_step_after
     out["halved_after_lag"] = halved_after
