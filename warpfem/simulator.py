@@ -199,6 +199,9 @@ class Simulator(SimulatorBase):
         self._prediction_work = {}  # the integrator's prediction buffers (made on first use)
         self._potential = IncrementalPotential(ops, forms, system=system, mask=self._mask,
                                                linear_solve=lambda *a, **kw: self._linear_solve(*a, **kw), work=self._work)
+        # the body size of the step test (NewtonOptions.step_tol): the rest mesh's bounding-box diagonal
+        rest = np.asarray(model.rest_positions, dtype=np.float64)
+        self._potential.body_size = float(np.linalg.norm(np.ptp(rest, axis=0))) if len(rest) else 0.0
         self._static_potential = None
         self._contact_form = None  # the colliders' ContactForm (its ContactSet: self.contact)
         self._surface_form = None  # the SurfaceContactForm of set_contact(...)
@@ -567,6 +570,7 @@ class Simulator(SimulatorBase):
         lags = any(f.uses_lagging() for f in pot.forms)
         pot.set_lag_updates(self.friction_iterations if lags and not self._differentiating() else 0,
                             self.friction_tol)
+        pot.time_step = float(dt)  # the step test's h (NewtonOptions.step_tol)
         stats = newton_solve(pot, y, self.options)
         stats.friction_iterations = pot.lag_updates
         pot.set_lag_updates(0, self.friction_tol)
