@@ -1,0 +1,177 @@
+"""warpfem as a newton solver (warpfem.interop.newton.SolverFEM, docs/newton.md): a newton soft mesh
+stepped by SolverFEM matches the same mesh and material run as a warpfem Model/Simulator to float32
+round-off; a block sliding on newton's ground plane decelerates at the plane material's mu g and
+never goes below it; bad models get one-line errors naming what is supported; a state edited by
+the caller is read again."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+newton = pytest.importorskip("newton")
+wp = pytest.importorskip("warp")
+
+import warpfem as wf  # noqa: E402
+from warpfem.interop.newton import NewtonInteropError, SolverFEM, lame_to_youngs  # noqa: E402
+
+E, NU, RHO = 1.0e5, 0.3, 1000.0
+
+
+def _material(E=E, nu=NU):
+    return wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=nu, density=RHO)
+
+
+def _add_mesh(builder, mesh, material, *, pos=(0.0, 0.0, 0.0), vel=(0.0, 0.0, 0.0)):
+    builder.add_soft_mesh(pos=wp.vec3(*pos), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(*vel),
+                          vertices=np.asarray(mesh.vertices).tolist(), indices=np.asarray(mesh.elements).ravel().tolist(),
+                          density=RHO, k_mu=material.mu_lame, k_lambda=material.lam_lame, k_damp=0.0)
+
+
+def _run(solver, model, steps, dt, *, start=None):
+    s0, s1 = (start or model.state()), model.state()
+    control = model.control()
+    for _ in range(steps):
+        s0.clear_forces()
+        solver.step(s0, s1, control, None, dt)
+        s0, s1 = s1, s0
+    return s0
+
+
+def _cantilever_model(meshes_and_materials, fix_x0=True):
+    b = newton.ModelBuilder()
+    for mesh, mat, pos in meshes_and_materials:
+        _add_mesh(b, mesh, mat, pos=pos)
+    model = b.finalize(device="cpu")
+    if fix_x0:  # zero mass: newton's fixed particles
+        q = model.particle_q.numpy()
+        m = model.particle_mass.numpy()
+        m[q[:, 0] < 1e-9] = 0.0
+        model.particle_mass.assign(m)
+        model.particle_inv_mass.assign(np.where(m > 0, 1.0 / np.maximum(m, 1e-30), 0.0).astype(np.float32))
+    return model
+
+
+def test_lame_to_youngs_inverts_warpfem_lame_parameters():
+    m = _material(2.5e6, 0.45)
+    assert lame_to_youngs(m.mu_lame, m.lam_lame) == pytest.approx((2.5e6, 0.45), rel=1e-14)
+
+
+def test_soft_mesh_matches_a_warpfem_simulator_to_float32_round_off():
+    """Two bodies of different materials (two add_soft_mesh calls, two tet_materials groups) as a
+    cantilever pair under gravity: SolverFEM's float32 output against Model.from_bodies run by a
+    warpfem Simulator (the same float32-rounded vertices) after 8 steps."""
+    soft, stiff = _material(), _material(4.0e5, 0.35)
+    mesh = wf.box_tet_mesh(size=(0.3, 0.1, 0.1), cells=(3, 1, 1))
+    V = np.asarray(mesh.vertices, dtype=np.float32).astype(np.float64)
+    mesh32 = wf.TetMesh(V, np.asarray(mesh.elements))
+    model = _cantilever_model([(mesh32, soft, (0.0, 0.0, 0.0)), (mesh32, stiff, (0.0, 0.3, 0.0))])
+    dt, steps = 1.0 / 60.0, 8
+    solver = SolverFEM(model, tol=1e-10)
+    assert len(solver.materials) == 2 and solver.resyncs == 0
+    got = _run(solver, model, steps, dt).particle_q.numpy().astype(np.float64)
+
+    ref = wf.Model.from_bodies([wf.Body(mesh32, soft, name="soft"), wf.Body(mesh32, stiff, name="stiff", offset=(0, 0.3, 0))],
+                               gravity=(0.0, 0.0, -9.81))
+    X = ref.rest_positions
+    ref.fix(np.flatnonzero(X[:, 0] < 1e-9))
+    sim = wf.Simulator(ref, dt=dt, tol=1e-10)
+    for _ in range(steps):
+        sim.step()
+    x = sim.positions()
+    disp = np.abs(x - X).max()
+    assert disp > 0.01  # the bars bend
+    err = np.abs(got - x).max() / disp
+    assert err < 1e-6, err  # measured 2.0e-7: the float32 rounding of the output
+    assert np.abs(solver.positions() - x).max() / disp < 1e-6  # warpfem's own float64 state
+
+
+@pytest.fixture(scope="module")
+def sliding_block():
+    """A 0.1 m block launched at 1 m/s along x 2 mm above newton's ground plane (mu = 0.4), dt = 0.01 s:
+    (model, masses, the particle momentum after each of 40 steps, the lowest z after each step)."""
+    b = newton.ModelBuilder()
+    b.add_ground_plane(cfg=newton.ModelBuilder.ShapeConfig(mu=0.4))
+    _add_mesh(b, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(2, 2, 2)), _material(), pos=(0.0, 0.0, 0.002),
+              vel=(1.0, 0.0, 0.0))
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model)
+    mass = model.particle_mass.numpy().astype(np.float64)
+    s0, s1 = model.state(), model.state()
+    momentum, zmin = [], []
+    for _ in range(40):
+        s0.clear_forces()
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+        momentum.append((mass[:, None] * s0.particle_qd.numpy()).sum(axis=0))
+        zmin.append(float(s0.particle_q.numpy()[:, 2].min()))
+    return solver, mass, np.array(momentum), np.array(zmin), s0
+
+
+def test_block_on_the_ground_plane_slides_with_the_plane_friction_and_stays_above_it(sliding_block):
+    solver, mass, P, zmin, _ = sliding_block
+    assert [c.friction for _, c in solver._colliders] == pytest.approx([0.4])
+    assert zmin.min() > 0.0  # no vertex below the plane
+    # sliding (steps 11 to 20): Coulomb, dp_x = -mu (M g T + dp_z) (the normal impulse)
+    M, T = mass.sum(), 10 * 0.01
+    dpx, dpz = P[19, 0] - P[9, 0], P[19, 2] - P[9, 2]
+    assert P[19, 0] > 0.0
+    ratio = dpx / (-0.4 * (M * 9.81 * T + dpz))
+    assert abs(ratio - 1.0) < 0.02, ratio  # measured 0.988
+    # then it stops (v0 / (mu g) = 0.25 s) and sticks: velocity below 1 cm/s after 0.35 s
+    assert np.abs(P[35:, 0] / M).max() < 0.01
+
+
+def test_a_state_the_caller_changed_is_read_again(sliding_block):
+    """Steps continue from warpfem's own float64 state while state_in is what SolverFEM wrote;
+    a fresh state (a reset) is read again and gives the first steps again."""
+    solver, *_ , last = sliding_block
+    model = solver.model
+    before = solver.resyncs
+    first = _run(solver, model, 2, 0.01).particle_q.numpy()
+    assert solver.resyncs == before + 1  # the reset state
+    fresh = SolverFEM(model)
+    again = _run(fresh, model, 2, 0.01).particle_q.numpy()
+    np.testing.assert_array_equal(first, again)  # deterministic, and the resync restarted the history
+    assert fresh.resyncs == 1
+
+
+def test_particle_forces_act_as_external_loads():
+    """state.particle_f: a force of 0.5 N on every particle of a free-floating block changes its
+    momentum by n F t (the particles' masses differ, so the block also deforms)."""
+    b = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    _add_mesh(b, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1)), _material())
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model, tol=1e-12)
+    s0, s1 = model.state(), model.state()
+    M = float(model.particle_mass.numpy().sum())
+    for _ in range(3):
+        s0.particle_f.assign(np.tile(np.array([[0.5, 0.0, 0.0]], dtype=np.float32), (model.particle_count, 1)))
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+    m = model.particle_mass.numpy().astype(np.float64)
+    p = (m[:, None] * s0.particle_qd.numpy()).sum(axis=0)
+    assert p == pytest.approx([3 * 0.01 * 0.5 * model.particle_count, 0.0, 0.0], rel=1e-5, abs=1e-9)
+    assert M > 0
+
+
+def test_bad_models_get_one_line_errors():
+    b = newton.ModelBuilder()
+    b.add_particle(wp.vec3(0.0, 0.0, 1.0), wp.vec3(0.0, 0.0, 0.0), 1.0)
+    with pytest.raises(NewtonInteropError, match=r"tetrahedra \(ModelBuilder.add_soft_mesh / add_soft_grid\); it has no tetrahedra"):
+        SolverFEM(b.finalize(device="cpu"))
+    c = newton.ModelBuilder()
+    c.add_cloth_grid(pos=wp.vec3(0.0, 0.0, 1.0), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0), dim_x=2, dim_y=2,
+                     cell_x=0.1, cell_y=0.1, mass=0.1)
+    with pytest.raises(NewtonInteropError, match=r"it has 8 triangles and no tetrahedra \(cloth and shells: use SolverVBD"):
+        SolverFEM(c.finalize(device="cpu"))
+    d = newton.ModelBuilder()
+    _add_mesh(d, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1)), _material())
+    model = d.finalize(device="cpu")
+    q = model.particle_q.numpy()
+    q[3, 1] = np.nan
+    model.particle_q.assign(q)
+    with pytest.raises(NewtonInteropError, match=r"model.particle_q of particle 3 is not finite"):
+        SolverFEM(model)
+    for e in (NewtonInteropError("x"),):
+        assert "\n" not in str(e)
