@@ -175,3 +175,32 @@ def test_bad_models_get_one_line_errors():
         SolverFEM(model)
     for e in (NewtonInteropError("x"),):
         assert "\n" not in str(e)
+
+
+def test_solver_fem_is_an_entry_of_newtons_coupled_solver():
+    """SolverCoupled (newton's experimental coupled framework) with a SolverFEM entry owning the
+    soft block and the ground plane and a SolverXPBD entry owning a rigid box: the block's particles
+    are bit-identical to SolverFEM alone on the same model, the box falls freely (v = -g t)."""
+    coupled = pytest.importorskip("newton.solvers.experimental.coupled")
+    mesh = wf.box_tet_mesh(size=(0.2, 0.1, 0.1), cells=(2, 1, 1))
+
+    def build():
+        b = newton.ModelBuilder()
+        b.add_ground_plane(cfg=newton.ModelBuilder.ShapeConfig(mu=0.5))
+        _add_mesh(b, mesh, _material(), pos=(0.0, 0.0, 0.01))
+        body = b.add_body(xform=wp.transform(wp.vec3(1.0, 0.0, 1.0), wp.quat_identity()))
+        b.add_shape_box(body, hx=0.05, hy=0.05, hz=0.05)
+        return b.finalize(device="cpu"), body
+
+    model, body = build()
+    solver = coupled.SolverCoupled(model=model, entries=[
+        coupled.SolverCoupled.Entry(name="fem", solver=lambda v: SolverFEM(v, shapes=[0]),
+                                    particles=list(range(model.particle_count)), shapes=[0]),
+        coupled.SolverCoupled.Entry(name="xpbd", solver=lambda v: newton.solvers.SolverXPBD(model=v), bodies=[body],
+                                    shapes=[1])])
+    got = _run(solver, model, 10, 0.01)
+    alone_model, _ = build()
+    alone = _run(SolverFEM(alone_model, shapes=[0]), alone_model, 10, 0.01)
+    np.testing.assert_array_equal(got.particle_q.numpy(), alone.particle_q.numpy())
+    assert got.particle_q.numpy()[:, 2].min() > 0.0
+    assert got.body_qd.numpy()[0][2] == pytest.approx(-9.81 * 0.1, rel=1e-5)

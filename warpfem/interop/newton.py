@@ -37,6 +37,7 @@ try:
     import newton
     import warp as wp
     from newton.solvers import SolverBase
+    from newton.solvers.experimental.coupled import CouplingInterface
 except ImportError as exc:  # pragma: no cover - exercised only without newton
     raise ImportError("warpfem.interop.newton needs the newton package (the Warp physics engine): "
                       "pip install 'warpfem[newton]'") from exc
@@ -107,7 +108,7 @@ def _np(a):
     return None if a is None else a.numpy()
 
 
-class SolverFEM(SolverBase):
+class SolverFEM(SolverBase, CouplingInterface):
     """warpfem's implicit FEM as a newton solver of the model's tetrahedra.
 
     Args:
@@ -127,6 +128,9 @@ class SolverFEM(SolverBase):
             between the soft bodies (``bodies``) and of each with itself (``self``).
         unsupported_shapes: "error" (default) or "ignore": what to do with a colliding shape
             SolverFEM cannot represent (capsule, cylinder, cone, ellipsoid, height field, convex hull).
+        shapes: which shapes become colliders: "all" (default: every shape with
+            ``ShapeFlags.COLLIDE_PARTICLES``), "static" (those of them on no body: the ground, fixed
+            obstacles; in a coupled scene the rigid solver handles the moving ones) or a list of shape indices.
         linear_solver, linear_solver_options, require_convergence, tol, atol, max_iters, ... :
             warpfem's :class:`~warpfem.simulator.Simulator` options (docs/linear_solvers.md,
             :class:`~warpfem.NewtonOptions`).
@@ -135,12 +139,13 @@ class SolverFEM(SolverBase):
         simulator: the warpfem :class:`~warpfem.simulator.Simulator`; ``particles``: the newton
         particle index of each of its vertices; ``materials``: one warpfem material per group;
         ``resyncs``: how many steps read ``state_in`` again; ``last_stats``: the last step's
-        :class:`~warpfem.SolveStats`.
+        :class:`~warpfem.SolveStats`; ``last_particle_force``: the sum (N) of the ``particle_f`` the last
+        step applied to the simulated particles (in a coupled scene: the coupling forces).
     """
 
     def __init__(self, model, *, precision="float64", integrator="backward_euler", material="stable_neo_hookean",
                  damping_mass=0.0, damping_stiffness=None, friction="shape", contact=None, soft_contact=None,
-                 unsupported_shapes="error", linear_solver="auto", linear_solver_options=None,
+                 unsupported_shapes="error", shapes="all", linear_solver="auto", linear_solver_options=None,
                  require_convergence=False, **newton_options):
         super().__init__(model)
         if unsupported_shapes not in ("error", "ignore"):
@@ -153,6 +158,10 @@ class SolverFEM(SolverBase):
         if bad:
             raise TypeError(f"contact options are dhat, stiffness, friction_velocity; got {sorted(bad)}")
         self.unsupported_shapes = unsupported_shapes
+        if not (shapes in ("all", "static") or (not isinstance(shapes, str) and all(
+                isinstance(i, (int, np.integer)) for i in shapes))):
+            raise ValueError(f"shapes must be 'all', 'static' or a list of shape indices, got {shapes!r}")
+        self.shapes = shapes if isinstance(shapes, str) else [int(i) for i in shapes]
         q0 = self._checked_positions(_np(model.particle_q), "model.particle_q")
         tets, groups = self._tetrahedra(model)
         self.particles = np.unique(tets).astype(np.int64)  # newton index of each warpfem vertex
@@ -299,8 +308,11 @@ class SolverFEM(SolverBase):
         source = getattr(model, "shape_source", None)
         body_q = _np(model.body_q) if int(getattr(model, "body_count", 0) or 0) else None
         collide = int(newton.ShapeFlags.COLLIDE_PARTICLES)
-        for s in range(n_shapes):
-            if not (int(flags[s]) & collide):
+        chosen = range(n_shapes) if isinstance(self.shapes, str) else self.shapes
+        for s in chosen:
+            if not 0 <= s < n_shapes:
+                raise NewtonInteropError(f"SolverFEM: shape index {s} out of range [0, {n_shapes})")
+            if not (int(flags[s]) & collide) or (self.shapes == "static" and int(self._shape_body[s]) >= 0):
                 continue
             t = GeoType(int(types[s]))
             if self.friction == "shape":
@@ -373,6 +385,7 @@ class SolverFEM(SolverBase):
         # external forces: state_in.particle_f
         f_all = state_in.particle_f.numpy() if state_in.particle_f is not None else None
         f = None if f_all is None else f_all[idx]
+        self.last_particle_force = np.zeros(3) if f is None else f.astype(np.float64).sum(axis=0)
         if f is not None and (self._forces_on or np.any(f != 0)):
             self.warpfem_model.forces[:] = f.astype(np.float64)
             sim.sync_model()
