@@ -136,11 +136,13 @@ class SolverFEM(SolverBase, CouplingInterface):
             :class:`~warpfem.NewtonOptions`).
 
     Attributes:
-        simulator: the warpfem :class:`~warpfem.simulator.Simulator`; ``particles``: the newton
-        particle index of each of its vertices; ``materials``: one warpfem material per group;
-        ``resyncs``: how many steps read ``state_in`` again; ``last_stats``: the last step's
-        :class:`~warpfem.SolveStats`; ``last_particle_force``: the sum (N) of the ``particle_f`` the last
-        step applied to the simulated particles (in a coupled scene: the coupling forces).
+        simulator: the warpfem :class:`~warpfem.simulator.Simulator`.
+        particles: the newton particle index of each of its vertices.
+        materials: one warpfem material per (k_mu, k_lambda) group.
+        resyncs: how many steps read ``state_in`` again.
+        last_stats: the last step's :class:`~warpfem.SolveStats`.
+        last_particle_force: the sum (N) of the ``particle_f`` the last step applied to the simulated
+            particles (in a coupled scene: the coupling forces).
     """
 
     def __init__(self, model, *, precision="float64", integrator="backward_euler", material="stable_neo_hookean",
