@@ -108,6 +108,61 @@ def _np(a):
     return None if a is None else a.numpy()
 
 
+# -- the taped step: newton's arrays <-> warpfem's state by Warp kernels (differentiable on a wp.Tape) ---
+@wp.kernel
+def _gather64(idx: wp.array(dtype=wp.int32), fixed: wp.array(dtype=wp.int32), q: wp.array(dtype=wp.vec3),
+              qd: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    p = q[idx[i]]
+    x[i] = wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+    u = qd[idx[i]]
+    if fixed[i] == 0:
+        v[i] = wp.vec3d(wp.float64(u[0]), wp.float64(u[1]), wp.float64(u[2]))
+    else:
+        v[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.kernel
+def _scatter64(vertex: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d),
+               q_in: wp.array(dtype=wp.vec3), qd_in: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
+               qd: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    k = vertex[i]
+    if k < 0:
+        q[i] = q_in[i]
+        qd[i] = qd_in[i]
+    else:
+        a = x[k]
+        b = v[k]
+        q[i] = wp.vec3(wp.float32(a[0]), wp.float32(a[1]), wp.float32(a[2]))
+        qd[i] = wp.vec3(wp.float32(b[0]), wp.float32(b[1]), wp.float32(b[2]))
+
+
+@wp.kernel
+def _gather32(idx: wp.array(dtype=wp.int32), fixed: wp.array(dtype=wp.int32), q: wp.array(dtype=wp.vec3),
+              qd: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    x[i] = q[idx[i]]
+    if fixed[i] == 0:
+        v[i] = qd[idx[i]]
+    else:
+        v[i] = wp.vec3(0.0, 0.0, 0.0)
+
+
+@wp.kernel
+def _scatter32(vertex: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+               q_in: wp.array(dtype=wp.vec3), qd_in: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
+               qd: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    k = vertex[i]
+    if k < 0:
+        q[i] = q_in[i]
+        qd[i] = qd_in[i]
+    else:
+        q[i] = x[k]
+        qd[i] = v[k]
+
+
 class SolverFEM(SolverBase, CouplingInterface):
     """warpfem's implicit FEM as a newton solver of the model's tetrahedra.
 
@@ -367,8 +422,12 @@ class SolverFEM(SolverBase, CouplingInterface):
         SolverFEM finds its own contacts with the colliding shapes each Newton iteration.
 
         Raises :class:`warpfem.SolveFailed` (nothing written, warpfem's state as before) when the
-        step produced NaN/inf or, with ``require_convergence``, did not converge."""
+        step produced NaN/inf or, with ``require_convergence``, did not converge. On a ``wp.Tape`` the
+        step is differentiable with respect to ``state_in.particle_q`` / ``particle_qd`` (warpfem's
+        adjoint; docs/newton.md, "Gradients")."""
         del contacts, observables
+        from warpfem.solvers.adjoint import active_tape
+
         sim, idx = self.simulator, self.particles
         q_all = state_in.particle_q.numpy()
         qd_all = state_in.particle_qd.numpy()
@@ -396,6 +455,9 @@ class SolverFEM(SolverBase, CouplingInterface):
             body_q = state_in.body_q.numpy() if getattr(state_in, "body_q", None) is not None else None
             for s, c in self._colliders:
                 c.newton_pose = self._shape_pose(s, body_q)
+        if active_tape() is not None:
+            self._taped_step(state_in, state_out, float(dt))
+            return
         self.last_stats = sim.step(dt=float(dt))
         x = sim.positions().astype(np.float32)
         v = sim.velocities().astype(np.float32)
@@ -409,6 +471,33 @@ class SolverFEM(SolverBase, CouplingInterface):
                 a, b = getattr(state_in, name, None), getattr(state_out, name, None)
                 if a is not None and b is not None and a.shape == b.shape and a.size:
                     wp.copy(b, a)
+
+    def _taped_step(self, state_in, state_out, dt):
+        """The step on a ``wp.Tape``: newton's arrays into a new warpfem state and back by Warp
+        kernels (taped), the warpfem step in between with its own recorded backward (docs/gradients.md)."""
+        sim = self.simulator
+        dev = sim.device
+        if getattr(self, "_tape_maps", None) is None:
+            vertex = np.full(int(self.model.particle_count), -1, dtype=np.int32)
+            vertex[self.particles] = np.arange(len(self.particles), dtype=np.int32)
+            fixed = np.zeros(len(self.particles), dtype=np.int32)
+            fixed[self._fixed] = 1
+            self._tape_maps = (wp.array(self.particles.astype(np.int32), dtype=wp.int32, device=dev),
+                               wp.array(fixed, dtype=wp.int32, device=dev), wp.array(vertex, dtype=wp.int32, device=dev))
+            self.tape_states = []
+        idx, fixed, vertex = self._tape_maps
+        f64 = sim.precision == "float64"
+        wf_in, wf_out = sim.new_state(requires_grad=True), sim.new_state(requires_grad=True)
+        wf_in.history.clear()
+        wf_out.history.clear()
+        wp.launch(_gather64 if f64 else _gather32, dim=len(self.particles),
+                  inputs=[idx, fixed, state_in.particle_q, state_in.particle_qd], outputs=[wf_in.x, wf_in.v], device=dev)
+        self.last_stats = sim.step(wf_in, wf_out, None, dt)
+        wp.launch(_scatter64 if f64 else _scatter32, dim=int(self.model.particle_count),
+                  inputs=[vertex, wf_out.x, wf_out.v, state_in.particle_q, state_in.particle_qd],
+                  outputs=[state_out.particle_q, state_out.particle_qd], device=dev)
+        self.tape_states.append((wf_in, wf_out))  # alive as long as the tape may need them
+        self._last_q = self._last_qd = None  # the next untaped step reads state_out again
 
     # -- reading back --------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:
