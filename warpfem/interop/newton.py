@@ -231,7 +231,7 @@ class SolverFEM(SolverBase, CouplingInterface):
         mesh = VolumeMesh(q0[self.particles], local, "tet4", remove_unreferenced=False, name="newton tetrahedra")
         volume = mesh.total_volume()
         density = float(mass[~fixed].sum() / volume) if np.any(~fixed) and volume > 0 else 1.0
-        self.materials, k_damp_ratio = [], []
+        self.materials = []
         for key, rows in groups:
             E, nu = lame_to_youngs(key[0], key[1])
             try:
