@@ -302,3 +302,38 @@ def test_a_failed_step_writes_nothing_and_float32_runs():
     sag = np.abs(x64 - model.particle_q.numpy()).max()
     assert sag > 1e-3
     assert np.abs(x32 - x64).max() < 1e-5 * sag
+
+
+def test_shapes_on_bodies_become_colliders_at_their_world_pose():
+    """A sphere and a box on a body (rotated 90 degrees about z, shapes offset in the body frame)
+    and a triangle mesh in the world: after a step with the body moved in state_in, warpfem's
+    collider distances of the block's surface vertices equal the analytic distances to the shapes
+    at body_q * shape_transform."""
+    b = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    _add_mesh(b, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1)), _material())
+    body = b.add_body(xform=wp.transform(wp.vec3(0.5, 0.0, 0.0), wp.quat_identity()))
+    b.add_shape_sphere(body, xform=wp.transform(wp.vec3(0.1, 0.0, 0.0), wp.quat_identity()), radius=0.05)
+    b.add_shape_box(body, xform=wp.transform(wp.vec3(0.0, 0.0, 0.3), wp.quat_identity()), hx=0.02, hy=0.04, hz=0.06)
+    tri = newton.Mesh(np.array([[0.0, 0.0, -0.5], [1.0, 0.0, -0.5], [0.0, 1.0, -0.5]], dtype=np.float32),
+                      np.array([0, 1, 2], dtype=np.int32))
+    b.add_shape_mesh(-1, mesh=tri)
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model)
+    assert [type(c).__bases__[1].__name__ for _, c in solver._colliders] == ["Sphere", "Box", "MeshCollider"]
+    s0, s1 = model.state(), model.state()
+    bq = s0.body_q.numpy()
+    angle = np.pi / 2
+    bq[0] = [0.6, 0.2, 0.1, 0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)]  # 90 degrees about z
+    s0.body_q.assign(bq)
+    solver.step(s0, s1, model.control(), None, 0.01)
+    contact = solver.simulator.contact
+    X = solver.positions()[contact.surface]
+    D = contact.distances()
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    p = np.array([0.6, 0.2, 0.1])
+    center = p + R @ np.array([0.1, 0.0, 0.0])
+    np.testing.assert_allclose(D[:, 0], np.linalg.norm(X - center, axis=1) - 0.05, atol=1e-6)
+    local = (X - (p + R @ np.array([0.0, 0.0, 0.3]))) @ R  # into the box frame
+    outside = np.maximum(np.abs(local) - np.array([0.02, 0.04, 0.06]), 0.0)
+    np.testing.assert_allclose(D[:, 1], np.linalg.norm(outside, axis=1), atol=1e-6)
+    np.testing.assert_allclose(D[:, 2], X[:, 2] + 0.5, atol=1e-6)  # above the triangle's interior
