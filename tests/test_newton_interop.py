@@ -117,7 +117,7 @@ def test_block_on_the_ground_plane_slides_with_the_plane_friction_and_stays_abov
     dpx, dpz = P[19, 0] - P[9, 0], P[19, 2] - P[9, 2]
     assert P[19, 0] > 0.0
     ratio = dpx / (-0.4 * (M * 9.81 * T + dpz))
-    assert abs(ratio - 1.0) < 0.02, ratio  # measured 0.988
+    assert abs(ratio - 1.0) < 0.005, ratio  # measured 1.0001
     # then it stops (v0 / (mu g) = 0.25 s) and sticks: velocity below 1 cm/s after 0.35 s
     assert np.abs(P[35:, 0] / M).max() < 0.01
 
