@@ -251,6 +251,31 @@ def _ordered(dev) -> bool:
     return ORDERED_SUMS == "always" or (ORDERED_SUMS == "device" and not dev.is_cpu)
 
 
+def ordered_sums(device) -> bool:
+    """Whether float64 sums on ``device`` are made in a fixed order from one row per index
+    (``ORDERED_SUMS``: devices other than the CPU by default) rather than with atomics."""
+    return _ordered(wp.get_device(device))
+
+
+def ordered_sum_launches(rows, n, acc, slot, device):
+    """Recorded launches (:class:`RecordedLaunch`, called in order) that add ``rows[0] + ... +
+    rows[n - 1]`` into ``acc[slot]`` in a fixed order: the tree of :func:`_ordered_reduce` (passes
+    of TREE_BLOCK rows, then the last rows in order), its scratch allocated here. For solvers whose
+    kernels add one value per index into a row array of their own (``rows``, zeroed before: a
+    view may start at the slot the kernel writes)."""
+    from warpfem.kernels import linalg as LK
+
+    steps, (passes, last), src = [], _tree_passes(n), rows
+    for r in passes:
+        groups = -(-r // TREE_BLOCK)
+        dst = wp.zeros(groups, dtype=wp.float64, device=device)
+        steps.append(RecordedLaunch(LK.reduce_tree_kernel, groups, [src, r, 1, 1, 0, TREE_BLOCK, dst], device,
+                                    split=False))
+        src = dst
+    steps.append(RecordedLaunch(LK.reduce_rows_kernel, 1, [src, last, 1, 1, 0, acc, int(slot)], device, split=False))
+    return steps
+
+
 def _tree_passes(rows):
     """The row counts of the fixed-order tree's passes, from ``rows`` down to at most TREE_BLOCK."""
     out = []
