@@ -194,7 +194,7 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
 
 
 # the recorded launches of the multigrid's CG split these across CPU threads (``RecordedLaunch``)
-splittable("reduce", 2048, acc=7, slot=8)(_pcg_matvec_kernel)
+splittable("reduce", 2048, acc=7, slot=8, written=lambda a: a[8])(_pcg_matvec_kernel)
 splittable("start", 8192)(_pcg_direction_kernel)
 
 
