@@ -40,7 +40,8 @@ times are recorded next to the wall times (a shared machine inflates them less).
 Configurations (``--configs``; default before,after) are the entries of ``CONFIGS`` below: "before",
 the code of e18de72 (the last commit before the friction solver changes: no stick/slip-aware Newton
 step, friction re-solves), "after", the working tree, "after_no_filter", the working tree with
-``friction_filter=False``. A configuration with a "revision" runs in workers: ``git archive REV`` of
+``friction_filter=False``, "after_no_extrapolation" with ``extrapolate=False``, "after_step_tol" with the
+Newton step test ``step_tol=1e-3`` (body diagonals per second). A configuration with a "revision" runs in workers: ``git archive REV`` of
 this repository extracted into a temporary folder (git needed), each case and precision then the
 hidden ``--_worker OUT.json`` of this script with that folder first on PYTHONPATH; the worker checks
 that ``warpfem.__file__`` is in that folder, and the outputs record per configuration the code that
@@ -109,6 +110,8 @@ CONFIGS: dict[str, dict] = {
     # the working tree without the stick/slip-aware Newton step for collider friction
     "after_no_filter": {"friction_filter": False},
     "after_no_extrapolation": {"extrapolate": False},
+    # the working tree with the Newton step test on (NewtonOptions.step_tol, off by default)
+    "after_step_tol": {"step_tol": 1e-3},
 }
 
 #: where the example scenes are read: this tree's, or in a worker the extracted revision's

@@ -47,6 +47,7 @@ LAYERS = {
     "warpfem.diff": 6,
     "warpfem.cli": 6,
     "warpfem.__main__": 7,
+    "warpfem.interop": 8,
 }
 
 # Known violations still to remove: (importer prefix, imported prefix). Keep this empty.

@@ -15,9 +15,9 @@ import numpy as np
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 HEAVY = {"scipy", "pyamg", "pypardiso", "meshio", "pxr", "matplotlib", "tetgen", "wildmeshing",
-         "fast_simplification", "dask", "ipctk"}
+         "fast_simplification", "dask", "ipctk", "newton"}
 LAZY_WARPFEM = ("warpfem.reduced", "warpfem.tradeoff", "warpfem.diff", "warpfem.contact", "warpfem.simulator",
-                "warpfem.solvers", "warpfem.mesh.locate", "warpfem.io")
+                "warpfem.solvers", "warpfem.mesh.locate", "warpfem.io", "warpfem.interop")
 
 
 def _modules_after(code: str) -> list:

@@ -138,6 +138,14 @@ class Model:
 
     #: the rigid bodies' layout (``warpfem.rigid.model.RigidLayout``) of a model with some, else None
     rigid = None
+    _vertex_rest = None
+
+    @property
+    def vertex_rest_positions(self) -> np.ndarray:
+        """(n, 3) rest positions of every body's vertices in body order (``body_offsets``): the
+        same as ``rest_positions`` without rigid bodies; with them, a rigid body's vertices where
+        its mesh puts them (``rest_positions`` then holds its four nodes: docs/rigid.md)."""
+        return self.rest_positions if self._vertex_rest is None else self._vertex_rest
 
     def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped",
                  volumetric_integration: str = "full"):

@@ -26,7 +26,7 @@ import warp as wp
 from warpfem.kernels import fem as FK
 from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
-from warpfem.kernels.generic import COUNTERS, launch
+from warpfem.kernels.generic import COUNTERS, launch, ordered_sums
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.model import static_supports_error
 from warpfem.solvers.forms import (DampingForm, ElasticForm, IncrementalPotential, InertiaForm, InfeasibleStart, LoadForm,
@@ -199,6 +199,9 @@ class Simulator(SimulatorBase):
         self._prediction_work = {}  # the integrator's prediction buffers (made on first use)
         self._potential = IncrementalPotential(ops, forms, system=system, mask=self._mask,
                                                linear_solve=lambda *a, **kw: self._linear_solve(*a, **kw), work=self._work)
+        # the body size of the step test (NewtonOptions.step_tol): the rest mesh's bounding-box diagonal
+        rest = np.asarray(model.rest_positions, dtype=np.float64)
+        self._potential.body_size = float(np.linalg.norm(np.ptp(rest, axis=0))) if len(rest) else 0.0
         self._static_potential = None
         self._contact_form = None  # the colliders' ContactForm (its ContactSet: self.contact)
         self._surface_form = None  # the SurfaceContactForm of set_contact(...)
@@ -461,8 +464,7 @@ class Simulator(SimulatorBase):
         """Internal elastic forces -dV/dx (N) at x (default: current positions), (n, 3)."""
         xa = self.x if x is None else self._vec_array(x)
         f = self._vec_array()
-        for qs in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=qs.count, inputs=[xa, qs.points, qs.material, self._s(1.0), f], device=self.device)
+        self._add_elastic_force(xa, f)
         return read(f).astype(np.float64)
 
     def stresses(self, x=None) -> np.ndarray:
@@ -513,9 +515,18 @@ class Simulator(SimulatorBase):
         """out := f(x), the elastic force; the stiffness damping's K(x_n) (assembled at the start
         of the step) for the equation-of-motion acceleration (SimulatorBase)."""
         out.zero_()
-        for qs in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=qs.count, inputs=[x, qs.points, qs.material, self._s(1.0), out], device=self.device)
+        self._add_elastic_force(x, out)
         return self._kn_values
+
+    def _add_elastic_force(self, x, f):
+        """f += the elastic force at x: on the CPU one launch per point set scattering with atomics
+        (a launch's threads run in order there), elsewhere (``generic.ORDERED_SUMS``) the
+        gradient's per-vertex gather in a fixed order."""
+        if ordered_sums(self.device):
+            self._elastic.add_force(x, f)
+            return
+        for qs in self._qp_sets:
+            launch(FK.qp_force_kernel, dim=qs.count, inputs=[x, qs.points, qs.material, self._s(1.0), f], device=self.device)
 
     def potential(self, state=None, control=None, dt=None):
         """The incremental potential of a step of ``dt`` from ``state`` (default: the simulator's
@@ -565,6 +576,7 @@ class Simulator(SimulatorBase):
         lags = any(f.uses_lagging() for f in pot.forms)
         pot.set_lag_updates(self.friction_iterations if lags and not self._differentiating() else 0,
                             self.friction_tol)
+        pot.time_step = float(dt)  # the step test's h (NewtonOptions.step_tol)
         stats = newton_solve(pot, y, self.options)
         stats.friction_iterations = pot.lag_updates
         pot.set_lag_updates(0, self.friction_tol)

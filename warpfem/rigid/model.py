@@ -209,7 +209,7 @@ def build_model(cls, bodies, *, bodies_mesh, gravity=(0.0, 0.0, 0.0), mass_matri
     self.mass_matrix_kind = mass_matrix
     self.num_vertices = layout.num_dofs
     self.rest_positions = np.concatenate([p.rest_positions for p in parts] + [layout.dof_rest()])
-    self.vertex_rest_positions = np.concatenate([p.rest_positions for p in parts]
+    self._vertex_rest = np.concatenate([p.rest_positions for p in parts]
                                                 + [b.local_positions + b.center_of_mass for b in rigid])
     self.volumetric_integration = [b.volumetric_integration for b in soft]
     self.volumetric_parameters = None

@@ -388,6 +388,16 @@ class ElasticForm(Form):
             entry["blocks_of"] = (_ptr(bi), self.pattern.nnz)
         return entry
 
+    def add_force(self, x, f):
+        """f += the elastic force -dV/dx at x, summed per vertex in a fixed order (the gradient's
+        gather maps): the same bits on any device and thread count."""
+        dev = self.ops.device
+        for qs in self.qp_sets:
+            off, ent, slots = self._gather(qs)["force"]
+            launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(1.0), slots,
+                                                          slots, 1], dev)
+            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, f, f, 0], dev)
+
     def gradient(self, y, x, scale, g, acc):
         fa, dev = self._fa, self.ops.device
         fa.zero_()
@@ -629,6 +639,7 @@ class IncrementalPotential:
         return mag, float(np.sqrt(a[_G_NORM]))
 
     def _direction_of(self, a):
+        self._direction_max = float(a[_D_GD + 1])  # max |d| of the last direction checked (direction_max)
         scale = a[_D_GD + 2] + (a[_D_GD + 3] / abs(self.s) if self.s != 0.0 else 0.0)
         negligible = bool(a[_D_GD + 1] <= 8.0 * self.eps * scale)
         return float(a[_D_GD]), negligible
@@ -815,6 +826,34 @@ class IncrementalPotential:
             changed = True
             self.lag_updates += 1
         return changed
+
+    def lag_pending(self) -> bool:
+        """Whether a lagging form may still update its lagged quantities in this solve (the step
+        test of ``NewtonOptions.step_tol`` waits for it)."""
+        if getattr(self, "_lag_count", 0) <= 0:
+            return False
+        left = getattr(self, "_lag_left", {})
+        return any(f.uses_lagging() and left.get(id(f), self._lag_count) > 0 for f in self.forms)
+
+    def step_limit(self, step_tol):
+        """The step test's limit on max |d| (``NewtonOptions.step_tol``): a move of every vertex
+        below ``step_tol`` x ``body_size`` per second over the step's ``time_step`` (x = x_b + s y:
+        |d| <= step_tol L h / |s|); 0 (no test) without a time step (a static solve) or body size."""
+        h, L = getattr(self, "time_step", 0.0), getattr(self, "body_size", 0.0)
+        if not (step_tol > 0.0 and h > 0.0 and L > 0.0 and self.xb is not None and self.s != 0.0):
+            return 0.0
+        return step_tol * L * h / abs(self.s)
+
+    def direction_max(self, y, g, d, limit=float("inf")):
+        """max |d| of the Newton direction d (read with its direction check), or of the unfiltered
+        direction when the friction filter changed d and that is larger (one more read-back, only
+        when d itself is within ``limit``)."""
+        m = getattr(self, "_direction_max", float("inf"))
+        raw = self.unfiltered_direction()
+        if raw is not None and m <= limit:
+            self.direction_check(y, g, raw)
+            m = max(m, self._direction_max)
+        return m
 
     def bounds_step(self) -> bool:
         """Whether a form bounds the line search's step (then :meth:`max_step` reads it back)."""

@@ -79,6 +79,16 @@ class NewtonOptions:
             secant model's longer step along it and keep it if the energy is lower: corrects the
             short steps of projected Hessians (contact pairs, elements). Changes the path, not
             the solution; one energy and gradient evaluation per try (measured in docs/contact.md).
+        step_tol: a second stopping test, on the Newton step (as in "Incremental Potential
+            Contact"): the solve is also converged after a full step (step length 1) whose Newton
+            direction moves no vertex faster than ``step_tol`` body diagonals per second over the
+            time step (|x_{k+1} - x_k|_inf / h <= step_tol x L, L the bounding-box diagonal of the
+            rest mesh; with the friction filter, the unfiltered direction's move counts too), taken
+            only once the step's friction lag update is made. 0 (default): off, the relative
+            gradient alone decides. Full-space dynamics only (static solves and reduced models ignore
+            it); measured effect on iterations and accuracy in docs/contact.md ("Where a contact
+            step's Newton iterations go"): it saves little where Newton converges quadratically and
+            costs accuracy where it converges linearly, hence off.
     """
 
     tol: float = 1e-6
@@ -93,6 +103,7 @@ class NewtonOptions:
     hessian_projection: str = "on_demand"
     friction_filter: bool = True
     extrapolate: bool = True
+    step_tol: float = 0.0
 
     def validate(self):
         for name in ("tol", "cg_tol"):
@@ -101,6 +112,8 @@ class NewtonOptions:
                 raise ValueError(f"{name} must be in (0, 1), got {v!r}")
         if not (np.isfinite(self.atol) and self.atol >= 0.0):
             raise ValueError(f"atol must be >= 0, got {self.atol!r}")
+        if not (np.isfinite(self.step_tol) and self.step_tol >= 0.0):
+            raise ValueError(f"step_tol must be >= 0 (0: off), got {self.step_tol!r}")
         for name in ("max_iters", "max_cg_iters", "max_line_search"):
             v = getattr(self, name)
             if int(v) != v or v < 1:
@@ -118,8 +131,9 @@ class SolveStats:
     """What one nonlinear solve (a time step or a static load step) did.
 
     ``converged`` is True when the final gradient passes the tolerance test, ||P g|| <= tol *
-    ``initial_gradient`` (or <= atol), whatever stopped the loop, or when the solve stopped at
-    the precision limit of its arithmetic (``reason`` says so); it is False when an iteration cap
+    ``initial_gradient`` (or <= atol), whatever stopped the loop, when the solve stopped at
+    the precision limit of its arithmetic, or by the step test of ``NewtonOptions.step_tol``
+    (``reason`` says which); it is False when an iteration cap
     was hit, the line search could not decrease the energy or there was no descent direction with
     the gradient above the tolerance; ``reason`` says which. ``residual`` is the final ||P g|| /
     ``initial_gradient`` (the relative gradient), ``tolerance`` the ``tol`` it was tested against:
@@ -226,6 +240,11 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
       iteration (alpha: its step length, r: the gradient norm relative to the reference); True when
       the potential itself changed there (contact's adaptive barrier stiffness doubled), and its
       energy and gradient at y are evaluated again (``evaluate``);
+    * optionally ``step_limit(step_tol) -> limit``, ``direction_max(y, g, d, limit) -> max |d|`` and
+      ``lag_pending() -> bool`` (``opts.step_tol``): the step test's limit on the largest
+      component of a Newton direction (0: no test), that component (the larger of the direction's
+      and, where a filter changed it, the unfiltered one's), and whether the potential will still
+      change in this solve (a lag update to come: the step test waits for it);
     * ``eps`` (machine epsilon of the unknowns) and ``gradient_test_below``: when > 0 and a full
       step changes the energy, or the Newton model predicts it to change (|g.d|), by less than that
       fraction of its magnitude (below what the energy sum resolves), the step is accepted if it
@@ -305,6 +324,10 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
                      f"<= tol {opts.tol:.1e})")
         return finish()
     gnorm = gnorm0
+    # the step test's limit on max |d| (units of the unknowns; 0: off) and whether the potential may
+    # still change in this solve (friction's lag update to come)
+    step_limit = float(problem.step_limit(opts.step_tol)) if opts.step_tol > 0.0 and hasattr(problem, "step_limit") else 0.0
+    lag_pending = getattr(problem, "lag_pending", lambda: False)
     if forcing is not None:
         forcing.start(gnorm0, first_solved=first is not None)
     for _ in range(opts.max_iters):
@@ -369,6 +392,8 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
             st.converged = True
             st.reason = "at the precision limit (Newton step below the resolution of the positions)"
             break
+        # the step test (opts.step_tol): does this direction move every vertex by less than the limit?
+        small_step = step_limit > 0.0 and problem.direction_max(y, g, d, step_limit) <= step_limit
         # continuous-collision filter (contact): no step may carry the state across a collider
         if pre is not None:
             alpha = alpha_pre
@@ -452,7 +477,8 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
             gmag, gnorm = problem.gradient(y, g)
         # a problem whose terms adapt (contact's barrier stiffness) may change its potential here:
         # its energy and gradient at y are evaluated again (the line search compares like with like)
-        if after_iteration is not None and after_iteration(y, alpha, residual=relative(gnorm)):
+        changed = after_iteration is not None and after_iteration(y, alpha, residual=relative(gnorm))
+        if changed:
             E, mag, gmag, gnorm = problem.evaluate(y, g)
             st.adaptations += 1
         st.newton_iterations += 1
@@ -465,6 +491,12 @@ def newton_solve(problem, y, opts: NewtonOptions, reference=None) -> SolveStats:
             break
         if gnorm <= floor_factor * gmag:
             st.converged, st.reason = True, "gradient at the round-off floor of its terms"
+            break
+        # a full step of a direction below the step limit, on a potential that stays as it is (no
+        # lag update now or still to come): converged by the step test
+        if small_step and alpha >= 1.0 and not changed and not lag_pending():
+            st.converged = True
+            st.reason = f"Newton step below step_tol={opts.step_tol:g} (relative gradient {relative(gnorm):.2e})"
             break
     else:
         st.reason = f"reached max_iters={opts.max_iters}"

@@ -1,0 +1,339 @@
+"""warpfem as a newton solver (warpfem.interop.newton.SolverFEM, docs/newton.md): a newton soft mesh
+stepped by SolverFEM matches the same mesh and material run as a warpfem Model/Simulator to float32
+round-off; a block sliding on newton's ground plane decelerates at the plane material's mu g and
+never goes below it; bad models get one-line errors naming what is supported; a state edited by
+the caller is read again."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+newton = pytest.importorskip("newton")
+wp = pytest.importorskip("warp")
+
+import warpfem as wf  # noqa: E402
+from warpfem.interop.newton import NewtonInteropError, SolverFEM, lame_to_youngs  # noqa: E402
+
+E, NU, RHO = 1.0e5, 0.3, 1000.0
+
+
+def _material(E=E, nu=NU):
+    return wf.StableNeoHookean(youngs_modulus=E, poisson_ratio=nu, density=RHO)
+
+
+def _add_mesh(builder, mesh, material, *, pos=(0.0, 0.0, 0.0), vel=(0.0, 0.0, 0.0)):
+    builder.add_soft_mesh(pos=wp.vec3(*pos), rot=wp.quat_identity(), scale=1.0, vel=wp.vec3(*vel),
+                          vertices=np.asarray(mesh.vertices).tolist(), indices=np.asarray(mesh.elements).ravel().tolist(),
+                          density=RHO, k_mu=material.mu_lame, k_lambda=material.lam_lame, k_damp=0.0)
+
+
+def _run(solver, model, steps, dt, *, start=None):
+    s0, s1 = (start or model.state()), model.state()
+    control = model.control()
+    for _ in range(steps):
+        s0.clear_forces()
+        solver.step(s0, s1, control, None, dt)
+        s0, s1 = s1, s0
+    return s0
+
+
+def _cantilever_model(meshes_and_materials, fix_x0=True):
+    b = newton.ModelBuilder()
+    for mesh, mat, pos in meshes_and_materials:
+        _add_mesh(b, mesh, mat, pos=pos)
+    model = b.finalize(device="cpu")
+    if fix_x0:  # zero mass: newton's fixed particles
+        q = model.particle_q.numpy()
+        m = model.particle_mass.numpy()
+        m[q[:, 0] < 1e-9] = 0.0
+        model.particle_mass.assign(m)
+        model.particle_inv_mass.assign(np.where(m > 0, 1.0 / np.maximum(m, 1e-30), 0.0).astype(np.float32))
+    return model
+
+
+def test_lame_to_youngs_inverts_warpfem_lame_parameters():
+    m = _material(2.5e6, 0.45)
+    assert lame_to_youngs(m.mu_lame, m.lam_lame) == pytest.approx((2.5e6, 0.45), rel=1e-14)
+
+
+def test_soft_mesh_matches_a_warpfem_simulator_to_float32_round_off():
+    """Two bodies of different materials (two add_soft_mesh calls, two tet_materials groups) as a
+    cantilever pair under gravity: SolverFEM's float32 output against Model.from_bodies run by a
+    warpfem Simulator (the same float32-rounded vertices) after 8 steps."""
+    soft, stiff = _material(), _material(4.0e5, 0.35)
+    mesh = wf.box_tet_mesh(size=(0.3, 0.1, 0.1), cells=(3, 1, 1))
+    V = np.asarray(mesh.vertices, dtype=np.float32).astype(np.float64)
+    mesh32 = wf.TetMesh(V, np.asarray(mesh.elements))
+    model = _cantilever_model([(mesh32, soft, (0.0, 0.0, 0.0)), (mesh32, stiff, (0.0, 0.3, 0.0))])
+    dt, steps = 1.0 / 60.0, 8
+    solver = SolverFEM(model, tol=1e-10)
+    assert len(solver.materials) == 2 and solver.resyncs == 0
+    got = _run(solver, model, steps, dt).particle_q.numpy().astype(np.float64)
+
+    ref = wf.Model.from_bodies([wf.Body(mesh32, soft, name="soft"), wf.Body(mesh32, stiff, name="stiff", offset=(0, 0.3, 0))],
+                               gravity=(0.0, 0.0, -9.81))
+    X = ref.rest_positions
+    ref.fix(np.flatnonzero(X[:, 0] < 1e-9))
+    sim = wf.Simulator(ref, dt=dt, tol=1e-10)
+    for _ in range(steps):
+        sim.step()
+    x = sim.positions()
+    disp = np.abs(x - X).max()
+    assert disp > 0.01  # the bars bend
+    err = np.abs(got - x).max() / disp
+    assert err < 1e-6, err  # measured 2.0e-7: the float32 rounding of the output
+    assert np.abs(solver.positions() - x).max() / disp < 1e-6  # warpfem's own float64 state
+
+
+@pytest.fixture(scope="module")
+def sliding_block():
+    """A 0.1 m block launched at 1 m/s along x 2 mm above newton's ground plane (mu = 0.4), dt = 0.01 s:
+    (model, masses, the particle momentum after each of 40 steps, the lowest z after each step)."""
+    b = newton.ModelBuilder()
+    b.add_ground_plane(cfg=newton.ModelBuilder.ShapeConfig(mu=0.4))
+    _add_mesh(b, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(2, 2, 2)), _material(), pos=(0.0, 0.0, 0.002),
+              vel=(1.0, 0.0, 0.0))
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model)
+    mass = model.particle_mass.numpy().astype(np.float64)
+    s0, s1 = model.state(), model.state()
+    momentum, zmin = [], []
+    for _ in range(40):
+        s0.clear_forces()
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+        momentum.append((mass[:, None] * s0.particle_qd.numpy()).sum(axis=0))
+        zmin.append(float(s0.particle_q.numpy()[:, 2].min()))
+    return solver, mass, np.array(momentum), np.array(zmin), s0
+
+
+def test_block_on_the_ground_plane_slides_with_the_plane_friction_and_stays_above_it(sliding_block):
+    solver, mass, P, zmin, _ = sliding_block
+    assert [c.friction for _, c in solver._colliders] == pytest.approx([0.4])
+    assert zmin.min() > 0.0  # no vertex below the plane
+    # sliding (steps 11 to 20): Coulomb, dp_x = -mu (M g T + dp_z) (the normal impulse)
+    M, T = mass.sum(), 10 * 0.01
+    dpx, dpz = P[19, 0] - P[9, 0], P[19, 2] - P[9, 2]
+    assert P[19, 0] > 0.0
+    ratio = dpx / (-0.4 * (M * 9.81 * T + dpz))
+    assert abs(ratio - 1.0) < 0.005, ratio  # measured 1.0001
+    # then it stops (v0 / (mu g) = 0.25 s) and sticks: velocity below 1 cm/s after 0.35 s
+    assert np.abs(P[35:, 0] / M).max() < 0.01
+
+
+def test_a_state_the_caller_changed_is_read_again(sliding_block):
+    """Steps continue from warpfem's own float64 state while state_in is what SolverFEM wrote;
+    a fresh state (a reset) is read again and gives the first steps again."""
+    solver, *_ , last = sliding_block
+    model = solver.model
+    before = solver.resyncs
+    first = _run(solver, model, 2, 0.01).particle_q.numpy()
+    assert solver.resyncs == before + 1  # the reset state
+    fresh = SolverFEM(model)
+    again = _run(fresh, model, 2, 0.01).particle_q.numpy()
+    np.testing.assert_array_equal(first, again)  # deterministic, and the resync restarted the history
+    assert fresh.resyncs == 1
+
+
+def test_particle_forces_act_as_external_loads():
+    """state.particle_f: a force of 0.5 N on every particle of a free-floating block changes its
+    momentum by n F t (the particles' masses differ, so the block also deforms)."""
+    b = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    _add_mesh(b, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1)), _material())
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model, tol=1e-12)
+    s0, s1 = model.state(), model.state()
+    M = float(model.particle_mass.numpy().sum())
+    for _ in range(3):
+        s0.particle_f.assign(np.tile(np.array([[0.5, 0.0, 0.0]], dtype=np.float32), (model.particle_count, 1)))
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+    m = model.particle_mass.numpy().astype(np.float64)
+    p = (m[:, None] * s0.particle_qd.numpy()).sum(axis=0)
+    assert p == pytest.approx([3 * 0.01 * 0.5 * model.particle_count, 0.0, 0.0], rel=1e-5, abs=1e-9)
+    assert M > 0
+
+
+def test_bad_models_get_one_line_errors():
+    b = newton.ModelBuilder()
+    b.add_particle(wp.vec3(0.0, 0.0, 1.0), wp.vec3(0.0, 0.0, 0.0), 1.0)
+    with pytest.raises(NewtonInteropError, match=r"tetrahedra \(ModelBuilder.add_soft_mesh / add_soft_grid\); it has no tetrahedra"):
+        SolverFEM(b.finalize(device="cpu"))
+    c = newton.ModelBuilder()
+    c.add_cloth_grid(pos=wp.vec3(0.0, 0.0, 1.0), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0), dim_x=2, dim_y=2,
+                     cell_x=0.1, cell_y=0.1, mass=0.1)
+    with pytest.raises(NewtonInteropError, match=r"it has 8 triangles and no tetrahedra \(cloth and shells: use SolverVBD"):
+        SolverFEM(c.finalize(device="cpu"))
+    d = newton.ModelBuilder()
+    _add_mesh(d, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1)), _material())
+    model = d.finalize(device="cpu")
+    q = model.particle_q.numpy()
+    q[3, 1] = np.nan
+    model.particle_q.assign(q)
+    with pytest.raises(NewtonInteropError, match=r"model.particle_q of particle 3 is not finite"):
+        SolverFEM(model)
+    for e in (NewtonInteropError("x"),):
+        assert "\n" not in str(e)
+
+
+def test_solver_fem_is_an_entry_of_newtons_coupled_solver():
+    """SolverCoupled (newton's experimental coupled framework) with a SolverFEM entry owning the
+    soft block and the ground plane and a SolverXPBD entry owning a rigid box: the block's particles
+    are bit-identical to SolverFEM alone on the same model, the box falls freely (v = -g t)."""
+    coupled = pytest.importorskip("newton.solvers.experimental.coupled")
+    mesh = wf.box_tet_mesh(size=(0.2, 0.1, 0.1), cells=(2, 1, 1))
+
+    def build():
+        b = newton.ModelBuilder()
+        b.add_ground_plane(cfg=newton.ModelBuilder.ShapeConfig(mu=0.5))
+        _add_mesh(b, mesh, _material(), pos=(0.0, 0.0, 0.01))
+        body = b.add_body(xform=wp.transform(wp.vec3(1.0, 0.0, 1.0), wp.quat_identity()))
+        b.add_shape_box(body, hx=0.05, hy=0.05, hz=0.05)
+        return b.finalize(device="cpu"), body
+
+    model, body = build()
+    solver = coupled.SolverCoupled(model=model, entries=[
+        coupled.SolverCoupled.Entry(name="fem", solver=lambda v: SolverFEM(v, shapes=[0]),
+                                    particles=list(range(model.particle_count)), shapes=[0]),
+        coupled.SolverCoupled.Entry(name="xpbd", solver=lambda v: newton.solvers.SolverXPBD(model=v), bodies=[body],
+                                    shapes=[1])])
+    got = _run(solver, model, 10, 0.01)
+    alone_model, _ = build()
+    alone = _run(SolverFEM(alone_model, shapes=[0]), alone_model, 10, 0.01)
+    np.testing.assert_array_equal(got.particle_q.numpy(), alone.particle_q.numpy())
+    assert got.particle_q.numpy()[:, 2].min() > 0.0
+    assert got.body_qd.numpy()[0][2] == pytest.approx(-9.81 * 0.1, rel=1e-5)
+
+
+def test_newton_viewer_usd_draws_the_solver_fem_model(tmp_path):
+    """newton's ViewerUSD writes the SolverFEM-stepped model as it would any other: the soft
+    body's points at each time sample are the state's particle positions."""
+    pytest.importorskip("pxr")
+    viewer_mod = pytest.importorskip("newton.viewer")
+    from pxr import Usd
+
+    b = newton.ModelBuilder()
+    b.add_ground_plane()
+    _add_mesh(b, wf.box_tet_mesh(size=(0.2, 0.1, 0.1), cells=(2, 1, 1)), _material(), pos=(0.0, 0.0, 0.05))
+    model = b.finalize(device="cpu")
+    path = tmp_path / "fem.usda"
+    viewer = viewer_mod.ViewerUSD(output_path=str(path), fps=60, up_axis="Z")
+    viewer.set_model(model)
+    solver = SolverFEM(model)
+    s0, s1 = model.state(), model.state()
+    logged = []
+    for frame in range(3):
+        viewer.begin_frame(frame / 60.0)
+        viewer.log_state(s0)
+        viewer.end_frame()
+        logged.append(s0.particle_q.numpy().copy())
+        solver.step(s0, s1, model.control(), None, 1.0 / 60.0)
+        s0, s1 = s1, s0
+    viewer.close()
+    stage = Usd.Stage.Open(str(path))
+    points = [p for p in stage.Traverse() if p.GetAttribute("points") and len(p.GetAttribute("points").GetTimeSamples()) == 3]
+    assert len(points) == 1
+    attr = points[0].GetAttribute("points")
+    for t, q in zip(attr.GetTimeSamples(), logged):
+        np.testing.assert_allclose(np.asarray(attr.Get(t)), q, atol=1e-7)
+    assert logged[2][:, 2].min() < logged[0][:, 2].min() - 1e-3  # it fell
+
+
+@wp.kernel
+def _tip_height(q: wp.array(dtype=wp.vec3), tip: int, loss: wp.array(dtype=float)):
+    loss[0] = q[tip][2]
+
+
+def test_a_tape_over_solver_fem_steps_gives_warpfem_adjoint_gradients():
+    """wp.Tape over three SolverFEM steps of a clamped bar: d(tip z)/d(initial velocities) from
+    tape.backward equal central differences of untaped runs (eps 0.01 m/s) to 1e-4."""
+    mesh = wf.box_tet_mesh(size=(0.2, 0.05, 0.05), cells=(2, 1, 1))
+    b = newton.ModelBuilder()
+    _add_mesh(b, mesh, _material())
+    for i in range(b.particle_count):
+        if b.particle_q[i][0] < 1e-9:
+            b.particle_mass[i] = 0.0
+    model = b.finalize(device="cpu", requires_grad=True)
+    q0 = model.particle_q.numpy()
+    tip = int(np.argmax(q0[:, 0] + q0[:, 2]))
+    solver = SolverFEM(model, linear_solver="direct", tol=1e-10)
+
+    def run(qd0, tape=None):
+        states = [model.state(requires_grad=True) for _ in range(4)]
+        states[0].particle_qd.assign(qd0)
+        loss = wp.zeros(1, dtype=float, requires_grad=True)
+        with tape or wp.ScopedDevice("cpu"):
+            for k in range(3):
+                solver.step(states[k], states[k + 1], None, None, 0.01)
+            wp.launch(_tip_height, 1, inputs=[states[3].particle_q, tip, loss])
+        return states, loss
+
+    qd0 = np.zeros((model.particle_count, 3), dtype=np.float32)
+    tape = wp.Tape()
+    states, loss = run(qd0, tape)
+    tape.backward(loss)
+    grad = states[0].particle_qd.grad.numpy()[tip].astype(np.float64)
+    assert grad[2] > 1e-3
+    for comp in (0, 2):
+        plus, minus = qd0.copy(), qd0.copy()
+        plus[tip, comp] += 0.01
+        minus[tip, comp] -= 0.01
+        fd = (float(run(plus)[1].numpy()[0]) - float(run(minus)[1].numpy()[0])) / 0.02
+        assert grad[comp] == pytest.approx(fd, rel=1e-4, abs=1e-7)  # measured 4e-5 relative
+    assert np.abs(states[0].particle_q.grad.numpy()).max() > 0.0
+
+
+def test_a_failed_step_writes_nothing_and_float32_runs():
+    """require_convergence with one Newton iteration: SolveFailed, state_out and warpfem's state
+    untouched; the same bar in float32 follows the float64 run to 1e-5 of its sag (measured 2.9e-7)."""
+    mesh = wf.box_tet_mesh(size=(0.3, 0.1, 0.1), cells=(3, 1, 1))
+    model = _cantilever_model([(mesh, _material(), (0.0, 0.0, 0.0))])
+    strict = SolverFEM(model, require_convergence=True, max_iters=1, tol=1e-12)
+    s0, s1 = model.state(), model.state()
+    out_before = s1.particle_q.numpy().copy()
+    x_before = strict.positions()
+    with pytest.raises(wf.SolveFailed):
+        strict.step(s0, s1, model.control(), None, 1.0 / 60.0)
+    np.testing.assert_array_equal(s1.particle_q.numpy(), out_before)
+    np.testing.assert_array_equal(strict.positions(), x_before)
+    x64 = _run(SolverFEM(model, tol=1e-8), model, 4, 1.0 / 60.0).particle_q.numpy()
+    x32 = _run(SolverFEM(model, precision="float32", tol=1e-5), model, 4, 1.0 / 60.0).particle_q.numpy()
+    sag = np.abs(x64 - model.particle_q.numpy()).max()
+    assert sag > 1e-3
+    assert np.abs(x32 - x64).max() < 1e-5 * sag
+
+
+def test_shapes_on_bodies_become_colliders_at_their_world_pose():
+    """A sphere and a box on a body (rotated 90 degrees about z, shapes offset in the body frame)
+    and a triangle mesh in the world: after a step with the body moved in state_in, warpfem's
+    collider distances of the block's surface vertices equal the analytic distances to the shapes
+    at body_q * shape_transform."""
+    b = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    _add_mesh(b, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1)), _material())
+    body = b.add_body(xform=wp.transform(wp.vec3(0.5, 0.0, 0.0), wp.quat_identity()))
+    b.add_shape_sphere(body, xform=wp.transform(wp.vec3(0.1, 0.0, 0.0), wp.quat_identity()), radius=0.05)
+    b.add_shape_box(body, xform=wp.transform(wp.vec3(0.0, 0.0, 0.3), wp.quat_identity()), hx=0.02, hy=0.04, hz=0.06)
+    tri = newton.Mesh(np.array([[0.0, 0.0, -0.5], [1.0, 0.0, -0.5], [0.0, 1.0, -0.5]], dtype=np.float32),
+                      np.array([0, 1, 2], dtype=np.int32))
+    b.add_shape_mesh(-1, mesh=tri)
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model)
+    assert [type(c).__bases__[1].__name__ for _, c in solver._colliders] == ["Sphere", "Box", "MeshCollider"]
+    s0, s1 = model.state(), model.state()
+    bq = s0.body_q.numpy()
+    angle = np.pi / 2
+    bq[0] = [0.6, 0.2, 0.1, 0.0, 0.0, np.sin(angle / 2), np.cos(angle / 2)]  # 90 degrees about z
+    s0.body_q.assign(bq)
+    solver.step(s0, s1, model.control(), None, 0.01)
+    contact = solver.simulator.contact
+    X = solver.positions()[contact.surface]
+    D = contact.distances()
+    R = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    p = np.array([0.6, 0.2, 0.1])
+    center = p + R @ np.array([0.1, 0.0, 0.0])
+    np.testing.assert_allclose(D[:, 0], np.linalg.norm(X - center, axis=1) - 0.05, atol=1e-6)
+    local = (X - (p + R @ np.array([0.0, 0.0, 0.3]))) @ R  # into the box frame
+    outside = np.maximum(np.abs(local) - np.array([0.02, 0.04, 0.06]), 0.0)
+    np.testing.assert_allclose(D[:, 1], np.linalg.norm(outside, axis=1), atol=1e-6)
+    np.testing.assert_allclose(D[:, 2], X[:, 2] + 0.5, atol=1e-6)  # above the triangle's interior

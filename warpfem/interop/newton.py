@@ -1,0 +1,514 @@
+"""warpfem as a solver of newton (the Warp physics engine): :class:`SolverFEM`.
+
+``SolverFEM(model, **options)`` is a ``newton.solvers.SolverBase``: ``step(state_in, state_out,
+control, contacts, dt)`` advances the tetrahedra of a ``newton.Model`` (``ModelBuilder.add_soft_mesh``,
+``add_soft_grid``) with a warpfem :class:`~warpfem.simulator.Simulator` (Newton's method on the
+backward-Euler incremental potential, barrier contact with friction) and writes ``particle_q`` and
+``particle_qd`` of ``state_out``. What maps to what (docs/newton.md):
+
+* tetrahedra and their ``tet_materials`` rows (k_mu, k_lambda, k_damp): one warpfem material per
+  distinct (k_mu, k_lambda) pair, all sharing the particles (one quadrature set per material);
+  newton's tetrahedral energy is the stable neo-Hookean energy without the log term with
+  mu = k_mu, lambda = k_lambda + k_mu, which is :class:`warpfem.StableNeoHookean` of the Lame
+  pair (k_mu, k_lambda) (E = mu (3 lambda + 2 mu) / (lambda + mu), nu = lambda / (2 (lambda + mu)));
+  k_damp becomes Rayleigh stiffness damping beta = 2 k_damp / k_mu (the small-strain
+  dissipation of newton's damping term, deviatoric part);
+* particle masses: newton's ``particle_mass`` (lumped); a particle of zero mass or without the
+  ``ParticleFlags.ACTIVE`` flag is fixed where ``state_in`` puts it (moving it between steps moves it
+  kinematically);
+* gravity: ``model.gravity``; external forces: ``state_in.particle_f`` (N, per particle);
+* shapes that collide with particles (ground plane, planes, boxes, spheres, triangle meshes) on
+  their bodies' poses of ``state_in`` -> warpfem colliders with friction (the shape material's
+  ``mu``).
+
+warpfem keeps its own state (float64 by default) between steps while the caller passes back what
+the solver wrote last (the usual ``state_0, state_1 = state_1, state_0`` loop); a ``state_in`` that
+differs from it (a reset, a state edited by hand or by another solver) is read again
+(``resyncs`` counts those).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:
+    import newton
+    import warp as wp
+    from newton.solvers import SolverBase
+    from newton.solvers.experimental.coupled import CouplingInterface
+except ImportError as exc:  # pragma: no cover - exercised only without newton
+    raise ImportError("warpfem.interop.newton needs the newton package (the Warp physics engine): "
+                      "pip install 'warpfem[newton]'") from exc
+
+from warpfem.contact.colliders import Box, MeshCollider, Plane, Sphere
+from warpfem.elements import precompute_quadrature
+from warpfem.materials import make_material
+from warpfem.mesh import VolumeMesh
+from warpfem.model import Model
+from warpfem.simulator import Simulator
+
+__all__ = ["SolverFEM", "NewtonInteropError", "lame_to_youngs"]
+
+#: the shape types SolverFEM turns into colliders
+SUPPORTED_SHAPES = ("plane", "sphere", "box", "mesh")
+
+
+class NewtonInteropError(ValueError):
+    """A newton model or state SolverFEM cannot simulate (the message says what is supported)."""
+
+
+def lame_to_youngs(k_mu: float, k_lambda: float) -> tuple[float, float]:
+    """(E, nu) of the Lame pair (mu, lambda): E = mu (3 lambda + 2 mu) / (lambda + mu),
+    nu = lambda / (2 (lambda + mu))."""
+    mu, lam = float(k_mu), float(k_lambda)
+    return mu * (3.0 * lam + 2.0 * mu) / (lam + mu), lam / (2.0 * (lam + mu))
+
+
+def _rotation(qxyzw) -> np.ndarray:
+    x, y, z, w = (float(c) for c in qxyzw)
+    n = math.sqrt(x * x + y * y + z * z + w * w) or 1.0
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def _compose(a, b):
+    """(R, p) of transform a applied after b (both (R, p))."""
+    return a[0] @ b[0], a[0] @ b[1] + a[1]
+
+
+class _Posed:
+    """A warpfem collider built in its newton shape's own frame, placed by the shape's world
+    transform of the current step (``pose`` ignores the schedule time: set by SolverFEM)."""
+
+    def pose(self, t):
+        return self.newton_pose
+
+
+class _PosedPlane(_Posed, Plane):
+    pass
+
+
+class _PosedSphere(_Posed, Sphere):
+    pass
+
+
+class _PosedBox(_Posed, Box):
+    pass
+
+
+class _PosedMesh(_Posed, MeshCollider):
+    pass
+
+
+def _np(a):
+    return None if a is None else a.numpy()
+
+
+# -- the taped step: newton's arrays <-> warpfem's state by Warp kernels (differentiable on a wp.Tape) ---
+@wp.kernel
+def _gather64(idx: wp.array(dtype=wp.int32), fixed: wp.array(dtype=wp.int32), q: wp.array(dtype=wp.vec3),
+              qd: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d)):
+    i = wp.tid()
+    p = q[idx[i]]
+    x[i] = wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
+    u = qd[idx[i]]
+    if fixed[i] == 0:
+        v[i] = wp.vec3d(wp.float64(u[0]), wp.float64(u[1]), wp.float64(u[2]))
+    else:
+        v[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.kernel
+def _scatter64(vertex: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d),
+               q_in: wp.array(dtype=wp.vec3), qd_in: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
+               qd: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    k = vertex[i]
+    if k < 0:
+        q[i] = q_in[i]
+        qd[i] = qd_in[i]
+    else:
+        a = x[k]
+        b = v[k]
+        q[i] = wp.vec3(wp.float32(a[0]), wp.float32(a[1]), wp.float32(a[2]))
+        qd[i] = wp.vec3(wp.float32(b[0]), wp.float32(b[1]), wp.float32(b[2]))
+
+
+@wp.kernel
+def _gather32(idx: wp.array(dtype=wp.int32), fixed: wp.array(dtype=wp.int32), q: wp.array(dtype=wp.vec3),
+              qd: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    x[i] = q[idx[i]]
+    if fixed[i] == 0:
+        v[i] = qd[idx[i]]
+    else:
+        v[i] = wp.vec3(0.0, 0.0, 0.0)
+
+
+@wp.kernel
+def _scatter32(vertex: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
+               q_in: wp.array(dtype=wp.vec3), qd_in: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
+               qd: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    k = vertex[i]
+    if k < 0:
+        q[i] = q_in[i]
+        qd[i] = qd_in[i]
+    else:
+        q[i] = x[k]
+        qd[i] = v[k]
+
+
+class SolverFEM(SolverBase, CouplingInterface):
+    """warpfem's implicit FEM as a newton solver of the model's tetrahedra.
+
+    Args:
+        model: a ``newton.Model`` (or a coupled framework's ``ModelView`` of one) with tetrahedra.
+        precision: warpfem's precision, "float64" (default) or "float32"; newton's arrays stay float32.
+        integrator: "backward_euler" (default), "bdf2", "newmark" or a :mod:`warpfem.integrators` instance.
+        material: the warpfem material each (k_mu, k_lambda) group becomes: "stable_neo_hookean"
+            (default: newton's tetrahedral energy), "stable_neo_hookean_log", "corotated", "stvk",
+            "linear" (the same Lame pair, another energy).
+        damping_mass: Rayleigh alpha (1/s). damping_stiffness: Rayleigh beta (s); None (default):
+            2 k_damp / k_mu from the tetrahedra (one value: tetrahedra whose ratios differ need it given).
+        friction: "shape" (default: each shape material's ``mu``), "average" (the mean of it and
+            ``model.soft_contact_mu``, newton's particle-shape rule) or a number (every shape).
+        contact: dict of warpfem contact options for every collider: ``dhat`` (m), ``stiffness``
+            (N/m or "auto"), ``friction_velocity`` (m/s); warpfem's defaults otherwise (docs/contact.md).
+        soft_contact: None (default: none) or a dict of ``Simulator.set_contact`` keys: contact
+            between the soft bodies (``bodies``) and of each with itself (``self``).
+        unsupported_shapes: "error" (default) or "ignore": what to do with a colliding shape
+            SolverFEM cannot represent (capsule, cylinder, cone, ellipsoid, height field, convex hull).
+        shapes: which shapes become colliders: "all" (default: every shape with
+            ``ShapeFlags.COLLIDE_PARTICLES``), "static" (those of them on no body: the ground, fixed
+            obstacles; in a coupled scene the rigid solver handles the moving ones) or a list of shape indices.
+        linear_solver, linear_solver_options, require_convergence, tol, atol, max_iters, ... :
+            warpfem's :class:`~warpfem.simulator.Simulator` options (docs/linear_solvers.md,
+            :class:`~warpfem.NewtonOptions`).
+
+    Attributes:
+        simulator: the warpfem :class:`~warpfem.simulator.Simulator`.
+        particles: the newton particle index of each of its vertices.
+        materials: one warpfem material per (k_mu, k_lambda) group.
+        resyncs: how many steps read ``state_in`` again.
+        last_stats: the last step's :class:`~warpfem.SolveStats`.
+        last_particle_force: the sum (N) of the ``particle_f`` the last step applied to the simulated
+            particles (in a coupled scene: the coupling forces).
+    """
+
+    def __init__(self, model, *, precision="float64", integrator="backward_euler", material="stable_neo_hookean",
+                 damping_mass=0.0, damping_stiffness=None, friction="shape", contact=None, soft_contact=None,
+                 unsupported_shapes="error", shapes="all", linear_solver="auto", linear_solver_options=None,
+                 require_convergence=False, **newton_options):
+        super().__init__(model)
+        if unsupported_shapes not in ("error", "ignore"):
+            raise ValueError(f"unsupported_shapes must be 'error' or 'ignore', got {unsupported_shapes!r}")
+        if not (friction in ("shape", "average") or (isinstance(friction, (int, float)) and friction >= 0)):
+            raise ValueError(f"friction must be 'shape', 'average' or a number >= 0, got {friction!r}")
+        self.friction = friction
+        self.contact_options = dict(contact or {})
+        bad = set(self.contact_options) - {"dhat", "stiffness", "friction_velocity"}
+        if bad:
+            raise TypeError(f"contact options are dhat, stiffness, friction_velocity; got {sorted(bad)}")
+        self.unsupported_shapes = unsupported_shapes
+        if not (shapes in ("all", "static") or (not isinstance(shapes, str) and all(
+                isinstance(i, (int, np.integer)) for i in shapes))):
+            raise ValueError(f"shapes must be 'all', 'static' or a list of shape indices, got {shapes!r}")
+        self.shapes = shapes if isinstance(shapes, str) else [int(i) for i in shapes]
+        q0 = self._checked_positions(_np(model.particle_q), "model.particle_q")
+        tets, groups = self._tetrahedra(model)
+        self.particles = np.unique(tets).astype(np.int64)  # newton index of each warpfem vertex
+        local = np.searchsorted(self.particles, tets)
+        mass = _np(model.particle_mass).astype(np.float64)[self.particles]
+        flags = _np(model.particle_flags)
+        active = np.ones(len(self.particles), dtype=bool) if flags is None else \
+            (flags[self.particles] & int(newton.ParticleFlags.ACTIVE)) != 0
+        fixed = (mass <= 0.0) | ~active
+        mesh = VolumeMesh(q0[self.particles], local, "tet4", remove_unreferenced=False, name="newton tetrahedra")
+        volume = mesh.total_volume()
+        density = float(mass[~fixed].sum() / volume) if np.any(~fixed) and volume > 0 else 1.0
+        self.materials = []
+        for key, rows in groups:
+            E, nu = lame_to_youngs(key[0], key[1])
+            try:
+                self.materials.append(make_material(material, youngs_modulus=E, poisson_ratio=nu, density=max(density, 1e-12)))
+            except (ValueError, KeyError) as e:
+                raise NewtonInteropError(f"tet_materials (k_mu={key[0]:g}, k_lambda={key[1]:g}) of {len(rows)} "
+                                         f"tetrahedra (first: {int(rows[0])}): {e}") from None
+        kd = _np(model.tet_materials)[:, 2].astype(np.float64)
+        km = _np(model.tet_materials)[:, 0].astype(np.float64)
+        used = np.concatenate([rows for _, rows in groups])
+        if damping_stiffness is None:
+            ratios = np.unique(2.0 * kd[used] / km[used])
+            if len(ratios) > 1:
+                raise NewtonInteropError("tet_materials: k_damp / k_mu differs between tetrahedra "
+                                         f"({ratios.min():g} to {ratios.max():g} s); warpfem's stiffness damping is one "
+                                         "value: give SolverFEM(damping_stiffness=...)")
+            damping_stiffness = float(ratios[0])
+        wf = Model(mesh, self.materials[0], gravity=self._gravity(model))
+        if len(groups) > 1:  # one quadrature set per material, all on the same vertices
+            wf.quadratures = [precompute_quadrature(wf.rest_positions, mesh.elements[r], "tet4")
+                              for r in self._group_rows(groups)]
+            wf.materials = list(self.materials)
+            wf.body_volumetric_parameters = [None] * len(groups)
+            wf.material = max(self.materials, key=lambda m: m.youngs_modulus)
+        # newton's particle masses (the fixed ones keep warpfem's lumped mass: they do not move)
+        m = np.where(fixed, wf.lumped_mass, mass)
+        import scipy.sparse
+
+        wf.lumped_mass, wf.gravity_mass = m, m.copy()
+        wf.mass = scipy.sparse.diags(m).tocsr()
+        self._fixed = np.flatnonzero(fixed)
+        if len(self._fixed):
+            wf.fix(self._fixed)
+        self.warpfem_model = wf
+        self.device_name = str(model.device)
+        self.simulator = Simulator(wf, device=self.device_name, precision=precision, integrator=integrator,
+                                   damping_mass=damping_mass, damping_stiffness=damping_stiffness,
+                                   linear_solver=linear_solver, linear_solver_options=linear_solver_options,
+                                   require_convergence=require_convergence, **newton_options)
+        qd0 = _np(model.particle_qd)
+        if qd0 is not None and np.any(qd0[self.particles] != 0):
+            v = qd0[self.particles].astype(np.float64)
+            v[self._fixed] = 0.0
+            self.simulator.set_velocities(v)
+        self._forces_on = False
+        self._last_q = self._last_qd = None
+        self.resyncs = 0
+        self.last_stats = None
+        self._setup_colliders(model)
+        if soft_contact:
+            self.simulator.set_contact(**dict(soft_contact))
+
+    # -- set-up ------------------------------------------------------------------------------------
+    @staticmethod
+    def _checked_positions(q, what):
+        if q is None or len(q) == 0:
+            raise NewtonInteropError(f"SolverFEM: {what} is empty; it simulates the tetrahedra of soft bodies "
+                                     "(ModelBuilder.add_soft_mesh / add_soft_grid)")
+        bad = np.flatnonzero(~np.isfinite(q).all(axis=1))
+        if bad.size:
+            raise NewtonInteropError(f"SolverFEM: {what} of particle {int(bad[0])} is not finite ({q[bad[0]].tolist()}); "
+                                     f"{bad.size} particles with NaN/inf")
+        return q.astype(np.float64)
+
+    @staticmethod
+    def _tetrahedra(model):
+        """(tets (m, 4) newton particle indices of the simulated tetrahedra, [((k_mu, k_lambda), rows)])."""
+        n_tet = int(getattr(model, "tet_count", 0) or 0)
+        if n_tet == 0:
+            n_tri = int(getattr(model, "tri_count", 0) or 0)
+            what = (f"it has {n_tri} triangles and no tetrahedra (cloth and shells: use SolverVBD or SolverStyle3D)"
+                    if n_tri else "it has no tetrahedra")
+            raise NewtonInteropError(f"SolverFEM simulates volumetric soft bodies made of tetrahedra "
+                                     f"(ModelBuilder.add_soft_mesh / add_soft_grid); {what}")
+        tets = _np(model.tet_indices).reshape(-1, 4).astype(np.int64)
+        mats = _np(model.tet_materials).astype(np.float64)
+        # newton's solvers skip tetrahedra with k_mu <= 0 and k_lambda <= 0 (no energy): so does SolverFEM
+        live = (mats[:, 0] > 0.0) | (mats[:, 1] > 0.0)
+        if not live.any():
+            raise NewtonInteropError("SolverFEM: every tetrahedron has k_mu <= 0 and k_lambda <= 0 (no elastic energy)")
+        bad = np.flatnonzero(live & ~(mats[:, 0] > 0.0))
+        if bad.size:
+            raise NewtonInteropError(f"SolverFEM: tetrahedron {int(bad[0])} has k_mu = {mats[bad[0], 0]:g}; warpfem's "
+                                     "materials need k_mu > 0 (and k_lambda > -2/3 k_mu)")
+        keys, inverse = np.unique(mats[:, :2], axis=0, return_inverse=True)
+        inverse = inverse.ravel()
+        groups = [((float(k[0]), float(k[1])), np.flatnonzero((inverse == g) & live)) for g, k in enumerate(keys)]
+        groups = [(k, r) for k, r in groups if r.size]
+        order = np.concatenate([r for _, r in groups])
+        # the simulated tetrahedra in group order (rows of the warpfem mesh)
+        return tets[order], groups
+
+    @staticmethod
+    def _group_rows(groups):
+        """Rows of each group in the warpfem mesh (the tetrahedra concatenated in group order)."""
+        out, start = [], 0
+        for _, rows in groups:
+            out.append(np.arange(start, start + len(rows)))
+            start += len(rows)
+        return out
+
+    @staticmethod
+    def _gravity(model):
+        g = _np(model.gravity)
+        g = np.asarray(g, dtype=np.float64).reshape(-1, 3)
+        if len(g) > 1 and not np.allclose(g, g[0]):
+            raise NewtonInteropError(f"SolverFEM: the worlds' gravity differs ({g.tolist()}); it supports one gravity")
+        return g[0]
+
+    def _shape_pose(self, s, body_q):
+        X = self._shape_tf[s]
+        local = (_rotation(X[3:7]), X[:3].astype(np.float64))
+        b = int(self._shape_body[s])
+        if b < 0 or body_q is None:
+            return local
+        B = body_q[b]
+        return _compose((_rotation(B[3:7]), B[:3].astype(np.float64)), local)
+
+    def _setup_colliders(self, model):
+        GeoType = newton.GeoType
+        n_shapes = int(getattr(model, "shape_count", 0) or 0)
+        self._colliders = []  # (shape index, collider)
+        if n_shapes == 0:
+            return
+        types = _np(model.shape_type)
+        flags = _np(model.shape_flags)
+        scale = _np(model.shape_scale).astype(np.float64)
+        mu = _np(model.shape_material_mu).astype(np.float64)
+        self._shape_tf = _np(model.shape_transform).astype(np.float64)
+        self._shape_body = _np(model.shape_body)
+        source = getattr(model, "shape_source", None)
+        body_q = _np(model.body_q) if int(getattr(model, "body_count", 0) or 0) else None
+        collide = int(newton.ShapeFlags.COLLIDE_PARTICLES)
+        chosen = range(n_shapes) if isinstance(self.shapes, str) else self.shapes
+        for s in chosen:
+            if not 0 <= s < n_shapes:
+                raise NewtonInteropError(f"SolverFEM: shape index {s} out of range [0, {n_shapes})")
+            if not (int(flags[s]) & collide) or (self.shapes == "static" and int(self._shape_body[s]) >= 0):
+                continue
+            t = GeoType(int(types[s]))
+            if self.friction == "shape":
+                f = float(mu[s])
+            elif self.friction == "average":
+                f = 0.5 * (float(model.soft_contact_mu) + float(mu[s]))
+            else:
+                f = float(self.friction)
+            kw = dict(friction=f, name=f"shape{s}", **self.contact_options)
+            if t == GeoType.PLANE:
+                c = _PosedPlane(point=(0.0, 0.0, 0.0), normal=(0.0, 0.0, 1.0), **kw)
+            elif t == GeoType.SPHERE:
+                c = _PosedSphere(center=(0.0, 0.0, 0.0), radius=float(scale[s][0]), **kw)
+            elif t == GeoType.BOX:
+                c = _PosedBox(box_min=-scale[s], box_max=scale[s], **kw)
+            elif t == GeoType.MESH and source is not None and source[s] is not None:
+                src = source[s]
+                V = np.asarray(src.vertices, dtype=np.float64).reshape(-1, 3) * scale[s]
+                T = np.asarray(src.indices, dtype=np.int64).reshape(-1, 3)
+                c = _PosedMesh(vertices=V, triangles=T, **kw)
+            else:
+                if self.unsupported_shapes == "ignore":
+                    continue
+                raise NewtonInteropError(f"SolverFEM: shape {s} is a {t.name.lower()}; its colliders are "
+                                         f"{', '.join(SUPPORTED_SHAPES)} (pass unsupported_shapes='ignore' to leave "
+                                         "the others out)")
+            c.newton_pose = self._shape_pose(s, body_q)
+            self.simulator.add_collider(c)
+            self._colliders.append((s, c))
+
+    # -- the step ----------------------------------------------------------------------------------
+    def notify_model_changed(self, flags):
+        """Gravity (``ModelFlags.MODEL_PROPERTIES``) is read again; other changes need a new solver."""
+        if int(flags) & int(newton.ModelFlags.MODEL_PROPERTIES):
+            self.warpfem_model.gravity = self._gravity(self.model)
+            self.simulator.sync_model()
+
+    def _sync_from(self, q, qd):
+        """Read the simulated particles of a newton state into warpfem's state."""
+        x = q.astype(np.float64)
+        v = qd.astype(np.float64)
+        v[self._fixed] = 0.0
+        self.simulator.set_positions(x)
+        self.simulator.set_velocities(v)
+        self.resyncs += 1
+
+    def step(self, state_in, state_out, control, contacts, dt, *, observables=None):
+        """Advance the tetrahedra's particles by ``dt`` from ``state_in`` into ``state_out``
+        (``particle_q``, ``particle_qd``; other particles are copied). ``contacts`` is not used:
+        SolverFEM finds its own contacts with the colliding shapes each Newton iteration.
+
+        Raises :class:`warpfem.SolveFailed` (nothing written, warpfem's state as before) when the
+        step produced NaN/inf or, with ``require_convergence``, did not converge. On a ``wp.Tape`` the
+        step is differentiable with respect to ``state_in.particle_q`` / ``particle_qd`` (warpfem's
+        adjoint; docs/newton.md, "Gradients")."""
+        del contacts, observables
+        from warpfem.solvers.adjoint import active_tape
+
+        sim, idx = self.simulator, self.particles
+        q_all = state_in.particle_q.numpy()
+        qd_all = state_in.particle_qd.numpy()
+        q, qd = q_all[idx], qd_all[idx]
+        self._checked_positions(q, "state_in.particle_q")
+        if not np.all(np.isfinite(qd)):
+            bad = int(idx[np.flatnonzero(~np.isfinite(qd).all(axis=1))[0]])
+            raise NewtonInteropError(f"SolverFEM: state_in.particle_qd of particle {bad} is not finite")
+        free = np.ones(len(idx), dtype=bool)
+        free[self._fixed] = False
+        if (self._last_q is None or not np.array_equal(q[free], self._last_q[free])
+                or not np.array_equal(qd[free], self._last_qd[free])):
+            self._sync_from(q, qd)
+        elif len(self._fixed) and not np.array_equal(q[self._fixed], self._last_q[self._fixed]):
+            sim.set_targets(self._fixed, q[self._fixed].astype(np.float64))  # kinematic particles moved
+        # external forces: state_in.particle_f
+        f_all = state_in.particle_f.numpy() if state_in.particle_f is not None else None
+        f = None if f_all is None else f_all[idx]
+        self.last_particle_force = np.zeros(3) if f is None else f.astype(np.float64).sum(axis=0)
+        if f is not None and (self._forces_on or np.any(f != 0)):
+            self.warpfem_model.forces[:] = f.astype(np.float64)
+            sim.sync_model()
+            self._forces_on = bool(np.any(f != 0))
+        if self._colliders:
+            body_q = state_in.body_q.numpy() if getattr(state_in, "body_q", None) is not None else None
+            for s, c in self._colliders:
+                c.newton_pose = self._shape_pose(s, body_q)
+        if active_tape() is not None:
+            self._taped_step(state_in, state_out, float(dt))
+            return
+        self.last_stats = sim.step(dt=float(dt))
+        x = sim.positions().astype(np.float32)
+        v = sim.velocities().astype(np.float32)
+        q_out, qd_out = q_all.copy(), qd_all.copy()
+        q_out[idx], qd_out[idx] = x, v
+        state_out.particle_q.assign(q_out)
+        state_out.particle_qd.assign(qd_out)
+        self._last_q, self._last_qd = x, v
+        if state_out is not state_in:  # bodies are not SolverFEM's: passed through
+            for name in ("body_q", "body_qd"):
+                a, b = getattr(state_in, name, None), getattr(state_out, name, None)
+                if a is not None and b is not None and a.shape == b.shape and a.size:
+                    wp.copy(b, a)
+
+    def _taped_step(self, state_in, state_out, dt):
+        """The step on a ``wp.Tape``: newton's arrays into a new warpfem state and back by Warp
+        kernels (taped), the warpfem step in between with its own recorded backward (docs/gradients.md)."""
+        sim = self.simulator
+        dev = sim.device
+        if getattr(self, "_tape_maps", None) is None:
+            vertex = np.full(int(self.model.particle_count), -1, dtype=np.int32)
+            vertex[self.particles] = np.arange(len(self.particles), dtype=np.int32)
+            fixed = np.zeros(len(self.particles), dtype=np.int32)
+            fixed[self._fixed] = 1
+            self._tape_maps = (wp.array(self.particles.astype(np.int32), dtype=wp.int32, device=dev),
+                               wp.array(fixed, dtype=wp.int32, device=dev), wp.array(vertex, dtype=wp.int32, device=dev))
+            self.tape_states = []
+        idx, fixed, vertex = self._tape_maps
+        f64 = sim.precision == "float64"
+        wf_in, wf_out = sim.new_state(requires_grad=True), sim.new_state(requires_grad=True)
+        wf_in.history.clear()
+        wf_out.history.clear()
+        wp.launch(_gather64 if f64 else _gather32, dim=len(self.particles),
+                  inputs=[idx, fixed, state_in.particle_q, state_in.particle_qd], outputs=[wf_in.x, wf_in.v], device=dev)
+        self.last_stats = sim.step(wf_in, wf_out, None, dt)
+        wp.launch(_scatter64 if f64 else _scatter32, dim=int(self.model.particle_count),
+                  inputs=[vertex, wf_out.x, wf_out.v, state_in.particle_q, state_in.particle_qd],
+                  outputs=[state_out.particle_q, state_out.particle_qd], device=dev)
+        self.tape_states.append((wf_in, wf_out))  # alive as long as the tape may need them
+        self._last_q = self._last_qd = None  # the next untaped step reads state_out again
+
+    # -- reading back --------------------------------------------------------------------------------
+    def positions(self) -> np.ndarray:
+        """warpfem's current positions (float64, one row per simulated particle, ``particles`` order)."""
+        return self.simulator.positions()
+
+    def contact_forces(self) -> np.ndarray:
+        """(particles, 3) the colliders' contact forces (barrier + friction, N) on the simulated
+        particles at warpfem's current state (zeros without colliders)."""
+        c = self.simulator.contact
+        if c is None:
+            return np.zeros((len(self.particles), 3))
+        return c.forces()
+
