@@ -398,6 +398,8 @@ class Scene(_SceneBodies):
 
     def own_tractions(self):
         """The tractions of this scene's own entries, over its own mesh's vertices."""
+        if not self.spec.traction:  # (a rigid body has none: the schema refuses them)
+            return []
         mesh = self.own_mesh()
         tet4 = mesh.element.is_linear_tet  # plain triangles; other types integrate N_a on their faces
         faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
@@ -741,8 +743,9 @@ class Scene(_SceneBodies):
             model.fix(ids, e["components"])
         for e, ids in zip(sp.force, sel["force"]):
             model.add_force(ids, e["force"])
-        for f, _, _ in tractions:
-            model.forces += f
+        n_soft = int(model.rigid.num_soft) if getattr(model, "rigid", None) is not None else model.num_vertices
+        for f, _, _ in tractions:  # vertex space; only soft bodies have tractions (same numbering in q)
+            model.forces[:n_soft] += f[:n_soft]
         for e, ids in zip(sp.handle, sel["handle"]):
             model.fix(ids, e["components"])
         # the [integrator].type's entry, or one registered for a section the scene has ([subspace]:
@@ -803,14 +806,67 @@ class BodyScene(Scene):
     volume_prim = property(lambda self: f"{self.body_name}_volume", doc="The body's TetMesh prim.")
     block_name = property(lambda self: self.body_name, doc="ParaView blocks are named after the body.")
 
+    kind = property(lambda self: self.body.get("kind", "soft"), doc="'soft' or 'rigid' (``kind`` of the table).")
+
     def fail(self, where, msg):
         raise SceneError(f"{self.path or '<scene>'}: {self.label}: {where}: {msg}")
 
     _fail = fail
 
+    def model_body(self):
+        """This body as :class:`warpfem.Body`, or a rigid one as :class:`warpfem.RigidBody` (its mesh's
+        closed surface, density, velocities; an open surface is a SceneError naming the body)."""
+        if self.kind != "rigid":
+            return super().model_body()
+        from warpfem.rigid import RigidBody
+
+        r = self.body["rigid"]
+        mesh = self.own_mesh()
+        try:
+            body = RigidBody(mesh, density=r["density"], name=self.body_name, initial_velocity=self.initial_velocity,
+                             initial_angular_velocity=r["initial_angular_velocity"], stiffness=r["stiffness"])
+        except ValueError as e:
+            self.fail("[mesh]", str(e))
+        return body
+
     def _make_mesh(self):
+        m = self.spec.mesh
+        if self.kind == "rigid" and m["path"] and os.path.splitext(m["path"])[1].lower() in (".obj", ".off", ".ply", ".stl"):
+            # a rigid body needs its closed surface only: the file's triangles, not tetrahedralised
+            from warpfem.rigid.body import SurfaceBodyMesh, _closed_surface_error
+            from warpfem.skinning import load_surface
+
+            v, f = load_surface(m["path"])
+            problem = _closed_surface_error(f)
+            if problem:
+                self.fail("[mesh].path", f"{m['path']}: a rigid body's surface must be closed, but {problem}")
+            return _RigidSurfaceMesh(np.asarray(v, dtype=np.float64) + self.offset, f, name=m["path"])
         mesh = super()._make_mesh()
+        if self.kind == "rigid":  # a volume mesh: its boundary must be closed (checked before any work)
+            from warpfem.rigid.body import _closed_surface_error
+
+            problem = _closed_surface_error(mesh.boundary_faces())
+            if problem:
+                self.fail("[mesh]", f"a rigid body's mesh must bound a solid, but {problem}")
         return _shifted(mesh, self.offset) if np.any(self.offset != 0.0) else mesh
+
+
+def _rigid_surface_mesh_class():
+    from warpfem.rigid.body import SurfaceBodyMesh
+
+    class RigidSurfaceMesh(SurfaceBodyMesh):
+        """A rigid body's closed surface as a scene's body mesh: no elements, its triangles the boundary."""
+
+        nodes_per_element = 3
+
+        def corner_tets(self):
+            return np.zeros((0, 4), dtype=np.int64)
+
+    return RigidSurfaceMesh
+
+
+def _RigidSurfaceMesh(vertices, faces, name=None):
+    return _rigid_surface_mesh_class()(vertices, faces, name=name)
 
 
 def load_scene(path) -> Scene:
