@@ -134,6 +134,9 @@ def test_rigid_surface_file_and_rigid_first_in_the_file(tmp_path):
     assert body.mass == pytest.approx(500.0 * 4.0 / 3.0 * 0.05 ** 3, rel=1e-12)  # V = 4/3 r^3
     np.testing.assert_allclose(body.center_of_mass, [0.0, 0.15, 0.0], atol=1e-15)
     assert len(body.local_positions) == 6 and run.model.body_offsets.tolist() == [0, 18, 24]
+    text = run.scene.describe()
+    assert "body 'cube' ([[body]] #1 'cube'): rigid, vertices 18..23: file" in text
+    assert f"mass {body.mass:.6g} kg" in text and "8 surface triangles" in text
 
 
 def _usd_world_points(path, frame):
@@ -208,3 +211,12 @@ def test_outputs_of_a_rigid_scene_and_resume(tmp_path):
         for key in za.files:
             np.testing.assert_array_equal(za[key], zb[key], err_msg=key)
     np.testing.assert_array_equal(_usd_world_points(b / "out" / "s.usda", 5)["cube"], world["cube"])
+    from warpfem.cli import main
+    from warpfem.io.usd import usd_validation_errors
+
+    assert usd_validation_errors(str(b / "out" / "s.usda")) == []
+    assert main(["compare", str(a / "out" / "s.npz"), str(b / "out" / "s.npz"), "--json", str(tmp_path / "c.json")]) == 0
+    import json
+
+    report = json.loads((tmp_path / "c.json").read_text())
+    assert [(i["name"], i["max"]) for i in report["items"]] == [("positions", 0.0), ("slab", 0.0), ("cube", 0.0)]

@@ -82,6 +82,17 @@ class _SceneBodies:
         memory = {"float32": 0, "float64": 0}
         nnz_total = 0
         for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
+            if getattr(b, "kind", "soft") == "rigid":
+                r = b.rigid_summary()
+                lines.append(f"body {b.body_name!r} ({b.label}): rigid, vertices {lo}..{hi - 1}: {r['source']}")
+                lines.append(f"  {r['surface_triangles']} surface triangles; density {r['density']:g} kg/m^3, mass "
+                             f"{r['mass']:.6g} kg, centre of mass {r['center_of_mass']} m, volume {r['volume']:.6g} m^3")
+                lines.append(f"  initial velocity {r['initial_velocity']} m/s, angular velocity "
+                             f"{r['initial_angular_velocity']} rad/s, orthogonality stiffness {r['stiffness']:g} Pa; "
+                             f"4 nodes (p, A) of the unknown")
+                for i, ids in enumerate(b.selections()["force"]):
+                    lines.append(f"  force #{i + 1}: {ids.size} vertices, {list(b.spec.force[i]['force'])} N each")
+                continue
             bs, bm = b.spec, b.mesh()
             etype, vi = bs.mesh["element"], bs.material["volumetric_integration"]
             qpe = quadrature_points_per_element(etype, vi)
@@ -162,6 +173,12 @@ class _SceneBodies:
         out = sp.output
         bodies = []
         for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
+            if getattr(b, "kind", "soft") == "rigid":
+                bodies.append({"name": b.body_name, "kind": "rigid", "offset": b.offset.tolist(),
+                               "initial_velocity": b.initial_velocity.tolist(), "first_vertex": int(lo),
+                               "vertices": int(hi - lo), "rigid": b.rigid_summary(), "matrix_blocks": 16,
+                               "estimated_device_memory_bytes": {"float32": 0, "float64": 0}})
+                continue
             s = b.summary()
             bodies.append({"name": b.body_name, "offset": b.offset.tolist(), "initial_velocity": b.initial_velocity.tolist(),
                            "first_vertex": int(lo), "vertices": int(hi - lo), "mesh": s["mesh"], "material": s["material"],
@@ -812,6 +829,20 @@ class BodyScene(Scene):
         raise SceneError(f"{self.path or '<scene>'}: {self.label}: {where}: {msg}")
 
     _fail = fail
+
+    def rigid_summary(self) -> dict:
+        """A rigid body's mass properties and settings (``describe``)."""
+        body = self.model_body()
+        m = self.spec.mesh
+        src = (f"box generator size {list(m['size'])} m, cells {list(m['cells'])}" if m["generator"]
+               else f"file {m['path']}")
+        r = self.body["rigid"]
+        return {"source": src, "surface_triangles": int(len(body.mesh.boundary_faces())), "density": float(r["density"]),
+                "mass": float(body.mass), "volume": float(body.volume),
+                "center_of_mass": np.round(body.center_of_mass, 9).tolist(),
+                "inertia_tensor": np.round(body.inertia_tensor, 12).tolist(),
+                "initial_velocity": self.initial_velocity.tolist(),
+                "initial_angular_velocity": list(r["initial_angular_velocity"]), "stiffness": float(r["stiffness"])}
 
     def model_body(self):
         """This body as :class:`warpfem.Body`, or a rigid one as :class:`warpfem.RigidBody` (its mesh's
