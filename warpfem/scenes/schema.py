@@ -745,6 +745,11 @@ def _parse_bodies(ctx, data, integrators) -> SceneSpec:
                              "volumetric_integration": spec.material["volumetric_integration"]}
         bodies.append({"name": name, "offset": own["offset"], "initial_velocity": own["initial_velocity"], "spec": spec,
                        "label": label, "kind": own["kind"], "rigid": rigid, "index": i})
+    rigid_names = [b["name"] for b in bodies if b["kind"] == "rigid"]
+    entry = integrators.get(itype) if isinstance(itype, str) else None
+    if rigid_names and entry is not None and not getattr(entry, "dynamic", True):
+        ctx.fail("[integrator].type", f"{itype!r} is a static solve, which cannot hold rigid body {rigid_names[0]!r} "
+                 "(only inertia does); use backward_euler, bdf2 or newmark")
     # soft bodies first, then the rigid ones (the model's order); each keeps its name and label
     bodies = [b for b in bodies if b["kind"] == "soft"] + [b for b in bodies if b["kind"] == "rigid"]
     if len(bodies) > 1 and itype in SINGLE_BODY_INTEGRATORS:
