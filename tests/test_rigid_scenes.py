@@ -141,6 +141,7 @@ def test_rigid_surface_file_and_rigid_first_in_the_file(tmp_path):
     assert len(body.local_positions) == 6 and run.model.body_offsets.tolist() == [0, 18, 24]
     text = run.scene.describe()
     assert "body 'cube' ([[body]] #1 'cube'): rigid, vertices 18..23: file" in text
+    assert "24 vertices, 66 DOFs in all" in text  # 18 soft vertices and the rigid body's 4 nodes
     assert f"mass {body.mass:.6g} kg" in text and "8 surface triangles" in text
 
 

@@ -77,8 +77,10 @@ class _SceneBodies:
 
         sp = self.spec
         mesh, offsets = self.mesh(), self.body_offsets
+        rigid = [b for b in self.bodies if getattr(b, "kind", "soft") == "rigid"]
+        nodes = mesh.num_vertices - sum(b.own_mesh().num_vertices for b in rigid) + 4 * len(rigid)  # 4 per rigid body
         lines = [f"scene {self.name!r} ({self.path}): {len(self.bodies)} bodies, {mesh.num_elements} elements, "
-                 f"{mesh.num_vertices} vertices, {3 * mesh.num_vertices} DOFs in all"]
+                 f"{mesh.num_vertices} vertices, {3 * nodes} DOFs in all"]
         memory = {"float32": 0, "float64": 0}
         nnz_total = 0
         for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
