@@ -63,6 +63,7 @@ usd = "out/s.usda"
 states = "out/s.npz"
 vtu = "out/s.pvd"
 clip_frames = 2
+usd_volume = true
 """
 
 # an octahedron of "radius" 0.05 m: a closed outward surface
@@ -221,6 +222,12 @@ def test_outputs_of_a_rigid_scene_and_resume(tmp_path):
     from warpfem.io.usd import usd_validation_errors
 
     assert usd_validation_errors(str(b / "out" / "s.usda")) == []
+    from pxr import Usd
+
+    stage = Usd.Stage.Open(str(b / "out" / "s.usda"))
+    prims = {str(p.GetPath()): p.GetTypeName() for p in stage.Traverse()}
+    assert prims["/Root/cube"] == "Xform" and prims["/Root/cube/mesh"] == "Mesh"
+    assert prims["/Root/slab_volume"] == "TetMesh" and "/Root/cube_volume" not in prims  # usd_volume: soft ones
     assert main(["compare", str(a / "out" / "s.npz"), str(b / "out" / "s.npz"), "--json", str(tmp_path / "c.json")]) == 0
     import json
 

@@ -141,7 +141,7 @@ class SceneRun:
             ids, tris = boundary_surface(bm)
             ids = ids + lo
             return _RenderSurface(b.surface_prim, np.asarray(tris), int(ids.size),
-                                  lambda: self.sim.vertex_positions()[ids], vertex_ids=ids)
+                                  lambda: self._vertex_positions()[ids], vertex_ids=ids)
         from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface  # only with a [surface]
 
         pts, tris = load_surface(b.spec.surface["path"])
@@ -157,6 +157,12 @@ class SceneRun:
             return skinner.apply(self.sim.x[lo:hi]).numpy().astype(np.float64)
 
         return _RenderSurface(b.surface_prim, np.asarray(tris), emb.num_points, points, embedding=emb, skinner=skinner)
+
+    def _vertex_positions(self):
+        """Every body's vertices now (rigid ones at p + A X); a simulator without rigid bodies (reduced,
+        stiffness warping) has no ``vertex_positions``: its positions are its vertices."""
+        f = getattr(self.sim, "vertex_positions", None)
+        return f() if f is not None else self.sim.positions()
 
     def usd_surfaces(self) -> list:
         """The USD prims of the render surfaces: [(name, faces, number of points)] (one per body)."""
@@ -182,6 +188,8 @@ class SceneRun:
         out = []
         offsets = self.model.body_offsets
         for b, lo, hi in zip(self.scene.bodies, offsets[:-1], offsets[1:]):
+            if getattr(b, "kind", "soft") == "rigid":  # its Xform moves its surface: no volume to show
+                continue
             m = b.own_mesh()
             tets = np.asarray(m.corner_tets(), dtype=np.int64)
             faces = np.asarray(m.boundary_faces(), dtype=np.int64) if m.element.is_linear_tet else None
@@ -431,7 +439,7 @@ class SceneRun:
         snap = None
 
         def positions():  # every body's vertices (rigid ones at p + A X), in body order
-            return self.sim.vertex_positions()
+            return self._vertex_positions()
 
         def surface_points():
             pts = self.usd_surface_points()
@@ -441,8 +449,9 @@ class SceneRun:
             pts.update({name: p() for name, p in self._collider_points})
             return pts
 
+        velocities = getattr(self.sim, "vertex_velocities", self.sim.velocities)  # as _vertex_positions
         snap = FrameSnapshot(self.frame, self._time() if fs is None else fs.time, stats=fs, sync=sync,
-                             providers={"positions": positions, "velocities": self.sim.vertex_velocities,
+                             providers={"positions": positions, "velocities": velocities,
                                         "surface_points": surface_points, "transforms": self.usd_transforms,
                                         "element_fields": lambda: self.element_fields(snap.positions)})
         return snap
@@ -453,7 +462,7 @@ class SceneRun:
         (:func:`warpfem.io.element_stress_fields`)."""
         from warpfem.io.vtu import deformation_gradients, element_stress_fields_by_body
 
-        x = self.sim.vertex_positions() if x is None else np.asarray(x, dtype=np.float64)
+        x = self._vertex_positions() if x is None else np.asarray(x, dtype=np.float64)
         stresses = getattr(self.sim, "stresses", None)  # a simulator without: the material at F (one body)
         xq = x
         if getattr(self.model, "rigid", None) is not None:  # the unknown: soft vertices are its first rows
