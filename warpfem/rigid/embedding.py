@@ -306,7 +306,7 @@ class OrthogonalityForm(Form):
 
     def gradient(self, y, x, scale, g, acc):
         launch(RK.orthogonality_gradient_kernel, self.num_bodies,
-               [x, self._node, self._kv, self.ops.scalar(scale), g, acc, self.acc_slot], self.device)
+               [x, self._node, self._kv, self.ops.scalar(scale), g, acc, self.acc_slot + 2], self.device)
 
     def hessian(self, y, x, scale, values):
         launch(RK.orthogonality_hessian_kernel, self.num_bodies,

@@ -13,7 +13,7 @@ from typing import Any
 
 import warp as wp
 
-from warpfem.kernels.generic import both_precisions
+from warpfem.kernels.generic import both_precisions, splittable
 
 wp.set_module_options({"enable_backward": False})
 
@@ -66,12 +66,14 @@ def _columns(x: wp.array(dtype=Any), k: int):
     return x[k + 1], x[k + 2], x[k + 3]
 
 
+# sums through rows of partial results (``kernels.generic.splittable``): a fixed order on every device
+@splittable("reduce", 4096, acc=3, slot=4, n_add=1)
 @both_precisions(x="v[]", kv="s[]")
 @wp.kernel
 def orthogonality_energy_kernel(x: wp.array(dtype=Any), node: wp.array(dtype=wp.int32), kv: wp.array(dtype=Any),
-                                acc: wp.array(dtype=wp.float64), slot: int):
+                                acc: wp.array(dtype=wp.float64), slot: int, start: int, row_block: int, row_stride: int):
     """acc[slot] += kappa V sum_kl (a_k . a_l - delta_kl)^2 per rigid body (float64)."""
-    b = wp.tid()
+    b = wp.tid() + start
     a1, a2, a3 = _columns(x, node[b])
     one = wp.float64(1.0)
     c11 = wp.float64(wp.dot(a1, a1)) - one
@@ -81,15 +83,18 @@ def orthogonality_energy_kernel(x: wp.array(dtype=Any), node: wp.array(dtype=wp.
     c13 = wp.float64(wp.dot(a1, a3))
     c23 = wp.float64(wp.dot(a2, a3))
     e = c11 * c11 + c22 * c22 + c33 * c33 + wp.float64(2.0) * (c12 * c12 + c13 * c13 + c23 * c23)
-    wp.atomic_add(acc, slot, wp.float64(kv[b]) * e)
+    wp.atomic_add(acc, slot + (b // row_block) * row_stride, wp.float64(kv[b]) * e)
 
 
+@splittable("reduce", 4096, acc=5, slot=6, n_add=1)
 @both_precisions(x="v[]", kv="s[]", scale="s", g="v[]")
 @wp.kernel
 def orthogonality_gradient_kernel(x: wp.array(dtype=Any), node: wp.array(dtype=wp.int32), kv: wp.array(dtype=Any),
-                                  scale: Any, g: wp.array(dtype=Any), acc: wp.array(dtype=wp.float64), slot: int):
-    """g[a_m] += scale 4 kappa V sum_l C_ml a_l (C = A^T A - I); acc[slot + 2] += |that|^2."""
-    b = wp.tid()
+                                  scale: Any, g: wp.array(dtype=Any), acc: wp.array(dtype=wp.float64), slot: int,
+                                  start: int, row_block: int, row_stride: int):
+    """g[a_m] += scale 4 kappa V sum_l C_ml a_l (C = A^T A - I); acc[slot] += |that|^2 (the caller
+    passes its row's gradient slot)."""
+    b = wp.tid() + start
     k = node[b]
     a1, a2, a3 = _columns(x, k)
     one = a1[0] - a1[0] + type(a1[0])(1.0)
@@ -106,7 +111,7 @@ def orthogonality_gradient_kernel(x: wp.array(dtype=Any), node: wp.array(dtype=w
     g[k + 1] = g[k + 1] + g1
     g[k + 2] = g[k + 2] + g2
     g[k + 3] = g[k + 3] + g3
-    wp.atomic_add(acc, slot + 2, wp.float64(wp.dot(g1, g1) + wp.dot(g2, g2) + wp.dot(g3, g3)))
+    wp.atomic_add(acc, slot + (b // row_block) * row_stride, wp.float64(wp.dot(g1, g1) + wp.dot(g2, g2) + wp.dot(g3, g3)))
 
 
 @both_precisions(x="v[]", kv="s[]", scale="s", values="m[]")
