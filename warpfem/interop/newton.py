@@ -19,7 +19,9 @@ backward-Euler incremental potential, barrier contact with friction) and writes 
 * gravity: ``model.gravity``; external forces: ``state_in.particle_f`` (N, per particle);
 * shapes that collide with particles (ground plane, planes, boxes, spheres, triangle meshes) on
   their bodies' poses of ``state_in`` -> warpfem colliders with friction (the shape material's
-  ``mu``).
+  ``mu``);
+* with ``rigid_bodies``: free newton bodies -> warpfem rigid (affine) bodies in the same implicit
+  solve (``body_q`` / ``body_qd`` / ``body_f`` read and written; their shapes are then not colliders).
 
 warpfem keeps its own state (float64 by default) between steps while the caller passes back what
 the solver wrote last (the usual ``state_0, state_1 = state_1, state_0`` loop); a ``state_in`` that
@@ -222,6 +224,13 @@ class SolverFEM(SolverBase, CouplingInterface):
         shapes: which shapes become colliders: "all" (default: every shape with
             ``ShapeFlags.COLLIDE_PARTICLES``), "static" (those of them on no body: the ground, fixed
             obstacles; in a coupled scene the rigid solver handles the moving ones) or a list of shape indices.
+        rigid_bodies: None (default: bodies are not SolverFEM's), True (every body of mass > 0) or a
+            list of newton body indices: free bodies stepped as warpfem rigid (affine) bodies in the
+            same implicit solve as the tetrahedra (docs/newton.md, "Rigid bodies"): their box, sphere
+            and triangle-mesh shapes make their surface, newton's ``body_mass``, ``body_com`` and
+            ``body_inertia`` their mass; ``body_q`` / ``body_qd`` / ``body_f`` are read and
+            ``body_q`` / ``body_qd`` written. A body in a joint other than its FREE joint is refused.
+        rigid_stiffness: kappa (Pa) of the rigid bodies' orthogonality energy (:class:`warpfem.RigidBody`).
         linear_solver, linear_solver_options, require_convergence, tol, atol, max_iters, ... :
             warpfem's :class:`~warpfem.simulator.Simulator` options (docs/linear_solvers.md,
             :class:`~warpfem.NewtonOptions`).
@@ -234,6 +243,12 @@ class SolverFEM(SolverBase, CouplingInterface):
         last_stats: the last step's :class:`~warpfem.SolveStats`.
         last_particle_force: the sum (N) of the ``particle_f`` the last step applied to the simulated
             particles (in a coupled scene: the coupling forces).
+        rigid_bodies: the newton body indices stepped as rigid bodies (``[]`` without).
+        last_orthogonality_error: the largest entry of |A^T A - I| over the rigid bodies after the last
+            step (A the affine body's matrix; ``body_q`` gets its nearest rotation).
+        rigid_surface_properties: per rigid body (mass, centre of mass, inertia tensor) of its
+            shapes' surface at uniform density ``body_mass`` / volume, in its body frame (to compare
+            with newton's ``body_com`` and ``body_inertia``; overlapping shapes count twice here).
     """
 
     def __init__(self, model, *, precision="float64", integrator="backward_euler", material="stable_neo_hookean",
