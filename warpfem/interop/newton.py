@@ -224,7 +224,7 @@ class SolverFEM(SolverBase, CouplingInterface):
         shapes: which shapes become colliders: "all" (default: every shape with
             ``ShapeFlags.COLLIDE_PARTICLES``), "static" (those of them on no body: the ground, fixed
             obstacles; in a coupled scene the rigid solver handles the moving ones) or a list of shape indices.
-        rigid_bodies: None (default: bodies are not SolverFEM's), True (every body of mass > 0) or a
+        rigid_bodies: None (default: bodies are not SolverFEM's), True (every dynamic body of mass > 0) or a
             list of newton body indices: free bodies stepped as warpfem rigid (affine) bodies in the
             same implicit solve as the tetrahedra (docs/newton.md, "Rigid bodies"): their box, sphere
             and triangle-mesh shapes make their surface, newton's ``body_mass``, ``body_com`` and
@@ -435,8 +435,10 @@ class SolverFEM(SolverBase, CouplingInterface):
             return []
         n = int(getattr(model, "body_count", 0) or 0)
         mass = _np(model.body_mass) if n else np.zeros(0)
-        if rigid_bodies is True:
-            chosen = [b for b in range(n) if mass[b] > 0.0]
+        flags = _np(getattr(model, "body_flags", None))
+        kinematic = int(getattr(getattr(newton, "BodyFlags", None), "KINEMATIC", 0) or 0)
+        if rigid_bodies is True:  # the dynamic ones (kinematic bodies stay colliders)
+            chosen = [b for b in range(n) if mass[b] > 0.0 and not (flags is not None and int(flags[b]) & kinematic)]
         elif not isinstance(rigid_bodies, str) and all(isinstance(b, (int, np.integer)) for b in rigid_bodies):
             chosen = [int(b) for b in rigid_bodies]
         else:
@@ -446,8 +448,6 @@ class SolverFEM(SolverBase, CouplingInterface):
         jt = _np(model.joint_type) if int(getattr(model, "joint_count", 0) or 0) else np.zeros(0, np.int32)
         jp = _np(model.joint_parent) if len(jt) else np.zeros(0, np.int32)
         jc = _np(model.joint_child) if len(jt) else np.zeros(0, np.int32)
-        flags = _np(getattr(model, "body_flags", None))
-        kinematic = int(getattr(getattr(newton, "BodyFlags", None), "KINEMATIC", 0) or 0)
         for b in chosen:
             if not 0 <= b < n:
                 raise NewtonInteropError(f"SolverFEM: rigid body index {b} out of range [0, {n})")
