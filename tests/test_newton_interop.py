@@ -356,7 +356,7 @@ def _box_on_block(offset=(0.013, -0.021)):
 def test_a_newton_rigid_box_rests_on_a_soft_block_inside_the_implicit_solve():
     """SolverFEM(rigid_bodies=True) steps the box as a warpfem rigid body in the block's solve:
     newton's mass and inertia equal the box surface's (800 kg/m^3), it comes to rest (< 1 mm/s),
-    the ground carries box + block within 2 % (measured 1e-5), the box stays above the block and
+    the ground carries box + block within 2 % (measured 6e-6), the box stays above the block and
     its rest height equals a warpfem Model.from_bodies scene of the same bodies within 1e-6."""
     from warpfem.contact.colliders import Plane
 
@@ -395,16 +395,13 @@ def test_a_newton_rigid_box_rests_on_a_soft_block_inside_the_implicit_solve():
     sim.set_contact(bodies=True, friction=0.5, **contact)
     for _ in range(40):
         sim.step()
-    z_ref = ref.rigid.pose(sim.positions(), 0)[0][2]
-    print("rest", qd, "reaction", solver.contact_forces().sum(axis=0)[2] / weight - 1, "height", z_box, z_ref,
-          z_box / z_ref - 1, "orth", solver.last_orthogonality_error)
-    assert z_box == pytest.approx(z_ref, rel=1e-6)
+    assert z_box == pytest.approx(ref.rigid.pose(sim.positions(), 0)[0][2], rel=1e-6)  # measured 2.6e-8
 
 
 def test_a_spinning_newton_body_keeps_its_angular_momentum_and_body_q_round_trips():
     """A free box whose centre of mass is off its body origin, spinning in zero gravity (BDF2,
     0.5 s): the angular momentum R I R^T w from body_q / body_qd is conserved within 1e-3 (measured
-    ...), the COM velocity of body_qd stays the initial one, the vertices warpfem moves are
+    4.1e-4), the COM velocity of body_qd stays the initial one, the vertices warpfem moves are
     body_q applied to the body-frame surface, and an edited state is read again."""
     b = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_soft_grid(pos=wp.vec3(2.0, 0.0, 0.0), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
@@ -434,7 +431,6 @@ def test_a_spinning_newton_body_keeps_its_angular_momentum_and_body_q_round_trip
     q_start = start.body_q.numpy()[0].astype(np.float64)  # (the run writes into start)
     end = _run(solver, model, 60, 1.0 / 120.0, start=start)
     drift = np.linalg.norm(momentum(end) - L0) / np.linalg.norm(L0)
-    print("angular momentum drift", drift, "orthogonality", solver.last_orthogonality_error)
     assert drift < 1e-3
     assert np.allclose(end.body_qd.numpy()[0, :3], qd0[0, :3], atol=1e-6)
     assert solver.last_orthogonality_error < 1e-5
