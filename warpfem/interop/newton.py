@@ -257,6 +257,7 @@ class SolverFEM(SolverBase, CouplingInterface):
                  linear_solver="auto", linear_solver_options=None, require_convergence=False, **newton_options):
         super().__init__(model)
         self.rigid_bodies = self._rigid_selection(model, rigid_bodies)
+        self.rigid_surface_properties, self._rigid_frames = {}, []
         if unsupported_shapes not in ("error", "ignore"):
             raise ValueError(f"unsupported_shapes must be 'error' or 'ignore', got {unsupported_shapes!r}")
         if not (friction in ("shape", "average") or (isinstance(friction, (int, float)) and friction >= 0)):
@@ -519,13 +520,12 @@ class SolverFEM(SolverBase, CouplingInterface):
         except ValueError as e:
             raise NewtonInteropError(f"SolverFEM: rigid body {b}: {e}") from None
         # the surface's own mass properties (uniform density): kept to compare with newton's
-        self.rigid_surface_properties = getattr(self, "rigid_surface_properties", {})
         self.rigid_surface_properties[b] = (rb.mass, R0.T @ (rb.center_of_mass - t0), R0.T @ rb.inertia_tensor @ R0)
         com_w = R0 @ com_b + t0
         S_b = 0.5 * np.trace(I_b) * np.eye(3) - I_b  # the second moment of the inertia tensor tr(S) I - S
         rb.mass, rb.center_of_mass, rb.second_moment = mass, com_w, R0 @ S_b @ R0.T
         rb.local_positions = Xw - com_w
-        self._rigid_frames = getattr(self, "_rigid_frames", []) + [(R0, com_b)]
+        self._rigid_frames.append((R0, com_b))
         return rb
 
     def _rigid_friction(self, model):
@@ -697,8 +697,8 @@ class SolverFEM(SolverBase, CouplingInterface):
                 c.newton_pose = self._shape_pose(s, body_q)
         if active_tape() is not None:
             if self.rigid_bodies:
-                raise NewtonInteropError("SolverFEM: steps on a wp.Tape do not support rigid_bodies (warpfem's "
-                                         "adjoint does not handle rigid bodies)")
+                raise NewtonInteropError("SolverFEM: steps on a wp.Tape do not support rigid_bodies yet (body_q / "
+                                         "body_qd are not mapped to warpfem's state on the tape)")
             self._taped_step(state_in, state_out, float(dt))
             return
         self.last_stats = sim.step(dt=float(dt))
