@@ -26,7 +26,7 @@ import warp as wp
 from warpfem.kernels import fem as FK
 from warpfem.integrators import make_integrator
 from warpfem.kernels import linalg as LK
-from warpfem.kernels.generic import COUNTERS, launch
+from warpfem.kernels.generic import COUNTERS, launch, ordered_sums
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.model import static_supports_error
 from warpfem.solvers.forms import (DampingForm, ElasticForm, IncrementalPotential, InertiaForm, InfeasibleStart, LoadForm,
@@ -464,8 +464,7 @@ class Simulator(SimulatorBase):
         """Internal elastic forces -dV/dx (N) at x (default: current positions), (n, 3)."""
         xa = self.x if x is None else self._vec_array(x)
         f = self._vec_array()
-        for qs in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=qs.count, inputs=[xa, qs.points, qs.material, self._s(1.0), f], device=self.device)
+        self._add_elastic_force(xa, f)
         return read(f).astype(np.float64)
 
     def stresses(self, x=None) -> np.ndarray:
@@ -516,9 +515,18 @@ class Simulator(SimulatorBase):
         """out := f(x), the elastic force; the stiffness damping's K(x_n) (assembled at the start
         of the step) for the equation-of-motion acceleration (SimulatorBase)."""
         out.zero_()
-        for qs in self._qp_sets:
-            launch(FK.qp_force_kernel, dim=qs.count, inputs=[x, qs.points, qs.material, self._s(1.0), out], device=self.device)
+        self._add_elastic_force(x, out)
         return self._kn_values
+
+    def _add_elastic_force(self, x, f):
+        """f += the elastic force at x: on the CPU one launch per point set scattering with atomics
+        (a launch's threads run in order there), elsewhere (``generic.ORDERED_SUMS``) the
+        gradient's per-vertex gather in a fixed order."""
+        if ordered_sums(self.device):
+            self._elastic.add_force(x, f)
+            return
+        for qs in self._qp_sets:
+            launch(FK.qp_force_kernel, dim=qs.count, inputs=[x, qs.points, qs.material, self._s(1.0), f], device=self.device)
 
     def potential(self, state=None, control=None, dt=None):
         """The incremental potential of a step of ``dt`` from ``state`` (default: the simulator's
@@ -544,8 +552,6 @@ class Simulator(SimulatorBase):
     def _step(self, state_in, state_out, control, dt) -> SolveStats:
         t0 = time.perf_counter()
         n, ops = self.num_vertices, self.ops
-        if self._rigid is not None and self._differentiating():
-            raise ValueError("gradients (warpfem.diff, the adjoint) do not handle rigid bodies yet")
         self._step_control = control
         syncs0, launches0 = self._potential.host_syncs, COUNTERS["launches"]
         if self._kn_values is not None:

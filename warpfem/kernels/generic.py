@@ -65,11 +65,11 @@ COUNTERS = {"launches": 0, "split": 0}
 class _Split:
     """How :func:`launch` may split a kernel's range across CPU threads (:func:`splittable`)."""
 
-    __slots__ = ("kind", "min_chunk", "acc", "slot", "n_add", "n_max", "n_min", "when")
+    __slots__ = ("kind", "min_chunk", "acc", "slot", "n_add", "n_max", "n_min", "when", "written")
 
-    def __init__(self, kind, min_chunk, acc, slot, n_add, n_max, n_min, when):
+    def __init__(self, kind, min_chunk, acc, slot, n_add, n_max, n_min, when, written=None):
         self.kind, self.min_chunk, self.acc, self.slot, self.n_add, self.n_max = kind, min_chunk, acc, slot, n_add, n_max
-        self.n_min, self.when = n_min, when
+        self.n_min, self.when, self.written = n_min, when, written
 
 
 #: kernel -> _Split: the kernels whose launches :func:`launch` splits across CPU threads
@@ -104,7 +104,7 @@ def _chunk_bounds(n, threads, spec, rows=None, block=None):
 
 
 def splittable(kind: str, min_chunk: int = 4096, acc: int = -1, slot: int = -1, n_add: int = 0, n_max: int = 0,
-               n_min: int = 0, when: int = -1):
+               n_min: int = 0, when: int = -1, written=None):
     """Declare how :func:`launch` splits a kernel's 1-d range across CPU threads (CUDA launches are
     never split). ``kind``:
 
@@ -122,10 +122,13 @@ def splittable(kind: str, min_chunk: int = 4096, acc: int = -1, slot: int = -1, 
 
     ``min_chunk``: the fewest indices worth a thread of their own (a chunk's launch costs some
     microseconds). ``when``: the position of an int argument that must be non-zero for a split (a
-    kernel that scatters with atomics otherwise)."""
+    kernel that scatters with atomics otherwise). ``written``: for a reduction that adds one sum
+    into one entry of ``acc``, a function of the launch's arguments giving that entry; a
+    :class:`RecordedLaunch` on the fixed-order path then gives each index one float64 of scratch
+    instead of a row as long as ``acc``."""
 
     def decorate(kernel):
-        SPLIT[kernel] = _Split(kind, int(min_chunk), acc, slot, n_add, n_max, n_min, when)
+        SPLIT[kernel] = _Split(kind, int(min_chunk), acc, slot, n_add, n_max, n_min, when, written)
         return kernel
 
     return decorate
@@ -251,6 +254,31 @@ def _ordered(dev) -> bool:
     return ORDERED_SUMS == "always" or (ORDERED_SUMS == "device" and not dev.is_cpu)
 
 
+def ordered_sums(device) -> bool:
+    """Whether float64 sums on ``device`` are made in a fixed order from one row per index
+    (``ORDERED_SUMS``: devices other than the CPU by default) rather than with atomics."""
+    return _ordered(wp.get_device(device))
+
+
+def ordered_sum_launches(rows, n, acc, slot, device):
+    """Recorded launches (:class:`RecordedLaunch`, called in order) that add ``rows[0] + ... +
+    rows[n - 1]`` into ``acc[slot]`` in a fixed order: the tree of :func:`_ordered_reduce` (passes
+    of TREE_BLOCK rows, then the last rows in order), its scratch allocated here. For solvers whose
+    kernels add one value per index into a row array of their own (``rows``, zeroed before: a
+    view may start at the slot the kernel writes)."""
+    from warpfem.kernels import linalg as LK
+
+    steps, (passes, last), src = [], _tree_passes(n), rows
+    for r in passes:
+        groups = -(-r // TREE_BLOCK)
+        dst = wp.zeros(groups, dtype=wp.float64, device=device)
+        steps.append(RecordedLaunch(LK.reduce_tree_kernel, groups, [src, r, 1, 1, 0, TREE_BLOCK, dst], device,
+                                    split=False))
+        src = dst
+    steps.append(RecordedLaunch(LK.reduce_rows_kernel, 1, [src, last, 1, 1, 0, acc, int(slot)], device, split=False))
+    return steps
+
+
 def _tree_passes(rows):
     """The row counts of the fixed-order tree's passes, from ``rows`` down to at most TREE_BLOCK."""
     out = []
@@ -368,6 +396,18 @@ class RecordedLaunch:
         self._reduce = None
         self._ordered = None
         if (spec is not None and spec.kind == "reduce" and isinstance(dim, int) and dim > 1
+                and _ordered(wp.get_device(device)) and spec.written is not None):
+            # one sum into one entry s of the accumulator: index i adds into part[s + i] (row_block
+            # 1, row_stride 1), part[s:s + n] summed into acc[s] by the fixed-order tree
+            n = int(dim)
+            acc = inputs[spec.acc]
+            s = int(spec.written(inputs))
+            part = wp.zeros(n + acc.shape[0], dtype=wp.float64, device=device)
+            inputs[spec.acc] = part
+            inputs += [0, 1, 1]
+            self._ordered = (part, ordered_sum_launches(part[s:s + n], n, acc, s, device))
+            self._spec = None
+        elif (spec is not None and spec.kind == "reduce" and isinstance(dim, int) and dim > 1
                 and _ordered(wp.get_device(device))):
             # one row per index, combined by the fixed-order tree (``_ordered_reduce``): the whole
             # accumulator array per row, sums only (the recorded reductions are dot products)

@@ -12,7 +12,7 @@ from typing import Any
 
 import warp as wp
 
-from warpfem.kernels.generic import both_precisions, splittable
+from warpfem.kernels.generic import both_precisions, launch, ordered_sums, splittable
 
 wp.set_module_options({"enable_backward": False})
 
@@ -189,6 +189,17 @@ def dot_slot_kernel(a: wp.array(dtype=Any), b: wp.array(dtype=Any), alpha: wp.fl
     back once (in rows of partial sums on the CPU: ``kernels.generic.splittable``)."""
     i = wp.tid() + start
     wp.atomic_add(acc, slot + (i // row_block) * row_stride, alpha * wp.float64(wp.dot(a[i], b[i])))
+
+
+def launch_dot(a, b, out, device):
+    """out[0] += a . b in float64: one launch of ``dot_kernel`` (on the CPU a launch's threads, and
+    so its atomic adds, run in index order), or where sums are made in a fixed order
+    (``generic.ORDERED_SUMS``: devices other than the CPU) ``dot_slot_kernel`` through the fixed-order
+    reduction of ``generic.launch``."""
+    if ordered_sums(device):
+        launch(dot_slot_kernel, a.shape[0], [a, b, wp.float64(1.0), out, 0], device)
+    else:
+        launch(dot_kernel, a.shape[0], [a, b, out], device)
 
 
 @splittable("reduce", 2048, acc=7, slot=8, n_add=1)

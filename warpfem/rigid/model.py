@@ -86,6 +86,32 @@ class RigidLayout:
         out[r] = q[base] + X[:, 0:1] * q[base + 1] + X[:, 1:2] * q[base + 2] + X[:, 2:3] * q[base + 3]
         return out
 
+    def pull_back(self, g):
+        """E^T g: the gradient (n_dofs, 3) in the unknown of a function of the vertex positions
+        whose gradient there is ``g`` (n_vertices, 3); e.g. a loss on ``sim.vertex_positions()``
+        for :meth:`warpfem.solvers.adjoint.Recording.backward`."""
+        g = np.asarray(g, dtype=np.float64).reshape(self.num_positions, 3)
+        out = np.zeros((self.num_dofs, 3))
+        out[:self.num_soft] = g[:self.num_soft]
+        for r, b in enumerate(self.bodies):
+            lo, k = int(self.vertex_of[r]), int(self.node_of[r])
+            gr = g[lo:lo + len(b.local_positions)]
+            out[k] = gr.sum(axis=0)
+            out[k + 1:k + 4] = b.local_positions.T @ gr  # a_j: sum_i X_ij g_i
+        return out
+
+    def initial_velocity_gradients(self, v_bar):
+        """((k, 3), (k, 3)): the gradients of each rigid body's ``initial_velocity`` and
+        ``initial_angular_velocity`` given ``v_bar`` (n_dofs, 3), the gradient of the initial node
+        velocities (p-dot = v, a_j-dot = w x e_j, so d/dw = sum_j e_j x v_bar[a_j])."""
+        v_bar = np.asarray(v_bar, dtype=np.float64).reshape(self.num_dofs, 3)
+        k = self.node_of
+        lin = v_bar[k].copy() if len(k) else np.zeros((0, 3))
+        ang = np.zeros((len(k), 3))
+        for j, e in enumerate(np.eye(3)):
+            ang += np.cross(e, v_bar[k + 1 + j])
+        return lin, ang
+
     def pose(self, q, body):
         """(p, A) of rigid body ``body`` (index among the rigid bodies) in the unknown's values q."""
         k = int(self.node_of[body])

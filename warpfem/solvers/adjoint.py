@@ -177,6 +177,8 @@ def _point_sets(model):
     ``body``, ``element`` (the point's element, numbered over every body), ``weight``, ``dNdX``
     (float64), ``conn`` (the body's connectivity, global vertex indices)."""
     quads = list(getattr(model, "quadratures", None) or [model.quadrature])
+    if getattr(model, "rigid", None) is not None:  # the soft bodies' (none for rigid bodies only)
+        quads = list(model.quadratures)
     out, e0 = [], 0
     for b, qd in enumerate(quads):
         conn = np.asarray(qd.elements).reshape(-1, qd.nodes_per_element)
@@ -189,7 +191,16 @@ def _point_sets(model):
 
 
 def _body_materials(model):
+    if getattr(model, "rigid", None) is not None:  # the soft bodies' (none for a model of rigid bodies only)
+        return list(model.materials)
     return list(getattr(model, "materials", None) or [model.material])
+
+
+def _body_densities(model):
+    """The density of every body in the model's order (soft bodies, then rigid ones)."""
+    rigid = getattr(model, "rigid", None)
+    soft = [float(m.density) for m in _body_materials(model)]
+    return soft + ([float(b.density) for b in rigid.bodies] if rigid is not None else [])
 
 
 def set_element_stiffness_scale(sim, scale):
@@ -279,10 +290,19 @@ class StepAdjoint:
         self._M = sim.mass_matrix().tocsr()
         mats = _body_materials(model)
         self._mats = mats
-        self.bodies = len(mats)
-        offs = np.asarray(getattr(model, "body_offsets", [0, n]), dtype=np.int64)
+        #: rigid bodies (docs/rigid.md): the layout of the unknown (4 nodes per rigid body) and E, else None
+        self._rigid = getattr(model, "rigid", None)
+        self._num_soft = len(mats)  # bodies with a material (E, nu)
+        dens = _body_densities(model)
+        self.bodies = len(dens)
+        # each node's body: the unknown's body offsets (with rigid bodies, dof_offsets)
+        offs = np.asarray(getattr(model, "dof_offsets" if self._rigid is not None else "body_offsets", [0, n]),
+                          dtype=np.int64)
         self._vertex_body = np.repeat(np.arange(self.bodies), np.diff(offs))
-        self._rho_v = np.array([float(m.density) for m in mats])[self._vertex_body]  # density of each vertex
+        self._rho_v = np.array(dens)[self._vertex_body]  # density of each vertex
+        if self._rigid is not None:
+            self._Emat = self._rigid.matrix()  # X = E q (host, float64)
+            self._Et = self._Emat.T.tocsr()
         # gravity per unit density (each vertex's body's)
         self._fgrav_unit = (model.gravity_mass[:, None] * model.gravity[None, :]) / self._rho_v[:, None]
         self._fext = model.external_forces()
@@ -325,7 +345,7 @@ class StepAdjoint:
             J[:, :, 0] = (f(E + hE, nu) - f(E - hE, nu)) / (2 * hE)
             J[:, :, 1] = (f(E, nu + hn) - f(E, nu - hn)) / (2 * hn)
             rows.append(J)
-        return np.concatenate(rows)
+        return np.concatenate(rows) if rows else np.zeros((0, 2, 2))
 
     def zero_grad(self):
         """Clear the accumulated parameter gradients."""
@@ -333,7 +353,7 @@ class StepAdjoint:
         self._stale_ok = True  # a reverse pass starts at the last forward step: its factorisation is current
         self._mass_gathered = None  # the mass's CSR entries (gathered again: set_density may have changed it)
         # the density of each vertex's body now (M_w is of the current mass; self._M and _rho_v of the first)
-        self._rho_now = np.array([float(m.density) for m in _body_materials(self.sim.model)])[self._vertex_body]
+        self._rho_now = np.array(_body_densities(self.sim.model))[self._vertex_body]
         self._mulam_bar = np.zeros((len(self._sets), 2))
         self.grads = {"density": np.zeros(self.bodies), "element_stiffness_scale": np.zeros(m), "forces": np.zeros((self.n, 3)),
                       "targets": {}, "collider_translations": {}, "collider_rotations": {}, "collider_friction": {},
@@ -344,7 +364,8 @@ class StepAdjoint:
         g = dict(self.grads)
         EN = np.einsum("sk,skp->sp", self._mulam_bar, self._param_jac)  # per point set
         body = np.array([ps["body"] for ps in self._psets])
-        EN = np.stack([EN[body == b].sum(axis=0) for b in range(self.bodies)])  # (bodies, 2)
+        EN = np.stack([EN[body == b].sum(axis=0) for b in range(self._num_soft)] +  # (bodies, 2); rigid bodies: 0
+                      [np.zeros(2)] * (self.bodies - self._num_soft))
         g["gravity"] = self.sim.model.gravity_mass @ g["forces"]
         if self.bodies == 1:
             g["youngs_modulus"], g["poisson_ratio"] = float(EN[0, 0]), float(EN[0, 1])
@@ -566,19 +587,24 @@ class StepAdjoint:
                 elem += np.bincount(ps["element"], weights=w0 * (mu * ab[:, 0] + lam * ab[:, 1]), minlength=m)
         return out, elem
 
-    def _add_contact_hessian(self, rec):
+    def _add_contact_hessian(self, rec, x_next=None, x_n=None, values=None, pattern=None):
         """Add the exact Hessian of every collider's contact (barrier with its curvature term, lagged
         friction) at x_{n+1} into self._K (diagonal blocks); returns [(collider, ColliderTerms)] of
-        the colliders in contact (``adjoint_contact``: complex-step derivatives) or None."""
+        the colliders in contact (``adjoint_contact``: complex-step derivatives) or None. With rigid
+        bodies the caller gives the vertex-space positions and Hessian values (``values``, ``pattern``)."""
         contact = getattr(self.sim, "contact", None)
         if contact is None or not len(contact):
             return None
+        x_next = rec.x_next if x_next is None else x_next
+        x_n = rec.x if x_n is None else x_n
+        values = self._K if values is None else values
+        pattern = self.sim.pattern if pattern is None else pattern
         surf = np.asarray(contact.surface)
         t0, t1 = rec.t0, rec.t0 + rec.dt
         out = []
-        blocks = np.zeros((self.n, 3, 3))
+        blocks = np.zeros((len(x_next), 3, 3))
         for j, c in enumerate(contact.colliders):
-            terms = collider_terms(c, surf, rec.x_next, rec.x, c.pose(t1), c.pose(t0), float(contact.kappa[j]),
+            terms = collider_terms(c, surf, x_next, x_n, c.pose(t1), c.pose(t0), float(contact.kappa[j]),
                                    float(contact.dhat[j]), float(contact.epsv[j]) * rec.dt)
             if terms is None:
                 continue
@@ -586,17 +612,60 @@ class StepAdjoint:
             out.append((c, terms))
         touched = np.flatnonzero(np.abs(blocks).sum(axis=(1, 2)) > 0)
         if len(touched):
-            K = read(self._K)
-            diag = np.asarray(self.sim.pattern.diag_index)
+            K = read(values)
+            diag = np.asarray(pattern.diag_index)
             K[diag[touched]] += blocks[touched].astype(K.dtype)
-            self._store_K(K)
+            if not host_aliases(values.device):
+                upload(values, K)
         return out
+
+    # -- rigid bodies (docs/rigid.md): the unknown q, the vertices X = E q --------------------------------------
+    def _E(self, q):
+        """E q (host): the vertex-space values of the unknown's values q."""
+        return (self._Emat @ q.reshape(-1)).reshape(-1, 3)
+
+    def _Et_(self, gv):
+        """E^T gv (host): a vertex-space adjoint pulled back to the unknown."""
+        return (self._Et @ gv.reshape(-1)).reshape(-1, 3)
+
+    def _rigid_hessian(self, rec, x_dev, sc, sfric):
+        """With rigid bodies: add to self._K the orthogonality form's exact Hessian at x_{n+1} (no PSD
+        clamp) and the contact terms written in vertex space (colliders, surface barrier, surface
+        friction) mapped through E (``RigidSystem.map_hessian``); returns the colliders' terms."""
+        sim = self.sim
+        rs = sim.rigid
+        form = rs.form
+        old = form.project
+        form.project = False
+        try:
+            form.hessian(None, x_dev, 1.0, self._K)
+        finally:
+            form.project = old
+        space = rs.space
+        hv = space.system.hessian_values
+        hv.zero_()
+        planes = self._add_contact_hessian(rec, self._xv_next, self._xv_n, hv, space.system.pattern)
+        if sc is not None:
+            sc.exact_hessian(upload(self._vbuf, self._xv_next), hv)
+        if sfric is not None:
+            Kv = read(hv)
+            sfric.add_hessian(Kv, space.system.pattern)
+            if not host_aliases(hv.device):
+                upload(hv, Kv)
+        rs.map_hessian(hv, self._K)
+        return planes
 
     def _surface_friction(self, rec, sc):
         """Surface friction's complex-step terms of the step (``adjoint_surface``) from its pairs
-        lagged at x_n (the surface contact's candidates there), or None."""
+        lagged at x_n (the surface contact's candidates there), or None (with rigid bodies: in
+        vertex space)."""
         if sc is None or not sc.has_friction():
             return None
+        if self._rigid is not None:
+            pairs, kinds = sc.candidates(upload(self._vbuf, self._xv_n))
+            rest = self.sim.model.vertex_rest_positions
+            return surface_friction_terms(pairs, kinds, self._xv_next, self._xv_n, rest, kappa=sc.kappa, dhat=sc.dhat,
+                                          mu=sc.friction, eps=sc.friction_velocity * rec.dt)
         pairs, kinds = sc.candidates(self._upload(self._dev[5], rec.x))
         return surface_friction_terms(pairs, kinds, rec.x_next, rec.x, self.sim.model.rest_positions, kappa=sc.kappa,
                                       dhat=sc.dhat, mu=sc.friction, eps=sc.friction_velocity * rec.dt)
@@ -620,18 +689,26 @@ class StepAdjoint:
         ybar, xb_bar, vhat_bar, xn_bar, vn_bar = integ.advance_reverse(rec, xbar, vbar, hbar)
         # the implicit solve: H lambda = ybar on the free components
         sc = getattr(sim, "surface_contact", None)
+        rigid = self._rigid is not None
+        if rigid:  # the contact terms live in vertex space: X = E q
+            self._xv_n, self._xv_next = self._E(rec.x), self._E(rec.x_next)  # this step's, host
+            if getattr(self, "_vbuf", None) is None:
+                self._vbuf = sim.rigid.space.ops.new_vector()
         sfric = self._surface_friction(rec, sc)  # lagged at x_n: its broad phase there first
         if sc is not None:  # its candidate pairs at x_{n+1} (the pattern may grow for them)
-            sc.update_pairs(self._upload(self._dev[5], rec.x_next))
+            sc.update_pairs(upload(self._vbuf, self._xv_next) if rigid else self._upload(self._dev[5], rec.x_next))
             self._follow_pattern()
         x_dev = self._assemble_K(rec.x_next)
-        planes = self._add_contact_hessian(rec)
-        if sc is not None:  # the exact (unprojected) Hessian of every pair's barrier at x_{n+1}
-            sc.exact_hessian(x_dev, self._K)
-        if sfric is not None:  # surface friction's exact Hessian blocks at x_{n+1}
-            K = read(self._K)
-            sfric.add_hessian(K, sim.pattern)
-            self._store_K(K)
+        if rigid:
+            planes = self._rigid_hessian(rec, x_dev, sc, sfric)
+        else:
+            planes = self._add_contact_hessian(rec)
+            if sc is not None:  # the exact (unprojected) Hessian of every pair's barrier at x_{n+1}
+                sc.exact_hessian(x_dev, self._K)
+            if sfric is not None:  # surface friction's exact Hessian blocks at x_{n+1}
+                K = read(self._K)
+                sfric.add_hessian(K, sim.pattern)
+                self._store_K(K)
         cm, ck = 1.0 + s * alpha, s * s
         Hc = self._host_H(self._K, cm, ck)
 
@@ -668,22 +745,29 @@ class StepAdjoint:
                 for i in idx.tolist():
                     store[i] = store.get(i, 0.0) + p_bar[i]
         xn_bar[~tgt] += p_bar[~tgt]
+        if rigid and (planes or sfric is not None) and np.any(lam):
+            # contact terms of vertex positions: their adjoint is E lambda, their x_n adjoint maps back by E^T
+            lam_c, xn_c = self._E(lam), np.zeros((len(self._xv_n), 3))
+        else:
+            lam_c, xn_c = lam, xn_bar
         if planes and np.any(lam):  # -s lambda^T d(grad E_c)/d(x_n, poses, mu), per collider in contact
             G = self.grads
             end = G["collider_translations"].setdefault(step_index, {}), G["collider_rotations"].setdefault(step_index, {})
             k0 = -1 if step_index is None else step_index - 1
             start = G["collider_translations"].setdefault(k0, {}), G["collider_rotations"].setdefault(k0, {})
             for col, tm in planes:
-                lv = lam[tm.verts]
-                np.add.at(xn_bar, tm.verts, -s * np.einsum("vik,vi->vk", tm.D_xn, lv))
+                lv = lam_c[tm.verts]
+                np.add.at(xn_c, tm.verts, -s * np.einsum("vik,vi->vk", tm.D_xn, lv))
                 par = -s * np.einsum("vip,vi->p", tm.D_par, lv)
                 for store, sl in ((end[0], par[0:3]), (end[1], par[3:6]), (start[0], par[6:9]), (start[1], par[9:12])):
                     store[col.name] = store.get(col.name, 0.0) + sl
                 if col.friction != 0.0:
                     G["collider_friction"][col.name] = G["collider_friction"].get(col.name, 0.0) + float(par[12])
         if sfric is not None and np.any(lam):  # -s lambda^T d(grad D)/d(x_n, mu) of surface friction
-            xn_bar -= s * sfric.xn_product(lam)
-            self.grads["contact_friction"] -= s * sfric.mu_product(lam)
+            xn_c -= s * sfric.xn_product(lam_c)
+            self.grads["contact_friction"] -= s * sfric.mu_product(lam_c)
+        if xn_c is not xn_bar:
+            xn_bar += self._Et_(xn_c)
         # parameters at the converged step
         if np.any(lam):
             self._accumulate_params(x_dev, lam, -s, y=y, v_hat=v_hat, s=s, c=c, alpha=alpha, M_w=M_lam)
@@ -766,7 +850,11 @@ class Recording:
     ``backward(x_grads, v_grads)`` takes the adjoints of the positions / velocities of the states
     0..N of the recording (dicts: state index -> (n, 3); state k is the one after k recorded
     steps) and returns the gradients by parameter name (:data:`PARAMETERS`; ``targets`` by step
-    index; ``initial_history`` the adjoint of the first state's integrator history).
+    index; ``initial_history`` the adjoint of the first state's integrator history). With rigid
+    bodies the states are the unknown q (a loss on vertex positions: ``model.rigid.pull_back``
+    maps its gradient to q), ``density`` has one entry per body (rigid ones last) and
+    ``rigid_initial_velocity`` / ``rigid_initial_angular_velocity`` ((k, 3), one row per rigid
+    body) are the gradients of each rigid body's initial velocity and angular velocity.
 
     With the direct solver each recorded step keeps its factorisation within ``factor_budget``
     bytes (:class:`StepAdjoint`); ``backward`` may be called again (another loss) and reuses them;
@@ -832,6 +920,9 @@ class Recording:
             vbar = vbar + get(v_grads, k)
         g = adj.parameter_gradients()
         g["initial_positions"], g["initial_velocities"], g["initial_history"] = xbar, vbar, hbar
+        layout = getattr(self.sim.model, "rigid", None)
+        if layout is not None:  # per rigid body: its initial velocity and angular velocity (docs/rigid.md)
+            g["rigid_initial_velocity"], g["rigid_initial_angular_velocity"] = layout.initial_velocity_gradients(vbar)
         return g
 
 

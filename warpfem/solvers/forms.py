@@ -388,6 +388,16 @@ class ElasticForm(Form):
             entry["blocks_of"] = (_ptr(bi), self.pattern.nnz)
         return entry
 
+    def add_force(self, x, f):
+        """f += the elastic force -dV/dx at x, summed per vertex in a fixed order (the gradient's
+        gather maps): the same bits on any device and thread count."""
+        dev = self.ops.device
+        for qs in self.qp_sets:
+            off, ent, slots = self._gather(qs)["force"]
+            launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(1.0), slots,
+                                                          slots, 1], dev)
+            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, f, f, 0], dev)
+
     def gradient(self, y, x, scale, g, acc):
         fa, dev = self._fa, self.ops.device
         fa.zero_()

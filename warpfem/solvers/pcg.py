@@ -47,7 +47,7 @@ class BlockJacobiPCG:
 
     def dot(self, a, b) -> float:
         self._dot.zero_()
-        launch(K.dot_kernel, dim=a.shape[0], inputs=[a, b, self._dot], device=self.device)
+        K.launch_dot(a, b, self._dot, self.device)
         return read_scalar(self._dot)
 
     def matvec(self, values, mask, x, y):

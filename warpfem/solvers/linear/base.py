@@ -29,7 +29,7 @@ import numpy as np
 import warp as wp
 
 from warpfem.kernels import linalg as K
-from warpfem.kernels.generic import launch
+from warpfem.kernels.generic import launch, ordered_sums
 from warpfem.transfer import read, read_scalar
 
 log = logging.getLogger(__name__)
@@ -173,7 +173,10 @@ class LinearSolver:
     def dot(self, a, b) -> float:
         """a . b reduced in float64, read on the host (one host sync)."""
         self._dot.zero_()
-        wp.launch(K.dot_kernel, dim=a.shape[0], inputs=[a, b, self._dot], device=self.device)
+        if ordered_sums(self.device):  # (a fixed order on devices other than the CPU)
+            K.launch_dot(a, b, self._dot, self.device)
+        else:
+            wp.launch(K.dot_kernel, dim=a.shape[0], inputs=[a, b, self._dot], device=self.device)
         self.host_syncs += 1
         return read_scalar(self._dot)
 

@@ -307,9 +307,10 @@ def _mg_precond_finish_kernel(r: wp.array(dtype=Any), z: wp.array(dtype=Any), ma
 
 
 # split across CPU threads by their recorded launches (``RecordedLaunch``): rows of partial sums
-splittable("reduce", 8192, acc=3, slot=4)(_mg_init_kernel)
-splittable("reduce", 8192, acc=8, slot=10)(_mg_update_kernel)
-splittable("reduce", 8192, acc=6, slot=7)(_mg_precond_finish_kernel)
+# (``written``: the one entry each adds into, for the fixed-order sums of other devices)
+splittable("reduce", 8192, acc=3, slot=4, written=lambda a: a[4])(_mg_init_kernel)
+splittable("reduce", 8192, acc=8, slot=10, written=lambda a: a[10] + 1)(_mg_update_kernel)
+splittable("reduce", 8192, acc=6, slot=7, written=lambda a: a[7] + (0 if a[8] else 1))(_mg_precond_finish_kernel)
 
 
 def _chebyshev_coefficients(degree: int, lower: float, upper: float = 1.0):

@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-from warpfem.kernels.generic import COUNTERS, RecordedLaunch, both_precisions, splittable
+from warpfem.kernels.generic import (COUNTERS, RecordedLaunch, both_precisions, ordered_sum_launches, ordered_sums,
+                                     splittable)
 from warpfem.kernels.linalg import cw_mul
 from warpfem.solvers.linear.base import LinearSolver, LinearSolveResult
 from warpfem.transfer import read, strict_device
@@ -45,8 +46,10 @@ _REASONS = {_CONVERGED: "converged", _MAXITER: "iteration cap", _NEGATIVE: "non-
 @wp.kernel
 def _pcg_init_kernel(b: wp.array(dtype=Any), inv_diag: wp.array(dtype=Any), x: wp.array(dtype=Any),
                      r: wp.array(dtype=Any), z: wp.array(dtype=Any), p: wp.array(dtype=Any),
-                     rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64), slot: int):
-    """x = 0, r = b, z = M^-1 r, p = z; rz[slot] += r.z, rr[slot] += r.r."""
+                     rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64), slot: int, row_block: int,
+                     row_stride: int):
+    """x = 0, r = b, z = M^-1 r, p = z; rz[slot] += r.z, rr[slot] += r.r (index i adds into entry
+    slot + (i // row_block) row_stride: a row of its own for the fixed-order sums, ``DevicePCG``)."""
     i = wp.tid()
     bi = b[i]
     zi = inv_diag[i] * bi
@@ -54,8 +57,9 @@ def _pcg_init_kernel(b: wp.array(dtype=Any), inv_diag: wp.array(dtype=Any), x: w
     r[i] = bi
     z[i] = zi
     p[i] = zi
-    wp.atomic_add(rz, slot, wp.float64(wp.dot(bi, zi)))
-    wp.atomic_add(rr, slot, wp.float64(wp.dot(bi, bi)))
+    q = slot + (i // row_block) * row_stride
+    wp.atomic_add(rz, q, wp.float64(wp.dot(bi, zi)))
+    wp.atomic_add(rr, q, wp.float64(wp.dot(bi, bi)))
 
 
 @wp.kernel
@@ -122,9 +126,12 @@ def _pcg_update_kernel(inv_diag: wp.array(dtype=Any), x: wp.array(dtype=Any), r:
                        z: wp.array(dtype=Any), p: wp.array(dtype=Any), Ap: wp.array(dtype=Any),
                        status: wp.array(dtype=wp.int32), iters: wp.array(dtype=wp.int32),
                        rz: wp.array(dtype=wp.float64), rr: wp.array(dtype=wp.float64),
-                       pap: wp.array(dtype=wp.float64), j: int):
-    """alpha = rz/pAp; x += alpha p; r -= alpha Ap; z = M^-1 r; rz[j+1], rr[j+1] accumulated.
-    With non-positive curvature on the first iteration, x = z (the preconditioned residual)."""
+                       pap: wp.array(dtype=wp.float64), j: int, rz_out: wp.array(dtype=wp.float64),
+                       rr_out: wp.array(dtype=wp.float64), row_block: int, row_stride: int):
+    """alpha = rz/pAp; x += alpha p; r -= alpha Ap; z = M^-1 r; r.z and r.r accumulated into
+    rz_out, rr_out at j + 1 + (i // row_block) row_stride (rz, rr themselves, or rows of the
+    fixed-order sums). With non-positive curvature on the first iteration, x = z (the
+    preconditioned residual)."""
     i = wp.tid()
     if status[j] != int(_RUNNING):
         return
@@ -140,8 +147,9 @@ def _pcg_update_kernel(inv_diag: wp.array(dtype=Any), x: wp.array(dtype=Any), r:
     r[i] = ri
     zi = inv_diag[i] * ri
     z[i] = zi
-    wp.atomic_add(rz, j + 1, wp.float64(wp.dot(ri, zi)))
-    wp.atomic_add(rr, j + 1, wp.float64(wp.dot(ri, ri)))
+    q = j + 1 + (i // row_block) * row_stride
+    wp.atomic_add(rz_out, q, wp.float64(wp.dot(ri, zi)))
+    wp.atomic_add(rr_out, q, wp.float64(wp.dot(ri, ri)))
 
 
 @both_precisions(z="v[]", p="v[]")
@@ -186,7 +194,7 @@ def _pcg_direction_kernel(z: wp.array(dtype=Any), p: wp.array(dtype=Any), status
 
 
 # the recorded launches of the multigrid's CG split these across CPU threads (``RecordedLaunch``)
-splittable("reduce", 2048, acc=7, slot=8)(_pcg_matvec_kernel)
+splittable("reduce", 2048, acc=7, slot=8, written=lambda a: a[8])(_pcg_matvec_kernel)
 splittable("start", 8192)(_pcg_direction_kernel)
 
 
@@ -345,6 +353,12 @@ class DevicePCG(LinearSolver):
         self._tol2 = wp.zeros(1, dtype=wp.float64, device=dev)
         self._maxiter = wp.zeros(1, dtype=wp.int32, device=dev)
         self._report = wp.zeros(4, dtype=wp.float64, device=dev)
+        # fixed-order sums (``kernels.generic.ORDERED_SUMS``, devices other than the CPU): the
+        # chunked loop's kernels add index i's terms into entry slot + i of these row arrays,
+        # summed into the scalars by recorded tree launches
+        self._ordered = ordered_sums(dev) and not self.cpu_serial and not self.cpu_split
+        self._rows = ((wp.zeros(n + k + 1, dtype=wp.float64, device=dev), wp.zeros(n + k + 1, dtype=wp.float64, device=dev))
+                      if self._ordered else None)
         self._graph = None
         self._serial_cmd, self._serial_key = None, None
         self._start_cmds = None
@@ -354,36 +368,63 @@ class DevicePCG(LinearSolver):
     def _record(self, kernel, dim, inputs):
         return wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
 
+    def _sums(self, slot, *targets):
+        """(callables, launches): the fixed-order sums of rows[slot:slot + n] into each
+        (rows, acc) target's acc[slot]."""
+        n, dev = self.num_rows, self.device
+        out = []
+        for rows, acc in targets:
+            out += ordered_sum_launches(rows[slot:slot + n], n, acc, slot, dev)
+        return out, len(out)
+
     def _start_commands(self):
-        """The solve's first launches, recorded once (their arrays are this object's buffers)."""
+        """The solve's first launches, recorded once (their arrays are this object's buffers), as
+        (callables in order, kernel launches among them)."""
         if self._start_cmds is None:
             n, k = self.num_rows, self.check_every
-            self._start_cmds = [
-                self._record(_pcg_init_kernel, n, [self.b, self.inv_diag, self.x, self.r, self.z, self.p,
-                                                   self._rz, self._rr, k]),
-                self._record(_pcg_start_kernel, 1, [self._rr, self._status, self._iters, self._bb, self._report, k]),
-            ]
+            first = [self.b, self.inv_diag, self.x, self.r, self.z, self.p]
+            start = self._record(_pcg_start_kernel, 1, [self._rr, self._status, self._iters, self._bb, self._report, k])
+            if self._ordered:
+                ra, rb = self._rows
+                sums, m = self._sums(k, (ra, self._rz), (rb, self._rr))
+                self._start_cmds = ([ra.zero_, rb.zero_,
+                                     self._record(_pcg_init_kernel, n, first + [ra, rb, k, 1, 1]).launch]
+                                    + sums + [start.launch], 2 + m)
+            else:
+                self._start_cmds = ([self._record(_pcg_init_kernel, n, first + [self._rz, self._rr, k, max(n, 1), 0]).launch,
+                                     start.launch], 2)
         return self._start_cmds
 
     def _chunk_commands(self):
-        """The 3 k + 1 launches of a chunk, recorded once per (values, mask) arrays: replaying a
-        recorded launch skips Warp's per-launch argument inference and packing, which on the CPU
-        cost more than the kernels of a small mesh."""
+        """The 3 k + 1 launches of a chunk (more with fixed-order sums: their zeroing and tree
+        launches), recorded once per (values, mask) arrays: replaying a recorded launch skips
+        Warp's per-launch argument inference and packing, which on the CPU cost more than the
+        kernels of a small mesh. (callables in order, kernel launches among them)."""
         key = (self._values.ptr, self._mask.ptr)
         if self._chunk_key != key:
             pt, n, k = self.pattern, self.num_rows, self.check_every
             values, mask = self._values, self._mask
-            cmds = [self._record(_pcg_carry_kernel, 1, [self._rz, self._rr, self._pap, self._status, self._iters, k])]
+            cmds = [self._record(_pcg_carry_kernel, 1, [self._rz, self._rr, self._pap, self._status, self._iters,
+                                                        k]).launch]
+            launches = 1 + 3 * k
             for j in range(k):
-                cmds.append(self._record(_pcg_matvec_kernel, n, [pt.offsets, pt.columns, values, mask, self.p, self.Ap,
-                                                                 self._status, self._pap, j, 0, max(n, 1), 0]))
-                cmds.append(self._record(_pcg_update_kernel, n, [self.inv_diag, self.x, self.r, self.z, self.p, self.Ap,
-                                                                 self._status, self._iters, self._rz, self._rr,
-                                                                 self._pap, j]))
+                mv = [pt.offsets, pt.columns, values, mask, self.p, self.Ap, self._status]
+                up = [self.inv_diag, self.x, self.r, self.z, self.p, self.Ap, self._status, self._iters, self._rz,
+                      self._rr, self._pap, j]
+                if self._ordered:
+                    ra, rb = self._rows
+                    s_mv, m_mv = self._sums(j, (ra, self._pap))
+                    s_up, m_up = self._sums(j + 1, (ra, self._rz), (rb, self._rr))
+                    cmds += [ra.zero_, self._record(_pcg_matvec_kernel, n, mv + [ra, j, 0, 1, 1]).launch, *s_mv,
+                             ra.zero_, rb.zero_, self._record(_pcg_update_kernel, n, up + [ra, rb, 1, 1]).launch, *s_up]
+                    launches += m_mv + m_up
+                else:
+                    cmds.append(self._record(_pcg_matvec_kernel, n, mv + [self._pap, j, 0, max(n, 1), 0]).launch)
+                    cmds.append(self._record(_pcg_update_kernel, n, up + [self._rz, self._rr, max(n, 1), 0]).launch)
                 cmds.append(self._record(_pcg_direction_kernel, n, [self.z, self.p, self._status, self._iters, self._rz,
                                                                     self._rr, self._pap, self._bb, self._tol2,
-                                                                    self._maxiter, self._report, j, 0]))
-            self._chunk_cmds, self._chunk_key = cmds, key
+                                                                    self._maxiter, self._report, j, 0]).launch)
+            self._chunk_cmds, self._chunk_key = (cmds, launches), key
             self._graph = None
         return self._chunk_cmds
 
@@ -439,10 +480,10 @@ class DevicePCG(LinearSolver):
                 c()
             COUNTERS["launches"] += len(cmds)
             return
-        cmds = self._start_commands()
+        cmds, launches = self._start_commands()
         for c in cmds:
-            c.launch()
-        COUNTERS["launches"] += len(cmds)
+            c()
+        COUNTERS["launches"] += launches
 
     def _run_chunk(self):
         dev = self.device
@@ -453,23 +494,23 @@ class DevicePCG(LinearSolver):
             COUNTERS["launches"] += len(cmds)
             self._chunk_runs += 1
             return
-        cmds = self._chunk_commands()
-        COUNTERS["launches"] += len(cmds)  # a replayed graph counts as its launches
+        cmds, launches = self._chunk_commands()
+        COUNTERS["launches"] += launches  # a replayed graph counts as its launches
         if self._graphs_on:
             if self._graph is None:
                 if self._chunk_runs == 0:  # first run uncaptured: loads the modules
                     for c in cmds:
-                        c.launch()
+                        c()
                     self._chunk_runs += 1
                     return
                 with wp.ScopedCapture(device=dev, force_module_load=False) as cap:
                     for c in cmds:
-                        c.launch()
+                        c()
                 self._graph = cap.graph
             wp.capture_launch(self._graph)
         else:
             for c in cmds:
-                c.launch()
+                c()
         self._chunk_runs += 1
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
