@@ -34,12 +34,13 @@ def main(argv=None):
     run = scene.build()
     faces = np.asarray(run.model.mesh.boundary_faces(), dtype=np.int64)
     edges = np.unique(np.sort(np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]), axis=1), axis=0)
-    cm = ipctk.CollisionMesh(np.asarray(run.model.rest_positions, dtype=np.float64), edges, faces)
+    rest = getattr(run.model, "vertex_rest_positions", run.model.rest_positions)  # every body's vertices
+    cm = ipctk.CollisionMesh(np.asarray(rest, dtype=np.float64), edges, faces)
     frames = np.load(path)["positions"]
     bad = [k for k, x in enumerate(frames) if ipctk.has_intersections(cm, np.asarray(x, dtype=np.float64))]
     c = run.sim.surface_contact
     dmin = None
-    if c is not None:
+    if c is not None and getattr(run.model, "rigid", None) is None:  # (the states hold vertices, not the unknown)
         dmin = float("inf")
         for x in frames:
             run.sim.set_positions(x)

@@ -138,14 +138,10 @@ class Model:
 
     #: the rigid bodies' layout (``warpfem.rigid.model.RigidLayout``) of a model with some, else None
     rigid = None
-    _vertex_rest = None
-
-    @property
-    def vertex_rest_positions(self) -> np.ndarray:
-        """(n, 3) rest positions of every body's vertices in body order (``body_offsets``): the
-        same as ``rest_positions`` without rigid bodies; with them, a rigid body's vertices where
-        its mesh puts them (``rest_positions`` then holds its four nodes: docs/rigid.md)."""
-        return self.rest_positions if self._vertex_rest is None else self._vertex_rest
+    #: (n, 3) rest positions of every body's vertices in body order (``body_offsets``): the same as
+    #: ``rest_positions`` without rigid bodies; with them, a rigid body's vertices where its mesh puts
+    #: them (``rest_positions`` then holds its four nodes: docs/rigid.md)
+    vertex_rest_positions = None
 
     def __init__(self, mesh, material, *, gravity=(0.0, 0.0, 0.0), mass_matrix: str = "lumped",
                  volumetric_integration: str = "full"):
@@ -250,15 +246,17 @@ class Model:
             raise ValueError("Model.from_bodies needs at least one body")
         from warpfem.rigid.body import RigidBody
 
-        if any(isinstance(b, RigidBody) for b in bodies):  # affine bodies: the unknown and the vertices differ
-            from warpfem.rigid.model import build_model
-
-            return build_model(cls, bodies, bodies_mesh=BodiesMesh, gravity=gravity, mass_matrix=mass_matrix,
-                               check_overlap=check_overlap)
-        for i, b in enumerate(bodies):
-            if not isinstance(b, BaseBody):
-                raise TypeError(f"body #{i + 1} must be a warpfem.Body, got {type(b).__name__}")
         names = [b.name or f"body{i + 1}" for i, b in enumerate(bodies)]
+        rigid = [isinstance(b, RigidBody) for b in bodies]
+        for i, b in enumerate(bodies):
+            if not rigid[i] and not isinstance(b, BaseBody):
+                raise TypeError(f"body #{i + 1} must be a warpfem.Body or warpfem.RigidBody, got {type(b).__name__}")
+        if any(rigid):  # the unknown holds the soft vertices first, then four nodes per rigid body
+            first = rigid.index(True)
+            late = [names[i] for i in range(first, len(bodies)) if not rigid[i]]
+            if late:
+                raise ValueError(f"Model.from_bodies: soft body {late[0]!r} comes after rigid body {names[first]!r}; "
+                                 "list the soft bodies first, then the rigid ones")
         dup = sorted({n for n in names if names.count(n) > 1})
         if dup:
             raise ValueError(f"body names must be unique, {dup[0]!r} is given {names.count(dup[0])} times")
@@ -446,8 +444,12 @@ def _construct(model, bodies, *, gravity, mass_matrix, name_errors=False):
     g = np.asarray(gravity, dtype=np.float64)
     if g.shape != (3,) or not np.all(np.isfinite(g)):
         raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
+    from warpfem.rigid.body import RigidBody
+
+    soft = [b for b in bodies if not isinstance(b, RigidBody)]  # first (Model.from_bodies checks the order)
+    rigid = bodies[len(soft):]
     parts = []
-    for i, b in enumerate(bodies):
+    for i, b in enumerate(soft):
         try:
             parts.append(b.discretize(mass_matrix))
         except (ValueError, TypeError) as e:
@@ -456,21 +458,23 @@ def _construct(model, bodies, *, gravity, mass_matrix, name_errors=False):
             err = type(e)(f"body {b.name!r}: {e}")
             err.body = i
             raise err from e
-    offsets = np.concatenate([[0], np.cumsum([len(p.rest_positions) for p in parts])]).astype(np.int64)
+    # vertex offsets: each body's vertices (a rigid body's too: its mesh's, moved by p + A X)
+    sizes = [len(p.rest_positions) for p in parts] + [len(b.local_positions) for b in rigid]
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     model.bodies, model.body_names, model.body_offsets = list(bodies), [b.name for b in bodies], offsets
     one = len(bodies) == 1  # the one body's own mesh, quadrature and volumetric integration (above)
     model.mesh = bodies_mesh([b.mesh for b in bodies], offsets, model.body_names)
-    # the material contact defaults scale with (the stiffest body's); per body: materials[i]
-    model.material = max((b.material for b in bodies), key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0))
-    model.materials = [b.material for b in bodies]
+    # the material contact defaults scale with (the stiffest soft body's); per soft body: materials[i]
+    mats = [b.material for b in soft]
+    model.material = max(mats, key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0)) if mats else None
+    model.materials = mats
     model.gravity = g
     model.mass_matrix_kind = mass_matrix
-    model.rest_positions = np.concatenate([p.rest_positions for p in parts])
-    model.num_vertices = int(offsets[-1])
-    model.volumetric_integration = bodies[0].volumetric_integration if one else [b.volumetric_integration for b in bodies]
+    model.volumetric_integration = soft[0].volumetric_integration if one and soft else \
+        [b.volumetric_integration for b in soft]
     # ((mu, lam) full-rule part, (mu, lam) 1-point part) with "reduced"; per body: body_volumetric_parameters
     model.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
-    model.volumetric_parameters = parts[0].volumetric_parameters if one else None
+    model.volumetric_parameters = parts[0].volumetric_parameters if one and parts else None
 
     def shifted(qd, o):  # a body's quadrature with its connectivity in global vertex indices
         if qd is None or o == 0:
@@ -478,12 +482,21 @@ def _construct(model, bodies, *, gravity, mass_matrix, name_errors=False):
         return dataclasses.replace(qd, elements=(np.asarray(qd.elements, dtype=np.int64) + o).astype(qd.elements.dtype),
                                    volumetric=shifted(qd.volumetric, o))
 
-    model.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, offsets[:-1])]
-    model.quadrature = model.quadratures[0] if one else None
-    model.lumped_mass = np.concatenate([p.lumped_mass for p in parts])
-    model.mass = scipy.sparse.block_diag([p.mass for p in parts], format="csr")
+    model.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, offsets)]
+    model.quadrature = model.quadratures[0] if len(parts) == 1 else None
+    soft_mass = [p.mass for p in parts]
+    model.rest_positions = np.concatenate([p.rest_positions for p in parts] or [np.zeros((0, 3))])
+    model.lumped_mass = np.concatenate([p.lumped_mass for p in parts] or [np.zeros(0)])
     # gravity is M (1 x g) with each body's mass matrix, so free fall is exact with either
-    model.gravity_mass = np.concatenate([p.gravity_mass for p in parts])
+    model.gravity_mass = np.concatenate([p.gravity_mass for p in parts] or [np.zeros(0)])
+    if rigid:  # the unknown: the soft vertices, then each rigid body's four nodes (warpfem.rigid.model)
+        from warpfem.rigid.model import attach_rigid
+
+        soft_mass, model.vertex_rest_positions = attach_rigid(model, rigid, offsets, soft_mass)
+    else:
+        model.vertex_rest_positions = model.rest_positions
+    model.num_vertices = len(model.rest_positions)
+    model.mass = scipy.sparse.block_diag(soft_mass, format="csr")
     model.fixed = np.zeros((model.num_vertices, 3), dtype=bool)
     model.forces = np.zeros((model.num_vertices, 3))
 

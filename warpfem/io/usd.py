@@ -85,6 +85,9 @@ def _new_layer(path):
 
 # (attribute name, Sdf value type name) of the animated attributes
 _ANIMATED = (("points", "Point3fArray"), ("extent", "Float3Array"), ("normals", "Normal3fArray"))
+#: a rigid body's Xform: its pose as one 4x4 matrix (row vectors: [[A^T, 0], [p, 1]])
+_TRANSFORM = "xformOp:transform"
+_TYPES = dict(_ANIMATED, **{_TRANSFORM: "Matrix4d"})
 
 
 class UsdMeshWriter:
@@ -226,6 +229,16 @@ class UsdMeshWriter:
             raise UsdWriterError(f"{path}: cannot continue after frame {k}: it holds {have}")
         self._meshes, self._last = {}, {}
         for prim in root.nameChildren:
+            if prim.typeName == "Xform" and _TRANSFORM in prim.attributes:  # a rigid body
+                apath = self._root_path.AppendChild(prim.name).AppendProperty(_TRANSFORM)
+                for t in holder.ListTimeSamplesForPath(apath):
+                    if t > k:
+                        holder.EraseTimeSample(apath, t)
+                self._meshes[prim.name] = [prim, None, False]
+                value = holder.QueryTimeSample(apath, float(k)) if holder.GetAttributeAtPath(apath) else None
+                if value is not None:
+                    self._last.setdefault(prim.name, {})[_TRANSFORM] = np.array(value, dtype=np.float64).reshape(4, 4)
+                continue
             if prim.typeName not in ("Mesh", "TetMesh"):
                 continue
             name = prim.name
@@ -243,7 +256,8 @@ class UsdMeshWriter:
                         self._meshes[name][1] = len(value)
         removed += sum(1 for t in times if t > k)
         self._manifest_attrs = {(n, a) for n, e in self._meshes.items()
-                                for a in ("points", "extent") + (("normals",) if e[2] else ())}
+                                for a in ((_TRANSFORM,) if e[1] is None else
+                                          ("points", "extent") + (("normals",) if e[2] else ()))}
         self._manifest_written = set(self._manifest_attrs)
         self._first_frame = int(layer.startTimeCode) if layer.HasStartTimeCode() else None
         self._last_frame = k
@@ -372,6 +386,44 @@ class UsdMeshWriter:
         self._manifest_attrs |= {(name, "points"), (name, "extent")}
         return str(prim.path)
 
+    def add_rigid_mesh(self, name: str, faces, points):
+        """Add a rigid body ``name``: an Xform whose transform (``xformOp:transform``, a 4x4 matrix
+        written by :meth:`write_frame`'s ``transforms``) moves the Mesh ``name/mesh`` of ``points``
+        (written once, relative to the body's centre of mass). Returns the Xform's prim path."""
+        from pxr import Sdf, UsdGeom, Vt
+
+        self._check_open()
+        if not isinstance(name, str) or not Sdf.Path.IsValidIdentifier(name):
+            raise UsdWriterError(f"mesh name {name!r} is not a valid USD prim name (letters, digits, _)")
+        if name in self._meshes:
+            raise UsdWriterError(f"mesh {name!r} already added")
+        faces = np.asarray(_to_numpy(faces), dtype=np.int64)
+        pts = np.ascontiguousarray(_to_numpy(points), dtype=np.float32)
+        if pts.ndim != 2 or pts.shape[1] != 3 or not len(pts) or not np.all(np.isfinite(pts)):
+            raise UsdWriterError(f"rigid mesh {name!r}: points must be finite, of shape (p, 3), got {pts.shape}")
+        if faces.ndim != 2 or faces.shape[1] != 3 or not len(faces) or faces.min() < 0 or faces.max() >= len(pts):
+            raise UsdWriterError(f"rigid mesh {name!r}: faces must have shape (f, 3) with indices in [0, {len(pts)})")
+        xf = Sdf.CreatePrimInLayer(self._layer, self._root_path.AppendChild(name))
+        xf.specifier, xf.typeName = Sdf.SpecifierDef, "Xform"
+        tn = Sdf.ValueTypeNames
+        Sdf.AttributeSpec(xf, _TRANSFORM, tn.Matrix4d)
+        order = Sdf.AttributeSpec(xf, "xformOpOrder", tn.TokenArray, Sdf.VariabilityUniform)
+        order.default = Vt.TokenArray([_TRANSFORM])
+        prim = Sdf.CreatePrimInLayer(self._layer, self._root_path.AppendChild(name).AppendChild("mesh"))
+        prim.specifier, prim.typeName = Sdf.SpecifierDef, "Mesh"
+        for attr, type_name, value, uniform in (
+                ("faceVertexCounts", tn.IntArray, Vt.IntArray.FromNumpy(np.full(faces.shape[0], 3, dtype=np.int32)), False),
+                ("faceVertexIndices", tn.IntArray, Vt.IntArray.FromNumpy(np.ascontiguousarray(faces.reshape(-1), dtype=np.int32)), False),
+                ("subdivisionScheme", tn.Token, UsdGeom.Tokens.none, True),
+                ("orientation", tn.Token, UsdGeom.Tokens.rightHanded, True),
+                ("points", tn.Point3fArray, Vt.Vec3fArray.FromNumpy(pts), False),
+                ("extent", tn.Float3Array, Vt.Vec3fArray.FromNumpy(np.stack([pts.min(axis=0), pts.max(axis=0)])), False)):
+            spec = Sdf.AttributeSpec(prim, attr, type_name, Sdf.VariabilityUniform if uniform else Sdf.VariabilityVarying)
+            spec.default = value
+        self._meshes[name] = [xf, None, False]  # num_points None: a rigid body (transforms, not points)
+        self._manifest_attrs.add((name, _TRANSFORM))
+        return str(xf.path)
+
     def add_tet_mesh(self, name: str, tets, num_points: int, surface_faces=None):
         """Add a volume ``name``: a ``UsdGeom.TetMesh`` over ``num_points`` points with tetrahedra
         ``tets`` (m, 4), positively oriented (its right-handed faces point out, as USD's
@@ -411,13 +463,14 @@ class UsdMeshWriter:
         return str(prim.path)
 
     # ------------------------------------------------------------------ frames
-    def write_frame(self, frame_index: int, points: dict, normals: dict | None = None):
+    def write_frame(self, frame_index: int, points: dict, normals: dict | None = None, transforms: dict | None = None):
         """Write one frame: ``points[name]`` (p, 3) for meshes added with :meth:`add_mesh`.
 
         The time code is ``frame_index`` (frames must be written in increasing order). Extent is
         the bounding box of the points written (as float32). ``normals`` optionally maps names
-        to per-vertex normals (p, 3). Meshes not given keep their previous values (re-written at
-        this time code, so every clip is self-contained).
+        to per-vertex normals (p, 3). ``transforms`` maps rigid meshes (:meth:`add_rigid_mesh`) to
+        their 4x4 pose. Meshes not given keep their previous values (re-written at this time code, so
+        every clip is self-contained).
         """
         from pxr import Sdf, UsdGeom
 
@@ -429,13 +482,21 @@ class UsdMeshWriter:
             raise UsdWriterError(f"frame_index must be >= 0, got {frame_index}")
         if self._last_frame is not None and frame_index <= self._last_frame:
             raise UsdWriterError(f"frame {frame_index} written after frame {self._last_frame}: frames must increase")
-        if not isinstance(points, dict) or not points:
+        transforms = transforms or {}
+        if not isinstance(points, dict) or not (points or transforms):
             raise UsdWriterError("points must be a non-empty dict {mesh name: (p, 3) array}")
         normals = normals or {}
         # validate everything before writing anything, so a bad frame leaves no partial samples
         prepared = {}
+        for name, M in transforms.items():
+            if name not in self._meshes or self._meshes[name][1] is not None:
+                raise UsdWriterError(f"unknown rigid mesh {name!r} (add it with add_rigid_mesh first)")
+            M = np.asarray(M, dtype=np.float64)
+            if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+                raise UsdWriterError(f"frame {frame_index}, rigid mesh {name!r}: the transform must be a finite 4x4 matrix")
+            prepared[name] = {_TRANSFORM: M}
         for name, pts in points.items():
-            if name not in self._meshes:
+            if name not in self._meshes or self._meshes[name][1] is None:
                 raise UsdWriterError(f"unknown mesh {name!r} (add it with add_mesh first; known: {sorted(self._meshes)})")
             n = self._meshes[name][1]
             p = _to_numpy(pts)
@@ -494,8 +555,13 @@ class UsdMeshWriter:
         path = self._root_path.AppendChild(name).AppendProperty(attr)
         if layer.GetAttributeAtPath(path) is None:
             prim = Sdf.CreatePrimInLayer(layer, path.GetPrimPath())
-            Sdf.AttributeSpec(prim, attr, getattr(Sdf.ValueTypeNames, dict(_ANIMATED)[attr]))
-        layer.SetTimeSample(path, t, Vt.Vec3fArray.FromNumpy(value))
+            Sdf.AttributeSpec(prim, attr, getattr(Sdf.ValueTypeNames, _TYPES[attr]))
+        if attr == _TRANSFORM:
+            from pxr import Gf
+
+            layer.SetTimeSample(path, t, Gf.Matrix4d(*np.asarray(value, dtype=np.float64).ravel().tolist()))
+        else:
+            layer.SetTimeSample(path, t, Vt.Vec3fArray.FromNumpy(value))
 
     def _start_clip(self, frame_index):
         index = len(self._clip_assets)
@@ -512,7 +578,7 @@ class UsdMeshWriter:
         layer = _new_layer(os.path.join(self.clip_dir, "manifest.usda"))
         for name, attr in sorted(self._manifest_attrs):
             prim = Sdf.CreatePrimInLayer(layer, self._root_path.AppendChild(name))
-            Sdf.AttributeSpec(prim, attr, getattr(Sdf.ValueTypeNames, dict(_ANIMATED)[attr]))
+            Sdf.AttributeSpec(prim, attr, getattr(Sdf.ValueTypeNames, _TYPES[attr]))
         layer.Save()
         self._manifest_written = set(self._manifest_attrs)
 
@@ -598,6 +664,8 @@ class UsdOutput(FrameWriter):
                                 clip_frames=o.get("clip_frames", 100) or None)
         for name, faces, count in run.surfaces:
             self._w.add_mesh(name, faces, count)
+        for name, faces, local in run.rigid_surfaces:
+            self._w.add_rigid_mesh(name, faces, local)
         for name, tets, faces, lo, hi in run.volumes:
             self._w.add_tet_mesh(name, tets, hi - lo, surface_faces=faces)
         for name, faces, count in run.colliders:
@@ -610,11 +678,12 @@ class UsdOutput(FrameWriter):
         if self._w is None and self._pending is None and not snapshot.sync:
             # the start (frame 0) is kept in memory and the stage made with the next frame: the USD
             # library (~0.2 s to import) does not hold up the first step
-            self._pending = (snapshot.frame, {k: np.array(v, copy=True) for k, v in snapshot.surface_points.items()})
+            self._pending = (snapshot.frame, {k: np.array(v, copy=True) for k, v in snapshot.surface_points.items()},
+                             None, {k: np.array(v, copy=True) for k, v in snapshot.transforms.items()})
             return
         if self._w is None:
             self._make()
-        self._w.write_frame(snapshot.frame, snapshot.surface_points)
+        self._w.write_frame(snapshot.frame, snapshot.surface_points, transforms=snapshot.transforms)
         if snapshot.sync and self._w.unsaved_frames:
             self._w.save()
 

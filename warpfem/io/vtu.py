@@ -128,6 +128,12 @@ def element_stress_fields_by_body(model, x, P) -> list:
     offs = model.body_offsets
     for b, (lo, hi) in enumerate(zip(offs[:-1], offs[1:])):
         lo, hi = int(lo), int(hi)
+        if b >= len(model.quadratures):  # a rigid body (after the soft ones): undeformed, no stress
+            mesh = model.bodies[b].mesh
+            m = int(mesh.num_elements) or len(mesh.boundary_faces())  # its tets, or its triangles
+            sigma = np.zeros((m, 3, 3))
+            out.append({"J": np.ones(m), "cauchy_stress": sigma, "von_mises": np.zeros(m)})
+            continue
         qd = model.quadratures[b]
         local = dataclasses.replace(qd, elements=np.asarray(qd.elements, dtype=np.int64) - lo, volumetric=None)
         view = _BodyView(local, model.rest_positions[lo:hi])
@@ -181,17 +187,17 @@ class VtuSeriesWriter:
         path = os.fspath(path)
         if not path.lower().endswith(".pvd"):
             raise VtuWriterError(f"{path}: a ParaView collection must end in .pvd")
-        if element_type not in ELEMENTS:
-            raise VtuWriterError(f"element_type must be one of {sorted(ELEMENTS)}, got {element_type!r}")
-        element = ELEMENTS[element_type]
-        k = element.nodes_per_element
+        if element_type not in ELEMENTS and element_type != "tri3":
+            raise VtuWriterError(f"element_type must be one of {sorted(ELEMENTS)} or 'tri3', got {element_type!r}")
+        # "tri3": a rigid body given by its closed surface (triangle cells)
+        k = 3 if element_type == "tri3" else ELEMENTS[element_type].nodes_per_element
         cells = np.asarray(cells, dtype=np.int64)
         if cells.ndim == 1 and cells.size % k == 0:
             cells = cells.reshape(-1, k)
         if cells.ndim != 2 or cells.shape[1] != k or len(cells) == 0:
             raise VtuWriterError(f"cells must have shape (m, {k}) for {element_type}, got {cells.shape}")
         self.path = path
-        self.cell_type = element.meshio_cell
+        self.cell_type = "triangle" if element_type == "tri3" else ELEMENTS[element_type].meshio_cell
         self.cells = cells
         self.num_points = int(cells.max()) + 1
         self.compression = compression

@@ -40,6 +40,8 @@ class RunInfo:
     rest : (n, 3) rest positions of every vertex (m), float64.
     version : the warpfem version.
     surfaces : [(prim name, faces (f, 3), number of points)]: the render surfaces.
+    rigid_surfaces : [(prim name, faces (f, 3), points (p, 3) relative to the centre of mass)]: the
+        rigid bodies' surfaces, moved by the snapshot's ``transforms`` (4x4, USD's row-vector form).
     volumes : [(prim name, tets (m, 4), boundary faces or None, first vertex, end vertex)]:
         ``[output] usd_volume`` tet meshes.
     colliders : [(prim name, faces (f, 3), number of points)]: collider meshes.
@@ -55,6 +57,7 @@ class RunInfo:
     resume_after: int | None = None
     version: str = ""
     surfaces: list = field(default_factory=list)
+    rigid_surfaces: list = field(default_factory=list)
     volumes: list = field(default_factory=list)
     colliders: list = field(default_factory=list)
     blocks: list = field(default_factory=list)
@@ -69,7 +72,8 @@ class FrameSnapshot:
 
     * ``positions`` (n, 3) float64 every vertex, ``velocities`` (n, 3);
     * ``surface_points`` {prim name: (p, 3)} of the render surfaces, volumes and colliders;
-    * ``element_fields`` [{"J", "cauchy_stress", "von_mises"} per block] (ParaView).
+    * ``element_fields`` [{"J", "cauchy_stress", "von_mises"} per block] (ParaView);
+    * ``transforms`` {prim name: 4x4} of the rigid bodies' surfaces (``RunInfo.rigid_surfaces``).
 
     Each is computed by the function the run gave (``providers``) on first access and kept for the
     other writers of the frame; ``snapshot.get(name)`` reads any provider by name.
@@ -103,6 +107,10 @@ class FrameSnapshot:
     @property
     def element_fields(self) -> list:
         return self.get("element_fields")
+
+    @property
+    def transforms(self) -> dict:
+        return self.get("transforms") if "transforms" in self._providers else {}
 
 
 class FrameWriter:

@@ -17,7 +17,7 @@ import scipy.sparse
 
 from warpfem.rigid.body import RigidBody
 
-__all__ = ["RigidLayout", "build_model"]
+__all__ = ["RigidLayout", "attach_rigid"]
 
 
 class RigidLayout:
@@ -158,79 +158,22 @@ class RigidLayout:
             else np.zeros((0, 3))
 
 
-def build_model(cls, bodies, *, bodies_mesh, gravity=(0.0, 0.0, 0.0), mass_matrix="lumped", check_overlap=True):
-    """``Model.from_bodies`` of a list with :class:`RigidBody` entries (soft :class:`~warpfem.model.Body`
-    entries first): see the module docstring for the two spaces. ``cls``: the Model class,
-    ``bodies_mesh``: its ``BodiesMesh`` (given by the caller: this module does not import it)."""
-    names = [b.name or f"body{i + 1}" for i, b in enumerate(bodies)]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise ValueError(f"body names must be unique, {dup[0]!r} is given {names.count(dup[0])} times")
-    first_rigid = next(i for i, b in enumerate(bodies) if isinstance(b, RigidBody))
-    late = [names[i] for i, b in enumerate(bodies) if i > first_rigid and not isinstance(b, RigidBody)]
-    if late:
-        raise ValueError(f"Model.from_bodies: soft body {late[0]!r} comes after rigid body {names[first_rigid]!r}; "
-                         "list the soft bodies first, then the rigid ones")
-    soft, rigid = bodies[:first_rigid], bodies[first_rigid:]
-    for i, b in enumerate(soft):
-        if not hasattr(b, "discretize"):
-            raise TypeError(f"body #{i + 1} must be a warpfem.Body or warpfem.RigidBody, got {type(b).__name__}")
-    for b, n in zip(bodies, names):
-        b.name = n
-    if check_overlap and len(bodies) > 1:
-        from warpfem.mesh.intersect import BodyOverlapError, first_body_overlap
-
-        problem = first_body_overlap([b.mesh for b in bodies], names)
-        if problem:
-            raise BodyOverlapError(problem)
-    parts = []  # each soft body discretised (``BaseBody.discretize``: rest positions, quadrature, masses)
-    for b in soft:
-        try:
-            parts.append(b.discretize(mass_matrix))
-        except (ValueError, TypeError) as e:
-            raise type(e)(f"body {b.name!r}: {e}") from e
-    g = np.asarray(gravity, dtype=np.float64)
-    if g.shape != (3,) or not np.all(np.isfinite(g)):
-        raise ValueError(f"gravity must be 3 finite numbers, got {gravity!r}")
-    sizes = [len(p.rest_positions) for p in parts] + [len(b.local_positions) for b in rigid]
-    voff = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    n_soft = int(voff[len(soft)])
-    layout = RigidLayout(rigid, names[len(soft):], n_soft, voff)
-    self = cls.__new__(cls)
-    self.bodies, self.body_names = list(bodies), names
-    self.body_offsets = voff  # vertex space (what outputs and contact see)
-    self.dof_offsets = np.concatenate([voff[:len(soft) + 1], n_soft + 4 * np.arange(1, len(rigid) + 1)]).astype(np.int64)
-    self.rigid = layout
-    self.mesh = bodies_mesh([b.mesh for b in bodies], voff, names)
-    mats = [b.material for b in soft]
-    self.material = max(mats, key=lambda m: float(getattr(m, "youngs_modulus", 0.0) or 0.0)) if mats else None
-    self.materials = mats
-    self.gravity = g
-    self.mass_matrix_kind = mass_matrix
-    self.num_vertices = layout.num_dofs
-    self.rest_positions = np.concatenate([p.rest_positions for p in parts] + [layout.dof_rest()])
-    self._vertex_rest = np.concatenate([p.rest_positions for p in parts]
-                                                + [b.local_positions + b.center_of_mass for b in rigid])
-    self.volumetric_integration = [b.volumetric_integration for b in soft]
-    self.volumetric_parameters = None
-    self.body_volumetric_parameters = [p.volumetric_parameters for p in parts]
-    import dataclasses
-
-    def shifted(qd, o):
-        if qd is None:
-            return None
-        return dataclasses.replace(qd, elements=(np.asarray(qd.elements, dtype=np.int64) + o).astype(qd.elements.dtype),
-                                   volumetric=shifted(qd.volumetric, o))
-
-    self.quadratures = [shifted(p.quadrature, int(o)) for p, o in zip(parts, voff[:len(soft)])]
-    self.quadrature = self.quadratures[0] if len(parts) == 1 else None
-    # each rigid body's four nodes as one "element" of the Hessian's pattern (its 4x4 blocks)
-    self.extra_element_groups = [(np.asarray([np.arange(k, k + 4) for k in layout.node_of], dtype=np.int64).ravel(), 4)]
+def attach_rigid(model, rigid, offsets, soft_mass):
+    """The rigid bodies' part of a model's construction (``warpfem.model``, after its soft bodies:
+    ``model.rest_positions`` / ``lumped_mass`` / ``gravity_mass`` hold theirs; ``offsets``: every
+    body's first vertex, then the total): the layout, the unknown's four nodes per rigid body
+    appended, each body's nodes as one 4-node "element" of the Hessian's pattern. Returns the mass
+    matrices of the unknown's blocks (``soft_mass`` and each rigid body's 4 x 4) and every body's
+    vertices at rest (``Model.vertex_rest_positions``)."""
+    n_soft = len(model.rest_positions)
+    layout = RigidLayout(rigid, [b.name for b in rigid], n_soft, offsets)
+    model.rigid = layout
+    model.dof_offsets = np.concatenate([offsets[:len(offsets) - len(rigid)],
+                                        n_soft + 4 * np.arange(1, len(rigid) + 1)]).astype(np.int64)
+    vertex_rest = np.concatenate([model.rest_positions] + [b.local_positions + b.center_of_mass for b in rigid])
+    model.rest_positions = np.concatenate([model.rest_positions, layout.dof_rest()])
+    model.extra_element_groups = [(np.asarray([np.arange(k, k + 4) for k in layout.node_of], dtype=np.int64).ravel(), 4)]
     rigid_lumped = np.concatenate([[b.mass, 0.0, 0.0, 0.0] for b in rigid])
-    self.lumped_mass = np.concatenate([p.lumped_mass for p in parts] + [rigid_lumped])
-    self.mass = scipy.sparse.block_diag([p.mass for p in parts] + [scipy.sparse.csr_matrix(b.dof_mass_matrix())
-                                                                    for b in rigid], format="csr")
-    self.gravity_mass = np.concatenate([p.gravity_mass for p in parts] + [rigid_lumped])
-    self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
-    self.forces = np.zeros((self.num_vertices, 3))
-    return self
+    model.lumped_mass = np.concatenate([model.lumped_mass, rigid_lumped])
+    model.gravity_mass = np.concatenate([model.gravity_mass, rigid_lumped])
+    return list(soft_mass) + [scipy.sparse.csr_matrix(b.dof_mass_matrix()) for b in rigid], vertex_rest

@@ -79,9 +79,13 @@ class _RenderSurface:
     """One body's render surface: USD prim ``name``, ``faces`` over its ``count`` points,
     ``points()`` now; ``embedding`` / ``skinner`` with a [surface], else the model's ``vertex_ids``."""
 
-    def __init__(self, name, faces, count, points, *, embedding=None, skinner=None, vertex_ids=None):
+    def __init__(self, name, faces, count, points, *, embedding=None, skinner=None, vertex_ids=None, local=None,
+                 transform=None):
         self.name, self.faces, self.count, self.points = name, faces, count, points
         self.embedding, self.skinner, self.vertex_ids = embedding, skinner, vertex_ids
+        # a rigid body's: its points relative to its centre of mass (written once) and transform() its
+        # 4x4 pose (USD convention: row vectors, [[A^T, 0], [p, 1]]) now
+        self.local, self.transform = local, transform
 
 
 class SceneRun:
@@ -118,11 +122,26 @@ class SceneRun:
         """Body ``b``'s render surface (its vertices lo..hi-1 of the model): its [surface] embedded in
         its own elements, or its boundary; the USD prim is ``b.surface_prim``."""
         bm = b.own_mesh()
+        if getattr(b, "kind", "soft") == "rigid":  # its boundary at p + A X; USD: rest points under a transform
+            r = self.model.body_names.index(b.body_name) - (len(self.model.body_names) - len(self.model.rigid.bodies))
+            ids, tris = np.unique(np.asarray(bm.boundary_faces(), dtype=np.int64).reshape(-1), return_inverse=True)
+            local = self.model.rigid.bodies[r].local_positions[ids]
+            ids = ids + lo
+
+            def transform(r=r):
+                p, A = self.model.rigid.pose(self.sim.positions(), r)
+                M = np.eye(4)
+                M[:3, :3], M[3, :3] = np.asarray(A).T, p
+                return M
+
+            return _RenderSurface(b.surface_prim, tris.reshape(-1, 3).astype(np.int64), int(ids.size),
+                                  lambda: self.sim.vertex_positions()[ids], vertex_ids=ids, local=local,
+                                  transform=transform)
         if b.spec.surface is None:
             ids, tris = boundary_surface(bm)
             ids = ids + lo
-            return _RenderSurface(b.surface_prim, np.asarray(tris), int(ids.size), lambda: self.sim.positions()[ids],
-                                  vertex_ids=ids)
+            return _RenderSurface(b.surface_prim, np.asarray(tris), int(ids.size),
+                                  lambda: self._vertex_positions()[ids], vertex_ids=ids)
         from warpfem.skinning import SurfaceSkinner, embed_points_in_mesh, load_surface  # only with a [surface]
 
         pts, tris = load_surface(b.spec.surface["path"])
@@ -139,13 +158,28 @@ class SceneRun:
 
         return _RenderSurface(b.surface_prim, np.asarray(tris), emb.num_points, points, embedding=emb, skinner=skinner)
 
+    def _vertex_positions(self):
+        """Every body's vertices now (rigid ones at p + A X); a simulator without rigid bodies (reduced,
+        stiffness warping) has no ``vertex_positions``: its positions are its vertices."""
+        f = getattr(self.sim, "vertex_positions", None)
+        return f() if f is not None else self.sim.positions()
+
     def usd_surfaces(self) -> list:
         """The USD prims of the render surfaces: [(name, faces, number of points)] (one per body)."""
-        return [(c.name, c.faces, c.count) for c in self.surfaces]
+        return [(c.name, c.faces, c.count) for c in self.surfaces if c.local is None]
+
+    def usd_rigid_surfaces(self) -> list:
+        """The rigid bodies' USD prims: [(name, faces, points relative to the centre of mass)] (a mesh
+        under an Xform whose transform moves it)."""
+        return [(c.name, c.faces, c.local) for c in self.surfaces if c.local is not None]
 
     def usd_surface_points(self) -> dict:
         """{prim name: current points} of :meth:`usd_surfaces`."""
-        return {c.name: c.points() for c in self.surfaces}
+        return {c.name: c.points() for c in self.surfaces if c.local is None}
+
+    def usd_transforms(self) -> dict:
+        """{prim name: 4x4 pose now} of :meth:`usd_rigid_surfaces`."""
+        return {c.name: c.transform() for c in self.surfaces if c.local is not None}
 
     def usd_volumes(self) -> list:
         """``[output] usd_volume``: [(prim name, tets (m, 4) over the body's own vertices, surface faces,
@@ -154,6 +188,8 @@ class SceneRun:
         out = []
         offsets = self.model.body_offsets
         for b, lo, hi in zip(self.scene.bodies, offsets[:-1], offsets[1:]):
+            if getattr(b, "kind", "soft") == "rigid":  # its Xform moves its surface: no volume to show
+                continue
             m = b.own_mesh()
             tets = np.asarray(m.corner_tets(), dtype=np.int64)
             faces = np.asarray(m.boundary_faces(), dtype=np.int64) if m.element.is_linear_tet else None
@@ -385,9 +421,13 @@ class SceneRun:
         if self.scene.named_bodies:  # the states name the bodies of a [[body]] scene
             extra = {"body_offsets": np.asarray(offs, dtype=np.int64), "body_names": np.array(self.model.body_names)}
         blocks = [(b.block_name, b.own_mesh().elements, b.own_mesh().element_type, int(lo), int(hi))
+                  if b.own_mesh().num_elements else  # a rigid body given by its surface: its triangles
+                  (b.block_name, b.own_mesh().boundary_faces(), "tri3", int(lo), int(hi))
                   for b, lo, hi in zip(self.scene.bodies, offs[:-1], offs[1:])]
-        return RunInfo(fps=self.fps, total_frames=total, rest=self.model.rest_positions, resume_after=resume_after,
+        rest = getattr(self.model, "vertex_rest_positions", self.model.rest_positions)  # every body's vertices
+        return RunInfo(fps=self.fps, total_frames=total, rest=rest, resume_after=resume_after,
                        version=warpfem_version(), surfaces=self.usd_surfaces(), volumes=volumes,
+                       rigid_surfaces=self.usd_rigid_surfaces(),
                        colliders=[(name, faces, len(pts())) for name, faces, pts in colliders], blocks=blocks,
                        states_extra=extra, options=dict(out))
 
@@ -398,8 +438,8 @@ class SceneRun:
 
         snap = None
 
-        def positions():
-            return self.sim.positions()
+        def positions():  # every body's vertices (rigid ones at p + A X), in body order
+            return self._vertex_positions()
 
         def surface_points():
             pts = self.usd_surface_points()
@@ -409,9 +449,10 @@ class SceneRun:
             pts.update({name: p() for name, p in self._collider_points})
             return pts
 
+        velocities = getattr(self.sim, "vertex_velocities", self.sim.velocities)  # as _vertex_positions
         snap = FrameSnapshot(self.frame, self._time() if fs is None else fs.time, stats=fs, sync=sync,
-                             providers={"positions": positions, "velocities": self.sim.velocities,
-                                        "surface_points": surface_points,
+                             providers={"positions": positions, "velocities": velocities,
+                                        "surface_points": surface_points, "transforms": self.usd_transforms,
                                         "element_fields": lambda: self.element_fields(snap.positions)})
         return snap
 
@@ -421,9 +462,13 @@ class SceneRun:
         (:func:`warpfem.io.element_stress_fields`)."""
         from warpfem.io.vtu import deformation_gradients, element_stress_fields_by_body
 
-        x = self.sim.positions() if x is None else np.asarray(x, dtype=np.float64)
+        x = self._vertex_positions() if x is None else np.asarray(x, dtype=np.float64)
         stresses = getattr(self.sim, "stresses", None)  # a simulator without: the material at F (one body)
-        P = stresses(x) if stresses is not None else self.model.material.pk1(deformation_gradients(self.model, x))
+        xq = x
+        if getattr(self.model, "rigid", None) is not None:  # the unknown: soft vertices are its first rows
+            xq = self.sim.positions()
+            xq[:self.model.rigid.num_soft] = x[:self.model.rigid.num_soft]
+        P = stresses(xq) if stresses is not None else self.model.material.pk1(deformation_gradients(self.model, x))
         return element_stress_fields_by_body(self.model, x, P)
 
     @staticmethod

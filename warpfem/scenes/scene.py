@@ -77,11 +77,24 @@ class _SceneBodies:
 
         sp = self.spec
         mesh, offsets = self.mesh(), self.body_offsets
+        rigid = [b for b in self.bodies if getattr(b, "kind", "soft") == "rigid"]
+        nodes = mesh.num_vertices - sum(b.own_mesh().num_vertices for b in rigid) + 4 * len(rigid)  # 4 per rigid body
         lines = [f"scene {self.name!r} ({self.path}): {len(self.bodies)} bodies, {mesh.num_elements} elements, "
-                 f"{mesh.num_vertices} vertices, {3 * mesh.num_vertices} DOFs in all"]
+                 f"{mesh.num_vertices} vertices, {3 * nodes} DOFs in all"]
         memory = {"float32": 0, "float64": 0}
         nnz_total = 0
         for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
+            if getattr(b, "kind", "soft") == "rigid":
+                r = b.rigid_summary()
+                lines.append(f"body {b.body_name!r} ({b.label}): rigid, vertices {lo}..{hi - 1}: {r['source']}")
+                lines.append(f"  {r['surface_triangles']} surface triangles; density {r['density']:g} kg/m^3, mass "
+                             f"{r['mass']:.6g} kg, centre of mass {r['center_of_mass']} m, volume {r['volume']:.6g} m^3")
+                lines.append(f"  initial velocity {r['initial_velocity']} m/s, angular velocity "
+                             f"{r['initial_angular_velocity']} rad/s, orthogonality stiffness {r['stiffness']:g} Pa; "
+                             f"4 nodes (p, A) of the unknown")
+                for i, ids in enumerate(b.selections()["force"]):
+                    lines.append(f"  force #{i + 1}: {ids.size} vertices, {list(b.spec.force[i]['force'])} N each")
+                continue
             bs, bm = b.spec, b.mesh()
             etype, vi = bs.mesh["element"], bs.material["volumetric_integration"]
             qpe = quadrature_points_per_element(etype, vi)
@@ -162,6 +175,12 @@ class _SceneBodies:
         out = sp.output
         bodies = []
         for b, lo, hi in zip(self.bodies, offsets[:-1], offsets[1:]):
+            if getattr(b, "kind", "soft") == "rigid":
+                bodies.append({"name": b.body_name, "kind": "rigid", "offset": b.offset.tolist(),
+                               "initial_velocity": b.initial_velocity.tolist(), "first_vertex": int(lo),
+                               "vertices": int(hi - lo), "rigid": b.rigid_summary(), "matrix_blocks": 16,
+                               "estimated_device_memory_bytes": {"float32": 0, "float64": 0}})
+                continue
             s = b.summary()
             bodies.append({"name": b.body_name, "offset": b.offset.tolist(), "initial_velocity": b.initial_velocity.tolist(),
                            "first_vertex": int(lo), "vertices": int(hi - lo), "mesh": s["mesh"], "material": s["material"],
@@ -398,6 +417,8 @@ class Scene(_SceneBodies):
 
     def own_tractions(self):
         """The tractions of this scene's own entries, over its own mesh's vertices."""
+        if not self.spec.traction:  # (a rigid body has none: the schema refuses them)
+            return []
         mesh = self.own_mesh()
         tet4 = mesh.element.is_linear_tet  # plain triangles; other types integrate N_a on their faces
         faces = mesh.boundary_faces() if tet4 and self.spec.traction else None
@@ -741,8 +762,9 @@ class Scene(_SceneBodies):
             model.fix(ids, e["components"])
         for e, ids in zip(sp.force, sel["force"]):
             model.add_force(ids, e["force"])
-        for f, _, _ in tractions:
-            model.forces += f
+        n_soft = int(model.rigid.num_soft) if getattr(model, "rigid", None) is not None else model.num_vertices
+        for f, _, _ in tractions:  # vertex space; only soft bodies have tractions (same numbering in q)
+            model.forces[:n_soft] += f[:n_soft]
         for e, ids in zip(sp.handle, sel["handle"]):
             model.fix(ids, e["components"])
         # the [integrator].type's entry, or one registered for a section the scene has ([subspace]:
@@ -803,14 +825,81 @@ class BodyScene(Scene):
     volume_prim = property(lambda self: f"{self.body_name}_volume", doc="The body's TetMesh prim.")
     block_name = property(lambda self: self.body_name, doc="ParaView blocks are named after the body.")
 
+    kind = property(lambda self: self.body.get("kind", "soft"), doc="'soft' or 'rigid' (``kind`` of the table).")
+
     def fail(self, where, msg):
         raise SceneError(f"{self.path or '<scene>'}: {self.label}: {where}: {msg}")
 
     _fail = fail
 
+    def rigid_summary(self) -> dict:
+        """A rigid body's mass properties and settings (``describe``)."""
+        body = self.model_body()
+        m = self.spec.mesh
+        src = (f"box generator size {list(m['size'])} m, cells {list(m['cells'])}" if m["generator"]
+               else f"file {m['path']}")
+        r = self.body["rigid"]
+        return {"source": src, "surface_triangles": int(len(body.mesh.boundary_faces())), "density": float(r["density"]),
+                "mass": float(body.mass), "volume": float(body.volume),
+                "center_of_mass": np.round(body.center_of_mass, 9).tolist(),
+                "inertia_tensor": np.round(body.inertia_tensor, 12).tolist(),
+                "initial_velocity": self.initial_velocity.tolist(),
+                "initial_angular_velocity": list(r["initial_angular_velocity"]), "stiffness": float(r["stiffness"])}
+
+    def model_body(self):
+        """This body as :class:`warpfem.Body`, or a rigid one as :class:`warpfem.RigidBody` (its mesh's
+        closed surface, density, velocities; an open surface is a SceneError naming the body)."""
+        if self.kind != "rigid":
+            return super().model_body()
+        from warpfem.rigid import RigidBody
+
+        r = self.body["rigid"]
+        mesh = self.own_mesh()
+        try:
+            body = RigidBody(mesh, density=r["density"], name=self.body_name, initial_velocity=self.initial_velocity,
+                             initial_angular_velocity=r["initial_angular_velocity"], stiffness=r["stiffness"])
+        except ValueError as e:
+            self.fail("[mesh]", str(e))
+        return body
+
     def _make_mesh(self):
+        m = self.spec.mesh
+        if self.kind == "rigid" and m["path"] and os.path.splitext(m["path"])[1].lower() in (".obj", ".off", ".ply", ".stl"):
+            # a rigid body needs its closed surface only: the file's triangles, not tetrahedralised
+            from warpfem.rigid.body import SurfaceBodyMesh, _closed_surface_error
+            from warpfem.skinning import load_surface
+
+            v, f = load_surface(m["path"])
+            problem = _closed_surface_error(f)
+            if problem:
+                self.fail("[mesh].path", f"{m['path']}: a rigid body's surface must be closed, but {problem}")
+            return _RigidSurfaceMesh(np.asarray(v, dtype=np.float64) + self.offset, f, name=m["path"])
         mesh = super()._make_mesh()
+        if self.kind == "rigid":  # a volume mesh: its boundary must be closed (checked before any work)
+            from warpfem.rigid.body import _closed_surface_error
+
+            problem = _closed_surface_error(mesh.boundary_faces())
+            if problem:
+                self.fail("[mesh]", f"a rigid body's mesh must bound a solid, but {problem}")
         return _shifted(mesh, self.offset) if np.any(self.offset != 0.0) else mesh
+
+
+def _rigid_surface_mesh_class():
+    from warpfem.rigid.body import SurfaceBodyMesh
+
+    class RigidSurfaceMesh(SurfaceBodyMesh):
+        """A rigid body's closed surface as a scene's body mesh: no elements, its triangles the boundary."""
+
+        nodes_per_element = 3
+
+        def corner_tets(self):
+            return np.zeros((0, 4), dtype=np.int64)
+
+    return RigidSurfaceMesh
+
+
+def _RigidSurfaceMesh(vertices, faces, name=None):
+    return _rigid_surface_mesh_class()(vertices, faces, name=name)
 
 
 def load_scene(path) -> Scene:

@@ -302,7 +302,18 @@ BODY_KEYS: dict[str, Key] = {
     "name": Key("str", default=None, doc="body name: USD prim, ParaView block, messages (default body<i>)"),
     "offset": Key("vec3", default=(0.0, 0.0, 0.0), doc="translation of the body's mesh (m)"),
     "initial_velocity": Key("vec3", default=(0.0, 0.0, 0.0), doc="velocity of every vertex at t = 0 (m/s)"),
+    "kind": Key("choice", default="soft", choices=("soft", "rigid"),
+                doc="'soft' (finite elements) or 'rigid' (an affine body, docs/rigid.md)"),
+    "initial_angular_velocity": Key("vec3", default=None,
+                                    doc="rigid bodies: angular velocity about the centre of mass at t = 0 (rad/s)"),
+    "stiffness": Key("float", default=None, check=_positive,
+                     doc="rigid bodies: stiffness kappa (Pa) of the orthogonality energy (default 1e8)"),
 }
+#: a rigid body's own keys (others, 'soft' bodies'), its material's only key, the sections it refuses
+RIGID_ONLY_KEYS = ("initial_angular_velocity", "stiffness")
+RIGID_MATERIAL = {"density": Key("float", required=True, check=_positive, doc="kg/m^3")}
+RIGID_REFUSED_SECTIONS = {"fixed": "fixed components", "handle": "handles (prescribed motion)",
+                          "traction": "tractions", "surface": "an embedded render surface"}
 BODY_SECTIONS = ("mesh", "material", "fixed", "handle", "force", "traction", "surface")
 # integrator types (and sections) that simulate one body only
 SINGLE_BODY_INTEGRATORS = ("stiffness_warping",)
@@ -717,9 +728,30 @@ def _parse_bodies(ctx, data, integrators) -> SceneSpec:
             if s not in b:
                 ctx.fail(f"{label}.{s}", f"required: each [[body]] has its own [body.{s}] table")
         sub = dict(shared, **{s: b[s] for s in BODY_SECTIONS if s in b})
+        rigid = None
+        if own["kind"] == "rigid":
+            rigid = _check_rigid_body(ctx, label, b, own)
+            # the mesh and [[force]] entries are checked as a soft body's, with a stand-in material
+            sub["material"] = {"model": "stable_neo_hookean", "youngs_modulus": 1.0, "poisson_ratio": 0.3,
+                               "density": rigid["density"]}
+        else:
+            for k in RIGID_ONLY_KEYS:
+                if own[k] is not None:
+                    ctx.fail(f"{label}.{k}", 'only a rigid body has it (kind = "rigid"); this body is soft')
         spec = parse_scene_dict(sub, path=ctx.path, base_dir=ctx.base_dir, integrators=integrators, _body=label)
+        if rigid is not None:  # what describe / collider defaults read of a rigid body's material
+            spec.material = {"model": None, "youngs_modulus": None, "poisson_ratio": None, "density": rigid["density"],
+                             "mass_matrix": spec.material["mass_matrix"],
+                             "volumetric_integration": spec.material["volumetric_integration"]}
         bodies.append({"name": name, "offset": own["offset"], "initial_velocity": own["initial_velocity"], "spec": spec,
-                       "label": label})
+                       "label": label, "kind": own["kind"], "rigid": rigid, "index": i})
+    rigid_names = [b["name"] for b in bodies if b["kind"] == "rigid"]
+    entry = integrators.get(itype) if isinstance(itype, str) else None
+    if rigid_names and entry is not None and not getattr(entry, "dynamic", True):
+        ctx.fail("[integrator].type", f"{itype!r} is a static solve, which cannot hold rigid body {rigid_names[0]!r} "
+                 "(only inertia does); use backward_euler, bdf2 or newmark")
+    # soft bodies first, then the rigid ones (the model's order); each keeps its name and label
+    bodies = [b for b in bodies if b["kind"] == "soft"] + [b for b in bodies if b["kind"] == "rigid"]
     if len(bodies) > 1 and itype in SINGLE_BODY_INTEGRATORS:
         ctx.fail("[integrator].type", f"{itype!r} simulates one body; this scene has {len(bodies)} [[body]] tables "
                  "(use backward_euler, bdf2, newmark or static)")
@@ -728,6 +760,27 @@ def _parse_bodies(ctx, data, integrators) -> SceneSpec:
     return SceneSpec(path=first.path, base_dir=first.base_dir, top=first.top, mesh=first.mesh, material=first.material,
                      integrator=first.integrator, output=first.output, surface=None, subspace=first.subspace,
                      collider=first.collider, contact=first.contact, extra=first.extra, bodies=bodies, **merged)
+
+
+def _check_rigid_body(ctx, label, b, own) -> dict:
+    """A rigid ``[[body]]``'s own checks: its material holds only a density (> 0), it has no fixed /
+    handle / traction / surface sections. Returns {density, initial_angular_velocity, stiffness}."""
+    for s, what in RIGID_REFUSED_SECTIONS.items():
+        if s in b:
+            shown = f"[[body.{s}]]" if s in ARRAY_SECTIONS else f"[body.{s}]"
+            ctx.fail(f"{label}.{s}", f"a rigid body cannot have {shown} ({what}); give it a velocity, or make it "
+                     'kind = "soft"')
+    mat = b.get("material")
+    if not isinstance(mat, dict):
+        ctx.fail(f"{label}.material", "required: a rigid body's material is a table { density = ... } (kg/m^3)")
+    for k in mat:
+        if k not in RIGID_MATERIAL:
+            ctx.fail(f"{label}.material.{k}", "a rigid body's material has only density (kg/m^3): it does not deform")
+    if "density" not in mat:
+        ctx.fail(f"{label}.material.density", "required: a rigid body's density (kg/m^3, > 0)")
+    rho = _convert(ctx, f"{label}.material.density", RIGID_MATERIAL["density"], mat["density"])
+    return {"density": rho, "stiffness": 1e8 if own["stiffness"] is None else own["stiffness"],
+            "initial_angular_velocity": own["initial_angular_velocity"] or (0.0, 0.0, 0.0)}
 
 
 def _check_collider(ctx, i, c, raw, itype, subspace):
