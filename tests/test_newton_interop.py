@@ -337,3 +337,162 @@ def test_shapes_on_bodies_become_colliders_at_their_world_pose():
     outside = np.maximum(np.abs(local) - np.array([0.02, 0.04, 0.06]), 0.0)
     np.testing.assert_allclose(D[:, 1], np.linalg.norm(outside, axis=1), atol=1e-6)
     np.testing.assert_allclose(D[:, 2], X[:, 2] + 0.5, atol=1e-6)  # above the triangle's interior
+
+
+# -- newton's free rigid bodies stepped inside warpfem's solve (SolverFEM(rigid_bodies=...)) --------------
+def _box_on_block(offset=(0.013, -0.021)):
+    """A 0.1 x 0.1 x 0.04 m box (800 kg/m^3, a free newton body) 8 mm above a 0.2 x 0.2 x 0.04 m
+    soft block (add_soft_grid, 500 kg/m^3) on newton's ground plane; z up."""
+    b = newton.ModelBuilder()
+    b.add_ground_plane()
+    b.add_soft_grid(pos=wp.vec3(-0.1, -0.1, 0.002), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=2, dim_y=2, dim_z=1, cell_x=0.1, cell_y=0.1, cell_z=0.04,
+                    density=500.0, k_mu=4.0e4, k_lambda=6.0e4, k_damp=0.0)
+    body = b.add_body(xform=wp.transform(wp.vec3(offset[0], offset[1], 0.07), wp.quat_identity()))
+    b.add_shape_box(body, hx=0.05, hy=0.05, hz=0.02, cfg=newton.ModelBuilder.ShapeConfig(density=800.0, mu=0.5))
+    return b.finalize(device="cpu")
+
+
+def test_a_newton_rigid_box_rests_on_a_soft_block_inside_the_implicit_solve():
+    """SolverFEM(rigid_bodies=True) steps the box as a warpfem rigid body in the block's solve:
+    newton's mass and inertia equal the box surface's (800 kg/m^3), it comes to rest (< 1 mm/s),
+    the ground carries box + block within 2 % (measured 6e-6), the box stays above the block and
+    its rest height equals a warpfem Model.from_bodies scene of the same bodies within 1e-6."""
+    from warpfem.contact.colliders import Plane
+
+    model = _box_on_block()
+    contact = {"dhat": 0.002}
+    solver = SolverFEM(model, rigid_bodies=True, damping_mass=10.0, friction=0.5, contact=contact)
+    mass, com, inertia = solver.rigid_surface_properties[0]
+    assert mass == pytest.approx(float(model.body_mass.numpy()[0]), rel=1e-6)
+    assert np.allclose(com, model.body_com.numpy()[0], atol=1e-7)
+    assert np.allclose(inertia, model.body_inertia.numpy()[0], rtol=1e-5, atol=1e-12)
+    end = _run(solver, model, 40, 0.01)
+    qd = end.body_qd.numpy()[0]
+    assert np.linalg.norm(qd[:3]) < 1e-3 and np.linalg.norm(qd[3:]) * 0.07 < 1e-3
+    g = -float(model.gravity.numpy().reshape(-1, 3)[0, 2])
+    weight = (float(model.body_mass.numpy().sum()) + float(model.particle_mass.numpy().sum())) * g
+    assert solver.contact_forces().sum(axis=0)[2] == pytest.approx(weight, rel=0.02)
+    assert np.allclose(solver.rigid_contact_forces(), 0.0)  # the box touches the block only
+    assert solver.last_orthogonality_error < 1e-5
+    z_box = float(end.body_q.numpy()[0, 2])
+    assert z_box - 0.02 > end.particle_q.numpy()[:, 2].max()
+    # the same bodies as a warpfem scene
+    q0 = model.particle_q.numpy().astype(np.float64)
+    mesh = wf.VolumeMesh(q0, model.tet_indices.numpy().reshape(-1, 4), "tet4")
+    Em, num = lame_to_youngs(4.0e4, 6.0e4)
+    block = wf.Body(mesh, wf.StableNeoHookean(youngs_modulus=Em, poisson_ratio=num, density=500.0), name="block")
+    surface = solver.warpfem_model.bodies[1].mesh  # the box's 12 triangles, at its initial pose
+    box = wf.RigidBody((surface.vertices, surface.faces), density=800.0, name="box")
+    ref = wf.Model.from_bodies([block, box], gravity=(0.0, 0.0, -g))
+    import scipy.sparse
+
+    n, m = len(q0), model.particle_mass.numpy().astype(np.float64)  # newton's grid masses are uniform
+    ref.lumped_mass[:n], ref.gravity_mass[:n] = m, m
+    ref.mass = scipy.sparse.block_diag([scipy.sparse.diags(m), ref.mass[n:, n:]], format="csr")
+    sim = wf.Simulator(ref, dt=0.01, damping_mass=10.0, colliders=[Plane(point=(0, 0, 0), normal=(0, 0, 1),
+                                                                          friction=0.5, **contact)])
+    sim.set_contact(bodies=True, friction=0.5, **contact)
+    for _ in range(40):
+        sim.step()
+    assert z_box == pytest.approx(ref.rigid.pose(sim.positions(), 0)[0][2], rel=1e-6)  # measured 2.6e-8
+
+
+def test_a_spinning_newton_body_keeps_its_angular_momentum_and_body_q_round_trips():
+    """A free box whose centre of mass is off its body origin, spinning in zero gravity (BDF2,
+    0.5 s): the angular momentum R I R^T w from body_q / body_qd is conserved within 1e-3 (measured
+    4.1e-4), the COM velocity of body_qd stays the initial one, the vertices warpfem moves are
+    body_q applied to the body-frame surface, and an edited state is read again."""
+    b = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_soft_grid(pos=wp.vec3(2.0, 0.0, 0.0), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=1, dim_y=1, dim_z=1, cell_x=0.05, cell_y=0.05, cell_z=0.05,
+                    density=500.0, k_mu=4.0e4, k_lambda=6.0e4, k_damp=0.0)
+    rot = wp.quat_from_axis_angle(wp.normalize(wp.vec3(1.0, 1.0, 0.0)), 0.4)
+    body = b.add_body(xform=wp.transform(wp.vec3(0.0, 0.0, 1.0), rot))
+    b.add_shape_box(body, xform=wp.transform(wp.vec3(0.05, 0.0, 0.0), wp.quat_identity()), hx=0.1, hy=0.05, hz=0.025,
+                    cfg=newton.ModelBuilder.ShapeConfig(density=1000.0))
+    model = b.finalize(device="cpu")
+    qd0 = np.array([[0.1, -0.2, 0.05, 1.0, 2.0, 0.5]], dtype=np.float32)
+    model.body_qd.assign(qd0)
+    solver = SolverFEM(model, rigid_bodies=[0], integrator="bdf2")
+    I_b = model.body_inertia.numpy()[0].astype(np.float64)
+    com_b = model.body_com.numpy()[0].astype(np.float64)
+    assert np.allclose(com_b, (0.05, 0.0, 0.0), atol=1e-7)
+
+    def momentum(state):
+        q, w = state.body_q.numpy()[0].astype(np.float64), state.body_qd.numpy()[0, 3:].astype(np.float64)
+        from warpfem.interop.newton import _rotation
+
+        R = _rotation(q[3:])
+        return R @ I_b @ R.T @ w
+
+    start = model.state()
+    L0 = momentum(start)
+    q_start = start.body_q.numpy()[0].astype(np.float64)  # (the run writes into start)
+    end = _run(solver, model, 60, 1.0 / 120.0, start=start)
+    drift = np.linalg.norm(momentum(end) - L0) / np.linalg.norm(L0)
+    assert drift < 1e-3
+    assert np.allclose(end.body_qd.numpy()[0, :3], qd0[0, :3], atol=1e-6)
+    assert solver.last_orthogonality_error < 1e-5
+    # body_q * (body-frame surface) = warpfem's rigid vertices
+    from warpfem.interop.newton import _rotation
+
+    q = end.body_q.numpy()[0].astype(np.float64)
+    X = solver.simulator.vertex_positions()[solver.warpfem_model.rigid.vertex_rigid]
+    Xb = solver._body_surface(model, 0)[0]
+    assert np.abs(Xb @ _rotation(q[3:]).T + q[:3] - X).max() < 1e-6
+    # the COM moves at the COM velocity: origin + R com_b advances by v t
+    com_w = q[:3] + _rotation(q[3:]) @ com_b
+    com_start = q_start[:3] + _rotation(q_start[3:]) @ com_b
+    assert np.allclose(com_w - com_start, 0.5 * qd0[0, :3], atol=1e-6)
+    # an edited state is read again: stopped by hand, it stays put
+    n = solver.resyncs
+    end.body_qd.assign(np.zeros((1, 6), dtype=np.float32))
+    after = _run(solver, model, 2, 1.0 / 120.0, start=end)
+    assert solver.resyncs == n + 1
+    assert np.allclose(after.body_q.numpy()[0], q, atol=1e-6)
+
+
+def test_rigid_bodies_with_joints_or_without_mass_are_refused():
+    b = newton.ModelBuilder()
+    b.add_soft_grid(pos=wp.vec3(0.0, 0.0, 0.0), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=1, dim_y=1, dim_z=1, cell_x=0.05, cell_y=0.05, cell_z=0.05,
+                    density=500.0, k_mu=4.0e4, k_lambda=6.0e4, k_damp=0.0)
+    link = b.add_link(xform=wp.transform(wp.vec3(0.0, 0.0, 1.0), wp.quat_identity()))
+    b.add_shape_box(link, hx=0.05, hy=0.05, hz=0.05)
+    j = b.add_joint_revolute(-1, link, axis=wp.vec3(0.0, 0.0, 1.0))
+    b.add_articulation([j])
+    model = b.finalize(device="cpu")
+    with pytest.raises(NewtonInteropError, match=r"body 0 is in joint 0 \(REVOLUTE\); rigid_bodies steps free bodies"):
+        SolverFEM(model, rigid_bodies=True)
+    with pytest.raises(NewtonInteropError, match="rigid body index 3 out of range"):
+        SolverFEM(model, rigid_bodies=[3])
+    with pytest.raises(ValueError, match="rigid_bodies must be None, True or a list"):
+        SolverFEM(model, rigid_bodies="all")
+
+
+def test_body_f_is_a_world_wrench_at_the_centre_of_mass():
+    """newton's body_f (force, torque; world frame, about the COM) on a rigid body at rest in zero
+    gravity: one step of 1 ms changes body_qd by (f dt / m, I_world^-1 tau dt) (force to 1e-6,
+    torque to 2e-3: the affine body's A turns during the step)."""
+    b = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_soft_grid(pos=wp.vec3(2.0, 0.0, 0.0), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=1, dim_y=1, dim_z=1, cell_x=0.05, cell_y=0.05, cell_z=0.05,
+                    density=500.0, k_mu=4.0e4, k_lambda=6.0e4, k_damp=0.0)
+    rot = wp.quat_from_axis_angle(wp.normalize(wp.vec3(1.0, 1.0, 0.0)), 0.4)
+    body = b.add_body(xform=wp.transform(wp.vec3(0.0, 0.0, 1.0), rot))
+    b.add_shape_box(body, xform=wp.transform(wp.vec3(0.05, 0.0, 0.0), wp.quat_identity()), hx=0.1, hy=0.05, hz=0.025)
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model, rigid_bodies=True)
+    s0, s1 = model.state(), model.state()
+    f = np.array([[1.0, -2.0, 0.5, 0.01, -0.02, 0.03]], dtype=np.float32)
+    s0.body_f.assign(f)
+    solver.step(s0, s1, model.control(), None, 1e-3)
+    from warpfem.interop.newton import _rotation
+
+    R = _rotation(model.body_q.numpy()[0][3:])
+    I_world = R @ model.body_inertia.numpy()[0].astype(np.float64) @ R.T
+    qd = s1.body_qd.numpy()[0].astype(np.float64)
+    assert np.allclose(qd[:3], f[0, :3] * 1e-3 / float(model.body_mass.numpy()[0]), rtol=1e-5, atol=1e-9)
+    dw = np.linalg.solve(I_world, f[0, 3:].astype(np.float64)) * 1e-3
+    assert np.linalg.norm(qd[3:] - dw) < 2e-3 * np.linalg.norm(dw)

@@ -19,7 +19,9 @@ backward-Euler incremental potential, barrier contact with friction) and writes 
 * gravity: ``model.gravity``; external forces: ``state_in.particle_f`` (N, per particle);
 * shapes that collide with particles (ground plane, planes, boxes, spheres, triangle meshes) on
   their bodies' poses of ``state_in`` -> warpfem colliders with friction (the shape material's
-  ``mu``).
+  ``mu``);
+* with ``rigid_bodies``: free newton bodies -> warpfem rigid (affine) bodies in the same implicit
+  solve (``body_q`` / ``body_qd`` / ``body_f`` read and written; their shapes are then not colliders).
 
 warpfem keeps its own state (float64 by default) between steps while the caller passes back what
 the solver wrote last (the usual ``state_0, state_1 = state_1, state_0`` loop); a ``state_in`` that
@@ -78,6 +80,42 @@ def _rotation(qxyzw) -> np.ndarray:
 def _compose(a, b):
     """(R, p) of transform a applied after b (both (R, p))."""
     return a[0] @ b[0], a[0] @ b[1] + a[1]
+
+
+def _quaternion(R) -> np.ndarray:
+    """(x, y, z, w) unit quaternion of the rotation matrix R (Shepperd's method, w >= 0)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.trace(R)
+    if t > max(R[0, 0], R[1, 1], R[2, 2]):
+        w = 0.5 * math.sqrt(1.0 + t)
+        q = np.array([(R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w), w])
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        r = 0.5 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 0.0))
+        q = np.zeros(4)
+        q[i] = r
+        q[j] = (R[j, i] + R[i, j]) / (4 * r)
+        q[k] = (R[k, i] + R[i, k]) / (4 * r)
+        q[3] = (R[k, j] - R[j, k]) / (4 * r)
+    q /= np.linalg.norm(q)
+    return q if q[3] >= 0.0 else -q
+
+
+def _polar_rotation(A) -> np.ndarray:
+    """The rotation nearest to A (Frobenius norm): U V^T of A's SVD, sign-corrected to det +1."""
+    U, _, Vt = np.linalg.svd(np.asarray(A, dtype=np.float64))
+    if np.linalg.det(U @ Vt) < 0.0:
+        U[:, -1] *= -1.0
+    return U @ Vt
+
+
+def _box_surface(h):
+    """(8 vertices, 12 outward triangles) of the box [-h, h]."""
+    V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=np.float64) * np.asarray(h)
+    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], dtype=np.int64)
+    return V, F
 
 
 class _Posed:
@@ -186,6 +224,13 @@ class SolverFEM(SolverBase, CouplingInterface):
         shapes: which shapes become colliders: "all" (default: every shape with
             ``ShapeFlags.COLLIDE_PARTICLES``), "static" (those of them on no body: the ground, fixed
             obstacles; in a coupled scene the rigid solver handles the moving ones) or a list of shape indices.
+        rigid_bodies: None (default: bodies are not SolverFEM's), True (every dynamic body of mass > 0) or a
+            list of newton body indices: free bodies stepped as warpfem rigid (affine) bodies in the
+            same implicit solve as the tetrahedra (docs/newton.md, "Rigid bodies"): their box, sphere
+            and triangle-mesh shapes make their surface, newton's ``body_mass``, ``body_com`` and
+            ``body_inertia`` their mass; ``body_q`` / ``body_qd`` / ``body_f`` are read and
+            ``body_q`` / ``body_qd`` written. A body in a joint other than its FREE joint is refused.
+        rigid_stiffness: kappa (Pa) of the rigid bodies' orthogonality energy (:class:`warpfem.RigidBody`).
         linear_solver, linear_solver_options, require_convergence, tol, atol, max_iters, ... :
             warpfem's :class:`~warpfem.simulator.Simulator` options (docs/linear_solvers.md,
             :class:`~warpfem.NewtonOptions`).
@@ -198,13 +243,21 @@ class SolverFEM(SolverBase, CouplingInterface):
         last_stats: the last step's :class:`~warpfem.SolveStats`.
         last_particle_force: the sum (N) of the ``particle_f`` the last step applied to the simulated
             particles (in a coupled scene: the coupling forces).
+        rigid_bodies: the newton body indices stepped as rigid bodies (``[]`` without).
+        last_orthogonality_error: the largest entry of |A^T A - I| over the rigid bodies after the last
+            step (A the affine body's matrix; ``body_q`` gets its nearest rotation).
+        rigid_surface_properties: per rigid body (mass, centre of mass, inertia tensor) of its
+            shapes' surface at uniform density ``body_mass`` / volume, in its body frame (to compare
+            with newton's ``body_com`` and ``body_inertia``; overlapping shapes count twice here).
     """
 
     def __init__(self, model, *, precision="float64", integrator="backward_euler", material="stable_neo_hookean",
                  damping_mass=0.0, damping_stiffness=None, friction="shape", contact=None, soft_contact=None,
-                 unsupported_shapes="error", shapes="all", linear_solver="auto", linear_solver_options=None,
-                 require_convergence=False, **newton_options):
+                 unsupported_shapes="error", shapes="all", rigid_bodies=None, rigid_stiffness=1e8,
+                 linear_solver="auto", linear_solver_options=None, require_convergence=False, **newton_options):
         super().__init__(model)
+        self.rigid_bodies = self._rigid_selection(model, rigid_bodies)
+        self.rigid_surface_properties, self._rigid_frames = {}, []
         if unsupported_shapes not in ("error", "ignore"):
             raise ValueError(f"unsupported_shapes must be 'error' or 'ignore', got {unsupported_shapes!r}")
         if not (friction in ("shape", "average") or (isinstance(friction, (int, float)) and friction >= 0)):
@@ -249,19 +302,31 @@ class SolverFEM(SolverBase, CouplingInterface):
                                          f"({ratios.min():g} to {ratios.max():g} s); warpfem's stiffness damping is one "
                                          "value: give SolverFEM(damping_stiffness=...)")
             damping_stiffness = float(ratios[0])
-        wf = Model(mesh, self.materials[0], gravity=self._gravity(model))
+        if self.rigid_bodies:
+            from warpfem.model import Body
+
+            rigid = [self._rigid_body(model, b, rigid_stiffness) for b in self.rigid_bodies]
+            wf = Model.from_bodies([Body(mesh, self.materials[0], name="newton tetrahedra")] + rigid,
+                                   gravity=self._gravity(model))
+        else:
+            wf = Model(mesh, self.materials[0], gravity=self._gravity(model))
+        n_soft = len(self.particles)
         if len(groups) > 1:  # one quadrature set per material, all on the same vertices
             wf.quadratures = [precompute_quadrature(wf.rest_positions, mesh.elements[r], "tet4")
                               for r in self._group_rows(groups)]
             wf.materials = list(self.materials)
             wf.body_volumetric_parameters = [None] * len(groups)
+            if isinstance(getattr(wf, "volumetric_integration", None), list):
+                wf.volumetric_integration = [wf.volumetric_integration[0]] * len(groups)
             wf.material = max(self.materials, key=lambda m: m.youngs_modulus)
         # newton's particle masses (the fixed ones keep warpfem's lumped mass: they do not move)
-        m = np.where(fixed, wf.lumped_mass, mass)
+        m = np.where(fixed, wf.lumped_mass[:n_soft], mass)
         import scipy.sparse
 
-        wf.lumped_mass, wf.gravity_mass = m, m.copy()
-        wf.mass = scipy.sparse.diags(m).tocsr()
+        wf.lumped_mass = np.concatenate([m, wf.lumped_mass[n_soft:]])
+        wf.gravity_mass = np.concatenate([m, wf.gravity_mass[n_soft:]])
+        wf.mass = scipy.sparse.block_diag([scipy.sparse.diags(m), wf.mass[n_soft:, n_soft:]], format="csr") \
+            if self.rigid_bodies else scipy.sparse.diags(m).tocsr()
         self._fixed = np.flatnonzero(fixed)
         if len(self._fixed):
             wf.fix(self._fixed)
@@ -275,13 +340,25 @@ class SolverFEM(SolverBase, CouplingInterface):
         if qd0 is not None and np.any(qd0[self.particles] != 0):
             v = qd0[self.particles].astype(np.float64)
             v[self._fixed] = 0.0
+            if self.rigid_bodies:
+                v = np.concatenate([v, self.simulator.velocities()[n_soft:]])
             self.simulator.set_velocities(v)
+        self._n_soft = n_soft
+        self._last_body = None
+        self.last_orthogonality_error = 0.0
         self._forces_on = False
         self._last_q = self._last_qd = None
         self.resyncs = 0
         self.last_stats = None
         self._setup_colliders(model)
-        if soft_contact:
+        if self.rigid_bodies:  # the rigid bodies touch the soft ones (and each other) through warpfem's contact
+            rc = {"bodies": True, "friction": self._rigid_friction(model)}
+            rc.update({k: v for k, v in self.contact_options.items() if k in ("dhat", "friction_velocity")})
+            if isinstance(self.contact_options.get("stiffness"), (int, float)):
+                rc["stiffness"] = self.contact_options["stiffness"]
+            rc.update(dict(soft_contact or {}))
+            self.simulator.set_contact(**rc)
+        elif soft_contact:
             self.simulator.set_contact(**dict(soft_contact))
 
     # -- set-up ------------------------------------------------------------------------------------
@@ -350,6 +427,144 @@ class SolverFEM(SolverBase, CouplingInterface):
         B = body_q[b]
         return _compose((_rotation(B[3:7]), B[:3].astype(np.float64)), local)
 
+    # -- rigid bodies ---------------------------------------------------------------------------------
+    @staticmethod
+    def _rigid_selection(model, rigid_bodies):
+        """The newton body indices stepped as warpfem rigid bodies: None/False (none), True (every
+        body of mass > 0) or a list; each must be free (a FREE joint or none) and have mass > 0."""
+        if rigid_bodies is None or rigid_bodies is False:
+            return []
+        n = int(getattr(model, "body_count", 0) or 0)
+        mass = _np(model.body_mass) if n else np.zeros(0)
+        flags = _np(getattr(model, "body_flags", None))
+        kinematic = int(getattr(getattr(newton, "BodyFlags", None), "KINEMATIC", 0) or 0)
+        if rigid_bodies is True:  # the dynamic ones (kinematic bodies stay colliders)
+            chosen = [b for b in range(n) if mass[b] > 0.0 and not (flags is not None and int(flags[b]) & kinematic)]
+        elif not isinstance(rigid_bodies, str) and all(isinstance(b, (int, np.integer)) for b in rigid_bodies):
+            chosen = [int(b) for b in rigid_bodies]
+        else:
+            raise ValueError(f"rigid_bodies must be None, True or a list of body indices, got {rigid_bodies!r}")
+        if len(set(chosen)) != len(chosen):
+            raise NewtonInteropError(f"SolverFEM: rigid_bodies lists a body twice ({chosen})")
+        jt = _np(model.joint_type) if int(getattr(model, "joint_count", 0) or 0) else np.zeros(0, np.int32)
+        jp = _np(model.joint_parent) if len(jt) else np.zeros(0, np.int32)
+        jc = _np(model.joint_child) if len(jt) else np.zeros(0, np.int32)
+        for b in chosen:
+            if not 0 <= b < n:
+                raise NewtonInteropError(f"SolverFEM: rigid body index {b} out of range [0, {n})")
+            if not mass[b] > 0.0:
+                raise NewtonInteropError(f"SolverFEM: body {b} has mass {float(mass[b]):g}; rigid_bodies are dynamic "
+                                         "bodies (mass > 0)")
+            if flags is not None and kinematic and int(flags[b]) & kinematic:
+                raise NewtonInteropError(f"SolverFEM: body {b} is kinematic; rigid_bodies are dynamic bodies")
+            bad = np.flatnonzero(((jc == b) & (jt != int(newton.JointType.FREE))) | (jp == b))
+            if bad.size:
+                j = int(bad[0])
+                raise NewtonInteropError(f"SolverFEM: body {b} is in joint {j} ({newton.JointType(int(jt[j])).name}); "
+                                         "rigid_bodies steps free bodies only (add_body, no other joints)")
+        return chosen
+
+    def _body_surface(self, model, b):
+        """(vertices, triangles) of body b's collision shapes, in its body frame (one closed
+        surface per shape: box, sphere, triangle mesh)."""
+        GeoType = newton.GeoType
+        types, flags = _np(model.shape_type), _np(model.shape_flags)
+        scale = _np(model.shape_scale).astype(np.float64)
+        tf = _np(model.shape_transform).astype(np.float64)
+        sb = _np(model.shape_body)
+        source = getattr(model, "shape_source", None)
+        collide = int(newton.ShapeFlags.COLLIDE_SHAPES) | int(newton.ShapeFlags.COLLIDE_PARTICLES)
+        Vs, Fs, n = [], [], 0
+        for s in np.flatnonzero(sb == b):
+            if not int(flags[s]) & collide:
+                continue
+            t = GeoType(int(types[s]))
+            if t == GeoType.BOX:
+                V, F = _box_surface(scale[s])
+            elif t == GeoType.SPHERE:
+                from warpfem.mesh.box import icosphere_surface
+
+                V, F = icosphere_surface(float(scale[s][0]), 2)
+            elif t == GeoType.MESH and source is not None and source[s] is not None:
+                V = np.asarray(source[s].vertices, dtype=np.float64).reshape(-1, 3) * scale[s]
+                F = np.asarray(source[s].indices, dtype=np.int64).reshape(-1, 3)
+            else:
+                raise NewtonInteropError(f"SolverFEM: shape {int(s)} of rigid body {b} is a {t.name.lower()}; a rigid "
+                                         "body's shapes must be boxes, spheres or triangle meshes")
+            R = _rotation(tf[s][3:7])
+            Vs.append(V @ R.T + tf[s][:3])
+            Fs.append(F + n)
+            n += len(V)
+        if not Vs:
+            raise NewtonInteropError(f"SolverFEM: rigid body {b} has no colliding shape (box, sphere, mesh) to "
+                                     "build its surface from")
+        return np.concatenate(Vs), np.concatenate(Fs)
+
+    def _rigid_body(self, model, b, stiffness):
+        """A warpfem RigidBody of newton body b at its pose of ``model.body_q`` (A = I there), with
+        newton's mass, centre of mass and inertia (``body_mass``, ``body_com``, ``body_inertia``)."""
+        from warpfem.rigid.body import RigidBody, mass_properties
+
+        Vb, F = self._body_surface(model, b)
+        B = _np(model.body_q)[b].astype(np.float64)
+        R0, t0 = _rotation(B[3:7]), B[:3]
+        mass = float(_np(model.body_mass)[b])
+        com_b = _np(model.body_com)[b].astype(np.float64)
+        I_b = _np(model.body_inertia)[b].astype(np.float64)
+        V = mass_properties(Vb, F, 1.0)[3]
+        qd = _np(model.body_qd)[b].astype(np.float64) if model.body_qd is not None else np.zeros(6)
+        Xw = Vb @ R0.T + t0
+        try:
+            rb = RigidBody((Xw, F), density=mass / V if V > 0 else 1.0, name=f"newton body {b}",
+                           initial_velocity=qd[:3], initial_angular_velocity=qd[3:], stiffness=stiffness)
+        except ValueError as e:
+            raise NewtonInteropError(f"SolverFEM: rigid body {b}: {e}") from None
+        # the surface's own mass properties (uniform density): kept to compare with newton's
+        self.rigid_surface_properties[b] = (rb.mass, R0.T @ (rb.center_of_mass - t0), R0.T @ rb.inertia_tensor @ R0)
+        com_w = R0 @ com_b + t0
+        S_b = 0.5 * np.trace(I_b) * np.eye(3) - I_b  # the second moment of the inertia tensor tr(S) I - S
+        rb.mass, rb.center_of_mass, rb.second_moment = mass, com_w, R0 @ S_b @ R0.T
+        rb.local_positions = Xw - com_w
+        self._rigid_frames.append((R0, com_b))
+        return rb
+
+    def _rigid_friction(self, model):
+        """One friction coefficient for contact with the rigid bodies: the largest ``mu`` of their shapes
+        (``friction`` a number: that number)."""
+        if isinstance(self.friction, (int, float)):
+            return float(self.friction)
+        sb, mu = _np(model.shape_body), _np(model.shape_material_mu)
+        return float(max(mu[np.isin(sb, self.rigid_bodies)].max(initial=0.0), 0.0))
+
+    def _rigid_nodes(self, body_q, body_qd):
+        """(4 k, 3) positions and velocities of the rigid nodes (p, a_1, a_2, a_3 per body) of newton's
+        body_q / body_qd: p = the world COM, A = R R0^T (R0 the body's rotation when the solver was
+        built), p-dot = the COM velocity, A-dot = [w]x A."""
+        x, v = [], []
+        for b, (R0, com_b) in zip(self.rigid_bodies, self._rigid_frames):
+            B, V = body_q[b].astype(np.float64), body_qd[b].astype(np.float64)
+            R = _rotation(B[3:7])
+            A = R @ R0.T
+            x += [B[:3] + R @ com_b, *A.T]
+            v += [V[:3], *np.cross(V[3:], A.T)]
+        return np.asarray(x), np.asarray(v)
+
+    def _rigid_state(self, x, v):
+        """(body_q rows, body_qd rows, largest |A^T A - I|) of the rigid nodes in warpfem's unknown x, v."""
+        lay = self.warpfem_model.rigid
+        q_out, qd_out, err = [], [], 0.0
+        for r, (R0, com_b) in enumerate(self._rigid_frames):
+            p, A = lay.pose(x, r)
+            pd, Ad = lay.pose(v, r)
+            err = max(err, float(np.abs(A.T @ A - np.eye(3)).max()))
+            Q = _polar_rotation(A)
+            R = Q @ R0
+            W = Ad @ np.linalg.inv(A)  # A-dot A^-1 = [w]x for a rotation
+            w = 0.5 * np.array([W[2, 1] - W[1, 2], W[0, 2] - W[2, 0], W[1, 0] - W[0, 1]])
+            q_out.append(np.concatenate([p - R @ com_b, _quaternion(R)]))
+            qd_out.append(np.concatenate([pd, w]))
+        return np.asarray(q_out), np.asarray(qd_out), err
+
     def _setup_colliders(self, model):
         GeoType = newton.GeoType
         n_shapes = int(getattr(model, "shape_count", 0) or 0)
@@ -370,6 +585,8 @@ class SolverFEM(SolverBase, CouplingInterface):
             if not 0 <= s < n_shapes:
                 raise NewtonInteropError(f"SolverFEM: shape index {s} out of range [0, {n_shapes})")
             if not (int(flags[s]) & collide) or (self.shapes == "static" and int(self._shape_body[s]) >= 0):
+                continue
+            if int(self._shape_body[s]) in self.rigid_bodies:  # the body itself is simulated
                 continue
             t = GeoType(int(types[s]))
             if self.friction == "shape":
@@ -407,11 +624,15 @@ class SolverFEM(SolverBase, CouplingInterface):
             self.warpfem_model.gravity = self._gravity(self.model)
             self.simulator.sync_model()
 
-    def _sync_from(self, q, qd):
-        """Read the simulated particles of a newton state into warpfem's state."""
+    def _sync_from(self, q, qd, body=None):
+        """Read the simulated particles (and rigid bodies: ``body`` = (body_q, body_qd)) of a newton
+        state into warpfem's state."""
         x = q.astype(np.float64)
         v = qd.astype(np.float64)
         v[self._fixed] = 0.0
+        if self.rigid_bodies:
+            xr, vr = self._rigid_nodes(*body)
+            x, v = np.concatenate([x, xr]), np.concatenate([v, vr])
         self.simulator.set_positions(x)
         self.simulator.set_velocities(v)
         self.resyncs += 1
@@ -438,39 +659,83 @@ class SolverFEM(SolverBase, CouplingInterface):
             raise NewtonInteropError(f"SolverFEM: state_in.particle_qd of particle {bad} is not finite")
         free = np.ones(len(idx), dtype=bool)
         free[self._fixed] = False
-        if (self._last_q is None or not np.array_equal(q[free], self._last_q[free])
+        body = None
+        if self.rigid_bodies:
+            body = (state_in.body_q.numpy(), state_in.body_qd.numpy())
+            rb = self.rigid_bodies
+            if not (np.all(np.isfinite(body[0][rb])) and np.all(np.isfinite(body[1][rb]))):
+                raise NewtonInteropError("SolverFEM: state_in.body_q / body_qd of a rigid body is not finite")
+            moved = self._last_body is None or not (np.array_equal(body[0][rb], self._last_body[0])
+                                                    and np.array_equal(body[1][rb], self._last_body[1]))
+        else:
+            moved = False
+        if (moved or self._last_q is None or not np.array_equal(q[free], self._last_q[free])
                 or not np.array_equal(qd[free], self._last_qd[free])):
-            self._sync_from(q, qd)
+            self._sync_from(q, qd, body)
         elif len(self._fixed) and not np.array_equal(q[self._fixed], self._last_q[self._fixed]):
             sim.set_targets(self._fixed, q[self._fixed].astype(np.float64))  # kinematic particles moved
         # external forces: state_in.particle_f
         f_all = state_in.particle_f.numpy() if state_in.particle_f is not None else None
         f = None if f_all is None else f_all[idx]
         self.last_particle_force = np.zeros(3) if f is None else f.astype(np.float64).sum(axis=0)
-        if f is not None and (self._forces_on or np.any(f != 0)):
-            self.warpfem_model.forces[:] = f.astype(np.float64)
+        n = self._n_soft
+        fr = None
+        if self.rigid_bodies and getattr(state_in, "body_f", None) is not None:
+            fr = self._rigid_forces(state_in.body_f.numpy())
+        if (f is not None and np.any(f != 0)) or fr is not None or self._forces_on:
+            forces = self.warpfem_model.forces
+            forces[:] = 0.0
+            if f is not None:
+                forces[:n] = f.astype(np.float64)
+            if fr is not None:
+                forces[n:] = fr
             sim.sync_model()
-            self._forces_on = bool(np.any(f != 0))
+            self._forces_on = bool(np.any(forces != 0))
         if self._colliders:
             body_q = state_in.body_q.numpy() if getattr(state_in, "body_q", None) is not None else None
             for s, c in self._colliders:
                 c.newton_pose = self._shape_pose(s, body_q)
         if active_tape() is not None:
+            if self.rigid_bodies:
+                raise NewtonInteropError("SolverFEM: steps on a wp.Tape do not support rigid_bodies yet (body_q / "
+                                         "body_qd are not mapped to warpfem's state on the tape)")
             self._taped_step(state_in, state_out, float(dt))
             return
         self.last_stats = sim.step(dt=float(dt))
-        x = sim.positions().astype(np.float32)
-        v = sim.velocities().astype(np.float32)
+        X, Vel = sim.positions(), sim.velocities()
+        x = X[:n].astype(np.float32)
+        v = Vel[:n].astype(np.float32)
         q_out, qd_out = q_all.copy(), qd_all.copy()
         q_out[idx], qd_out[idx] = x, v
         state_out.particle_q.assign(q_out)
         state_out.particle_qd.assign(qd_out)
         self._last_q, self._last_qd = x, v
-        if state_out is not state_in:  # bodies are not SolverFEM's: passed through
+        if self.rigid_bodies:
+            bq, bqd, self.last_orthogonality_error = self._rigid_state(X, Vel)
+            body_q, body_qd = body[0].copy(), body[1].copy()
+            body_q[self.rigid_bodies], body_qd[self.rigid_bodies] = bq, bqd
+            state_out.body_q.assign(body_q)
+            state_out.body_qd.assign(body_qd)
+            self._last_body = (body_q[self.rigid_bodies], body_qd[self.rigid_bodies])
+        elif state_out is not state_in:  # bodies are not SolverFEM's: passed through
             for name in ("body_q", "body_qd"):
                 a, b = getattr(state_in, name, None), getattr(state_out, name, None)
                 if a is not None and b is not None and a.shape == b.shape and a.size:
                     wp.copy(b, a)
+
+    def _rigid_forces(self, body_f):
+        """(4 k, 3) generalised forces on the rigid nodes of newton's ``body_f`` (world wrench
+        (f, tau) at the COM): f on p and tau x a_k / 2 on a_k (sum_k a_k x (tau x a_k) / 2 = tau
+        for a rotation A), at the start-of-step A; None when every wrench is zero."""
+        w = body_f[self.rigid_bodies].astype(np.float64)
+        if not np.any(w != 0):
+            return None
+        x = self.simulator.positions()
+        out = []
+        for r in range(len(self.rigid_bodies)):
+            _, A = self.warpfem_model.rigid.pose(x, r)
+            out += [w[r, :3], *(0.5 * np.cross(w[r, 3:], A.T))]
+        return np.asarray(out)
 
     def _taped_step(self, state_in, state_out, dt):
         """The step on a ``wp.Tape``: newton's arrays into a new warpfem state and back by Warp
@@ -502,7 +767,7 @@ class SolverFEM(SolverBase, CouplingInterface):
     # -- reading back --------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:
         """warpfem's current positions (float64, one row per simulated particle, ``particles`` order)."""
-        return self.simulator.positions()
+        return self.simulator.positions()[:self._n_soft]
 
     def contact_forces(self) -> np.ndarray:
         """(particles, 3) the colliders' contact forces (barrier + friction, N) on the simulated
@@ -510,5 +775,17 @@ class SolverFEM(SolverBase, CouplingInterface):
         c = self.simulator.contact
         if c is None:
             return np.zeros((len(self.particles), 3))
-        return c.forces()
+        return c.forces()[:self._n_soft]
+
+    def rigid_contact_forces(self) -> np.ndarray:
+        """(rigid bodies, 3) the colliders' contact forces (N) summed over each rigid body's
+        vertices at warpfem's current state (``rigid_bodies`` order)."""
+        c, lay = self.simulator.contact, getattr(self.warpfem_model, "rigid", None)
+        out = np.zeros((len(self.rigid_bodies), 3))
+        if c is None or lay is None:
+            return out
+        F = c.forces()
+        for r in range(len(self.rigid_bodies)):
+            out[r] = F[lay.vertex_body == r].sum(axis=0)
+        return out
 
