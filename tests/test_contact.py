@@ -8,7 +8,7 @@ import pytest
 import warp as wp
 
 from tiny_scenes import soft_box_toml
-from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
+from warpfem.contact import Box, Capsule, CollisionError, MeshCollider, Plane, Sphere
 from warpfem.contact.colliders import Collider, collider_class, register_collider, registered_colliders, unregister_collider
 from warpfem.contact import kernels as CK
 from warpfem.materials import make_material
@@ -152,7 +152,7 @@ def _contact_eval(sim, x_np):
     return float(acc.numpy()[slot]), g.numpy().astype(np.float64), sim._pattern.to_scipy(vals).toarray()
 
 
-@pytest.mark.parametrize("kind", ["plane", "sphere", "box", "mesh"])
+@pytest.mark.parametrize("kind", ["plane", "sphere", "box", "capsule", "mesh"])
 def test_each_collider_host_distance_is_its_kernel_distance(kind):
     """A collider's numpy ``local_distances`` (the adjoint's complex-step copy) and the contact
     kernel's distance agree, in a turned and moved pose."""
@@ -162,6 +162,7 @@ def test_each_collider_host_distance_is_its_kernel_distance(kind):
     col = {"plane": Plane(point=(0, -0.02, 0), normal=(0.1, 1.0, 0.05), **motion),
            "sphere": Sphere(center=(0.05, -0.3, 0.04), radius=0.26, **motion),
            "box": Box(box_min=(-0.3, -0.3, -0.3), box_max=(0.2, -0.03, 0.3), **motion),
+           "capsule": Capsule(center=(0.05, -0.1, 0.04), radius=0.06, half_length=0.2, axis="x", **motion),
            "mesh": MeshCollider(vertices=[[-0.1, -0.03, -0.1], [0.3, -0.04, -0.1], [-0.1, -0.02, 0.3], [0.3, -0.05, 0.3]],
                                 triangles=[[0, 2, 1], [1, 2, 3]], **motion)}[kind]
     sim.add_collider(col)
@@ -177,7 +178,7 @@ def test_each_collider_host_distance_is_its_kernel_distance(kind):
     assert np.allclose(np.linalg.norm(n, axis=-1), 1.0)
 
 
-@pytest.mark.parametrize("kind", ["plane", "sphere", "box", "mesh"])
+@pytest.mark.parametrize("kind", ["plane", "sphere", "box", "capsule", "mesh"])
 def test_barrier_and_friction_derivatives_match_finite_differences(kind):
     m = block_model(origin=(0.0, 0.0, 0.0), cells=2)
     sim = Simulator(m, dt=0.01)
@@ -187,6 +188,8 @@ def test_barrier_and_friction_derivatives_match_finite_differences(kind):
     col = {"plane": Plane(point=(0, -0.004, 0), normal=(0.1, 1.0, 0.05), friction=0.4, dhat=dh, stiffness=50.0),
            "sphere": Sphere(center=(0.05, -0.3, 0.04), radius=0.295, friction=0.4, dhat=dh, stiffness=50.0),
            "box": Box(box_min=(-0.3, -0.3, -0.3), box_max=(0.045, -0.005, 0.3), friction=0.4, dhat=dh, stiffness=50.0),
+           "capsule": Capsule(center=(0.05, -0.065, 0.04), radius=0.06, half_length=0.3, axis="x", friction=0.4, dhat=dh,
+                              stiffness=50.0),
            "mesh": MeshCollider(vertices=[[-0.1, -0.005, -0.1], [0.3, -0.006, -0.1], [-0.1, -0.004, 0.3]],
                                 triangles=[[0, 2, 1]], friction=0.4, dhat=dh, stiffness=50.0)}[kind]
     sim.add_collider(col)

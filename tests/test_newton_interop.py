@@ -339,6 +339,32 @@ def test_shapes_on_bodies_become_colliders_at_their_world_pose():
     np.testing.assert_allclose(D[:, 2], X[:, 2] + 0.5, atol=1e-6)  # above the triangle's interior
 
 
+def test_a_capsule_shape_is_a_capsule_collider_along_its_local_z():
+    """newton's capsule (radius, half height along its local z) on a body turned 90 degrees about x:
+    warpfem's collider distances of the block's surface vertices equal the distances to the
+    segment minus the radius, at body_q * shape_transform."""
+    b = newton.ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    _add_mesh(b, wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1)), _material())
+    body = b.add_body(xform=wp.transform(wp.vec3(0.0, 0.0, 0.3), wp.quat_identity()))
+    b.add_shape_capsule(body, xform=wp.transform(wp.vec3(0.05, 0.0, 0.0), wp.quat_identity()), radius=0.04,
+                        half_height=0.15)
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model)
+    assert [type(c).__bases__[1].__name__ for _, c in solver._colliders] == ["Capsule"]
+    s0, s1 = model.state(), model.state()
+    bq = s0.body_q.numpy()
+    bq[0] = [0.0, 0.1, 0.3, np.sin(np.pi / 4), 0.0, 0.0, np.cos(np.pi / 4)]  # 90 degrees about x: local z -> -y
+    s0.body_q.assign(bq)
+    solver.step(s0, s1, model.control(), None, 0.01)
+    contact = solver.simulator.contact
+    X = solver.positions()[contact.surface]
+    c = np.array([0.05, 0.1, 0.3])
+    e = np.array([0.0, -1.0, 0.0])
+    t = np.clip((X - c) @ e, -0.15, 0.15)
+    expected = np.linalg.norm(X - c - t[:, None] * e, axis=1) - 0.04
+    np.testing.assert_allclose(contact.distances()[:, 0], expected, atol=1e-6)
+
+
 # -- newton's free rigid bodies stepped inside warpfem's solve (SolverFEM(rigid_bodies=...)) --------------
 def _box_on_block(offset=(0.013, -0.021)):
     """A 0.1 x 0.1 x 0.04 m box (800 kg/m^3, a free newton body) 8 mm above a 0.2 x 0.2 x 0.04 m

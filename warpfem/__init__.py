@@ -41,7 +41,7 @@ if TYPE_CHECKING:  # the same names for type checkers and the API docs (mkdocstr
     from warpfem.solvers.stiffness_warping import StiffnessWarpingSimulator
     from warpfem.solvers.state import Control, State
     from warpfem.solvers.forms import Form
-    from warpfem.contact import Box, CollisionError, MeshCollider, Plane, Sphere
+    from warpfem.contact import Box, Capsule, CollisionError, MeshCollider, Plane, Sphere
     from warpfem.io.checkpoint import CheckpointError, load_state, save_state
     from warpfem.threads import ThreadsError, get_threads, set_threads
 
@@ -63,7 +63,7 @@ _LAZY = {
     "StiffnessWarpingSimulator": "warpfem.solvers.stiffness_warping",
     **dict.fromkeys(["Control", "State"], "warpfem.solvers.state"),
     "Form": "warpfem.solvers.forms",
-    **dict.fromkeys(["Box", "CollisionError", "MeshCollider", "Plane", "Sphere"], "warpfem.contact"),
+    **dict.fromkeys(["Box", "Capsule", "CollisionError", "MeshCollider", "Plane", "Sphere"], "warpfem.contact"),
     **dict.fromkeys(["save_state", "load_state", "CheckpointError"], "warpfem.io.checkpoint"),
     **dict.fromkeys(["set_threads", "get_threads", "ThreadsError"], "warpfem.threads"),
 }
@@ -113,6 +113,7 @@ __all__ = [
     "Plane",
     "Sphere",
     "Box",
+    "Capsule",
     "MeshCollider",
     "CollisionError",
     "save_state",

@@ -30,13 +30,13 @@ import warp as wp
 
 from warpfem.contact.stiffness import parse_stiffness
 
-__all__ = ["Collider", "Plane", "Sphere", "Box", "MeshCollider", "make_collider", "COLLIDER_TYPES", "collider_class",
+__all__ = ["Collider", "Plane", "Sphere", "Box", "Capsule", "MeshCollider", "make_collider", "COLLIDER_TYPES", "collider_class",
            "collider_scene_keys", "register_collider", "unregister_collider", "registered_colliders",
            "add_registry_listener", "default_dhat", "default_stiffness", "default_friction_velocity", "contact_parameters",
            "FRICTION_VELOCITY"]
 
 #: the built-in collider types (the ``[[collider]]`` types of scene files)
-COLLIDER_TYPES = ("plane", "sphere", "box", "mesh")
+COLLIDER_TYPES = ("plane", "sphere", "box", "capsule", "mesh")
 
 #: Default friction velocity eps_v (below it friction is smoothed into sticking), in body diagonals
 #: per second, by precision. float32 gets 10x: with 1e-3 the sticking force's round-off
@@ -176,6 +176,26 @@ def box_distance(p: Any, a: Any, b: Any):
     else:
         n[2] = sg[2]
     return qmax, n
+
+
+@wp.func
+def capsule_distance(p: Any, a: Any, b: Any):
+    """Capsule: centre a, b = (radius, half length of the segment, axis 0 / 1 / 2); on the
+    segment the normal is one perpendicular to the axis."""
+    zero = p[0] - p[0]
+    one = zero + type(zero)(1.0)
+    e = type(p)(zero, zero, one)
+    if b[2] < type(zero)(0.5):
+        e = type(p)(one, zero, zero)
+    elif b[2] < type(zero)(1.5):
+        e = type(p)(zero, one, zero)
+    r = p - a
+    t = wp.clamp(wp.dot(r, e), -b[1], b[1])
+    q = r - t * e
+    L = wp.length(q)
+    if L > zero:
+        return L - b[0], q / L
+    return -b[0], type(p)(e[1], e[2], e[0])
 
 
 @wp.func
@@ -440,6 +460,63 @@ class Box(Collider):
         return v, np.array([t for a, b, c_, d in quads for t in ((a, b, c_), (a, c_, d))])
 
 
+_AXES = {"x": 0, "y": 1, "z": 2}
+
+
+class Capsule(Collider):
+    """A solid capsule: the points within ``radius`` of the segment of half length ``half_length``
+    through ``center`` along the axis ``axis`` ("x", "y" or "z"; turn it with the motion keys).
+    newton's capsule shape (its local z axis) is one with ``axis = "z"``."""
+
+    kind, type_name = 4, "capsule"
+    scene_keys = (("center", "radius", "half_length"), ("axis",))
+    distance_func = capsule_distance
+
+    def __init__(self, center=(0.0, 0.0, 0.0), radius=1.0, half_length=1.0, axis="y", **kw):
+        self.center_ = _vec3(center, "capsule center")
+        self.radius, self.half_length = float(radius), float(half_length)
+        if not (np.isfinite(self.radius) and self.radius > 0.0):
+            raise ValueError(f"capsule radius must be > 0, got {radius!r}")
+        if not (np.isfinite(self.half_length) and self.half_length >= 0.0):
+            raise ValueError(f"capsule half_length must be >= 0, got {half_length!r}")
+        if axis not in _AXES:
+            raise ValueError(f"capsule axis must be 'x', 'y' or 'z', got {axis!r}")
+        self.axis = axis
+        super().__init__(**kw)
+
+    def center(self):
+        return self.center_
+
+    def params(self):
+        return self.center_, np.array([self.radius, self.half_length, float(_AXES[self.axis])])
+
+    def local_distances(self, p):
+        e = np.eye(3)[_AXES[self.axis]]
+        r = p - self.center_
+        s = r @ e
+        h = self.half_length
+        t = np.where(np.real(s) > h, h, np.where(np.real(s) < -h, -h, s))
+        q = r - t[:, None] * e
+        L = np.sqrt(_dot(q, q))
+        L = np.where(np.real(L) > 0, L, 1.0)
+        return (L - self.radius)[:, None], (q / L[:, None])[:, None, :]
+
+    def surface(self, extent):
+        u, v = np.meshgrid(np.linspace(0, np.pi, 13), np.linspace(0, 2 * np.pi, 25), indexing="ij")
+        pts = np.stack([np.sin(u) * np.cos(v), np.cos(u), np.sin(u) * np.sin(v)], -1).reshape(-1, 3)
+        pts = self.radius * pts
+        pts[:, 1] += np.where(pts[:, 1] >= 0.0, self.half_length, -self.half_length)  # the two caps apart
+        k = _AXES[self.axis]
+        pts = np.roll(pts, k - 1, axis=1)  # the y axis onto the capsule's (a cyclic turn: triangles stay outward)
+        nu, nv = u.shape
+        tri = []
+        for i in range(nu - 1):
+            for j in range(nv - 1):
+                a, b, c, d = i * nv + j, i * nv + j + 1, (i + 1) * nv + j, (i + 1) * nv + j + 1
+                tri += [[a, b, d], [a, d, c]]
+        return self.center_ + pts, np.array(tri)
+
+
 class MeshCollider(Collider):
     """A rigid triangle mesh (``path`` read with meshio, or ``vertices`` and ``triangles``),
     treated as a two-sided surface: the body is kept at a positive distance from every triangle
@@ -546,7 +623,7 @@ def unregister_collider(type_name: str):
     _changed()
 
 
-for _cls in (Plane, Sphere, Box, MeshCollider):
+for _cls in (Plane, Sphere, Box, Capsule, MeshCollider):
     register_collider(_cls)
 
 

@@ -44,7 +44,7 @@ except ImportError as exc:  # pragma: no cover - exercised only without newton
     raise ImportError("warpfem.interop.newton needs the newton package (the Warp physics engine): "
                       "pip install 'warpfem[newton]'") from exc
 
-from warpfem.contact.colliders import Box, MeshCollider, Plane, Sphere
+from warpfem.contact.colliders import Box, Capsule, MeshCollider, Plane, Sphere
 from warpfem.elements import precompute_quadrature
 from warpfem.materials import make_material
 from warpfem.mesh import VolumeMesh
@@ -54,7 +54,7 @@ from warpfem.simulator import Simulator
 __all__ = ["SolverFEM", "NewtonInteropError", "lame_to_youngs"]
 
 #: the shape types SolverFEM turns into colliders
-SUPPORTED_SHAPES = ("plane", "sphere", "box", "mesh")
+SUPPORTED_SHAPES = ("plane", "sphere", "box", "capsule", "mesh")
 
 
 class NewtonInteropError(ValueError):
@@ -135,6 +135,10 @@ class _PosedSphere(_Posed, Sphere):
 
 
 class _PosedBox(_Posed, Box):
+    pass
+
+
+class _PosedCapsule(_Posed, Capsule):
     pass
 
 
@@ -220,7 +224,7 @@ class SolverFEM(SolverBase, CouplingInterface):
         soft_contact: None (default: none) or a dict of ``Simulator.set_contact`` keys: contact
             between the soft bodies (``bodies``) and of each with itself (``self``).
         unsupported_shapes: "error" (default) or "ignore": what to do with a colliding shape
-            SolverFEM cannot represent (capsule, cylinder, cone, ellipsoid, height field, convex hull).
+            SolverFEM cannot represent (cylinder, cone, ellipsoid, height field, convex hull).
         shapes: which shapes become colliders: "all" (default: every shape with
             ``ShapeFlags.COLLIDE_PARTICLES``), "static" (those of them on no body: the ground, fixed
             obstacles; in a coupled scene the rigid solver handles the moving ones) or a list of shape indices.
@@ -602,6 +606,9 @@ class SolverFEM(SolverBase, CouplingInterface):
                 c = _PosedSphere(center=(0.0, 0.0, 0.0), radius=float(scale[s][0]), **kw)
             elif t == GeoType.BOX:
                 c = _PosedBox(box_min=-scale[s], box_max=scale[s], **kw)
+            elif t == GeoType.CAPSULE:  # newton's: radius scale[0], half height scale[1], along local z
+                c = _PosedCapsule(center=(0.0, 0.0, 0.0), radius=float(scale[s][0]), half_length=float(scale[s][1]),
+                                  axis="z", **kw)
             elif t == GeoType.MESH and source is not None and source[s] is not None:
                 src = source[s]
                 V = np.asarray(src.vertices, dtype=np.float64).reshape(-1, 3) * scale[s]
