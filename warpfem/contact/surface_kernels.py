@@ -820,15 +820,12 @@ def friction_kernel(dbase: wp.array(dtype=Any), ydisp: wp.array(dtype=Any), sy: 
 # the gather half of the deterministic assembly: per target (a vertex, a pattern block) the sum of its
 # slots in the order of its map, added to what the target holds (split across CPU threads: each
 # target is written by one index only)
-@splittable("start", 2048)
-@both_precisions(contrib="v[]", out="v[]")
-@wp.kernel
-def gather_vec_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
-                      entries: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), shift: int,
-                      contrib: wp.array(dtype=Any), out: wp.array(dtype=Any), start: int):
+@wp.func
+def _gather_target(i: int, targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                   entries: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), shift: int,
+                   contrib: wp.array(dtype=Any), out: wp.array(dtype=Any)):
     """out[targets[i]] += contrib[s] for s = entries[k], k in offsets[i]:offsets[i + 1], in that
     order, skipping the slots of inactive owners (``active[s >> shift] == 0``)."""
-    i = wp.tid() + start
     lo = offsets[i]
     hi = offsets[i + 1]
     k = lo
@@ -843,6 +840,16 @@ def gather_vec_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype
                 a = a + contrib[e]
             k += 1
         out[t] = a
+
+
+@splittable("start", 2048)
+@both_precisions(contrib="v[]", out="v[]")
+@wp.kernel
+def gather_vec_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
+                      entries: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), shift: int,
+                      contrib: wp.array(dtype=Any), out: wp.array(dtype=Any), start: int):
+    """Vertex targets: :func:`_gather_target` for each target i."""
+    _gather_target(wp.tid() + start, targets, offsets, entries, active, shift, contrib, out)
 
 
 @splittable("start", 1024)
@@ -851,20 +858,5 @@ def gather_vec_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype
 def gather_mat_kernel(targets: wp.array(dtype=wp.int32), offsets: wp.array(dtype=wp.int32),
                       entries: wp.array(dtype=wp.int32), active: wp.array(dtype=wp.int32), shift: int,
                       contrib: wp.array(dtype=Any), out: wp.array(dtype=Any), start: int):
-    """out[targets[i]] += contrib[s] for s = entries[k], k in offsets[i]:offsets[i + 1], in that
-    order, skipping the slots of inactive owners (``active[s >> shift] == 0``)."""
-    i = wp.tid() + start
-    lo = offsets[i]
-    hi = offsets[i + 1]
-    k = lo
-    while k < hi and active[entries[k] >> shift] == 0:  # the target is read only if a slot adds to it
-        k += 1
-    if k < hi:
-        t = targets[i]
-        a = out[t]
-        while k < hi:
-            e = entries[k]
-            if active[e >> shift] != 0:
-                a = a + contrib[e]
-            k += 1
-        out[t] = a
+    """Pattern-block targets: :func:`_gather_target` for each target i."""
+    _gather_target(wp.tid() + start, targets, offsets, entries, active, shift, contrib, out)
