@@ -32,6 +32,7 @@ differs from it (a reset, a state edited by hand or by another solver) is read a
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -152,57 +153,35 @@ def _np(a):
 
 # -- the taped step: newton's arrays <-> warpfem's state by Warp kernels (differentiable on a wp.Tape) ---
 @wp.kernel
-def _gather64(idx: wp.array(dtype=wp.int32), fixed: wp.array(dtype=wp.int32), q: wp.array(dtype=wp.vec3),
-              qd: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d)):
+def _gather(idx: wp.array(dtype=wp.int32), fixed: wp.array(dtype=wp.int32), q: wp.array(dtype=wp.vec3),
+            qd: wp.array(dtype=wp.vec3), x: wp.array(dtype=Any), v: wp.array(dtype=Any)):
+    """warpfem's x, v (vec3 of its precision) := newton's particles idx (fixed ones at rest)."""
     i = wp.tid()
-    p = q[idx[i]]
-    x[i] = wp.vec3d(wp.float64(p[0]), wp.float64(p[1]), wp.float64(p[2]))
-    u = qd[idx[i]]
+    x[i] = type(x[i])(q[idx[i]])
     if fixed[i] == 0:
-        v[i] = wp.vec3d(wp.float64(u[0]), wp.float64(u[1]), wp.float64(u[2]))
+        v[i] = type(v[i])(qd[idx[i]])
     else:
-        v[i] = wp.vec3d(wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+        v[i] = v[i] - v[i]
 
 
 @wp.kernel
-def _scatter64(vertex: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3d), v: wp.array(dtype=wp.vec3d),
-               q_in: wp.array(dtype=wp.vec3), qd_in: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
-               qd: wp.array(dtype=wp.vec3)):
+def _scatter(vertex: wp.array(dtype=wp.int32), x: wp.array(dtype=Any), v: wp.array(dtype=Any),
+             q_in: wp.array(dtype=wp.vec3), qd_in: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
+             qd: wp.array(dtype=wp.vec3)):
+    """newton's q, qd := warpfem's x, v where a particle is one of its vertices, else state_in's."""
     i = wp.tid()
     k = vertex[i]
     if k < 0:
         q[i] = q_in[i]
         qd[i] = qd_in[i]
     else:
-        a = x[k]
-        b = v[k]
-        q[i] = wp.vec3(wp.float32(a[0]), wp.float32(a[1]), wp.float32(a[2]))
-        qd[i] = wp.vec3(wp.float32(b[0]), wp.float32(b[1]), wp.float32(b[2]))
+        q[i] = wp.vec3(x[k])
+        qd[i] = wp.vec3(v[k])
 
 
-@wp.kernel
-def _gather32(idx: wp.array(dtype=wp.int32), fixed: wp.array(dtype=wp.int32), q: wp.array(dtype=wp.vec3),
-              qd: wp.array(dtype=wp.vec3), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
-    x[i] = q[idx[i]]
-    if fixed[i] == 0:
-        v[i] = qd[idx[i]]
-    else:
-        v[i] = wp.vec3(0.0, 0.0, 0.0)
-
-
-@wp.kernel
-def _scatter32(vertex: wp.array(dtype=wp.int32), x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3),
-               q_in: wp.array(dtype=wp.vec3), qd_in: wp.array(dtype=wp.vec3), q: wp.array(dtype=wp.vec3),
-               qd: wp.array(dtype=wp.vec3)):
-    i = wp.tid()
-    k = vertex[i]
-    if k < 0:
-        q[i] = q_in[i]
-        qd[i] = qd_in[i]
-    else:
-        q[i] = x[k]
-        qd[i] = v[k]
+for _vec in (wp.vec3, wp.vec3d):
+    wp.overload(_gather, {"x": wp.array(dtype=_vec), "v": wp.array(dtype=_vec)})
+    wp.overload(_scatter, {"x": wp.array(dtype=_vec), "v": wp.array(dtype=_vec)})
 
 
 class SolverFEM(SolverBase, CouplingInterface):
@@ -762,10 +741,10 @@ class SolverFEM(SolverBase, CouplingInterface):
         wf_in, wf_out = sim.new_state(requires_grad=True), sim.new_state(requires_grad=True)
         wf_in.history.clear()
         wf_out.history.clear()
-        wp.launch(_gather64 if f64 else _gather32, dim=len(self.particles),
+        wp.launch(_gather, dim=len(self.particles),
                   inputs=[idx, fixed, state_in.particle_q, state_in.particle_qd], outputs=[wf_in.x, wf_in.v], device=dev)
         self.last_stats = sim.step(wf_in, wf_out, None, dt)
-        wp.launch(_scatter64 if f64 else _scatter32, dim=int(self.model.particle_count),
+        wp.launch(_scatter, dim=int(self.model.particle_count),
                   inputs=[vertex, wf_out.x, wf_out.v, state_in.particle_q, state_in.particle_qd],
                   outputs=[state_out.particle_q, state_out.particle_qd], device=dev)
         self.tape_states.append((wf_in, wf_out))  # alive as long as the tape may need them
