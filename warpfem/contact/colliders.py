@@ -245,6 +245,27 @@ def triangle_distance(p: Any, a: Any, b: Any, c: Any):
     return d, nl
 
 
+def _outside_radius(q, radius):
+    """(d (m, 1), n (m, 1, 3)) of points at offsets q (m, 3) from a centre or a segment: |q| - radius
+    and q / |q| (complex-safe; at q = 0 the normal is 0)."""
+    L = np.sqrt(_dot(q, q))
+    L = np.where(np.real(L) > 0, L, 1.0)
+    return (L - radius)[:, None], (q / L[:, None])[:, None, :]
+
+
+def _unit_sphere():
+    """(points (13 x 25, 3), triangles) of a latitude-longitude unit sphere about y, for output."""
+    u, v = np.meshgrid(np.linspace(0, np.pi, 13), np.linspace(0, 2 * np.pi, 25), indexing="ij")
+    pts = np.stack([np.sin(u) * np.cos(v), np.cos(u), np.sin(u) * np.sin(v)], -1).reshape(-1, 3)
+    nu, nv = u.shape
+    tri = []
+    for i in range(nu - 1):
+        for j in range(nv - 1):
+            a, b, c, d = i * nv + j, i * nv + j + 1, (i + 1) * nv + j, (i + 1) * nv + j + 1
+            tri += [[a, b, d], [a, d, c]]
+    return pts, np.array(tri)
+
+
 class Collider:
     """Base class. Args (keyword): ``friction`` (Coulomb mu >= 0), ``dhat`` (contact distance, m;
     None: a tenth of the body's mean surface edge length), ``stiffness`` (barrier kappa, N/m;
@@ -403,21 +424,11 @@ class Sphere(Collider):
         return self.center_, np.array([self.radius, 0.0, 0.0])
 
     def local_distances(self, p):
-        r = p - self.center()
-        L = np.sqrt(_dot(r, r))
-        L = np.where(np.real(L) > 0, L, 1.0)
-        return (L - self.radius)[:, None], (r / L[:, None])[:, None, :]
+        return _outside_radius(p - self.center(), self.radius)
 
     def surface(self, extent):
-        u, v = np.meshgrid(np.linspace(0, np.pi, 13), np.linspace(0, 2 * np.pi, 25), indexing="ij")
-        pts = np.stack([np.sin(u) * np.cos(v), np.cos(u), np.sin(u) * np.sin(v)], -1).reshape(-1, 3)
-        nu, nv = u.shape
-        tri = []
-        for i in range(nu - 1):
-            for j in range(nv - 1):
-                a, b, c, d = i * nv + j, i * nv + j + 1, (i + 1) * nv + j, (i + 1) * nv + j + 1
-                tri += [[a, b, d], [a, d, c]]
-        return self.center_ + self.radius * pts, np.array(tri)
+        pts, tri = _unit_sphere()
+        return self.center_ + self.radius * pts, tri
 
 
 class Box(Collider):
@@ -496,25 +507,15 @@ class Capsule(Collider):
         s = r @ e
         h = self.half_length
         t = np.where(np.real(s) > h, h, np.where(np.real(s) < -h, -h, s))
-        q = r - t[:, None] * e
-        L = np.sqrt(_dot(q, q))
-        L = np.where(np.real(L) > 0, L, 1.0)
-        return (L - self.radius)[:, None], (q / L[:, None])[:, None, :]
+        return _outside_radius(r - t[:, None] * e, self.radius)
 
     def surface(self, extent):
-        u, v = np.meshgrid(np.linspace(0, np.pi, 13), np.linspace(0, 2 * np.pi, 25), indexing="ij")
-        pts = np.stack([np.sin(u) * np.cos(v), np.cos(u), np.sin(u) * np.sin(v)], -1).reshape(-1, 3)
+        pts, tri = _unit_sphere()
         pts = self.radius * pts
         pts[:, 1] += np.where(pts[:, 1] >= 0.0, self.half_length, -self.half_length)  # the two caps apart
         k = _AXES[self.axis]
         pts = np.roll(pts, k - 1, axis=1)  # the y axis onto the capsule's (a cyclic turn: triangles stay outward)
-        nu, nv = u.shape
-        tri = []
-        for i in range(nu - 1):
-            for j in range(nv - 1):
-                a, b, c, d = i * nv + j, i * nv + j + 1, (i + 1) * nv + j, (i + 1) * nv + j + 1
-                tri += [[a, b, d], [a, d, c]]
-        return self.center_ + pts, np.array(tri)
+        return self.center_ + pts, tri
 
 
 class MeshCollider(Collider):
