@@ -144,6 +144,12 @@ def test_rigid_surface_file_and_rigid_first_in_the_file(tmp_path):
     assert "body 'cube' ([[body]] #1 'cube'): rigid, vertices 18..23: file" in text
     assert "24 vertices, 66 DOFs in all" in text  # 18 soft vertices and the rigid body's 4 nodes
     assert f"mass {body.mass:.6g} kg" in text and "8 surface triangles" in text
+    # the memory estimate counts the rigid body (4 nodes, 6 embedded vertices), in the text and the JSON
+    summary = run.scene.summary()
+    mem = {b["name"]: b["estimated_device_memory_bytes"]["float64"] for b in summary["bodies"]}
+    assert 0 < mem["cube"] < mem["slab"]
+    total = summary["estimated_device_memory_bytes"]["float64"]
+    assert total == mem["cube"] + mem["slab"] and f"(float64): {total / 1024:.1f} KiB" in text
 
 
 def _usd_world_points(path, frame):

@@ -94,6 +94,9 @@ class _SceneBodies:
                              f"4 nodes (p, A) of the unknown")
                 for i, ids in enumerate(b.selections()["force"]):
                     lines.append(f"  force #{i + 1}: {ids.size} vertices, {list(b.spec.force[i]['force'])} N each")
+                nnz_total += 16
+                for prec in memory:
+                    memory[prec] += _rigid_memory(int(hi - lo), prec)
                 continue
             bs, bm = b.spec, b.mesh()
             etype, vi = bs.mesh["element"], bs.material["volumetric_integration"]
@@ -179,7 +182,8 @@ class _SceneBodies:
                 bodies.append({"name": b.body_name, "kind": "rigid", "offset": b.offset.tolist(),
                                "initial_velocity": b.initial_velocity.tolist(), "first_vertex": int(lo),
                                "vertices": int(hi - lo), "rigid": b.rigid_summary(), "matrix_blocks": 16,
-                               "estimated_device_memory_bytes": {"float32": 0, "float64": 0}})
+                               "estimated_device_memory_bytes": {p: _rigid_memory(int(hi - lo), p)
+                                                                 for p in ("float32", "float64")}})
                 continue
             s = b.summary()
             bodies.append({"name": b.body_name, "offset": b.offset.tolist(), "initial_velocity": b.initial_velocity.tolist(),
@@ -202,6 +206,17 @@ class _SceneBodies:
             "estimated_device_memory_bytes": {p: int(sum(b["estimated_device_memory_bytes"][p] for b in bodies))
                                               for p in ("float32", "float64")},
         }
+
+
+def _rigid_memory(surface_vertices: int, precision: str) -> int:
+    """Estimated device bytes of a rigid body: its 4 nodes (state, work vectors, a 4 x 4 block
+    mass and Hessian) and the embedding of its surface vertices (node ids, weights, world positions
+    and ~4 vec3 contact work vectors per vertex)."""
+    s = 4 if precision == "float32" else 8
+    nodes = estimate_device_memory(num_vertices=4, num_elements=0, nodes_per_element=0, num_points=0,
+                                   block_nnz=16, precision=precision, surface_points=surface_vertices,
+                                   weights_per_point=4)
+    return int(nodes + surface_vertices * 4 * 3 * s)
 
 
 # ----------------------------------------------------------------------------- Scene
