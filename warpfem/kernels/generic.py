@@ -250,6 +250,47 @@ def launch(kernel, dim, inputs, device):
         _prepare(LK.reduce_rows_kernel, width, [part, rows, width, spec.n_add, spec.n_max, acc, slot], device, None)()
 
 
+def launch_phases(phases, device):
+    """Run sequences of CPU launches, each thread its own, with no barrier inside a phase.
+
+    ``phases``: a list of phases, each a list (one entry per thread) of sequences of
+    ``(kernel, dim, inputs)`` with every argument given (a splittable kernel's ``start`` included).
+    The threads of a phase run their sequences at once, each in order; a phase starts when the
+    previous one has ended. For work cut so that what a thread's later launch reads was written by
+    its own earlier launches (``forms.ElasticForm``'s force: each thread computes the points its
+    vertices gather), one dispatch replaces one per launch. Counted as one launch per position of
+    the longest sequence of each phase (a split launch where more than one thread runs). Inside a
+    CPU graph capture everything is recorded in order on this thread."""
+    dev = wp.get_device(device)
+    capturing = _cpu_capturing(dev)
+    from warpfem.threads import run_chunks
+
+    for p, phase in enumerate(phases):
+        c0 = COUNTERS["launches"]
+        fns = [[_prepare(k, dim, list(inputs), device, ("phase", p, t, j)) for j, (k, dim, inputs) in enumerate(seq)]
+               for t, seq in enumerate(phase) if seq]
+        COUNTERS["launches"] = c0 + max((len(f) for f in fns), default=0)
+        if len(fns) > 1:
+            COUNTERS["split"] += 1
+        if capturing or len(fns) == 1:
+            for seq in fns:
+                for f in seq:
+                    f()
+        elif fns:
+            run_chunks([_run_all(seq) for seq in fns])
+
+
+def _run_all(seq):
+    if len(seq) == 1:
+        return seq[0]
+
+    def run():
+        for f in seq:
+            f()
+
+    return run
+
+
 def _ordered(dev) -> bool:
     return ORDERED_SUMS == "always" or (ORDERED_SUMS == "device" and not dev.is_cpu)
 
