@@ -158,12 +158,23 @@ def _view(a, lo, hi):
     return v[0]
 
 
-def _cpu_capturing(device) -> bool:
-    try:
-        from warp._src.context import _get_apic_capture_for_device
+_APIC_QUERY = []
 
-        return _get_apic_capture_for_device(wp.get_device(device)) is not None
-    except Exception:  # noqa: BLE001 -- a Warp without the query: assume not capturing
+
+def _cpu_capturing(device) -> bool:
+    if not _APIC_QUERY:  # Warp's query, looked up once (an import per split launch cost microseconds)
+        try:
+            from warp._src.context import _get_apic_capture_for_device
+
+            _APIC_QUERY.append(_get_apic_capture_for_device)
+        except Exception:  # noqa: BLE001 -- a Warp without the query: assume not capturing
+            _APIC_QUERY.append(None)
+    query = _APIC_QUERY[0]
+    if query is None:
+        return False
+    try:
+        return query(device if isinstance(device, wp.Device) else wp.get_device(device)) is not None
+    except Exception:  # noqa: BLE001
         return False
 
 
