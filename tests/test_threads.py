@@ -86,6 +86,15 @@ def test_gather_assembly_equals_the_atomic_scatter_and_is_identical_for_1_2_3_th
         assert len(bounds) == T + 1 and used_halo == (halo > 0 or T == 1)  # the force was cut in T parts
         got = (g.tobytes(), H.tobytes(), acc.tobytes())
         assert out.setdefault("ref", got) == got, f"{T} threads (halo {halo}) differ from 1"
+        el, acc2, g2 = sim._elastic, wp.zeros(64, dtype=wp.float64, device=sim.device), sim.ops.new_vector()
+        el.bind(acc2, 8)
+        for rep in range(2):  # recorded by the first call, replayed (split) by the second
+            acc2.zero_()
+            g2.zero_()
+            s0 = COUNTERS["split"]
+            el.gradient(None, x, 1.0, g2, acc2)
+            assert rep == 0 or (COUNTERS["split"] > s0) == (T > 1)
+            assert g2.numpy().tobytes() == g.tobytes() and acc2.numpy()[10] == acc[10], f"{T} threads, call {rep}"
     TH.set_threads(1)
     ga, Ha = _atomic(sim, x)
     scale_g, scale_H = np.abs(ga).max(), np.abs(Ha).max()
