@@ -516,6 +516,28 @@ class ElasticForm(Form):
             rows = self._rows = wp.zeros(nrows, dtype=wp.float64, device=dev)
         else:
             rows.zero_()
+        capturing = generic._cpu_capturing(dev)
+        if not capturing:
+            # replayed launches (``RecordedLaunch``: the kernel's entry point called with its
+            # arguments packed once, ~2 us instead of ~20 us per launch), per set of arguments;
+            # structs are packed by value, so their fields are part of the key (as in ``capture_key``)
+            mats = tuple((id(qs.points), int(qs.material.kind), float(qs.material.mu), float(qs.material.lam))
+                         for qs in self.qp_sets)
+            key = (tuple(bounds), halo, id(x), id(g), id(fa), id(rows), id(acc), self.acc_slot, float(scale), mats)
+            cache = self.__dict__.setdefault("_replays", {})
+            entry = cache.get(key)
+            if entry is not None:
+                from warpfem.threads import run_chunks
+
+                for ph in entry[0]:
+                    if len(ph) > 1:
+                        run_chunks(ph)
+                        generic.COUNTERS["split"] += 1
+                    elif ph:
+                        ph[0]()
+                entry[1]()
+                generic.COUNTERS["launches"] += entry[2]
+                return
         c = self.ops.scalar(-scale)
         last = len(self.qp_sets) - 1
         forces, gathers = [], []
@@ -535,46 +557,25 @@ class ElasticForm(Form):
                 forces.append(fs)
                 gathers.append(gs)
         phases = [forces] if halo else [forces, gathers]
-        reduce = (LK.reduce_rows_kernel, 1, (rows, nrows, 1, 1, 0, acc, self.acc_slot + 2))
-        if generic._cpu_capturing(dev):  # recorded into the caller's graph, in order
+        reduce = (LK.reduce_rows_kernel, 1, [rows, nrows, 1, 1, 0, acc, self.acc_slot + 2])
+        if capturing:  # recorded into the caller's graph, in order
             launch_phases(phases, dev)
-            launch(reduce[0], reduce[1], list(reduce[2]), dev)
+            launch(*reduce, dev)
             return
-        # replayed launches (``RecordedLaunch``: the kernel's entry point called with its arguments
-        # packed once, ~2 us instead of ~20 us per launch), per set of arguments; structs are packed
-        # by value, so their fields are part of the key (as in ``capture_key``)
-        mats = tuple((id(qs.points), int(qs.material.kind), float(qs.material.mu), float(qs.material.lam))
-                     for qs in self.qp_sets)
-        key = (tuple(bounds), halo, id(x), id(g), id(fa), id(rows), id(acc), self.acc_slot, float(scale), mats)
-        cache = self.__dict__.setdefault("_replays", {})
-        entry = cache.get(key)
+        # recorded (and run) in this thread, in order; replayed by the next calls with these arguments
+        if len(cache) >= 8:
+            cache.clear()
+        recorded = [[[RecordedLaunch(k, dim, list(args), dev, split=False) for k, dim, args in seq] for seq in ph]
+                    for ph in phases]
+        final = RecordedLaunch(*reduce, dev, split=False)
+        for ph in recorded:
+            for seq in ph:
+                for r in seq:
+                    r()
+        final()
         counted = sum(max((len(q) for q in ph), default=0) for ph in phases) + 1
-        if entry is None:  # recorded (and run) in this thread, in order
-            if len(cache) >= 8:
-                cache.clear()
-            entry = cache[key] = ([[[RecordedLaunch(k, dim, list(args), dev, split=False) for k, dim, args in seq]
-                                    for seq in ph] for ph in phases],
-                                  RecordedLaunch(reduce[0], reduce[1], list(reduce[2]), dev, split=False), [])
-            for ph in entry[0]:
-                for seq in ph:
-                    for r in seq:
-                        r()
-            entry[1]()
-            generic.COUNTERS["launches"] += counted
-            return
-        from warpfem.threads import run_chunks
-
-        runners = entry[2]
-        if not runners:
-            runners += [[_run_in_order(seq) for seq in ph if seq] for ph in entry[0]]
-        for ph in runners:
-            if len(ph) > 1:
-                run_chunks(ph)
-                generic.COUNTERS["split"] += 1
-            elif ph:
-                ph[0]()
-        entry[1]()
         generic.COUNTERS["launches"] += counted
+        cache[key] = ([[_run_in_order(seq) for seq in ph if seq] for ph in recorded], final, counted)
 
     def gradient_magnitude(self, row, scale):
         return float(np.sqrt(row[2]))
