@@ -465,9 +465,9 @@ class ElasticForm(Form):
         cum = np.concatenate([[0.0], np.cumsum(work)])
         # the last point gathered by the vertices before b and the first gathered by those from b on:
         # a cut at b makes the parts' point ranges overlap by their difference (computed twice)
-        before = sum(np.concatenate([[-1], np.maximum.accumulate(mx)]) for mx in hi_q)
-        after = sum(np.concatenate([np.minimum.accumulate(mn[::-1])[::-1], [np.iinfo(np.int64).max // 4]])
-                    for mn in lo_q)
+        seam = [(np.concatenate([[-1], np.maximum.accumulate(mx)]),
+                 np.concatenate([np.minimum.accumulate(mn[::-1])[::-1], [np.iinfo(np.int64).max // 4]]))
+                for mn, mx in zip(lo_q, hi_q)]
         bounds = [0]
         for c in range(1, parts):
             target = cum[-1] * c / parts
@@ -476,7 +476,7 @@ class ElasticForm(Form):
             cand = np.arange(lo, hi + 1, B)
             if cand.size == 0:
                 continue
-            overlap = np.maximum(0, before[cand] + 1 - after[cand])
+            overlap = sum(np.maximum(0, before[cand] + 1 - after[cand]) for before, after in seam)
             best = cand[np.argmin(overlap + 2.0 * np.abs(cum[cand] - target))]
             bounds.append(int(best))
         bounds.append(n)
