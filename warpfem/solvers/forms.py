@@ -575,6 +575,9 @@ class ElasticForm(Form):
         final()
         counted = sum(max((len(q) for q in ph), default=0) for ph in phases) + 1
         generic.COUNTERS["launches"] += counted
+        # split launches, though run in order this once: a graph capture of the caller's sequence
+        # would replay them on one thread (``CapturedSequences`` leaves such sequences uncaptured)
+        generic.COUNTERS["split"] += sum(1 for ph in phases if sum(1 for q in ph if q) > 1)
         cache[key] = ([[_run_in_order(seq) for seq in ph if seq] for ph in recorded], final, counted)
 
     def gradient_magnitude(self, row, scale):
