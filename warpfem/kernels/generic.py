@@ -178,6 +178,17 @@ def _cpu_capturing(device) -> bool:
         return False
 
 
+def cpu_capturing(device) -> bool:
+    """Whether launches on ``device`` are being recorded into a CPU graph now (then no split)."""
+    return _cpu_capturing(device)
+
+
+def split_min_chunk(kernel) -> int:
+    """The fewest indices a chunk of a split launch of ``kernel`` gets (its ``min_chunk``, or
+    ``MIN_CHUNK`` where set): for callers that cut their own work in parts as :func:`launch` would."""
+    return _min_chunk(SPLIT[kernel])
+
+
 def launch(kernel, dim, inputs, device):
     """``wp.launch`` with less host overhead for the solver loops, split across CPU threads.
 

@@ -443,7 +443,7 @@ class ElasticForm(Form):
             return plan
         n, B = self.ops.n, FORCE_ROW_BLOCK
         total = sum(qs.count for qs in self.qp_sets)
-        min_chunk = generic._min_chunk(generic.SPLIT[FK.qp_force_and_abs_kernel])
+        min_chunk = generic.split_min_chunk(FK.qp_force_and_abs_kernel)
         parts = max(1, min(threads, total // min_chunk, -(-n // B)))
         # per vertex: the points it gathers (work), the first and last of them (per set)
         work = np.zeros(n, dtype=np.float64)
@@ -516,7 +516,7 @@ class ElasticForm(Form):
             rows = self._rows = wp.zeros(nrows, dtype=wp.float64, device=dev)
         else:
             rows.zero_()
-        capturing = generic._cpu_capturing(dev)
+        capturing = generic.cpu_capturing(dev)
         if not capturing:
             # replayed launches (``RecordedLaunch``: the kernel's entry point called with its
             # arguments packed once, ~2 us instead of ~20 us per launch), per set of arguments;
