@@ -208,10 +208,10 @@ def assembly_case(c, threads, repeats):
                     prev()
                     best[("previous", T)] = np.minimum(best.get(("previous", T), np.inf), CP.measure(prev))
                     if T > 1:  # the other cut: points split evenly, then the gather (two dispatches, no seam)
-                        halo, FORMS.FORCE_HALO_MAX = FORMS.FORCE_HALO_MAX, -1.0
+                        seam, FORMS.FORCE_SEAM_MAX_POINTS = FORMS.FORCE_SEAM_MAX_POINTS, -1
                         fn()
                         best["two_phase"] = np.minimum(best.get("two_phase", np.inf), CP.measure(fn))
-                        FORMS.FORCE_HALO_MAX = halo
+                        FORMS.FORCE_SEAM_MAX_POINTS = seam
             set_threads(1)
             best["atomic"] = np.minimum(best["atomic"], CP.measure(base))
         out[name] = dict(tets=qs.count, vertices=sim.num_vertices, seconds_1=best[1][0], seconds_p=best[threads][0],
@@ -301,7 +301,7 @@ def main(argv=None):
                       f"{row['new_p_over_previous_1']:.2f}x (CPU {row['new_p_over_previous_1_cpu']:.2f}x)", flush=True)
                 print(f"  two dispatches (points, then gather; no seam): {p} threads {row['two_phase_seconds_p'] * 1e3:.2f} ms:"
                       f" {row['two_phase_speedup']:.2f}x (CPU {row['two_phase_cpu_speedup']:.2f}x); the default cut "
-                      f"{'overlaps at the seam (one dispatch)' if row['seam'] else 'is the two dispatches'}", flush=True)
+                      f"{'overlaps at the seam (one dispatch)' if row['seam'] else 'is these two dispatches'}", flush=True)
         gc.collect()
     if not args.quick:
         rows["box-98k-step"] = step_case(lambda: box(16, 0.49, args.box_solver), p, args.steps)

@@ -75,10 +75,10 @@ def test_gather_assembly_equals_the_atomic_scatter_and_is_identical_for_1_2_3_th
     x = wp.array(X + 0.01 * rng.standard_normal(X.shape), dtype=wp.vec3d)
     out = {}
     # the force: each thread computes the points its vertices gather (one dispatch), or (halo -1)
-    # the points are split first and the vertices gathered after
-    for T, halo in ((1, 10.0), (2, 10.0), (3, 10.0), (2, -1.0), (3, -1.0), (1, 10.0)):
+    # the points are split first and the vertices gathered after (seam -1: never computed twice)
+    for T, halo in ((1, 10**9), (2, 10**9), (3, 10**9), (2, -1), (3, -1), (1, 10**9)):
         TH.set_threads(T)
-        monkeypatch.setattr(forms, "FORCE_HALO_MAX", halo)
+        monkeypatch.setattr(forms, "FORCE_SEAM_MAX_POINTS", halo)
         s0 = COUNTERS["split"]
         g, H, acc = _force_and_hessian(sim, x)
         assert (COUNTERS["split"] > s0) == (T > 1)  # the launches were split (or not, on one thread)

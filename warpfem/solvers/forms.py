@@ -99,10 +99,12 @@ _F64_ONE = wp.float64(1.0)
 #: vertices per row of partial sums of the elastic force magnitude's dot product on the CPU
 #: (``ElasticForm.gradient``): fixed, so the rows do not depend on how the vertices are split
 FORCE_ROW_BLOCK = 64
-#: the elastic force on the CPU lets each thread compute the points its vertices gather (those of
-#: the neighbouring range too, computed twice) when that adds at most this fraction of the points;
-#: otherwise the points are split first and the vertices gathered after (two dispatches)
-FORCE_HALO_MAX = 0.15
+#: the elastic force on the CPU lets each thread compute the points its vertices gather (those on
+#: the seam with the neighbouring range computed twice: one dispatch) when the busiest thread gets at
+#: most this many points beyond an even share (~0.1 ms of force work at ~50 ns per point, about
+#: what a second dispatch may cost in wall clock, waking the other cores); otherwise the points are
+#: split evenly and the vertices gathered after (two dispatches, no point computed twice)
+FORCE_SEAM_MAX_POINTS = 2048
 #: lagged quantities are taken again from an iterate whose gradient is below this fraction of the
 #: step's reference gradient (and that a full Newton step reached): near the solution. Measured
 #: (docs/contact.md): from the first iterate, an impact's overshoot into the barrier gives normal
@@ -431,12 +433,13 @@ class ElasticForm(Form):
 
     def _force_plan(self, threads):
         """How the CPU force is cut for ``threads`` threads: (vertex bounds, per set the points each
-        part computes, halo): the vertex ranges start on row boundaries (``FORCE_ROW_BLOCK``) and
-        balance the gathered slots; with ``halo`` each part's points are every point its vertices
-        gather (a contiguous range, overlapping the next part's at the seam), else the points are
-        cut evenly and gathered after all are computed."""
+        part computes, halo): the vertex ranges start on row boundaries (``FORCE_ROW_BLOCK``), near
+        an even share of the gathered slots where the seam is narrowest; with ``halo`` each part's
+        points are every point its vertices gather (a contiguous range, overlapping the next
+        part's at the seam), else (``FORCE_SEAM_MAX_POINTS``) the points are cut evenly and
+        gathered after all are computed."""
         entries = [self._gather(qs) for qs in self.qp_sets]
-        key = (threads, generic.MIN_CHUNK, FORCE_ROW_BLOCK, FORCE_HALO_MAX, tuple((id(e), e["k"]) for e in entries))
+        key = (threads, generic.MIN_CHUNK, FORCE_ROW_BLOCK, FORCE_SEAM_MAX_POINTS, tuple((id(e), e["k"]) for e in entries))
         plans = self.__dict__.setdefault("_plans", {})
         plan = plans.get(key)
         if plan is not None:
@@ -481,16 +484,16 @@ class ElasticForm(Form):
             bounds.append(int(best))
         bounds.append(n)
         ranges = []
-        extra = 0
         for e, qs in zip(entries, self.qp_sets):
             fo, fe = e["force_np"]
             r = []
             for v0, v1 in zip(bounds[:-1], bounds[1:]):
                 q = fe[fo[v0]:fo[v1]] // e["k"]
                 r.append((int(q.min()), int(q.max()) + 1) if q.size else (0, 0))
-            extra += sum(hi - lo for lo, hi in r) - qs.count
             ranges.append(r)
-        halo = len(bounds) == 2 or extra <= FORCE_HALO_MAX * total
+        # the busiest part's points beyond an even share (the seam's cost on the critical path)
+        busiest = max(sum(r[t][1] - r[t][0] for r in ranges) for t in range(len(bounds) - 1))
+        halo = len(bounds) == 2 or busiest - total / (len(bounds) - 1) <= FORCE_SEAM_MAX_POINTS
         if not halo:
             ranges = [[(qs.count * c // (len(bounds) - 1), qs.count * (c + 1) // (len(bounds) - 1))
                        for c in range(len(bounds) - 1)] for qs in self.qp_sets]
