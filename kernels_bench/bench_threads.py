@@ -6,7 +6,9 @@ count (checked here too). Cases, each measured with 1 and with ``--threads`` thr
 in the same process, interleaved, best of ``--repeats``:
 
   force-24k / force-200k      the elastic gradient of a Newton iteration (per-point slots, gather per
-                              vertex, the magnitude's dot): clamped boxes of 24,000 and 192,000 tets
+                              vertex, the magnitude's dot; one dispatch per thread count, the threads'
+                              point ranges overlapping at the seam): clamped boxes of 24,000 and
+                              192,000 tets
   hessian-24k / hessian-200k  the elastic Hessian (zero the values, SPD-projected per-point blocks,
                               gather per block)
   box-98k-step                one backward-Euler step of the 98,304-tet box at nu 0.49 (the scene of
@@ -24,7 +26,11 @@ stays near 1 there, while the CPU-time figure still shows how much of the work r
 A step case builds one simulator per thread count; both start from the same state and take the same
 steps (the same numbers: the step times compare the same work), alternately, after one warm-up step.
 Also measured, on one thread: the atomic scatter that the gather replaced (force and Hessian kernels
-with ``slots`` 0), the cost of determinism on one core.
+with ``slots`` 0), the cost of determinism on one core; and, for the force, the previous way of
+splitting it (three split launches: the points' slots, the gather, the magnitude's dot product, each
+dispatched on its own) on 1 and ``--threads`` threads, and the other cut of the current one (the
+points split evenly, then the gather: two dispatches and no points computed twice at the seam). Runtime: about 3 minutes on the idle 2-core
+machine (1 minute with ``--quick``).
 
 Scaling law (Amdahl): from the measured speed-up S on p threads, the serial fraction
 f = (p / S - 1) / (p - 1), and the projected speed-up on N cores 1 / (f + (1 - f) / N). It assumes the
@@ -65,6 +71,7 @@ import warpfem as wf  # noqa: E402
 from warpfem.kernels import fem as FK  # noqa: E402
 from warpfem.kernels import linalg as LK  # noqa: E402
 from warpfem.kernels.generic import launch  # noqa: E402
+import warpfem.solvers.forms as FORMS  # noqa: E402
 import warpfem.threads as TH  # noqa: E402
 from warpfem.threads import available_cores, set_threads  # noqa: E402
 
@@ -167,6 +174,17 @@ def assembly_case(c, threads, repeats):
         launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, S(-1.0), g, fa, 0], "cpu")
         launch(LK.dot_slot_kernel, sim.num_vertices, [fa, fa, wp.float64(1.0), acc, 10], "cpu")
 
+    off, ent, slots = el._gather(qs)["force"]
+    fp = sim.ops.new_vector()
+
+    def force_previous():  # the force as it was split before (three split launches: points, gather, dot)
+        acc.zero_()
+        g.zero_()
+        fp.zero_()
+        launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, S(-1.0), slots, slots, 1], "cpu")
+        launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, g, fp, 1, FK.no_rows("cpu"), 0], "cpu")
+        launch(LK.dot_slot_kernel, sim.num_vertices, [fp, fp, wp.float64(1.0), acc, 10], "cpu")
+
     def hessian_atomic():
         vals.zero_()
         launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, S(1.0), 1, bi, vals, 0], "cpu")
@@ -181,10 +199,19 @@ def assembly_case(c, threads, repeats):
             results[T] = (g.numpy().tobytes(), vals.numpy().tobytes(), acc.numpy().tobytes())
         set_threads(1)
         base()
+        prev = force_previous if name == "force" else None
         for _ in range(repeats):
             for T in (1, threads):
                 set_threads(T)
                 best[T] = np.minimum(best[T], CP.measure(fn))
+                if prev is not None:
+                    prev()
+                    best[("previous", T)] = np.minimum(best.get(("previous", T), np.inf), CP.measure(prev))
+                    if T > 1:  # the other cut: points split evenly, then the gather (two dispatches, no seam)
+                        seam, FORMS.FORCE_SEAM_MAX_POINTS = FORMS.FORCE_SEAM_MAX_POINTS, -1
+                        fn()
+                        best["two_phase"] = np.minimum(best.get("two_phase", np.inf), CP.measure(fn))
+                        FORMS.FORCE_SEAM_MAX_POINTS = seam
             set_threads(1)
             best["atomic"] = np.minimum(best["atomic"], CP.measure(base))
         out[name] = dict(tets=qs.count, vertices=sim.num_vertices, seconds_1=best[1][0], seconds_p=best[threads][0],
@@ -194,6 +221,15 @@ def assembly_case(c, threads, repeats):
                          gather_over_atomic_1=best[1][0] / best["atomic"][0],
                          gather_over_atomic_cpu_1=best[1][1] / best["atomic"][1],
                          identical=results[1] == results[threads])
+        if prev is not None:
+            b1, bp = best[("previous", 1)], best[("previous", threads)]
+            out[name].update(previous_seconds_1=b1[0], previous_seconds_p=bp[0], previous_speedup=b1[0] / bp[0],
+                             previous_cpu_speedup=b1[1] / bp[2], new_p_over_previous_1=b1[0] / best[threads][0],
+                             new_p_over_previous_1_cpu=b1[1] / best[threads][2],
+                             two_phase_seconds_p=best["two_phase"][0],
+                             two_phase_speedup=best[1][0] / best["two_phase"][0],
+                             two_phase_cpu_speedup=best[1][1] / best["two_phase"][2],
+                             seam=bool(el._force_plan(threads)[2]))
     return out
 
 
@@ -258,6 +294,14 @@ def main(argv=None):
                   f"{row['cpu_speedup']:.2f}x); atomic scatter on 1 thread {row['atomic_seconds_1'] * 1e3:.2f} ms "
                   f"(gather / atomic: wall {row['gather_over_atomic_1']:.2f}, CPU {row['gather_over_atomic_cpu_1']:.2f}); "
                   f"identical {row['identical']}", flush=True)
+            if "previous_speedup" in row:
+                print(f"  previous split (3 split launches): 1 thread {row['previous_seconds_1'] * 1e3:.2f} ms, {p} threads "
+                      f"{row['previous_seconds_p'] * 1e3:.2f} ms: {row['previous_speedup']:.2f}x (CPU "
+                      f"{row['previous_cpu_speedup']:.2f}x); now on {p} threads against it on 1: "
+                      f"{row['new_p_over_previous_1']:.2f}x (CPU {row['new_p_over_previous_1_cpu']:.2f}x)", flush=True)
+                print(f"  two dispatches (points, then gather; no seam): {p} threads {row['two_phase_seconds_p'] * 1e3:.2f} ms:"
+                      f" {row['two_phase_speedup']:.2f}x (CPU {row['two_phase_cpu_speedup']:.2f}x); the default cut "
+                      f"{'overlaps at the seam (one dispatch)' if row['seam'] else 'is these two dispatches'}", flush=True)
         gc.collect()
     if not args.quick:
         rows["box-98k-step"] = step_case(lambda: box(16, 0.49, args.box_solver), p, args.steps)

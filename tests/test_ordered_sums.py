@@ -111,6 +111,8 @@ ALLOWED_ATOMIC_ADDS = {
     ("kernels/fem.py", "qp_force_kernel", "f"): "CPU only (Simulator._add_elastic_force: the gather elsewhere)",
     ("kernels/fem.py", "qp_force_and_abs_kernel", "f"): "slots == 0 only: the scatter, tests and benchmarks",
     ("kernels/fem.py", "qp_force_and_abs_kernel", "f_abs"): "slots == 0 only: the scatter, tests and benchmarks",
+    ("kernels/fem.py", "gather_force_kernel", "rows"): "CPU only (forms.ElasticForm._gradient_cpu): a row's vertices "
+                                                       "in one chunk, added in index order",
     ("kernels/fem.py", "_put_block", "values"): "slots == 0 only: the Hessian scatter, tests and benchmarks",
     ("kernels/warping.py", "warped_assembly_kernel", "values"): "stiffness_warping.GATHER False only",
     ("contact/kernels.py", "contact_kernel", "values"): "one thread per surface vertex owns its diagonal block",

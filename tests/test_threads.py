@@ -17,12 +17,14 @@ from warpfem import Model, Plane, Simulator, box_hex_mesh, box_tet_mesh, make_ma
 from warpfem.kernels import fem as FK
 from warpfem.kernels import generic
 from warpfem.kernels.generic import COUNTERS, launch
+from warpfem.solvers import forms
 
 
 @pytest.fixture
 def tiny_chunks(monkeypatch):
     monkeypatch.setattr(generic, "MIN_CHUNK", 1)
     monkeypatch.setattr(generic, "REDUCE_BLOCK_MIN", 4)
+    monkeypatch.setattr(forms, "FORCE_ROW_BLOCK", 2)
     monkeypatch.setattr(TH, "available_cores", lambda: 4)
     yield
     TH.set_threads(None)
@@ -60,7 +62,8 @@ def _atomic(sim, x, project=True):
 
 
 @pytest.mark.parametrize("element", ["tet4", "tet10", "hex8"])
-def test_gather_assembly_equals_the_atomic_scatter_and_is_identical_for_1_2_3_threads(tiny_chunks, element):
+def test_gather_assembly_equals_the_atomic_scatter_and_is_identical_for_1_2_3_threads(tiny_chunks, monkeypatch,
+                                                                                      element):
     mesh = box_tet_mesh(size=(0.4, 0.1, 0.1), cells=(4, 1, 1))
     if element == "tet10":
         mesh = tet10_from_tet4(mesh)
@@ -71,13 +74,27 @@ def test_gather_assembly_equals_the_atomic_scatter_and_is_identical_for_1_2_3_th
     X = np.asarray(mesh.vertices)
     x = wp.array(X + 0.01 * rng.standard_normal(X.shape), dtype=wp.vec3d)
     out = {}
-    for T in (1, 2, 3, 1):
+    # the force: each thread computes the points its vertices gather (one dispatch), or (halo -1)
+    # the points are split first and the vertices gathered after (seam -1: never computed twice)
+    for T, halo in ((1, 10**9), (2, 10**9), (3, 10**9), (2, -1), (3, -1), (1, 10**9)):
         TH.set_threads(T)
+        monkeypatch.setattr(forms, "FORCE_SEAM_MAX_POINTS", halo)
         s0 = COUNTERS["split"]
         g, H, acc = _force_and_hessian(sim, x)
         assert (COUNTERS["split"] > s0) == (T > 1)  # the launches were split (or not, on one thread)
+        bounds, _, used_halo = sim._elastic._force_plan(T)
+        assert len(bounds) == T + 1 and used_halo == (halo > 0 or T == 1)  # the force was cut in T parts
         got = (g.tobytes(), H.tobytes(), acc.tobytes())
-        assert out.setdefault("ref", got) == got, f"{T} threads differ from 1"
+        assert out.setdefault("ref", got) == got, f"{T} threads (halo {halo}) differ from 1"
+        el, acc2, g2 = sim._elastic, wp.zeros(64, dtype=wp.float64, device=sim.device), sim.ops.new_vector()
+        el.bind(acc2, 8)
+        for rep in range(2):  # recorded by the first call, replayed (split) by the second
+            acc2.zero_()
+            g2.zero_()
+            s0 = COUNTERS["split"]
+            el.gradient(None, x, 1.0, g2, acc2)
+            assert rep == 0 or (COUNTERS["split"] > s0) == (T > 1)
+            assert g2.numpy().tobytes() == g.tobytes() and acc2.numpy()[10] == acc[10], f"{T} threads, call {rep}"
     TH.set_threads(1)
     ga, Ha = _atomic(sim, x)
     scale_g, scale_H = np.abs(ga).max(), np.abs(Ha).max()

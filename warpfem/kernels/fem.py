@@ -39,6 +39,7 @@ __all__ = [
     "gather_blocks_kernel",
     "gather_force_kernel",
     "element_slot_maps",
+    "no_rows",
 ]
 
 wp.set_module_options({"enable_backward": False})
@@ -227,23 +228,43 @@ def gather_blocks_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dt
 @wp.kernel
 def gather_force_kernel(offsets: wp.array(dtype=wp.int32), entries: wp.array(dtype=wp.int32),
                         contrib: wp.array(dtype=Any), f: wp.array(dtype=Any), f_abs: wp.array(dtype=Any),
-                        with_abs: int, start: int):
-    """f[v] -= sum of the point slots of vertex v (and f_abs[v] += their component-wise magnitudes when
-    ``with_abs``), in the order of ``entries[offsets[v]:offsets[v + 1]]``: the gather half of the
-    deterministic force (``qp_force_and_abs_kernel`` with ``slots != 0`` wrote the slots)."""
+                        with_abs: int, rows: wp.array(dtype=wp.float64), row_block: int, start: int):
+    """f[v] -= sum of the point slots of vertex v, in the order of ``entries[offsets[v]:offsets[v + 1]]``:
+    the gather half of the deterministic force (``qp_force_and_abs_kernel`` with ``slots != 0`` wrote
+    the slots). ``with_abs`` 1: f_abs[v] += the slots' component-wise magnitudes; 2: f_abs[v] = them
+    (no zeroing pass before). ``row_block > 0`` (with ``with_abs``): rows[v / row_block] += f_abs[v] .
+    f_abs[v] in float64 afterwards, the partial sums of the magnitude's dot product in blocks of
+    vertices of a fixed size (``forms.ElasticForm``: a launch whose chunks start on a block
+    boundary gives the same rows whatever the split)."""
     v = wp.tid() + start
     lo = offsets[v]
     hi = offsets[v + 1]
+    m = type(f[v])()
     if hi > lo:
-        s = contrib[entries[lo]] - contrib[entries[lo]]
-        m = s
+        s = m
         for i in range(lo, hi):
             c = contrib[entries[i]]
             s += c
             m += type(c)(wp.abs(c[0]), wp.abs(c[1]), wp.abs(c[2]))
         f[v] = f[v] - s
-        if with_abs != 0:
-            f_abs[v] = f_abs[v] + m
+    if with_abs != 0:
+        if with_abs == 1:
+            m = f_abs[v] + m
+        f_abs[v] = m
+        if row_block > 0:
+            wp.atomic_add(rows, v / row_block, wp.float64(wp.dot(m, m)))
+
+
+_NO_ROWS: dict = {}
+
+
+def no_rows(device):
+    """A one-entry float64 array for ``gather_force_kernel``'s ``rows`` when it adds none (``row_block`` 0)."""
+    key = str(device)
+    a = _NO_ROWS.get(key)
+    if a is None:
+        a = _NO_ROWS[key] = wp.zeros(1, dtype=wp.float64, device=device)
+    return a
 
 
 @splittable("reduce", _POINTS_MIN, acc=3, slot=4, n_add=2)

@@ -158,13 +158,35 @@ def _view(a, lo, hi):
     return v[0]
 
 
-def _cpu_capturing(device) -> bool:
-    try:
-        from warp._src.context import _get_apic_capture_for_device
+_APIC_QUERY = []
 
-        return _get_apic_capture_for_device(wp.get_device(device)) is not None
-    except Exception:  # noqa: BLE001 -- a Warp without the query: assume not capturing
+
+def _cpu_capturing(device) -> bool:
+    if not _APIC_QUERY:  # Warp's query, looked up once (an import per split launch cost microseconds)
+        try:
+            from warp._src.context import _get_apic_capture_for_device
+
+            _APIC_QUERY.append(_get_apic_capture_for_device)
+        except Exception:  # noqa: BLE001 -- a Warp without the query: assume not capturing
+            _APIC_QUERY.append(None)
+    query = _APIC_QUERY[0]
+    if query is None:
         return False
+    try:
+        return query(device if isinstance(device, wp.Device) else wp.get_device(device)) is not None
+    except Exception:  # noqa: BLE001
+        return False
+
+
+def cpu_capturing(device) -> bool:
+    """Whether launches on ``device`` are being recorded into a CPU graph now (then no split)."""
+    return _cpu_capturing(device)
+
+
+def split_min_chunk(kernel) -> int:
+    """The fewest indices a chunk of a split launch of ``kernel`` gets (its ``min_chunk``, or
+    ``MIN_CHUNK`` where set): for callers that cut their own work in parts as :func:`launch` would."""
+    return _min_chunk(SPLIT[kernel])
 
 
 def launch(kernel, dim, inputs, device):
@@ -248,6 +270,47 @@ def launch(kernel, dim, inputs, device):
         fns[0]()
     if kind == "reduce" and rows > 1:
         _prepare(LK.reduce_rows_kernel, width, [part, rows, width, spec.n_add, spec.n_max, acc, slot], device, None)()
+
+
+def launch_phases(phases, device):
+    """Run sequences of CPU launches, each thread its own, with no barrier inside a phase.
+
+    ``phases``: a list of phases, each a list (one entry per thread) of sequences of
+    ``(kernel, dim, inputs)`` with every argument given (a splittable kernel's ``start`` included).
+    The threads of a phase run their sequences at once, each in order; a phase starts when the
+    previous one has ended. For work cut so that what a thread's later launch reads was written by
+    its own earlier launches (``forms.ElasticForm``'s force: each thread computes the points its
+    vertices gather), one dispatch replaces one per launch. Counted as one launch per position of
+    the longest sequence of each phase (a split launch where more than one thread runs). Inside a
+    CPU graph capture everything is recorded in order on this thread."""
+    dev = wp.get_device(device)
+    capturing = _cpu_capturing(dev)
+    from warpfem.threads import run_chunks
+
+    for p, phase in enumerate(phases):
+        c0 = COUNTERS["launches"]
+        fns = [[_prepare(k, dim, list(inputs), device, ("phase", p, t, j)) for j, (k, dim, inputs) in enumerate(seq)]
+               for t, seq in enumerate(phase) if seq]
+        COUNTERS["launches"] = c0 + max((len(f) for f in fns), default=0)
+        if len(fns) > 1:
+            COUNTERS["split"] += 1
+        if capturing or len(fns) == 1:
+            for seq in fns:
+                for f in seq:
+                    f()
+        elif fns:
+            run_chunks([_run_all(seq) for seq in fns])
+
+
+def _run_all(seq):
+    if len(seq) == 1:
+        return seq[0]
+
+    def run():
+        for f in seq:
+            f()
+
+    return run
 
 
 def _ordered(dev) -> bool:

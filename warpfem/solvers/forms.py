@@ -83,7 +83,8 @@ import warp as wp
 
 from warpfem.kernels import fem as FK
 from warpfem.kernels import linalg as LK
-from warpfem.kernels.generic import CapturedSequences, launch
+from warpfem.kernels import generic
+from warpfem.kernels.generic import CapturedSequences, RecordedLaunch, launch, launch_phases
 from warpfem.transfer import read
 
 __all__ = ["Form", "InertiaForm", "DampingForm", "ElasticForm", "LoadForm", "IncrementalPotential",
@@ -95,6 +96,15 @@ _G_JOINT, _G_NORM, _D_GD = 0, 1, 2
 _G_TD = 6  # in the trial's gradient section: g(y + alpha d) . d (the directional derivative there)
 _HEAD = 8
 _F64_ONE = wp.float64(1.0)
+#: vertices per row of partial sums of the elastic force magnitude's dot product on the CPU
+#: (``ElasticForm.gradient``): fixed, so the rows do not depend on how the vertices are split
+FORCE_ROW_BLOCK = 64
+#: the elastic force on the CPU lets each thread compute the points its vertices gather (those on
+#: the seam with the neighbouring range computed twice: one dispatch) when the busiest thread gets at
+#: most this many points beyond an even share (~0.1 ms of force work at ~50 ns per point, about
+#: what a second dispatch may cost in wall clock, waking the other cores); otherwise the points are
+#: split evenly and the vertices gathered after (two dispatches, no point computed twice)
+FORCE_SEAM_MAX_POINTS = 2048
 #: lagged quantities are taken again from an iterate whose gradient is below this fraction of the
 #: step's reference gradient (and that a full Newton step reached): near the solution. Measured
 #: (docs/contact.md): from the first iterate, an impact's overshoot into the barrier gives normal
@@ -378,7 +388,8 @@ class ElasticForm(Form):
                 cache.clear()
             entry = cache[key] = {"k": k, "points": pts, "force": (wp.array(fo, dtype=wp.int32, device=dev),
                                                                    wp.array(fe, dtype=wp.int32, device=dev),
-                                                                   wp.zeros(qs.count * k, dtype=self.ops.vec, device=dev))}
+                                                                   wp.zeros(qs.count * k, dtype=self.ops.vec, device=dev)),
+                                  "force_np": (fo, fe)}
         if hessian and entry.get("blocks_of") != (_ptr(bi), self.pattern.nnz):
             dev, k = self.ops.device, entry["k"]
             _, _, bo, be = FK.element_slot_maps(pts.element.numpy(), pts.elements.numpy(), k, bi.numpy(),
@@ -396,17 +407,181 @@ class ElasticForm(Form):
             off, ent, slots = self._gather(qs)["force"]
             launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(1.0), slots,
                                                           slots, 1], dev)
-            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, f, f, 0], dev)
+            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, f, f, 0, FK.no_rows(dev), 0], dev)
 
     def gradient(self, y, x, scale, g, acc):
         fa, dev = self._fa, self.ops.device
+        if self._cpu_rows():
+            self._gradient_cpu(x, scale, g, acc)
+            return
         fa.zero_()
+        none = FK.no_rows(dev)
         for qs in self.qp_sets:
             off, ent, slots = self._gather(qs)["force"]
             launch(FK.qp_force_and_abs_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(-scale), slots,
                                                           slots, 1], dev)
-            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, g, fa, 1], dev)
+            launch(FK.gather_force_kernel, off.shape[0] - 1, [off, ent, slots, g, fa, 1, none, 0], dev)
         launch(LK.dot_slot_kernel, self.ops.n, [fa, fa, _F64_ONE, acc, self.acc_slot + 2], dev)
+
+    def _cpu_rows(self):
+        """Whether the force's magnitude is summed in rows of ``FORCE_ROW_BLOCK`` vertices on the CPU
+        (:meth:`_gradient_cpu`), rather than by the fixed-order reduction of other devices."""
+        on = self.__dict__.get("_on_cpu")
+        if on is None:
+            on = self._on_cpu = bool(wp.get_device(self.ops.device).is_cpu)
+        return on and not generic.ordered_sums(self.ops.device)
+
+    def _force_plan(self, threads):
+        """How the CPU force is cut for ``threads`` threads: (vertex bounds, per set the points each
+        part computes, halo): the vertex ranges start on row boundaries (``FORCE_ROW_BLOCK``), near
+        an even share of the gathered slots where the seam is narrowest; with ``halo`` each part's
+        points are every point its vertices gather (a contiguous range, overlapping the next
+        part's at the seam), else (``FORCE_SEAM_MAX_POINTS``) the points are cut evenly and
+        gathered after all are computed."""
+        entries = [self._gather(qs) for qs in self.qp_sets]
+        key = (threads, generic.MIN_CHUNK, FORCE_ROW_BLOCK, FORCE_SEAM_MAX_POINTS, tuple((id(e), e["k"]) for e in entries))
+        plans = self.__dict__.setdefault("_plans", {})
+        plan = plans.get(key)
+        if plan is not None:
+            return plan
+        n, B = self.ops.n, FORCE_ROW_BLOCK
+        total = sum(qs.count for qs in self.qp_sets)
+        min_chunk = generic.split_min_chunk(FK.qp_force_and_abs_kernel)
+        parts = max(1, min(threads, total // min_chunk, -(-n // B)))
+        # per vertex: the points it gathers (work), the first and last of them (per set)
+        work = np.zeros(n, dtype=np.float64)
+        lo_q, hi_q = [], []
+        for e in entries:
+            fo, fe = e["force_np"]
+            cnt = np.diff(fo.astype(np.int64))
+            work += cnt / e["k"]
+            q = fe.astype(np.int64) // e["k"]
+            has = cnt > 0
+            mn = np.full(n, np.iinfo(np.int64).max // 4, dtype=np.int64)
+            mx = np.full(n, -1, dtype=np.int64)
+            if q.size:
+                starts = fo[:-1][has].astype(np.int64)
+                mn[has] = np.minimum.reduceat(q, starts)
+                mx[has] = np.maximum.reduceat(q, starts)
+            lo_q.append(mn)
+            hi_q.append(mx)
+        cum = np.concatenate([[0.0], np.cumsum(work)])
+        # the last point gathered by the vertices before b and the first gathered by those from b on:
+        # a cut at b makes the parts' point ranges overlap by their difference (computed twice)
+        seam = [(np.concatenate([[-1], np.maximum.accumulate(mx)]),
+                 np.concatenate([np.minimum.accumulate(mn[::-1])[::-1], [np.iinfo(np.int64).max // 4]]))
+                for mn, mx in zip(lo_q, hi_q)]
+        bounds = [0]
+        for c in range(1, parts):
+            target = cum[-1] * c / parts
+            lo = max(bounds[-1] + B, int(np.searchsorted(cum, target - cum[-1] / (4 * parts))) // B * B)
+            hi = min(n - 1, int(np.searchsorted(cum, target + cum[-1] / (4 * parts))))
+            cand = np.arange(lo, hi + 1, B)
+            if cand.size == 0:
+                continue
+            overlap = sum(np.maximum(0, before[cand] + 1 - after[cand]) for before, after in seam)
+            best = cand[np.argmin(overlap + 2.0 * np.abs(cum[cand] - target))]
+            bounds.append(int(best))
+        bounds.append(n)
+        ranges = []
+        for e, qs in zip(entries, self.qp_sets):
+            fo, fe = e["force_np"]
+            r = []
+            for v0, v1 in zip(bounds[:-1], bounds[1:]):
+                q = fe[fo[v0]:fo[v1]] // e["k"]
+                r.append((int(q.min()), int(q.max()) + 1) if q.size else (0, 0))
+            ranges.append(r)
+        # the busiest part's points beyond an even share (the seam's cost on the critical path)
+        busiest = max(sum(r[t][1] - r[t][0] for r in ranges) for t in range(len(bounds) - 1))
+        halo = len(bounds) == 2 or busiest - total / (len(bounds) - 1) <= FORCE_SEAM_MAX_POINTS
+        if not halo:
+            ranges = [[(qs.count * c // (len(bounds) - 1), qs.count * (c + 1) // (len(bounds) - 1))
+                       for c in range(len(bounds) - 1)] for qs in self.qp_sets]
+        if len(plans) > 8:
+            plans.clear()
+        plan = plans[key] = (bounds, ranges, halo)
+        return plan
+
+    def _gradient_cpu(self, x, scale, g, acc):
+        """The gradient on the CPU with as few dispatches as the split allows: each thread computes
+        its points' slots, then gathers its range of vertices (``with_abs`` 2: the magnitudes
+        assigned by the first set, no zeroing pass) and adds their squared magnitudes into rows of
+        ``FORCE_ROW_BLOCK`` vertices, all in one dispatch when each part's points are those its
+        vertices gather (a point on the seam is computed by both parts, into the same slots with
+        the same bits); the rows are then added in order. The same bits for any thread count."""
+        from warpfem.threads import get_threads
+
+        fa, dev, n = self._fa, self.ops.device, self.ops.n
+        bounds, ranges, halo = self._force_plan(get_threads())
+        rows = self.__dict__.get("_rows")
+        nrows = -(-n // FORCE_ROW_BLOCK)
+        if rows is None or rows.shape[0] != nrows:
+            rows = self._rows = wp.zeros(nrows, dtype=wp.float64, device=dev)
+        else:
+            rows.zero_()
+        capturing = generic.cpu_capturing(dev)
+        if not capturing:
+            # replayed launches (``RecordedLaunch``: the kernel's entry point called with its
+            # arguments packed once, ~2 us instead of ~20 us per launch), per set of arguments;
+            # structs are packed by value, so their fields are part of the key (as in ``capture_key``)
+            mats = tuple((id(qs.points), int(qs.material.kind), float(qs.material.mu), float(qs.material.lam))
+                         for qs in self.qp_sets)
+            key = (tuple(bounds), halo, id(x), id(g), id(fa), id(rows), id(acc), self.acc_slot, float(scale), mats)
+            cache = self.__dict__.setdefault("_replays", {})
+            entry = cache.get(key)
+            if entry is not None:
+                from warpfem.threads import run_chunks
+
+                for ph in entry[0]:
+                    if len(ph) > 1:
+                        run_chunks(ph)
+                        generic.COUNTERS["split"] += 1
+                    elif ph:
+                        ph[0]()
+                entry[1]()
+                generic.COUNTERS["launches"] += entry[2]
+                return
+        c = self.ops.scalar(-scale)
+        last = len(self.qp_sets) - 1
+        forces, gathers = [], []
+        for t, (v0, v1) in enumerate(zip(bounds[:-1], bounds[1:])):
+            fs, gs = [], []
+            for i, qs in enumerate(self.qp_sets):
+                off, ent, slots = self._gather(qs)["force"]
+                q0, q1 = ranges[i][t]
+                if q1 > q0:
+                    fs.append((FK.qp_force_and_abs_kernel, q1 - q0,
+                               (x, qs.points, qs.material, c, slots, slots, 1, q0)))
+                gs.append((FK.gather_force_kernel, v1 - v0, (off, ent, slots, g, fa, 2 if i == 0 else 1, rows,
+                                                             FORCE_ROW_BLOCK if i == last else 0, v0)))
+            if halo:  # the thread's own points, then its vertices
+                forces.append(fs + gs)
+            else:
+                forces.append(fs)
+                gathers.append(gs)
+        phases = [forces] if halo else [forces, gathers]
+        reduce = (LK.reduce_rows_kernel, 1, [rows, nrows, 1, 1, 0, acc, self.acc_slot + 2])
+        if capturing:  # recorded into the caller's graph, in order
+            launch_phases(phases, dev)
+            launch(*reduce, dev)
+            return
+        # recorded (and run) in this thread, in order; replayed by the next calls with these arguments
+        if len(cache) >= 8:
+            cache.clear()
+        recorded = [[[RecordedLaunch(k, dim, list(args), dev, split=False) for k, dim, args in seq] for seq in ph]
+                    for ph in phases]
+        final = RecordedLaunch(*reduce, dev, split=False)
+        for ph in recorded:
+            for seq in ph:
+                for r in seq:
+                    r()
+        final()
+        counted = sum(max((len(q) for q in ph), default=0) for ph in phases) + 1
+        generic.COUNTERS["launches"] += counted
+        # split launches, though run in order this once: a graph capture of the caller's sequence
+        # would replay them on one thread (``CapturedSequences`` leaves such sequences uncaptured)
+        generic.COUNTERS["split"] += sum(1 for ph in phases if sum(1 for q in ph if q) > 1)
+        cache[key] = ([[_run_in_order(seq) for seq in ph if seq] for ph in recorded], final, counted)
 
     def gradient_magnitude(self, row, scale):
         return float(np.sqrt(row[2]))
@@ -431,6 +606,14 @@ class ElasticForm(Form):
             launch(FK.qp_hessian_kernel, qs.count, [x, qs.points, qs.material, self.ops.scalar(scale), int(project),
                                                     self.pattern.block_indices[getattr(qs, "group", 0)], slots, 1], dev)
             launch(FK.gather_blocks_kernel, off.shape[0] - 1, [off, ent, slots, values], dev)
+
+
+def _run_in_order(seq):
+    def run():
+        for r in seq:
+            r()
+
+    return run
 
 
 def _capture_key(form):

@@ -284,8 +284,9 @@ class StiffnessWarpingSimulator(SimulatorBase):
         self._launch(WK.warped_assembly_kernel, self.num_elements,
                      head + [1, f0s, fels, self._R if blocks is None else blocks[2]])
         n = fo.shape[0] - 1
-        self._launch(FK.gather_force_kernel, n, [fo, fe, f0s, self._f0, self._f0, 0])
-        self._launch(FK.gather_force_kernel, n, [fo, fe, fels, self._fel, self._fel, 0])
+        none = FK.no_rows(self._fel.device)
+        self._launch(FK.gather_force_kernel, n, [fo, fe, f0s, self._f0, self._f0, 0, none, 0])
+        self._launch(FK.gather_force_kernel, n, [fo, fe, fels, self._fel, self._fel, 0, none, 0])
         if blocks is not None:
             self._launch(FK.gather_blocks_kernel, blocks[0].shape[0] - 1, [*blocks, self._k_values])
 
