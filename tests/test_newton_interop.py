@@ -246,8 +246,9 @@ def _tip_height(q: wp.array(dtype=wp.vec3), tip: int, loss: wp.array(dtype=float
 
 
 def test_a_tape_over_solver_fem_steps_gives_warpfem_adjoint_gradients():
-    """wp.Tape over three SolverFEM steps of a clamped bar: d(tip z)/d(initial velocities) from
-    tape.backward equal central differences of untaped runs (eps 0.01 m/s) to 1e-4."""
+    """wp.Tape over three SolverFEM steps of a clamped bar: d(tip z)/d(initial velocities) and
+    d(tip z)/d(the second step's particle_f) from tape.backward equal central differences of
+    untaped runs (eps 0.01 m/s, 0.5 N: the loss is float32) to 1e-4."""
     mesh = wf.box_tet_mesh(size=(0.2, 0.05, 0.05), cells=(2, 1, 1))
     b = newton.ModelBuilder()
     _add_mesh(b, mesh, _material())
@@ -259,9 +260,11 @@ def test_a_tape_over_solver_fem_steps_gives_warpfem_adjoint_gradients():
     tip = int(np.argmax(q0[:, 0] + q0[:, 2]))
     solver = SolverFEM(model, linear_solver="direct", tol=1e-10)
 
-    def run(qd0, tape=None):
+    def run(qd0, tape=None, f1=None):
         states = [model.state(requires_grad=True) for _ in range(4)]
         states[0].particle_qd.assign(qd0)
+        if f1 is not None:
+            states[1].particle_f.assign(f1)
         loss = wp.zeros(1, dtype=float, requires_grad=True)
         with tape or wp.ScopedDevice("cpu"):
             for k in range(3):
@@ -282,6 +285,15 @@ def test_a_tape_over_solver_fem_steps_gives_warpfem_adjoint_gradients():
         fd = (float(run(plus)[1].numpy()[0]) - float(run(minus)[1].numpy()[0])) / 0.02
         assert grad[comp] == pytest.approx(fd, rel=1e-4, abs=1e-7)  # measured 4e-5 relative
     assert np.abs(states[0].particle_q.grad.numpy()).max() > 0.0
+    f_grad = states[1].particle_f.grad.numpy().astype(np.float64)
+    assert f_grad[tip, 2] > 1e-5 and np.all(f_grad[q0[:, 0] < 1e-9] == 0.0)  # clamped particles: no effect
+    f0 = np.zeros((model.particle_count, 3), dtype=np.float32)
+    for comp in (0, 2):
+        plus, minus = f0.copy(), f0.copy()
+        plus[tip, comp] += 0.5
+        minus[tip, comp] -= 0.5
+        fd = (float(run(qd0, f1=plus)[1].numpy()[0]) - float(run(qd0, f1=minus)[1].numpy()[0])) / 1.0
+        assert f_grad[tip, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)  # measured 6e-6 and 3.5e-7
 
 
 def test_a_failed_step_writes_nothing_and_float32_runs():

@@ -675,7 +675,7 @@ class SolverFEM(SolverBase, CouplingInterface):
 
         Raises :class:`warpfem.SolveFailed` (nothing written, warpfem's state as before) when the
         step produced NaN/inf or, with ``require_convergence``, did not converge. On a ``wp.Tape`` the
-        step is differentiable with respect to ``state_in.particle_q`` / ``particle_qd`` (warpfem's
+        step is differentiable with respect to ``state_in.particle_q`` / ``particle_qd`` / ``particle_f`` (warpfem's
         adjoint; docs/newton.md, "Gradients")."""
         del contacts, observables
         from warpfem.solvers.adjoint import active_tape
@@ -774,6 +774,8 @@ class SolverFEM(SolverBase, CouplingInterface):
     def _taped_step(self, state_in, state_out, dt):
         """The step on a ``wp.Tape``: newton's arrays into a new warpfem state and back by Warp
         kernels (taped), the warpfem step in between with its own recorded backward (docs/gradients.md)."""
+        from warpfem.solvers.adjoint import active_tape, tape_adjoint
+
         sim = self.simulator
         dev = sim.device
         if getattr(self, "_tape_maps", None) is None:
@@ -785,13 +787,31 @@ class SolverFEM(SolverBase, CouplingInterface):
                                wp.array(fixed, dtype=wp.int32, device=dev), wp.array(vertex, dtype=wp.int32, device=dev))
             self.tape_states = []
         idx, fixed, vertex = self._tape_maps
-        f64 = sim.precision == "float64"
         wf_in, wf_out = sim.new_state(requires_grad=True), sim.new_state(requires_grad=True)
         wf_in.history.clear()
         wf_out.history.clear()
         wp.launch(_gather, dim=len(self.particles),
                   inputs=[idx, fixed, state_in.particle_q, state_in.particle_qd], outputs=[wf_in.x, wf_in.v], device=dev)
-        self.last_stats = sim.step(wf_in, wf_out, None, dt)
+        tape = active_tape()
+        f_in = getattr(state_in, "particle_f", None)
+        if f_in is not None and f_in.requires_grad:  # d loss / d particle_f: warpfem's "forces" gradient of this step
+            f_wf = wp.zeros_like(wf_in.x, requires_grad=True)
+            wp.launch(_gather, dim=len(self.particles), inputs=[idx, fixed, f_in, f_in],
+                      outputs=[f_wf, wp.zeros_like(wf_in.v)], device=dev)
+            adj, n, before = tape_adjoint(sim), self._n_soft, {}
+
+            def forces_grad():  # runs after the step's backward: what it added to the forces' gradient
+                delta = adj.grads["forces"][:n] - before.pop("forces")
+                f_wf.grad.assign(f_wf.grad.numpy() + delta.astype(f_wf.grad.numpy().dtype))
+
+            def forces_before():  # runs before the step's backward
+                before["forces"] = adj.grads["forces"][:n].copy()
+
+            tape.record_func(forces_grad, [f_wf])
+            self.last_stats = sim.step(wf_in, wf_out, None, dt)
+            tape.record_func(forces_before, [])
+        else:
+            self.last_stats = sim.step(wf_in, wf_out, None, dt)
         wp.launch(_scatter, dim=int(self.model.particle_count),
                   inputs=[vertex, wf_out.x, wf_out.v, state_in.particle_q, state_in.particle_qd],
                   outputs=[state_out.particle_q, state_out.particle_qd], device=dev)
