@@ -649,3 +649,29 @@ def test_newton_viewer_file_records_the_solver_fem_model_and_plays_it_back(tmp_p
         player.load_state(state, frame)
         np.testing.assert_array_equal(state.particle_q.numpy(), q)
     assert logged[2][:, 2].min() < logged[0][:, 2].min() - 1e-3  # it fell
+
+
+def test_proxy_masses_rebuild_solver_fem_and_its_mass_damping_is_no_coupling_force():
+    """A proxy of mass_scale 2 makes SolverFEM's rigid body twice as heavy (notify_model_changed
+    rebuilds it); while the box falls freely (no contact), the harvested coupling force is zero
+    although damping_mass = 10 slows the proxy inside SolverFEM's step (the harvest adds back
+    alpha m v': without it 0.17 of the proxy's weight after 2 steps)."""
+    coupled = pytest.importorskip("newton.solvers.experimental.coupled")
+    Proxy = coupled.SolverCoupledProxy
+    model = _box_on_block()
+    m_box, inertia = float(model.body_mass.numpy()[0]), model.body_inertia.numpy()[0].astype(np.float64)
+    solver = Proxy(model=model, entries=[
+        Proxy.Entry(name="xpbd", solver=lambda v: newton.solvers.SolverXPBD(model=v), bodies=[0], joints=[0]),
+        Proxy.Entry(name="fem", solver=lambda v: SolverFEM(v, damping_mass=10.0, contact={"dhat": 0.002}),
+                    particles=list(range(model.particle_count)))],
+        coupling=Proxy.Config(proxies=[Proxy.Proxy(source="xpbd", destination="fem", bodies=[0], mass_scale=2.0)]))
+    body = solver.solver("fem").warpfem_model.rigid.bodies[0]
+    assert body.mass == pytest.approx(2.0 * m_box, rel=1e-6)
+    assert np.trace(body.second_moment) * np.eye(3) - body.second_moment == pytest.approx(2.0 * inertia, rel=1e-5)
+    s0, s1 = model.state(), model.state()
+    for _ in range(2):
+        s0.clear_forces()
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+    assert np.abs(solver._proxy_mappings[0].coupling_forces.numpy()).max() < 1e-5 * m_box * 9.81
+    assert s0.body_qd.numpy()[0][2] == pytest.approx(-2 * 0.01 * 9.81, rel=1e-5)
