@@ -839,6 +839,27 @@ class SolverFEM(SolverBase, CouplingInterface):
                 out[gid[b], 3:] += alpha * (R @ inertia[b] @ R.T @ qd[b][3:])
         out_body_f.assign(out)
 
+    def tet_material_gradients(self) -> np.ndarray:
+        """(1, 2) d loss / d(k_mu, k_lambda) of the model's ``tet_materials`` (one change to every
+        tetrahedron: one (k_mu, k_lambda) group) from the ``wp.Tape`` backward of the taped steps
+        (warpfem's Young's modulus and Poisson ratio gradients through :func:`lame_to_youngs`;
+        ``simulator.adjoint.zero_grad()`` clears them). Several groups: not supported."""
+        adj = getattr(self.simulator, "adjoint", None)
+        if adj is None:
+            raise NewtonInteropError("SolverFEM.tet_material_gradients: no taped step yet (step on a wp.Tape, "
+                                     "then tape.backward(loss))")
+        if len(self.materials) != 1:
+            raise NewtonInteropError(f"SolverFEM.tet_material_gradients: {len(self.materials)} (k_mu, k_lambda) "
+                                     "groups; only a model of one group is supported")
+        g = adj.parameter_gradients()
+        gE, gn = float(np.ravel(g["youngs_modulus"])[0]), float(np.ravel(g["poisson_ratio"])[0])
+        m = self.materials[0]
+        mu, lam = float(m.mu_lame), float(m.lam_lame)
+        s2 = (lam + mu) ** 2
+        dE = ((3 * lam * lam + 4 * lam * mu + 2 * mu * mu) / s2, mu * mu / s2)  # dE/dmu, dE/dlam
+        dn = (-lam / (2 * s2), mu / (2 * s2))  # dnu/dmu, dnu/dlam
+        return np.array([[gE * dE[0] + gn * dn[0], gE * dE[1] + gn * dn[1]]])
+
     # -- reading back --------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:
         """warpfem's current positions (float64, one row per simulated particle, ``particles`` order)."""
