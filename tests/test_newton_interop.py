@@ -246,8 +246,10 @@ def _tip_height(q: wp.array(dtype=wp.vec3), tip: int, loss: wp.array(dtype=float
 
 
 def test_a_tape_over_solver_fem_steps_gives_warpfem_adjoint_gradients():
-    """wp.Tape over three SolverFEM steps of a clamped bar: d(tip z)/d(initial velocities) from
-    tape.backward equal central differences of untaped runs (eps 0.01 m/s) to 1e-4."""
+    """wp.Tape over three SolverFEM steps of a clamped bar: d(tip z)/d(initial velocities) and
+    d(tip z)/d(the second step's particle_f) from tape.backward equal central differences of
+    untaped runs (eps 0.01 m/s, 0.5 N: the loss is float32) to 1e-4, d(tip z)/d(k_mu, k_lambda)
+    (tet_material_gradients) those of solvers rebuilt on changed tet_materials (2 %) to 1e-3."""
     mesh = wf.box_tet_mesh(size=(0.2, 0.05, 0.05), cells=(2, 1, 1))
     b = newton.ModelBuilder()
     _add_mesh(b, mesh, _material())
@@ -259,9 +261,11 @@ def test_a_tape_over_solver_fem_steps_gives_warpfem_adjoint_gradients():
     tip = int(np.argmax(q0[:, 0] + q0[:, 2]))
     solver = SolverFEM(model, linear_solver="direct", tol=1e-10)
 
-    def run(qd0, tape=None):
+    def run(qd0, tape=None, f1=None):
         states = [model.state(requires_grad=True) for _ in range(4)]
         states[0].particle_qd.assign(qd0)
+        if f1 is not None:
+            states[1].particle_f.assign(f1)
         loss = wp.zeros(1, dtype=float, requires_grad=True)
         with tape or wp.ScopedDevice("cpu"):
             for k in range(3):
@@ -282,6 +286,28 @@ def test_a_tape_over_solver_fem_steps_gives_warpfem_adjoint_gradients():
         fd = (float(run(plus)[1].numpy()[0]) - float(run(minus)[1].numpy()[0])) / 0.02
         assert grad[comp] == pytest.approx(fd, rel=1e-4, abs=1e-7)  # measured 4e-5 relative
     assert np.abs(states[0].particle_q.grad.numpy()).max() > 0.0
+    f_grad = states[1].particle_f.grad.numpy().astype(np.float64)
+    assert f_grad[tip, 2] > 1e-5 and np.all(f_grad[q0[:, 0] < 1e-9] == 0.0)  # clamped particles: no effect
+    f0 = np.zeros((model.particle_count, 3), dtype=np.float32)
+    for comp in (0, 2):
+        plus, minus = f0.copy(), f0.copy()
+        plus[tip, comp] += 0.5
+        minus[tip, comp] -= 0.5
+        fd = (float(run(qd0, f1=plus)[1].numpy()[0]) - float(run(qd0, f1=minus)[1].numpy()[0])) / 1.0
+        assert f_grad[tip, comp] == pytest.approx(fd, rel=1e-4, abs=1e-9)  # measured 6e-6 and 3.5e-7
+    # d(tip z)/d(k_mu, k_lambda) of tet_materials: central differences of rebuilt solvers (2 %)
+    grads = solver.tet_material_gradients()[0]
+    rows = model.tet_materials.numpy().copy()  # (numpy() on the CPU is a view)
+    for k in (0, 1):
+        z = []
+        for h in (0.02, -0.02):
+            changed = rows.copy()
+            changed[:, k] *= 1.0 + h
+            model.tet_materials.assign(changed)
+            other = SolverFEM(model, linear_solver="direct", tol=1e-10)
+            z.append(float(_run(other, model, 3, 0.01).particle_q.numpy()[tip, 2]))
+        model.tet_materials.assign(rows)
+        assert grads[k] == pytest.approx((z[0] - z[1]) / (0.04 * rows[0, k]), rel=1e-3)  # measured 1.4e-4, 3.3e-4
 
 
 def test_a_failed_step_writes_nothing_and_float32_runs():
@@ -472,10 +498,10 @@ def test_a_spinning_newton_body_keeps_its_angular_momentum_and_body_q_round_trip
     com_start = q_start[:3] + _rotation(q_start[3:]) @ com_b
     assert np.allclose(com_w - com_start, 0.5 * qd0[0, :3], atol=1e-6)
     # an edited state is read again: stopped by hand, it stays put
-    n = solver.resyncs
+    n, nb = solver.resyncs, solver.body_reads
     end.body_qd.assign(np.zeros((1, 6), dtype=np.float32))
     after = _run(solver, model, 2, 1.0 / 120.0, start=end)
-    assert solver.resyncs == n + 1
+    assert solver.resyncs == n and solver.body_reads == nb + 1  # the body alone is read again
     assert np.allclose(after.body_q.numpy()[0], q, atol=1e-6)
 
 
@@ -557,3 +583,109 @@ def test_a_soft_grid_dropped_onto_a_newton_box_on_the_ground_never_intersects_it
         assert not ipctk.has_intersections(cm, np.asfortranarray(np.vstack([q, Vb])))
     q = s0.particle_q.numpy()
     assert 0.1 < q[:, 2].min() < 0.105 and np.abs(s0.particle_qd.numpy()).max() < 0.05  # landed on the top
+
+
+def test_a_box_moved_by_newtons_xpbd_rests_on_a_solver_fem_block_through_the_proxy_coupler():
+    """SolverCoupledProxy (staggered) with SolverXPBD moving the box and SolverFEM the block: the
+    box is SolverFEM's proxy body (moved inside its implicit solve, rigid_bodies chosen from the
+    PROXY flag). Each step the block's momentum changes by exactly the ground's impulse, its weight
+    and minus the coupling impulse the coupler harvests (what XPBD receives next step); the box
+    comes to rest on its weight: the coupling force equals m g and the ground carries box + block
+    within 2 % (measured 2e-4 and 5e-5), and it rests g dt^2 below the monolithic SolverFEM
+    (rigid_bodies=True) rest height (the staggered coupler places the proxy at XPBD's end pose and
+    the destination step lifts it by the contact impulse), within 1e-5 m (measured 4e-6)."""
+    coupled = pytest.importorskip("newton.solvers.experimental.coupled")
+    Proxy = coupled.SolverCoupledProxy
+    model, dt, contact = _box_on_block(), 0.01, {"dhat": 0.002}
+    solver = Proxy(model=model, entries=[
+        Proxy.Entry(name="xpbd", solver=lambda v: newton.solvers.SolverXPBD(model=v), bodies=[0], joints=[0]),
+        Proxy.Entry(name="fem", solver=lambda v: SolverFEM(v, contact=contact), particles=list(range(model.particle_count)))],
+        coupling=Proxy.Config(proxies=[Proxy.Proxy(source="xpbd", destination="fem", bodies=[0], mode="staggered")]))
+    fem, feedback = solver.solver("fem"), solver._proxy_mappings[0].coupling_forces
+    assert fem.rigid_bodies == [0]
+    g = -float(model.gravity.numpy().reshape(-1, 3)[0, 2])
+    m_box, m = float(model.body_mass.numpy()[0]), model.particle_mass.numpy().astype(np.float64)
+    s0, s1, control = model.state(), model.state(), model.control()
+    residual, largest = 0.0, 0.0
+    for _ in range(20):
+        p_before = (m[:, None] * s0.particle_qd.numpy()).sum(axis=0)
+        s0.clear_forces()
+        solver.step(s0, s1, control, None, dt)
+        s0, s1 = s1, s0
+        F = feedback.numpy()[0, :3].astype(np.float64)
+        ground = fem.contact_forces().sum(axis=0)
+        dp = (m[:, None] * s0.particle_qd.numpy()).sum(axis=0) - p_before
+        expected = (ground - F + np.array([0.0, 0.0, -m.sum() * g])) * dt
+        residual, largest = max(residual, np.abs(dp - expected).max()), max(largest, np.abs(F).max() * dt)
+    assert fem.resyncs == 1 and fem.body_reads == 19  # the particles stay warpfem's, the proxy box is re-read
+    assert largest > 0.02 and residual < 1e-5 * largest
+    qd = s0.body_qd.numpy()[0]
+    assert np.linalg.norm(qd[:3]) < 1e-3 and np.linalg.norm(qd[3:]) * 0.07 < 1e-3
+    assert F[2] == pytest.approx(m_box * g, rel=0.02) and np.abs(F[:2]).max() < 0.02 * m_box * g
+    assert ground[2] == pytest.approx((m_box + m.sum()) * g, rel=0.02)
+    alone_model = _box_on_block()
+    alone = _run(SolverFEM(alone_model, rigid_bodies=True, damping_mass=10.0, contact=contact), alone_model, 40, dt)
+    z, z_alone = float(s0.body_q.numpy()[0, 2]), float(alone.body_q.numpy()[0, 2])
+    assert z == pytest.approx(z_alone - g * dt * dt, abs=1e-5)
+
+
+def test_newton_viewer_file_records_the_solver_fem_model_and_plays_it_back(tmp_path):
+    """newton's ViewerFile records a SolverFEM-stepped model; a second ViewerFile loads the
+    recording into an empty newton Model and its states carry the same particle positions
+    (bit-identical) and the same tetrahedra."""
+    viewer_mod = pytest.importorskip("newton.viewer")
+    b = newton.ModelBuilder()
+    b.add_ground_plane()
+    _add_mesh(b, wf.box_tet_mesh(size=(0.2, 0.1, 0.1), cells=(2, 1, 1)), _material(), pos=(0.0, 0.0, 0.05))
+    model = b.finalize(device="cpu")
+    path = str(tmp_path / "fem.json")
+    viewer = viewer_mod.ViewerFile(path, auto_save=False)
+    viewer.set_model(model)
+    solver = SolverFEM(model)
+    s0, s1 = model.state(), model.state()
+    logged = []
+    for frame in range(3):
+        viewer.begin_frame(frame / 60.0)
+        viewer.log_state(s0)
+        viewer.end_frame()
+        logged.append(s0.particle_q.numpy().copy())
+        solver.step(s0, s1, model.control(), None, 1.0 / 60.0)
+        s0, s1 = s1, s0
+    viewer.close()
+    player = viewer_mod.ViewerFile(path)
+    player.load_recording()
+    assert player.get_frame_count() == 3
+    replay = newton.Model(device="cpu")
+    player.load_model(replay)
+    np.testing.assert_array_equal(replay.tet_indices.numpy(), model.tet_indices.numpy())
+    state = replay.state()
+    for frame, q in enumerate(logged):
+        player.load_state(state, frame)
+        np.testing.assert_array_equal(state.particle_q.numpy(), q)
+    assert logged[2][:, 2].min() < logged[0][:, 2].min() - 1e-3  # it fell
+
+
+def test_proxy_masses_rebuild_solver_fem_and_its_mass_damping_is_no_coupling_force():
+    """A proxy of mass_scale 2 makes SolverFEM's rigid body twice as heavy (notify_model_changed
+    rebuilds it); while the box falls freely (no contact), the harvested coupling force is zero
+    although damping_mass = 10 slows the proxy inside SolverFEM's step (the harvest adds back
+    alpha m v': without it 0.17 of the proxy's weight after 2 steps)."""
+    coupled = pytest.importorskip("newton.solvers.experimental.coupled")
+    Proxy = coupled.SolverCoupledProxy
+    model = _box_on_block()
+    m_box, inertia = float(model.body_mass.numpy()[0]), model.body_inertia.numpy()[0].astype(np.float64)
+    solver = Proxy(model=model, entries=[
+        Proxy.Entry(name="xpbd", solver=lambda v: newton.solvers.SolverXPBD(model=v), bodies=[0], joints=[0]),
+        Proxy.Entry(name="fem", solver=lambda v: SolverFEM(v, damping_mass=10.0, contact={"dhat": 0.002}),
+                    particles=list(range(model.particle_count)))],
+        coupling=Proxy.Config(proxies=[Proxy.Proxy(source="xpbd", destination="fem", bodies=[0], mass_scale=2.0)]))
+    body = solver.solver("fem").warpfem_model.rigid.bodies[0]
+    assert body.mass == pytest.approx(2.0 * m_box, rel=1e-6)
+    assert np.trace(body.second_moment) * np.eye(3) - body.second_moment == pytest.approx(2.0 * inertia, rel=1e-5)
+    s0, s1 = model.state(), model.state()
+    for _ in range(2):
+        s0.clear_forces()
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+    assert np.abs(solver._proxy_mappings[0].coupling_forces.numpy()).max() < 1e-5 * m_box * 9.81
+    assert s0.body_qd.numpy()[0][2] == pytest.approx(-2 * 0.01 * 9.81, rel=1e-5)

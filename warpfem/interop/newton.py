@@ -207,7 +207,8 @@ class SolverFEM(SolverBase, CouplingInterface):
         shapes: which shapes become colliders: "all" (default: every shape with
             ``ShapeFlags.COLLIDE_PARTICLES``), "static" (those of them on no body: the ground, fixed
             obstacles; in a coupled scene the rigid solver handles the moving ones) or a list of shape indices.
-        rigid_bodies: None (default: bodies are not SolverFEM's), True (every dynamic body of mass > 0) or a
+        rigid_bodies: None (default: none, except the proxy bodies a ``SolverCoupledProxy`` gives this solver
+            to move: those flagged ``BodyFlags.PROXY``), False (none), True (every dynamic body of mass > 0) or a
             list of newton body indices: free bodies stepped as warpfem rigid (affine) bodies in the
             same implicit solve as the tetrahedra (docs/newton.md, "Rigid bodies"): their box, sphere
             and triangle-mesh shapes make their surface, newton's ``body_mass``, ``body_com`` and
@@ -223,6 +224,8 @@ class SolverFEM(SolverBase, CouplingInterface):
         particles: the newton particle index of each of its vertices.
         materials: one warpfem material per (k_mu, k_lambda) group.
         resyncs: how many steps read ``state_in`` again.
+        body_reads: how many steps read only the rigid bodies of ``state_in`` again (their ``body_q`` /
+            ``body_qd`` changed, the particles did not: a coupler syncing its proxy bodies).
         last_stats: the last step's :class:`~warpfem.SolveStats`.
         last_particle_force: the sum (N) of the ``particle_f`` the last step applied to the simulated
             particles (in a coupled scene: the coupling forces).
@@ -239,6 +242,12 @@ class SolverFEM(SolverBase, CouplingInterface):
                  unsupported_shapes="error", shapes="all", rigid_bodies=None, rigid_stiffness=1e8,
                  linear_solver="auto", linear_solver_options=None, require_convergence=False, **newton_options):
         super().__init__(model)
+        self._options = dict(precision=precision, integrator=integrator, material=material, damping_mass=damping_mass,
+                             damping_stiffness=damping_stiffness, friction=friction, contact=contact,
+                             soft_contact=soft_contact, unsupported_shapes=unsupported_shapes, shapes=shapes,
+                             rigid_bodies=rigid_bodies, rigid_stiffness=rigid_stiffness, linear_solver=linear_solver,
+                             linear_solver_options=linear_solver_options, require_convergence=require_convergence,
+                             **newton_options)
         self.rigid_bodies = self._rigid_selection(model, rigid_bodies)
         self.rigid_surface_properties, self._rigid_frames = {}, []
         if unsupported_shapes not in ("error", "ignore"):
@@ -289,6 +298,8 @@ class SolverFEM(SolverBase, CouplingInterface):
             from warpfem.model import Body
 
             rigid = [self._rigid_body(model, b, rigid_stiffness) for b in self.rigid_bodies]
+            rb = self.rigid_bodies
+            self._inertial = [_np(model.body_mass)[rb], _np(model.body_inertia)[rb], _np(model.body_com)[rb]]
             wf = Model.from_bodies([Body(mesh, self.materials[0], name="newton tetrahedra")] + rigid,
                                    gravity=self._gravity(model))
         else:
@@ -332,6 +343,7 @@ class SolverFEM(SolverBase, CouplingInterface):
         self._forces_on = False
         self._last_q = self._last_qd = None
         self.resyncs = 0
+        self.body_reads = 0
         self.last_stats = None
         self._setup_colliders(model)
         if self.rigid_bodies:  # the rigid bodies touch the soft ones (and each other) through warpfem's contact
@@ -415,12 +427,17 @@ class SolverFEM(SolverBase, CouplingInterface):
     def _rigid_selection(model, rigid_bodies):
         """The newton body indices stepped as warpfem rigid bodies: None/False (none), True (every
         body of mass > 0) or a list; each must be free (a FREE joint or none) and have mass > 0."""
-        if rigid_bodies is None or rigid_bodies is False:
+        if rigid_bodies is False:
             return []
         n = int(getattr(model, "body_count", 0) or 0)
         mass = _np(model.body_mass) if n else np.zeros(0)
-        flags = _np(getattr(model, "body_flags", None))
+        flags = _np(getattr(model, "body_flags", None)) if n else None
         kinematic = int(getattr(getattr(newton, "BodyFlags", None), "KINEMATIC", 0) or 0)
+        proxy = int(getattr(getattr(newton, "BodyFlags", None), "PROXY", 0) or 0)
+        if rigid_bodies is None:  # a coupler's proxy bodies (SolverCoupledProxy: this solver moves them)
+            if flags is None or not proxy:
+                return []
+            rigid_bodies = [b for b in range(n) if int(flags[b]) & proxy]
         if rigid_bodies is True:  # the dynamic ones (kinematic bodies stay colliders)
             chosen = [b for b in range(n) if mass[b] > 0.0 and not (flags is not None and int(flags[b]) & kinematic)]
         elif not isinstance(rigid_bodies, str) and all(isinstance(b, (int, np.integer)) for b in rigid_bodies):
@@ -605,10 +622,38 @@ class SolverFEM(SolverBase, CouplingInterface):
 
     # -- the step ----------------------------------------------------------------------------------
     def notify_model_changed(self, flags):
-        """Gravity (``ModelFlags.MODEL_PROPERTIES``) is read again; other changes need a new solver."""
+        """Gravity (``ModelFlags.MODEL_PROPERTIES``) is read again; with ``rigid_bodies``, new
+        ``body_mass`` / ``body_inertia`` / ``body_com`` (``ModelFlags.BODY_INERTIAL_PROPERTIES``: a
+        coupler's proxy masses) rebuild the warpfem model, keeping its state. Other changes need a new solver."""
+        if self.rigid_bodies and int(flags) & int(newton.ModelFlags.BODY_INERTIAL_PROPERTIES):
+            rb = self.rigid_bodies
+            now = [_np(self.model.body_mass)[rb], _np(self.model.body_inertia)[rb], _np(self.model.body_com)[rb]]
+            if any(not np.array_equal(a, b) for a, b in zip(now, self._inertial)):
+                self._rebuild()
         if int(flags) & int(newton.ModelFlags.MODEL_PROPERTIES):
             self.warpfem_model.gravity = self._gravity(self.model)
             self.simulator.sync_model()
+
+    def _rebuild(self):
+        """A new warpfem model and simulator from ``self.model`` (its masses changed), continuing
+        from the current positions and velocities (the integrator's history restarts)."""
+        x, v = self.simulator.positions(), self.simulator.velocities()
+        last = (self._last_q, self._last_qd, self._last_body, self.resyncs, self.body_reads)
+        SolverFEM.__init__(self, self.model, **self._options)
+        self.simulator.set_positions(x)
+        self.simulator.set_velocities(v)
+        self._last_q, self._last_qd, self._last_body, self.resyncs, self.body_reads = last
+
+    def _sync_bodies(self, body):
+        """Read only the rigid bodies of a newton state (``body`` = (body_q, body_qd)): the soft
+        particles keep warpfem's own state (a coupler moving its proxy bodies between steps)."""
+        n = self._n_soft
+        xr, vr = self._rigid_nodes(*body)
+        x, v = self.simulator.positions(), self.simulator.velocities()
+        x[n:], v[n:] = xr, vr
+        self.simulator.set_positions(x)
+        self.simulator.set_velocities(v)
+        self.body_reads += 1
 
     def _sync_from(self, q, qd, body=None):
         """Read the simulated particles (and rigid bodies: ``body`` = (body_q, body_qd)) of a newton
@@ -630,7 +675,7 @@ class SolverFEM(SolverBase, CouplingInterface):
 
         Raises :class:`warpfem.SolveFailed` (nothing written, warpfem's state as before) when the
         step produced NaN/inf or, with ``require_convergence``, did not converge. On a ``wp.Tape`` the
-        step is differentiable with respect to ``state_in.particle_q`` / ``particle_qd`` (warpfem's
+        step is differentiable with respect to ``state_in.particle_q`` / ``particle_qd`` / ``particle_f`` (warpfem's
         adjoint; docs/newton.md, "Gradients")."""
         del contacts, observables
         from warpfem.solvers.adjoint import active_tape
@@ -655,11 +700,14 @@ class SolverFEM(SolverBase, CouplingInterface):
                                                     and np.array_equal(body[1][rb], self._last_body[1]))
         else:
             moved = False
-        if (moved or self._last_q is None or not np.array_equal(q[free], self._last_q[free])
+        if (self._last_q is None or not np.array_equal(q[free], self._last_q[free])
                 or not np.array_equal(qd[free], self._last_qd[free])):
             self._sync_from(q, qd, body)
-        elif len(self._fixed) and not np.array_equal(q[self._fixed], self._last_q[self._fixed]):
-            sim.set_targets(self._fixed, q[self._fixed].astype(np.float64))  # kinematic particles moved
+        else:
+            if moved:
+                self._sync_bodies(body)
+            if len(self._fixed) and not np.array_equal(q[self._fixed], self._last_q[self._fixed]):
+                sim.set_targets(self._fixed, q[self._fixed].astype(np.float64))  # kinematic particles moved
         # external forces: state_in.particle_f
         f_all = state_in.particle_f.numpy() if state_in.particle_f is not None else None
         f = None if f_all is None else f_all[idx]
@@ -726,6 +774,8 @@ class SolverFEM(SolverBase, CouplingInterface):
     def _taped_step(self, state_in, state_out, dt):
         """The step on a ``wp.Tape``: newton's arrays into a new warpfem state and back by Warp
         kernels (taped), the warpfem step in between with its own recorded backward (docs/gradients.md)."""
+        from warpfem.solvers.adjoint import active_tape, tape_adjoint
+
         sim = self.simulator
         dev = sim.device
         if getattr(self, "_tape_maps", None) is None:
@@ -737,18 +787,78 @@ class SolverFEM(SolverBase, CouplingInterface):
                                wp.array(fixed, dtype=wp.int32, device=dev), wp.array(vertex, dtype=wp.int32, device=dev))
             self.tape_states = []
         idx, fixed, vertex = self._tape_maps
-        f64 = sim.precision == "float64"
         wf_in, wf_out = sim.new_state(requires_grad=True), sim.new_state(requires_grad=True)
         wf_in.history.clear()
         wf_out.history.clear()
         wp.launch(_gather, dim=len(self.particles),
                   inputs=[idx, fixed, state_in.particle_q, state_in.particle_qd], outputs=[wf_in.x, wf_in.v], device=dev)
-        self.last_stats = sim.step(wf_in, wf_out, None, dt)
+        tape = active_tape()
+        f_in = getattr(state_in, "particle_f", None)
+        if f_in is not None and f_in.requires_grad:  # d loss / d particle_f: warpfem's "forces" gradient of this step
+            f_wf = wp.zeros_like(wf_in.x, requires_grad=True)
+            wp.launch(_gather, dim=len(self.particles), inputs=[idx, fixed, f_in, f_in],
+                      outputs=[f_wf, wp.zeros_like(wf_in.v)], device=dev)
+            adj, n, before = tape_adjoint(sim), self._n_soft, {}
+
+            def forces_grad():  # runs after the step's backward: what it added to the forces' gradient
+                delta = adj.grads["forces"][:n] - before.pop("forces")
+                f_wf.grad.assign(f_wf.grad.numpy() + delta.astype(f_wf.grad.numpy().dtype))
+
+            def forces_before():  # runs before the step's backward
+                before["forces"] = adj.grads["forces"][:n].copy()
+
+            tape.record_func(forces_grad, [f_wf])
+            self.last_stats = sim.step(wf_in, wf_out, None, dt)
+            tape.record_func(forces_before, [])
+        else:
+            self.last_stats = sim.step(wf_in, wf_out, None, dt)
         wp.launch(_scatter, dim=int(self.model.particle_count),
                   inputs=[vertex, wf_out.x, wf_out.v, state_in.particle_q, state_in.particle_qd],
                   outputs=[state_out.particle_q, state_out.particle_qd], device=dev)
         self.tape_states.append((wf_in, wf_out))  # alive as long as the tape may need them
         self._last_q = self._last_qd = None  # the next untaped step reads state_out again
+
+    def coupling_harvest_proxy_wrenches(self, body_local_to_proxy_global, out_body_f, *, body_qd_before, state,
+                                        state_out, contacts, dt):
+        """The coupler's feedback on its proxy bodies: newton's momentum change m (v' - v) / dt and
+        R I R^T (w' - w) / dt, plus what ``damping_mass`` took from them (alpha m v', alpha R I R^T w':
+        warpfem's mass damping acts on the rigid bodies too and is not a contact force)."""
+        super().coupling_harvest_proxy_wrenches(body_local_to_proxy_global, out_body_f, body_qd_before=body_qd_before,
+                                                state=state, state_out=state_out, contacts=contacts, dt=dt)
+        alpha = float(self.simulator.damping_mass)
+        if alpha == 0.0 or not self.rigid_bodies:
+            return
+        gid = _np(body_local_to_proxy_global)
+        qd, q = state_out.body_qd.numpy(), state_out.body_q.numpy()
+        mass, inertia = _np(self.model.body_mass), _np(self.model.body_inertia)
+        out = out_body_f.numpy()
+        for b in self.rigid_bodies:
+            if b < len(gid) and gid[b] >= 0:
+                R = _rotation(q[b][3:7])
+                out[gid[b], :3] += alpha * mass[b] * qd[b][:3]
+                out[gid[b], 3:] += alpha * (R @ inertia[b] @ R.T @ qd[b][3:])
+        out_body_f.assign(out)
+
+    def tet_material_gradients(self) -> np.ndarray:
+        """(1, 2) d loss / d(k_mu, k_lambda) of the model's ``tet_materials`` (one change to every
+        tetrahedron: one (k_mu, k_lambda) group) from the ``wp.Tape`` backward of the taped steps
+        (warpfem's Young's modulus and Poisson ratio gradients through :func:`lame_to_youngs`;
+        ``simulator.adjoint.zero_grad()`` clears them). Several groups: not supported."""
+        adj = getattr(self.simulator, "adjoint", None)
+        if adj is None:
+            raise NewtonInteropError("SolverFEM.tet_material_gradients: no taped step yet (step on a wp.Tape, "
+                                     "then tape.backward(loss))")
+        if len(self.materials) != 1:
+            raise NewtonInteropError(f"SolverFEM.tet_material_gradients: {len(self.materials)} (k_mu, k_lambda) "
+                                     "groups; only a model of one group is supported")
+        g = adj.parameter_gradients()
+        gE, gn = float(np.ravel(g["youngs_modulus"])[0]), float(np.ravel(g["poisson_ratio"])[0])
+        m = self.materials[0]
+        mu, lam = float(m.mu_lame), float(m.lam_lame)
+        s2 = (lam + mu) ** 2
+        dE = ((3 * lam * lam + 4 * lam * mu + 2 * mu * mu) / s2, mu * mu / s2)  # dE/dmu, dE/dlam
+        dn = (-lam / (2 * s2), mu / (2 * s2))  # dnu/dmu, dnu/dlam
+        return np.array([[gE * dE[0] + gn * dn[0], gE * dE[1] + gn * dn[1]]])
 
     # -- reading back --------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:
