@@ -112,6 +112,8 @@ class Simulator(SimulatorBase):
         if not (np.isfinite(friction_tol) and friction_tol > 0.0):
             raise ValueError(f"friction_tol must be > 0, got {friction_tol!r}")
         self.friction_iterations, self.friction_tol = int(friction_iterations), float(friction_tol)
+        # experimental knobs of the friction lag (measured in kernels_bench/bench_contact_cost.py)
+        self.friction_predict, self.friction_keep_tol = "start", 0.0
         self.integrator = make_integrator(integrator)
         self.options = newton_options_from(newton_options)
         # max_iters not given: the default, raised to what the potential's forms ask for (contact),
@@ -574,8 +576,11 @@ class Simulator(SimulatorBase):
             pot.begin_adaptive(y)
         # the forms' lagged quantities (friction) taken again inside the solve, near its solution
         lags = any(f.uses_lagging() for f in pot.forms)
-        pot.set_lag_updates(self.friction_iterations if lags and not self._differentiating() else 0,
-                            self.friction_tol)
+        iterate = lags and not self._differentiating()
+        if iterate and getattr(self, "friction_predict", "start") == "guess":
+            pot.predict_lagging(y)
+        pot.set_lag_updates(self.friction_iterations if iterate else 0, self.friction_tol,
+                            getattr(self, "friction_keep_tol", 0.0) if iterate else 0.0)
         pot.time_step = float(dt)  # the step test's h (NewtonOptions.step_tol)
         stats = newton_solve(pot, y, self.options)
         stats.friction_iterations = pot.lag_updates

@@ -690,16 +690,29 @@ class SurfaceContact:
     def lag(self, x):
         """Friction's normal forces, closest points and normals from the positions x (pairs
         within dhat among the current candidates)."""
-        self.num_friction = 0
+        self.lag_candidate(x)
+        self.commit_lag()
+
+    def lag_candidate(self, x) -> np.ndarray:
+        """The lag of :meth:`lag` taken at x into the pairs' work arrays, not yet used
+        (:meth:`commit_lag`); returns the normal forces of the pairs it would lag."""
+        self._cand = None
         if self.friction <= 0.0 or self.num_pairs == 0:
-            return
+            return np.zeros(0)
         self._flam.zero_()
         self.run(SK.MODE_LAG, x)
         lam = read(self._flam, self.num_pairs)
         keep = np.nonzero(lam > 0.0)[0]
-        self.num_friction = len(keep)
-        if not len(keep):
+        self._cand = keep
+        return lam[keep].astype(np.float64)
+
+    def commit_lag(self):
+        """The candidate of :meth:`lag_candidate` becomes the lag (compacted: host, once)."""
+        keep, self._cand = getattr(self, "_cand", None), None
+        self.num_friction = 0
+        if keep is None or not len(keep):
             return
+        self.num_friction = len(keep)
         # the lagged pairs, compacted (host: once per step)
         quads = self.pairs_np[keep]
         self._f_pairs_np = quads

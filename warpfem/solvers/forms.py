@@ -787,14 +787,26 @@ class IncrementalPotential:
             changed = f.begin_stiffness(self, y, g_rest) or changed
         return changed
 
-    def set_lag_updates(self, count, tol):
+    def set_lag_updates(self, count, tol, keep_below=0.0):
         """Lagged quantities (friction's normal forces and normals) taken again from the iterate
         after each of the first ``count`` accepted Newton iterations of the coming solve, by the
         forms that lag (``uses_lagging()``, ``update_lagging(x) -> (change, scale)``, None when they
         lag nothing), while the
-        change is above ``tol`` x scale (:attr:`lag_updates` counts them)."""
+        change is above ``tol`` x scale (:attr:`lag_updates` counts them). ``keep_below`` > 0: an
+        update whose change is at most ``keep_below`` x scale is not made (the lag is consistent
+        to that tolerance; the form makes no further update in the solve)."""
         self._lag_count, self._lag_tol, self.lag_updates = int(count), float(tol), 0
+        self._lag_keep = float(keep_below)
         self._lag_left = {}  # per form: updates it may still make in this solve
+
+    def predict_lagging(self, y):
+        """The lagging forms' ``predict_lagging(x)`` at the step's start iterate y (its feasible
+        initial guess): their lag taken there instead of at the step's start."""
+        forms = [f for f in self.forms if f.uses_lagging() and hasattr(f, "predict_lagging")]
+        if forms:
+            x = self._x_of(y)
+            for f in forms:
+                f.predict_lagging(x)
 
     def after_iteration(self, y, alpha=1.0, residual=0.0) -> bool:
         """After an accepted Newton iteration of step length alpha (``newton_solve``'s hook): the
@@ -815,9 +827,14 @@ class IncrementalPotential:
         for f in forms:
             changed = f.after_iteration(x, alpha) or changed
         updated = False
+        keep = getattr(self, "_lag_keep", 0.0)
         for f in lagging:
             left[id(f)] -= 1
-            r = f.update_lagging(x)
+            r = f.update_lagging(x, keep_below=keep) if keep > 0.0 else f.update_lagging(x)
+            if r is not None and len(r) > 2 and not r[2]:  # kept as it was: consistent to keep_below
+                left[id(f)] = 0
+                self.lag_kept = getattr(self, "lag_kept", 0) + 1
+                continue
             if r is not None:
                 updated = True
                 if r[0] <= self._lag_tol * r[1]:  # consistent: no further updates of this form in this solve
