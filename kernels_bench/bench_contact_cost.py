@@ -112,18 +112,11 @@ CONFIGS: dict[str, dict] = {
     "after_no_extrapolation": {"extrapolate": False},
     # the working tree with the Newton step test on (NewtonOptions.step_tol, off by default)
     "after_step_tol": {"step_tol": 1e-3},
-    "keep01": {"friction_keep_tol": 0.01},
-    "keep05": {"friction_keep_tol": 0.05},
-    "keep10": {"friction_keep_tol": 0.1},
-    "keep25": {"friction_keep_tol": 0.25},
-    "keep50": {"friction_keep_tol": 0.5},
-    "keep75": {"friction_keep_tol": 0.75},
-    "guess": {"friction_predict": "guess"},
-    "guess_keep01": {"friction_predict": "guess", "friction_keep_tol": 0.01},
-    "guess_keep05": {"friction_predict": "guess", "friction_keep_tol": 0.05},
-    "guess_keep10": {"friction_predict": "guess", "friction_keep_tol": 0.1},
-    "guess_keep25": {"friction_predict": "guess", "friction_keep_tol": 0.25},
-    "once": {"friction_iterations": 0},
+    # friction's lag update inside the solve made whenever the lag changes (friction_update_tol 0: the
+    # default before friction_update_tol), made only above 50 % of the largest normal force, never
+    "update_always": {"friction_update_tol": 0.0},
+    "update_50": {"friction_update_tol": 0.5},
+    "lag_once": {"friction_iterations": 0},
 }
 
 #: where the example scenes are read: this tree's, or in a worker the extracted revision's

@@ -448,13 +448,6 @@ class LaggedFrictionForm(Form):
         c.commit_lag()
         return change, scale
 
-    def predict_lagging(self, x):
-        """Friction lagged at the step's predicted positions x (its feasible initial guess) instead
-        of its start: a contact the step will make is lagged with a normal force from the start."""
-        if self.uses_lagging():
-            self.contact.lag_candidate(x)
-            self.contact.commit_lag()
-
 
 class ContactForm(LaggedFrictionForm):
     """Barrier + lagged friction of a :class:`ContactSet`, as a form of the positions x = x_b + s y

@@ -259,10 +259,6 @@ class EmbeddedForm(Form):
     def update_lagging(self, x, **kw):
         return self.inner.update_lagging(self._map(x, self._xv), **kw)
 
-    def predict_lagging(self, x):
-        if hasattr(self.inner, "predict_lagging"):
-            self.inner.predict_lagging(self._map(x, self._xv))
-
     def state_dict(self):
         return self.inner.state_dict()
 
