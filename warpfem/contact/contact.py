@@ -440,7 +440,8 @@ class LaggedFrictionForm(Form):
             return None
         c = self.contact
         before = c.normal_forces()
-        change, scale = lagged_change(before, c.lag_candidate(x))
+        after = c.lag_candidate(x)
+        change, scale = (c.lag_change(before, after) if hasattr(c, "lag_change") else lagged_change(before, after))
         if change == 0.0:
             return None  # nothing changed (e.g. no contact)
         if change <= keep_below * scale:
