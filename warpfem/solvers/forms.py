@@ -156,6 +156,12 @@ class InfeasibleStart(ValueError):
         self.reason = reason
 
 
+#: a form that kept its lag (``keep_below``) in a solve not converged this many accepted iterations
+#: later makes the update after all (measured: a float32 step of the ``ball_bowl`` scene cycled
+#: between two iterates near its solution for 96 iterations on its kept lag)
+LAG_KEPT_STALL = 8
+
+
 def _takes_keep_below(form) -> bool:
     """Whether the form's ``update_lagging`` takes ``keep_below`` (a form written before it did
     not: it always updates)."""
@@ -815,6 +821,7 @@ class IncrementalPotential:
         counts them)."""
         self._lag_count, self._lag_tol, self.lag_updates = int(count), float(tol), 0
         self._lag_keep, self.lags_kept = float(keep_below), 0
+        self._lag_iter, self._lag_kept_at = 0, {}  # accepted iterations; per form: the one that kept its lag
         self._lag_left = {}  # per form: updates it may still make in this solve
 
     def after_iteration(self, y, alpha=1.0, residual=0.0) -> bool:
@@ -826,8 +833,14 @@ class IncrementalPotential:
         # lag again only from an iterate the full Newton step reached (the quadratic model held there:
         # near the solution); a shortened step (the collision bound, the line search) may be far off
         left = getattr(self, "_lag_left", {})
+        kept_at = getattr(self, "_lag_kept_at", {})
+        self._lag_iter = it = getattr(self, "_lag_iter", 0) + 1
+        # a form that kept its lag (friction_update_tol) in a solve that has not converged
+        # LAG_KEPT_STALL iterations later makes the update after all (a solve stalled on the
+        # kept potential, e.g. float32 iterates cycling near the solution, goes on with it)
+        stalled = [f for f in self.forms if id(f) in kept_at and it - kept_at[id(f)] >= LAG_KEPT_STALL]
         lagging = ([f for f in self.forms if f.uses_lagging() and residual <= f.lag_below
-                    and left.setdefault(id(f), self._lag_count) > 0]
+                    and (left.setdefault(id(f), self._lag_count) > 0 or f in stalled)]
                    if getattr(self, "_lag_count", 0) > 0 and alpha >= 1.0 else [])
         if not forms and not lagging:  # nothing adapts (a fixed barrier stiffness) or lags: no work
             return False
@@ -838,10 +851,15 @@ class IncrementalPotential:
         updated = False
         keep = getattr(self, "_lag_keep", 0.0)
         for f in lagging:
-            left[id(f)] -= 1
-            r = f.update_lagging(x, keep_below=keep) if keep > 0.0 and _takes_keep_below(f) else f.update_lagging(x)
+            forced = kept_at.pop(id(f), None) is not None
+            left[id(f)] = max(left[id(f)] - 1, 0)
+            if keep > 0.0 and not forced and _takes_keep_below(f):
+                r = f.update_lagging(x, keep_below=keep)
+            else:
+                r = f.update_lagging(x)
             if r is not None and len(r) > 2 and not r[2]:  # kept as it was: consistent to keep_below
                 left[id(f)] = 0
+                kept_at[id(f)] = it
                 self.lags_kept += 1
                 continue
             if r is not None:
