@@ -401,7 +401,8 @@ class LaggedFrictionForm(Form):
     """What the collider and the surface contact forms share: the step's x_b and s, and the
     displacement base x_b - x_n of lagged friction (x - x_n = (x_b - x_n) + s y); friction's
     lagging taken again from a step's end (``update_lagging``). ``contact`` has ``ops``,
-    ``step_start`` (x_n), ``has_friction()``, ``relag(x)`` and ``normal_forces()``."""
+    ``step_start`` (x_n), ``has_friction()``, ``normal_forces()``, ``lag_candidate(x)`` and
+    ``commit_lag()`` (optionally ``lag_change(before, after)``: the change of a candidate lag)."""
 
     variable = "x"
     #: impacts take tens of Newton iterations (the default 30 stopped 9 of 48 frames of a scan dropped
