@@ -42,8 +42,8 @@ the code of e18de72 (the last commit before the friction solver changes: no stic
 step, friction re-solves), "after", the working tree, "after_no_filter", the working tree with
 ``friction_filter=False``, "after_no_extrapolation" with ``extrapolate=False``, "after_step_tol" with the
 Newton step test ``step_tol=1e-3`` (body diagonals per second), "update_always" with friction's lag
-updated inside the solve in every step (``friction_update_tol=0``, the default before that option),
-"update_50" with ``friction_update_tol=0.5``, "lag_once" with friction lagged once from the step start
+updated inside the solve in every step (``friction_update_tol=0``, the default), "update_25" and
+"update_50" with ``friction_update_tol=0.25`` and ``0.5``, "lag_once" with friction lagged once from the step start
 (``friction_iterations=0``). A configuration with a "revision" runs in workers: ``git archive REV`` of
 this repository extracted into a temporary folder (git needed), each case and precision then the
 hidden ``--_worker OUT.json`` of this script with that folder first on PYTHONPATH; the worker checks
@@ -115,9 +115,10 @@ CONFIGS: dict[str, dict] = {
     "after_no_extrapolation": {"extrapolate": False},
     # the working tree with the Newton step test on (NewtonOptions.step_tol, off by default)
     "after_step_tol": {"step_tol": 1e-3},
-    # friction's lag update inside the solve made whenever the lag changes (friction_update_tol 0: the
-    # default before friction_update_tol), made only above 50 % of the largest normal force, never
+    # friction's lag update inside the solve made whenever the lag changes (friction_update_tol 0, the
+    # default), only above 25 % / 50 % of the largest normal force, never
     "update_always": {"friction_update_tol": 0.0},
+    "update_25": {"friction_update_tol": 0.25},
     "update_50": {"friction_update_tol": 0.5},
     "lag_once": {"friction_iterations": 0},
 }

@@ -96,19 +96,19 @@ class Simulator(SimulatorBase):
             lagged once from the step start; steps recorded for gradients lag once). Any form that
             lags a quantity (``Form.uses_lagging`` / ``update_lagging``) is updated the same way.
             Measured effect: docs/contact.md.
-        friction_update_tol: the first of those updates is made only when a normal force at the
-            iterate differs from its lagged value by more than this fraction of the largest
-            (default 0.25: a contact the step makes or loses, an impact); otherwise the step keeps
-            the lag of its start, consistent to that tolerance, and needs no further Newton
-            iteration for it (``SolveStats.friction_kept`` counts these). 0: always update (the
-            behaviour before this option). Measured: docs/contact.md, "Friction updated only when
-            the normal forces change".
+        friction_update_tol: > 0: the first of those updates is made only when a normal force at
+            the iterate differs from its lagged value by more than this fraction of the largest
+            (e.g. 0.25: a contact the step makes or loses, an impact); otherwise the step keeps the
+            lag of its start, consistent to that tolerance, and needs no further Newton iteration
+            for it (``SolveStats.friction_kept`` counts these). 0 (default): always update. Fewer
+            Newton iterations, less accurate sliding friction where normal forces swing from step
+            to step: docs/contact.md, "Friction updated only when the normal forces change".
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
                  damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, linear_solver="auto",
                  linear_solver_options=None, colliders=None, initial_guess="previous", friction_iterations=1,
-                 friction_tol=0.01, friction_update_tol=0.25, **newton_options):
+                 friction_tol=0.01, friction_update_tol=0.0, **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         if initial_guess not in INITIAL_GUESSES:
             raise ValueError(f"initial_guess must be one of {', '.join(repr(g) for g in INITIAL_GUESSES)}, "

@@ -443,12 +443,10 @@ class LaggedFrictionForm(Form):
         before = c.normal_forces()
         after = c.lag_candidate(x)
         change, scale = (c.lag_change(before, after) if hasattr(c, "lag_change") else lagged_change(before, after))
-        if change == 0.0:
-            return None  # nothing changed (e.g. no contact)
-        if change <= keep_below * scale:
+        if 0.0 < change <= keep_below * scale:
             return change, scale, False
         c.commit_lag()
-        return change, scale
+        return None if change == 0.0 else (change, scale)  # None: nothing changed (e.g. no contact)
 
 
 class ContactForm(LaggedFrictionForm):
