@@ -41,7 +41,10 @@ Configurations (``--configs``; default before,after) are the entries of ``CONFIG
 the code of e18de72 (the last commit before the friction solver changes: no stick/slip-aware Newton
 step, friction re-solves), "after", the working tree, "after_no_filter", the working tree with
 ``friction_filter=False``, "after_no_extrapolation" with ``extrapolate=False``, "after_step_tol" with the
-Newton step test ``step_tol=1e-3`` (body diagonals per second). A configuration with a "revision" runs in workers: ``git archive REV`` of
+Newton step test ``step_tol=1e-3`` (body diagonals per second), "update_always" with friction's lag
+updated inside the solve in every step (``friction_update_tol=0``, the default), "update_25" and
+"update_50" with ``friction_update_tol=0.25`` and ``0.5``, "lag_once" with friction lagged once from the step start
+(``friction_iterations=0``). A configuration with a "revision" runs in workers: ``git archive REV`` of
 this repository extracted into a temporary folder (git needed), each case and precision then the
 hidden ``--_worker OUT.json`` of this script with that folder first on PYTHONPATH; the worker checks
 that ``warpfem.__file__`` is in that folder, and the outputs record per configuration the code that
@@ -112,6 +115,12 @@ CONFIGS: dict[str, dict] = {
     "after_no_extrapolation": {"extrapolate": False},
     # the working tree with the Newton step test on (NewtonOptions.step_tol, off by default)
     "after_step_tol": {"step_tol": 1e-3},
+    # friction's lag update inside the solve made whenever the lag changes (friction_update_tol 0, the
+    # default), only above 25 % / 50 % of the largest normal force, never
+    "update_always": {"friction_update_tol": 0.0},
+    "update_25": {"friction_update_tol": 0.25},
+    "update_50": {"friction_update_tol": 0.5},
+    "lag_once": {"friction_iterations": 0},
 }
 
 #: where the example scenes are read: this tree's, or in a worker the extracted revision's

@@ -8,7 +8,8 @@ Per Newton iteration k of a step (iterate k-1 -> k):
 * ``rel``: ||P g|| at iterate k over the step's reference (the tolerance test's quantity);
 * ``alpha``: its step length (> 1: extrapolated, < 1: the collision bound or the line search);
 * ``lag``: whether friction's lagged normal forces were taken again after it (``rel_before``: the
-  relative gradient before that update, ``rel`` the one after);
+  relative gradient before that update, ``rel`` the one after); ``kept``: whether the update was
+  looked at there and not made (``friction_update_tol``: the normal forces changed by less);
 * ``move``: max_i |x_k - x_{k-1}|_inf over the body size L (the bounding-box diagonal of the rest
   mesh), ``move_v``: that move over h, in L per second; ``dir_v`` the full Newton direction's
   (move / alpha) over h, in L per second;
@@ -55,7 +56,7 @@ def record_histories(case, precision, frames, first_contact_frames=None, config=
 
     def solve(pot, y, opts, *a, **kw):
         xs = [pot.x_of(y).numpy().astype(np.float64).copy()]
-        alphas, lags, rels = [], [], []  # rels: the relative gradient before a lag update
+        alphas, lags, rels, kept = [], [], [], []  # rels: the relative gradient before a lag update
         hook = pot.after_iteration
         dirs = [None]  # (max |d| raw, max |d| filtered) of the last Newton system, in x units
         raws = []
@@ -71,8 +72,9 @@ def record_histories(case, precision, frames, first_contact_frames=None, config=
         pot.solve_newton_system = solve_system
 
         def after(yy, alpha=1.0, residual=0.0):
-            n0 = pot.lag_updates
+            n0, k0 = pot.lag_updates, getattr(pot, "lags_kept", 0)
             changed = hook(yy, alpha, residual=residual)
+            kept.append(getattr(pot, "lags_kept", 0) > k0)
             xs.append(pot.x_of(yy).numpy().astype(np.float64).copy())
             alphas.append(float(alpha))
             lags.append(pot.lag_updates > n0)
@@ -94,7 +96,7 @@ def record_histories(case, precision, frames, first_contact_frames=None, config=
             move = float(np.abs(xs[k] - xs[k - 1]).max()) / L
             its.append(dict(rel=float(st.history[k - 1][1] / ref) if ref > 0 else 0.0, rel_before=rels[k - 1],
                             alpha=alphas[k - 1],
-                            lag=bool(lags[k - 1]), move=move, move_v=move / h,
+                            lag=bool(lags[k - 1]), kept=bool(kept[k - 1]), move=move, move_v=move / h,
                             dir_v=move / h / max(alphas[k - 1], 1e-300),
                             dist=float(np.abs(xs[k - 1] - xf).max()) / L,
                             raw_v=(raws[k - 1][0] / h / L if raws[k - 1] else None),
@@ -153,6 +155,10 @@ def summarize(r):
             halved_after += sum(it["alpha"] < 1.0 and float(np.log2(it["alpha"])).is_integer()
                                 for it in st["iterations"][ks[0] + 1:])
     out["steps_with_lag"] = sum(any(it["lag"] for it in st["iterations"]) for st in steps)
+    # steps whose lag update was not made (friction_update_tol: the normal forces changed by less)
+    out["steps_lag_kept"] = sum(any(it.get("kept", False) for it in st["iterations"]) for st in steps)
+    out["newton_per_contact_step"] = n / len(steps)
+    out["newton_per_free_step"] = out["free_iterations"] / len(free) if free else None
     # lag updates made at an iterate already within the solve's tolerance (1e-6 of the reference):
     # the update then works as a re-solve; and the iterations after those
     at_tol = [(st, k) for st in steps for k, it in enumerate(st["iterations"]) if it["lag"] and it["rel_before"] <= 1e-6]

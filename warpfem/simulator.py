@@ -96,12 +96,19 @@ class Simulator(SimulatorBase):
             lagged once from the step start; steps recorded for gradients lag once). Any form that
             lags a quantity (``Form.uses_lagging`` / ``update_lagging``) is updated the same way.
             Measured effect: docs/contact.md.
+        friction_update_tol: > 0: the first of those updates is made only when a normal force at
+            the iterate differs from its lagged value by more than this fraction of the largest
+            (e.g. 0.25: a contact the step makes or loses, an impact); otherwise the step keeps the
+            lag of its start, consistent to that tolerance, and needs no further Newton iteration
+            for it (``SolveStats.friction_kept`` counts these). 0 (default): always update. Fewer
+            Newton iterations, less accurate sliding friction where normal forces swing from step
+            to step: docs/contact.md, "Friction updated only when the normal forces change".
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
                  damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, linear_solver="auto",
                  linear_solver_options=None, colliders=None, initial_guess="previous", friction_iterations=1,
-                 friction_tol=0.01, **newton_options):
+                 friction_tol=0.01, friction_update_tol=0.0, **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         if initial_guess not in INITIAL_GUESSES:
             raise ValueError(f"initial_guess must be one of {', '.join(repr(g) for g in INITIAL_GUESSES)}, "
@@ -112,6 +119,9 @@ class Simulator(SimulatorBase):
         if not (np.isfinite(friction_tol) and friction_tol > 0.0):
             raise ValueError(f"friction_tol must be > 0, got {friction_tol!r}")
         self.friction_iterations, self.friction_tol = int(friction_iterations), float(friction_tol)
+        if not (np.isfinite(friction_update_tol) and 0.0 <= friction_update_tol < 1.0):
+            raise ValueError(f"friction_update_tol must be in [0, 1), got {friction_update_tol!r}")
+        self.friction_update_tol = float(friction_update_tol)
         self.integrator = make_integrator(integrator)
         self.options = newton_options_from(newton_options)
         # max_iters not given: the default, raised to what the potential's forms ask for (contact),
@@ -574,11 +584,12 @@ class Simulator(SimulatorBase):
             pot.begin_adaptive(y)
         # the forms' lagged quantities (friction) taken again inside the solve, near its solution
         lags = any(f.uses_lagging() for f in pot.forms)
-        pot.set_lag_updates(self.friction_iterations if lags and not self._differentiating() else 0,
-                            self.friction_tol)
+        iterate = lags and not self._differentiating()
+        pot.set_lag_updates(self.friction_iterations if iterate else 0, self.friction_tol,
+                            self.friction_update_tol if iterate else 0.0)
         pot.time_step = float(dt)  # the step test's h (NewtonOptions.step_tol)
         stats = newton_solve(pot, y, self.options)
-        stats.friction_iterations = pot.lag_updates
+        stats.friction_iterations, stats.friction_kept = pot.lag_updates, pot.lags_kept
         pot.set_lag_updates(0, self.friction_tol)
         stats.newton_syncs = pot.host_syncs - syncs0
         stats.launches = COUNTERS["launches"] - launches0

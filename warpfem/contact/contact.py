@@ -180,6 +180,10 @@ class ContactSet:
         self._dist = wp.zeros(m, dtype=S, device=dev)
         self._nrm = wp.zeros(m, dtype=V, device=dev)
         self._w = wp.zeros(m, dtype=V, device=dev)
+        # a lag taken at an iterate before it is kept (``lag_candidate`` / ``commit_lag``)
+        self._lam_c = wp.zeros(m, dtype=S, device=dev)
+        self._nrm_c = wp.zeros(m, dtype=V, device=dev)
+        self._w_c = wp.zeros(m, dtype=V, device=dev)
         self._acc = wp.zeros(4, dtype=wp.float64, device=dev)
         self._R0, self._R1 = (wp.zeros(nc, dtype=M, device=dev) for _ in range(2))
         self._t0, self._t1 = (wp.zeros(nc, dtype=V, device=dev) for _ in range(2))
@@ -200,7 +204,7 @@ class ContactSet:
 
     # -- kernel launch --------------------------------------------------------------------------------
     def run(self, mode, x, *, scale=1.0, g=None, values=None, acc=None, slot=0, lam=None, y=None, sy=1.0, dbase=None,
-            friction=True, kappa=None):
+            friction=True, kappa=None, nrm=None, wdisp=None):
         """Launch the contact kernel in ``mode`` (``kernels.MODE_*``) at positions x; friction's step
         displacement is dbase + sy * y (default: x - x_n); ``friction=False`` evaluates the barrier
         alone; ``kappa``: a device array of per-collider stiffnesses to use instead."""
@@ -210,7 +214,8 @@ class ContactSet:
         launch(CK.contact_kernel, len(self.surface), [
             x, self._surf, self.nc, self._kinds, self._R1, self._t1, self._R0, self._t0, self._pa, self._pb,
             self._tri_start, self._tri_count, self._tris, self._kappa if kappa is None else kappa, self._dhat, self._mu if friction else self._mu_zero,
-            self._epsf, self._lam if lam is None else lam, self._nrm, self._w, dbase, y, ops.scalar(sy),
+            self._epsf, self._lam if lam is None else lam, self._nrm if nrm is None else nrm,
+            self._w if wdisp is None else wdisp, dbase, y, ops.scalar(sy),
             ops.scalar(STEP_ETA), ops.scalar(scale), int(mode), ops.zero if g is None else g, self._diag,
             self.system.hessian_values if values is None else values, self._acc if acc is None else acc, int(slot)],
             self.sim.device)
@@ -311,6 +316,18 @@ class ContactSet:
         """The lagged normal forces (N) per (surface vertex, collider)."""
         return read(self._lam).astype(np.float64)
 
+    def lag_candidate(self, x) -> np.ndarray:
+        """Friction's normal forces, normals and collider motion taken at the positions x into a
+        candidate lag, not yet used (:meth:`commit_lag`); returns its normal forces."""
+        self.run(CK.MODE_LAG, x, lam=self._lam_c, nrm=self._nrm_c, wdisp=self._w_c)
+        return read(self._lam_c).astype(np.float64)
+
+    def commit_lag(self):
+        """The candidate lag of :meth:`lag_candidate` becomes the step's lag."""
+        wp.copy(self._lam, self._lam_c)
+        wp.copy(self._nrm, self._nrm_c)
+        wp.copy(self._w, self._w_c)
+
     @property
     def step_start(self):
         """The positions the friction of the current step is lagged from (device array)."""
@@ -384,7 +401,8 @@ class LaggedFrictionForm(Form):
     """What the collider and the surface contact forms share: the step's x_b and s, and the
     displacement base x_b - x_n of lagged friction (x - x_n = (x_b - x_n) + s y); friction's
     lagging taken again from a step's end (``update_lagging``). ``contact`` has ``ops``,
-    ``step_start`` (x_n), ``has_friction()``, ``relag(x)`` and ``normal_forces()``."""
+    ``step_start`` (x_n), ``has_friction()``, ``normal_forces()``, ``lag_candidate(x)`` and
+    ``commit_lag()`` (optionally ``lag_change(before, after)``: the change of a candidate lag)."""
 
     variable = "x"
     #: impacts take tens of Newton iterations (the default 30 stopped 9 of 48 frames of a scan dropped
@@ -412,15 +430,22 @@ class LaggedFrictionForm(Form):
         c = self.contact
         return c.has_friction() and bool(len(getattr(c, "colliders", [0])))
 
-    def update_lagging(self, x):
+    def update_lagging(self, x, keep_below=0.0):
         """Friction's normal forces and normals lagged again from the positions x (an iterate of
         the step; the step start and the colliders' motion stay): (largest change of a normal
         force, largest normal force before or after), or None when nothing changed (no friction, no
-        contact)."""
+        contact). With ``keep_below`` > 0 the lag is kept as it is when that change is at most
+        ``keep_below`` x the largest force (the step's lag is consistent to that tolerance): then
+        (change, scale, False) is returned."""
         if not self.uses_lagging():
             return None
-        before = self.contact.relag(x)
-        change, scale = lagged_change(before, self.contact.normal_forces())
+        c = self.contact
+        before = c.normal_forces()
+        after = c.lag_candidate(x)
+        change, scale = (c.lag_change(before, after) if hasattr(c, "lag_change") else lagged_change(before, after))
+        if 0.0 < change <= keep_below * scale:
+            return change, scale, False
+        c.commit_lag()
         return None if change == 0.0 else (change, scale)  # None: nothing changed (e.g. no contact)
 
 

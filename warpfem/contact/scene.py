@@ -51,6 +51,10 @@ def set_scene_contact(scene, sim, table=None):
         scene.fail("[contact]", f"{type(sim).__name__} does not handle contact")
     try:
         sim.friction_iterations, sim.friction_tol = int(c["friction_iterations"]), float(c["friction_tol"])
+        tol = float(c["friction_update_tol"])
+        if not tol < 1.0:
+            raise ValueError(f"friction_update_tol must be in [0, 1), got {tol!r}")
+        sim.friction_update_tol = tol
         sim.set_contact(**{k: c[k] for k in ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity")})
     except (TypeError, ValueError) as e:
         scene.fail("[contact]", str(e))

@@ -690,16 +690,51 @@ class SurfaceContact:
     def lag(self, x):
         """Friction's normal forces, closest points and normals from the positions x (pairs
         within dhat among the current candidates)."""
-        self.num_friction = 0
+        self.lag_candidate(x)
+        self.commit_lag()
+
+    def lag_candidate(self, x) -> np.ndarray:
+        """The lag of :meth:`lag` taken at x into the pairs' work arrays, not yet used
+        (:meth:`commit_lag`); returns the normal forces of the pairs it would lag."""
+        self._cand = None
         if self.friction <= 0.0 or self.num_pairs == 0:
-            return
+            return np.zeros(0)
         self._flam.zero_()
         self.run(SK.MODE_LAG, x)
         lam = read(self._flam, self.num_pairs)
         keep = np.nonzero(lam > 0.0)[0]
-        self.num_friction = len(keep)
-        if not len(keep):
+        self._cand = keep
+        return lam[keep].astype(np.float64)
+
+    def lag_change(self, before, after):
+        """(change, scale) from the lag's normal forces ``before`` to those of the candidate
+        ``after`` (:meth:`lag_candidate`), the pairs matched by their vertices: a pair in one of
+        them only counts with its force against 0 (a pair that enters or leaves dhat with a small
+        force is a small change). Inf when a pair's vertices are not unique (no matching)."""
+        keep = getattr(self, "_cand", None)
+        old_q = self._f_pairs_np[:self.num_friction]
+        new_q = self.pairs_np[keep] if keep is not None else np.zeros((0, 4), dtype=np.int64)
+        before, after = np.asarray(before, dtype=np.float64), np.asarray(after, dtype=np.float64)
+        scale = max(float(np.abs(before).max(initial=0.0)), float(np.abs(after).max(initial=0.0)))
+        if len(old_q) != len(before) or len(new_q) != len(after):
+            return float("inf"), scale
+        rows, inv = np.unique(np.concatenate([old_q, new_q]).reshape(-1, 4), axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        io, ino = inv[:len(old_q)], inv[len(old_q):]
+        if len(np.unique(io)) != len(io) or len(np.unique(ino)) != len(ino):
+            return float("inf"), scale
+        a = np.zeros(len(rows))
+        b = np.zeros(len(rows))
+        a[io], b[ino] = before, after
+        return (float(np.abs(a - b).max()) if len(rows) else 0.0), scale
+
+    def commit_lag(self):
+        """The candidate of :meth:`lag_candidate` becomes the lag (compacted: host, once)."""
+        keep, self._cand = getattr(self, "_cand", None), None
+        self.num_friction = 0
+        if keep is None or not len(keep):
             return
+        self.num_friction = len(keep)
         # the lagged pairs, compacted (host: once per step)
         quads = self.pairs_np[keep]
         self._f_pairs_np = quads

@@ -256,8 +256,8 @@ class EmbeddedForm(Form):
     def uses_lagging(self):
         return self.inner.uses_lagging()
 
-    def update_lagging(self, x):
-        return self.inner.update_lagging(self._map(x, self._xv))
+    def update_lagging(self, x, **kw):
+        return self.inner.update_lagging(self._map(x, self._xv), **kw)
 
     def state_dict(self):
         return self.inner.state_dict()

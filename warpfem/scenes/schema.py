@@ -213,6 +213,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
                                        "from the step start"),
         "friction_tol": Key("float", default=0.01, check=_positive,
                             doc="no further update when the normal forces change by less than this fraction"),
+        "friction_update_tol": Key("float", default=0.0, check=_non_negative,
+                                   doc="> 0: the first update only when a normal force changes by more than this "
+                                       "fraction of the largest (0: always)"),
     },
     "traction": {
         "box_min": Key("vec3", required=True),

@@ -53,13 +53,16 @@ in without the simulator knowing what it is; PolyFEM's ``init_lagging`` / ``upda
    ``feasible`` on each trial; forms with an adaptive parameter (``adaptive_stiffness()`` true)
    also get ``begin_stiffness`` at the start and ``after_iteration`` after each accepted
    iteration, and keep ``stiffness_state()`` / ``restore_stiffness(state)`` for a failed step.
-5. ``uses_lagging()`` / ``update_lagging(x) -> (change, scale)``: forms that lag a quantity take it
-   again from an iterate near the solution (after an accepted iteration whose full Newton step
-   brought the gradient below the form's ``lag_below`` of the start: ``LAG_BELOW`` unless the form
-   says otherwise), at most ``friction_iterations`` times per solve and form, and while its
-   ``change`` exceeds ``friction_tol`` x its ``scale``
+5. ``uses_lagging()`` / ``update_lagging(x, keep_below=0.0) -> (change, scale)``: forms that lag a
+   quantity take it again from an iterate near the solution (after an accepted iteration whose
+   full Newton step brought the gradient below the form's ``lag_below`` of the start:
+   ``LAG_BELOW`` unless the form says otherwise), at most ``friction_iterations`` times per solve
+   and form, and while its ``change`` exceeds ``friction_tol`` x its ``scale``
    (:meth:`IncrementalPotential.set_lag_updates`; :func:`lagged_change` measures two arrays);
-   the solve then goes on to its tolerance with them.
+   the solve then goes on to its tolerance with them. The first update is made only when its
+   change exceeds ``keep_below`` (``friction_update_tol``) x its scale: a form that keeps its lag
+   returns (change, scale, False) and the potential stays as it is (a form whose
+   ``update_lagging`` takes no ``keep_below`` always updates).
 6. ``state_dict()`` / ``load_state_dict(state)``: the form's step-to-step state for checkpoints
    (default: none); a form whose later steps depend on more than the step's start state (a
    kept set of pairs, an adaptive parameter) returns it so a continued run is bit-identical.
@@ -163,6 +166,24 @@ class InfeasibleStart(ValueError):
         self.reason = reason
 
 
+#: a form that kept its lag (``keep_below``) in a solve not converged this many accepted iterations
+#: later makes the update after all (measured: a float32 step of the ``ball_bowl`` scene cycled
+#: between two iterates near its solution for 96 iterations on its kept lag)
+LAG_KEPT_STALL = 8
+
+
+def _takes_keep_below(form) -> bool:
+    """Whether the form's ``update_lagging`` takes ``keep_below`` (a form written before it did
+    not: it always updates)."""
+    import inspect
+
+    try:
+        params = inspect.signature(form.update_lagging).parameters
+    except (TypeError, ValueError):
+        return False
+    return "keep_below" in params or any(p.kind is p.VAR_KEYWORD for p in params.values())
+
+
 def lagged_change(before, after):
     """(change, scale) of a lagged array updated from ``before`` to ``after`` (numpy arrays): the
     largest absolute change (inf when the sizes differ: other pairs) and the largest magnitude of
@@ -240,10 +261,12 @@ class Form:
         """Whether the form lags a quantity that :meth:`update_lagging` can take again."""
         return False
 
-    def update_lagging(self, x):
+    def update_lagging(self, x, keep_below=0.0):
         """Take the lagged quantities again from the positions x (an iterate near the step's
         solution); returns (change, scale) (:func:`lagged_change`), or None when nothing was lagged
-        or nothing changed (then the potential is not evaluated again)."""
+        or nothing changed (then the potential is not evaluated again). With ``keep_below`` > 0 and
+        a change of at most ``keep_below`` x scale, the lag stays as it was and (change, scale,
+        False) is returned."""
         return None
 
     def state_dict(self) -> dict:
@@ -970,13 +993,18 @@ class IncrementalPotential:
             changed = f.begin_stiffness(self, y, g_rest) or changed
         return changed
 
-    def set_lag_updates(self, count, tol):
+    def set_lag_updates(self, count, tol, keep_below=0.0):
         """Lagged quantities (friction's normal forces and normals) taken again from the iterate
         after each of the first ``count`` accepted Newton iterations of the coming solve, by the
         forms that lag (``uses_lagging()``, ``update_lagging(x) -> (change, scale)``, None when they
         lag nothing), while the
-        change is above ``tol`` x scale (:attr:`lag_updates` counts them)."""
+        change is above ``tol`` x scale (:attr:`lag_updates` counts them). ``keep_below`` > 0: an
+        update whose change is at most ``keep_below`` x scale is not made (the lag is consistent
+        to that tolerance; the form makes no further update in the solve; :attr:`lags_kept`
+        counts them)."""
         self._lag_count, self._lag_tol, self.lag_updates = int(count), float(tol), 0
+        self._lag_keep, self.lags_kept = float(keep_below), 0
+        self._lag_iter, self._lag_kept_at = 0, {}  # accepted iterations; per form: the one that kept its lag
         self._lag_left = {}  # per form: updates it may still make in this solve
 
     def after_iteration(self, y, alpha=1.0, residual=0.0) -> bool:
@@ -988,8 +1016,14 @@ class IncrementalPotential:
         # lag again only from an iterate the full Newton step reached (the quadratic model held there:
         # near the solution); a shortened step (the collision bound, the line search) may be far off
         left = getattr(self, "_lag_left", {})
+        kept_at = getattr(self, "_lag_kept_at", {})
+        self._lag_iter = it = getattr(self, "_lag_iter", 0) + 1
+        # a form that kept its lag (friction_update_tol) in a solve that has not converged
+        # LAG_KEPT_STALL iterations later makes the update after all (a solve stalled on the
+        # kept potential, e.g. float32 iterates cycling near the solution, goes on with it)
+        stalled = [f for f in self.forms if id(f) in kept_at and it - kept_at[id(f)] >= LAG_KEPT_STALL]
         lagging = ([f for f in self.forms if f.uses_lagging() and residual <= f.lag_below
-                    and left.setdefault(id(f), self._lag_count) > 0]
+                    and (left.setdefault(id(f), self._lag_count) > 0 or f in stalled)]
                    if getattr(self, "_lag_count", 0) > 0 and alpha >= 1.0 else [])
         if not forms and not lagging:  # nothing adapts (a fixed barrier stiffness) or lags: no work
             return False
@@ -998,9 +1032,19 @@ class IncrementalPotential:
         for f in forms:
             changed = f.after_iteration(x, alpha) or changed
         updated = False
+        keep = getattr(self, "_lag_keep", 0.0)
         for f in lagging:
-            left[id(f)] -= 1
-            r = f.update_lagging(x)
+            forced = kept_at.pop(id(f), None) is not None
+            left[id(f)] = max(left[id(f)] - 1, 0)
+            if keep > 0.0 and not forced and _takes_keep_below(f):
+                r = f.update_lagging(x, keep_below=keep)
+            else:
+                r = f.update_lagging(x)
+            if r is not None and len(r) > 2 and not r[2]:  # kept as it was: consistent to keep_below
+                left[id(f)] = 0
+                kept_at[id(f)] = it
+                self.lags_kept += 1
+                continue
             if r is not None:
                 updated = True
                 if r[0] <= self._lag_tol * r[1]:  # consistent: no further updates of this form in this solve

@@ -161,6 +161,7 @@ class SolveStats:
     hessian_evaluations: int = 0  # Newton matrices evaluated (counted by the reduced simulator, which keeps its matrix)
     singular_solves: int = 0  # Newton systems a direct solve found singular or indefinite (shifted and/or deflated)
     friction_iterations: int = 0  # updates of friction's lagged normal forces inside the solve (Simulator)
+    friction_kept: int = 0  # lag updates not made: the forces changed by at most friction_update_tol (Simulator)
     projected_retries: int = 0  # hessian_projection="on_demand": Newton systems solved again with the projected Hessian
     adaptations: int = 0  # Newton iterations after which the potential changed (an adaptive barrier stiffness doubled)
     extrapolations: int = 0  # Newton iterations whose accepted step was lengthened (NewtonOptions.extrapolate)
