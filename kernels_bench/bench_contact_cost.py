@@ -112,6 +112,11 @@ CONFIGS: dict[str, dict] = {
     "after_no_extrapolation": {"extrapolate": False},
     # the working tree with the Newton step test on (NewtonOptions.step_tol, off by default)
     "after_step_tol": {"step_tol": 1e-3},
+    # the split of a contact frame's cost (docs/contact.md, "What an impact step costs"): friction off
+    # (mu = 0 on every collider and surface contact), friction lagged once from the step start, the
+    # stick/slip-aware step off
+    "after_mu0": {"friction": 0.0},
+    "after_lag_once": {"friction_iterations": 0},
 }
 
 #: where the example scenes are read: this tree's, or in a worker the extracted revision's
@@ -153,7 +158,14 @@ def apply_config(sim, config: dict, skipped: dict | None = None) -> dict:
     for key, value in config.items():
         if key == "revision":
             continue
-        if key in fields:
+        if key == "friction":  # the Coulomb coefficient of every collider and of surface contact
+            cs, sc = getattr(sim, "contact", None), getattr(sim, "surface_contact", None)
+            for c in (cs.colliders if cs is not None else []):
+                cs.set_friction(c.name, value)
+            if sc is not None:
+                sc.set_friction(value)
+            applied[key] = ("colliders and surface contact", value)
+        elif key in fields:
             setattr(sim.options, key, value)
             applied[key] = ("options", value)
         elif hasattr(sim, key) and not callable(getattr(sim, key)):
