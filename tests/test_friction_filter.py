@@ -132,3 +132,27 @@ def test_a_filtered_step_that_fights_the_elastic_forces_falls_back_to_the_plain_
     assert all(st.converged for st in st_f + st_p)
     assert sum(st.unfiltered_steps for st in st_f) > 0 and sum(st.unfiltered_steps for st in st_p) == 0
     assert np.abs(x_f - x_p).max() < 1e-6
+
+
+def test_pinned_solve_keeps_the_steps_with_fewer_newton_iterations():
+    """``friction_pin``: the stiff block landing rocking on the 20 degree incline (the case above),
+    whose filtered steps the line search cut short: with the filter's cut contacts pinned in a
+    second Newton solve every step converges to the same motion (1e-6 m) with fewer Newton
+    iterations and line-search halvings (measured: 94 -> 80 iterations, 50 -> 4 halvings)."""
+    from test_contact import _incline_model
+
+    theta = math.radians(20.0)
+    m, R = _incline_model(theta, 0.001)
+    runs = {}
+    for pin in (0.0, 3.0):
+        sim = Simulator(m, dt=0.01, friction_pin=pin,
+                        colliders=[Plane(point=(0, 0, 0), normal=R[:, 1], friction=1.5 * math.tan(theta))])
+        stats = [sim.step() for _ in range(16)]
+        assert all(st.converged for st in stats)
+        runs[pin] = (sim.positions(), sum(st.newton_iterations for st in stats),
+                     sum(st.line_search_steps for st in stats))
+    (x0, n0, h0), (x1, n1, h1) = runs[0.0], runs[3.0]
+    assert np.abs(x1 - x0).max() < 1e-6
+    assert n1 <= n0 - 8 and h1 <= h0 // 4
+    with pytest.raises(ValueError, match="friction_pin"):
+        Simulator(m, dt=0.01, friction_pin=-1.0)
