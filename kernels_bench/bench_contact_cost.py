@@ -117,9 +117,10 @@ CONFIGS: dict[str, dict] = {
     # stick/slip-aware step off
     "after_mu0": {"friction": 0.0},
     "after_lag_once": {"friction_iterations": 0},
-    # the working tree with the friction filter's cut contacts pinned in a second Newton solve
-    # (NewtonOptions.friction_pin, docs/contact.md "What an impact step costs")
+    # the friction filter's cut contacts pinned in a second Newton solve (NewtonOptions.friction_pin,
+    # docs/contact.md "What an impact step costs"): on (3, the default since it was measured), off
     "after_pin": {"friction_pin": 3.0},
+    "after_no_pin": {"friction_pin": 0.0},
 }
 
 #: where the example scenes are read: this tree's, or in a worker the extracted revision's

@@ -94,9 +94,10 @@ class NewtonOptions:
             held at their cut values by springs of ``friction_pin`` times their vertex's mean
             diagonal Newton entry, so that the rest of the body follows them (the cuts alone strain
             the elements around the cut vertices, and the line search then shortens every
-            vertex's step). The pinned direction is taken when it is a descent direction. 0
-            (default): off. Changes the path, not the solution; costs one more linear solve in
-            those iterations (measured on impacts in docs/contact.md, "What an impact step costs").
+            vertex's step). The pinned direction is taken when it is a descent direction. Default
+            3; 0: off (the filtered direction alone). Changes the path, not the solution; costs one
+            more linear solve in those iterations (measured in docs/contact.md, "What an impact
+            step costs").
     """
 
     tol: float = 1e-6
@@ -112,7 +113,7 @@ class NewtonOptions:
     friction_filter: bool = True
     extrapolate: bool = True
     step_tol: float = 0.0
-    friction_pin: float = 0.0
+    friction_pin: float = 3.0
 
     def validate(self):
         for name in ("tol", "cg_tol"):
