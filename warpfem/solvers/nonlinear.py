@@ -95,8 +95,9 @@ class NewtonOptions:
             diagonal Newton entry, so that the rest of the body follows them (the cuts alone strain
             the elements around the cut vertices, and the line search then shortens every
             vertex's step). The pinned direction is taken when it is a descent direction. Default
-            3; 0: off (the filtered direction alone). Changes the path, not the solution; costs one
-            more linear solve in those iterations (measured in docs/contact.md, "What an impact
+            3; 0: off (the filtered direction alone). Changes the path, not the potential's minimiser
+            (friction's lag update inside the solve is taken on the path, so it moves with it);
+            costs one more linear solve in those iterations (measured in docs/contact.md, "What an impact
             step costs").
     """
 
