@@ -156,3 +156,35 @@ def test_pinned_solve_keeps_the_steps_with_fewer_newton_iterations():
     assert n1 <= n0 - 8 and h1 <= h0 // 4
     with pytest.raises(ValueError, match="friction_pin"):
         Simulator(m, dt=0.01, friction_pin=-1.0)
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_pin_kernel_adds_a_tangential_spring_only_where_the_step_crosses_the_zone(precision):
+    """``collider_pin_kernel`` on one vertex against a plane (normal z, eps 1e-3): where the
+    unfiltered step crosses the sticking zone, k (I - n n^T) is added to the vertex's block (k =
+    weight x its mean diagonal) and k (I - n n^T) d to the right-hand side; elsewhere nothing."""
+    dt = wp.float64 if precision == "float64" else wp.float32
+    vec = wp.vec3d if precision == "float64" else wp.vec3f
+    mat = wp.mat33d if precision == "float64" else wp.mat33f
+    npt = np.float64 if precision == "float64" else np.float32
+    s, eps, weight = 0.5, 1e-3, 3.0
+    block = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.5], [0.0, 0.5, 6.0]])
+    tol = 1e-12 if precision == "float64" else 1e-5
+    for u0, dx, crosses in [((5e-3, 0, 0), (-1e-2, 0, 0.2), True), ((5e-3, 2e-3, 0), (-1e-2, 0, 0), False)]:
+        arr = lambda a, t=vec: wp.array(np.asarray(a, dtype=npt).reshape(-1, 3), dtype=t, device="cpu")
+        d_raw = np.asarray(dx) / s
+        d_cut = np.array([0.1, -0.2, 0.3])
+        values = wp.array(block[None].astype(npt), dtype=mat, device="cpu")
+        rhs = arr([1.0, 2.0, 3.0])
+        count = wp.zeros(1, dtype=wp.int32, device="cpu")
+        wp.launch(FR.collider_pin_kernel, dim=1, device="cpu", inputs=[
+            wp.array([0], dtype=wp.int32, device="cpu"), 1, wp.array(np.ones(1, dtype=npt), dtype=dt, device="cpu"),
+            arr([0.0, 0.0, 1.0]), arr([0.0, 0.0, 0.0]), arr(u0), arr([0.0, 0.0, 0.0]), dt(s),
+            wp.array(np.array([eps], dtype=npt), dtype=dt, device="cpu"),
+            wp.array(np.array([0.5], dtype=npt), dtype=dt, device="cpu"), arr(d_raw), arr(d_cut),
+            wp.array([0], dtype=wp.int32, device="cpu"), values, rhs, dt(weight), count])
+        k = weight * np.trace(block) / 3.0 if crosses else 0.0
+        P = np.diag([1.0, 1.0, 0.0])
+        np.testing.assert_allclose(values.numpy()[0], block + k * P, rtol=tol, atol=tol)
+        np.testing.assert_allclose(rhs.numpy()[0], np.array([1.0, 2.0, 3.0]) + k * P @ d_cut, rtol=tol, atol=tol)
+        assert int(count.numpy()[0]) == int(crosses)
