@@ -41,7 +41,9 @@ Configurations (``--configs``; default before,after) are the entries of ``CONFIG
 the code of e18de72 (the last commit before the friction solver changes: no stick/slip-aware Newton
 step, friction re-solves), "after", the working tree, "after_no_filter", the working tree with
 ``friction_filter=False``, "after_no_extrapolation" with ``extrapolate=False``, "after_step_tol" with the
-Newton step test ``step_tol=1e-3`` (body diagonals per second). A configuration with a "revision" runs in workers: ``git archive REV`` of
+Newton step test ``step_tol=1e-3`` (body diagonals per second), "after_mu0" with friction 0 on every
+collider and on surface contact (the key "friction"), "after_lag_once" with ``friction_iterations=0``,
+"after_pin" / "after_no_pin" with ``friction_pin`` 3 (the default) / 0. A configuration with a "revision" runs in workers: ``git archive REV`` of
 this repository extracted into a temporary folder (git needed), each case and precision then the
 hidden ``--_worker OUT.json`` of this script with that folder first on PYTHONPATH; the worker checks
 that ``warpfem.__file__`` is in that folder, and the outputs record per configuration the code that
