@@ -43,8 +43,10 @@ step, friction re-solves), "after", the working tree, "after_no_filter", the wor
 ``friction_filter=False``, "after_no_extrapolation" with ``extrapolate=False``, "after_step_tol" with the
 Newton step test ``step_tol=1e-3`` (body diagonals per second), "update_always" with friction's lag
 updated inside the solve in every step (``friction_update_tol=0``, the default), "update_25" and
-"update_50" with ``friction_update_tol=0.25`` and ``0.5``, "lag_once" with friction lagged once from the step start
-(``friction_iterations=0``). A configuration with a "revision" runs in workers: ``git archive REV`` of
+"update_50" with ``friction_update_tol=0.25`` and ``0.5``, "lag_once" (also "after_lag_once") with friction
+lagged once from the step start (``friction_iterations=0``), "after_mu0" with friction 0 on every
+collider and on surface contact (the key "friction"), "after_pin" / "after_no_pin" with ``friction_pin``
+3 (the default) / 0. A configuration with a "revision" runs in workers: ``git archive REV`` of
 this repository extracted into a temporary folder (git needed), each case and precision then the
 hidden ``--_worker OUT.json`` of this script with that folder first on PYTHONPATH; the worker checks
 that ``warpfem.__file__`` is in that folder, and the outputs record per configuration the code that
@@ -121,6 +123,15 @@ CONFIGS: dict[str, dict] = {
     "update_25": {"friction_update_tol": 0.25},
     "update_50": {"friction_update_tol": 0.5},
     "lag_once": {"friction_iterations": 0},
+    # the split of a contact frame's cost (docs/contact.md, "What an impact step costs"): friction off
+    # (mu = 0 on every collider and surface contact), friction lagged once from the step start, the
+    # stick/slip-aware step off
+    "after_mu0": {"friction": 0.0},
+    "after_lag_once": {"friction_iterations": 0},
+    # the friction filter's cut contacts pinned in a second Newton solve (NewtonOptions.friction_pin,
+    # docs/contact.md "What an impact step costs"): on (3, the default since it was measured), off
+    "after_pin": {"friction_pin": 3.0},
+    "after_no_pin": {"friction_pin": 0.0},
 }
 
 #: where the example scenes are read: this tree's, or in a worker the extracted revision's
@@ -162,7 +173,14 @@ def apply_config(sim, config: dict, skipped: dict | None = None) -> dict:
     for key, value in config.items():
         if key == "revision":
             continue
-        if key in fields:
+        if key == "friction":  # the Coulomb coefficient of every collider and of surface contact
+            cs, sc = getattr(sim, "contact", None), getattr(sim, "surface_contact", None)
+            for c in (cs.colliders if cs is not None else []):
+                cs.set_friction(c.name, value)
+            if sc is not None:
+                sc.set_friction(value)
+            applied[key] = ("colliders and surface contact", value)
+        elif key in fields:
             setattr(sim.options, key, value)
             applied[key] = ("options", value)
         elif hasattr(sim, key) and not callable(getattr(sim, key)):

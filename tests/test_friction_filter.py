@@ -123,7 +123,7 @@ def test_a_filtered_step_that_fights_the_elastic_forces_falls_back_to_the_plain_
     m, R = _incline_model(theta, 0.001)
     runs = {}
     for filt in (True, False):
-        sim = Simulator(m, dt=0.01, friction_filter=filt,
+        sim = Simulator(m, dt=0.01, friction_filter=filt, friction_pin=0.0,  # (the pinned solve: next test)
                         colliders=[Plane(point=(0, 0, 0), normal=R[:, 1], friction=1.5 * math.tan(theta))])
         stats = [sim.step() for _ in range(16)]
         runs[filt] = (sim.positions(), stats)
@@ -216,3 +216,57 @@ def test_a_kept_lag_is_updated_after_all_when_the_solve_stalls():
     assert [pot.after_iteration("y", 1.0, residual=1e-3) for _ in range(3)] == [False] * 3 and len(calls) == 2
     pot.set_lag_updates(1, 0.01, 0.0)  # friction_update_tol 0: the update at the first check
     assert pot.after_iteration("y", 1.0, residual=1e-3) is True and calls[-1] == 0.0 and pot.lags_kept == 0
+def test_pinned_solve_keeps_the_steps_with_fewer_newton_iterations():
+    """``friction_pin``: the stiff block landing rocking on the 20 degree incline (the case above),
+    whose filtered steps the line search cut short: with the filter's cut contacts pinned in a
+    second Newton solve every step converges to the same motion (1e-6 m) with fewer Newton
+    iterations and line-search halvings (measured: 94 -> 80 iterations, 50 -> 4 halvings)."""
+    from test_contact import _incline_model
+
+    theta = math.radians(20.0)
+    m, R = _incline_model(theta, 0.001)
+    runs = {}
+    for pin in (0.0, 3.0):
+        sim = Simulator(m, dt=0.01, friction_pin=pin,
+                        colliders=[Plane(point=(0, 0, 0), normal=R[:, 1], friction=1.5 * math.tan(theta))])
+        stats = [sim.step() for _ in range(16)]
+        assert all(st.converged for st in stats)
+        runs[pin] = (sim.positions(), sum(st.newton_iterations for st in stats),
+                     sum(st.line_search_steps for st in stats))
+    (x0, n0, h0), (x1, n1, h1) = runs[0.0], runs[3.0]
+    assert np.abs(x1 - x0).max() < 1e-6
+    assert n1 <= n0 - 8 and h1 <= h0 // 4
+    with pytest.raises(ValueError, match="friction_pin"):
+        Simulator(m, dt=0.01, friction_pin=-1.0)
+
+
+@pytest.mark.parametrize("precision", ["float64", "float32"])
+def test_pin_kernel_adds_a_tangential_spring_only_where_the_step_crosses_the_zone(precision):
+    """``collider_pin_kernel`` on one vertex against a plane (normal z, eps 1e-3): where the
+    unfiltered step crosses the sticking zone, k (I - n n^T) is added to the vertex's block (k =
+    weight x its mean diagonal) and k (I - n n^T) d to the right-hand side; elsewhere nothing."""
+    dt = wp.float64 if precision == "float64" else wp.float32
+    vec = wp.vec3d if precision == "float64" else wp.vec3f
+    mat = wp.mat33d if precision == "float64" else wp.mat33f
+    npt = np.float64 if precision == "float64" else np.float32
+    s, eps, weight = 0.5, 1e-3, 3.0
+    block = np.array([[4.0, 1.0, 0.0], [1.0, 2.0, 0.5], [0.0, 0.5, 6.0]])
+    tol = 1e-12 if precision == "float64" else 1e-5
+    for u0, dx, crosses in [((5e-3, 0, 0), (-1e-2, 0, 0.2), True), ((5e-3, 2e-3, 0), (-1e-2, 0, 0), False)]:
+        arr = lambda a, t=vec: wp.array(np.asarray(a, dtype=npt).reshape(-1, 3), dtype=t, device="cpu")
+        d_raw = np.asarray(dx) / s
+        d_cut = np.array([0.1, -0.2, 0.3])
+        values = wp.array(block[None].astype(npt), dtype=mat, device="cpu")
+        rhs = arr([1.0, 2.0, 3.0])
+        count = wp.zeros(1, dtype=wp.int32, device="cpu")
+        wp.launch(FR.collider_pin_kernel, dim=1, device="cpu", inputs=[
+            wp.array([0], dtype=wp.int32, device="cpu"), 1, wp.array(np.ones(1, dtype=npt), dtype=dt, device="cpu"),
+            arr([0.0, 0.0, 1.0]), arr([0.0, 0.0, 0.0]), arr(u0), arr([0.0, 0.0, 0.0]), dt(s),
+            wp.array(np.array([eps], dtype=npt), dtype=dt, device="cpu"),
+            wp.array(np.array([0.5], dtype=npt), dtype=dt, device="cpu"), arr(d_raw), arr(d_cut),
+            wp.array([0], dtype=wp.int32, device="cpu"), values, rhs, dt(weight), count])
+        k = weight * np.trace(block) / 3.0 if crosses else 0.0
+        P = np.diag([1.0, 1.0, 0.0])
+        np.testing.assert_allclose(values.numpy()[0], block + k * P, rtol=tol, atol=tol)
+        np.testing.assert_allclose(rhs.numpy()[0], np.array([1.0, 2.0, 3.0]) + k * P @ d_cut, rtol=tol, atol=tol)
+        assert int(count.numpy()[0]) == int(crosses)

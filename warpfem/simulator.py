@@ -81,7 +81,7 @@ class Simulator(SimulatorBase):
         Newton options (keyword): ``tol``, ``atol``, ``max_iters`` (not given: 30, or what the
             potential's forms ask for, ``Form.newton_iterations``: 100 with contact), ``cg_tol``, ``max_cg_iters``,
             ``max_line_search``, ``armijo``, ``project_hessian``, ``hessian_projection``, ``forcing``,
-            ``friction_filter``, ``extrapolate`` (see :class:`NewtonOptions`).
+            ``friction_filter``, ``extrapolate``, ``step_tol``, ``friction_pin`` (see :class:`NewtonOptions`).
         initial_guess: where each step's Newton solve starts (free components; fixed ones always
             start at their prescribed value). "previous" (default): the previous velocity v_n.
             "extrapolated": constant acceleration from the history, v_n + h (v_n - v_{n-1}) / h_prev

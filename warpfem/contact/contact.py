@@ -76,6 +76,7 @@ class ContactSet:
         self._pattern_changed(self.system.pattern)
         self.system.listeners.append(self._pattern_changed)
         self._cuts = wp.zeros(1, dtype=wp.int32, device=dev)  # contacts cut by the friction filter this step
+        self._pins = wp.zeros(1, dtype=wp.int32, device=dev)  # contacts pinned by the last pin_direction
         self._x0 = ops.new_vector()  # positions at the start of the step (friction's lag)
         self._neg_x0 = ops.new_vector()
         self._ready = False
@@ -280,6 +281,18 @@ class ContactSet:
         launch(FR.collider_filter_kernel, len(self.surface), [
             self._surf, self.nc, self._lam, self._nrm, self._w, dbase, y, self.ops.scalar(sy), self._epsf, self._mu,
             d, self._cuts], self.sim.device)
+
+    def pin_direction(self, dbase, y, sy, d_raw, d, values, rhs, weight) -> int:
+        """Tangential springs for a second Newton solve (``NewtonOptions.friction_pin``): at the
+        vertices whose contact the unfiltered step ``d_raw`` carries across its sticking zone, k P
+        added to their Newton blocks in ``values`` and k P d to ``rhs`` (d the filtered step), k =
+        ``weight`` x the block's mean diagonal. Returns the number of such contacts (one read-back)."""
+        cnt = self._pins
+        cnt.zero_()
+        launch(FR.collider_pin_kernel, len(self.surface), [
+            self._surf, self.nc, self._lam, self._nrm, self._w, dbase, y, self.ops.scalar(sy), self._epsf, self._mu,
+            d_raw, d, self._diag, values, rhs, self.ops.scalar(weight), cnt], self.sim.device)
+        return read_int(cnt)
 
     @property
     def filtered_contacts(self) -> int:
@@ -515,6 +528,19 @@ class ContactForm(LaggedFrictionForm):
         else:  # static: x is the unknown
             dbase, yv, sy = c.negated_step_start, x, 1.0
         c.filter_direction(dbase, yv, sy, d)
+
+    def pin_direction(self, y, x, d_raw, d, values, rhs, weight) -> int:
+        """The tangential springs of a second Newton solve at the contacts the unfiltered step
+        ``d_raw`` carries across their sticking zones (:meth:`ContactSet.pin_direction`); returns
+        how many (0 without friction)."""
+        c = self.contact
+        if not c.has_friction():
+            return 0
+        if self._use_dbase and y is not None:
+            dbase, yv, sy = self._dbase, y, self.s
+        else:  # static: x is the unknown
+            dbase, yv, sy = c.negated_step_start, x, 1.0
+        return c.pin_direction(dbase, yv, sy, d_raw, d, values, rhs, weight)
 
     def max_step(self, x, d, s, acc):
         """Largest alpha <= 1 with no vertex crossing (or coming closer than STEP_ETA of its distance

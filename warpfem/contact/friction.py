@@ -81,3 +81,46 @@ def collider_filter_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, l
     if cut > 0:
         d[vi] = di
         wp.atomic_add(count, 0, cut)
+
+
+@both_precisions(lam="s[]", nrm="v[]", wdisp="v[]", dbase="v[]", y="v[]", sy="s", epsf="s[]", mu="s[]", d_raw="v[]",
+                 d="v[]", values="m[]", rhs="v[]", weight="s")
+@wp.kernel
+def collider_pin_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, lam: wp.array(dtype=Any),
+                        nrm: wp.array(dtype=Any), wdisp: wp.array(dtype=Any), dbase: wp.array(dtype=Any),
+                        y: wp.array(dtype=Any), sy: Any, epsf: wp.array(dtype=Any), mu: wp.array(dtype=Any),
+                        d_raw: wp.array(dtype=Any), d: wp.array(dtype=Any), diag: wp.array(dtype=wp.int32),
+                        values: wp.array(dtype=Any), rhs: wp.array(dtype=Any), weight: Any,
+                        count: wp.array(dtype=wp.int32)):
+    """Per surface vertex whose frictional collider contact the unfiltered step ``d_raw`` carries
+    across its sticking zone (the contacts :func:`collider_filter_kernel` cuts): a tangential spring
+    k P (P = I - n n^T, k = ``weight`` x the mean diagonal of the vertex's Newton block) added to
+    the block and k P d (d the filtered step) to the right-hand side, so that a second solve of the
+    Newton system holds these contacts' tangential steps at their cut value and lets the rest of
+    the body follow them (``NewtonOptions.friction_pin``)."""
+    i = wp.tid()
+    vi = surf[i]
+    dr = d_raw[vi]
+    zero = sy - sy
+    pm = wp.outer(dr - dr, dr - dr)
+    pinned = int(0)
+    for j in range(num_colliders):
+        p = i * num_colliders + j
+        lm = lam[p]
+        if lm > zero and mu[j] > zero:
+            n = nrm[p]
+            r = dbase[vi] + sy * y[vi] - wdisp[p]
+            u = r - wp.dot(r, n) * n
+            dd = sy * dr
+            du = dd - wp.dot(dd, n) * n
+            t = crossing_fraction(u, du, epsf[j])
+            if t < zero + type(sy)(1.0):
+                pm = pm + wp.identity(3, type(sy)) - wp.outer(n, n)
+                pinned = pinned + 1
+    if pinned > 0:
+        b = diag[vi]
+        blk = values[b]
+        k = weight * (blk[0, 0] + blk[1, 1] + blk[2, 2]) / type(sy)(3.0)
+        values[b] = blk + k * pm
+        rhs[vi] = rhs[vi] + k * (pm * d[vi])
+        wp.atomic_add(count, 0, pinned)

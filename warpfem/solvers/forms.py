@@ -1116,7 +1116,40 @@ class IncrementalPotential:
             wp.copy(w.d_raw, d)
             self._raw_kept = True
             self.filter_direction(y, d)
+            weight = float(getattr(opts, "friction_pin", 0.0))
+            if weight > 0.0:
+                lin = self._pinned_solve(y, g, d, values, rhs, lin, weight, opts)
         return lin
+
+    def _pinned_solve(self, y, g, d, values, rhs, lin, weight, opts):
+        """``NewtonOptions.friction_pin``: the Newton system solved again with tangential springs
+        (``weight`` x the block's mean diagonal) holding the contacts that the friction filter cut
+        at their cut steps, so that the rest of the body follows them (the filter's cuts alone
+        strain the elements around the cut vertices, and the line search then shortens the whole
+        step). The pinned solve's direction replaces the filtered one when it is a descent
+        direction (it is filtered too); otherwise the filtered one stays. Returns the linear
+        result with both solves' iterations."""
+        x = self._x_of(y)
+        w = self.work
+        pins = [f for f in self._filtering_forms() if hasattr(f, "pin_direction")]
+        if not pins:
+            return lin
+        if getattr(w, "d_filt", None) is None or w.d_filt.shape[0] != self.n:
+            w.d_filt = self.ops.new_vector()
+        wp.copy(w.d_filt, d)
+        pinned = sum(f.pin_direction(y, x, w.d_raw, w.d_filt, values, rhs, weight) for f in pins)
+        if pinned == 0:
+            return lin
+        lin2 = self.linear_solve(values, rhs, d, opts)
+        self.filter_direction(y, d)  # (contacts the pinned solve carries across their zones)
+        gd, _ = self.direction_check(y, g, d)
+        if not gd < 0.0:  # not a descent direction: the filtered one stays
+            wp.copy(d, w.d_filt)
+        if hasattr(lin, "iterations") and hasattr(lin2, "iterations"):
+            lin.iterations += lin2.iterations
+            lin.host_syncs = getattr(lin, "host_syncs", 0) + getattr(lin2, "host_syncs", 0)
+            return lin
+        return int(getattr(lin, "iterations", lin)) + int(getattr(lin2, "iterations", lin2))
 
     def unfiltered_direction(self):
         """The last Newton direction before :meth:`filter_direction` changed it (None when it was

@@ -89,6 +89,16 @@ class NewtonOptions:
             it); measured effect on iterations and accuracy in docs/contact.md ("Where a contact
             step's Newton iterations go"): it saves little where Newton converges quadratically and
             costs accuracy where it converges linearly, hence off.
+        friction_pin: with ``friction_filter``, a second solve of the Newton system in the
+            iterations where the filter cut a contact's step: the cut contacts' tangential steps
+            held at their cut values by springs of ``friction_pin`` times their vertex's mean
+            diagonal Newton entry, so that the rest of the body follows them (the cuts alone strain
+            the elements around the cut vertices, and the line search then shortens every
+            vertex's step). The pinned direction is taken when it is a descent direction. Default
+            3; 0: off (the filtered direction alone). Changes the path, not the potential's minimiser
+            (friction's lag update inside the solve is taken on the path, so it moves with it);
+            costs one more linear solve in those iterations (measured in docs/contact.md, "What an impact
+            step costs").
     """
 
     tol: float = 1e-6
@@ -104,6 +114,7 @@ class NewtonOptions:
     friction_filter: bool = True
     extrapolate: bool = True
     step_tol: float = 0.0
+    friction_pin: float = 3.0
 
     def validate(self):
         for name in ("tol", "cg_tol"):
@@ -112,6 +123,8 @@ class NewtonOptions:
                 raise ValueError(f"{name} must be in (0, 1), got {v!r}")
         if not (np.isfinite(self.atol) and self.atol >= 0.0):
             raise ValueError(f"atol must be >= 0, got {self.atol!r}")
+        if not (np.isfinite(self.friction_pin) and self.friction_pin >= 0.0):
+            raise ValueError(f"friction_pin must be >= 0 (0: off), got {self.friction_pin!r}")
         if not (np.isfinite(self.step_tol) and self.step_tol >= 0.0):
             raise ValueError(f"step_tol must be >= 0 (0: off), got {self.step_tol!r}")
         for name in ("max_iters", "max_cg_iters", "max_line_search"):
