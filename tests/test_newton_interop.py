@@ -689,3 +689,42 @@ def test_proxy_masses_rebuild_solver_fem_and_its_mass_damping_is_no_coupling_for
         s0, s1 = s1, s0
     assert np.abs(solver._proxy_mappings[0].coupling_forces.numpy()).max() < 1e-5 * m_box * 9.81
     assert s0.body_qd.numpy()[0][2] == pytest.approx(-2 * 0.01 * 9.81, rel=1e-5)
+
+
+def _grid_across_box_edge():
+    """The grid of the test above dropped 2 cm across the box's edge at x = 0.1 m (x from 0.03 to 0.18 m)."""
+    b = newton.ModelBuilder()
+    b.add_ground_plane()
+    b.add_shape_box(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.05), wp.quat_identity()), hx=0.1, hy=0.1, hz=0.05)
+    b.add_soft_grid(pos=wp.vec3(0.03, -0.05, 0.12), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=6, dim_y=3, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
+                    density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
+    return b.finalize(device="cpu")
+
+
+def test_surface_shape_contact_keeps_the_box_edge_out_of_a_grid_landing_across_it():
+    """shape_contact="surface": the static box is a kinematic rigid body in warpfem's surface contact
+    (edge-edge pairs too), so its edge stays out of the grid's faces: no step intersects (IPC Toolkit;
+    the colliders' way intersects from step 7 on, kernels_bench/bench_newton_shape_contact.py) while
+    the grid bends over the edge; the box's four nodes stay exactly at its pose; the ground is still
+    a collider."""
+    ipctk = pytest.importorskip("ipctk")
+    model = _grid_across_box_edge()
+    solver = SolverFEM(model, damping_mass=5.0, shape_contact="surface")
+    assert solver.kinematic_shapes == [1] and [s for s, _ in solver._colliders] == [0]
+    Vb, Fb = wf.Box(box_min=(-0.1, -0.1, 0.0), box_max=(0.1, 0.1, 0.1)).surface(1.0)
+    q0 = model.particle_q.numpy().astype(np.float64)
+    Fs = np.asarray(wf.TetMesh(q0, model.tet_indices.numpy()).boundary_faces())
+    F = np.vstack([Fs, Fb + len(q0)])
+    cm = ipctk.CollisionMesh(np.vstack([q0, Vb]), ipctk.edges(F), F)
+    s0, s1 = model.state(), model.state()
+    for _ in range(16):
+        s0.clear_forces()
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+        q = s0.particle_q.numpy().astype(np.float64)
+        assert not ipctk.has_intersections(cm, np.asfortranarray(np.vstack([q, Vb])))
+    over = q[:, 0] > 0.11
+    assert q[over, 2].min() < 0.095 < q[~over, 2].min()  # past the edge it hangs below the top
+    k = int(solver._kinematic_nodes[0])  # p (newton's float32 0.05), then the columns of A = I
+    assert np.array_equal(solver.simulator.positions()[k:k + 4], np.vstack([[0.0, 0.0, np.float32(0.05)], np.eye(3)]))
