@@ -728,3 +728,40 @@ def test_surface_shape_contact_keeps_the_box_edge_out_of_a_grid_landing_across_i
     assert q[over, 2].min() < 0.095 < q[~over, 2].min()  # past the edge it hangs below the top
     k = int(solver._kinematic_nodes[0])  # p (newton's float32 0.05), then the columns of A = I
     assert np.array_equal(solver.simulator.positions()[k:k + 4], np.vstack([[0.0, 0.0, np.float32(0.05)], np.eye(3)]))
+
+
+def test_a_box_moved_by_its_body_transform_pushes_the_grid_with_surface_shape_contact():
+    """A box on a massless newton body, moved 1 mm a step along x by the caller's ``body_q``, pushes a
+    soft grid lying on the ground 1 cm ahead of it: each step moves the kinematic box from where it is
+    to its new pose (its nodes end exactly there), the grid never intersects it (IPC Toolkit) and is
+    pushed on by at least the box's 15 mm of travel beyond the gap (measured 17 mm)."""
+    ipctk = pytest.importorskip("ipctk")
+    b = newton.ModelBuilder()
+    b.add_ground_plane()
+    body = b.add_body(xform=wp.transform(wp.vec3(-0.03, 0.0, 0.03), wp.quat_identity()), mass=0.0)
+    b.add_shape_box(body, hx=0.02, hy=0.06, hz=0.02, cfg=newton.ModelBuilder.ShapeConfig(density=0.0, mu=0.0))
+    b.add_soft_grid(pos=wp.vec3(0.0, -0.05, 0.001), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=4, dim_y=3, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
+                    density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model, damping_mass=5.0, shape_contact="surface")
+    assert solver.kinematic_shapes == [1] and solver.rigid_bodies == []
+    Vb, Fb = wf.Box(box_min=(-0.02, -0.06, -0.02), box_max=(0.02, 0.06, 0.02)).surface(1.0)
+    q0 = model.particle_q.numpy().astype(np.float64)
+    Fs = np.asarray(wf.TetMesh(q0, model.tet_indices.numpy()).boundary_faces())
+    F = np.vstack([Fs, Fb + len(q0)])
+    cm = ipctk.CollisionMesh(np.vstack([q0, Vb]), ipctk.edges(F), F)
+    s0, s1 = model.state(), model.state()
+    k = int(solver._kinematic_nodes[0])
+    for i in range(25):
+        bq = s0.body_q.numpy()
+        bq[body, 0] = -0.03 + 0.001 * (i + 1)
+        s0.body_q.assign(bq)
+        s0.clear_forces()
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+        q = s0.particle_q.numpy().astype(np.float64)
+        p = bq[body, :3].astype(np.float64)
+        assert np.array_equal(solver.simulator.positions()[k:k + 4], np.vstack([p, np.eye(3)]))
+        assert not ipctk.has_intersections(cm, np.asfortranarray(np.vstack([q, Vb + p])))
+    assert q[:, 0].mean() - q0[:, 0].mean() > 0.015 and q[:, 0].min() > p[0] + 0.02
