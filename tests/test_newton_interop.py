@@ -765,3 +765,31 @@ def test_a_box_moved_by_its_body_transform_pushes_the_grid_with_surface_shape_co
         assert np.array_equal(solver.simulator.positions()[k:k + 4], np.vstack([p, np.eye(3)]))
         assert not ipctk.has_intersections(cm, np.asfortranarray(np.vstack([q, Vb + p])))
     assert q[:, 0].mean() - q0[:, 0].mean() > 0.015 and q[:, 0].min() > p[0] + 0.02
+
+
+def test_surface_shape_contact_takes_closed_mesh_shapes_and_refuses_open_ones():
+    """A closed triangle-mesh shape (a box's 12 triangles) is a kinematic body under
+    shape_contact="surface" and holds a small grid dropped onto it (its lowest particle stays above
+    the top at z = 0.1 m); an open one (two triangles missing) and a bad option value get one-line errors."""
+    from warpfem.interop.newton import _box_surface
+
+    V, F = _box_surface((0.1, 0.1, 0.05))
+
+    def build(tris):
+        b = newton.ModelBuilder()
+        b.add_shape_mesh(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.05), wp.quat_identity()),
+                         mesh=newton.Mesh(V, tris.ravel()))
+        b.add_soft_grid(pos=wp.vec3(0.03, -0.05, 0.12), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                        dim_x=2, dim_y=1, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
+                        density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
+        return b.finalize(device="cpu")
+
+    model = build(F)
+    solver = SolverFEM(model, shape_contact="surface")
+    assert solver.kinematic_shapes == [0] and solver._colliders == []
+    end = _run(solver, model, 10, 0.01)
+    assert end.particle_q.numpy()[:, 2].min() > 0.1
+    with pytest.raises(NewtonInteropError, match=r"shape 0 cannot be a kinematic body .*open.*shape_contact='collider'"):
+        SolverFEM(build(F[:-2]), shape_contact="surface")
+    with pytest.raises(ValueError, match="shape_contact must be 'collider' or 'surface'"):
+        SolverFEM(model, shape_contact="surfaces")

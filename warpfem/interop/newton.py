@@ -22,6 +22,8 @@ backward-Euler incremental potential, barrier contact with friction) and writes 
   ``mu``);
 * with ``rigid_bodies``: free newton bodies -> warpfem rigid (affine) bodies in the same implicit
   solve (``body_q`` / ``body_qd`` / ``body_f`` read and written; their shapes are then not colliders).
+* with ``shape_contact="surface"``: box and mesh shapes -> kinematic warpfem rigid bodies in the
+  surface contact (edge-edge pairs too), placed each step at their pose on ``state_in.body_q``.
 
 warpfem keeps its own state (float64 by default) between steps while the caller passes back what
 the solver wrote last (the usual ``state_0, state_1 = state_1, state_0`` loop); a ``state_in`` that
@@ -215,6 +217,14 @@ class SolverFEM(SolverBase, CouplingInterface):
             ``body_inertia`` their mass; ``body_q`` / ``body_qd`` / ``body_f`` are read and
             ``body_q`` / ``body_qd`` written. A body in a joint other than its FREE joint is refused.
         rigid_stiffness: kappa (Pa) of the rigid bodies' orthogonality energy (:class:`warpfem.RigidBody`).
+        shape_contact: "collider" (default: every colliding shape is a warpfem collider, which keeps
+            the soft bodies' vertices out of it) or "surface": the box and triangle-mesh shapes (not on
+            a ``rigid_bodies`` body) become *kinematic* rigid bodies in warpfem's surface contact
+            (point-triangle and edge-edge pairs: their edges stay out of the soft faces too), their
+            four affine nodes prescribed each step at the shape's pose on ``state_in.body_q``; one
+            friction coefficient for all surface contact (the largest ``mu`` of those shapes and
+            of the rigid bodies'); planes, spheres and capsules stay colliders (docs/newton.md,
+            "Shapes in surface contact").
         linear_solver, linear_solver_options, require_convergence, tol, atol, max_iters, ... :
             warpfem's :class:`~warpfem.simulator.Simulator` options (docs/linear_solvers.md,
             :class:`~warpfem.NewtonOptions`).
@@ -230,6 +240,8 @@ class SolverFEM(SolverBase, CouplingInterface):
         last_particle_force: the sum (N) of the ``particle_f`` the last step applied to the simulated
             particles (in a coupled scene: the coupling forces).
         rigid_bodies: the newton body indices stepped as rigid bodies (``[]`` without).
+        kinematic_shapes: the newton shape indices stepped as kinematic rigid bodies
+            (``shape_contact="surface"``; ``[]`` without).
         last_orthogonality_error: the largest entry of |A^T A - I| over the rigid bodies after the last
             step (A the affine body's matrix; ``body_q`` gets its nearest rotation).
         rigid_surface_properties: per rigid body (mass, centre of mass, inertia tensor) of its
