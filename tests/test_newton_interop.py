@@ -770,7 +770,8 @@ def test_a_box_moved_by_its_body_transform_pushes_the_grid_with_surface_shape_co
 def test_surface_shape_contact_takes_closed_mesh_shapes_and_refuses_open_ones():
     """A closed triangle-mesh shape (a box's 12 triangles) is a kinematic body under
     shape_contact="surface" and holds a small grid dropped onto it (its lowest particle stays above
-    the top at z = 0.1 m); an open one (two triangles missing) and a bad option value get one-line errors."""
+    the top at z = 0.1 m); an open one (two triangles missing), two stacked (touching) boxes and a bad
+    option value get one-line errors."""
     from warpfem.interop.newton import _box_surface
 
     V, F = _box_surface((0.1, 0.1, 0.05))
@@ -793,3 +794,11 @@ def test_surface_shape_contact_takes_closed_mesh_shapes_and_refuses_open_ones():
         SolverFEM(build(F[:-2]), shape_contact="surface")
     with pytest.raises(ValueError, match="shape_contact must be 'collider' or 'surface'"):
         SolverFEM(model, shape_contact="surfaces")
+    b = newton.ModelBuilder()  # two static boxes stacked: touching kinematic bodies
+    b.add_shape_box(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.05), wp.quat_identity()), hx=0.1, hy=0.1, hz=0.05)
+    b.add_shape_box(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.125), wp.quat_identity()), hx=0.05, hy=0.05, hz=0.025)
+    b.add_soft_grid(pos=wp.vec3(-0.04, -0.03, 0.16), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=1, dim_y=1, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
+                    density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
+    with pytest.raises(NewtonInteropError, match=r"'shape0' and 'shape1' overlap .*touch or overlap"):
+        SolverFEM(b.finalize(device="cpu"), shape_contact="surface")

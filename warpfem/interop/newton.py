@@ -320,8 +320,17 @@ class SolverFEM(SolverBase, CouplingInterface):
             rb = self.rigid_bodies
             self._inertial = [_np(model.body_mass)[rb], _np(model.body_inertia)[rb], _np(model.body_com)[rb]]
             rigid += [self._kinematic_body(model, s) for s in self.kinematic_shapes]
-            wf = Model.from_bodies([Body(mesh, self.materials[0], name="newton tetrahedra")] + rigid,
-                                   gravity=self._gravity(model))
+            from warpfem.mesh.intersect import BodyOverlapError
+
+            try:
+                wf = Model.from_bodies([Body(mesh, self.materials[0], name="newton tetrahedra")] + rigid,
+                                       gravity=self._gravity(model))
+            except BodyOverlapError as e:
+                if not self.kinematic_shapes:
+                    raise
+                raise NewtonInteropError(f"SolverFEM(shape_contact='surface'): {e}; shapes that touch or overlap cannot "
+                                         "both be kinematic bodies: keep shape_contact='collider' or leave one out "
+                                         "with shapes=[...]") from None
         else:
             wf = Model(mesh, self.materials[0], gravity=self._gravity(model))
         n_soft = len(self.particles)
