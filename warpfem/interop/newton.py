@@ -718,7 +718,7 @@ class SolverFEM(SolverBase, CouplingInterface):
             if self.simulator.contact is None and len(self.kinematic_shapes):  # colliders leave kinematic shapes out
                 from warpfem.contact import ContactSet
 
-                cs = ContactSet(self.simulator._rigid.space)
+                cs = ContactSet(self.simulator.rigid.space)
                 lay = self.warpfem_model.rigid
                 cs.exclude_vertices(np.flatnonzero(lay.vertex_body >= len(self.rigid_bodies)))
                 self.simulator.contact = cs
