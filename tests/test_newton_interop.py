@@ -689,3 +689,116 @@ def test_proxy_masses_rebuild_solver_fem_and_its_mass_damping_is_no_coupling_for
         s0, s1 = s1, s0
     assert np.abs(solver._proxy_mappings[0].coupling_forces.numpy()).max() < 1e-5 * m_box * 9.81
     assert s0.body_qd.numpy()[0][2] == pytest.approx(-2 * 0.01 * 9.81, rel=1e-5)
+
+
+def _grid_across_box_edge():
+    """The grid of the test above dropped 2 cm across the box's edge at x = 0.1 m (x from 0.03 to 0.18 m)."""
+    b = newton.ModelBuilder()
+    b.add_ground_plane()
+    b.add_shape_box(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.05), wp.quat_identity()), hx=0.1, hy=0.1, hz=0.05)
+    b.add_soft_grid(pos=wp.vec3(0.03, -0.05, 0.12), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=6, dim_y=3, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
+                    density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
+    return b.finalize(device="cpu")
+
+
+def test_surface_shape_contact_keeps_the_box_edge_out_of_a_grid_landing_across_it():
+    """shape_contact="surface": the static box is a kinematic rigid body in warpfem's surface contact
+    (edge-edge pairs too), so its edge stays out of the grid's faces: no step intersects (IPC Toolkit;
+    the colliders' way intersects from step 7 on, kernels_bench/bench_newton_shape_contact.py) while
+    the grid bends over the edge; the box's four nodes stay exactly at its pose; the ground is still
+    a collider."""
+    ipctk = pytest.importorskip("ipctk")
+    model = _grid_across_box_edge()
+    solver = SolverFEM(model, damping_mass=5.0, shape_contact="surface")
+    assert solver.kinematic_shapes == [1] and [s for s, _ in solver._colliders] == [0]
+    Vb, Fb = wf.Box(box_min=(-0.1, -0.1, 0.0), box_max=(0.1, 0.1, 0.1)).surface(1.0)
+    q0 = model.particle_q.numpy().astype(np.float64)
+    Fs = np.asarray(wf.TetMesh(q0, model.tet_indices.numpy()).boundary_faces())
+    F = np.vstack([Fs, Fb + len(q0)])
+    cm = ipctk.CollisionMesh(np.vstack([q0, Vb]), ipctk.edges(F), F)
+    s0, s1 = model.state(), model.state()
+    for _ in range(16):
+        s0.clear_forces()
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+        q = s0.particle_q.numpy().astype(np.float64)
+        assert not ipctk.has_intersections(cm, np.asfortranarray(np.vstack([q, Vb])))
+    over = q[:, 0] > 0.11
+    assert q[over, 2].min() < 0.095 < q[~over, 2].min()  # past the edge it hangs below the top
+    k = int(solver._kinematic_nodes[0])  # p (newton's float32 0.05), then the columns of A = I
+    assert np.array_equal(solver.simulator.positions()[k:k + 4], np.vstack([[0.0, 0.0, np.float32(0.05)], np.eye(3)]))
+
+
+def test_a_box_moved_by_its_body_transform_pushes_the_grid_with_surface_shape_contact():
+    """A box on a massless newton body, moved 1 mm a step along x by the caller's ``body_q``, pushes a
+    soft grid lying on the ground 1 cm ahead of it: each step moves the kinematic box from where it is
+    to its new pose (its nodes end exactly there), the grid never intersects it (IPC Toolkit) and is
+    pushed on by at least the box's 15 mm of travel beyond the gap (measured 17 mm)."""
+    ipctk = pytest.importorskip("ipctk")
+    b = newton.ModelBuilder()
+    b.add_ground_plane()
+    body = b.add_body(xform=wp.transform(wp.vec3(-0.03, 0.0, 0.03), wp.quat_identity()), mass=0.0)
+    b.add_shape_box(body, hx=0.02, hy=0.06, hz=0.02, cfg=newton.ModelBuilder.ShapeConfig(density=0.0, mu=0.0))
+    b.add_soft_grid(pos=wp.vec3(0.0, -0.05, 0.001), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=4, dim_y=3, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
+                    density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
+    model = b.finalize(device="cpu")
+    solver = SolverFEM(model, damping_mass=5.0, shape_contact="surface")
+    assert solver.kinematic_shapes == [1] and solver.rigid_bodies == []
+    Vb, Fb = wf.Box(box_min=(-0.02, -0.06, -0.02), box_max=(0.02, 0.06, 0.02)).surface(1.0)
+    q0 = model.particle_q.numpy().astype(np.float64)
+    Fs = np.asarray(wf.TetMesh(q0, model.tet_indices.numpy()).boundary_faces())
+    F = np.vstack([Fs, Fb + len(q0)])
+    cm = ipctk.CollisionMesh(np.vstack([q0, Vb]), ipctk.edges(F), F)
+    s0, s1 = model.state(), model.state()
+    k = int(solver._kinematic_nodes[0])
+    for i in range(25):
+        bq = s0.body_q.numpy()
+        bq[body, 0] = -0.03 + 0.001 * (i + 1)
+        s0.body_q.assign(bq)
+        s0.clear_forces()
+        solver.step(s0, s1, model.control(), None, 0.01)
+        s0, s1 = s1, s0
+        q = s0.particle_q.numpy().astype(np.float64)
+        p = bq[body, :3].astype(np.float64)
+        assert np.array_equal(solver.simulator.positions()[k:k + 4], np.vstack([p, np.eye(3)]))
+        assert not ipctk.has_intersections(cm, np.asfortranarray(np.vstack([q, Vb + p])))
+    assert q[:, 0].mean() - q0[:, 0].mean() > 0.015 and q[:, 0].min() > p[0] + 0.02
+
+
+def test_surface_shape_contact_takes_closed_mesh_shapes_and_refuses_open_ones():
+    """A closed triangle-mesh shape (a box's 12 triangles) is a kinematic body under
+    shape_contact="surface" and holds a small grid dropped onto it (its lowest particle stays above
+    the top at z = 0.1 m); an open one (two triangles missing), two stacked (touching) boxes and a bad
+    option value get one-line errors."""
+    from warpfem.interop.newton import _box_surface
+
+    V, F = _box_surface((0.1, 0.1, 0.05))
+
+    def build(tris):
+        b = newton.ModelBuilder()
+        b.add_shape_mesh(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.05), wp.quat_identity()),
+                         mesh=newton.Mesh(V, tris.ravel()))
+        b.add_soft_grid(pos=wp.vec3(0.03, -0.05, 0.12), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                        dim_x=2, dim_y=1, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
+                        density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
+        return b.finalize(device="cpu")
+
+    model = build(F)
+    solver = SolverFEM(model, shape_contact="surface")
+    assert solver.kinematic_shapes == [0] and solver._colliders == []
+    end = _run(solver, model, 10, 0.01)
+    assert end.particle_q.numpy()[:, 2].min() > 0.1
+    with pytest.raises(NewtonInteropError, match=r"shape 0 cannot be a kinematic body .*open.*shape_contact='collider'"):
+        SolverFEM(build(F[:-2]), shape_contact="surface")
+    with pytest.raises(ValueError, match="shape_contact must be 'collider' or 'surface'"):
+        SolverFEM(model, shape_contact="surfaces")
+    b = newton.ModelBuilder()  # two static boxes stacked: touching kinematic bodies
+    b.add_shape_box(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.05), wp.quat_identity()), hx=0.1, hy=0.1, hz=0.05)
+    b.add_shape_box(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.125), wp.quat_identity()), hx=0.05, hy=0.05, hz=0.025)
+    b.add_soft_grid(pos=wp.vec3(-0.04, -0.03, 0.16), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
+                    dim_x=1, dim_y=1, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
+                    density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
+    with pytest.raises(NewtonInteropError, match=r"'shape0' and 'shape1' overlap .*touch or overlap"):
+        SolverFEM(b.finalize(device="cpu"), shape_contact="surface")

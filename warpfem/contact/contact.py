@@ -88,6 +88,25 @@ class ContactSet:
     def __len__(self):
         return len(self.colliders)
 
+    def exclude_vertices(self, vertices):
+        """Leave ``vertices`` out of the collider contact (those of a kinematic body, whose motion is
+        prescribed: the colliders neither push them nor bound their step); the body measures of the
+        defaults (mean surface edge, diagonal) are then those of the remaining surface. Call it
+        before adding colliders."""
+        if self.colliders:
+            raise RuntimeError("ContactSet.exclude_vertices: call it before adding colliders")
+        mesh = self.sim.model.mesh
+        faces = np.asarray(mesh.boundary_faces())
+        gone = np.zeros(int(self.sim.num_vertices), dtype=bool)
+        gone[np.asarray(vertices, dtype=np.int64)] = True
+        faces = faces[~gone[faces].any(axis=1)]
+        self.surface = np.unique(faces)
+        X = self.sim.model.rest_positions
+        edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        self.mean_edge = float(np.linalg.norm(X[edges[:, 0]] - X[edges[:, 1]], axis=1).mean())
+        self.diagonal = float(np.linalg.norm(np.ptp(X[self.surface], axis=0)))
+        self._surf = to_device(self.surface.astype(np.int32), wp.int32, self.sim.device)
+
     # -- set-up ---------------------------------------------------------------------------------------
     def defaults(self, c: Collider):
         """(dhat, kappa, eps_v) of a collider with the body-based defaults filled in; kappa is None

@@ -22,6 +22,8 @@ backward-Euler incremental potential, barrier contact with friction) and writes 
   ``mu``);
 * with ``rigid_bodies``: free newton bodies -> warpfem rigid (affine) bodies in the same implicit
   solve (``body_q`` / ``body_qd`` / ``body_f`` read and written; their shapes are then not colliders).
+* with ``shape_contact="surface"``: box and mesh shapes -> kinematic warpfem rigid bodies in the
+  surface contact (edge-edge pairs too), placed each step at their pose on ``state_in.body_q``.
 
 warpfem keeps its own state (float64 by default) between steps while the caller passes back what
 the solver wrote last (the usual ``state_0, state_1 = state_1, state_0`` loop); a ``state_in`` that
@@ -215,6 +217,14 @@ class SolverFEM(SolverBase, CouplingInterface):
             ``body_inertia`` their mass; ``body_q`` / ``body_qd`` / ``body_f`` are read and
             ``body_q`` / ``body_qd`` written. A body in a joint other than its FREE joint is refused.
         rigid_stiffness: kappa (Pa) of the rigid bodies' orthogonality energy (:class:`warpfem.RigidBody`).
+        shape_contact: "collider" (default: every colliding shape is a warpfem collider, which keeps
+            the soft bodies' vertices out of it) or "surface": the box and triangle-mesh shapes (not on
+            a ``rigid_bodies`` body) become *kinematic* rigid bodies in warpfem's surface contact
+            (point-triangle and edge-edge pairs: their edges stay out of the soft faces too), their
+            four affine nodes prescribed each step at the shape's pose on ``state_in.body_q``; one
+            friction coefficient for all surface contact (the largest ``mu`` of those shapes and
+            of the rigid bodies'); planes, spheres and capsules stay colliders (docs/newton.md,
+            "Shapes in surface contact").
         linear_solver, linear_solver_options, require_convergence, tol, atol, max_iters, ... :
             warpfem's :class:`~warpfem.simulator.Simulator` options (docs/linear_solvers.md,
             :class:`~warpfem.NewtonOptions`).
@@ -230,6 +240,8 @@ class SolverFEM(SolverBase, CouplingInterface):
         last_particle_force: the sum (N) of the ``particle_f`` the last step applied to the simulated
             particles (in a coupled scene: the coupling forces).
         rigid_bodies: the newton body indices stepped as rigid bodies (``[]`` without).
+        kinematic_shapes: the newton shape indices stepped as kinematic rigid bodies
+            (``shape_contact="surface"``; ``[]`` without).
         last_orthogonality_error: the largest entry of |A^T A - I| over the rigid bodies after the last
             step (A the affine body's matrix; ``body_q`` gets its nearest rotation).
         rigid_surface_properties: per rigid body (mass, centre of mass, inertia tensor) of its
@@ -240,12 +252,13 @@ class SolverFEM(SolverBase, CouplingInterface):
     def __init__(self, model, *, precision="float64", integrator="backward_euler", material="stable_neo_hookean",
                  damping_mass=0.0, damping_stiffness=None, friction="shape", contact=None, soft_contact=None,
                  unsupported_shapes="error", shapes="all", rigid_bodies=None, rigid_stiffness=1e8,
-                 linear_solver="auto", linear_solver_options=None, require_convergence=False, **newton_options):
+                 shape_contact="collider", linear_solver="auto", linear_solver_options=None, require_convergence=False, **newton_options):
         super().__init__(model)
         self._options = dict(precision=precision, integrator=integrator, material=material, damping_mass=damping_mass,
                              damping_stiffness=damping_stiffness, friction=friction, contact=contact,
                              soft_contact=soft_contact, unsupported_shapes=unsupported_shapes, shapes=shapes,
-                             rigid_bodies=rigid_bodies, rigid_stiffness=rigid_stiffness, linear_solver=linear_solver,
+                             rigid_bodies=rigid_bodies, rigid_stiffness=rigid_stiffness, shape_contact=shape_contact,
+                             linear_solver=linear_solver,
                              linear_solver_options=linear_solver_options, require_convergence=require_convergence,
                              **newton_options)
         self.rigid_bodies = self._rigid_selection(model, rigid_bodies)
@@ -264,6 +277,10 @@ class SolverFEM(SolverBase, CouplingInterface):
                 isinstance(i, (int, np.integer)) for i in shapes))):
             raise ValueError(f"shapes must be 'all', 'static' or a list of shape indices, got {shapes!r}")
         self.shapes = shapes if isinstance(shapes, str) else [int(i) for i in shapes]
+        if shape_contact not in ("collider", "surface"):
+            raise ValueError(f"shape_contact must be 'collider' or 'surface', got {shape_contact!r}")
+        self.shape_contact = shape_contact
+        self.kinematic_shapes = self._kinematic_selection(model)
         q0 = self._checked_positions(_np(model.particle_q), "model.particle_q")
         tets, groups = self._tetrahedra(model)
         self.particles = np.unique(tets).astype(np.int64)  # newton index of each warpfem vertex
@@ -294,14 +311,26 @@ class SolverFEM(SolverBase, CouplingInterface):
                                          f"({ratios.min():g} to {ratios.max():g} s); warpfem's stiffness damping is one "
                                          "value: give SolverFEM(damping_stiffness=...)")
             damping_stiffness = float(ratios[0])
-        if self.rigid_bodies:
+        has_rigid = bool(self.rigid_bodies or self.kinematic_shapes)
+        self._kinematic_frames = []  # per kinematic shape (R0, its centre of mass in the shape's frame)
+        if has_rigid:
             from warpfem.model import Body
 
             rigid = [self._rigid_body(model, b, rigid_stiffness) for b in self.rigid_bodies]
             rb = self.rigid_bodies
             self._inertial = [_np(model.body_mass)[rb], _np(model.body_inertia)[rb], _np(model.body_com)[rb]]
-            wf = Model.from_bodies([Body(mesh, self.materials[0], name="newton tetrahedra")] + rigid,
-                                   gravity=self._gravity(model))
+            rigid += [self._kinematic_body(model, s) for s in self.kinematic_shapes]
+            from warpfem.mesh.intersect import BodyOverlapError
+
+            try:
+                wf = Model.from_bodies([Body(mesh, self.materials[0], name="newton tetrahedra")] + rigid,
+                                       gravity=self._gravity(model))
+            except BodyOverlapError as e:
+                if not self.kinematic_shapes:
+                    raise
+                raise NewtonInteropError(f"SolverFEM(shape_contact='surface'): {e}; shapes that touch or overlap cannot "
+                                         "both be kinematic bodies: keep shape_contact='collider' or leave one out "
+                                         "with shapes=[...]") from None
         else:
             wf = Model(mesh, self.materials[0], gravity=self._gravity(model))
         n_soft = len(self.particles)
@@ -320,10 +349,14 @@ class SolverFEM(SolverBase, CouplingInterface):
         wf.lumped_mass = np.concatenate([m, wf.lumped_mass[n_soft:]])
         wf.gravity_mass = np.concatenate([m, wf.gravity_mass[n_soft:]])
         wf.mass = scipy.sparse.block_diag([scipy.sparse.diags(m), wf.mass[n_soft:, n_soft:]], format="csr") \
-            if self.rigid_bodies else scipy.sparse.diags(m).tocsr()
+            if has_rigid else scipy.sparse.diags(m).tocsr()
         self._fixed = np.flatnonzero(fixed)
         if len(self._fixed):
             wf.fix(self._fixed)
+        # a kinematic shape's four nodes are fixed; each step prescribes them (Control.targets)
+        self._kinematic_nodes = n_soft + 4 * len(self.rigid_bodies) + 4 * np.arange(len(self.kinematic_shapes))
+        for k in self._kinematic_nodes:
+            wf.fixed[k:k + 4] = True
         self.warpfem_model = wf
         self.device_name = str(model.device)
         self.simulator = Simulator(wf, device=self.device_name, precision=precision, integrator=integrator,
@@ -334,7 +367,7 @@ class SolverFEM(SolverBase, CouplingInterface):
         if qd0 is not None and np.any(qd0[self.particles] != 0):
             v = qd0[self.particles].astype(np.float64)
             v[self._fixed] = 0.0
-            if self.rigid_bodies:
+            if has_rigid:
                 v = np.concatenate([v, self.simulator.velocities()[n_soft:]])
             self.simulator.set_velocities(v)
         self._n_soft = n_soft
@@ -346,8 +379,13 @@ class SolverFEM(SolverBase, CouplingInterface):
         self.body_reads = 0
         self.last_stats = None
         self._setup_colliders(model)
-        if self.rigid_bodies:  # the rigid bodies touch the soft ones (and each other) through warpfem's contact
+        if has_rigid:  # the rigid bodies touch the soft ones (and each other) through warpfem's contact
             rc = {"bodies": True, "friction": self._rigid_friction(model)}
+            if len(self.kinematic_shapes):  # dhat from the soft surface, as the colliders' (not the shapes' edges)
+                faces = mesh.boundary_faces()
+                E = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+                rc["dhat"] = 0.1 * float(np.linalg.norm(q0[self.particles][E[:, 0]] - q0[self.particles][E[:, 1]],
+                                                        axis=1).mean())
             rc.update({k: v for k, v in self.contact_options.items() if k in ("dhat", "friction_velocity")})
             if isinstance(self.contact_options.get("stiffness"), (int, float)):
                 rc["stiffness"] = self.contact_options["stiffness"]
@@ -534,7 +572,67 @@ class SolverFEM(SolverBase, CouplingInterface):
         if isinstance(self.friction, (int, float)):
             return float(self.friction)
         sb, mu = _np(model.shape_body), _np(model.shape_material_mu)
-        return float(max(mu[np.isin(sb, self.rigid_bodies)].max(initial=0.0), 0.0))
+        on = np.isin(sb, self.rigid_bodies)
+        on[self.kinematic_shapes] = True
+        mu = mu[on].astype(np.float64)
+        if self.friction == "average":
+            mu = 0.5 * (mu + float(model.soft_contact_mu))
+        return float(max(mu.max(initial=0.0), 0.0))
+
+    def _kinematic_selection(self, model):
+        """The shapes stepped as kinematic rigid bodies (``shape_contact="surface"``): the colliding
+        boxes and triangle meshes that are not on a simulated rigid body, in shape order."""
+        if self.shape_contact != "surface":
+            return []
+        n_shapes = int(getattr(model, "shape_count", 0) or 0)
+        if n_shapes == 0:
+            return []
+        types, flags, sb = _np(model.shape_type), _np(model.shape_flags), _np(model.shape_body)
+        source = getattr(model, "shape_source", None)
+        chosen = range(n_shapes) if isinstance(self.shapes, str) else self.shapes
+        out = []
+        for s in chosen:
+            if not 0 <= s < n_shapes or not int(flags[s]) & int(newton.ShapeFlags.COLLIDE_PARTICLES):
+                continue
+            if (self.shapes == "static" and int(sb[s]) >= 0) or int(sb[s]) in self.rigid_bodies:
+                continue
+            t = newton.GeoType(int(types[s]))
+            if t == newton.GeoType.BOX or (t == newton.GeoType.MESH and source is not None and source[s] is not None):
+                out.append(int(s))
+        return out
+
+    def _kinematic_body(self, model, s):
+        """A warpfem RigidBody of shape s's surface at its pose of ``model.body_q`` (its nodes are
+        prescribed each step); keeps (R0, the centre of mass in the shape's frame) to place it."""
+        from warpfem.rigid.body import RigidBody
+
+        t = newton.GeoType(int(_np(model.shape_type)[s]))
+        scale = _np(model.shape_scale)[s].astype(np.float64)
+        if t == newton.GeoType.BOX:
+            V, F = _box_surface(scale)
+        else:
+            src = model.shape_source[s]
+            V = np.asarray(src.vertices, dtype=np.float64).reshape(-1, 3) * scale
+            F = np.asarray(src.indices, dtype=np.int64).reshape(-1, 3)
+        self._shape_tf = _np(model.shape_transform).astype(np.float64)
+        self._shape_body = _np(model.shape_body)
+        body_q = _np(model.body_q) if int(getattr(model, "body_count", 0) or 0) else None
+        R0, t0 = self._shape_pose(s, body_q)
+        try:
+            rb = RigidBody((V @ R0.T + t0, F), density=1000.0, name=f"shape{s}")
+        except ValueError as e:
+            raise NewtonInteropError(f"SolverFEM: shape {s} cannot be a kinematic body of shape_contact='surface' "
+                                     f"({e}); use shape_contact='collider'") from None
+        self._kinematic_frames.append((R0, R0.T @ (rb.center_of_mass - t0)))
+        return rb
+
+    def _kinematic_pose_nodes(self, s, body_q, frame):
+        """(4, 3) the nodes (p, a_1, a_2, a_3) of kinematic shape s at its pose on ``body_q``:
+        A = R R0^T, p = R c + t (c the centre of mass in the shape's frame)."""
+        R0, c = frame
+        R, t = self._shape_pose(s, body_q)
+        A = R @ R0.T
+        return np.vstack([R @ c + t, A.T])
 
     def _rigid_nodes(self, body_q, body_qd):
         """(4 k, 3) positions and velocities of the rigid nodes (p, a_1, a_2, a_3 per body) of newton's
@@ -586,7 +684,7 @@ class SolverFEM(SolverBase, CouplingInterface):
                 raise NewtonInteropError(f"SolverFEM: shape index {s} out of range [0, {n_shapes})")
             if not (int(flags[s]) & collide) or (self.shapes == "static" and int(self._shape_body[s]) >= 0):
                 continue
-            if int(self._shape_body[s]) in self.rigid_bodies:  # the body itself is simulated
+            if int(self._shape_body[s]) in self.rigid_bodies or s in self.kinematic_shapes:  # simulated as a body
                 continue
             t = GeoType(int(types[s]))
             if self.friction == "shape":
@@ -617,6 +715,13 @@ class SolverFEM(SolverBase, CouplingInterface):
                                          f"{', '.join(SUPPORTED_SHAPES)} (pass unsupported_shapes='ignore' to leave "
                                          "the others out)")
             c.newton_pose = self._shape_pose(s, body_q)
+            if self.simulator.contact is None and len(self.kinematic_shapes):  # colliders leave kinematic shapes out
+                from warpfem.contact import ContactSet
+
+                cs = ContactSet(self.simulator.rigid.space)
+                lay = self.warpfem_model.rigid
+                cs.exclude_vertices(np.flatnonzero(lay.vertex_body >= len(self.rigid_bodies)))
+                self.simulator.contact = cs
             self.simulator.add_collider(c)
             self._colliders.append((s, c))
 
@@ -650,7 +755,7 @@ class SolverFEM(SolverBase, CouplingInterface):
         n = self._n_soft
         xr, vr = self._rigid_nodes(*body)
         x, v = self.simulator.positions(), self.simulator.velocities()
-        x[n:], v[n:] = xr, vr
+        x[n:n + len(xr)], v[n:n + len(xr)] = xr, vr
         self.simulator.set_positions(x)
         self.simulator.set_velocities(v)
         self.body_reads += 1
@@ -664,6 +769,9 @@ class SolverFEM(SolverBase, CouplingInterface):
         if self.rigid_bodies:
             xr, vr = self._rigid_nodes(*body)
             x, v = np.concatenate([x, xr]), np.concatenate([v, vr])
+        if len(self.kinematic_shapes):  # kinematic shapes stay where they are (this step moves them)
+            tail = self.simulator.positions()[len(x):]
+            x, v = np.concatenate([x, tail]), np.concatenate([v, np.zeros_like(tail)])
         self.simulator.set_positions(x)
         self.simulator.set_velocities(v)
         self.resyncs += 1
@@ -722,17 +830,22 @@ class SolverFEM(SolverBase, CouplingInterface):
             if f is not None:
                 forces[:n] = f.astype(np.float64)
             if fr is not None:
-                forces[n:] = fr
+                forces[n:n + len(fr)] = fr
             sim.sync_model()
             self._forces_on = bool(np.any(forces != 0))
-        if self._colliders:
+        if self._colliders or len(self.kinematic_shapes):
             body_q = state_in.body_q.numpy() if getattr(state_in, "body_q", None) is not None else None
             for s, c in self._colliders:
                 c.newton_pose = self._shape_pose(s, body_q)
+            for s, k, frame in zip(self.kinematic_shapes, self._kinematic_nodes, self._kinematic_frames):
+                nodes = self._kinematic_pose_nodes(s, body_q, frame)
+                for j in range(4):  # the step moves the shape from where it is to this pose
+                    sim.control.targets[int(k) + j] = nodes[j]
         if active_tape() is not None:
-            if self.rigid_bodies:
-                raise NewtonInteropError("SolverFEM: steps on a wp.Tape do not support rigid_bodies yet (body_q / "
-                                         "body_qd are not mapped to warpfem's state on the tape)")
+            if self.rigid_bodies or len(self.kinematic_shapes):
+                raise NewtonInteropError("SolverFEM: steps on a wp.Tape do not support rigid_bodies or "
+                                         "shape_contact='surface' yet (body_q / body_qd are not mapped to warpfem's "
+                                         "state on the tape)")
             self._taped_step(state_in, state_out, float(dt))
             return
         self.last_stats = sim.step(dt=float(dt))
