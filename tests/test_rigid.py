@@ -286,6 +286,26 @@ def test_a_run_continued_from_a_checkpoint_and_a_second_run_are_bit_identical():
     assert np.array_equal(fresh.vertex_velocities(), sim.vertex_velocities())
 
 
+def test_a_rigid_body_is_one_contact_group_with_no_pairs_inside_it():
+    """Surface contact's groups: each rigid body's surface vertices are one group (connected by its
+    triangles; no elements hold them), so a rigid icosphere finer than dhat has no barrier pair
+    within itself; the soft slab is one group too."""
+    from warpfem import Body, make_material
+    from warpfem.mesh.box import icosphere_surface
+
+    slab = Body(box_tet_mesh(size=(0.3, 0.04, 0.3), cells=(2, 1, 2), origin=(-0.15, -0.1, -0.15)),
+                make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=500.0), name="slab")
+    ball = RigidBody(icosphere_surface(0.05, 2), density=1000.0, name="ball", offset=(0.0, 0.2, 0.0))
+    m = Model.from_bodies([slab, ball])
+    sim = Simulator(m, dt=0.01)
+    sim.set_contact(bodies=True, dhat=0.05)  # dhat above the ball's edge length: its own features are near
+    group = sim.surface_contact.surface.group
+    assert sim.surface_contact.surface.num_groups == 2
+    assert np.unique(group[m.body_vertices("ball")]).size == 1 and np.unique(group[m.body_vertices("slab")]).size == 1
+    sim.step()  # the bodies are 0.23 m apart: no pair at all
+    assert sim.surface_contact.num_pairs == 0
+
+
 def test_two_rigid_cubes_collide_conserving_linear_momentum_and_losing_energy():
     """Zero gravity, a spinning 1 kg cube thrown at a 3 kg cube (off centre, friction 0.5), BDF2:
     the total linear momentum is unchanged through the impact (contact forces act in

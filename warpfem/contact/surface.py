@@ -143,7 +143,7 @@ def contact_surface(mesh, body=None, *, elements=None) -> ContactSurface:
     ``boundary_faces()``). ``body``: optional (n,) body id per vertex (a model of several
     bodies); groups are the connected components of the element graph (``elements``: (m, k)
     connectivity or a list of such tables, one per element type; default ``mesh.elements``, else
-    the surface triangles), split by body id."""
+    the surface triangles; the surface triangles connect as well), split by body id."""
     faces = np.asarray(mesh.boundary_faces(), dtype=np.int64).reshape(-1, 3)
     n = int(mesh.num_vertices)
     if elements is None:
@@ -151,8 +151,9 @@ def contact_surface(mesh, body=None, *, elements=None) -> ContactSurface:
     tables = elements if isinstance(elements, (list, tuple)) else [elements]
     tables = [np.asarray(E, dtype=np.int64) for E in tables if E is not None]
     tables = [E for E in tables if E.ndim == 2 and E.size]
-    if not tables:  # no connectivity table: connect through the surface instead
-        tables = [faces]
+    # the surface triangles connect too: vertices no element holds (a rigid body's surface) are
+    # one group per connected surface instead of one each (for elements' vertices they add nothing)
+    tables.append(faces)
     rows = np.concatenate([np.repeat(E[:, 0], E.shape[1]) for E in tables])
     cols = np.concatenate([E.ravel() for E in tables])
     comp = connected_labels(n, rows, cols)
