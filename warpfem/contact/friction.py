@@ -51,6 +51,16 @@ def crossing_fraction(u: Any, du: Any, eps: Any):
     return t
 
 
+@wp.func
+def step_crossing(n: Any, r: Any, step: Any, sy: Any, eps: Any):
+    """:func:`crossing_fraction` of a collider contact with normal n whose relative position is r
+    (dbase + sy y - w) under the vertex step ``step`` (in y): tangential parts of both."""
+    u = r - wp.dot(r, n) * n
+    dd = sy * step
+    du = dd - wp.dot(dd, n) * n
+    return crossing_fraction(u, du, eps)
+
+
 @both_precisions(lam="s[]", nrm="v[]", wdisp="v[]", dbase="v[]", y="v[]", sy="s", epsf="s[]", mu="s[]", d="v[]")
 @wp.kernel
 def collider_filter_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, lam: wp.array(dtype=Any),
@@ -69,11 +79,7 @@ def collider_filter_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, l
         lm = lam[p]
         if lm > zero and mu[j] > zero:
             n = nrm[p]
-            r = dbase[vi] + sy * y[vi] - wdisp[p]
-            u = r - wp.dot(r, n) * n
-            dd = sy * di
-            du = dd - wp.dot(dd, n) * n
-            t = crossing_fraction(u, du, epsf[j])
+            t = step_crossing(n, dbase[vi] + sy * y[vi] - wdisp[p], di, sy, epsf[j])
             if t < zero + type(sy)(1.0):
                 dn = wp.dot(di, n) * n
                 di = dn + t * (di - dn)
@@ -109,11 +115,7 @@ def collider_pin_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, lam:
         lm = lam[p]
         if lm > zero and mu[j] > zero:
             n = nrm[p]
-            r = dbase[vi] + sy * y[vi] - wdisp[p]
-            u = r - wp.dot(r, n) * n
-            dd = sy * dr
-            du = dd - wp.dot(dd, n) * n
-            t = crossing_fraction(u, du, epsf[j])
+            t = step_crossing(n, dbase[vi] + sy * y[vi] - wdisp[p], dr, sy, epsf[j])
             if t < zero + type(sy)(1.0):
                 pm = pm + wp.identity(3, type(sy)) - wp.outer(n, n)
                 pinned = pinned + 1
