@@ -206,19 +206,15 @@ def test_solver_fem_is_an_entry_of_newtons_coupled_solver():
     assert got.body_qd.numpy()[0][2] == pytest.approx(-9.81 * 0.1, rel=1e-5)
 
 
-def test_newton_viewer_usd_draws_the_solver_fem_model(tmp_path):
-    """newton's ViewerUSD writes the SolverFEM-stepped model as it would any other: the soft
-    body's points at each time sample are the state's particle positions."""
-    pytest.importorskip("pxr")
-    viewer_mod = pytest.importorskip("newton.viewer")
-    from pxr import Usd
-
+def _record_falling_box(make_viewer):
+    """A soft box 5 cm above newton's ground plane stepped by SolverFEM for 3 frames of 1/60 s,
+    each frame's state logged to the viewer ``make_viewer()`` makes (closed after); returns the
+    model and the logged particle positions."""
     b = newton.ModelBuilder()
     b.add_ground_plane()
     _add_mesh(b, wf.box_tet_mesh(size=(0.2, 0.1, 0.1), cells=(2, 1, 1)), _material(), pos=(0.0, 0.0, 0.05))
     model = b.finalize(device="cpu")
-    path = tmp_path / "fem.usda"
-    viewer = viewer_mod.ViewerUSD(output_path=str(path), fps=60, up_axis="Z")
+    viewer = make_viewer()
     viewer.set_model(model)
     solver = SolverFEM(model)
     s0, s1 = model.state(), model.state()
@@ -231,6 +227,18 @@ def test_newton_viewer_usd_draws_the_solver_fem_model(tmp_path):
         solver.step(s0, s1, model.control(), None, 1.0 / 60.0)
         s0, s1 = s1, s0
     viewer.close()
+    return model, logged
+
+
+def test_newton_viewer_usd_draws_the_solver_fem_model(tmp_path):
+    """newton's ViewerUSD writes the SolverFEM-stepped model as it would any other: the soft
+    body's points at each time sample are the state's particle positions."""
+    pytest.importorskip("pxr")
+    viewer_mod = pytest.importorskip("newton.viewer")
+    from pxr import Usd
+
+    path = tmp_path / "fem.usda"
+    model, logged = _record_falling_box(lambda: viewer_mod.ViewerUSD(output_path=str(path), fps=60, up_axis="Z"))
     stage = Usd.Stage.Open(str(path))
     points = [p for p in stage.Traverse() if p.GetAttribute("points") and len(p.GetAttribute("points").GetTimeSamples()) == 3]
     assert len(points) == 1
@@ -634,24 +642,8 @@ def test_newton_viewer_file_records_the_solver_fem_model_and_plays_it_back(tmp_p
     recording into an empty newton Model and its states carry the same particle positions
     (bit-identical) and the same tetrahedra."""
     viewer_mod = pytest.importorskip("newton.viewer")
-    b = newton.ModelBuilder()
-    b.add_ground_plane()
-    _add_mesh(b, wf.box_tet_mesh(size=(0.2, 0.1, 0.1), cells=(2, 1, 1)), _material(), pos=(0.0, 0.0, 0.05))
-    model = b.finalize(device="cpu")
     path = str(tmp_path / "fem.json")
-    viewer = viewer_mod.ViewerFile(path, auto_save=False)
-    viewer.set_model(model)
-    solver = SolverFEM(model)
-    s0, s1 = model.state(), model.state()
-    logged = []
-    for frame in range(3):
-        viewer.begin_frame(frame / 60.0)
-        viewer.log_state(s0)
-        viewer.end_frame()
-        logged.append(s0.particle_q.numpy().copy())
-        solver.step(s0, s1, model.control(), None, 1.0 / 60.0)
-        s0, s1 = s1, s0
-    viewer.close()
+    model, logged = _record_falling_box(lambda: viewer_mod.ViewerFile(path, auto_save=False))
     player = viewer_mod.ViewerFile(path)
     player.load_recording()
     assert player.get_frame_count() == 3
