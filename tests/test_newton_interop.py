@@ -684,14 +684,11 @@ def test_proxy_masses_rebuild_solver_fem_and_its_mass_damping_is_no_coupling_for
 
 
 def _grid_across_box_edge():
-    """The grid of the test above dropped 2 cm across the box's edge at x = 0.1 m (x from 0.03 to 0.18 m)."""
-    b = newton.ModelBuilder()
-    b.add_ground_plane()
-    b.add_shape_box(-1, xform=wp.transform(wp.vec3(0.0, 0.0, 0.05), wp.quat_identity()), hx=0.1, hy=0.1, hz=0.05)
-    b.add_soft_grid(pos=wp.vec3(0.03, -0.05, 0.12), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
-                    dim_x=6, dim_y=3, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
-                    density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
-    return b.finalize(device="cpu")
+    """The grid of the test above dropped 2 cm across the box's edge at x = 0.1 m (x from 0.03 to
+    0.18 m): the scene of kernels_bench/bench_newton_shape_contact.py."""
+    from kernels_bench.bench_newton_shape_contact import build
+
+    return build()
 
 
 def test_surface_shape_contact_keeps_the_box_edge_out_of_a_grid_landing_across_it():
