@@ -77,6 +77,7 @@ class ContactSet:
         self.system.listeners.append(self._pattern_changed)
         self._cuts = wp.zeros(1, dtype=wp.int32, device=dev)  # contacts cut by the friction filter this step
         self._pins = wp.zeros(1, dtype=wp.int32, device=dev)  # contacts pinned by the last pin_direction
+        self._tally = wp.zeros(1, dtype=wp.float64, device=dev)  # filter_direction's tally when none is given
         self._x0 = ops.new_vector()  # positions at the start of the step (friction's lag)
         self._neg_x0 = ops.new_vector()
         self._ready = False
@@ -292,26 +293,31 @@ class ContactSet:
     def has_friction(self) -> bool:
         return any(c.friction > 0.0 for c in self.colliders)
 
-    def filter_direction(self, dbase, y, sy, d):
+    def filter_direction(self, dbase, y, sy, d, tally=None):
         """The stick/slip-aware step (:mod:`warpfem.contact.friction`): d's tangential part cut at
         the vertices whose frictional contact the step would carry across its sticking zone, with
         the step displacement x - x_n = dbase + sy y. Counts the cut contacts in
-        :attr:`filtered_contacts` (since the step start)."""
+        :attr:`filtered_contacts` (since the step start) and, with ``tally`` = (float64 device
+        array, index), adds this call's cut contacts to that entry (no read-back)."""
+        acc, at = (self._tally, 0) if tally is None else tally
         launch(FR.collider_filter_kernel, len(self.surface), [
             self._surf, self.nc, self._lam, self._nrm, self._w, dbase, y, self.ops.scalar(sy), self._epsf, self._mu,
-            d, self._cuts], self.sim.device)
+            d, self._cuts, acc, int(at)], self.sim.device)
 
-    def pin_direction(self, dbase, y, sy, d_raw, d, values, rhs, weight) -> int:
+    def pin_direction(self, dbase, y, sy, d_raw, d, values, rhs, weight, count=True):
         """Tangential springs for a second Newton solve (``NewtonOptions.friction_pin``): at the
         vertices whose contact the unfiltered step ``d_raw`` carries across its sticking zone, k P
         added to their Newton blocks in ``values`` and k P d to ``rhs`` (d the filtered step), k =
-        ``weight`` x the block's mean diagonal. Returns the number of such contacts (one read-back)."""
+        ``weight`` x the block's mean diagonal. Returns the number of such contacts (one read-back);
+        with ``count`` False, None and no read-back (the caller knows from :meth:`filter_direction`'s
+        tally: a vertex's contacts are pinned exactly when the filter cut one of them, the filter
+        having run on ``d_raw``)."""
         cnt = self._pins
         cnt.zero_()
         launch(FR.collider_pin_kernel, len(self.surface), [
             self._surf, self.nc, self._lam, self._nrm, self._w, dbase, y, self.ops.scalar(sy), self._epsf, self._mu,
             d_raw, d, self._diag, values, rhs, self.ops.scalar(weight), cnt], self.sim.device)
-        return read_int(cnt)
+        return read_int(cnt) if count else None
 
     @property
     def filtered_contacts(self) -> int:
@@ -536,9 +542,10 @@ class ContactForm(LaggedFrictionForm):
         """Whether :meth:`filter_direction` can change a direction (only with friction)."""
         return self.contact.has_friction()
 
-    def filter_direction(self, y, x, d):
+    def filter_direction(self, y, x, d, tally=None):
         """Cut the tangential step of each frictional contact that the Newton step ``d`` (in y)
-        would carry across its sticking zone (:mod:`warpfem.contact.friction`), in place."""
+        would carry across its sticking zone (:mod:`warpfem.contact.friction`), in place; with
+        ``tally`` = (float64 device array, index), the cut contacts are added to that entry."""
         c = self.contact
         if not c.has_friction():
             return
@@ -546,20 +553,20 @@ class ContactForm(LaggedFrictionForm):
             dbase, yv, sy = self._dbase, y, self.s
         else:  # static: x is the unknown
             dbase, yv, sy = c.negated_step_start, x, 1.0
-        c.filter_direction(dbase, yv, sy, d)
+        c.filter_direction(dbase, yv, sy, d, tally)
 
-    def pin_direction(self, y, x, d_raw, d, values, rhs, weight) -> int:
+    def pin_direction(self, y, x, d_raw, d, values, rhs, weight, count=True):
         """The tangential springs of a second Newton solve at the contacts the unfiltered step
         ``d_raw`` carries across their sticking zones (:meth:`ContactSet.pin_direction`); returns
-        how many (0 without friction)."""
+        how many (0 without friction; None with ``count`` False: no read-back)."""
         c = self.contact
         if not c.has_friction():
-            return 0
+            return 0 if count else None
         if self._use_dbase and y is not None:
             dbase, yv, sy = self._dbase, y, self.s
         else:  # static: x is the unknown
             dbase, yv, sy = c.negated_step_start, x, 1.0
-        return c.pin_direction(dbase, yv, sy, d_raw, d, values, rhs, weight)
+        return c.pin_direction(dbase, yv, sy, d_raw, d, values, rhs, weight, count)
 
     def max_step(self, x, d, s, acc):
         """Largest alpha <= 1 with no vertex crossing (or coming closer than STEP_ETA of its distance

@@ -66,9 +66,13 @@ def step_crossing(n: Any, r: Any, step: Any, sy: Any, eps: Any):
 def collider_filter_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, lam: wp.array(dtype=Any),
                            nrm: wp.array(dtype=Any), wdisp: wp.array(dtype=Any), dbase: wp.array(dtype=Any),
                            y: wp.array(dtype=Any), sy: Any, epsf: wp.array(dtype=Any), mu: wp.array(dtype=Any),
-                           d: wp.array(dtype=Any), count: wp.array(dtype=wp.int32)):
+                           d: wp.array(dtype=Any), count: wp.array(dtype=wp.int32), tally: wp.array(dtype=wp.float64),
+                           tally_at: int):
     """Per surface vertex: its step d (in y) with the tangential part cut where a frictional
-    collider contact would cross its sticking zone (module docstring). u = P (dbase + sy y - w)."""
+    collider contact would cross its sticking zone (module docstring). u = P (dbase + sy y - w).
+    The cut contacts are added to ``count[0]`` and to ``tally[tally_at]`` (a slot of an accumulator
+    read back with other numbers: the Newton loop learns whether this call cut anything without a
+    read-back of its own)."""
     i = wp.tid()
     vi = surf[i]
     di = d[vi]
@@ -87,6 +91,7 @@ def collider_filter_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, l
     if cut > 0:
         d[vi] = di
         wp.atomic_add(count, 0, cut)
+        wp.atomic_add(tally, tally_at, wp.float64(cut))
 
 
 @both_precisions(lam="s[]", nrm="v[]", wdisp="v[]", dbase="v[]", y="v[]", sy="s", epsf="s[]", mu="s[]", d_raw="v[]",

@@ -97,6 +97,7 @@ ROW = 4  # accumulator slots per form
 # the potential's own row: joint gradient magnitude^2, ||P g||^2, then the direction check (g.d, max|d|, max|y|, max|x|)
 _G_JOINT, _G_NORM, _D_GD = 0, 1, 2
 _G_TD = 6  # in the trial's gradient section: g(y + alpha d) . d (the directional derivative there)
+_D_CUTS = 7  # in the direction section: 1 + the contacts the friction filter cut (friction_pin's gate)
 _HEAD = 8
 _F64_ONE = wp.float64(1.0)
 #: vertices per row of partial sums of the elastic force magnitude's dot product on the CPU
@@ -678,6 +679,9 @@ class IncrementalPotential:
         self.host_syncs = 0  # read-backs of this potential (cumulative)
         self.xb, self.s = None, 1.0
         self._x_of_y = None
+        #: (y, d, bound): the step bound along d read with the friction pin's gate (the next
+        #: max_step(y, d) returns it without a read-back; anything that writes y or d drops it)
+        self._bound = None
         self.projecting = True  # whether Newton systems use the projected Hessian (see set_projection)
         #: the Newton iteration's two fixed sequences of launches (before and after the linear solve),
         #: captured as graphs and replayed (``kernels.generic.CapturedSequences``; ``.enabled``)
@@ -733,6 +737,7 @@ class IncrementalPotential:
         the pattern make it grow here (the linear solver re-analyses it)."""
         self.xb, self.s = xb, float(s)
         self._x_of_y = None
+        self._bound = None
         for i, f in enumerate(self.forms):  # a form may serve another potential too (the static one)
             if getattr(f, "acc_slot", None) != _HEAD + ROW * i:
                 f.bind(self.acc, _HEAD + ROW * i)
@@ -776,11 +781,14 @@ class IncrementalPotential:
 
     def trial(self, y, alpha, d, out):
         self.ops.lincomb(1.0, y, alpha, d, out)
+        if self._bound is not None and (out is self._bound[0] or out is self._bound[1]):
+            self._bound = None
         if self._x_of_y is out:
             self._x_of_y = None
 
     def assign(self, dst, src):
         wp.copy(dst, src)
+        self._bound = None
         # x = x_b + s src is still in the work buffer: it is now x of dst
         self._x_of_y = dst if self._x_of_y is src else None
 
@@ -1089,6 +1097,9 @@ class IncrementalPotential:
     def max_step(self, y, d):
         """The largest step length <= 1 along d that every form allows (contact's continuous
         collision bound; 1 without such a form): one read-back when a form bounds it."""
+        kept, self._bound = self._bound, None
+        if kept is not None and kept[0] is y and kept[1] is d:  # read with the friction pin's gate
+            return kept[2]
         bounded = [(i, f) for i, f in enumerate(self.forms) if hasattr(f, "max_step")]
         if not bounded:
             return 1.0
@@ -1104,6 +1115,7 @@ class IncrementalPotential:
     def solve_newton_system(self, y, g, d, opts):
         """d ~ -H(y)^-1 g on the free components (the simulator's linear solver); returns its result
         (``iterations``, ``host_syncs``, ...)."""
+        self._bound = None
         values = self.assemble_hessian(y, self.system.hessian_values)
         rhs = self.work.rhs
         launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
@@ -1115,31 +1127,64 @@ class IncrementalPotential:
                 w.d_raw = self.ops.new_vector()
             wp.copy(w.d_raw, d)
             self._raw_kept = True
-            self.filter_direction(y, d)
             weight = float(getattr(opts, "friction_pin", 0.0))
-            if weight > 0.0:
+            if weight > 0.0 and any(hasattr(f, "pin_direction") for f in self._filtering_forms()):
                 lin = self._pinned_solve(y, g, d, values, rhs, lin, weight, opts)
+            else:
+                self.filter_direction(y, d)
         return lin
 
+    #: ``friction_pin``'s gate: the pin runs only in the Newton iterations where the friction filter
+    #: cut a contact, which the filter's tally tells with the read-back of the line search's step
+    #: bound (False: the pin kernel runs and reads its own count back in every filtered iteration,
+    #: the same directions with one more read-back each; for comparison)
+    pin_gate = True
+
     def _pinned_solve(self, y, g, d, values, rhs, lin, weight, opts):
-        """``NewtonOptions.friction_pin``: the Newton system solved again with tangential springs
-        (``weight`` x the block's mean diagonal) holding the contacts that the friction filter cut
-        at their cut steps, so that the rest of the body follows them (the filter's cuts alone
-        strain the elements around the cut vertices, and the line search then shortens the whole
-        step). The pinned solve's direction replaces the filtered one when it is a descent
-        direction (it is filtered too); otherwise the filtered one stays. Returns the linear
-        result with both solves' iterations."""
-        x = self._x_of(y)
+        """The friction filter on d, then ``NewtonOptions.friction_pin``: the Newton system solved
+        again with tangential springs (``weight`` x the block's mean diagonal) holding the contacts
+        that the filter cut at their cut steps, so that the rest of the body follows them (the
+        filter's cuts alone strain the elements around the cut vertices, and the line search then
+        shortens the whole step). The pinned solve's direction replaces the filtered one when it
+        is a descent direction (it is filtered too); otherwise the filtered one stays. Returns the
+        linear result with both solves' iterations.
+
+        The filter's cut count rides on the read-back of the forms' step bound along the filtered
+        d (:meth:`max_step`, kept for the loop's next call when nothing was cut): an iteration
+        whose filter cut nothing launches and reads nothing for the pin. A vertex's contacts are
+        pinned exactly when the filter cut one of them (both test the unfiltered step with the
+        same function), so a cut count above 0 is a pinned count above 0."""
         w = self.work
-        pins = [f for f in self._filtering_forms() if hasattr(f, "pin_direction")]
-        if not pins:
-            return lin
+        filters = self._filtering_forms()
+        pins = [f for f in filters if hasattr(f, "pin_direction")]
+        gate = self.pin_gate and len(pins) == len(filters)
+        x = self._x_of(y)
+        if gate:
+            acc = self._acc_d
+            acc.fill_(1.0)  # max_step's start (a bound of 1); acc[_D_CUTS] = 1 + the filter's cuts
+            for f in filters:
+                f.filter_direction(y, x, d, tally=(acc, _D_CUTS))
+            bounded = [(i, f) for i, f in enumerate(self.forms) if hasattr(f, "max_step")]
+            for _, f in bounded:
+                f.max_step(x, d, self.s, acc)
+            a = self._read(acc)
+            if a[_D_CUTS] == 1.0:  # nothing cut: d stays; the loop's bound along it is read already
+                if bounded:
+                    self._bound = (y, d, float(min(a[_HEAD + ROW * i + 3] for i, _ in bounded)))
+                return lin
+        else:
+            self.filter_direction(y, d)
         if getattr(w, "d_filt", None) is None or w.d_filt.shape[0] != self.n:
             w.d_filt = self.ops.new_vector()
         wp.copy(w.d_filt, d)
-        pinned = sum(f.pin_direction(y, x, w.d_raw, w.d_filt, values, rhs, weight) for f in pins)
-        if pinned == 0:
-            return lin
+        if gate:
+            for f in pins:
+                f.pin_direction(y, x, w.d_raw, w.d_filt, values, rhs, weight, count=False)
+        else:
+            pinned = sum(f.pin_direction(y, x, w.d_raw, w.d_filt, values, rhs, weight) for f in pins)
+            self.host_syncs += len(pins)
+            if pinned == 0:
+                return lin
         lin2 = self.linear_solve(values, rhs, d, opts)
         self.filter_direction(y, d)  # (contacts the pinned solve carries across their zones)
         gd, _ = self.direction_check(y, g, d)
@@ -1175,6 +1220,7 @@ class IncrementalPotential:
     def fallback_direction(self, g, d):
         """d = -B^-1 g, B the (masked) block diagonal of the last Newton system: a descent direction
         whatever linear solver produced the rejected one."""
+        self._bound = None
         pt, w, dev = self.system.pattern, self.work, self.ops.device
         if w.inv_diag is None or w.inv_diag.shape[0] != self.n:
             w.inv_diag = wp.zeros(self.n, dtype=self.ops.mat, device=dev)
