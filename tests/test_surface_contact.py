@@ -524,3 +524,47 @@ def test_connected_labels_are_scipy_csgraph_components():
         k, ref = scipy.sparse.csgraph.connected_components(A, directed=False)
         got = connected_labels(n, r, c)
         assert np.array_equal(got, ref) and got.max() + 1 == k
+
+
+def test_a_kinematic_box_moved_into_a_soft_block_within_one_step_fails_the_step_and_keeps_the_state():
+    """A soft box held by its targets (a kinematic handle, every vertex fixed) 10 mm above a soft
+    block: moved onto the block's top in one step (its bottom face on the top face: pairs at
+    distance 0) or 5 mm into it (edges through triangles, every pair distance > 0), the step fails
+    with a one-line error naming the bodies and a pair or an edge and a triangle, and positions,
+    velocities and time are bit-identical to before the call; moved 5 mm towards it, the step
+    converges (the check does not fire), and afterwards a move within the gap converges too."""
+    from warpfem import Body
+    from warpfem.solvers.nonlinear import SolveFailed
+
+    mat = make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
+    m = Model.from_bodies([Body(box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(2, 2, 2)), mat, name="block"),
+                           Body(box_tet_mesh(size=(0.04, 0.04, 0.04), cells=(1, 1, 1), origin=(0.03, 0.03, 0.11)), mat,
+                                name="box")], gravity=(0.0, 0.0, 0.0))
+    box = m.body_vertices("box")
+    m.fix(box)
+    sim = Simulator(m, dt=0.01)
+    sim.set_contact()
+    X = sim.positions()
+
+    def fails(dz, what):
+        x, v, t = sim.positions(), sim.velocities(), sim.time
+        sim.set_targets(box, X[box] + [0.0, 0.0, dz])
+        with pytest.raises(SolveFailed) as e:
+            sim.step()
+        msg = str(e.value)
+        assert "\n" not in msg and msg.startswith(f"step {sim.step_count}: surface contact: a kinematic body or handle "
+                                                  "moved into a soft body within one step: ")
+        assert re.search(what, msg) and msg.endswith("; use smaller steps or a slower motion; state left unchanged")
+        assert e.value.stats.reason == "kinematic body moved into a soft body"
+        assert np.array_equal(sim.positions(), x) and np.array_equal(sim.velocities(), v) and sim.time == t
+
+    fails(-0.01, r"surface pairs at distance <= 0: \d+ \(first: (vertex-triangle|edge-edge) pair, model vertices "
+                 r"\[\d+, \d+, \d+, \d+\] between bodies '(block|box)' and '(block|box)', distance 0 m\)")
+    assert sim.step_count == 0
+    sim.set_targets(box, X[box] + [0.0, 0.0, -0.005])
+    assert sim.step().converged
+    fails(-0.015, r"edge \[\d+, \d+\] of body '(block|box)' crosses triangle \[\d+, \d+, \d+\] of body '(block|box)' "
+                  r"at \(.*\) m \(model vertex indices\)")
+    assert sim.step_count == 1
+    sim.set_targets(box, X[box] + [0.0, 0.0, -0.007])
+    assert sim.step().converged and sim.surface_contact.min_distance() > 0.0

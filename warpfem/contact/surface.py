@@ -26,6 +26,7 @@ from warpfem.contact.colliders import default_dhat, default_friction_velocity
 from warpfem.contact.colliders import default_stiffness as _default_stiffness
 from warpfem.contact.contact import CollisionError, LaggedFrictionForm
 from warpfem.contact.stiffness import AdaptiveStiffness, parse_stiffness
+from warpfem.solvers.forms import InfeasibleStart
 from warpfem.kernels.generic import launch
 from warpfem.transfer import read, read_int, read_scalar, to_device, upload
 
@@ -36,6 +37,9 @@ __all__ = ["ContactSurface", "contact_surface", "SurfaceContact", "SurfaceContac
 #: the keys of ``Simulator.set_contact`` and of a scene's ``[contact]`` table
 CONTACT_KEYS = ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity")
 STEP_ETA = 0.2  # the step bound keeps each pair's gap at least this fraction of its current one
+#: the start check (``SurfaceContactForm.check_start``): a kinematic motion that brings no pair within this
+#: fraction of its gap passes with one read-back; otherwise distances and crossings are tested exactly
+CHECK_ETA = 0.01
 #: Jacobi's stopping test of the per-pair PSD projection: off-diagonal squared norm below this x |H|^2
 JACOBI_TOL = {np.dtype(np.float64): 1e-22, np.dtype(np.float32): 1e-11}
 #: the broad phase's candidates are the pairs within this many dhat over the segment (the margin
@@ -574,9 +578,10 @@ class SurfaceContact:
         ``scale`` into ``values`` (the adjoint solve's exact Hessian, warpfem.solvers.adjoint)."""
         self.run(SK.MODE_HESSIAN_UNPROJECTED, x, scale=scale, values=values)
 
-    def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0, kappa=None):
+    def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0, kappa=None, eta=STEP_ETA):
         """The pair kernel's job ``mode`` over the candidate pairs; gradients into g and Hessian
-        blocks into values through the pairs' slots and the gather maps (``GATHER``)."""
+        blocks into values through the pairs' slots and the gather maps (``GATHER``); ``eta``: the
+        step bound's fraction of each gap it keeps."""
         ops = self.ops
         n = self.num_pairs
         if n == 0:
@@ -589,7 +594,7 @@ class SurfaceContact:
             self._update_maps()
         launch(SK.pair_kernel, n, [
             x, self._rest, self._pairs, self._kinds, self._count, ops.scalar(self.dhat ** 2), ops.scalar(kappa),
-            int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(STEP_ETA), g, self._blocks,
+            int(mode), ops.scalar(scale), self._zero_dir if d is None else d, ops.scalar(eta), g, self._blocks,
             values, self._dist, self._fw, self._fn, self._flam, self._acc_default() if acc is None else acc, int(slot),
             ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)]), self._gslots, self._hslots, self._hidx, self._gact,
             self._hact, int(GATHER)], self.device)
@@ -598,14 +603,14 @@ class SurfaceContact:
         elif gather:
             self._hmap.gather(SK.gather_mat_kernel, self._hact, 4, self._hslots, values)
 
-    def run_ccd(self, x, *, scale, d, acc, slot=0):
+    def run_ccd(self, x, *, scale, d, acc, slot=0, eta=STEP_ETA):
         """The step bound (additive CCD) of the CCD-only pairs (self pairs closer than rest_gap at rest)."""
         if self.num_ccd_pairs == 0:
             return
         ops = self.ops
         launch(SK.pair_kernel, self.num_ccd_pairs, [
             x, self._rest, self._ccd_pairs, self._ccd_kinds, self._ccd_count, ops.scalar(self.dhat ** 2),
-            ops.scalar(self.kappa), int(SK.MODE_MAX_STEP), ops.scalar(scale), d, ops.scalar(STEP_ETA), ops.zero,
+            ops.scalar(self.kappa), int(SK.MODE_MAX_STEP), ops.scalar(scale), d, ops.scalar(eta), ops.zero,
             self._blocks, self.system.hessian_values, self._dist, self._fw, self._fn, self._flam, acc, int(slot),
             ops.scalar(JACOBI_TOL[np.dtype(ops.np_dtype)]), self._gslots, self._hslots, self._hidx, self._gact,
             self._hact, int(GATHER)], self.device)
@@ -652,6 +657,81 @@ class SurfaceContact:
         self.run(SK.MODE_ENERGY, x, acc=acc)
         a = read(acc)
         return float("inf") if a[1] > 0 else float(a[0])
+
+    # -- the start check (kinematic motion) ----------------------------------------------------------
+    def fixed_vertices(self) -> np.ndarray:
+        """Mesh vertex indices of the surface vertices with a fixed component now (kinematic
+        handles and bodies: their targets move them at a step's start)."""
+        fixed = getattr(self.sim.model, "fixed", None)
+        if fixed is None:
+            return np.zeros(0, dtype=np.int64)
+        v = np.asarray(self.surface.vertices, dtype=np.int64)
+        return v[np.asarray(fixed)[v].any(axis=1)]
+
+    def motion_contact(self, x_from, x_to, moved):
+        """None when the motion x_from -> x_to (a step's start with its kinematic targets applied;
+        ``moved``: the mesh vertices that may move) keeps the contact pairs apart; else a phrase
+        naming the first pair at distance <= 0 at x_to, or the first edge through a triangle
+        there. One read-back (the broad phase over the motion aside) when no pair comes within
+        ``CHECK_ETA`` of its gap along it (additive CCD); otherwise the distances at x_to (one
+        more) and, when none is <= 0, an exact edge-triangle crossing test on the host."""
+        ops = self.ops
+        if getattr(self, "_motion", None) is None:
+            self._motion = ops.new_vector()
+        d = self._motion
+        ops.lincomb(1.0, x_to, -1.0, x_from, d)
+        self.update_pairs(x_from, d, 1.0)
+        acc = self._acc_default()
+        acc.fill_(1.0)  # acc[1]: 1 + the pairs at distance <= 0 at x_to; acc[3]: the bound along the motion
+        self.run(SK.MODE_MAX_STEP, x_from, d=d, acc=acc, eta=CHECK_ETA)
+        self.run_ccd(x_from, scale=1.0, d=d, acc=acc, eta=CHECK_ETA)
+        self.run(SK.MODE_ENERGY, x_to, acc=acc)
+        a = read(acc)
+        if a[1] == 1.0 and a[3] >= 1.0:
+            return None
+        if a[1] > 1.0:
+            self.run(SK.MODE_DISTANCE, x_to)
+            dist = read(self._dist, self.num_pairs).astype(np.float64)
+            k = int(np.argmin(dist))
+            kind = "vertex-triangle" if read_int(self._kinds, k) == SK.PT else "edge-edge"
+            return (f"surface pairs at distance <= 0: {int((dist <= 0.0).sum())} (first: {kind} pair, model vertices "
+                    f"{self.pairs_np[k].tolist()}{self._bodies_of(k)}, distance {dist[k]:.3g} m)")
+        return self._crossing(read(x_to).astype(np.float64), moved)
+
+    def _where(self, v):
+        """"body 'name'" of mesh vertex v in a multi-body model, else "surface group g"."""
+        offsets, names = getattr(self.sim.model, "body_offsets", None), getattr(self.sim.model, "body_names", None)
+        if offsets is not None and names is not None and len(offsets) >= 3:
+            return f"body {names[int(np.searchsorted(np.asarray(offsets), v, side='right') - 1)]!r}"
+        return f"surface group {int(self.surface.group[v])}"
+
+    def _crossing(self, P, moved):
+        """The first edge through a triangle at the positions P (host, (n, 3)) between primitives
+        that contact (other groups with ``bodies``, the same group with ``self``), one of them on
+        a triangle with a vertex in ``moved``: a phrase, or None."""
+        from warpfem.mesh.intersect import surface_crossing
+
+        T = np.asarray(self.surface.triangles, dtype=np.int64)
+        mv = np.zeros(len(P), dtype=bool)
+        mv[moved] = True
+        tk = mv[T].any(axis=1)
+        gT = np.asarray(self.surface.group)[T[:, 0]]
+        for g in np.unique(gT[tk]):
+            A = T[tk & (gT == g)]
+            lo, hi = P[A].reshape(-1, 3).min(axis=0), P[A].reshape(-1, 3).max(axis=0)
+            for on, B, shared in ((self.bodies, T[gT != g], False), (self.self_contact, T[gT == g], True)):
+                if not on:
+                    continue
+                B = B[np.all(P[B].min(axis=1) <= hi, axis=1) & np.all(P[B].max(axis=1) >= lo, axis=1)]
+                if not len(B):
+                    continue
+                for Fa, Fb in ((A, B), (B, A)):
+                    c = surface_crossing(P, Fa, P, Fb, skip_shared=shared)
+                    if c is not None:
+                        p = ", ".join(f"{v:.6g}" for v in c.point)
+                        return (f"edge {list(c.edge)} of {self._where(c.edge[0])} crosses triangle {list(c.triangle)} "
+                                f"of {self._where(c.triangle[0])} at ({p}) m (model vertex indices)")
+        return None
 
     # -- friction lagging ----------------------------------------------------------------------------
     def begin_step(self, x0, dt):
@@ -895,6 +975,22 @@ class SurfaceContactForm(LaggedFrictionForm):
 
     def static_error(self):
         return "solve_static does not handle surface contact (set_contact); use a damped time integration to reach rest"
+
+    def check_start(self, x, ctx):
+        """Raise :class:`InfeasibleStart` when the step's start x (free vertices where they are,
+        kinematic ones at their targets) has a contact pair at distance <= 0 (outside the
+        barrier's domain) or an edge through a triangle, brought there by the kinematic motion
+        from the step start: a kinematic body or handle moved into a soft body within the step.
+        Only when a surface vertex has a fixed component (else the start is the last step's end)."""
+        c = self.contact
+        moved = c.fixed_vertices()
+        if ctx.static or not len(moved):
+            return
+        problem = c.motion_contact(ctx.state.x, x, moved)
+        if problem:
+            raise InfeasibleStart(f"surface contact: a kinematic body or handle moved into a soft body within one step: "
+                                  f"{problem}; use smaller steps or a slower motion",
+                                  reason="kinematic body moved into a soft body")
 
     def _friction(self, mode, y, x, **kw):
         c = self.contact

@@ -132,8 +132,21 @@ class _VertexModel:
         self.body_offsets, self.body_names, self.bodies = model.body_offsets, model.body_names, model.bodies
         self.quadratures = list(model.quadratures)
         self.quadrature = model.quadrature
-        self.fixed = np.zeros((self.num_vertices, 3), dtype=bool)
-        self.fixed[:layout.num_soft] = model.fixed[:layout.num_soft]
+        self._layout = layout
+
+    @property
+    def fixed(self):
+        """(vertices, 3) fixed components in vertex space, from the model's current ones: a soft
+        vertex's own, a rigid body's vertex all three when a node of the body is fixed (a kinematic
+        body, prescribed each step)."""
+        lay = self._layout
+        f = np.zeros((self.num_vertices, 3), dtype=bool)
+        f[:lay.num_soft] = self._model.fixed[:lay.num_soft]
+        for r, b in enumerate(lay.bodies):
+            k, lo = int(lay.node_of[r]), int(lay.vertex_of[r])
+            if self._model.fixed[k:k + 4].any():
+                f[lo:lo + len(b.local_positions)] = True
+        return f
 
     def vertex_bodies(self):
         return self.mesh.vertex_bodies()

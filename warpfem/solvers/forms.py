@@ -47,8 +47,8 @@ in without the simulator knowing what it is; PolyFEM's ``init_lagging`` / ``upda
    that keeps every free vertex where it is (fixed ones at their targets; positions ``x``), cut
    towards the initial guess by :meth:`IncrementalPotential.max_step`. A form raises
    :class:`InfeasibleStart` when that start is outside its domain (a collider moved into the body
-   within the step): the simulator raises ``SolveFailed`` with its message and the state is left
-   unchanged.
+   within the step, or a kinematic body into a soft one in surface contact): the simulator raises
+   ``SolveFailed`` with its message and the state is left unchanged.
 4. The Newton loop: evaluation as above, ``max_step`` before each line search, ``read``'s
    ``feasible`` on each trial; forms with an adaptive parameter (``adaptive_stiffness()`` true)
    also get ``begin_stiffness`` at the start and ``after_iteration`` after each accepted
