@@ -342,14 +342,6 @@ class ContactSet:
         self.collider(name).friction = mu
         upload(self._mu, np.array([c.friction for c in self.colliders], dtype=self.ops.np_dtype))
 
-    def relag(self, x) -> np.ndarray:
-        """Friction's normal forces and normals lagged again, from the positions x (the step's
-        last iterate; the step start and the collider motion stay): one fixed-point iteration of
-        the lagging. Returns the normal forces (surface vertices x colliders) before the update."""
-        before = read(self._lam).astype(np.float64)
-        self.run(CK.MODE_LAG, x)
-        return before
-
     def normal_forces(self) -> np.ndarray:
         """The lagged normal forces (N) per (surface vertex, collider)."""
         return read(self._lam).astype(np.float64)

@@ -761,13 +761,6 @@ class SurfaceContact:
             return np.zeros(0)
         return read(self._f_lam, self.num_friction).astype(np.float64)
 
-    def relag(self, x) -> np.ndarray:
-        """Friction lagged again from x (the step's last iterate, on the last candidate pairs);
-        returns the normal forces before."""
-        before = self.normal_forces()
-        self.lag(x)
-        return before
-
     def lag(self, x):
         """Friction's normal forces, closest points and normals from the positions x (pairs
         within dhat among the current candidates)."""
