@@ -679,8 +679,9 @@ class IncrementalPotential:
         self.host_syncs = 0  # read-backs of this potential (cumulative)
         self.xb, self.s = None, 1.0
         self._x_of_y = None
-        #: (y, d, bound): the step bound along d read with the friction pin's gate (the next
-        #: max_step(y, d) returns it without a read-back; anything that writes y or d drops it)
+        #: (y, d, bound, form ids): the step bound along d of some forms, read with the friction
+        #: pin's gate (the next max_step(y, d) reads only the other forms' bounds; anything that
+        #: writes y or d drops it)
         self._bound = None
         self.projecting = True  # whether Newton systems use the projected Hessian (see set_projection)
         #: the Newton iteration's two fixed sequences of launches (before and after the linear solve),
@@ -1098,18 +1099,22 @@ class IncrementalPotential:
         """The largest step length <= 1 along d that every form allows (contact's continuous
         collision bound; 1 without such a form): one read-back when a form bounds it."""
         kept, self._bound = self._bound, None
-        if kept is not None and kept[0] is y and kept[1] is d:  # read with the friction pin's gate
-            return kept[2]
         bounded = [(i, f) for i, f in enumerate(self.forms) if hasattr(f, "max_step")]
         if not bounded:
             return 1.0
+        bound, done = 1.0, ()
+        if kept is not None and kept[0] is y and kept[1] is d:  # some forms' bounds read with the pin's gate
+            bound, done = kept[2], kept[3]
+        rest = [(i, f) for i, f in bounded if id(f) not in done]
+        if not rest:
+            return bound
         acc = self._acc_d
         acc.fill_(1.0)
         x = self._x_of(y)
-        for _, f in bounded:
+        for _, f in rest:
             f.max_step(x, d, self.s, acc)
         a = self._read(acc)
-        return float(min(a[_HEAD + ROW * i + 3] for i, _ in bounded))
+        return float(min([bound] + [a[_HEAD + ROW * i + 3] for i, _ in rest]))
 
     # -- Newton system ------------------------------------------------------------------------------
     def solve_newton_system(self, y, g, d, opts):
@@ -1149,8 +1154,8 @@ class IncrementalPotential:
         is a descent direction (it is filtered too); otherwise the filtered one stays. Returns the
         linear result with both solves' iterations.
 
-        The filter's cut count rides on the read-back of the forms' step bound along the filtered
-        d (:meth:`max_step`, kept for the loop's next call when nothing was cut): an iteration
+        The filter's cut count rides on the read-back of the filtering forms' step bounds along the
+        filtered d (:meth:`max_step`, kept for the loop's next call when nothing was cut): an iteration
         whose filter cut nothing launches and reads nothing for the pin. A vertex's contacts are
         pinned exactly when the filter cut one of them (both test the unfiltered step with the
         same function), so a cut count above 0 is a pinned count above 0."""
@@ -1164,13 +1169,15 @@ class IncrementalPotential:
             acc.fill_(1.0)  # max_step's start (a bound of 1); acc[_D_CUTS] = 1 + the filter's cuts
             for f in filters:
                 f.filter_direction(y, x, d, tally=(acc, _D_CUTS))
-            bounded = [(i, f) for i, f in enumerate(self.forms) if hasattr(f, "max_step")]
-            for _, f in bounded:
+            # the filtering forms' own step bounds (plain launches) ride along; others (surface
+            # contact's broad phase) wait for the loop's max_step, which they would repeat after a pin
+            own = [(i, f) for i, f in enumerate(self.forms) if hasattr(f, "max_step") and any(f is p for p in pins)]
+            for _, f in own:
                 f.max_step(x, d, self.s, acc)
             a = self._read(acc)
-            if a[_D_CUTS] == 1.0:  # nothing cut: d stays; the loop's bound along it is read already
-                if bounded:
-                    self._bound = (y, d, float(min(a[_HEAD + ROW * i + 3] for i, _ in bounded)))
+            if a[_D_CUTS] == 1.0:  # nothing cut: d stays; the loop's max_step along it needs only the others
+                self._bound = (y, d, float(min([1.0] + [a[_HEAD + ROW * i + 3] for i, _ in own])),
+                               {id(f) for _, f in own})
                 return lin
         else:
             self.filter_direction(y, d)
