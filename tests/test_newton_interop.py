@@ -719,12 +719,8 @@ def test_surface_shape_contact_keeps_the_box_edge_out_of_a_grid_landing_across_i
     assert np.array_equal(solver.simulator.positions()[k:k + 4], np.vstack([[0.0, 0.0, np.float32(0.05)], np.eye(3)]))
 
 
-def test_a_box_moved_by_its_body_transform_pushes_the_grid_with_surface_shape_contact():
-    """A box on a massless newton body, moved 1 mm a step along x by the caller's ``body_q``, pushes a
-    soft grid lying on the ground 1 cm ahead of it: each step moves the kinematic box from where it is
-    to its new pose (its nodes end exactly there), the grid never intersects it (IPC Toolkit) and is
-    pushed on by at least the box's 15 mm of travel beyond the gap (measured 17 mm)."""
-    ipctk = pytest.importorskip("ipctk")
+def _box_behind_grid():
+    """(model, body): a box on a massless newton body 1 cm behind a soft grid lying on the ground."""
     b = newton.ModelBuilder()
     b.add_ground_plane()
     body = b.add_body(xform=wp.transform(wp.vec3(-0.03, 0.0, 0.03), wp.quat_identity()), mass=0.0)
@@ -732,7 +728,37 @@ def test_a_box_moved_by_its_body_transform_pushes_the_grid_with_surface_shape_co
     b.add_soft_grid(pos=wp.vec3(0.0, -0.05, 0.001), rot=wp.quat_identity(), vel=wp.vec3(0.0, 0.0, 0.0),
                     dim_x=4, dim_y=3, dim_z=1, cell_x=0.025, cell_y=0.033, cell_z=0.02,
                     density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
-    model = b.finalize(device="cpu")
+    return b.finalize(device="cpu"), body
+
+
+def test_a_box_moved_into_the_grid_in_one_step_fails_with_surface_shape_contact_and_keeps_the_state():
+    """The box of the next test moved by its body transform 3 cm in one step, 2 cm into the grid
+    (before: the step converged with the box inside the grid): the step fails with the surface
+    contact's one-line error naming the kinematic shape and the grid, and warpfem's state is
+    bit-identical to before the call."""
+    from warpfem.solvers.nonlinear import SolveFailed
+
+    model, body = _box_behind_grid()
+    solver = SolverFEM(model, damping_mass=5.0, shape_contact="surface")
+    s0, s1 = model.state(), model.state()
+    bq = s0.body_q.numpy()
+    bq[body, 0] = 0.0
+    s0.body_q.assign(bq)
+    x, v = solver.simulator.positions(), solver.simulator.velocities()
+    with pytest.raises(SolveFailed, match=r"^step 0: surface contact: a kinematic body or handle moved into a soft body "
+                       r"within one step: .*'shape1'.*; use smaller steps or a slower motion; state left unchanged$"):
+        solver.step(s0, s1, model.control(), None, 0.01)
+    assert np.array_equal(solver.simulator.positions(), x) and np.array_equal(solver.simulator.velocities(), v)
+    assert solver.simulator.step_count == 0
+
+
+def test_a_box_moved_by_its_body_transform_pushes_the_grid_with_surface_shape_contact():
+    """A box on a massless newton body, moved 1 mm a step along x by the caller's ``body_q``, pushes a
+    soft grid lying on the ground 1 cm ahead of it: each step moves the kinematic box from where it is
+    to its new pose (its nodes end exactly there), the grid never intersects it (IPC Toolkit) and is
+    pushed on by at least the box's 15 mm of travel beyond the gap (measured 17 mm)."""
+    ipctk = pytest.importorskip("ipctk")
+    model, body = _box_behind_grid()
     solver = SolverFEM(model, damping_mass=5.0, shape_contact="surface")
     assert solver.kinematic_shapes == [1] and solver.rigid_bodies == []
     Vb, Fb = wf.Box(box_min=(-0.02, -0.06, -0.02), box_max=(0.02, 0.06, 0.02)).surface(1.0)
