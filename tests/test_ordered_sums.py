@@ -117,6 +117,7 @@ ALLOWED_ATOMIC_ADDS = {
     ("kernels/warping.py", "warped_assembly_kernel", "values"): "stiffness_warping.GATHER False only",
     ("contact/kernels.py", "contact_kernel", "values"): "one thread per surface vertex owns its diagonal block",
     ("contact/friction.py", "collider_filter_kernel", "count"): "an integer count: exact in any order",
+    ("contact/friction.py", "collider_filter_kernel", "tally"): "an integer count in float64: exact in any order",
     ("contact/friction.py", "collider_pin_kernel", "count"): "an integer count: exact in any order",
     ("contact/surface_kernels.py", "boxes_fit_kernel", "misses"): "an integer count: exact in any order",
     ("contact/surface_kernels.py", "_append", "count"): "the pair list's slots; the list is sorted afterwards",
