@@ -115,6 +115,11 @@ def test_multigrid_hierarchy_continues_bit_identically(tmp_path, solver):
     pytest.importorskip("pyamg")
     end, resumed, c = _resumed(_multigrid_beam(solver), 6, 3, tmp_path)
     _assert_same(end, resumed)
+    # loaded again into the simulator that has stepped past it (and rebuilt its hierarchy since):
+    # the same steps again, not steps preconditioned by the later hierarchy
+    wf.load_state(c, os.path.join(tmp_path, "state.npz"))
+    _steps(c, 3)
+    _assert_same(end, _arrays(c))
     mg = c.linear_solver
     assert (len(mg.levels) if solver == "multigrid" else len(mg.ml.levels)) >= 2 and c.state_dict()["linear_solver/built"]
 
@@ -138,6 +143,54 @@ def test_contact_with_friction_and_adaptive_stiffness_continues_bit_identically(
     d = c.state_dict()
     assert np.max(d["form/contact/lag_normal_force"]) > 0.0  # friction lagged from a real contact
     assert np.isfinite(d["form/contact/stiffness/0/kappa"])
+
+
+def test_extra_evaluations_leave_the_steps_bit_identical(monkeypatch):
+    """Energy and gradient evaluations added inside the Newton loop (at the iterate, and at the full
+    step along each Newton direction, into vectors of their own), as a measurement would make
+    them, change nothing: frictional contact with adaptive stiffness steps to the same bits with
+    the same Newton iterations."""
+    import warpfem.simulator as S
+
+    def run(extra):
+        sim = _incline()()
+        orig = S.newton_solve
+
+        def solve(pot, y, opts, *a, **kw):
+            if extra:
+                hook, system = pot.after_iteration, pot.solve_newton_system
+
+                def after(yy, alpha=1.0, residual=0.0):
+                    pot.energy(yy)
+                    pot.gradient(yy, pot.new_vector())
+                    return hook(yy, alpha, residual=residual)
+
+                def solve_system(yy, g, d, o):
+                    lin = system(yy, g, d, o)
+                    v = pot.new_vector()
+                    pot.trial(yy, 1.0, d, v)
+                    pot.evaluate(v, pot.new_vector())
+                    return lin
+
+                pot.after_iteration, pot.solve_newton_system = after, solve_system  # (instance attributes)
+            try:
+                return orig(pot, y, opts, *a, **kw)
+            finally:
+                pot.__dict__.pop("after_iteration", None)
+                pot.__dict__.pop("solve_newton_system", None)
+
+        monkeypatch.setattr(S, "newton_solve", solve)
+        counts = []
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            for _ in range(8):
+                counts.append(sim.step().newton_iterations)
+        monkeypatch.setattr(S, "newton_solve", orig)
+        return counts, _arrays(sim)
+
+    (c0, a0), (c1, a1) = run(False), run(True)
+    assert sum(c0) > 8 and c0 == c1  # contact steps that iterate
+    _assert_same(a0, a1)
 
 
 def _blocks(friction=0.3):
