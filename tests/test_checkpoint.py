@@ -95,25 +95,28 @@ def test_auto_solver_reuses_the_recorded_choice(tmp_path):
     _assert_same(_arrays(a), _arrays(b))
 
 
-def _multigrid_beam(solver="multigrid"):
+def _multigrid_beam(solver="multigrid", precision="float64", **options):
     def build():
         mesh = wf.box_tet_mesh(size=(8.0, 1.0, 1.0), cells=(16, 2, 2))
         model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e6, poisson_ratio=0.3, density=100.0),
                          gravity=(0.0, 0.0, -9.81))
         model.fix(wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1e-6, 2, 2)))
-        return wf.Simulator(model, dt=1 / 30, integrator="newmark", linear_solver=solver, tol=1e-8,
-                            linear_solver_options={"max_coarse": 60} if solver == "amg" else None)
+        return wf.Simulator(model, dt=1 / 30, integrator="newmark", linear_solver=solver, tol=1e-8 if precision == "float64"
+                            else 1e-5, precision=precision,
+                            linear_solver_options=dict(options, max_coarse=60) if solver == "amg" else options)
     return build
 
 
-@pytest.mark.parametrize("solver", ["multigrid", "amg"])
-def test_multigrid_hierarchy_continues_bit_identically(tmp_path, solver):
+@pytest.mark.parametrize("solver, precision, options", [("multigrid", "float64", {}), ("amg", "float64", {}),
+                                                        ("multigrid", "float32", {}),
+                                                        ("multigrid", "float64", {"coarse_update": "every"})])
+def test_multigrid_hierarchy_continues_bit_identically(tmp_path, solver, precision, options):
     """The multigrid (and the host AMG) keeps its hierarchy (and its coarse operators) over many Newton systems: a
     resumed run rebuilds the same one from the saved matrices, so it preconditions, and steps,
     exactly as the uninterrupted run (a hierarchy built afresh from the resume's first system
     changes the CG iterates, and the positions, in the last bits)."""
     pytest.importorskip("pyamg")
-    end, resumed, c = _resumed(_multigrid_beam(solver), 6, 3, tmp_path)
+    end, resumed, c = _resumed(_multigrid_beam(solver, precision, **options), 6, 3, tmp_path)
     _assert_same(end, resumed)
     # loaded again into the simulator that has stepped past it (and rebuilt its hierarchy since):
     # the same steps again, not steps preconditioned by the later hierarchy

@@ -729,8 +729,9 @@ class MultigridPCG(LinearSolver):
         """Host copies of the matrix (and mask) the hierarchy was built from and of the one its
         coarse operators were formed from: what :meth:`load_state_dict` rebuilds the same
         hierarchy from. One read-back at each build or re-formation (rare: the hierarchy is kept
-        over many Newton systems), none with ``coarse_update="every"`` (nothing is kept then)."""
-        if self.coarse_update == "every":
+        over many Newton systems); with ``coarse_update="every"`` only at a build (every prepare
+        forms its own coarse operators, the prolongators stay those of the build)."""
+        if self.coarse_update == "every" and not built:
             return
         pair = (read(values, self.pattern.nnz).copy(), read(mask).copy())
         self.host_syncs += 2
@@ -744,8 +745,7 @@ class MultigridPCG(LinearSolver):
         iteration counts that decide its next rebuild or re-formation: a run continued from a
         checkpoint then preconditions its Newton systems exactly as the uninterrupted run
         (with a new hierarchy the CG iterates, hence the Newton path, would differ in the last
-        bits). Nothing with ``coarse_update="every"`` (each system forms its own coarse operators;
-        the hierarchy's rebuild still follows the iteration counts, kept too)."""
+        bits)."""
         from warpfem.io.checkpoint import optional_number
 
         src = self._sources if self.levels is not None else {}
