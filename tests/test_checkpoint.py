@@ -95,6 +95,38 @@ def test_auto_solver_reuses_the_recorded_choice(tmp_path):
     _assert_same(_arrays(a), _arrays(b))
 
 
+def _multigrid_beam(solver="multigrid", precision="float64", **options):
+    def build():
+        mesh = wf.box_tet_mesh(size=(8.0, 1.0, 1.0), cells=(16, 2, 2))
+        model = wf.Model(mesh, wf.StableNeoHookean(youngs_modulus=1e6, poisson_ratio=0.3, density=100.0),
+                         gravity=(0.0, 0.0, -9.81))
+        model.fix(wf.select_vertices_in_box(mesh.vertices, (-1, -1, -1), (1e-6, 2, 2)))
+        return wf.Simulator(model, dt=1 / 30, integrator="newmark", linear_solver=solver, tol=1e-8 if precision == "float64"
+                            else 1e-5, precision=precision,
+                            linear_solver_options=dict(options, max_coarse=60) if solver == "amg" else options)
+    return build
+
+
+@pytest.mark.parametrize("solver, precision, options", [("multigrid", "float64", {}), ("amg", "float64", {}),
+                                                        ("multigrid", "float32", {}),
+                                                        ("multigrid", "float64", {"coarse_update": "every"})])
+def test_multigrid_hierarchy_continues_bit_identically(tmp_path, solver, precision, options):
+    """The multigrid (and the host AMG) keeps its hierarchy (and its coarse operators) over many Newton systems: a
+    resumed run rebuilds the same one from the saved matrices, so it preconditions, and steps,
+    exactly as the uninterrupted run (a hierarchy built afresh from the resume's first system
+    changes the CG iterates, and the positions, in the last bits)."""
+    pytest.importorskip("pyamg")
+    end, resumed, c = _resumed(_multigrid_beam(solver, precision, **options), 6, 3, tmp_path)
+    _assert_same(end, resumed)
+    # loaded again into the simulator that has stepped past it (and rebuilt its hierarchy since):
+    # the same steps again, not steps preconditioned by the later hierarchy
+    wf.load_state(c, os.path.join(tmp_path, "state.npz"))
+    _steps(c, 3)
+    _assert_same(end, _arrays(c))
+    mg = c.linear_solver
+    assert (len(mg.levels) if solver == "multigrid" else len(mg.ml.levels)) >= 2 and c.state_dict()["linear_solver/built"]
+
+
 def _incline(precision="float64"):
     def build():
         box = wf.box_tet_mesh(size=(0.1, 0.1, 0.1), cells=(1, 1, 1), origin=(-0.05, 0.001, -0.05))
@@ -114,6 +146,54 @@ def test_contact_with_friction_and_adaptive_stiffness_continues_bit_identically(
     d = c.state_dict()
     assert np.max(d["form/contact/lag_normal_force"]) > 0.0  # friction lagged from a real contact
     assert np.isfinite(d["form/contact/stiffness/0/kappa"])
+
+
+def test_extra_evaluations_leave_the_steps_bit_identical(monkeypatch):
+    """Energy and gradient evaluations added inside the Newton loop (at the iterate, and at the full
+    step along each Newton direction, into vectors of their own), as a measurement would make
+    them, change nothing: frictional contact with adaptive stiffness steps to the same bits with
+    the same Newton iterations."""
+    import warpfem.simulator as S
+
+    def run(extra):
+        sim = _incline()()
+        orig = S.newton_solve
+
+        def solve(pot, y, opts, *a, **kw):
+            if extra:
+                hook, system = pot.after_iteration, pot.solve_newton_system
+
+                def after(yy, alpha=1.0, residual=0.0):
+                    pot.energy(yy)
+                    pot.gradient(yy, pot.new_vector())
+                    return hook(yy, alpha, residual=residual)
+
+                def solve_system(yy, g, d, o):
+                    lin = system(yy, g, d, o)
+                    v = pot.new_vector()
+                    pot.trial(yy, 1.0, d, v)
+                    pot.evaluate(v, pot.new_vector())
+                    return lin
+
+                pot.after_iteration, pot.solve_newton_system = after, solve_system  # (instance attributes)
+            try:
+                return orig(pot, y, opts, *a, **kw)
+            finally:
+                pot.__dict__.pop("after_iteration", None)
+                pot.__dict__.pop("solve_newton_system", None)
+
+        monkeypatch.setattr(S, "newton_solve", solve)
+        counts = []
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            for _ in range(8):
+                counts.append(sim.step().newton_iterations)
+        monkeypatch.setattr(S, "newton_solve", orig)
+        return counts, _arrays(sim)
+
+    (c0, a0), (c1, a1) = run(False), run(True)
+    assert sum(c0) > 8 and c0 == c1  # contact steps that iterate
+    _assert_same(a0, a1)
 
 
 def _blocks(friction=0.3):

@@ -762,7 +762,9 @@ class IncrementalPotential:
         return self.ops.new_vector()
 
     def vectors(self):
-        """(g, d, y_try): the work vectors of the Newton loop."""
+        """(g, d, y_try): the work vectors of the Newton loop. The loop swaps its gradient vector
+        with ``work.g_try`` when it accepts the fused trial's gradient, so ``work.g`` holds the
+        current gradient only until then: a measurement reads the ``g`` the loop passes on."""
         w = self.work
         return w.g, w.d, w.y_try
 

@@ -104,6 +104,42 @@ class AMGSolver(HostLinearSolver):
             self.setup_count += 1
             self._since_build, self._base_iters, self._stale = 1, None, False
             self._built_mask = self._mask_host.copy()
+            # what the hierarchy was built from (``state_dict``: a resumed run rebuilds the same one)
+            self._built_values = read(values, self.pattern.nnz).copy()
+
+    # -- the kept hierarchy (a simulator's state_dict) ----------------------------------------------------
+    def state_dict(self) -> dict:
+        """The kept hierarchy, as the matrix and mask it was built from, and the counts that decide
+        its next rebuild: a run continued from a checkpoint preconditions exactly as the
+        uninterrupted one."""
+        from warpfem.io.checkpoint import optional_number
+
+        built = self.ml is not None and getattr(self, "_built_values", None) is not None
+        d = {"built": bool(built), "since_build": int(self._since_build), "base_iters": optional_number(self._base_iters),
+             "stale": bool(self._stale), "setup_count": int(self.setup_count)}
+        if built:
+            d["built_values"], d["built_mask"] = self._built_values, self._built_mask.reshape(-1, 3)
+        return d
+
+    def load_state_dict(self, view):
+        if "built" not in view:  # a checkpoint written before the hierarchy was kept: built afresh
+            return
+        built = view.flag("built")
+        counts = dict(_since_build=view.integer("since_build"), _base_iters=view.number("base_iters", optional=True),
+                      _stale=view.flag("stale"), setup_count=view.integer("setup_count"))
+        if built:
+            dt = np.dtype(np.float64 if self.scalar == wp.float64 else np.float32)
+            v = view.array("built_values", (self.pattern.nnz, 3, 3), dt, finite=True)
+            m = view.array("built_mask", (self.num_rows, 3), np.float64, finite=True)
+            dev = self.device
+            self.ml = None
+            self._prepare(wp.array(v, dtype=self.pattern.block_type, device=dev),
+                          wp.array(m.astype(dt), dtype=self.vec_type, device=dev))
+        else:
+            self.ml = None
+        self._base_iters = None if counts.pop("_base_iters") is None else int(view.number("base_iters"))
+        for k, val in counts.items():
+            setattr(self, k, val)
 
     def _solve(self, b, x, *, tol, maxiter) -> LinearSolveResult:
         import scipy.sparse.linalg as spla

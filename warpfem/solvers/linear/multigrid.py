@@ -480,6 +480,9 @@ class MultigridPCG(LinearSolver):
         self._tiny = vs(1e-10 if vs == wp.float64 else 1e-5)
         self._cmds = None
         self.levels = None  # the hierarchy is built for this pattern (again when a form grew it)
+        #: the matrices the kept hierarchy comes from (host copies, for ``state_dict``): the one it
+        #: was built from and the one its coarse operators were last formed from ("same": that one)
+        self._sources = {}
 
     # -- hierarchy ------------------------------------------------------------------------------------
     def _host_matrix(self, values, mask):
@@ -717,8 +720,76 @@ class MultigridPCG(LinearSolver):
         self._galerkin(values, mask, coarse=coarse)
         if coarse:
             self._set_intervals(mask)  # the coarse smoothers' intervals follow each re-formation
+            self._keep_sources(values, mask, built)
         if coarse:
             self._refresh_coarse, self._galerkin_iters = False, None
+
+    # -- the kept hierarchy (a simulator's state_dict) ----------------------------------------------------
+    def _keep_sources(self, values, mask, built):
+        """Host copies of the matrix (and mask) the hierarchy was built from and of the one its
+        coarse operators were formed from: what :meth:`load_state_dict` rebuilds the same
+        hierarchy from. One read-back at each build or re-formation (rare: the hierarchy is kept
+        over many Newton systems); with ``coarse_update="every"`` only at a build (every prepare
+        forms its own coarse operators, the prolongators stay those of the build)."""
+        if self.coarse_update == "every" and not built:
+            return
+        pair = (read(values, self.pattern.nnz).copy(), read(mask).copy())
+        self.host_syncs += 2
+        if built:
+            self._sources = {"built": pair, "coarse": "same"}
+        else:
+            self._sources["coarse"] = pair
+
+    def state_dict(self) -> dict:
+        """The kept hierarchy, as the matrices it comes from (``_keep_sources``), and the
+        iteration counts that decide its next rebuild or re-formation: a run continued from a
+        checkpoint then preconditions its Newton systems exactly as the uninterrupted run
+        (with a new hierarchy the CG iterates, hence the Newton path, would differ in the last
+        bits)."""
+        from warpfem.io.checkpoint import optional_number
+
+        src = self._sources if self.levels is not None else {}
+        d = {"built": bool("built" in src), "base_iters": optional_number(self._base_iters),
+             "galerkin_iters": optional_number(self._galerkin_iters), "stale": bool(self._stale),
+             "refresh_coarse": bool(self._refresh_coarse), "setup_count": int(self.setup_count),
+             "galerkin_count": int(self.galerkin_count)}
+        if "built" in src:
+            d["built_values"], d["built_mask"] = src["built"]
+            same = isinstance(src["coarse"], str)
+            d["coarse_same"] = bool(same)
+            if not same:
+                d["coarse_values"], d["coarse_mask"] = src["coarse"]
+        return d
+
+    def load_state_dict(self, view):
+        if "built" not in view:  # a checkpoint written before the multigrid kept its hierarchy: built afresh
+            return
+        built = view.flag("built")
+        counts = dict(_base_iters=view.number("base_iters", optional=True),
+                      _galerkin_iters=view.number("galerkin_iters", optional=True), _stale=view.flag("stale"),
+                      _refresh_coarse=view.flag("refresh_coarse"), setup_count=view.integer("setup_count"),
+                      galerkin_count=view.integer("galerkin_count"))
+        pairs = []
+        if built:
+            nnz, n = self.pattern.nnz, self.num_rows
+            dt = np.dtype(np.float64 if self.scalar == wp.float64 else np.float32)
+            keys = [("built_values", "built_mask")] + ([] if view.flag("coarse_same") else [("coarse_values", "coarse_mask")])
+            for kv, km in keys:
+                pairs.append((view.array(kv, (nnz, 3, 3), dt, finite=True), view.array(km, (n, 3), dt, finite=True)))
+        # checked: now the hierarchy, rebuilt from the same matrices by the same code (bit for bit)
+        self.levels, self._sources = None, {}
+        if built:
+            dev = self.device
+            arrays = [(wp.array(v, dtype=self.pattern.block_type, device=dev), wp.array(m, dtype=self.vec_type, device=dev))
+                      for v, m in pairs]
+            self._build(*arrays[0])
+            vc, mc = arrays[-1]
+            self._galerkin(vc, mc, coarse=True)
+            self._set_intervals(mc)
+            self.__dict__.pop("_flat", None)  # (views of the arrays above)
+            self._sources = {"built": pairs[0], "coarse": "same" if len(pairs) == 1 else pairs[1]}
+        for k, v in counts.items():
+            setattr(self, k, (None if v is None else int(v)) if k.endswith("_iters") else v)
 
     def _commands(self):
         """The launches of a V-cycle and of a chunk of CG iterations, recorded once per (values,
