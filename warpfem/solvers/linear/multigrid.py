@@ -726,15 +726,15 @@ class MultigridPCG(LinearSolver):
 
     # -- the kept hierarchy (a simulator's state_dict) ----------------------------------------------------
     def _keep_sources(self, values, mask, built):
-        """Host copies of the matrix (and mask) the hierarchy was built from and of the one its
+        """Device copies of the matrix (and mask) the hierarchy was built from and of the one its
         coarse operators were formed from: what :meth:`load_state_dict` rebuilds the same
-        hierarchy from. One read-back at each build or re-formation (rare: the hierarchy is kept
-        over many Newton systems); with ``coarse_update="every"`` only at a build (every prepare
-        forms its own coarse operators, the prolongators stay those of the build)."""
+        hierarchy from. A copy on the device at each build or re-formation (rare: the hierarchy is
+        kept over many Newton systems), no read-back (:meth:`state_dict` reads them); with
+        ``coarse_update="every"`` only at a build (every prepare forms its own coarse operators,
+        the prolongators stay those of the build)."""
         if self.coarse_update == "every" and not built:
             return
-        pair = (read(values, self.pattern.nnz).copy(), read(mask).copy())
-        self.host_syncs += 2
+        pair = (wp.clone(values), wp.clone(mask))
         if built:
             self._sources = {"built": pair, "coarse": "same"}
         else:
@@ -753,12 +753,13 @@ class MultigridPCG(LinearSolver):
              "galerkin_iters": optional_number(self._galerkin_iters), "stale": bool(self._stale),
              "refresh_coarse": bool(self._refresh_coarse), "setup_count": int(self.setup_count),
              "galerkin_count": int(self.galerkin_count)}
+        nnz = self.pattern.nnz
         if "built" in src:
-            d["built_values"], d["built_mask"] = src["built"]
+            d["built_values"], d["built_mask"] = (read(src["built"][0], nnz).copy(), read(src["built"][1]).copy())
             same = isinstance(src["coarse"], str)
             d["coarse_same"] = bool(same)
             if not same:
-                d["coarse_values"], d["coarse_mask"] = src["coarse"]
+                d["coarse_values"], d["coarse_mask"] = (read(src["coarse"][0], nnz).copy(), read(src["coarse"][1]).copy())
         return d
 
     def load_state_dict(self, view):
@@ -787,7 +788,7 @@ class MultigridPCG(LinearSolver):
             self._galerkin(vc, mc, coarse=True)
             self._set_intervals(mc)
             self.__dict__.pop("_flat", None)  # (views of the arrays above)
-            self._sources = {"built": pairs[0], "coarse": "same" if len(pairs) == 1 else pairs[1]}
+            self._sources = {"built": arrays[0], "coarse": "same" if len(arrays) == 1 else arrays[1]}
         for k, v in counts.items():
             setattr(self, k, (None if v is None else int(v)) if k.endswith("_iters") else v)
 
