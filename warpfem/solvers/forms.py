@@ -1173,7 +1173,8 @@ class IncrementalPotential:
 
         The filter's cut count rides on the read-back of the filtering forms' step bounds along the
         filtered d (:meth:`max_step`, kept for the loop's next call when nothing was cut): an iteration
-        whose filter cut nothing launches and reads nothing for the pin. A vertex's contacts are
+        whose filter cut nothing launches and reads nothing for the pin (and keeps no unfiltered
+        direction: d is that direction). A vertex's contacts are
         pinned exactly when the filter cut one of them (both test the unfiltered step with the
         same function), so a cut count above 0 is a pinned count above 0."""
         w = self.work
@@ -1193,6 +1194,7 @@ class IncrementalPotential:
                 f.max_step(x, d, self.s, acc)
             a = self._read(acc)
             if a[_D_CUTS] == 1.0:  # nothing cut: d stays; the loop's max_step along it needs only the others
+                self._raw_kept = False  # d is the unfiltered direction: nothing to try or measure besides it
                 self._bound = (y, d, float(min([1.0] + [a[_HEAD + ROW * i + 3] for i, _ in own])),
                                {id(f) for _, f in own})
                 return lin
@@ -1223,7 +1225,9 @@ class IncrementalPotential:
 
     def unfiltered_direction(self):
         """The last Newton direction before :meth:`filter_direction` changed it (None when it was
-        not filtered)."""
+        not filtered, or when the filter's cut count, read with the step bound in the pinned solve's
+        gate, says it cut nothing: the Newton loop's fallback to it and the step test then need no
+        read-back of it)."""
         return self.work.d_raw if getattr(self, "_raw_kept", False) else None
 
     def _filtering_forms(self):
