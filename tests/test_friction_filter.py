@@ -289,3 +289,45 @@ def test_pin_kernel_adds_a_tangential_spring_only_where_the_step_crosses_the_zon
         np.testing.assert_allclose(values.numpy()[0], block + k * P, rtol=tol, atol=tol)
         np.testing.assert_allclose(rhs.numpy()[0], np.array([1.0, 2.0, 3.0]) + k * P @ d_cut, rtol=tol, atol=tol)
         assert int(count.numpy()[0]) == int(crosses)
+
+
+def test_an_iteration_whose_filter_cut_nothing_reads_no_unfiltered_direction(monkeypatch):
+    """With the pin's gate (the default), the filter's cut count is read with the step bound; in an
+    iteration where it cut nothing, d is the unfiltered direction, so neither the fallback to it
+    (a filtered step cut below 0.3 of its length) nor the step test (``step_tol``) checks it again:
+    the same positions and counts bit for bit, one read-back fewer per such check (measured: the
+    sliding box drop 3 of 3 fallback checks, 1707 read-backs against 1710; with step_tol 1e-2 over
+    8 steps 9 of the step test's and fallback's checks, 303 against 312)."""
+    import test_step_tol
+
+    from warpfem import transfer
+    from warpfem.solvers.forms import IncrementalPotential
+
+    pinned, check = IncrementalPotential._pinned_solve, IncrementalPotential.direction_check
+    raw_checks = [0]
+
+    def counted(self, y, g, d):
+        raw_checks[0] += getattr(self.work, "d_raw", None) is d
+        return check(self, y, g, d)
+
+    def keeps_raw(self, *args):  # the unfiltered direction kept whatever the cut count (as before)
+        lin = pinned(self, *args)
+        self._raw_kept = True
+        return lin
+
+    monkeypatch.setattr(IncrementalPotential, "direction_check", counted)
+    for case in (lambda: _box_drop(True), lambda: test_step_tol._drop(1e-2, steps=8)):
+        runs = []
+        for solve in (keeps_raw, pinned):
+            monkeypatch.setattr(IncrementalPotential, "_pinned_solve", solve)
+            reads, raw_checks[0] = transfer.COUNTERS["reads"], 0
+            out = case()
+            runs.append((out, transfer.COUNTERS["reads"] - reads, raw_checks[0]))
+        (a, r0, c0), (b, r1, c1) = runs
+        if isinstance(a[0], Simulator):  # the box drop: (sim, halvings, Newton iterations)
+            assert np.array_equal(a[0].positions(), b[0].positions()) and a[1:] == b[1:]
+            assert c0 >= 3 and c1 == 0
+        else:  # the step_tol drop: (per-step counts and reasons, positions, L)
+            assert a[0] == b[0] and np.array_equal(a[1], b[1])
+            assert c0 - c1 >= 9
+        assert r0 - r1 == c0 - c1

@@ -783,6 +783,7 @@ class IncrementalPotential:
         return self._x_of(y)
 
     def trial(self, y, alpha, d, out):
+        self._written(out)
         self.ops.lincomb(1.0, y, alpha, d, out)
         if self._bound is not None and (out is self._bound[0] or out is self._bound[1]):
             self._bound = None
@@ -790,6 +791,7 @@ class IncrementalPotential:
             self._x_of_y = None
 
     def assign(self, dst, src):
+        self._written(dst)
         wp.copy(dst, src)
         self._bound = None
         # x = x_b + s src is still in the work buffer: it is now x of dst
@@ -855,8 +857,9 @@ class IncrementalPotential:
                 mag += f.gradient_magnitude(a[o:o + ROW], self.scales(f)[0])
         return mag, float(np.sqrt(a[_G_NORM]))
 
-    def _direction_of(self, a):
-        self._direction_max = float(a[_D_GD + 1])  # max |d| of the last direction checked (direction_max)
+    def _direction_of(self, a, d):
+        # max |d| of the direction checked, kept for direction_max while d is not written again
+        self._checked = (d, float(a[_D_GD + 1]))
         scale = a[_D_GD + 2] + (a[_D_GD + 3] / abs(self.s) if self.s != 0.0 else 0.0)
         negligible = bool(a[_D_GD + 1] <= 8.0 * self.eps * scale)
         return float(a[_D_GD]), negligible
@@ -890,7 +893,7 @@ class IncrementalPotential:
         self._launch_gradient(y_try, g_try, self._acc_g, d)
         a = self._read(self.acc[:3 * self._size])
         s = self._size
-        return (self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+        return (self._direction_of(a[2 * s:3 * s], d) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
                 + (float(a[s + _G_TD]),))
 
     def newton_step(self, y, g, d, y_try, g_try, opts, start=False):
@@ -903,6 +906,7 @@ class IncrementalPotential:
         third (the first iteration of a solve then costs one read-back too)."""
         solver = self.system.solver
         values, rhs = self.system.hessian_values, self.work.rhs
+        self._written()  # (d, y_try and g_try are written)
 
         def before_solve():  # the start's energy and gradient, the Hessian, the right-hand side
             if start:
@@ -935,7 +939,7 @@ class IncrementalPotential:
         self._captured(("trial",), (y, g, d, y_try, g_try), after_solve, y_try)
         a = self._read(self.acc)
         first = (self._energy_of(a[3 * s:4 * s]) + self._gradient_of(a[4 * s:5 * s])) if start else None
-        trial = (self._direction_of(a[2 * s:3 * s]) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
+        trial = (self._direction_of(a[2 * s:3 * s], d) + self._energy_of(a[:s]) + self._gradient_of(a[s:2 * s])
                  + (float(a[s + _G_TD]),))
         if deferred:
             lin, changed = solver.complete_deferred(a[r:r + 4])
@@ -1083,15 +1087,25 @@ class IncrementalPotential:
         return step_tol * L * h / abs(self.s)
 
     def direction_max(self, y, g, d, limit=float("inf")):
-        """max |d| of the Newton direction d (read with its direction check), or of the unfiltered
-        direction when the friction filter changed d and that is larger (one more read-back, only
-        when d itself is within ``limit``)."""
-        m = getattr(self, "_direction_max", float("inf"))
+        """max |d| of the Newton direction d, or of the unfiltered direction when the friction
+        filter changed d and that is larger (one more read-back, only when d itself is within
+        ``limit``). max |d| is the one read with d's last direction check (:meth:`direction_check`,
+        :meth:`trial_step`, :meth:`newton_step`: no read-back of its own in the Newton loop) while
+        d has not been written since by this problem's methods (a write from outside them is not
+        seen); otherwise d is checked again (one read-back)."""
+        m = self._max_of(y, g, d)
         raw = self.unfiltered_direction()
-        if raw is not None and m <= limit:
-            self.direction_check(y, g, raw)
-            m = max(m, self._direction_max)
+        if raw is not None and raw is not d and m <= limit:
+            m = max(m, self._max_of(y, g, raw))
         return m
+
+    def _max_of(self, y, g, d):
+        """max |d|: kept from d's last direction check, or read with a new one."""
+        kept = getattr(self, "_checked", None)
+        if kept is None or kept[0] is not d:
+            self.direction_check(y, g, d)
+            kept = self._checked
+        return kept[1]
 
     def bounds_step(self) -> bool:
         """Whether a form bounds the line search's step (then :meth:`max_step` reads it back)."""
@@ -1123,6 +1137,7 @@ class IncrementalPotential:
         """d ~ -H(y)^-1 g on the free components (the simulator's linear solver); returns its result
         (``iterations``, ``host_syncs``, ...)."""
         self._bound = None
+        self._written()  # (d and the kept unfiltered and filtered directions are written)
         values = self.assemble_hessian(y, self.system.hessian_values)
         rhs = self.work.rhs
         launch(LK.scale_copy_kernel, self.n, [g, self.ops.scalar(-1.0), rhs], self.ops.device)
@@ -1158,7 +1173,8 @@ class IncrementalPotential:
 
         The filter's cut count rides on the read-back of the filtering forms' step bounds along the
         filtered d (:meth:`max_step`, kept for the loop's next call when nothing was cut): an iteration
-        whose filter cut nothing launches and reads nothing for the pin. A vertex's contacts are
+        whose filter cut nothing launches and reads nothing for the pin (and keeps no unfiltered
+        direction: d is that direction). A vertex's contacts are
         pinned exactly when the filter cut one of them (both test the unfiltered step with the
         same function), so a cut count above 0 is a pinned count above 0."""
         w = self.work
@@ -1178,6 +1194,7 @@ class IncrementalPotential:
                 f.max_step(x, d, self.s, acc)
             a = self._read(acc)
             if a[_D_CUTS] == 1.0:  # nothing cut: d stays; the loop's max_step along it needs only the others
+                self._raw_kept = False  # d is the unfiltered direction: nothing to try or measure besides it
                 self._bound = (y, d, float(min([1.0] + [a[_HEAD + ROW * i + 3] for i, _ in own])),
                                {id(f) for _, f in own})
                 return lin
@@ -1198,6 +1215,7 @@ class IncrementalPotential:
         self.filter_direction(y, d)  # (contacts the pinned solve carries across their zones)
         gd, _ = self.direction_check(y, g, d)
         if not gd < 0.0:  # not a descent direction: the filtered one stays
+            self._written(d)
             wp.copy(d, w.d_filt)
         if hasattr(lin, "iterations") and hasattr(lin2, "iterations"):
             lin.iterations += lin2.iterations
@@ -1207,7 +1225,9 @@ class IncrementalPotential:
 
     def unfiltered_direction(self):
         """The last Newton direction before :meth:`filter_direction` changed it (None when it was
-        not filtered)."""
+        not filtered, or when the filter's cut count, read with the step bound in the pinned solve's
+        gate, says it cut nothing: the Newton loop's fallback to it and the step test then need no
+        read-back of it)."""
         return self.work.d_raw if getattr(self, "_raw_kept", False) else None
 
     def _filtering_forms(self):
@@ -1222,6 +1242,7 @@ class IncrementalPotential:
         filters = self._filtering_forms()
         if not filters:
             return
+        self._written(d)
         x = self._x_of(y)
         for f in filters:
             f.filter_direction(y, x, d)
@@ -1230,6 +1251,7 @@ class IncrementalPotential:
         """d = -B^-1 g, B the (masked) block diagonal of the last Newton system: a descent direction
         whatever linear solver produced the rejected one."""
         self._bound = None
+        self._written(d)
         pt, w, dev = self.system.pattern, self.work, self.ops.device
         if w.inv_diag is None or w.inv_diag.shape[0] != self.n:
             w.inv_diag = wp.zeros(self.n, dtype=self.ops.mat, device=dev)
@@ -1267,6 +1289,8 @@ class IncrementalPotential:
         E2, mag2, gmag2, gnorm2 = self.evaluate(w.y_long, w.g_long)
         if not (np.isfinite(E2) and E2 < E1 and np.isfinite(gnorm2)):
             return None
+        self._written(y_try)
+        self._written(g_try)
         wp.copy(y_try, w.y_long)
         wp.copy(g_try, w.g_long)
         return E2, mag2, gmag2, gnorm2, a
@@ -1274,7 +1298,14 @@ class IncrementalPotential:
     def direction_check(self, y, g, d):
         """(g . d, whether the step d is below the resolution of y and of x = x_b + s y): one read-back."""
         self._launch_direction(y, g, d, self._acc_d)
-        return self._direction_of(self._read(self._acc_d))
+        return self._direction_of(self._read(self._acc_d), d)
+
+    def _written(self, v=None):
+        """Forget the kept max |d| of the last direction check (:meth:`direction_max`) when ``v``
+        is the vector it was read from (any vector when None): v is being written."""
+        kept = getattr(self, "_checked", None)
+        if kept is not None and (v is None or kept[0] is v):
+            self._checked = None
 
 
 FullSpacePotential = IncrementalPotential  # the older name
