@@ -46,7 +46,10 @@ updated inside the solve in every step (``friction_update_tol=0``, the default),
 "update_50" with ``friction_update_tol=0.25`` and ``0.5``, "lag_once" (also "after_lag_once") with friction
 lagged once from the step start (``friction_iterations=0``), "after_mu0" with friction 0 on every
 collider and on surface contact (the key "friction"), "after_pin" / "after_no_pin" with ``friction_pin``
-3 (the default) / 0. A configuration with a "revision" runs in workers: ``git archive REV`` of
+3 (the default) / 0, "eta_F" (F in 0.5, 0.3, 0.2, 0.1, 0.05, 0.02) with the collision step bound's
+fraction (``STEP_ETA`` of ``warpfem.contact.contact`` and ``warpfem.contact.surface``, restored before
+every run) set to F for colliders and surface pairs, "eta_cF" / "eta_sF" (F in 0.1, 0.05, 0.02) for
+colliders / surface pairs alone, "mu0_eta_F" (F in 0.5, 0.2, 0.05, 0.02) with friction 0 too. A configuration with a "revision" runs in workers: ``git archive REV`` of
 this repository extracted into a temporary folder (git needed), each case and precision then the
 hidden ``--_worker OUT.json`` of this script with that folder first on PYTHONPATH; the worker checks
 that ``warpfem.__file__`` is in that folder, and the outputs record per configuration the code that
