@@ -46,7 +46,10 @@ updated inside the solve in every step (``friction_update_tol=0``, the default),
 "update_50" with ``friction_update_tol=0.25`` and ``0.5``, "lag_once" (also "after_lag_once") with friction
 lagged once from the step start (``friction_iterations=0``), "after_mu0" with friction 0 on every
 collider and on surface contact (the key "friction"), "after_pin" / "after_no_pin" with ``friction_pin``
-3 (the default) / 0. A configuration with a "revision" runs in workers: ``git archive REV`` of
+3 (the default) / 0, "eta_F" (F in 0.5, 0.3, 0.2, 0.1, 0.05, 0.02) with the collision step bound's
+fraction (``STEP_ETA`` of ``warpfem.contact.contact`` and ``warpfem.contact.surface``, restored before
+every run) set to F for colliders and surface pairs, "eta_cF" / "eta_sF" (F in 0.1, 0.05, 0.02) for
+colliders / surface pairs alone, "mu0_eta_F" (F in 0.5, 0.2, 0.05, 0.02) with friction 0 too. A configuration with a "revision" runs in workers: ``git archive REV`` of
 this repository extracted into a temporary folder (git needed), each case and precision then the
 hidden ``--_worker OUT.json`` of this script with that folder first on PYTHONPATH; the worker checks
 that ``warpfem.__file__`` is in that folder, and the outputs record per configuration the code that
@@ -132,7 +135,22 @@ CONFIGS: dict[str, dict] = {
     # docs/contact.md "What an impact step costs"): on (3, the default since it was measured), off
     "after_pin": {"friction_pin": 3.0},
     "after_no_pin": {"friction_pin": 0.0},
+    # the collision step bound's fraction of each gap it keeps (the line search's first step, module
+    # constants STEP_ETA of warpfem.contact.contact for colliders and warpfem.contact.surface for
+    # surface pairs; docs/contact.md "What an impact step costs"): both, colliders only, surface only
+    **{f"eta_{e}": {"collider_step_eta": v, "surface_step_eta": v} for e, v in
+       (("0.5", 0.5), ("0.3", 0.3), ("0.2", 0.2), ("0.1", 0.1), ("0.05", 0.05), ("0.02", 0.02))},
+    **{f"eta_c{e}": {"collider_step_eta": v} for e, v in (("0.1", 0.1), ("0.05", 0.05), ("0.02", 0.02))},
+    **{f"eta_s{e}": {"surface_step_eta": v} for e, v in (("0.1", 0.1), ("0.05", 0.05), ("0.02", 0.02))},
+    # the same without friction (mu = 0 everywhere): the barrier's approach alone
+    **{f"mu0_eta_{e}": {"friction": 0.0, "collider_step_eta": v, "surface_step_eta": v} for e, v in
+       (("0.5", 0.5), ("0.2", 0.2), ("0.05", 0.05), ("0.02", 0.02))},
 }
+#: configuration keys that set a module constant (module, name), restored to its import value before
+#: every run so that configurations run one after the other in one process do not leak into each other
+MODULE_KEYS = {"collider_step_eta": ("warpfem.contact.contact", "STEP_ETA"),
+               "surface_step_eta": ("warpfem.contact.surface", "STEP_ETA")}
+_MODULE_DEFAULTS: dict = {}
 
 #: where the example scenes are read: this tree's, or in a worker the extracted revision's
 SCENE_DIR = os.path.join(ROOT, "examples", "scenes")
@@ -170,8 +188,24 @@ def apply_config(sim, config: dict, skipped: dict | None = None) -> dict:
     gets {key: note} (a worker on an old revision, whose code lacks a newer key)."""
     fields = {f.name for f in dataclasses.fields(NewtonOptions)}
     applied = {}
+    import importlib
+    for key, (mod, name) in MODULE_KEYS.items():
+        m = importlib.import_module(mod)
+        if hasattr(m, name):
+            _MODULE_DEFAULTS.setdefault(key, getattr(m, name))
+            setattr(m, name, _MODULE_DEFAULTS[key])
     for key, value in config.items():
         if key == "revision":
+            continue
+        if key in MODULE_KEYS:
+            m = importlib.import_module(MODULE_KEYS[key][0])
+            if hasattr(m, MODULE_KEYS[key][1]):
+                setattr(m, MODULE_KEYS[key][1], value)
+                applied[key] = (f"{MODULE_KEYS[key][0]}.{MODULE_KEYS[key][1]}", value)
+            elif skipped is not None:
+                skipped[key] = f"skipped: {MODULE_KEYS[key][0]} has no {MODULE_KEYS[key][1]} in {TREE}"
+            else:
+                raise KeyError(f"configuration key {key!r}: {MODULE_KEYS[key][0]} has no {MODULE_KEYS[key][1]}")
             continue
         if key == "friction":  # the Coulomb coefficient of every collider and of surface contact
             cs, sc = getattr(sim, "contact", None), getattr(sim, "surface_contact", None)

@@ -578,11 +578,12 @@ class SurfaceContact:
         ``scale`` into ``values`` (the adjoint solve's exact Hessian, warpfem.solvers.adjoint)."""
         self.run(SK.MODE_HESSIAN_UNPROJECTED, x, scale=scale, values=values)
 
-    def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0, kappa=None, eta=STEP_ETA):
+    def run(self, mode, x, *, scale=1.0, d=None, g=None, values=None, acc=None, slot=0, kappa=None, eta=None):
         """The pair kernel's job ``mode`` over the candidate pairs; gradients into g and Hessian
         blocks into values through the pairs' slots and the gather maps (``GATHER``); ``eta``: the
-        step bound's fraction of each gap it keeps."""
+        step bound's fraction of each gap it keeps (default ``STEP_ETA``, read at the call)."""
         ops = self.ops
+        eta = STEP_ETA if eta is None else eta
         n = self.num_pairs
         if n == 0:
             return
@@ -603,10 +604,11 @@ class SurfaceContact:
         elif gather:
             self._hmap.gather(SK.gather_mat_kernel, self._hact, 4, self._hslots, values)
 
-    def run_ccd(self, x, *, scale, d, acc, slot=0, eta=STEP_ETA):
+    def run_ccd(self, x, *, scale, d, acc, slot=0, eta=None):
         """The step bound (additive CCD) of the CCD-only pairs (self pairs closer than rest_gap at rest)."""
         if self.num_ccd_pairs == 0:
             return
+        eta = STEP_ETA if eta is None else eta
         ops = self.ops
         launch(SK.pair_kernel, self.num_ccd_pairs, [
             x, self._rest, self._ccd_pairs, self._ccd_kinds, self._ccd_count, ops.scalar(self.dhat ** 2),
