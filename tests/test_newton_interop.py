@@ -558,6 +558,16 @@ def test_body_f_is_a_world_wrench_at_the_centre_of_mass():
     assert np.linalg.norm(qd[3:] - dw) < 2e-3 * np.linalg.norm(dw)
 
 
+def _grid_and_box_collision_mesh(ipctk, model, box_min, box_max):
+    """IPC Toolkit's collision mesh of the model's tet surface and a box's faces (for
+    ``has_intersections``), with the model's rest positions and the box's vertices."""
+    Vb, Fb = wf.Box(box_min=box_min, box_max=box_max).surface(1.0)
+    q0 = model.particle_q.numpy().astype(np.float64)
+    Fs = np.asarray(wf.TetMesh(q0, model.tet_indices.numpy()).boundary_faces())
+    F = np.vstack([Fs, Fb + len(q0)])
+    return ipctk.CollisionMesh(np.vstack([q0, Vb]), ipctk.edges(F), F), q0, Vb
+
+
 def test_a_soft_grid_dropped_onto_a_newton_box_on_the_ground_never_intersects_it():
     """A soft grid (add_soft_grid) dropped 2 cm onto a static box shape standing on newton's
     ground plane: no particle below the plane and no intersection of its surface with the box's
@@ -573,14 +583,7 @@ def test_a_soft_grid_dropped_onto_a_newton_box_on_the_ground_never_intersects_it
                     density=300.0, k_mu=2.0e4, k_lambda=3.0e4, k_damp=0.0)
     model = b.finalize(device="cpu")
     solver = SolverFEM(model, damping_mass=5.0)
-    box = wf.Box(box_min=(-0.1, -0.1, 0.0), box_max=(0.1, 0.1, 0.1))
-    Vb, Fb = box.surface(1.0)
-    tets = model.tet_indices.numpy()
-    Fs = np.asarray(wf.TetMesh(model.particle_q.numpy().astype(np.float64), tets).boundary_faces())
-    n = model.particle_count
-    F = np.vstack([Fs, Fb + n])
-    rest = np.vstack([model.particle_q.numpy().astype(np.float64), Vb])
-    cm = ipctk.CollisionMesh(rest, ipctk.edges(F), F)
+    cm, _, Vb = _grid_and_box_collision_mesh(ipctk, model, (-0.1, -0.1, 0.0), (0.1, 0.1, 0.1))
     s0, s1 = model.state(), model.state()
     for _ in range(30):
         s0.clear_forces()
@@ -701,11 +704,7 @@ def test_surface_shape_contact_keeps_the_box_edge_out_of_a_grid_landing_across_i
     model = _grid_across_box_edge()
     solver = SolverFEM(model, damping_mass=5.0, shape_contact="surface")
     assert solver.kinematic_shapes == [1] and [s for s, _ in solver._colliders] == [0]
-    Vb, Fb = wf.Box(box_min=(-0.1, -0.1, 0.0), box_max=(0.1, 0.1, 0.1)).surface(1.0)
-    q0 = model.particle_q.numpy().astype(np.float64)
-    Fs = np.asarray(wf.TetMesh(q0, model.tet_indices.numpy()).boundary_faces())
-    F = np.vstack([Fs, Fb + len(q0)])
-    cm = ipctk.CollisionMesh(np.vstack([q0, Vb]), ipctk.edges(F), F)
+    cm, _, Vb = _grid_and_box_collision_mesh(ipctk, model, (-0.1, -0.1, 0.0), (0.1, 0.1, 0.1))
     s0, s1 = model.state(), model.state()
     for _ in range(16):
         s0.clear_forces()
@@ -761,11 +760,7 @@ def test_a_box_moved_by_its_body_transform_pushes_the_grid_with_surface_shape_co
     model, body = _box_behind_grid()
     solver = SolverFEM(model, damping_mass=5.0, shape_contact="surface")
     assert solver.kinematic_shapes == [1] and solver.rigid_bodies == []
-    Vb, Fb = wf.Box(box_min=(-0.02, -0.06, -0.02), box_max=(0.02, 0.06, 0.02)).surface(1.0)
-    q0 = model.particle_q.numpy().astype(np.float64)
-    Fs = np.asarray(wf.TetMesh(q0, model.tet_indices.numpy()).boundary_faces())
-    F = np.vstack([Fs, Fb + len(q0)])
-    cm = ipctk.CollisionMesh(np.vstack([q0, Vb]), ipctk.edges(F), F)
+    cm, q0, Vb = _grid_and_box_collision_mesh(ipctk, model, (-0.02, -0.06, -0.02), (0.02, 0.06, 0.02))
     s0, s1 = model.state(), model.state()
     k = int(solver._kinematic_nodes[0])
     for i in range(25):
