@@ -295,7 +295,7 @@ class ContactSet:
 
     def filter_direction(self, dbase, y, sy, d, tally=None):
         """The stick/slip-aware step (:mod:`warpfem.contact.friction`): d's tangential part cut at
-        the vertices whose frictional contact the step would carry across its sticking zone, with
+        the vertices whose frictional contact the step would carry past its point closest to u = 0, with
         the step displacement x - x_n = dbase + sy y. Counts the cut contacts in
         :attr:`filtered_contacts` (since the step start) and, with ``tally`` = (float64 device
         array, index), adds this call's cut contacts to that entry (no read-back)."""
@@ -306,7 +306,7 @@ class ContactSet:
 
     def pin_direction(self, dbase, y, sy, d_raw, d, values, rhs, weight, count=True):
         """Tangential springs for a second Newton solve (``NewtonOptions.friction_pin``): at the
-        vertices whose contact the unfiltered step ``d_raw`` carries across its sticking zone, k P
+        vertices whose contact the unfiltered step ``d_raw`` carries past its point closest to u = 0, k P
         added to their Newton blocks in ``values`` and k P d to ``rhs`` (d the filtered step), k =
         ``weight`` x the block's mean diagonal. Returns the number of such contacts (one read-back);
         with ``count`` False, None and no read-back (the caller knows from :meth:`filter_direction`'s
@@ -536,7 +536,7 @@ class ContactForm(LaggedFrictionForm):
 
     def filter_direction(self, y, x, d, tally=None):
         """Cut the tangential step of each frictional contact that the Newton step ``d`` (in y)
-        would carry across its sticking zone (:mod:`warpfem.contact.friction`), in place; with
+        would carry past its point closest to u = 0 (:mod:`warpfem.contact.friction`), in place; with
         ``tally`` = (float64 device array, index), the cut contacts are added to that entry."""
         c = self.contact
         if not c.has_friction():

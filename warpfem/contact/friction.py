@@ -10,17 +10,24 @@ one length for every vertex, and halves it until the overshooting contacts land 
 measured, most of the extra Newton iterations and all the line-search halvings of frictional
 contact steps come from this (docs/contact.md, "Why frictional steps crawl").
 
+The same holds for a contact whose step passes *near* the zone: along a segment that goes by
+u = 0 at a distance b, |u| falls to b at the closest point and rises after it, the friction force
+turning against the step, while the Newton model, curved by mu lambda / |u0| across u only, sees
+a force that keeps pulling along the step (measured on the bunny's impact: with only the steps
+through the zone cut, those passing within a few mm of it made the line search take 1/8 - 1/2 of
+most steps after friction's lag update; docs/contact.md, "What an impact step costs").
+
 The filter acts per collider contact (a surface vertex against a collider; surface pairs are not
 filtered: cutting the steps of both sides of a pair slowed the stack's impacts, docs/contact.md)
 on the Newton direction d before the line search: with u(t) = u0 + t du
 the contact's tangential displacement along the step (du = s P d, P = I - n n^T), when the contact
-starts outside its sticking zone (|u0| >= eps) and the full step passes through the zone (the
-point of the segment closest to u = 0 lies at t* in (0, 1), within eps of 0), the tangential part
-of the vertex's step is cut to t* of itself: the contact lands where its friction energy is
-lowest along the step. Normal components, free vertices and contacts that keep sliding are left
-alone. The minimiser of the potential is unchanged (only the path to it), and the line search
-still checks sufficient decrease along the filtered direction, which the Newton loop uses as it
-is (its slope g.d is measured on it).
+starts outside its sticking zone (|u0| >= eps) and the full step goes past the point of the
+segment closest to u = 0 (at t* = -u0.du / du.du in (0, 1)), the tangential part of the vertex's
+step is cut to t* of itself: the contact lands where its friction energy is lowest along the step.
+Normal components, free vertices and contacts that slide on (t* <= 0: the step does not move them
+towards u = 0) are left alone. The minimiser of the potential is unchanged (only the path to it),
+and the line search still checks sufficient decrease along the filtered direction, which the
+Newton loop uses as it is (its slope g.d is measured on it).
 """
 
 from __future__ import annotations
@@ -37,7 +44,8 @@ wp.set_module_options({"enable_backward": False})
 @wp.func
 def crossing_fraction(u: Any, du: Any, eps: Any):
     """t* in (0, 1) when the segment u + t du (t in [0, 1]) starts outside the ball |u| < eps and
-    passes through it (its closest point to 0 is inside the segment and within eps); 1 otherwise."""
+    goes past its point closest to u = 0 (t* = -u.du / du.du inside the segment): there the
+    friction energy, increasing in |u|, is lowest along the step; 1 otherwise."""
     zero = eps - eps
     one = zero + type(eps)(1.0)
     q = wp.dot(du, du)
@@ -45,8 +53,6 @@ def crossing_fraction(u: Any, du: Any, eps: Any):
         return one
     t = -wp.dot(u, du) / q
     if t <= zero or t >= one:
-        return one
-    if wp.length(u + t * du) >= eps:
         return one
     return t
 
@@ -69,7 +75,7 @@ def collider_filter_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, l
                            d: wp.array(dtype=Any), count: wp.array(dtype=wp.int32), tally: wp.array(dtype=wp.float64),
                            tally_at: int):
     """Per surface vertex: its step d (in y) with the tangential part cut where a frictional
-    collider contact would cross its sticking zone (module docstring). u = P (dbase + sy y - w).
+    collider contact's step goes past its point closest to u = 0 (module docstring). u = P (dbase + sy y - w).
     The cut contacts are added to ``count[0]`` and to ``tally[tally_at]`` (a slot of an accumulator
     read back with other numbers: the Newton loop learns whether this call cut anything without a
     read-back of its own)."""
@@ -104,7 +110,7 @@ def collider_pin_kernel(surf: wp.array(dtype=wp.int32), num_colliders: int, lam:
                         values: wp.array(dtype=Any), rhs: wp.array(dtype=Any), weight: Any,
                         count: wp.array(dtype=wp.int32)):
     """Per surface vertex whose frictional collider contact the unfiltered step ``d_raw`` carries
-    across its sticking zone (the contacts :func:`collider_filter_kernel` cuts): a tangential spring
+    past its point closest to u = 0 (the contacts :func:`collider_filter_kernel` cuts): a tangential spring
     k P (P = I - n n^T, k = ``weight`` x the mean diagonal of the vertex's Newton block) added to
     the block and k P d (d the filtered step) to the right-hand side, so that a second solve of the
     Newton system holds these contacts' tangential steps at their cut value and lets the rest of

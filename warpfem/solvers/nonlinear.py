@@ -68,7 +68,8 @@ class NewtonOptions:
             clamping makes projected Newton converge linearly; on demand keeps Newton's quadratic
             convergence where the exact Hessian is definite (measured in docs/integrators.md).
         friction_filter: with lagged friction in the potential, cut each contact's tangential step
-            where the Newton step would carry it across its sticking zone (stick/slip-aware steps,
+            where the Newton step would carry it past its point closest to zero tangential
+            displacement, through its sticking zone or near it (stick/slip-aware steps,
             :mod:`warpfem.contact.friction`). Changes the path to the step's solution, not the
             solution; off: the plain Newton direction (measured effect in docs/contact.md). When
             the line search cuts a filtered step below 0.3 of its length, the unfiltered
