@@ -39,7 +39,8 @@ times are recorded next to the wall times (a shared machine inflates them less).
 
 Configurations (``--configs``; default before,after) are the entries of ``CONFIGS`` below: "before",
 the code of e18de72 (the last commit before the friction solver changes: no stick/slip-aware Newton
-step, friction re-solves), "after", the working tree, "after_no_filter", the working tree with
+step, friction re-solves), "after", the working tree, "before_closest", the code of f4b9087 (the
+friction filter cut only the steps through the sticking zone), "after_no_filter", the working tree with
 ``friction_filter=False``, "after_no_extrapolation" with ``extrapolate=False``, "after_step_tol" with the
 Newton step test ``step_tol=1e-3`` (body diagonals per second), "update_always" with friction's lag
 updated inside the solve in every step (``friction_update_tol=0``, the default), "update_25" and
@@ -115,6 +116,9 @@ CONFIGS: dict[str, dict] = {
     "before": {"revision": "e18de72"},
     # the working tree with its defaults (friction_filter on, friction lagged again inside the solve)
     "after": {},
+    # the code before the friction filter cut every step that goes past its point closest to u = 0
+    # (it cut only the steps through the sticking zone): f4b9087, the last commit before that change
+    "before_closest": {"revision": "f4b9087"},
     # the working tree without the stick/slip-aware Newton step for collider friction
     "after_no_filter": {"friction_filter": False},
     "after_no_extrapolation": {"extrapolate": False},
