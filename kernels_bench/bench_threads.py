@@ -43,7 +43,10 @@ noisy (re-run it on a quiet one).
     .venv/bin/python kernels_bench/bench_threads.py [--threads 2] [--repeats 5] [--steps 3] [--quick]
         [--box-solver multigrid] [--out kernels_bench/results/threads_cpu.json]
 
-``--quick``: the 24k assembly cases and the beam only.
+``--quick``: the 24k assembly cases and the beam only. ``--probe``: only what the machine gives p
+threads, apart from warpfem's code (streaming memory bandwidth with numpy copies on 1 and p threads;
+the force's per-point kernel on the 192k-tet box as one launch and as p chunks at once through the
+pool, with each chunk's start delay and duration; ``threads_probe.json`` next to ``--out``).
 """
 
 from __future__ import annotations
@@ -266,6 +269,89 @@ def amdahl(speedup, p):
     return f, {n: 1.0 / (f + (1.0 - f) / n) for n in (8, 16)}
 
 
+def probe(p, repeats):
+    """What the machine gives p threads, apart from warpfem's code: (1) streaming memory bandwidth,
+    numpy copies of 200 MB arrays on one thread and on p at once (numpy releases the GIL); (2) the
+    elastic force's per-point kernel on the 192k-tet box, its whole range on one thread against p
+    equal chunks launched at once through the pool (``warpfem.threads.run_chunks``), with each
+    chunk's start delay and duration: a chunk that starts late or runs slower than alone shows the
+    scheduling of the machine's cores, not the code."""
+    import threading
+
+    from warpfem.threads import run_chunks
+
+    n = 25_000_000
+    src = [np.ones(n) for _ in range(p)]
+    dst = [np.empty(n) for _ in range(p)]
+
+    def copy(i, reps=4):
+        for _ in range(reps):
+            np.copyto(dst[i], src[i])
+
+    bw1, bwp = [], []
+    gb = 4 * n * 8 * 2 / 1e9  # bytes read and written by one copy(i)
+    for _ in range(repeats):
+        t = time.perf_counter()
+        copy(0)
+        bw1.append(gb / (time.perf_counter() - t))
+        th = [threading.Thread(target=copy, args=(i,)) for i in range(p)]
+        t = time.perf_counter()
+        for x in th:
+            x.start()
+        for x in th:
+            x.join()
+        bwp.append(p * gb / (time.perf_counter() - t))
+    del src, dst
+    gc.collect()
+    sim = box(20, 0.3)
+    el = sim._elastic
+    qs = el.qp_sets[0]
+    X = sim.model.mesh.vertices
+    x = wp.array(X + 0.001 * np.random.default_rng(0).standard_normal(X.shape), dtype=wp.vec3d, device="cpu")
+    slots = el._gather(qs)["force"][2]
+    S = sim.scalar_type
+    m = qs.count
+    cuts = [m * k // p for k in range(p + 1)]
+    marks = [None] * p
+
+    def chunk(k, t0):
+        def run():
+            a = time.perf_counter()
+            wp.launch(FK.qp_force_and_abs_kernel, dim=cuts[k + 1] - cuts[k], device="cpu",
+                      inputs=[x, qs.points, qs.material, S(-1.0), slots, slots, 1, cuts[k]])
+            marks[k] = (a - t0[0], time.perf_counter() - a)
+        return run
+
+    t0 = [0.0]
+    fns = [chunk(k, t0) for k in range(p)]
+    chunk(0, t0)()  # compile / load
+    one, many, delays, spans = [], [], [], []
+    for _ in range(max(repeats, 5) * 3):
+        t = time.perf_counter()
+        wp.launch(FK.qp_force_and_abs_kernel, dim=m, device="cpu",
+                  inputs=[x, qs.points, qs.material, S(-1.0), slots, slots, 1, 0])
+        one.append(time.perf_counter() - t)
+        t0[0] = time.perf_counter()
+        run_chunks(fns)
+        many.append(time.perf_counter() - t0[0])
+        delays.append(max(mk[0] for mk in marks))
+        spans.append(max(mk[1] for mk in marks))
+    q = lambda v: [float(np.min(v)), float(np.median(v)), float(np.max(v))]  # noqa: E731
+    out = dict(copy_gb_s_1=q(bw1), copy_gb_s_p=q(bwp), copy_scaling_median=float(np.median(bwp) / np.median(bw1)),
+               force_points=m, force_points_s_1=q(one), force_points_s_p=q(many),
+               force_points_speedup_best=float(np.min(one) / np.min(many)),
+               force_points_speedup_median=float(np.median(one) / np.median(many)),
+               chunk_start_delay_s=q(delays), chunk_longest_s=q(spans))
+    print(f"probe: memory copy {np.median(bw1):.1f} GB/s on 1 thread, {np.median(bwp):.1f} GB/s on {p} "
+          f"({out['copy_scaling_median']:.2f}x); force points ({m}): 1 thread {np.min(one) * 1e3:.2f} ms best, "
+          f"{np.median(one) * 1e3:.2f} median; {p} chunks {np.min(many) * 1e3:.2f} best, {np.median(many) * 1e3:.2f} "
+          f"median, {np.max(many) * 1e3:.2f} worst ({out['force_points_speedup_best']:.2f}x best, "
+          f"{out['force_points_speedup_median']:.2f}x median); the last chunk started {np.median(delays) * 1e3:.2f} ms "
+          f"(median, worst {np.max(delays) * 1e3:.2f}) after the dispatch, the longest chunk took "
+          f"{np.median(spans) * 1e3:.2f} ms (median, worst {np.max(spans) * 1e3:.2f})", flush=True)
+    return out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--threads", type=int, default=2)
@@ -273,6 +359,8 @@ def main(argv=None):
     ap.add_argument("--steps", type=int, default=3)
     ap.add_argument("--box-solver", default="multigrid")
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--probe", action="store_true", help="only the machine probe (memory bandwidth and the force "
+                    "kernel's chunks on p threads; results: threads_probe.json next to --out)")
     ap.add_argument("--out", default=str(ROOT / "kernels_bench" / "results" / "threads_cpu.json"))
     args = ap.parse_args(argv)
     p = int(args.threads)
@@ -284,6 +372,14 @@ def main(argv=None):
     global CP
     CP = CriticalPath()
     start_load = load()
+    if args.probe:
+        result = dict(device=f"cpu ({platform.machine()}, {os.cpu_count()} logical cores)", warp=wp.config.version,
+                      threads=p, load_start=start_load, probe=probe(p, args.repeats), load_end=load())
+        out = Path(args.out).with_name("threads_probe.json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=2) + "\n")
+        print(f"wrote {out.relative_to(ROOT) if out.is_relative_to(ROOT) else out.name}")
+        return result
     rows = {"beam-864-step": step_case(beam, p, max(args.steps, 5))}  # first: no garbage of the big cases yet
     gc.collect()
     for c, tag in ((10, "24k"),) + (() if args.quick else ((20, "200k"),)):
