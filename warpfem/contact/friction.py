@@ -14,8 +14,8 @@ The same holds for a contact whose step passes *near* the zone: along a segment 
 u = 0 at a distance b, |u| falls to b at the closest point and rises after it, the friction force
 turning against the step, while the Newton model, curved by mu lambda / |u0| across u only, sees
 a force that keeps pulling along the step (measured on the bunny's impact: with only the steps
-through the zone cut, those passing within a few mm of it made the line search take 1/8 - 1/2 of
-most steps after friction's lag update; docs/contact.md, "What an impact step costs").
+through the zone cut, the line search took 1/8 - 1/2 of most steps after friction's lag update;
+cutting these too removed every halving; docs/contact.md, "Steps that pass near a sticking zone").
 
 The filter acts per collider contact (a surface vertex against a collider; surface pairs are not
 filtered: cutting the steps of both sides of a pair slowed the stack's impacts, docs/contact.md)

@@ -137,7 +137,8 @@ class AMGSolver(HostLinearSolver):
                           wp.array(m.astype(dt), dtype=self.vec_type, device=dev))
         else:
             self.ml = None
-        self._base_iters = None if counts.pop("_base_iters") is None else int(view.number("base_iters"))
+        base = counts.pop("_base_iters")
+        self._base_iters = None if base is None else int(base)
         for k, val in counts.items():
             setattr(self, k, val)
 

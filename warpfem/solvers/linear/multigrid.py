@@ -480,8 +480,8 @@ class MultigridPCG(LinearSolver):
         self._tiny = vs(1e-10 if vs == wp.float64 else 1e-5)
         self._cmds = None
         self.levels = None  # the hierarchy is built for this pattern (again when a form grew it)
-        #: the matrices the kept hierarchy comes from (host copies, for ``state_dict``): the one it
-        #: was built from and the one its coarse operators were last formed from ("same": that one)
+        #: the matrices the kept hierarchy comes from (device copies, read only by ``state_dict``): the
+        #: one it was built from and the one its coarse operators were last formed from ("same": that one)
         self._sources = {}
 
     # -- hierarchy ------------------------------------------------------------------------------------
