@@ -130,6 +130,10 @@ CONFIGS: dict[str, dict] = {
     "update_25": {"friction_update_tol": 0.25},
     "update_50": {"friction_update_tol": 0.5},
     "lag_once": {"friction_iterations": 0},
+    # friction's lag update inside the solve made at an iterate whose relative gradient is below 0.1 /
+    # 0.3 of the step's start instead of 1e-2 (Simulator(friction_lag_below=...), docs/contact.md)
+    "lag_below_0.1": {"friction_lag_below": 0.1},
+    "lag_below_0.3": {"friction_lag_below": 0.3},
     # the split of a contact frame's cost (docs/contact.md, "What an impact step costs"): friction off
     # (mu = 0 on every collider and surface contact), friction lagged once from the step start, the
     # stick/slip-aware step off
@@ -139,6 +143,9 @@ CONFIGS: dict[str, dict] = {
     # docs/contact.md "What an impact step costs"): on (3, the default since it was measured), off
     "after_pin": {"friction_pin": 3.0},
     "after_no_pin": {"friction_pin": 0.0},
+    # the pin's second solve from zero, as first built, instead of warm-started from the filtered
+    # direction (module constant PIN_WARM_START of warpfem.solvers.forms)
+    "pin_cold_start": {"pin_warm_start": False},
     # the collision step bound's fraction of each gap it keeps (the line search's first step, module
     # constants STEP_ETA of warpfem.contact.contact for colliders and warpfem.contact.surface for
     # surface pairs; docs/contact.md "What an impact step costs"): both, colliders only, surface only
@@ -152,7 +159,8 @@ CONFIGS: dict[str, dict] = {
 }
 #: configuration keys that set a module constant (module, name), restored to its import value before
 #: every run so that configurations run one after the other in one process do not leak into each other
-MODULE_KEYS = {"collider_step_eta": ("warpfem.contact.contact", "STEP_ETA"),
+MODULE_KEYS = {"pin_warm_start": ("warpfem.solvers.forms", "PIN_WARM_START"),
+               "collider_step_eta": ("warpfem.contact.contact", "STEP_ETA"),
                "surface_step_eta": ("warpfem.contact.surface", "STEP_ETA")}
 _MODULE_DEFAULTS: dict = {}
 

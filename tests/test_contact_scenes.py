@@ -57,13 +57,21 @@ def test_contact_table_of_a_bodies_scene_reaches_the_simulator(tmp_path):
 
     text = open(os.path.join(ROOT, "examples", "scenes", "stack.toml")).read()
     p = tmp_path / "stack.toml"
-    p.write_text(text.replace("[contact]\nfriction = 0.5", "[contact]\nfriction = 0.35\ndhat = 0.004"))
+    p.write_text(text.replace("[contact]\nfriction = 0.5", "[contact]\nfriction = 0.35\ndhat = 0.004\n"
+                                                             "friction_lag_below = 0.1"))
     scene = load_scene(str(p))
     assert scene.spec.contact["friction"] == 0.35
     assert "contact: bodies = default, self = False, friction = 0.35, dhat = 0.004" in scene.describe()
     run = scene.build()
     c = run.sim.surface_contact
     assert c.friction == 0.35 and c.dhat == 0.004 and c.bodies and not c.self_contact
+    assert run.sim.friction_lag_below == 0.1 and run.sim.friction_update_tol == 0.0
+    assert load_scene(os.path.join(ROOT, "examples", "scenes", "stack.toml")).build().sim.friction_lag_below is None
+    for bad, says in (("1.5", "friction_lag_below must be in (0, 1)"), ("0.0", "friction_lag_below")):
+        p.write_text(text.replace("[contact]\nfriction = 0.5", f"[contact]\nfriction = 0.5\nfriction_lag_below = {bad}"))
+        with pytest.raises(Exception, match=r"\[contact\]") as err:
+            load_scene(str(p)).build()
+        assert says in str(err.value) and "\n" not in str(err.value).strip()
 
 
 @pytest.mark.parametrize("name,bodies,self_contact", [("stack", 2, False), ("ball_bowl", 2, False),

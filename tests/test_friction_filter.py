@@ -355,3 +355,87 @@ def test_an_iteration_whose_filter_cut_nothing_reads_no_unfiltered_direction(mon
             assert a[0] == b[0] and np.array_equal(a[1], b[1])
             assert c0 - c1 >= 9
         assert r0 - r1 == c0 - c1
+
+
+def test_friction_lag_below_takes_the_lag_earlier_with_fewer_newton_iterations():
+    """Simulator(friction_lag_below=0.1) (default None: 1e-2, ``forms.LAG_BELOW``): the lag update
+    inside the solve is made from the first full-step iterate whose relative gradient is at most 0.1.
+    The potential's hook honours the setting over a form's own ``lag_below`` (stand-in form, no
+    kernels); on the sliding box drop (48 steps, float64) the run takes fewer Newton iterations
+    (measured 185 against 207) and ends within 0.1 mm of the default's positions (measured 0.055
+    mm: the normal forces are taken at another iterate); bad values are refused."""
+    from types import SimpleNamespace
+
+    from warpfem.solvers.forms import LAG_BELOW, IncrementalPotential
+
+    class Lagging:
+        lag_below = LAG_BELOW
+        updates = 0
+
+        def uses_lagging(self):
+            return True
+
+        def update_lagging(self, x, keep_below=0.0):
+            Lagging.updates += 1
+            return (1.0, 1.0)
+
+    pot = SimpleNamespace(forms=[Lagging()], adaptive_forms=lambda: [], _x_of=lambda y: y)
+    for name in ("set_lag_updates", "after_iteration"):
+        setattr(pot, name, getattr(IncrementalPotential, name).__get__(pot))
+    pot.set_lag_updates(1, 0.01, 0.0)  # the form's own 1e-2
+    assert pot.after_iteration("y", 1.0, residual=0.05) is False and Lagging.updates == 0
+    pot.set_lag_updates(1, 0.01, 0.0, below=0.1)
+    assert pot.after_iteration("y", 0.5, residual=0.05) is False  # a shortened step: not near enough
+    assert pot.after_iteration("y", 1.0, residual=0.2) is False and Lagging.updates == 0
+    assert pot.after_iteration("y", 1.0, residual=0.05) is True and Lagging.updates == 1
+
+    default, _, n_default = _box_drop(True)
+    orig = Simulator.__init__
+
+    def early(self, *a, **kw):
+        orig(self, *a, friction_lag_below=0.1, **kw)
+
+    Simulator.__init__ = early
+    try:
+        sim, _, n_early = _box_drop(True)
+    finally:
+        Simulator.__init__ = orig
+    assert sim.friction_lag_below == 0.1 and Simulator(sim.model, dt=0.01).friction_lag_below is None
+    assert n_early <= n_default - 10
+    assert np.abs(sim.positions() - default.positions()).max() < 1e-4
+    assert sim.positions()[:, 2].min() > -0.02
+    for bad in (0.0, 1.0, -0.1, float("nan"), "x"):
+        with pytest.raises(ValueError, match="friction_lag_below"):
+            Simulator(sim.model, dt=0.01, friction_lag_below=bad)
+
+
+def test_pinned_solve_starts_from_the_filtered_direction():
+    """``friction_pin``'s second solve is warm-started from the filtered direction
+    (``forms.PIN_WARM_START``), to the residual a solve from zero would leave: on the sliding box
+    drop (48 steps, PCG) the same Newton iterations and positions (to 1e-8 m) with fewer CG
+    iterations (measured 1698 against 1741 in float64; the bunny's impact: 462 against 717 in its
+    pinned solves); with a factorisation (the box's default solver here) nothing changes, bit for
+    bit, and no read-back is added."""
+    import warpfem.solvers.forms as F
+
+    def run(warm, solver):
+        F.PIN_WARM_START = warm
+        try:
+            mesh = box_tet_mesh(size=(0.2, 0.2, 0.2), cells=(2, 2, 2))
+            m = Model(mesh, make_material("stable_neo_hookean", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0),
+                      gravity=(0.0, 0.0, -G))
+            sim = Simulator(m, dt=1 / 240, max_iters=100, linear_solver=solver)
+            sim.add_collider(Plane(point=(0, 0, -0.02), normal=(0, 0, 1), friction=0.3))
+            sim.set_velocities(np.tile([0.3, 0.0, -1.0], (m.num_vertices, 1)))
+            stats = [sim.step() for _ in range(48)]
+        finally:
+            F.PIN_WARM_START = True
+        assert all(st.converged for st in stats)
+        return (sim.positions(), sum(st.newton_iterations for st in stats), sum(st.linear_iterations for st in stats),
+                sum(st.newton_syncs for st in stats))
+
+    (xw, nw, lw, _), (xc, nc, lc, _) = run(True, "pcg"), run(False, "pcg")
+    assert nw == nc and np.abs(xw - xc).max() < 1e-8
+    assert lw <= lc - 20
+    (xw, nw, lw, sw), (xc, nc, lc, sc) = run(True, "direct"), run(False, "direct")
+    assert np.array_equal(xw, xc) and (nw, lw, sw) == (nc, lc, sc)

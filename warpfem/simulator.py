@@ -40,6 +40,19 @@ from warpfem.transfer import read, to_device, upload
 INITIAL_GUESSES = ("previous", "extrapolated")
 
 
+def check_lag_below(value):
+    """``friction_lag_below`` checked: None, or a number in (0, 1)."""
+    if value is None:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"friction_lag_below must be a number in (0, 1) or None, got {value!r}") from None
+    if not (np.isfinite(v) and 0.0 < v < 1.0):
+        raise ValueError(f"friction_lag_below must be in (0, 1), got {value!r}")
+    return v
+
+
 class QuadratureSet(NamedTuple):
     """One set of quadrature points the element kernels run over (``Simulator.quadrature_sets``).
 
@@ -103,12 +116,18 @@ class Simulator(SimulatorBase):
             for it (``SolveStats.friction_kept`` counts these). 0 (default): always update. Fewer
             Newton iterations, less accurate sliding friction where normal forces swing from step
             to step: docs/contact.md, "Friction updated only when the normal forces change".
+        friction_lag_below: the relative gradient (over the step's start) at or under which an
+            iterate reached by a full Newton step is taken as near enough to the solution for those
+            updates; None (default): 1e-2 (``forms.LAG_BELOW``, or a form's own ``lag_below``).
+            Larger (e.g. 0.1): the update comes earlier, saving Newton iterations, with normal
+            forces taken further from the step's solution: docs/contact.md, "When friction's lag
+            is taken again (friction_lag_below)".
     """
 
     def __init__(self, model, *, device="cpu", precision="float64", dt=1.0 / 60.0, integrator="backward_euler",
                  damping_mass=0.0, damping_stiffness=0.0, require_convergence=False, linear_solver="auto",
                  linear_solver_options=None, colliders=None, initial_guess="previous", friction_iterations=1,
-                 friction_tol=0.01, friction_update_tol=0.0, **newton_options):
+                 friction_tol=0.01, friction_update_tol=0.0, friction_lag_below=None, **newton_options):
         types = check_simulator_options(precision, dt, damping_mass, damping_stiffness)
         if initial_guess not in INITIAL_GUESSES:
             raise ValueError(f"initial_guess must be one of {', '.join(repr(g) for g in INITIAL_GUESSES)}, "
@@ -122,6 +141,7 @@ class Simulator(SimulatorBase):
         if not (np.isfinite(friction_update_tol) and 0.0 <= friction_update_tol < 1.0):
             raise ValueError(f"friction_update_tol must be in [0, 1), got {friction_update_tol!r}")
         self.friction_update_tol = float(friction_update_tol)
+        self.friction_lag_below = check_lag_below(friction_lag_below)
         self.integrator = make_integrator(integrator)
         self.options = newton_options_from(newton_options)
         # max_iters not given: the default, raised to what the potential's forms ask for (contact),
@@ -209,6 +229,7 @@ class Simulator(SimulatorBase):
         self._prediction_work = {}  # the integrator's prediction buffers (made on first use)
         self._potential = IncrementalPotential(ops, forms, system=system, mask=self._mask,
                                                linear_solve=lambda *a, **kw: self._linear_solve(*a, **kw), work=self._work)
+        self._potential.iterative_solve = lambda: bool(getattr(self._pcg, "iterative", True))
         # the body size of the step test (NewtonOptions.step_tol): the rest mesh's bounding-box diagonal
         rest = np.asarray(model.rest_positions, dtype=np.float64)
         self._potential.body_size = float(np.linalg.norm(np.ptp(rest, axis=0))) if len(rest) else 0.0
@@ -586,7 +607,7 @@ class Simulator(SimulatorBase):
         lags = any(f.uses_lagging() for f in pot.forms)
         iterate = lags and not self._differentiating()
         pot.set_lag_updates(self.friction_iterations if iterate else 0, self.friction_tol,
-                            self.friction_update_tol if iterate else 0.0)
+                            self.friction_update_tol if iterate else 0.0, check_lag_below(self.friction_lag_below))
         pot.time_step = float(dt)  # the step test's h (NewtonOptions.step_tol)
         stats = newton_solve(pot, y, self.options)
         stats.friction_iterations, stats.friction_kept = pot.lag_updates, pot.lags_kept

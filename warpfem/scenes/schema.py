@@ -216,6 +216,9 @@ SCHEMA: dict[str, dict[str, Key]] = {
         "friction_update_tol": Key("float", default=0.0, check=_non_negative,
                                    doc="> 0: the first update only when a normal force changes by more than this "
                                        "fraction of the largest (0: always)"),
+        "friction_lag_below": Key("float", default=None, check=_positive,
+                                  doc="relative gradient at which a full Newton step's iterate is near enough to "
+                                      "update friction from; default 0.01 (larger: earlier, cheaper, less exact)"),
     },
     "traction": {
         "box_min": Key("vec3", required=True),

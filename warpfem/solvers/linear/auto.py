@@ -271,6 +271,11 @@ class AutoSolver(LinearSolver):
         """The direct solver, if it has been used (None otherwise)."""
         return self.solvers.get("direct")
 
+    @property
+    def iterative(self):
+        """Whether the solver in use iterates (the direct one does not)."""
+        return self.active != "direct"
+
     # -- interface --------------------------------------------------------------------------------
     def _prepare(self, values, mask):
         # the cost of a Newton system runs from here to the end of its solve (every solver's solve

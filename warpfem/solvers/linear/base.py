@@ -95,6 +95,9 @@ class LinearSolver:
     name = "base"
     #: whether ``prepare`` computes ``inv_diag`` (solvers that only need it on failure compute it then)
     eager_inv_diag = True
+    #: whether the solve iterates to a relative residual (a start near the solution saves work: the
+    #: friction pin's second solve is warm-started only then); False for a factorisation
+    iterative = True
 
     def __init__(self, pattern, *, vec_type, scalar):
         self.pattern = pattern

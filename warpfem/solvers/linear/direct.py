@@ -378,6 +378,7 @@ class DirectSolver(HostLinearSolver):
 
     name = "direct"
     eager_inv_diag = False  # the block-Jacobi inverse is only needed when a factorisation fails
+    iterative = False
 
     def __init__(self, pattern, *, vec_type, scalar, backend: str = "auto"):
         if backend not in BACKENDS:
