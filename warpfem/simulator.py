@@ -30,7 +30,7 @@ from warpfem.kernels.generic import COUNTERS, launch, ordered_sums
 from warpfem.kernels.structs import material_params, quadrature_points
 from warpfem.model import static_supports_error
 from warpfem.solvers.forms import (DampingForm, ElasticForm, IncrementalPotential, InertiaForm, InfeasibleStart, LoadForm,
-                                   StepContext, Workspace)
+                                   StepContext, Workspace, check_lag_below)
 from warpfem.solvers.nonlinear import SolveFailed, SolveStats, newton_solve
 from warpfem.solvers.state import SimulatorBase, _NoState, check_simulator_options, newton_options_from
 from warpfem.solvers.sparse import PatternView
@@ -38,19 +38,6 @@ from warpfem.transfer import read, to_device, upload
 
 #: the choices of ``Simulator(initial_guess=...)``
 INITIAL_GUESSES = ("previous", "extrapolated")
-
-
-def check_lag_below(value):
-    """``friction_lag_below`` checked: None, or a number in (0, 1)."""
-    if value is None:
-        return None
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"friction_lag_below must be a number in (0, 1) or None, got {value!r}") from None
-    if not (np.isfinite(v) and 0.0 < v < 1.0):
-        raise ValueError(f"friction_lag_below must be in (0, 1), got {value!r}")
-    return v
 
 
 class QuadratureSet(NamedTuple):

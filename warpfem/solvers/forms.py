@@ -114,6 +114,22 @@ FORCE_SEAM_MAX_POINTS = 2048
 #: (docs/contact.md): from the first iterate, an impact's overshoot into the barrier gives normal
 #: forces many times the converged ones (the stack's impact step then took 100 iterations).
 LAG_BELOW = 1e-2
+
+
+def check_lag_below(value):
+    """``friction_lag_below`` (a simulator's override of the forms' ``lag_below``) checked: None, or
+    a number in (0, 1)."""
+    if value is None:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"friction_lag_below must be a number in (0, 1) or None, got {value!r}") from None
+    if not (np.isfinite(v) and 0.0 < v < 1.0):
+        raise ValueError(f"friction_lag_below must be in (0, 1), got {value!r}")
+    return v
+
+
 #: ``friction_pin``'s second solve starts from the filtered direction: it solves for the correction
 #: c of (A + S) c = r0 = b + S d_cut - (A + S) d_filt, to the tolerance that leaves the same residual
 #: as a solve from zero (``cg_tol`` x |b|). The filtered direction is near the pinned one (|r0| is
