@@ -16,7 +16,7 @@ of a step that did not; the physics mesh's size. The target of this job: the who
 10 minutes on a 2-core CPU with every frame converged (docs/meshing.md, "A scan end to end").
 
     .venv/bin/python kernels_bench/bench_scan_job.py [--frames 48] [--subdivisions 2] [--noise 0.05]
-        [--precision float64] [--out kernels_bench/results/scan_job]
+        [--precision float64] [--integrator KEYS] [--contact KEYS] [--out kernels_bench/results/scan_job]
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ friction = 0.5
 [output]
 fps = 48
 frames = {frames}
-{integrator}"""
+{integrator}{contact}"""
 
 
 def main(argv=None):
@@ -74,6 +74,8 @@ def main(argv=None):
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--integrator", default="", help="extra [integrator] keys, TOML (e.g. 'max_iters = 100'); "
                     "default: none, the defaults decide")
+    ap.add_argument("--contact", default="", help="extra [contact] keys, TOML (e.g. 'friction_lag_below = 0.1'); "
+                    "default: none")
     ap.add_argument("--out", default=str(ROOT / "kernels_bench" / "results" / "scan_job"))
     a = ap.parse_args(argv)
 
@@ -99,7 +101,8 @@ def main(argv=None):
         write_obj(os.path.join(tmp, "scan.obj"), V, F)
         with open(os.path.join(tmp, "scan.toml"), "w") as f:
             f.write(SCENE.format(floor=floor, sx=centre[0], sy=centre[1], sz=centre[2], r=r, frames=a.frames,
-                                  integrator=f"[integrator]\n{a.integrator}\n" if a.integrator else ""))
+                                  integrator=f"[integrator]\n{a.integrator}\n" if a.integrator else "",
+                                  contact=f"[contact]\n{a.contact}\n" if a.contact else ""))
         t0 = time.perf_counter()
         scene = load_scene(os.path.join(tmp, "scan.toml"))
         run = scene.build(device=a.device, precision=a.precision)
@@ -117,7 +120,7 @@ def main(argv=None):
     job_s = time.perf_counter() - t_job
     unconverged = sum(1 for f in frames if not f["converged"])
     meta = dict(device=a.device, cpu=platform.processor() or platform.machine(), cores=os.cpu_count(),
-                precision=a.precision, integrator_keys=a.integrator, surface_vertices=int(len(V)), surface_triangles=int(len(F)),
+                precision=a.precision, integrator_keys=a.integrator, contact_keys=a.contact, surface_vertices=int(len(V)), surface_triangles=int(len(F)),
                 noise=a.noise, subdivisions=a.subdivisions, tets=int(m.num_elements), vertices=int(m.num_vertices),
                 mesh_and_build_seconds=mesh_s, job_seconds=job_s, frames=a.frames, unconverged_frames=unconverged,
                 newton_per_frame=float(np.mean([f["newton"] for f in frames])),
