@@ -568,8 +568,9 @@ def markdown(result):
          "best of 5x5.", "",
          "| case | config | precision | frames free/contact | Newton/frame free mean (max) | contact mean (max) | "
          "Newton contact/free | s/frame free | s/frame contact | time contact/free | contact frame / Hessian mean (max) | "
-         "Hessian ms | line-search halvings | not converged steps | friction re-solves (lag updates since 5531463) | intersecting frames |",
-         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+         "Hessian ms | line-search halvings | not converged steps | friction re-solves (lag updates since 5531463) | "
+         "linear it. / frame free (contact) | intersecting frames |",
+         "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in result["runs"]:
         s = r["summary"]
         n, w, c = s["newton"], s["wall"], s["cpu"]
@@ -583,6 +584,8 @@ def markdown(result):
             f"{_f(hw['mean'], '.0f')} ({_f(hc['mean'], '.0f')}), max {_f(hw['max'], '.0f')} | "
             f"{r['hessian_seconds']['wall'] * 1e3:.2f} ({r['hessian_seconds']['cpu'] * 1e3:.2f}) | "
             f"{s['line_search_total']} | {s['not_converged_steps']} | {s['friction_iterations_total']} | "
+            f"{_f((s.get('linear') or {}).get('free', {}).get('mean'), '.1f')} "
+            f"({_f((s.get('linear') or {}).get('contact', {}).get('mean'), '.1f')}) | "
             f"{len(s['intersecting_frames'])}{' ' + str(s['intersecting_frames'][:5]) if s['intersecting_frames'] else ''}"
             f"{' (error: ' + r['error'] + ')' if r['error'] else ''} |")
     cmp_rows = result.get("against_baseline") or []
