@@ -128,7 +128,7 @@ class Simulator(SimulatorBase):
         if not (np.isfinite(friction_update_tol) and 0.0 <= friction_update_tol < 1.0):
             raise ValueError(f"friction_update_tol must be in [0, 1), got {friction_update_tol!r}")
         self.friction_update_tol = float(friction_update_tol)
-        self.friction_lag_below = check_lag_below(friction_lag_below)
+        self.friction_lag_below = friction_lag_below  # (checked by the property)
         self.integrator = make_integrator(integrator)
         self.options = newton_options_from(newton_options)
         # max_iters not given: the default, raised to what the potential's forms ask for (contact),
@@ -594,7 +594,7 @@ class Simulator(SimulatorBase):
         lags = any(f.uses_lagging() for f in pot.forms)
         iterate = lags and not self._differentiating()
         pot.set_lag_updates(self.friction_iterations if iterate else 0, self.friction_tol,
-                            self.friction_update_tol if iterate else 0.0, check_lag_below(self.friction_lag_below))
+                            self.friction_update_tol if iterate else 0.0, self.friction_lag_below)
         pot.time_step = float(dt)  # the step test's h (NewtonOptions.step_tol)
         stats = newton_solve(pot, y, self.options)
         stats.friction_iterations, stats.friction_kept = pot.lag_updates, pot.lags_kept
@@ -615,6 +615,16 @@ class Simulator(SimulatorBase):
             state_out.history["guess_h"] = dt
         state_out.time = state_in.time + dt
         return stats
+
+    @property
+    def friction_lag_below(self):
+        """The relative gradient at which friction's lag update may be made (None: the forms' own,
+        1e-2); set it to None or a number in (0, 1), checked on assignment."""
+        return self._friction_lag_below
+
+    @friction_lag_below.setter
+    def friction_lag_below(self, value):
+        self._friction_lag_below = check_lag_below(value)
 
     def _differentiating(self):
         """Whether this step is recorded for gradients (the adjoint differentiates friction lagged

@@ -56,9 +56,7 @@ def set_scene_contact(scene, sim, table=None):
             raise ValueError(f"friction_update_tol must be in [0, 1), got {tol!r}")
         sim.friction_update_tol = tol
         if c.get("friction_lag_below") is not None:
-            from warpfem.solvers.forms import check_lag_below
-
-            sim.friction_lag_below = check_lag_below(c["friction_lag_below"])
+            sim.friction_lag_below = c["friction_lag_below"]  # (checked by the simulator)
         sim.set_contact(**{k: c[k] for k in ("bodies", "self", "friction", "dhat", "stiffness", "friction_velocity")})
     except (TypeError, ValueError) as e:
         scene.fail("[contact]", str(e))
